@@ -7,7 +7,9 @@ per-frame lighting (Sang, Haefner, Cremers, WACV 2020).
 
 from .capture import Capture, GroundTruth, read_capture, write_capture
 from .errors import CaptureError, ExportError, MVPSError, OdometryError, OutputExistsError, RecordingError
-from .refinement import Refinement
+from .refinement import Refinement, read_refinement
+from .solver.driver import refine
+from .solver.options import RefineOptions
 
 __version__ = "0.1.0"
 
@@ -17,6 +19,9 @@ __all__ = [
     "read_capture",
     "write_capture",
     "Refinement",
+    "read_refinement",
+    "refine",
+    "RefineOptions",
     "MVPSError",
     "CaptureError",
     "OutputExistsError",

@@ -3,13 +3,23 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 
+import cv2
 import numpy as np
 import open3d as o3d
 
-from .capture import image_from_array
+from .capture import image_from_array, load_json, read_intrinsic_json
+from .colour import linear_to_srgb
+from .errors import MVPSError
+from .fileio import atomic_folder, json_text, write_intrinsic_json, write_png
 from .model.camera import as_intrinsic_matrix
 from .model.normals import perspective_normals
+
+#: Files of a saved refinement folder (see Refinement.save).
+DEPTH_NPY, DEPTH_PNG, MASK_PNG = "depth.npy", "depth_mm.png", "mask.png"
+ALBEDO_NPY, ALBEDO_PNG, NORMALS_NPY, NORMALS_PNG = "albedo.npy", "albedo.png", "normals.npy", "normals.png"
+POSES_NPY, LIGHTING_JSON, INTRINSIC_JSON, REPORT_JSON = "poses.npy", "lighting.json", "intrinsic.json", "report.json"
 
 
 @dataclass
@@ -60,6 +70,39 @@ class Refinement:
         """(3, 3) float64 colour intrinsics."""
         return as_intrinsic_matrix(self.intrinsic)
 
+    def report(self) -> dict:
+        """JSON-ready summary: method, energy history, timings and solver information."""
+        return {"method": self.method, "energy": self.energy, "timings": self.timings, "info": self.info}
+
+    def save(self, folder, *, overwrite: bool = False, extra_report: dict | None = None) -> None:
+        """Write the result folder all or nothing (never over an earlier output unless ``overwrite``).
+
+        Files: depth.npy (H, W) float32 metres and depth_mm.png uint16 millimetres, mask.png,
+        normals.npy (H, W, 3) and normals.png ((n + 1) / 2 as 8-bit RGB), albedo.npy (linear)
+        and albedo.png (8-bit sRGB) when estimated, poses.npy (n, 4, 4), lighting.json,
+        intrinsic.json (Open3D PinholeCameraIntrinsic), report.json.
+        """
+        depth, mask, normals, albedo = self.depth_array(), self.mask_array(), self.normals_array(), self.albedo_array()
+        report = {**self.report(), **(extra_report or {})}
+        text = json_text(report, "the refinement report")
+        with atomic_folder(folder, overwrite=overwrite, what="refinement folder") as tmp:
+            np.save(tmp / DEPTH_NPY, depth)
+            write_png(tmp / DEPTH_PNG, np.clip(np.rint(depth * 1000.0), 0, 65535).astype(np.uint16))
+            write_png(tmp / MASK_PNG, mask.astype(np.uint8) * np.uint8(255))
+            np.save(tmp / NORMALS_NPY, normals)
+            write_png(tmp / NORMALS_PNG, np.rint((normals + 1.0) * 127.5 * mask[..., None]).astype(np.uint8))
+            if albedo is not None:
+                np.save(tmp / ALBEDO_NPY, albedo)
+                write_png(tmp / ALBEDO_PNG, np.rint(linear_to_srgb(albedo) * 255.0).astype(np.uint8))
+            if self.poses is not None:
+                np.save(tmp / POSES_NPY, self.poses.numpy())
+            if self.lighting is not None:
+                lighting = {"model": "first-order SH, shading = l . [1, n_x, n_y, n_z]",
+                            "lighting": self.lighting.numpy().tolist()}
+                (tmp / LIGHTING_JSON).write_text(json_text(lighting, "lighting"))
+            write_intrinsic_json(tmp / INTRINSIC_JSON, self.intrinsic_matrix(), depth.shape)
+            (tmp / REPORT_JSON).write_text(text)
+
     @classmethod
     def from_arrays(cls, depth: np.ndarray, mask: np.ndarray, K: np.ndarray, *, albedo=None, poses=None,
                     lighting=None, method: str = "ours", **kwargs) -> "Refinement":
@@ -83,3 +126,28 @@ class Refinement:
             method=method,
             **kwargs,
         )
+
+
+def read_refinement(folder) -> Refinement:
+    """Read a folder written by :meth:`Refinement.save`."""
+    root = Path(folder)
+    if not (root / DEPTH_NPY).is_file():
+        raise MVPSError(f"{root} is not a refinement folder ({DEPTH_NPY} missing); give the folder that "
+                        "'o3d-mvps refine' or Refinement.save wrote")
+    try:
+        depth = np.load(root / DEPTH_NPY, allow_pickle=False)
+        albedo = np.load(root / ALBEDO_NPY, allow_pickle=False) if (root / ALBEDO_NPY).is_file() else None
+        poses = np.load(root / POSES_NPY, allow_pickle=False) if (root / POSES_NPY).is_file() else None
+    except (OSError, ValueError) as e:
+        raise MVPSError(f"cannot read the arrays in {root} ({e}); the folder is corrupt: refine again") from None
+    mask_image = cv2.imread(str(root / MASK_PNG), cv2.IMREAD_UNCHANGED)
+    mask = depth > 0 if mask_image is None else mask_image > 0
+    K, _ = read_intrinsic_json(root / INTRINSIC_JSON)
+    lighting = load_json(root / LIGHTING_JSON)["lighting"] if (root / LIGHTING_JSON).is_file() else None
+    report = load_json(root / REPORT_JSON) if (root / REPORT_JSON).is_file() else {}
+    refinement = Refinement.from_arrays(depth, mask, K, albedo=albedo, poses=poses, lighting=lighting,
+                                        method=report.get("method", "ours"), energy=report.get("energy", []),
+                                        timings=report.get("timings", {}), info=report.get("info", {}))
+    if (root / NORMALS_NPY).is_file():
+        refinement.normals = image_from_array(np.load(root / NORMALS_NPY, allow_pickle=False).astype(np.float32))
+    return refinement

@@ -1,0 +1,107 @@
+"""``o3d-mvps record`` (live, from a RealSense camera) and ``o3d-mvps convert`` (a recording).
+
+Both write a capture folder (DESIGN section 3) with depth registered to the colour camera at
+the sensor's native resolution (colour / SF), ready for ``o3d-mvps refine``.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from ..capture import write_capture
+from ..errors import OutputExistsError
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT such as 1280x720, got {text!r}") from None
+    if w <= 0 or h <= 0:
+        raise argparse.ArgumentTypeError(f"width and height must be positive, got {text!r}")
+    return w, h
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return value
+
+
+def register(subparsers) -> None:
+    rec = subparsers.add_parser(
+        "record",
+        help="record a capture live with a RealSense D415",
+        description="Record a capture with a connected RealSense camera (an LED attached to it) and write the "
+        "capture folder OUT. Move slowly around the object, 0.5-1 m away, LED on, room lights dim.",
+    )
+    rec.add_argument("out", metavar="OUT", type=Path, help="capture folder to write")
+    rec.add_argument("--frames", type=_positive_int, default=20, help="frames to record (default 20)")
+    rec.add_argument("--color", type=_size, default=(1280, 720), metavar="WxH", help="colour size (default 1280x720)")
+    rec.add_argument("--depth", type=_size, default=(640, 360), metavar="WxH", help="depth size (default 640x360)")
+    rec.add_argument("--fps", type=_positive_int, default=30, help="stream rate (default 30)")
+    when = rec.add_mutually_exclusive_group()
+    when.add_argument("--interval", type=float, default=1.0, metavar="S", help="seconds between frames (default 1)")
+    when.add_argument("--on-key", action="store_true", help="take a frame at each Enter (q + Enter stops)")
+    rec.add_argument("--emitter", choices=["on", "off"], default="on", help="IR dot projector (default on)")
+    rec.add_argument("--exposure", type=float, metavar="US", help="fixed colour exposure in µs (default auto)")
+    rec.add_argument("--serial", help="serial number of the camera when several are connected")
+    rec.add_argument("--overwrite", action="store_true", help="replace an existing capture folder")
+    rec.set_defaults(handler=run)
+
+    conv = subparsers.add_parser(
+        "convert",
+        help="convert a RealSense recording (.bag, .db3) into a capture folder",
+        description="Read a RealSense recording (.bag from the RealSense Viewer or older SDKs, .db3 from "
+        "pyrealsense2 2.59+), keep sharp, overlapping frames and write the capture folder OUT with depth at "
+        "its native resolution.",
+    )
+    conv.add_argument("recording", metavar="RECORDING", type=Path, help=".bag or .db3 recording")
+    conv.add_argument("out", metavar="OUT", type=Path, help="capture folder to write")
+    conv.add_argument("--frames", type=_positive_int, default=20, help="frames to keep (default 20)")
+    conv.add_argument("--stride", type=_positive_int, metavar="K", help="consider every K-th frame (default automatic)")
+    conv.add_argument(
+        "--scale-factor", type=_positive_int, metavar="SF", help="depth grid = colour / SF (default: from the sizes)"
+    )
+    conv.add_argument("--overwrite", action="store_true", help="replace an existing capture folder")
+    conv.set_defaults(handler=run_convert)
+
+
+def _check_out(out: Path, overwrite: bool) -> None:
+    """Fail before recording rather than after, when OUT would be overwritten."""
+    if out.exists() and not overwrite and (not out.is_dir() or any(out.iterdir())):
+        raise OutputExistsError(f"{out} already exists and is not empty; choose another folder or pass --overwrite")
+
+
+def run(args) -> int:
+    from ..realsense import record_capture
+
+    _check_out(args.out, args.overwrite)
+    capture = record_capture(
+        args.frames, args.color, args.depth, fps=args.fps, interval=args.interval, on_key=args.on_key,
+        emitter=args.emitter == "on", exposure_us=args.exposure, serial=args.serial,
+        progress=not getattr(args, "quiet", False),
+    )  # fmt: skip
+    write_capture(capture, args.out, overwrite=args.overwrite)
+    _report(args, capture)
+    return 0
+
+
+def run_convert(args) -> int:
+    from ..realsense import read_recording
+
+    _check_out(args.out, args.overwrite)
+    capture = read_recording(args.recording, frames=args.frames, stride=args.stride, scale_factor=args.scale_factor,
+                             progress=not getattr(args, "quiet", False))  # fmt: skip
+    write_capture(capture, args.out, overwrite=args.overwrite)
+    _report(args, capture)
+    return 0
+
+
+def _report(args, capture) -> None:
+    if not getattr(args, "quiet", False):
+        (H, W), (h, w) = capture.color_size, capture.depth_size
+        sf = capture.scale_factor
+        print(f"wrote {capture.n_frames} frames to {args.out} (colour {W}x{H}, depth {w}x{h}, SF {sf})")

@@ -1,0 +1,175 @@
+"""Accuracy metrics of a refinement against synthetic ground truth (DESIGN section 5).
+
+- MAE: mean angle in degrees between estimated and true unit normals.
+- RMSE: root-mean-square depth error in millimetres (depths are given in metres).
+
+:func:`evaluate` compares a :class:`~o3d_mvps.refinement.Refinement` with a
+:class:`~o3d_mvps.capture.GroundTruth` over the same pixels for every method, so that the
+numbers of different methods (ours, bicubic, guided, ...) can be put side by side.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+#: Pixels removed from the ground-truth object silhouette before evaluation (see :func:`evaluate`).
+SILHOUETTE_MARGIN_PX = 2
+
+
+def _check_mask(mask: np.ndarray, shape: tuple[int, int], what: str) -> np.ndarray:
+    mask = np.asarray(mask, dtype=bool)
+    if mask.shape != shape:
+        raise ValueError(f"{what}: mask has shape {mask.shape} but the images are {shape}; pass an (H, W) boolean mask")
+    return mask
+
+
+def _nonempty(mask: np.ndarray, what: str) -> None:
+    if not mask.any():
+        raise ValueError(
+            f"{what}: no pixel to evaluate (the mask is empty where both inputs are valid); "
+            "check that the estimate and the ground truth overlap and that the mask selects the object"
+        )
+
+
+def normal_mae_deg(normals_est: np.ndarray, normals_true: np.ndarray, mask: np.ndarray) -> float:
+    """Mean angle in degrees between two normal fields over a mask.
+
+    Parameters
+    ----------
+    normals_est, normals_true : (H, W, 3) array
+        Unit normals (any common frame); a pixel whose normal is all zero is invalid.
+    mask : (H, W) bool array
+        Pixels to evaluate; only those where both normals are valid (nonzero) are used.
+
+    Returns
+    -------
+    float
+        Mean angle in degrees, computed with ``atan2(|a x b|, a . b)`` (accurate for small angles).
+
+    Raises
+    ------
+    ValueError
+        On a shape mismatch or when no pixel is left to evaluate.
+    """
+    a = np.asarray(normals_est, dtype=np.float64)
+    b = np.asarray(normals_true, dtype=np.float64)
+    if a.shape != b.shape or a.ndim != 3 or a.shape[2] != 3:
+        raise ValueError(
+            f"normal_mae_deg: normal fields must both be (H, W, 3), got {a.shape} and {b.shape}; "
+            "compare normals at the same (colour) resolution"
+        )
+    mask = _check_mask(mask, a.shape[:2], "normal_mae_deg")
+    valid = mask & np.any(a != 0, axis=2) & np.any(b != 0, axis=2)
+    _nonempty(valid, "normal_mae_deg")
+    a, b = a[valid], b[valid]
+    angle = np.arctan2(np.linalg.norm(np.cross(a, b), axis=1), np.einsum("ij,ij->i", a, b))
+    return float(np.degrees(angle).mean())
+
+
+def depth_rmse_mm(depth_est: np.ndarray, depth_true: np.ndarray, mask: np.ndarray) -> float:
+    """Root-mean-square depth error in millimetres over a mask.
+
+    Parameters
+    ----------
+    depth_est, depth_true : (H, W) array
+        Depth in metres. Unlike :func:`normal_mae_deg`, zero depth is not excluded here: the
+        caller's mask decides (a hole inside the mask counts as an error of the full depth).
+    mask : (H, W) bool array
+        Pixels to evaluate.
+
+    Returns
+    -------
+    float
+        RMSE in millimetres.
+
+    Raises
+    ------
+    ValueError
+        On a shape mismatch or an empty mask.
+    """
+    a = np.asarray(depth_est, dtype=np.float64)
+    b = np.asarray(depth_true, dtype=np.float64)
+    if a.shape != b.shape or a.ndim != 2:
+        raise ValueError(
+            f"depth_rmse_mm: depth maps must both be (H, W), got {a.shape} and {b.shape}; "
+            "compare depth at the same (colour) resolution"
+        )
+    mask = _check_mask(mask, a.shape, "depth_rmse_mm")
+    _nonempty(mask, "depth_rmse_mm")
+    return float(np.sqrt(np.mean((a[mask] - b[mask]) ** 2)) * 1000.0)
+
+
+def _groundtruth_arrays(groundtruth, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """GT depth (H, W) metres and normals (H, W, 3), checked against the refinement's (H, W)."""
+    if getattr(groundtruth, "groundtruth", None) is not None:  # a Capture
+        groundtruth = groundtruth.groundtruth
+    depth = np.asarray(groundtruth.depth, dtype=np.float64)
+    normals = np.asarray(groundtruth.normals, dtype=np.float64)
+    if depth.shape[:2] != shape or normals.shape != shape + (3,):
+        raise ValueError(
+            f"evaluate: the refinement is {shape} but the ground truth depth/normals are "
+            f"{depth.shape}/{normals.shape}; evaluate at the colour resolution of the capture"
+        )
+    return depth.reshape(shape), normals
+
+
+def evaluation_mask(refinement, groundtruth, mask: np.ndarray | None = None,
+                    margin: int = SILHOUETTE_MARGIN_PX) -> np.ndarray:
+    """The (H, W) bool mask :func:`evaluate` uses.
+
+    It is the refinement's mask, intersected with the ground-truth object (GT depth > 0)
+    eroded by ``margin`` pixels (3x3 structuring element, so the margin is measured in the
+    chessboard metric), with pixels where both normal fields are valid, and with ``mask``.
+    The erosion keeps silhouette pixels, whose finite-difference normals and mixed depth are
+    ill-defined for every method, from dominating the comparison. The image border does not
+    count as a silhouette.
+    """
+    shape = refinement.depth_array().shape
+    gt_depth, gt_normals = _groundtruth_arrays(groundtruth, shape)
+    gt_object = gt_depth > 0
+    if margin > 0:
+        gt_object = ndimage.binary_erosion(gt_object, structure=np.ones((3, 3), bool), iterations=margin,
+                                           border_value=1)
+    out = refinement.mask_array() & gt_object
+    out &= np.any(refinement.normals_array() != 0, axis=2) & np.any(gt_normals != 0, axis=2)
+    if mask is not None:
+        out &= _check_mask(mask, shape, "evaluate")
+    return out
+
+
+def evaluate(refinement, groundtruth, mask: np.ndarray | None = None, *,
+             margin: int = SILHOUETTE_MARGIN_PX) -> dict:
+    """Normal MAE and depth RMSE of a refinement against ground truth, on common pixels.
+
+    Parameters
+    ----------
+    refinement : Refinement
+        Depth (H, W) in metres and its perspective normals (H, W, 3), colour resolution.
+    groundtruth : GroundTruth or Capture
+        Ground truth at the same resolution (given a Capture, its ``groundtruth`` is used).
+        Its normals are in the reference camera frame, like the refinement's.
+    mask : (H, W) bool array, optional
+        Further restricts the evaluated pixels.
+    margin : int
+        Silhouette erosion in pixels (default 2); see :func:`evaluation_mask`.
+
+    Returns
+    -------
+    dict
+        ``{"mae_deg": float, "rmse_mm": float, "pixels": int}``; both metrics use the same
+        ``pixels`` pixels (:func:`evaluation_mask`).
+
+    Raises
+    ------
+    ValueError
+        When sizes differ or no pixel is left to evaluate.
+    """
+    depth = refinement.depth_array()
+    gt_depth, gt_normals = _groundtruth_arrays(groundtruth, depth.shape)
+    common = evaluation_mask(refinement, groundtruth, mask, margin)
+    return {
+        "mae_deg": normal_mae_deg(refinement.normals_array(), gt_normals, common),
+        "rmse_mm": depth_rmse_mm(depth, gt_depth, common),
+        "pixels": int(common.sum()),
+    }

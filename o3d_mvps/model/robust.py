@@ -1,0 +1,20 @@
+"""Cauchy M-estimator and its IRLS weights.
+
+``phi(r) = lam^2 / 2 * log(1 + r^2 / lam^2)``; ``w(r) = phi'(r) / r = 1 / (1 + r^2 / lam^2)``.
+``phi(r) <= phi(r_k) + w(r_k) / 2 * (r^2 - r_k^2)``, so a weighted least-squares step with
+weights w(r_k) / 2 never increases the robust energy (majorise-minimise).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def cauchy(r: np.ndarray, lam: float) -> np.ndarray:
+    """phi(r), elementwise."""
+    return 0.5 * lam * lam * np.log1p((r / lam) ** 2)
+
+
+def cauchy_weights(r: np.ndarray, lam: float) -> np.ndarray:
+    """IRLS weights w(r) = 1 / (1 + r^2 / lam^2), elementwise, in (0, 1]."""
+    return 1.0 / (1.0 + (r / lam) ** 2)

@@ -1,0 +1,94 @@
+"""Warping reference pixels into other frames, bilinear sampling and the occlusion test.
+
+A reference pixel p with depth z(p) back-projects to P = pi^-1(p, z); frame i sees it at
+``w_i(p) = pi(R_i P + t_i)`` (DESIGN section 2). Pixel centres sit at integer coordinates.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .camera import project, transform
+
+
+def sample_bilinear(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Bilinear samples (N, C) of an (H, W, C) image at real pixel coordinates u, v (N,).
+
+    Coordinates are clamped to the image, so samples outside repeat the border; use
+    :func:`in_view` to know which samples are genuine.
+    """
+    H, W = image.shape[:2]
+    flat = image.reshape(H * W, -1)
+    u = np.clip(u, 0.0, W - 1.0)
+    v = np.clip(v, 0.0, H - 1.0)
+    u0 = np.minimum(np.floor(u).astype(np.int64), W - 2) if W > 1 else np.zeros(u.shape, np.int64)
+    v0 = np.minimum(np.floor(v).astype(np.int64), H - 2) if H > 1 else np.zeros(v.shape, np.int64)
+    a = (u - u0)[:, None]
+    b = (v - v0)[:, None]
+    i00 = v0 * W + u0
+    du = 1 if W > 1 else 0
+    dv = W if H > 1 else 0
+    top = flat[i00] * (1 - a) + flat[i00 + du] * a
+    bottom = flat[i00 + dv] * (1 - a) + flat[i00 + dv + du] * a
+    return top * (1 - b) + bottom * b
+
+
+def image_gradients(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Central-difference gradients (d/du, d/dv) of an (H, W, C) image, each (H, W, C)."""
+    gu = np.zeros_like(image)
+    gv = np.zeros_like(image)
+    gu[:, 1:-1] = 0.5 * (image[:, 2:] - image[:, :-2])
+    gu[:, 0] = image[:, 1] - image[:, 0]
+    gu[:, -1] = image[:, -1] - image[:, -2]
+    gv[1:-1] = 0.5 * (image[2:] - image[:-2])
+    gv[0] = image[1] - image[0]
+    gv[-1] = image[-1] - image[-2]
+    return gu, gv
+
+
+def warp(points_ref: np.ndarray, T: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Reference points (N, 3) seen by a camera with pose T (4x4, reference -> frame).
+
+    Returns (points in frame coordinates (N, 3), u (N,), v (N,), Z (N,)).
+    """
+    points = transform(T, points_ref)
+    u, v, Z = project(points, K)
+    return points, u, v, Z
+
+
+def in_view(u: np.ndarray, v: np.ndarray, Z: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """(N,) bool: in front of the camera and inside an image of size (H, W)."""
+    H, W = size
+    with np.errstate(invalid="ignore"):
+        return (Z > 1e-6) & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
+
+
+def visible(u: np.ndarray, v: np.ndarray, Z: np.ndarray, size: tuple[int, int], *, rel_tol: float = 0.02,
+            sensor_depth: np.ndarray | None = None, sensor_uv: tuple[np.ndarray, np.ndarray] | None = None,
+            frame_mask: np.ndarray | None = None) -> np.ndarray:
+    """Occlusion test: which warped reference points frame i really sees, (N,) bool.
+
+    A point is visible when it is in view, it is the nearest reference point landing on its
+    pixel (z-buffer of the warped reference surface, tolerance ``rel_tol * Z``), frame i's
+    own depth measurement there (``sensor_depth`` (h, w) metres, sampled at ``sensor_uv``,
+    nearest) is not in front of it by more than the tolerance, and it lies inside frame i's
+    object mask (``frame_mask`` (H, W) bool) when one is given.
+    """
+    H, W = size
+    ok = in_view(u, v, Z, size)
+    iu = np.rint(np.where(ok, u, 0)).astype(np.int64)
+    iv = np.rint(np.where(ok, v, 0)).astype(np.int64)
+    zbuf = np.full(H * W, np.inf)
+    flat = iv * W + iu
+    np.minimum.at(zbuf, flat[ok], Z[ok])
+    tol = rel_tol * np.abs(Z)
+    ok &= Z <= zbuf[flat] + tol
+    if sensor_depth is not None and sensor_uv is not None:
+        h, w = sensor_depth.shape
+        su = np.clip(np.rint(sensor_uv[0]), 0, w - 1).astype(np.int64)
+        sv = np.clip(np.rint(sensor_uv[1]), 0, h - 1).astype(np.int64)
+        d = sensor_depth[sv, su]
+        ok &= (d <= 0) | (Z <= d + tol)
+    if frame_mask is not None:
+        ok &= frame_mask[iv, iu]
+    return ok

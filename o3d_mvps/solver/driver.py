@@ -1,0 +1,165 @@
+"""Coarse-to-fine driver: ``refine(capture) -> Refinement``.
+
+Per level, sweeps of poses -> depth -> albedo -> lighting (DESIGN section 2) until the
+relative energy change falls below the tolerance or the sweep cap is reached. z and albedo are
+upsampled bilinearly between levels; lighting and poses carry over (the authors' code reset
+lighting at every level).
+"""
+
+from __future__ import annotations
+
+import time
+from collections import defaultdict
+
+import cv2
+import numpy as np
+from tqdm.auto import tqdm
+
+from ..capture import Capture
+from ..errors import CaptureError
+from ..refinement import Refinement
+from .options import RefineOptions
+from .pose import update_poses
+from .depth import update_depth
+from .problem import Estimate, LevelProblem
+from .pyramid import build_level, fill_outside, level_size, resize
+from .reflectance import update_albedo, update_lighting
+
+
+def normalised_tau(tau_tilde: float, n_frames: int, mean_intensity: float, n_hr: int, mean_z0: float, n_lr: int,
+                   channels: int = 3) -> float:
+    """tau = tau~ n mean(I)^2 |Omega_HR| |C| / (mean(z0)^2 |Omega_LR|) (paper section 5.1)."""
+    return tau_tilde * n_frames * mean_intensity**2 * n_hr * channels / (mean_z0**2 * max(n_lr, 1))
+
+
+def _check_device(device) -> None:
+    name = str(device).upper()
+    if not name.startswith("CPU"):
+        raise ValueError(f"device {device!r}: this version of o3d_mvps solves on the CPU only; pass device='CPU:0'")
+
+
+def _reference_mask(capture: Capture) -> np.ndarray:
+    mask = capture.mask_array(0)
+    z0 = capture.depth_array(0)
+    if mask is None:
+        sf = capture.scale_factor
+        mask = np.kron(z0 > 0, np.ones((sf, sf), dtype=bool)).astype(bool)
+    if not mask.any():
+        raise CaptureError("the reference mask is empty (no object pixel in frame 0); give a mask that covers the object")
+    return mask
+
+
+def refine(capture: Capture, options: RefineOptions | None = None, device="CPU:0", initial_poses=None) -> Refinement:
+    """Jointly estimate depth (colour resolution), albedo, lighting and poses from a capture.
+
+    capture: frame 0 is the reference; ``initial_poses`` (n, 4, 4) reference -> frame i
+    (default: Open3D RGB-D odometry). Returns a :class:`~o3d_mvps.Refinement`.
+    """
+    options = options or RefineOptions()
+    _check_device(device)
+    frames = options.frame_indices(capture.n_frames)
+    if initial_poses is not None:
+        initial_poses = np.asarray(initial_poses, dtype=np.float64)
+        if initial_poses.shape != (capture.n_frames, 4, 4):
+            raise ValueError(f"initial_poses must be ({capture.n_frames}, 4, 4), got {initial_poses.shape}")
+        initial_poses = initial_poses[frames]
+    capture = capture.select(frames)
+    timings = defaultdict(float)
+
+    t0 = time.perf_counter()
+    if initial_poses is None:
+        if capture.n_frames > 1:
+            from ..odometry import initial_poses as odometry_poses
+
+            initial_poses = odometry_poses(capture, progress=options.progress)
+        else:
+            initial_poses = np.eye(4)[None]
+    timings["odometry"] += time.perf_counter() - t0
+
+    K = capture.color_K()
+    size = capture.color_size
+    colors = [capture.color_array(i).astype(np.float32) for i in range(capture.n_frames)]
+    masks = [capture.mask_array(i) for i in range(capture.n_frames)]
+    ref_mask = _reference_mask(capture)
+    z0 = capture.depth_array(0).astype(np.float64)
+    if not (z0 > 0).any():
+        raise CaptureError("the reference depth has no valid pixel; check the depth image of frame 0")
+    sensor_depths = [capture.depth_array(i) for i in range(capture.n_frames)]
+    depth_K = capture.depth_K()
+    sf = capture.scale_factor
+    mean_z0 = float(z0[z0 > 0].mean())
+    mean_I = float(colors[0][ref_mask].mean())
+
+    n_levels = int(options.levels)
+    while n_levels > 1 and min(level_size(size, n_levels - 1)) < 8:
+        n_levels -= 1
+    lights = np.tile(np.asarray(options.initial_light, dtype=np.float64), (capture.n_frames, 1))
+    poses = initial_poses.copy()
+    z_full = albedo_full = None
+    history = []
+    stats = {"cg_iterations": [], "levels": n_levels}
+
+    for level_index in reversed(range(n_levels)):
+        t = time.perf_counter()
+        level = build_level(level_index, colors, masks, ref_mask, K, z0, sf)
+        g = level.grid
+        if g.size < 16:
+            continue
+        if z_full is None:
+            zl = fill_outside(z0, z0 > 0)
+            z_full = resize(zl, level.size, interpolation=cv2.INTER_LINEAR)
+            albedo_full = level.stacks[0][..., :3].astype(np.float64)
+        else:
+            z_full = resize(z_full, level.size, interpolation=cv2.INTER_LINEAR)
+            albedo_full = resize(albedo_full, level.size, interpolation=cv2.INTER_LINEAR)
+        est = Estimate(g.gather(z_full).astype(np.float64), g.gather(albedo_full).astype(np.float64), lights, poses)
+        tau = normalised_tau(options.tau, capture.n_frames, mean_I, g.size, mean_z0, level.prior.rows)
+        problem = LevelProblem(level, tau, options.cauchy_lambda)
+        problem.update_visibility(est, occlusion_test=options.occlusion_test, rel_tol=options.occlusion_tolerance,
+                                  sensor_depths=sensor_depths, depth_K=depth_K)
+        ev = problem.evaluate(est)
+        # fit the albedo to this level's images under the current lighting before the sweeps: the
+        # coarse (or, on the first level, the reference image's) albedo lacks the detail the pose
+        # and depth steps compare against. Fitting lighting first would explain the reference image
+        # by ambient light alone, since the initial albedo is that image.
+        est.albedo = update_albedo(est, ev, problem.lam)
+        ev = problem.evaluate(est)
+        timings["setup"] += time.perf_counter() - t
+        history.append({"level": level_index, "iteration": 0, "energy": ev.energy})
+        bar = tqdm(range(1, options.max_iterations + 1), desc=f"level {level_index} ({level.size[1]}x{level.size[0]})",
+                   disable=not options.progress, leave=False)
+        for iteration in bar:
+            previous = ev.energy
+            if options.refine_poses and capture.n_frames > 1 and g.size >= options.pose_min_pixels:
+                t = time.perf_counter()
+                est.poses = update_poses(problem, est, options.pose_iterations)
+                ev = problem.evaluate(est)
+                timings["poses"] += time.perf_counter() - t
+            t = time.perf_counter()
+            est.z, ev, cg_iterations = update_depth(problem, est, ev, rtol=options.cg_tolerance,
+                                                    maxiter=options.cg_max_iterations)
+            stats["cg_iterations"].append(cg_iterations)
+            timings["depth"] += time.perf_counter() - t
+            t = time.perf_counter()
+            est.albedo = update_albedo(est, ev, problem.lam)
+            ev = problem.evaluate(est)
+            est.lights = update_lighting(est, ev, problem.lam)
+            ev = problem.evaluate(est)
+            timings["albedo_lighting"] += time.perf_counter() - t
+            history.append({"level": level_index, "iteration": iteration, "energy": ev.energy})
+            bar.set_postfix(energy=f"{ev.energy:.5g}")
+            if abs(previous - ev.energy) <= options.tolerance * abs(previous):
+                break
+        bar.close()
+        lights, poses = est.lights, est.poses
+        z_full = fill_outside(g.scatter(est.z), g.mask)
+        albedo_full = fill_outside(g.scatter(est.albedo), g.mask)
+
+    depth = np.where(ref_mask, z_full, 0.0)
+    albedo = np.clip(np.where(ref_mask[..., None], albedo_full, 0.0), 0.0, None)
+    timings["total"] = time.perf_counter() - t0
+    return Refinement.from_arrays(
+        depth, ref_mask, K, albedo=albedo, poses=poses, lighting=lights, method="ours",
+        energy=history, timings=dict(timings),
+        info={"frames": frames, "options": options.to_dict(), **stats},
+    )

@@ -1,0 +1,75 @@
+"""RefineOptions: everything a researcher varies in a refinement."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+
+@dataclass
+class RefineOptions:
+    """Options of :func:`o3d_mvps.refine`.
+
+    frames: number of frames to use (the first ``frames``), a list of indices, or None for all.
+    tau: normalised depth-prior weight tau~ (paper default 10; the authors' code used ~100).
+    cauchy_lambda: Cauchy scale lambda (intensity units, linear RGB in [0, 1]).
+    levels: coarse-to-fine pyramid levels (coarsest is 1 / 2^(levels-1) of the colour size).
+    max_iterations: sweep cap per level (one sweep = poses, depth, albedo, lighting).
+    tolerance: stop a level when the relative energy change falls below it.
+    refine_poses: refine poses jointly (False gives the paper's two-stage baseline).
+    occlusion_test: drop reference pixels hidden or out of view in frame i from its data term.
+    pose_iterations: Gauss-Newton iterations per frame and sweep.
+    pose_min_pixels: refine poses only on levels whose reference mask has this many pixels
+        (coarser levels see too little of the object to constrain six degrees of freedom).
+    cg_tolerance, cg_max_iterations: preconditioned CG for the depth system.
+    occlusion_tolerance: relative depth tolerance of the occlusion test.
+    initial_light: SH lighting every frame starts from.
+    progress: show a progress bar per level.
+    """
+
+    frames: int | list | None = None
+    tau: float = 10.0
+    cauchy_lambda: float = 0.04
+    levels: int = 5
+    max_iterations: int = 10
+    tolerance: float = 1e-5
+    refine_poses: bool = True
+    occlusion_test: bool = True
+    pose_iterations: int = 3
+    pose_min_pixels: int = 1000
+    cg_tolerance: float = 1e-6
+    cg_max_iterations: int = 300
+    occlusion_tolerance: float = 0.02
+    initial_light: tuple = (0.2, 0.0, 0.0, -1.0)
+    progress: bool = True
+
+    def __post_init__(self):
+        checks = [
+            (self.tau > 0, f"tau must be > 0, got {self.tau}"),
+            (self.cauchy_lambda > 0, f"cauchy_lambda must be > 0, got {self.cauchy_lambda}"),
+            (int(self.levels) >= 1, f"levels must be >= 1, got {self.levels}"),
+            (int(self.max_iterations) >= 1, f"max_iterations must be >= 1, got {self.max_iterations}"),
+            (self.tolerance >= 0, f"tolerance must be >= 0, got {self.tolerance}"),
+            (len(self.initial_light) == 4, "initial_light must hold 4 SH coefficients"),
+        ]
+        for ok, message in checks:
+            if not ok:
+                raise ValueError(message)
+
+    def frame_indices(self, n_available: int) -> list[int]:
+        """The frame indices to use out of ``n_available``; frame 0 is always the reference."""
+        if self.frames is None:
+            return list(range(n_available))
+        if np.isscalar(self.frames):
+            n = int(self.frames)
+            if not 1 <= n <= n_available:
+                raise ValueError(f"frames={n} but the capture has {n_available} frames; use 1..{n_available}")
+            return list(range(n))
+        indices = [int(i) for i in self.frames]
+        if not indices or min(indices) < 0 or max(indices) >= n_available or len(set(indices)) != len(indices):
+            raise ValueError(f"frames={indices} must be distinct indices in 0..{n_available - 1}")
+        return indices
+
+    def to_dict(self) -> dict:
+        return asdict(self)

@@ -1,0 +1,136 @@
+"""The energy of one pyramid level and the quantities every update step reads.
+
+E = sum_i sum_{p visible in i} sum_c phi(I~_ic(p) - rho_c(p) <l_i, m(n(p))>) + tau ||D z - z0||^2
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..model.camera import backproject
+from ..model.normals import unnormalised_normals
+from ..model.robust import cauchy
+from ..model.warping import in_view, sample_bilinear, visible, warp
+from .pyramid import Level
+
+
+@dataclass
+class Estimate:
+    """Unknowns on one level: z (N,) metres, albedo (N, 3), lights (n, 4), poses (n, 4, 4)."""
+
+    z: np.ndarray
+    albedo: np.ndarray
+    lights: np.ndarray
+    poses: np.ndarray
+
+
+@dataclass
+class FrameSample:
+    """Frame i seen from the reference pixels: colour (N, 3), gradients (N, 3) each,
+    frame-i points (N, 3), pixel coordinates u, v (N,), and the usable mask (N,)."""
+
+    color: np.ndarray
+    grad_u: np.ndarray
+    grad_v: np.ndarray
+    points: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+    usable: np.ndarray
+
+
+@dataclass
+class Evaluation:
+    """Residuals r (n, N, 3), usable (n, N), warped colours (n, N, 3), shading (n, N),
+    unit normals (N, 3), dA (N,), and the energy split into data and prior terms."""
+
+    residual: np.ndarray
+    usable: np.ndarray
+    color: np.ndarray
+    shading: np.ndarray
+    normals: np.ndarray
+    dA: np.ndarray
+    data: float
+    prior: float
+
+    @property
+    def energy(self) -> float:
+        return self.data + self.prior
+
+
+class LevelProblem:
+    """Evaluates the level energy; holds the per-level visibility and tau."""
+
+    def __init__(self, level: Level, tau: float, cauchy_lambda: float):
+        self.level = level
+        self.tau = float(tau)
+        self.lam = float(cauchy_lambda)
+        self.n_frames = len(level.stacks)
+        self.visibility = np.ones((self.n_frames, level.grid.size), dtype=bool)
+
+    # geometry ----------------------------------------------------------------------------
+    def points(self, z: np.ndarray) -> np.ndarray:
+        """Reference-camera points (N, 3) of the masked depth z (N,)."""
+        g = self.level.grid
+        return backproject(z, self.level.K, g.u.astype(np.float64), g.v.astype(np.float64))
+
+    def normals(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Unit normals (N, 3) and dA (N,) of z."""
+        n_tilde = unnormalised_normals(self.level.grid, z, self.level.K)
+        dA = np.maximum(np.linalg.norm(n_tilde, axis=1), 1e-12)
+        return n_tilde / dA[:, None], dA
+
+    def sample(self, i: int, pose: np.ndarray, points_ref: np.ndarray) -> FrameSample:
+        """Warp reference points into frame i under ``pose`` and sample its colour and gradients."""
+        points, u, v, Z = warp(points_ref, pose, self.level.K)
+        usable = self.visibility[i] & in_view(u, v, Z, self.level.size)
+        s = sample_bilinear(self.level.stacks[i], np.nan_to_num(u), np.nan_to_num(v)).astype(np.float64)
+        return FrameSample(s[:, :3], s[:, 3:6], s[:, 6:9], points, u, v, usable)
+
+    def update_visibility(self, est: Estimate, *, occlusion_test: bool, rel_tol: float, sensor_depths=None,
+                          depth_K=None) -> None:
+        """Recompute which reference pixels each frame sees (held fixed while a level runs)."""
+        P = self.points(est.z)
+        for i in range(self.n_frames):
+            points, u, v, Z = warp(P, est.poses[i], self.level.K)
+            if i == 0 or not occlusion_test:
+                self.visibility[i] = in_view(u, v, Z, self.level.size) if i else True
+                continue
+            sensor = None if sensor_depths is None else sensor_depths[i]
+            sensor_uv = None
+            if sensor is not None:
+                su = depth_K[0, 0] * points[:, 0] / Z + depth_K[0, 2]
+                sv = depth_K[1, 1] * points[:, 1] / Z + depth_K[1, 2]
+                sensor_uv = (su, sv)
+            self.visibility[i] = visible(u, v, Z, self.level.size, rel_tol=rel_tol, sensor_depth=sensor,
+                                         sensor_uv=sensor_uv, frame_mask=self.level.frame_masks[i])
+
+    # energy ------------------------------------------------------------------------------
+    def prior_energy(self, z: np.ndarray) -> float:
+        p = self.level.prior
+        d = p.D @ z - p.z0
+        return self.tau * float(d @ d)
+
+    def frame_data_energy(self, sample: FrameSample, albedo: np.ndarray, shading: np.ndarray) -> float:
+        """Robust data energy of one frame for given shading (N,)."""
+        r = sample.color - albedo * shading[:, None]
+        return float(cauchy(r[sample.usable], self.lam).sum())
+
+    def evaluate(self, est: Estimate) -> Evaluation:
+        """Residuals and energy of the estimate over all frames."""
+        n, N = self.n_frames, self.level.grid.size
+        normals, dA = self.normals(est.z)
+        P = self.points(est.z)
+        residual = np.zeros((n, N, 3))
+        color = np.zeros((n, N, 3))
+        shading = np.zeros((n, N))
+        usable = np.zeros((n, N), dtype=bool)
+        for i in range(n):
+            s = self.sample(i, est.poses[i], P)
+            shading[i] = est.lights[i, 0] + normals @ est.lights[i, 1:]
+            color[i] = s.color
+            usable[i] = s.usable
+            residual[i] = np.where(s.usable[:, None], s.color - est.albedo * shading[i][:, None], 0.0)
+        data = float(cauchy(residual, self.lam).sum())
+        return Evaluation(residual, usable, color, shading, normals, dA, data, self.prior_energy(est.z))

@@ -1,0 +1,123 @@
+"""Coarse-to-fine pyramid: per-level images, masks, intrinsics and the depth prior D.
+
+Level 0 is the colour resolution; level l has the colour size divided by 2^l. The depth
+prior compares D z with the low-resolution reference depth z0: where a level's grid is finer
+than the depth grid by an integer factor k >= 2, D averages k x k blocks (only blocks fully
+inside the mask with a valid z0); otherwise D is the identity on z0 resampled to the level.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import scipy.ndimage as ndi
+import scipy.sparse as sp
+
+from ..model.camera import scale_intrinsics
+from ..model.normals import MaskedGrid, masked_grid
+from ..model.warping import image_gradients
+
+
+def level_size(size: tuple[int, int], level: int) -> tuple[int, int]:
+    """(H, W) of pyramid level ``level`` for a colour size (H, W)."""
+    f = 2**level
+    return max(1, int(round(size[0] / f))), max(1, int(round(size[1] / f)))
+
+
+def resize(image: np.ndarray, size: tuple[int, int], interpolation=cv2.INTER_AREA) -> np.ndarray:
+    """Resize an (H, W) or (H, W, C) float image to size (H', W') (pixel-centre aligned)."""
+    if image.shape[:2] == tuple(size):
+        return image.copy()
+    out = cv2.resize(np.ascontiguousarray(image), (size[1], size[0]), interpolation=interpolation)
+    return out.reshape(size + image.shape[2:])
+
+
+def fill_outside(image: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Copy of ``image`` (H, W[, C]) with pixels outside ``valid`` set to the nearest valid value."""
+    if valid.all() or not valid.any():
+        return image.copy()
+    _, (iv, iu) = ndi.distance_transform_edt(~valid, return_indices=True)
+    return image[iv, iu]
+
+
+def resample_valid(values: np.ndarray, valid: np.ndarray, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Area-resample a sparse map (H, W) to ``size`` averaging valid pixels only.
+
+    Returns (values', valid') where valid' marks target pixels whose source area is at least
+    half valid.
+    """
+    weight = resize(valid.astype(np.float64), size)
+    total = resize(np.where(valid, values, 0.0).astype(np.float64), size)
+    ok = weight >= 0.5
+    return np.where(ok, total / np.maximum(weight, 1e-12), 0.0), ok
+
+
+@dataclass
+class DepthPrior:
+    """tau * || D z - z0 ||^2 on one level: D (M, N) sparse, z0 (M,) metres."""
+
+    D: sp.csr_matrix
+    z0: np.ndarray
+
+    @property
+    def rows(self) -> int:
+        return int(self.z0.size)
+
+
+def depth_prior(grid: MaskedGrid, z0: np.ndarray, level_factor: float) -> DepthPrior:
+    """D and z0 for a level whose pixels are ``level_factor`` = SF / 2^level depth pixels wide."""
+    H, W = grid.shape
+    valid0 = z0 > 0
+    k = int(round(level_factor))
+    if level_factor >= 2 and abs(level_factor - k) < 1e-9 and z0.shape == (H // k, W // k):
+        blocks = (grid.v // k) * z0.shape[1] + (grid.u // k)
+        counts = np.bincount(blocks, minlength=z0.size)
+        good = (counts == k * k) & valid0.ravel()
+        keep = good[blocks]
+        row_of_block = np.cumsum(good) - 1
+        rows = row_of_block[blocks[keep]]
+        cols = np.nonzero(keep)[0]
+        D = sp.csr_matrix((np.full(cols.size, 1.0 / (k * k)), (rows, cols)), shape=(int(good.sum()), grid.size))
+        return DepthPrior(D, z0.ravel()[good].astype(np.float64))
+    z0_level, ok = resample_valid(z0, valid0, (H, W)) if z0.shape != (H, W) else (z0.astype(np.float64), valid0)
+    on = ok[grid.v, grid.u]
+    cols = np.nonzero(on)[0]
+    D = sp.csr_matrix((np.ones(cols.size), (np.arange(cols.size), cols)), shape=(cols.size, grid.size))
+    return DepthPrior(D, z0_level[grid.v[on], grid.u[on]])
+
+
+@dataclass
+class Level:
+    """Everything one pyramid level of the solver reads.
+
+    grid: masked reference pixels. K: (3, 3) level intrinsics. size: (H, W).
+    stacks: per frame an (H, W, 9) float32 array [I (3), dI/du (3), dI/dv (3)], linear RGB.
+    frame_masks: per frame an (H, W) bool mask or None. prior: the depth prior.
+    """
+
+    index: int
+    grid: MaskedGrid
+    K: np.ndarray
+    size: tuple[int, int]
+    stacks: list
+    frame_masks: list
+    prior: DepthPrior
+
+
+def build_level(index: int, colors: list, masks: list, ref_mask: np.ndarray, K: np.ndarray, z0: np.ndarray,
+                scale_factor: int) -> Level:
+    """Level ``index`` from full-resolution colours (H, W, 3), masks, reference mask and z0."""
+    size = level_size(ref_mask.shape, index)
+    K_level = scale_intrinsics(K, size[1] / ref_mask.shape[1], size[0] / ref_mask.shape[0])
+    stacks = []
+    for color in colors:
+        img = resize(color, size).astype(np.float32)
+        gu, gv = image_gradients(img)
+        stacks.append(np.concatenate([img, gu, gv], axis=-1))
+    frame_masks = [None if m is None else resize(m.astype(np.float32), size) > 0.5 for m in masks]
+    mask = resize(ref_mask.astype(np.float32), size) > 0.5
+    grid = masked_grid(mask)
+    prior = depth_prior(grid, z0, scale_factor / 2**index)
+    return Level(index, grid, K_level, size, stacks, frame_masks, prior)
