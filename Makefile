@@ -8,19 +8,25 @@ STAMP  := $(VENV)/.installed
 
 setup: system-libs $(STAMP)
 
-# Open3D needs libusb-1.0 at import time. Install it with apt-get when we are root;
-# otherwise stop and say exactly what to install.
+# System libraries: libusb-1.0 (Open3D needs it at import time), EGL + Mesa (pyvista's
+# off-screen previews). Installed with apt-get when we are root; otherwise stop and say what to install.
+SYSTEM_LIBS := libusb-1.0.so.0:libusb-1.0-0 libEGL.so.1:libegl1 libGL.so.1:libgl1 swrast_dri.so:libgl1-mesa-dri
+
 system-libs:
-	@if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then \
+	@missing=""; \
+	for pair in $(SYSTEM_LIBS); do \
+	  lib=$${pair%%:*}; pkg=$${pair##*:}; \
+	  if ! ldconfig -p 2>/dev/null | grep -q "$$lib" && ! ls /usr/lib/*/dri/$$lib >/dev/null 2>&1; then missing="$$missing $$pkg"; fi; \
+	done; \
+	if [ -n "$$missing" ]; then \
 	  if [ "$$(id -u)" = "0" ] && command -v apt-get >/dev/null 2>&1; then \
-	    echo "Installing libusb-1.0-0 (needed by Open3D) with apt-get ..."; \
-	    (apt-get install -y -q libusb-1.0-0 >/dev/null 2>&1 || \
-	     (apt-get update -q >/dev/null && apt-get install -y -q libusb-1.0-0 >/dev/null)) || \
-	    { echo "error: apt-get could not install libusb-1.0-0; install it by hand and rerun." >&2; exit 1; }; \
+	    echo "Installing system packages:$$missing (apt-get) ..."; \
+	    (apt-get install -y -q $$missing >/dev/null 2>&1 || \
+	     (apt-get update -q >/dev/null && apt-get install -y -q $$missing >/dev/null)) || \
+	    { echo "error: apt-get could not install$$missing; install them by hand and rerun make." >&2; exit 1; }; \
 	  else \
-	    echo "error: Open3D needs the system library libusb-1.0." >&2; \
-	    echo "       Install it, e.g. 'sudo apt-get install libusb-1.0-0' (Debian/Ubuntu)," >&2; \
-	    echo "       'sudo dnf install libusbx' (Fedora) or 'brew install libusb' (macOS), then rerun make." >&2; \
+	    echo "error: missing system packages:$$missing (Open3D needs libusb-1.0; previews need EGL/Mesa)." >&2; \
+	    echo "       Install them, e.g. 'sudo apt-get install$$missing' (Debian/Ubuntu), then rerun make." >&2; \
 	    exit 1; \
 	  fi; \
 	fi

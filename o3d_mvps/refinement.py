@@ -70,6 +70,12 @@ class Refinement:
         """(3, 3) float64 colour intrinsics."""
         return as_intrinsic_matrix(self.intrinsic)
 
+    def to_mesh(self, **kwargs) -> o3d.t.geometry.TriangleMesh:
+        """Textured triangle mesh of the depth inside the mask (see :func:`o3d_mvps.export.refinement_to_mesh`)."""
+        from .export import refinement_to_mesh
+
+        return refinement_to_mesh(self, **kwargs)
+
     def report(self) -> dict:
         """JSON-ready summary: method, energy history, timings and solver information."""
         return {"method": self.method, "energy": self.energy, "timings": self.timings, "info": self.info}

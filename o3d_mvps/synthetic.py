@@ -296,6 +296,20 @@ class SyntheticScene:
     object_size: float
     distance: float
     albedo: ProceduralAlbedo
+    triangles: np.ndarray | None = None
+    vertex_normals: np.ndarray | None = None
+
+    def smooth_normals(self, primitive_ids: np.ndarray, primitive_uvs: np.ndarray) -> np.ndarray:
+        """Unit normals (N, 3), reference frame, interpolated from vertex normals at hit points.
+
+        Like a camera integrating over its pixel, this avoids the aliasing of scanned meshes'
+        per-face normals (bumpy below a pixel), which no depth map at pixel resolution explains.
+        """
+        tri = self.triangles[primitive_ids]
+        a, b = primitive_uvs[:, :1], primitive_uvs[:, 1:2]
+        n = (1.0 - a - b) * self.vertex_normals[tri[:, 0]] + a * self.vertex_normals[tri[:, 1]] \
+            + b * self.vertex_normals[tri[:, 2]]
+        return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
 
     @cached_property
     def rays(self) -> np.ndarray:
@@ -331,7 +345,11 @@ def build_scene(mesh, *, size=(640, 480), object_size=0.2, distance=0.6, seed=0)
     )
     albedo = ProceduralAlbedo.random(_rng(seed, "albedo"))
     W, H = (int(s) for s in size)
-    return SyntheticScene(raycaster, synthetic_intrinsics(W, H), (W, H), M, float(object_size), float(distance), albedo)
+    legacy.compute_vertex_normals()
+    vertex_normals = _apply(M[:3, :3], np.asarray(legacy.vertex_normals, dtype=np.float64))
+    vertex_normals /= np.maximum(np.linalg.norm(vertex_normals, axis=1, keepdims=True), 1e-12)
+    return SyntheticScene(raycaster, synthetic_intrinsics(W, H), (W, H), M, float(object_size), float(distance),
+                          albedo, np.asarray(legacy.triangles, dtype=np.int64), vertex_normals)
 
 
 def _rng(seed: int, stream: str) -> np.random.Generator:
@@ -491,8 +509,9 @@ def render_frame(scene: SyntheticScene, pose: np.ndarray, light) -> FrameRender:
     index = np.flatnonzero(np.isfinite(t))
     d_hit = d_cam[index]
     points = t[index, None].astype(np.float64) * d_hit
-    normals = _apply(R_c2r.T, hit["primitive_normals"].numpy()[index].astype(np.float64))
-    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)  # 0 for degenerate faces
+    smooth = scene.smooth_normals(hit["primitive_ids"].numpy()[index].astype(np.int64),
+                                  hit["primitive_uvs"].numpy()[index].astype(np.float64))
+    normals = _apply(R_c2r.T, smooth)
     normals *= np.where(np.einsum("ij,ij->i", normals, d_hit) > 0, -1.0, 1.0)[:, None]  # face the camera
     albedo = scene.albedo(scene.object_coordinates(_apply(R_c2r, points) + C))
 

@@ -50,21 +50,49 @@ def test_perspective_normals_of_a_plane_match_the_plane():
     assert (dA > 0).all()
 
 
-def test_masked_differences_use_backward_neighbour_at_the_mask_edge():
+@pytest.mark.parametrize("scheme", ["central", "forward"])
+def test_masked_differences_and_their_operators(scheme):
     mask = np.zeros((5, 6), bool)
     mask[1:4, 1:5] = True
-    grid = masked_grid(mask)
-    z = grid.gather(np.arange(30, dtype=float).reshape(5, 6) ** 1.5)
-    zu, zv = grid.gradient(z)
+    mask[2, 4] = False
     full = np.arange(30, dtype=float).reshape(5, 6) ** 1.5
+    grid = masked_grid(mask, scheme)
+    z = grid.gather(full)
+    zu, zv = grid.gradient(z)
+
+    def expected(r, c, dr, dc):
+        f, b = mask[r + dr, c + dc], mask[r - dr, c - dc]
+        if f and b and scheme == "central":
+            return 0.5 * (full[r + dr, c + dc] - full[r - dr, c - dc])
+        if f:
+            return full[r + dr, c + dc] - full[r, c]
+        return full[r, c] - full[r - dr, c - dc] if b else 0.0
+
     for k in range(grid.size):
         r, c = grid.v[k], grid.u[k]
-        expect_u = full[r, c + 1] - full[r, c] if mask[r, c + 1] else full[r, c] - full[r, c - 1]
-        expect_v = full[r + 1, c] - full[r, c] if mask[r + 1, c] else full[r, c] - full[r - 1, c]
-        assert zu[k] == pytest.approx(expect_u) and zv[k] == pytest.approx(expect_v)
+        assert zu[k] == pytest.approx(expected(r, c, 0, 1)) and zv[k] == pytest.approx(expected(r, c, 1, 0))
     Du, Dv = grid.difference_operators()
     np.testing.assert_allclose(Du @ z, zu)
     np.testing.assert_allclose(Dv @ z, zv)
+
+
+def test_central_normals_of_a_sphere_are_more_accurate_than_forward():
+    u, v = pixel_grid(*SIZE)
+    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
+    centre, radius = np.array([0.0, 0.0, 0.5]), 0.12
+    b = rays @ centre
+    disc = b**2 - (rays**2).sum(-1) * (centre @ centre - radius**2)
+    hit = disc > 0
+    t = np.where(hit, (b - np.sqrt(np.where(hit, disc, 0))) / (rays**2).sum(-1), 0)
+    z = t  # rays have unit z component
+    points = rays * t[..., None]
+    truth = (points - centre) / radius
+    inner = hit & (np.sqrt(np.where(hit, disc, 0)) > 0.3 * np.sqrt(disc.max()))
+    errors = {}
+    for scheme in ("central", "forward"):
+        normals, _ = perspective_normals(z, K, hit, scheme)
+        errors[scheme] = np.degrees(np.arccos(np.clip((normals * truth).sum(-1), -1, 1)))[inner].mean()
+    assert errors["central"] < 0.3 < errors["forward"]
 
 
 def test_sh_shading_is_the_dot_product():
@@ -134,13 +162,10 @@ def make_problem(n_frames=2, tau=1.0):
     mask = np.zeros(SIZE, bool)
     mask[6:-6, 8:-8] = True
     grid = masked_grid(mask)
-    stacks = []
-    for _ in range(n_frames):
-        img = smooth_image()
-        gu, gv = image_gradients(img)
-        stacks.append(np.concatenate([img, gu, gv], -1))
+    images = [smooth_image() for _ in range(n_frames)]
+    gradients = [np.concatenate(image_gradients(img), -1) for img in images]
     z0 = z.reshape(SIZE[0] // 2, 2, SIZE[1] // 2, 2).mean(axis=(1, 3))
-    level = Level(0, grid, K, SIZE, stacks, [None] * n_frames, depth_prior(grid, z0, 2.0))
+    level = Level(0, grid, K, SIZE, images, gradients, [None] * n_frames, depth_prior(grid, z0, 2.0))
     problem = LevelProblem(level, tau, 0.04)
     rng = np.random.default_rng(1)
     poses = np.stack([np.eye(4)] + [se3.exp([0.01, -0.005, 0.002, 0.01, -0.02, 0.005])] * (n_frames - 1))
@@ -154,6 +179,7 @@ def test_pose_jacobian_matches_finite_differences():
     problem, est = make_problem()
     P = problem.points(est.z)
     s = problem.sample(1, est.poses[1], P)
+    s = problem.sample_gradients(1, s, np.ones(s.usable.shape, bool))
     J = pose_jacobian(s, K)
     keep = s.usable
     h = 1e-6

@@ -14,23 +14,26 @@ from .camera import project, transform
 def sample_bilinear(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Bilinear samples (N, C) of an (H, W, C) image at real pixel coordinates u, v (N,).
 
-    Coordinates are clamped to the image, so samples outside repeat the border; use
-    :func:`in_view` to know which samples are genuine.
+    Computed in the image's dtype. Coordinates are clamped to the image, so samples outside
+    repeat the border; use :func:`in_view` to know which samples are genuine.
     """
     H, W = image.shape[:2]
     flat = image.reshape(H * W, -1)
     u = np.clip(u, 0.0, W - 1.0)
     v = np.clip(v, 0.0, H - 1.0)
-    u0 = np.minimum(np.floor(u).astype(np.int64), W - 2) if W > 1 else np.zeros(u.shape, np.int64)
-    v0 = np.minimum(np.floor(v).astype(np.int64), H - 2) if H > 1 else np.zeros(v.shape, np.int64)
-    a = (u - u0)[:, None]
-    b = (v - v0)[:, None]
+    u0 = np.minimum(u.astype(np.int64), max(W - 2, 0))
+    v0 = np.minimum(v.astype(np.int64), max(H - 2, 0))
+    a = (u - u0).astype(image.dtype)[:, None]
+    b = (v - v0).astype(image.dtype)[:, None]
     i00 = v0 * W + u0
     du = 1 if W > 1 else 0
     dv = W if H > 1 else 0
-    top = flat[i00] * (1 - a) + flat[i00 + du] * a
-    bottom = flat[i00 + dv] * (1 - a) + flat[i00 + dv + du] * a
-    return top * (1 - b) + bottom * b
+    top = flat[i00]
+    top += a * (flat[i00 + du] - top)
+    bottom = flat[i00 + dv]
+    bottom += a * (flat[i00 + dv + du] - bottom)
+    top += b * (bottom - top)
+    return top
 
 
 def image_gradients(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

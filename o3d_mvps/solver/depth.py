@@ -58,10 +58,22 @@ def depth_system(problem: LevelProblem, est: Estimate, ev: Evaluation) -> DepthS
     return DepthSystem(sp.csr_matrix(M), rhs)
 
 
-def solve_depth_system(system: DepthSystem, z0: np.ndarray, rtol: float, maxiter: int) -> tuple[np.ndarray, int]:
-    """PCG with an AMG preconditioner warm-started at z0; returns (z, iterations)."""
-    ml = pyamg.smoothed_aggregation_solver(system.matrix, symmetry="symmetric", max_coarse=500)
-    precond = ml.aspreconditioner(cycle="V")
+def amg_preconditioner(matrix: sp.csr_matrix) -> spla.LinearOperator:
+    """One smoothed-aggregation AMG V-cycle (pyamg) as an SPD preconditioner."""
+    ml = pyamg.smoothed_aggregation_solver(matrix, symmetry="symmetric", max_coarse=300, coarse_solver="splu")
+    return ml.aspreconditioner(cycle="V")
+
+
+def solve_depth_system(system: DepthSystem, z0: np.ndarray, rtol: float, maxiter: int,
+                       preconditioner: spla.LinearOperator | None = None) -> tuple[np.ndarray, int]:
+    """PCG warm-started at z0; returns (z, iterations).
+
+    ``preconditioner`` defaults to a fresh AMG hierarchy of the system; the driver passes the
+    hierarchy of the level's first sweep instead, since the matrix changes little between
+    sweeps (only the IRLS weights, albedo and lighting move) and the setup costs more than
+    the few extra CG iterations.
+    """
+    precond = preconditioner if preconditioner is not None else amg_preconditioner(system.matrix)
     count = [0]
 
     def callback(_):
@@ -73,9 +85,19 @@ def solve_depth_system(system: DepthSystem, z0: np.ndarray, rtol: float, maxiter
 
 def update_depth(problem: LevelProblem, est: Estimate, ev: Evaluation, *, rtol: float, maxiter: int,
                  max_halvings: int = 5) -> tuple[np.ndarray, Evaluation, int]:
-    """One depth step: returns (z, evaluation at z, CG iterations); z never raises the energy."""
+    """One depth step: returns (z, evaluation at z, CG iterations); z never raises the energy.
+
+    The level's AMG preconditioner is built on its first depth step and kept in
+    ``problem.depth_preconditioner`` until CG needs twice the iterations it first took.
+    """
     system = depth_system(problem, est, ev)
-    z_new, iterations = solve_depth_system(system, est.z, rtol, maxiter)
+    if problem.depth_preconditioner is None:
+        problem.depth_preconditioner = amg_preconditioner(system.matrix)
+    z_new, iterations = solve_depth_system(system, est.z, rtol, maxiter, problem.depth_preconditioner)
+    if problem.depth_cg_baseline is None:
+        problem.depth_cg_baseline = max(iterations, 5)
+    elif iterations > 2 * problem.depth_cg_baseline:  # the system drifted from the hierarchy's: rebuild next time
+        problem.depth_preconditioner = problem.depth_cg_baseline = None
     step = z_new - est.z
     t = 1.0
     for _ in range(max_halvings + 1):

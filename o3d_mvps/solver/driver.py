@@ -101,14 +101,14 @@ def refine(capture: Capture, options: RefineOptions | None = None, device="CPU:0
 
     for level_index in reversed(range(n_levels)):
         t = time.perf_counter()
-        level = build_level(level_index, colors, masks, ref_mask, K, z0, sf)
+        level = build_level(level_index, colors, masks, ref_mask, K, z0, sf, options.difference_scheme)
         g = level.grid
         if g.size < 16:
             continue
         if z_full is None:
             zl = fill_outside(z0, z0 > 0)
             z_full = resize(zl, level.size, interpolation=cv2.INTER_LINEAR)
-            albedo_full = level.stacks[0][..., :3].astype(np.float64)
+            albedo_full = level.images[0].astype(np.float64)
         else:
             z_full = resize(z_full, level.size, interpolation=cv2.INTER_LINEAR)
             albedo_full = resize(albedo_full, level.size, interpolation=cv2.INTER_LINEAR)
@@ -130,7 +130,8 @@ def refine(capture: Capture, options: RefineOptions | None = None, device="CPU:0
                    disable=not options.progress, leave=False)
         for iteration in bar:
             previous = ev.energy
-            if options.refine_poses and capture.n_frames > 1 and g.size >= options.pose_min_pixels:
+            if (options.refine_poses and capture.n_frames > 1 and g.size >= options.pose_min_pixels
+                    and iteration > options.pose_warmup_sweeps):
                 t = time.perf_counter()
                 est.poses = update_poses(problem, est, options.pose_iterations)
                 ev = problem.evaluate(est)

@@ -6,6 +6,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from ..model.normals import SCHEMES
+
 
 @dataclass
 class RefineOptions:
@@ -22,8 +24,12 @@ class RefineOptions:
     pose_iterations: Gauss-Newton iterations per frame and sweep.
     pose_min_pixels: refine poses only on levels whose reference mask has this many pixels
         (coarser levels see too little of the object to constrain six degrees of freedom).
+    pose_warmup_sweeps: sweeps at the start of each level that leave poses alone, so depth and
+        albedo adapt to the finer images before poses are compared against them.
     cg_tolerance, cg_max_iterations: preconditioned CG for the depth system.
     occlusion_tolerance: relative depth tolerance of the occlusion test.
+    difference_scheme: depth derivatives of the normals, "central" or the paper's "forward"
+        (see o3d_mvps.model.normals).
     initial_light: SH lighting every frame starts from.
     progress: show a progress bar per level.
     """
@@ -38,9 +44,11 @@ class RefineOptions:
     occlusion_test: bool = True
     pose_iterations: int = 3
     pose_min_pixels: int = 1000
+    pose_warmup_sweeps: int = 0
     cg_tolerance: float = 1e-6
     cg_max_iterations: int = 300
     occlusion_tolerance: float = 0.02
+    difference_scheme: str = "central"
     initial_light: tuple = (0.2, 0.0, 0.0, -1.0)
     progress: bool = True
 
@@ -52,6 +60,7 @@ class RefineOptions:
             (int(self.max_iterations) >= 1, f"max_iterations must be >= 1, got {self.max_iterations}"),
             (self.tolerance >= 0, f"tolerance must be >= 0, got {self.tolerance}"),
             (len(self.initial_light) == 4, "initial_light must hold 4 SH coefficients"),
+            (self.difference_scheme in SCHEMES, f"difference_scheme must be one of {SCHEMES}"),
         ]
         for ok, message in checks:
             if not ok:

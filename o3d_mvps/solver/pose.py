@@ -35,7 +35,7 @@ def update_pose(problem: LevelProblem, est: Estimate, i: int, points_ref: np.nda
             break
         r = (sample.color - model)[use]
         w = cauchy_weights(r, problem.lam)
-        J = pose_jacobian(_subset(sample, use), K).reshape(-1, 6)
+        J = pose_jacobian(problem.sample_gradients(i, sample, use), K).reshape(-1, 6)
         wJ = J * w.reshape(-1, 1)
         H = wJ.T @ J
         g = wJ.T @ r.reshape(-1)
@@ -55,11 +55,6 @@ def update_pose(problem: LevelProblem, est: Estimate, i: int, points_ref: np.nda
         if not accepted or np.linalg.norm(step) < 1e-10:
             break
     return pose
-
-
-def _subset(sample: FrameSample, keep: np.ndarray) -> FrameSample:
-    return FrameSample(sample.color[keep], sample.grad_u[keep], sample.grad_v[keep], sample.points[keep],
-                       sample.u[keep], sample.v[keep], sample.usable[keep])
 
 
 def update_poses(problem: LevelProblem, est: Estimate, iterations: int) -> np.ndarray:

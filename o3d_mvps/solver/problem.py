@@ -28,16 +28,16 @@ class Estimate:
 
 @dataclass
 class FrameSample:
-    """Frame i seen from the reference pixels: colour (N, 3), gradients (N, 3) each,
-    frame-i points (N, 3), pixel coordinates u, v (N,), and the usable mask (N,)."""
+    """Frame i seen from the reference pixels: colour (N, 3), frame-i points (N, 3), pixel
+    coordinates u, v (N,) and the usable mask (N,); gradients (N, 3) each when asked for."""
 
     color: np.ndarray
-    grad_u: np.ndarray
-    grad_v: np.ndarray
     points: np.ndarray
     u: np.ndarray
     v: np.ndarray
     usable: np.ndarray
+    grad_u: np.ndarray | None = None
+    grad_v: np.ndarray | None = None
 
 
 @dataclass
@@ -66,8 +66,10 @@ class LevelProblem:
         self.level = level
         self.tau = float(tau)
         self.lam = float(cauchy_lambda)
-        self.n_frames = len(level.stacks)
+        self.n_frames = len(level.images)
         self.visibility = np.ones((self.n_frames, level.grid.size), dtype=bool)
+        self.depth_preconditioner = None  # AMG hierarchy, reused across the level's depth steps
+        self.depth_cg_baseline = None  # CG iterations of the hierarchy's first solve
 
     # geometry ----------------------------------------------------------------------------
     def points(self, z: np.ndarray) -> np.ndarray:
@@ -82,11 +84,18 @@ class LevelProblem:
         return n_tilde / dA[:, None], dA
 
     def sample(self, i: int, pose: np.ndarray, points_ref: np.ndarray) -> FrameSample:
-        """Warp reference points into frame i under ``pose`` and sample its colour and gradients."""
+        """Warp reference points into frame i under ``pose`` and sample its colour."""
         points, u, v, Z = warp(points_ref, pose, self.level.K)
+        u, v = np.nan_to_num(u), np.nan_to_num(v)
         usable = self.visibility[i] & in_view(u, v, Z, self.level.size)
-        s = sample_bilinear(self.level.stacks[i], np.nan_to_num(u), np.nan_to_num(v)).astype(np.float64)
-        return FrameSample(s[:, :3], s[:, 3:6], s[:, 6:9], points, u, v, usable)
+        color = sample_bilinear(self.level.images[i], u, v).astype(np.float64)
+        return FrameSample(color, points, u, v, usable)
+
+    def sample_gradients(self, i: int, sample: FrameSample, keep: np.ndarray) -> FrameSample:
+        """The ``keep`` subset (N,) bool of a sample, with frame i's colour gradients added."""
+        g = sample_bilinear(self.level.gradients[i], sample.u[keep], sample.v[keep]).astype(np.float64)
+        return FrameSample(sample.color[keep], sample.points[keep], sample.u[keep], sample.v[keep],
+                           sample.usable[keep], g[:, :3], g[:, 3:])
 
     def update_visibility(self, est: Estimate, *, occlusion_test: bool, rel_tol: float, sensor_depths=None,
                           depth_K=None) -> None:

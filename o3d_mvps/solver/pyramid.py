@@ -93,7 +93,8 @@ class Level:
     """Everything one pyramid level of the solver reads.
 
     grid: masked reference pixels. K: (3, 3) level intrinsics. size: (H, W).
-    stacks: per frame an (H, W, 9) float32 array [I (3), dI/du (3), dI/dv (3)], linear RGB.
+    images: per frame an (H, W, 3) float32 linear RGB image.
+    gradients: per frame an (H, W, 6) float32 array [dI/du (3), dI/dv (3)].
     frame_masks: per frame an (H, W) bool mask or None. prior: the depth prior.
     """
 
@@ -101,23 +102,21 @@ class Level:
     grid: MaskedGrid
     K: np.ndarray
     size: tuple[int, int]
-    stacks: list
+    images: list
+    gradients: list
     frame_masks: list
     prior: DepthPrior
 
 
 def build_level(index: int, colors: list, masks: list, ref_mask: np.ndarray, K: np.ndarray, z0: np.ndarray,
-                scale_factor: int) -> Level:
+                scale_factor: int, scheme: str = "central") -> Level:
     """Level ``index`` from full-resolution colours (H, W, 3), masks, reference mask and z0."""
     size = level_size(ref_mask.shape, index)
     K_level = scale_intrinsics(K, size[1] / ref_mask.shape[1], size[0] / ref_mask.shape[0])
-    stacks = []
-    for color in colors:
-        img = resize(color, size).astype(np.float32)
-        gu, gv = image_gradients(img)
-        stacks.append(np.concatenate([img, gu, gv], axis=-1))
+    images = [resize(color, size).astype(np.float32) for color in colors]
+    gradients = [np.concatenate(image_gradients(img), axis=-1) for img in images]
     frame_masks = [None if m is None else resize(m.astype(np.float32), size) > 0.5 for m in masks]
     mask = resize(ref_mask.astype(np.float32), size) > 0.5
-    grid = masked_grid(mask)
+    grid = masked_grid(mask, scheme)
     prior = depth_prior(grid, z0, scale_factor / 2**index)
-    return Level(index, grid, K_level, size, stacks, frame_masks, prior)
+    return Level(index, grid, K_level, size, images, gradients, frame_masks, prior)
