@@ -6,7 +6,14 @@ per-frame lighting (Sang, Haefner, Cremers, WACV 2020).
 """
 
 from .capture import Capture, GroundTruth, read_capture, write_capture
-from .errors import CaptureError, ExportError, MVPSError, OdometryError, OutputExistsError, RecordingError
+from .errors import (
+    CaptureError,
+    ExportError,
+    MVPSError,
+    OdometryError,
+    OutputExistsError,
+    RecordingError,
+)
 from .refinement import Refinement, read_refinement
 from .solver.driver import refine
 from .solver.options import RefineOptions

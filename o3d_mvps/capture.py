@@ -20,7 +20,6 @@ Folder layout (DESIGN section 3, the same names as Open3D's reconstruction syste
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -31,7 +30,9 @@ import open3d as o3d
 from .colour import linear_to_srgb, srgb_to_linear
 from .errors import CaptureError
 from .fileio import atomic_folder, json_text, write_intrinsic_json
-from .fileio import write_png as _write_png  # module-level name: tests patch it to simulate a failing disk
+from .fileio import (
+    write_png as _write_png,  # module-level name: tests patch it to simulate a failing disk
+)
 from .model.camera import as_intrinsic_matrix, scale_intrinsics
 
 

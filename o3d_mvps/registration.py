@@ -15,7 +15,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from .model.camera import as_intrinsic_matrix, backproject, project, scale_intrinsics, transform
+from .model.camera import (
+    as_intrinsic_matrix,
+    backproject,
+    project,
+    scale_intrinsics,
+    transform,
+)
 
 
 def register_depth(

@@ -15,7 +15,13 @@ import o3d_mvps.refinement as refinement_module
 from o3d_mvps.cli import main
 from o3d_mvps.colour import linear_to_srgb
 from o3d_mvps.errors import ExportError, OutputExistsError
-from o3d_mvps.export import check_solid, printable_solid, refinement_to_mesh, write_mesh, write_stl
+from o3d_mvps.export import (
+    check_solid,
+    printable_solid,
+    refinement_to_mesh,
+    write_mesh,
+    write_stl,
+)
 from o3d_mvps.model.camera import backproject
 from o3d_mvps.refinement import Refinement
 

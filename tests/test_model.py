@@ -6,7 +6,11 @@ import pytest
 
 from o3d_mvps.model import se3
 from o3d_mvps.model.camera import backproject, pixel_grid, scale_intrinsics
-from o3d_mvps.model.normals import masked_grid, perspective_normals, unnormalised_normals
+from o3d_mvps.model.normals import (
+    masked_grid,
+    perspective_normals,
+    unnormalised_normals,
+)
 from o3d_mvps.model.robust import cauchy, cauchy_weights
 from o3d_mvps.model.shading import sh_basis, shading
 from o3d_mvps.model.warping import sample_bilinear, visible, warp

@@ -10,7 +10,6 @@ import numpy as np
 import pyrealsense2 as rs
 import pytest
 
-from o3d_mvps import realsense
 from o3d_mvps.capture import default_depth_intrinsic
 from o3d_mvps.cli import main as cli_main
 from o3d_mvps.colour import srgb_to_linear

@@ -12,7 +12,7 @@ import sys
 
 from ..errors import MVPSError
 
-SUBCOMMANDS = ["demo", "render", "refine", "export", "record", "bench"]
+SUBCOMMANDS = ["demo", "render", "refine", "export", "record"]
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -39,7 +39,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     try:
         return int(args.handler(args) or 0)
-    except (MVPSError, FileNotFoundError, FileExistsError, ValueError) as err:
+    except (MVPSError, OSError, ValueError) as err:
         print(f"o3d-mvps {args.command}: error: {err}", file=sys.stderr)
         return 1
 

@@ -20,6 +20,7 @@ from ..solver.driver import refine
 from ..solver.options import RefineOptions
 from ..synthetic import render_capture
 from ..viz import render_preview
+from .argtypes import image_size, positive_int
 from .refine import log_energy
 
 
@@ -29,20 +30,11 @@ def register(subparsers) -> None:
                               epilog="example:\n  o3d-mvps demo --out out/demo --mesh bunny --frames 20\n")
     p.add_argument("--out", default="out/demo", help="output folder (replaced as a whole; default out/demo)")
     p.add_argument("--mesh", default="bunny", choices=sorted(MESHES), help="shipped mesh (default bunny)")
-    p.add_argument("--frames", type=int, default=20, help="frames to render (default 20)")
-    p.add_argument("--scale-factor", type=int, default=4, help="depth super-resolution factor (default 4)")
-    p.add_argument("--size", default="640x480", help="colour resolution WxH (default 640x480)")
+    p.add_argument("--frames", type=positive_int, default=20, help="frames to render (default 20)")
+    p.add_argument("--scale-factor", type=positive_int, default=4, help="depth super-resolution factor (default 4)")
+    p.add_argument("--size", type=image_size, default=(640, 480), metavar="WxH", help="colour resolution (default 640x480)")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(handler=run)
-
-
-def parse_size(text: str) -> tuple[int, int]:
-    """'640x480' -> (640, 480)."""
-    try:
-        w, h = (int(x) for x in text.lower().split("x"))
-    except ValueError:
-        raise ValueError(f"size {text!r} must look like 640x480 (width x height in pixels)") from None
-    return w, h
 
 
 def run(args) -> int:
@@ -50,7 +42,7 @@ def run(args) -> int:
     t0 = time.perf_counter()
     say(f"rendering {args.frames} LED-lit frames of the {args.mesh} (see {DATA_DIR / 'PROVENANCE.md'}) ...")
     capture = render_capture(args.mesh, frames=args.frames, scale_factor=args.scale_factor,
-                             size=parse_size(args.size), seed=args.seed, progress=not args.quiet)
+                             size=args.size, seed=args.seed, progress=not args.quiet)
     say("refining ...")
     refinement = refine(capture, RefineOptions(progress=not args.quiet))
     log_energy(refinement, args.quiet)
@@ -59,7 +51,7 @@ def run(args) -> int:
     with atomic_folder(args.out, overwrite=True, what="demo folder") as tmp:
         write_capture(capture, tmp / "capture")
         refinement.save(tmp / "refined", extra_report={"accuracy": rows})
-        report = [f"# o3d_mvps demo: {args.mesh}, {args.size}, SF {args.scale_factor}, {args.frames} frames", "",
+        report = [f"# o3d_mvps demo: {args.mesh}, {args.size[0]}x{args.size[1]}, SF {args.scale_factor}, {args.frames} frames", "",
                   table, "", f"total time {time.perf_counter() - t0:.1f} s "
                   f"(refinement {refinement.timings.get('total', 0):.1f} s)", ""]
         (tmp / "report.md").write_text("\n".join(report))

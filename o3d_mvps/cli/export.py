@@ -7,6 +7,7 @@ from pathlib import Path
 
 from ..errors import ExportError, OutputExistsError
 from ..export import DEFAULT_MAX_DEPTH_JUMP, MESH_SUFFIXES
+from .argtypes import positive_float, positive_int
 
 DESCRIPTION = """\
 Turn a refinement (a folder written by Refinement.save / `o3d-mvps refine`) into a mesh.
@@ -25,30 +26,10 @@ examples:
 """
 
 
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text}")
-    return value
-
-
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text}")
-    return value
-
-
 def _depth_jump(text: str) -> float | None:
     if text.lower() in ("none", "off"):
         return None
-    return _positive_float(text)
+    return positive_float(text)
 
 
 def _mesh_path(text: str) -> Path:
@@ -77,13 +58,13 @@ def register(subparsers) -> None:
     solid = parser.add_argument_group("print-ready solid")
     solid.add_argument("--print", dest="print_solid", action="store_true",
                        help="close the relief into a watertight solid in millimetres (implied by .stl)")
-    solid.add_argument("--size-mm", type=_positive_float, default=120.0, metavar="MM",
+    solid.add_argument("--size-mm", type=positive_float, default=120.0, metavar="MM",
                        help="largest bounding-box extent of the solid (default: %(default)s)")
-    solid.add_argument("--base-mm", type=_positive_float, default=4.0, metavar="MM",
+    solid.add_argument("--base-mm", type=positive_float, default=4.0, metavar="MM",
                        help="back plate thickness behind the deepest point (default: %(default)s)")
     solid.add_argument("--pieces", choices=["largest", "all"], default="largest",
                        help="keep the largest connected piece or all pieces (default: %(default)s)")
-    parser.add_argument("--max-triangles", type=_positive_int, metavar="N",
+    parser.add_argument("--max-triangles", type=positive_int, metavar="N",
                         help="simplify the relief to at most N triangles (quadric decimation)")
     parser.add_argument("--max-depth-jump", type=_depth_jump, default=DEFAULT_MAX_DEPTH_JUMP, metavar="K",
                         help="cut edges whose depth step exceeds K pixel footprints, i.e. surfaces steeper than "

@@ -6,28 +6,11 @@ the sensor's native resolution (colour / SF), ready for ``o3d-mvps refine``.
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 from ..capture import write_capture
 from ..errors import OutputExistsError
-
-
-def _size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT such as 1280x720, got {text!r}") from None
-    if w <= 0 or h <= 0:
-        raise argparse.ArgumentTypeError(f"width and height must be positive, got {text!r}")
-    return w, h
-
-
-def _positive_int(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
-    return value
+from .argtypes import image_size, positive_int
 
 
 def register(subparsers) -> None:
@@ -38,10 +21,10 @@ def register(subparsers) -> None:
         "capture folder OUT. Move slowly around the object, 0.5-1 m away, LED on, room lights dim.",
     )
     rec.add_argument("out", metavar="OUT", type=Path, help="capture folder to write")
-    rec.add_argument("--frames", type=_positive_int, default=20, help="frames to record (default 20)")
-    rec.add_argument("--color", type=_size, default=(1280, 720), metavar="WxH", help="colour size (default 1280x720)")
-    rec.add_argument("--depth", type=_size, default=(640, 360), metavar="WxH", help="depth size (default 640x360)")
-    rec.add_argument("--fps", type=_positive_int, default=30, help="stream rate (default 30)")
+    rec.add_argument("--frames", type=positive_int, default=20, help="frames to record (default 20)")
+    rec.add_argument("--color", type=image_size, default=(1280, 720), metavar="WxH", help="colour size (default 1280x720)")
+    rec.add_argument("--depth", type=image_size, default=(640, 360), metavar="WxH", help="depth size (default 640x360)")
+    rec.add_argument("--fps", type=positive_int, default=30, help="stream rate (default 30)")
     when = rec.add_mutually_exclusive_group()
     when.add_argument("--interval", type=float, default=1.0, metavar="S", help="seconds between frames (default 1)")
     when.add_argument("--on-key", action="store_true", help="take a frame at each Enter (q + Enter stops)")
@@ -60,10 +43,10 @@ def register(subparsers) -> None:
     )
     conv.add_argument("recording", metavar="RECORDING", type=Path, help=".bag or .db3 recording")
     conv.add_argument("out", metavar="OUT", type=Path, help="capture folder to write")
-    conv.add_argument("--frames", type=_positive_int, default=20, help="frames to keep (default 20)")
-    conv.add_argument("--stride", type=_positive_int, metavar="K", help="consider every K-th frame (default automatic)")
+    conv.add_argument("--frames", type=positive_int, default=20, help="frames to keep (default 20)")
+    conv.add_argument("--stride", type=positive_int, metavar="K", help="consider every K-th frame (default automatic)")
     conv.add_argument(
-        "--scale-factor", type=_positive_int, metavar="SF", help="depth grid = colour / SF (default: from the sizes)"
+        "--scale-factor", type=positive_int, metavar="SF", help="depth grid = colour / SF (default: from the sizes)"
     )
     conv.add_argument("--overwrite", action="store_true", help="replace an existing capture folder")
     conv.set_defaults(handler=run_convert)

@@ -6,6 +6,8 @@ import argparse
 import time
 from pathlib import Path
 
+from .argtypes import image_size, positive_int
+
 EXAMPLES = """\
 examples:
   o3d-mvps render bunny captures/bunny
@@ -16,26 +18,6 @@ The folder holds color/, depth/, mask/, intrinsic.json, depth_intrinsic.json, ca
 groundtruth/ (reference depth, normals, albedo, poses, light, mesh_to_reference); read it with
 o3d_mvps.read_capture or refine it with `o3d-mvps refine`.
 """
-
-
-def _size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT such as 640x480, got {text!r}") from None
-    if w <= 0 or h <= 0:
-        raise argparse.ArgumentTypeError(f"width and height must be positive, got {text!r}")
-    return w, h
-
-
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
-    return value
 
 
 def register(subparsers) -> None:
@@ -54,11 +36,11 @@ def register(subparsers) -> None:
     )
     p.add_argument("mesh", metavar="MESH", help="'bunny', 'armadillo' or a mesh file (.ply, .obj, .stl, ...)")
     p.add_argument("out", metavar="OUT", type=Path, help="capture folder to write")
-    p.add_argument("--frames", type=_positive_int, default=20,
+    p.add_argument("--frames", type=positive_int, default=20,
                    help="number of frames, the first is the reference (default 20)")
-    p.add_argument("--scale-factor", type=_positive_int, default=4, metavar="SF",
+    p.add_argument("--scale-factor", type=positive_int, default=4, metavar="SF",
                    help="depth grid = colour size / SF; must divide the size (default 4)")
-    p.add_argument("--size", type=_size, default=(640, 480), metavar="WxH", help="colour size (default 640x480)")
+    p.add_argument("--size", type=image_size, default=(640, 480), metavar="WxH", help="colour size (default 640x480)")
     p.add_argument("--trajectory", choices=TRAJECTORIES, default="orbit",
                    help="orbit: yaw/pitch up to 15 deg around the object; orbit-translate: plus a few cm of "
                    "translation and distance change (default orbit)")

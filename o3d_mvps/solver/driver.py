@@ -18,9 +18,9 @@ from tqdm.auto import tqdm
 from ..capture import Capture
 from ..errors import CaptureError
 from ..refinement import Refinement
+from .depth import update_depth
 from .options import RefineOptions
 from .pose import update_poses
-from .depth import update_depth
 from .problem import Estimate, LevelProblem
 from .pyramid import build_level, fill_outside, level_size, resize
 from .reflectance import update_albedo, update_lighting

@@ -1,0 +1,1 @@
+"""Benchmarks of o3d_mvps (run from the repository root: ``python -m benchmarks --help``)."""

@@ -1,0 +1,109 @@
+"""Accuracy of every method on rendered captures (DESIGN section 5 protocol).
+
+Methods: bicubic and guided upsampling, single-frame shading refinement (n = 1), the two-stage
+variant (odometry poses kept fixed) and ours (joint). Writes ``accuracy.json`` (rows
+{"mesh", "sf", "frames", "method", "mae_deg", "rmse_mm", "seconds"} plus pose errors for the
+joint and two-stage rows) and ``accuracy.md`` into the output folder.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from o3d_mvps import RefineOptions, refine
+from o3d_mvps.baselines import bicubic, guided
+from o3d_mvps.fileio import json_text
+from o3d_mvps.metrics import evaluate, reprojection_error_px
+from o3d_mvps.model.camera import backproject
+from o3d_mvps.model.se3 import pose_error
+from o3d_mvps.odometry import initial_poses
+from o3d_mvps.synthetic import render_capture
+
+METHODS = ("bicubic", "guided", "single_frame", "two_stage", "ours")
+
+
+def pose_summary(poses: np.ndarray, capture) -> dict:
+    """Max/mean rotation (deg), translation (mm) and median reprojection (px) errors of frames 1..n-1."""
+    gt = capture.groundtruth
+    K = capture.color_K()
+    points = backproject(gt.depth, K)[gt.depth > 0]
+    errors = np.array([pose_error(poses[i], gt.poses[i]) for i in range(1, len(poses))])
+    reproj = np.array([reprojection_error_px(poses[i], gt.poses[i], points, K) for i in range(1, len(poses))])
+    return {"rot_deg_max": float(errors[:, 0].max()), "rot_deg_mean": float(errors[:, 0].mean()),
+            "trans_mm_max": float(1e3 * errors[:, 1].max()), "trans_mm_mean": float(1e3 * errors[:, 1].mean()),
+            "reproj_px_mean": float(reproj.mean())}
+
+
+def run_case(mesh: str, sf: int, frames: int, size: tuple[int, int], options: dict, seed: int = 0) -> list[dict]:
+    """All methods on one rendered capture; returns result rows."""
+    capture = render_capture(mesh, frames=frames, scale_factor=sf, size=size, seed=seed)
+    gt = capture.groundtruth
+    rows = []
+
+    def record(method, fn, **extra):
+        t = time.perf_counter()
+        result = fn()
+        seconds = time.perf_counter() - t
+        rows.append({"mesh": mesh, "sf": sf, "frames": frames, "method": method, **evaluate(result, gt),
+                     "seconds": seconds, **extra})
+        return result
+
+    record("bicubic", lambda: bicubic(capture))
+    record("guided", lambda: guided(capture))
+    record("single_frame", lambda: refine(capture, RefineOptions(frames=1, progress=False, **options)))
+    t = time.perf_counter()
+    odometry = initial_poses(capture)
+    odometry_seconds = time.perf_counter() - t
+    two = record("two_stage", lambda: refine(capture, RefineOptions(refine_poses=False, progress=False, **options),
+                                             initial_poses=odometry))
+    ours = record("ours", lambda: refine(capture, RefineOptions(progress=False, **options), initial_poses=odometry))
+    for row, result in ((rows[-2], two), (rows[-1], ours)):
+        row["seconds"] += odometry_seconds
+        row["poses"] = pose_summary(result.poses.numpy(), capture)
+    rows[-1]["odometry_poses"] = pose_summary(odometry, capture)
+    return rows
+
+
+def markdown(rows: list[dict]) -> str:
+    lines = ["| mesh | SF | frames | method | MAE (deg) | RMSE (mm) | seconds |", "|---|---:|---:|---|---:|---:|---:|"]
+    for r in rows:
+        lines.append(f"| {r['mesh']} | {r['sf']} | {r['frames']} | {r['method']} | {r['mae_deg']:.2f} | "
+                     f"{r['rmse_mm']:.3f} | {r['seconds']:.1f} |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.accuracy", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--meshes", nargs="+", default=["bunny", "armadillo"])
+    parser.add_argument("--sf", nargs="+", type=int, default=[2, 4, 8])
+    parser.add_argument("--frames", type=int, default=20)
+    parser.add_argument("--size", default="640x480")
+    parser.add_argument("--quick", action="store_true", help="320x240, 8 frames, 4 sweeps per level (CI-sized)")
+    parser.add_argument("--out", default="benchmarks/results")
+    args = parser.parse_args(argv)
+    size = tuple(int(v) for v in args.size.split("x"))
+    frames, options = args.frames, {}
+    if args.quick:
+        size, frames, options = (320, 240), 8, {"max_iterations": 4}
+    rows = []
+    for mesh in args.meshes:
+        for sf in args.sf:
+            case = run_case(mesh, sf, frames, size, options)
+            rows += case
+            print(markdown(case).split("\n", 2)[2], flush=True)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "accuracy.json").write_text(json_text(rows, "accuracy rows"))
+    (out / "accuracy.md").write_text(markdown(rows) + "\n")
+    print(markdown(rows))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
