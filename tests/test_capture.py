@@ -10,6 +10,7 @@ import open3d as o3d
 import pytest
 
 from o3d_mvps import capture as capture_module
+from o3d_mvps import fileio
 from o3d_mvps.capture import (
     Capture,
     GroundTruth,
@@ -474,14 +475,14 @@ def test_failed_overwrite_keeps_old_output(folder, monkeypatch):
 
 def test_failed_swap_restores_old_output(folder, monkeypatch):
     """If renaming the new folder into place fails, the old one is renamed back."""
-    before, real_rename = snapshot(folder), capture_module.os.rename
+    before, real_rename = snapshot(folder), fileio.os.rename
 
     def rename(src, dst):
         if ".tmp-" in str(src):
             raise OSError("rename failed (simulated)")
         real_rename(src, dst)
 
-    monkeypatch.setattr(capture_module.os, "rename", rename)
+    monkeypatch.setattr(fileio.os, "rename", rename)
     with pytest.raises(OSError, match="rename failed"):
         write_capture(make_capture("linear", seed=1), folder, overwrite=True)
     assert snapshot(folder) == before
