@@ -9,7 +9,6 @@ joint and two-stage rows) and ``accuracy.md`` into the output folder.
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
@@ -91,16 +90,17 @@ def main(argv=None) -> int:
     frames, options = args.frames, {}
     if args.quick:
         size, frames, options = (320, 240), 8, {"max_iterations": 4}
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
     rows = []
     for mesh in args.meshes:
         for sf in args.sf:
             case = run_case(mesh, sf, frames, size, options)
             rows += case
             print(markdown(case).split("\n", 2)[2], flush=True)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "accuracy.json").write_text(json_text(rows, "accuracy rows"))
-    (out / "accuracy.md").write_text(markdown(rows) + "\n")
+            # rewritten after every case, so a long run that stops keeps what it measured
+            (out / "accuracy.json").write_text(json_text(rows, "accuracy rows"))
+            (out / "accuracy.md").write_text(markdown(rows) + "\n")
     print(markdown(rows))
     return 0
 

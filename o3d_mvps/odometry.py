@@ -1,7 +1,8 @@
 """Initial camera poses from Open3D point-to-plane ICP on the low-resolution depth (DESIGN section 2).
 
 Each depth frame (h, w) in metres is lightly denoised (normalised Gaussian convolution over
-valid pixels, ``SMOOTH_PX``), its silhouette is eroded by one pixel, and it is back-projected
+valid pixels, ``SMOOTH_PX``), its silhouette is eroded by one pixel (unless that leaves fewer than
+``4 * MIN_POINTS`` points), and it is back-projected
 with the depth intrinsics into a point cloud with normals (radius ``NORMAL_RADIUS``). Frame i
 is registered to the reference by Open3D's multi-scale point-to-plane ICP
 (``o3d.pipelines.registration.registration_icp``, correspondence distances ``ICP_DISTANCES``),
@@ -75,7 +76,9 @@ def depth_cloud(depth: np.ndarray, K: np.ndarray, max_depth: float = 3.0) -> o3d
     num = ndimage.gaussian_filter(np.where(valid, z, 0.0), SMOOTH_PX, mode="constant")
     den = ndimage.gaussian_filter(v, SMOOTH_PX, mode="constant")
     z = np.where(valid, num / np.maximum(den, 1e-12), 0.0)
-    keep = ndimage.binary_erosion(valid)  # silhouette pixels are the least reliable
+    keep = ndimage.binary_erosion(valid)  # silhouette pixels are the least reliable ...
+    if keep.sum() < 4 * MIN_POINTS:  # ... but a small object (e.g. at SF 8) cannot spare them
+        keep = valid
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(backproject(z, np.asarray(K, dtype=np.float64))[keep]))
     if len(cloud.points) >= 3:
         cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=NORMAL_RADIUS, max_nn=NORMAL_MAX_NN))

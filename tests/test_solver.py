@@ -148,3 +148,19 @@ def test_refine_cli_writes_results_and_accuracy(tmp_path, capture):
     before = (tmp_path / "out" / "report.json").read_bytes()
     assert main(["--quiet", "refine", str(tmp_path / "cap"), str(tmp_path / "out"), "--levels", "2"]) == 1
     assert (tmp_path / "out" / "report.json").read_bytes() == before
+
+
+def test_refined_scan_exports_a_textured_mesh_and_a_watertight_solid(tmp_path, result):
+    import trimesh
+
+    from o3d_mvps.export import printable_solid, write_mesh, write_stl
+
+    mesh = result.to_mesh()
+    assert mesh.triangle.indices.shape[0] > 1000
+    assert "albedo" in mesh.material.texture_maps
+    write_mesh(mesh, tmp_path / "scan.glb")
+    solid = printable_solid(result, size_mm=80.0, base_mm=3.0, pieces="all")
+    write_stl(solid, tmp_path / "scan.stl")
+    back = trimesh.load(tmp_path / "scan.stl")
+    assert back.is_watertight and back.is_volume
+    assert max(back.extents) == pytest.approx(80.0, rel=1e-5)
