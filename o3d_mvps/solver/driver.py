@@ -49,6 +49,42 @@ def _reference_mask(capture: Capture) -> np.ndarray:
     return mask
 
 
+def _sweeps(problem: LevelProblem, est: Estimate, ev, options: RefineOptions, timings: dict, stats: dict) -> list:
+    """Run one level's sweeps (poses -> depth -> albedo -> lighting) in place on ``est``.
+
+    Returns the level's energy rows; stops at the relative energy change ``options.tolerance``.
+    """
+    level = problem.level
+    refine_poses = options.refine_poses and problem.n_frames > 1 and level.grid.size >= options.pose_min_pixels
+    rows = [{"level": level.index, "iteration": 0, "energy": ev.energy}]
+    bar = tqdm(range(1, options.max_iterations + 1), desc=f"level {level.index} ({level.size[1]}x{level.size[0]})",
+               disable=not options.progress, leave=False)
+    for iteration in bar:
+        previous = ev.energy
+        if refine_poses:
+            t = time.perf_counter()
+            est.poses = update_poses(problem, est, options.pose_iterations)
+            ev = problem.evaluate(est)
+            timings["poses"] += time.perf_counter() - t
+        t = time.perf_counter()
+        est.z, ev, cg_iterations = update_depth(problem, est, ev, rtol=options.cg_tolerance,
+                                                maxiter=options.cg_max_iterations)
+        stats["cg_iterations"].append(cg_iterations)
+        timings["depth"] += time.perf_counter() - t
+        t = time.perf_counter()
+        est.albedo = update_albedo(est, ev, problem.lam)
+        ev = problem.evaluate(est)
+        est.lights = update_lighting(est, ev, problem.lam)
+        ev = problem.evaluate(est)
+        timings["albedo_lighting"] += time.perf_counter() - t
+        rows.append({"level": level.index, "iteration": iteration, "energy": ev.energy})
+        bar.set_postfix(energy=f"{ev.energy:.5g}")
+        if abs(previous - ev.energy) <= options.tolerance * abs(previous):
+            break
+    bar.close()
+    return rows
+
+
 def refine(capture: Capture, options: RefineOptions | None = None, device="CPU:0", initial_poses=None) -> Refinement:
     """Jointly estimate depth (colour resolution), albedo, lighting and poses from a capture.
 
@@ -125,33 +161,7 @@ def refine(capture: Capture, options: RefineOptions | None = None, device="CPU:0
         est.albedo = update_albedo(est, ev, problem.lam)
         ev = problem.evaluate(est)
         timings["setup"] += time.perf_counter() - t
-        history.append({"level": level_index, "iteration": 0, "energy": ev.energy})
-        bar = tqdm(range(1, options.max_iterations + 1), desc=f"level {level_index} ({level.size[1]}x{level.size[0]})",
-                   disable=not options.progress, leave=False)
-        for iteration in bar:
-            previous = ev.energy
-            if (options.refine_poses and capture.n_frames > 1 and g.size >= options.pose_min_pixels
-                    and iteration > options.pose_warmup_sweeps):
-                t = time.perf_counter()
-                est.poses = update_poses(problem, est, options.pose_iterations)
-                ev = problem.evaluate(est)
-                timings["poses"] += time.perf_counter() - t
-            t = time.perf_counter()
-            est.z, ev, cg_iterations = update_depth(problem, est, ev, rtol=options.cg_tolerance,
-                                                    maxiter=options.cg_max_iterations)
-            stats["cg_iterations"].append(cg_iterations)
-            timings["depth"] += time.perf_counter() - t
-            t = time.perf_counter()
-            est.albedo = update_albedo(est, ev, problem.lam)
-            ev = problem.evaluate(est)
-            est.lights = update_lighting(est, ev, problem.lam)
-            ev = problem.evaluate(est)
-            timings["albedo_lighting"] += time.perf_counter() - t
-            history.append({"level": level_index, "iteration": iteration, "energy": ev.energy})
-            bar.set_postfix(energy=f"{ev.energy:.5g}")
-            if abs(previous - ev.energy) <= options.tolerance * abs(previous):
-                break
-        bar.close()
+        history += _sweeps(problem, est, ev, options, timings, stats)
         lights, poses = est.lights, est.poses
         z_full = fill_outside(g.scatter(est.z), g.mask)
         albedo_full = fill_outside(g.scatter(est.albedo), g.mask)

@@ -24,8 +24,6 @@ class RefineOptions:
     pose_iterations: Gauss-Newton iterations per frame and sweep.
     pose_min_pixels: refine poses only on levels whose reference mask has this many pixels
         (coarser levels see too little of the object to constrain six degrees of freedom).
-    pose_warmup_sweeps: sweeps at the start of each level that leave poses alone, so depth and
-        albedo adapt to the finer images before poses are compared against them.
     cg_tolerance, cg_max_iterations: preconditioned CG for the depth system.
     occlusion_tolerance: relative depth tolerance of the occlusion test.
     difference_scheme: depth derivatives of the normals, "central" or the paper's "forward"
@@ -44,7 +42,6 @@ class RefineOptions:
     occlusion_test: bool = True
     pose_iterations: int = 3
     pose_min_pixels: int = 1000
-    pose_warmup_sweeps: int = 0
     cg_tolerance: float = 1e-6
     cg_max_iterations: int = 300
     occlusion_tolerance: float = 0.02
