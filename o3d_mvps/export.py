@@ -24,12 +24,8 @@ sRGB-encoded, ready for display; the albedo itself is linear RGB.
 
 from __future__ import annotations
 
-import os
-import uuid
-from contextlib import contextmanager
 from pathlib import Path
 
-import cv2
 import numpy as np
 import open3d as o3d
 import scipy.sparse as sp
@@ -38,7 +34,8 @@ from scipy.optimize import brentq
 from scipy.sparse.csgraph import connected_components
 
 from .colour import linear_to_srgb
-from .errors import ExportError, OutputExistsError
+from .errors import ExportError
+from .fileio import atomic_files, write_png
 from .model.camera import as_intrinsic_matrix, backproject
 
 __all__ = [
@@ -592,9 +589,9 @@ def write_mesh(mesh, path, *, overwrite: bool = False) -> list[Path]:
     if suffix == ".obj":
         textured = uvs is not None and texture is not None
         paths = [path.with_suffix(".mtl"), path.with_name(path.stem + "_albedo.png"), path] if textured else [path]
-        with _atomic_outputs(paths, overwrite) as tmp:
+        with atomic_files(paths, overwrite) as tmp:
             if textured:
-                _write_png(tmp[1], texture)
+                write_png(tmp[1], _as_uint8(texture))
                 tmp[0].write_text(_mtl_text(paths[1].name))
                 _write_obj(tmp[2], positions, tri, normals, uvs, paths[0].name)
             else:
@@ -606,7 +603,7 @@ def write_mesh(mesh, path, *, overwrite: bool = False) -> list[Path]:
     # glTF multiplies COLOR_0 into the base colour texture: with a texture, leave the
     # (identical) vertex colours out, or viewers would show the albedo squared.
     textured = uvs is not None and texture is not None
-    with _atomic_outputs([path], overwrite) as tmp:
+    with atomic_files([path], overwrite) as tmp:
         if not o3d.t.io.write_triangle_mesh(str(tmp[0]), t_mesh, write_vertex_colors=not (suffix == ".glb" and textured)):
             raise ExportError(f"Open3D could not write {path}")
     return [path]
@@ -646,7 +643,7 @@ def write_stl(mesh, path, *, overwrite: bool = False, check: bool = True) -> lis
     data["normal"] = np.divide(cross, length, out=np.zeros_like(cross), where=length > 0)
     data["vertices"] = p[tri]
     header = b"o3d_mvps print solid, binary STL, millimetres".ljust(80, b" ")
-    with _atomic_outputs([path], overwrite) as tmp:
+    with atomic_files([path], overwrite) as tmp:
         with open(tmp[0], "wb") as fh:
             fh.write(header)
             fh.write(np.uint32(len(tri)).astype("<u4").tobytes())
@@ -664,34 +661,6 @@ def _vertex_attributes_only(mesh: o3d.t.geometry.TriangleMesh) -> o3d.t.geometry
     return plain
 
 
-@contextmanager
-def _atomic_outputs(paths: list[Path], overwrite: bool):
-    """Yield temporary paths beside ``paths``; on success rename them into place, else delete them.
-
-    Refuses (OutputExistsError) before writing anything when a target exists and not overwrite.
-    Temporary names keep the target's suffix, for writers that infer the format from it.
-    """
-    if not overwrite:
-        existing = [str(p) for p in paths if p.exists()]
-        if existing:
-            raise OutputExistsError(f"{', '.join(existing)} already exist(s); pass overwrite=True "
-                                    "(o3d-mvps export --overwrite) to replace, or choose another output path")
-    for p in paths:
-        p.parent.mkdir(parents=True, exist_ok=True)
-    token = uuid.uuid4().hex[:8]
-    tmps = [p.with_name(f".{p.stem}.{token}.tmp{p.suffix}") for p in paths]
-    try:
-        yield tmps
-        for t in tmps:
-            if not t.exists() or t.stat().st_size == 0:
-                raise ExportError(f"writing {paths[tmps.index(t)]} produced no data")
-        for t, p in zip(tmps, paths):
-            os.replace(t, p)
-    finally:
-        for t in tmps:
-            t.unlink(missing_ok=True)
-
-
 def _as_uint8(image: np.ndarray) -> np.ndarray:
     """An (H, W, C) uint8 image from uint8, uint16 or float [0, 1] data."""
     image = np.asarray(image)
@@ -702,17 +671,6 @@ def _as_uint8(image: np.ndarray) -> np.ndarray:
     if image.dtype == np.uint16:
         return (image // 257).astype(np.uint8)
     return np.round(np.clip(image, 0.0, 1.0) * 255.0).astype(np.uint8)
-
-
-def _write_png(path: Path, image: np.ndarray) -> None:
-    """Write an (H, W, 1|3|4) uint8 RGB(A) image as PNG."""
-    image = _as_uint8(image)
-    if image.shape[2] == 3:
-        image = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
-    elif image.shape[2] == 4:
-        image = cv2.cvtColor(image, cv2.COLOR_RGBA2BGRA)
-    if not cv2.imwrite(str(path), image):
-        raise ExportError(f"OpenCV could not write the texture {path}")
 
 
 def _mtl_text(texture_name: str) -> str:

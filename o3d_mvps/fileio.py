@@ -62,6 +62,36 @@ def atomic_folder(path, *, overwrite: bool = False, what: str = "output folder")
         raise
 
 
+@contextmanager
+def atomic_files(paths: list[Path], overwrite: bool) -> Iterator[list[Path]]:
+    """Write several files all or nothing: yields temporary paths beside ``paths``, renamed into
+    place once every one of them holds data; on any failure they are deleted.
+
+    Refuses (OutputExistsError) before anything is written when a target exists and not
+    ``overwrite``. Temporary names keep the target's suffix, for writers that infer the format.
+    """
+    paths = [Path(p) for p in paths]
+    if not overwrite:
+        existing = [str(p) for p in paths if p.exists()]
+        if existing:
+            raise OutputExistsError(f"{', '.join(existing)} already exist(s); pass overwrite=True "
+                                    "(--overwrite) to replace, or choose another output path")
+    for p in paths:
+        p.parent.mkdir(parents=True, exist_ok=True)
+    token = uuid.uuid4().hex[:8]
+    tmps = [p.with_name(f".{p.stem}.{token}.tmp{p.suffix}") for p in paths]
+    try:
+        yield tmps
+        for t, p in zip(tmps, paths):
+            if not t.exists() or t.stat().st_size == 0:
+                raise OSError(f"writing {p} produced no data")
+        for t, p in zip(tmps, paths):
+            os.replace(t, p)
+    finally:
+        for t in tmps:
+            t.unlink(missing_ok=True)
+
+
 def json_text(data, what: str, error=ValueError) -> str:
     """Pretty JSON of data; raises ``error`` naming ``what`` when it is not serialisable."""
     try:
@@ -71,9 +101,9 @@ def json_text(data, what: str, error=ValueError) -> str:
 
 
 def write_png(path: Path, image: np.ndarray) -> None:
-    """Write an (H, W) or RGB (H, W, 3) uint8/uint16 array as PNG."""
-    if image.ndim == 3:
-        image = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
+    """Write an (H, W), (H, W, 1), RGB (H, W, 3) or RGBA (H, W, 4) uint8/uint16 array as PNG."""
+    if image.ndim == 3 and image.shape[2] in (3, 4):
+        image = cv2.cvtColor(image, cv2.COLOR_RGB2BGR if image.shape[2] == 3 else cv2.COLOR_RGBA2BGRA)
     if not cv2.imwrite(str(path), image):
         raise OSError(f"cannot write {path}; check the disk space and permissions")
 

@@ -13,7 +13,8 @@ from pathlib import Path
 import numpy as np
 
 from .errors import ExportError
-from .export import _atomic_outputs, _write_png, mesh_arrays
+from .export import mesh_arrays
+from .fileio import atomic_files, write_png
 
 __all__ = ["render_preview", "VIEWS"]
 
@@ -94,8 +95,8 @@ def render_preview(mesh, path, *, size: tuple[int, int] = (800, 600), view: str 
                           "(Debian/Ubuntu: apt-get install libgl1 libegl1 libgl1-mesa-dri)") from err
     finally:
         plotter.close()
-    with _atomic_outputs([path], overwrite) as tmp:
-        _write_png(tmp[0], np.asarray(image, dtype=np.uint8))
+    with atomic_files([path], overwrite) as tmp:
+        write_png(tmp[0], np.asarray(image, dtype=np.uint8))
     return path
 
 
