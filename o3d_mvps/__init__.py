@@ -14,6 +14,7 @@ from .errors import (
     OutputExistsError,
     RecordingError,
 )
+from .integration import refine_rgbd
 from .refinement import Refinement, read_refinement
 from .solver.driver import refine
 from .solver.options import RefineOptions
@@ -28,6 +29,7 @@ __all__ = [
     "Refinement",
     "read_refinement",
     "refine",
+    "refine_rgbd",
     "RefineOptions",
     "MVPSError",
     "CaptureError",

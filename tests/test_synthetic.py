@@ -278,3 +278,19 @@ def test_cli_writes_a_readable_capture(tmp_path, capsys):
     assert main(["--quiet", *args, "--overwrite"]) == 0
     assert main(["--quiet", "render", "bunny", str(tmp_path / "x"), "--size", "162x120"]) == 1
     assert "does not divide" in capsys.readouterr().err
+
+
+def test_ring_trajectory_circles_the_object():
+    from o3d_mvps.synthetic import ring_trajectory
+
+    distance = 0.6
+    poses = ring_trajectory(8, distance, elevation_deg=20.0)
+    centre = np.array([0.0, 0.0, distance, 1.0])
+    camera_centres = np.array([-T[:3, :3].T @ T[:3, 3] for T in poses])
+    np.testing.assert_allclose(np.linalg.norm(camera_centres - centre[:3], axis=1), distance, atol=1e-12)
+    for T in poses:  # the object centre on each optical axis, in front of the camera
+        np.testing.assert_allclose((T @ centre)[:3], [0.0, 0.0, distance], atol=1e-12)
+    np.testing.assert_allclose(camera_centres[:, 1], -distance * np.sin(np.radians(20.0)), atol=1e-12)  # above
+    np.testing.assert_allclose(camera_centres[4], [0.0, camera_centres[0, 1], 2 * distance - camera_centres[0, 2]],
+                               atol=1e-12)  # frame 4 of 8 looks from the back
+    np.testing.assert_allclose(ring_trajectory(4, distance, 0.0)[0], np.eye(4), atol=1e-12)
