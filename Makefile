@@ -45,7 +45,7 @@ test: setup
 	$(PY) -m pytest -q
 
 bench: setup
-	$(VENV)/bin/o3d-mvps bench
+	$(PY) -m benchmarks all
 
 clean:
 	rm -rf $(VENV) out .pytest_cache

@@ -24,6 +24,8 @@ from o3d_mvps.odometry import initial_poses
 from o3d_mvps.synthetic import render_capture
 
 METHODS = ("bicubic", "guided", "single_frame", "two_stage", "ours")
+#: --quick: one tiny case per study (CI-sized; every subcommand together well under a minute)
+QUICK_SIZE, QUICK_FRAMES, QUICK_OPTIONS = (160, 120), 4, {"max_iterations": 3, "levels": 3}
 
 
 def pose_summary(poses: np.ndarray, capture) -> dict:
@@ -38,8 +40,9 @@ def pose_summary(poses: np.ndarray, capture) -> dict:
             "reproj_px_mean": float(reproj.mean())}
 
 
-def run_case(mesh: str, sf: int, frames: int, size: tuple[int, int], options: dict, seed: int = 0) -> list[dict]:
-    """All methods on one rendered capture; returns result rows."""
+def run_case(mesh: str, sf: int, frames: int, size: tuple[int, int], options: dict, seed: int = 0,
+             methods=METHODS) -> list[dict]:
+    """The ``methods`` (default all) on one rendered capture; returns result rows in METHODS order."""
     capture = render_capture(mesh, frames=frames, scale_factor=sf, size=size, seed=seed)
     gt = capture.groundtruth
     rows = []
@@ -52,19 +55,25 @@ def run_case(mesh: str, sf: int, frames: int, size: tuple[int, int], options: di
                      "seconds": seconds, **extra})
         return result
 
-    record("bicubic", lambda: bicubic(capture))
-    record("guided", lambda: guided(capture))
-    record("single_frame", lambda: refine(capture, RefineOptions(frames=1, progress=False, **options)))
-    t = time.perf_counter()
-    odometry = initial_poses(capture)
-    odometry_seconds = time.perf_counter() - t
-    two = record("two_stage", lambda: refine(capture, RefineOptions(refine_poses=False, progress=False, **options),
-                                             initial_poses=odometry))
-    ours = record("ours", lambda: refine(capture, RefineOptions(progress=False, **options), initial_poses=odometry))
-    for row, result in ((rows[-2], two), (rows[-1], ours)):
-        row["seconds"] += odometry_seconds
-        row["poses"] = pose_summary(result.poses.numpy(), capture)
-    rows[-1]["odometry_poses"] = pose_summary(odometry, capture)
+    if "bicubic" in methods:
+        record("bicubic", lambda: bicubic(capture))
+    if "guided" in methods:
+        record("guided", lambda: guided(capture))
+    if "single_frame" in methods:
+        record("single_frame", lambda: refine(capture, RefineOptions(frames=1, progress=False, **options)))
+    if "two_stage" in methods or "ours" in methods:
+        t = time.perf_counter()
+        odometry = initial_poses(capture)
+        odometry_seconds = time.perf_counter() - t
+    for method, refine_poses in (("two_stage", False), ("ours", True)):
+        if method not in methods:
+            continue
+        opts = RefineOptions(progress=False, **{"refine_poses": refine_poses, **options})
+        result = record(method, lambda opts=opts: refine(capture, opts, initial_poses=odometry))
+        rows[-1]["seconds"] += odometry_seconds
+        rows[-1]["poses"] = pose_summary(result.poses.numpy(), capture)
+        if method == "ours":
+            rows[-1]["odometry_poses"] = pose_summary(odometry, capture)
     return rows
 
 
@@ -76,32 +85,46 @@ def markdown(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m benchmarks.accuracy", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The accuracy benchmark's command-line options."""
     parser.add_argument("--meshes", nargs="+", default=["bunny", "armadillo"])
     parser.add_argument("--sf", nargs="+", type=int, default=[2, 4, 8])
     parser.add_argument("--frames", type=int, default=20)
     parser.add_argument("--size", default="640x480")
-    parser.add_argument("--quick", action="store_true", help="320x240, 8 frames, 4 sweeps per level (CI-sized)")
-    parser.add_argument("--out", default="benchmarks/results")
-    args = parser.parse_args(argv)
-    size = tuple(int(v) for v in args.size.split("x"))
-    frames, options = args.frames, {}
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """'WxH' -> (W, H)."""
+    return tuple(int(v) for v in text.lower().split("x"))
+
+
+def run(args) -> list[dict]:
+    """Run the accuracy benchmark; rewrites accuracy.json / accuracy.md in ``args.out`` after every case."""
+    size, frames, options = parse_size(args.size), args.frames, {}
+    meshes, sfs = args.meshes, args.sf
     if args.quick:
-        size, frames, options = (320, 240), 8, {"max_iterations": 4}
+        size, frames, options, meshes, sfs = QUICK_SIZE, QUICK_FRAMES, QUICK_OPTIONS, ["bunny"], [4]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     rows = []
-    for mesh in args.meshes:
-        for sf in args.sf:
+    for mesh in meshes:
+        for sf in sfs:
             case = run_case(mesh, sf, frames, size, options)
             rows += case
             print(markdown(case).split("\n", 2)[2], flush=True)
             # rewritten after every case, so a long run that stops keeps what it measured
             (out / "accuracy.json").write_text(json_text(rows, "accuracy rows"))
             (out / "accuracy.md").write_text(markdown(rows) + "\n")
-    print(markdown(rows))
+    return rows
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.accuracy", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_arguments(parser)
+    parser.add_argument("--quick", action="store_true", help="tiny CI-sized case")
+    parser.add_argument("--out", default="benchmarks/results")
+    print(markdown(run(parser.parse_args(argv))))
     return 0
 
 

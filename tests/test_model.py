@@ -167,7 +167,7 @@ def make_problem(n_frames=2, tau=1.0):
     mask[6:-6, 8:-8] = True
     grid = masked_grid(mask)
     images = [smooth_image() for _ in range(n_frames)]
-    gradients = [np.concatenate(image_gradients(img), -1) for img in images]
+    gradients = [np.stack(image_gradients(img)) for img in images]
     z0 = z.reshape(SIZE[0] // 2, 2, SIZE[1] // 2, 2).mean(axis=(1, 3))
     level = Level(0, grid, K, SIZE, images, gradients, [None] * n_frames, depth_prior(grid, z0, 2.0))
     problem = LevelProblem(level, tau, 0.04)

@@ -6,21 +6,30 @@ A reference pixel p with depth z(p) back-projects to P = pi^-1(p, z); frame i se
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from .camera import project, transform
+
+#: Channel counts OpenCV's remap interpolates in float (others use 1/32-pixel fixed point).
+_REMAP_CHANNELS = (1, 3, 4)
+_REMAP_WIDTH = 4096  # remap's maps must have fewer than 32767 columns
 
 
 def sample_bilinear(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Bilinear samples (N, C) of an (H, W, C) image at real pixel coordinates u, v (N,).
 
     Computed in the image's dtype. Coordinates are clamped to the image, so samples outside
-    repeat the border; use :func:`in_view` to know which samples are genuine.
+    repeat the border; use :func:`in_view` to know which samples are genuine. float32
+    images with 1, 3 or 4 channels go through ``cv2.remap`` (about 10x faster; coordinates
+    rounded to float32, i.e. 1e-4 px at 1280 px), others through numpy.
     """
     H, W = image.shape[:2]
-    flat = image.reshape(H * W, -1)
     u = np.clip(u, 0.0, W - 1.0)
     v = np.clip(v, 0.0, H - 1.0)
+    if image.dtype == np.float32 and image.ndim == 3 and image.shape[2] in _REMAP_CHANNELS and max(H, W) < 32767:
+        return _remap(image, u, v)
+    flat = image.reshape(H * W, -1)
     u0 = np.minimum(u.astype(np.int64), max(W - 2, 0))
     v0 = np.minimum(v.astype(np.int64), max(H - 2, 0))
     a = (u - u0).astype(image.dtype)[:, None]
@@ -34,6 +43,19 @@ def sample_bilinear(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarr
     bottom += a * (flat[i00 + dv + du] - bottom)
     top += b * (bottom - top)
     return top
+
+
+def _remap(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """:func:`sample_bilinear` of a float32 image through cv2.remap (u, v already clamped)."""
+    n = u.size
+    rows = max(1, -(-n // _REMAP_WIDTH))
+    width = _REMAP_WIDTH if rows > 1 else max(n, 1)
+    maps = np.zeros((2, rows * width), np.float32)
+    maps[0, :n] = u
+    maps[1, :n] = v
+    out = cv2.remap(image, maps[0].reshape(rows, width), maps[1].reshape(rows, width), cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_REPLICATE)
+    return out.reshape(rows * width, image.shape[2])[:n]
 
 
 def image_gradients(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

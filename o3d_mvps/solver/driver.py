@@ -13,6 +13,7 @@ from collections import defaultdict
 
 import cv2
 import numpy as np
+from threadpoolctl import threadpool_limits
 from tqdm.auto import tqdm
 
 from ..capture import Capture
@@ -63,8 +64,7 @@ def _sweeps(problem: LevelProblem, est: Estimate, ev, options: RefineOptions, ti
         previous = ev.energy
         if refine_poses:
             t = time.perf_counter()
-            est.poses = update_poses(problem, est, options.pose_iterations)
-            ev = problem.evaluate(est)
+            est.poses, ev = update_poses(problem, est, ev, options.pose_iterations, options.pose_tolerance)
             timings["poses"] += time.perf_counter() - t
         t = time.perf_counter()
         est.z, ev, cg_iterations = update_depth(problem, est, ev, rtol=options.cg_tolerance,
@@ -73,9 +73,9 @@ def _sweeps(problem: LevelProblem, est: Estimate, ev, options: RefineOptions, ti
         timings["depth"] += time.perf_counter() - t
         t = time.perf_counter()
         est.albedo = update_albedo(est, ev, problem.lam)
-        ev = problem.evaluate(est)
+        ev = problem.reevaluate(est, ev)
         est.lights = update_lighting(est, ev, problem.lam)
-        ev = problem.evaluate(est)
+        ev = problem.reevaluate(est, ev)
         timings["albedo_lighting"] += time.perf_counter() - t
         rows.append({"level": level.index, "iteration": iteration, "energy": ev.energy})
         bar.set_postfix(energy=f"{ev.energy:.5g}")
@@ -91,6 +91,14 @@ def refine(capture: Capture, options: RefineOptions | None = None, device="CPU:0
     capture: frame 0 is the reference; ``initial_poses`` (n, 4, 4) reference -> frame i
     (default: Open3D RGB-D odometry). Returns a :class:`~o3d_mvps.Refinement`.
     """
+    # The solver's BLAS calls are vector dots/norms (CG, AMG) and thin products: on a loaded
+    # 2-core machine OpenBLAS's threads made each 60k-vector norm take ~5 ms instead of 30 us
+    # (~20 % of a 640x480 refinement); one thread loses nothing on an idle machine.
+    with threadpool_limits(1, user_api="blas"):
+        return _refine(capture, options, device, initial_poses)
+
+
+def _refine(capture: Capture, options: RefineOptions | None, device, initial_poses) -> Refinement:
     options = options or RefineOptions()
     _check_device(device)
     frames = options.frame_indices(capture.n_frames)
@@ -159,7 +167,7 @@ def refine(capture: Capture, options: RefineOptions | None = None, device="CPU:0
         # and depth steps compare against. Fitting lighting first would explain the reference image
         # by ambient light alone, since the initial albedo is that image.
         est.albedo = update_albedo(est, ev, problem.lam)
-        ev = problem.evaluate(est)
+        ev = problem.reevaluate(est, ev)
         timings["setup"] += time.perf_counter() - t
         history += _sweeps(problem, est, ev, options, timings, stats)
         lights, poses = est.lights, est.poses

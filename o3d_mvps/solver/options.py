@@ -22,6 +22,8 @@ class RefineOptions:
     refine_poses: refine poses jointly (False gives the paper's two-stage baseline).
     occlusion_test: drop reference pixels hidden or out of view in frame i from its data term.
     pose_iterations: Gauss-Newton iterations per frame and sweep.
+    pose_tolerance: stop a frame's Gauss-Newton iterations once one lowers its energy by less
+        than this fraction (0: always run ``pose_iterations``).
     pose_min_pixels: refine poses only on levels whose reference mask has this many pixels
         (coarser levels see too little of the object to constrain six degrees of freedom).
     cg_tolerance, cg_max_iterations: preconditioned CG for the depth system.
@@ -41,8 +43,9 @@ class RefineOptions:
     refine_poses: bool = True
     occlusion_test: bool = True
     pose_iterations: int = 3
+    pose_tolerance: float = 1e-3
     pose_min_pixels: int = 1000
-    cg_tolerance: float = 1e-6
+    cg_tolerance: float = 1e-4
     cg_max_iterations: int = 300
     occlusion_tolerance: float = 0.02
     difference_scheme: str = "central"

@@ -6,24 +6,35 @@ import numpy as np
 
 from ..model import se3
 from ..model.robust import cauchy_weights
-from .problem import Estimate, FrameSample, LevelProblem
+from .problem import Estimate, Evaluation, FrameSample, LevelProblem
 
 
 def pose_jacobian(sample: FrameSample, K: np.ndarray) -> np.ndarray:
     """d(warped colour)/d(xi) for a left update exp(xi) T: (N, 3, 6), xi = (v, w)."""
-    X, Y, Z = sample.points[:, 0], sample.points[:, 1], sample.points[:, 2]
+    X, Y, Z = (c[:, None] for c in sample.points.T)  # (N, 1) each
     iz = 1.0 / Z
-    a = sample.grad_u * (K[0, 0] * iz)[:, None]  # (N, 3): dI/dX'
-    b = sample.grad_v * (K[1, 1] * iz)[:, None]  # dI/dY'
-    c = -(a * (X * iz)[:, None] + b * (Y * iz)[:, None])  # dI/dZ'
-    g = np.stack([a, b, c], axis=-1)  # (N, 3, 3): per channel, gradient wrt the frame point
-    rot = np.cross(sample.points[:, None, :], g)  # P' x g
-    return np.concatenate([g, rot], axis=-1)
+    J = np.empty(sample.grad_u.shape + (6,))
+    a = np.multiply(sample.grad_u, K[0, 0] * iz, out=J[..., 0])  # (N, 3): dI/dX'
+    b = np.multiply(sample.grad_v, K[1, 1] * iz, out=J[..., 1])  # dI/dY'
+    c = np.multiply(-iz, a * X + b * Y, out=J[..., 2])  # dI/dZ'
+    J[..., 3] = Y * c - Z * b  # rotation part: P' x (a, b, c)
+    J[..., 4] = Z * a - X * c
+    J[..., 5] = X * b - Y * a
+    return J
 
 
 def update_pose(problem: LevelProblem, est: Estimate, i: int, points_ref: np.ndarray, shading: np.ndarray,
-                iterations: int, max_halvings: int = 4) -> np.ndarray:
-    """Refine frame i's pose (4x4) with IRLS Gauss-Newton; never increases its data energy."""
+                iterations: int, max_halvings: int = 4, tolerance: float = 0.0) -> np.ndarray:
+    """Refine frame i's pose (4x4) with IRLS Gauss-Newton; never increases its data energy.
+
+    Stops early once an iteration lowers the frame's energy by less than ``tolerance`` (relative).
+    """
+    return refine_pose(problem, est, i, points_ref, shading, iterations, max_halvings, tolerance)[0]
+
+
+def refine_pose(problem: LevelProblem, est: Estimate, i: int, points_ref: np.ndarray, shading: np.ndarray,
+                iterations: int, max_halvings: int = 4, tolerance: float = 0.0) -> tuple[np.ndarray, FrameSample]:
+    """:func:`update_pose`, also returning frame i's sample under the refined pose."""
     K = problem.level.K
     model = est.albedo * shading[:, None]
     pose = est.poses[i]
@@ -43,26 +54,33 @@ def update_pose(problem: LevelProblem, est: Estimate, i: int, points_ref: np.nda
             step = -np.linalg.solve(H + 1e-9 * np.trace(H) * np.eye(6), g)
         except np.linalg.LinAlgError:
             break
-        accepted = False
+        accepted = converged = False
         for _ in range(max_halvings + 1):
             trial_pose = se3.exp(step) @ pose
             trial = problem.sample(i, trial_pose, points_ref)
             trial_energy = problem.frame_data_energy(trial, est.albedo, shading)
             if trial_energy <= energy:
+                converged = energy - trial_energy <= tolerance * energy
                 pose, sample, energy, accepted = trial_pose, trial, trial_energy, True
                 break
             step = 0.5 * step
-        if not accepted or np.linalg.norm(step) < 1e-10:
+        if not accepted or converged or np.linalg.norm(step) < 1e-10:
             break
-    return pose
+    return pose, sample
 
 
-def update_poses(problem: LevelProblem, est: Estimate, iterations: int) -> np.ndarray:
-    """All frames' refined poses (n, 4, 4); frame 0 (the reference) stays the identity."""
+def update_poses(problem: LevelProblem, est: Estimate, ev: Evaluation, iterations: int,
+                 tolerance: float = 0.0) -> tuple[np.ndarray, Evaluation]:
+    """All frames' refined poses (n, 4, 4) and the evaluation under them (``ev`` is that of ``est``).
+
+    Frame 0 (the reference) stays the identity. The evaluation reuses the samples the
+    Gauss-Newton steps ended with instead of warping every frame again.
+    """
     points_ref = problem.points(est.z)
-    normals, _ = problem.normals(est.z)
     poses = est.poses.copy()
+    color, usable = ev.color.copy(), ev.usable.copy()
     for i in range(1, problem.n_frames):
-        shading = est.lights[i, 0] + normals @ est.lights[i, 1:]
-        poses[i] = update_pose(problem, est, i, points_ref, shading, iterations)
-    return poses
+        poses[i], sample = refine_pose(problem, est, i, points_ref, ev.shading[i], iterations, tolerance=tolerance)
+        color[i], usable[i] = sample.color, sample.usable
+    moved = Estimate(est.z, est.albedo, est.lights, poses)
+    return poses, problem.evaluate_samples(moved, color, usable, ev.normals, ev.dA)

@@ -93,9 +93,9 @@ class LevelProblem:
 
     def sample_gradients(self, i: int, sample: FrameSample, keep: np.ndarray) -> FrameSample:
         """The ``keep`` subset (N,) bool of a sample, with frame i's colour gradients added."""
-        g = sample_bilinear(self.level.gradients[i], sample.u[keep], sample.v[keep]).astype(np.float64)
-        return FrameSample(sample.color[keep], sample.points[keep], sample.u[keep], sample.v[keep],
-                           sample.usable[keep], g[:, :3], g[:, 3:])
+        u, v = sample.u[keep], sample.v[keep]
+        gu, gv = (sample_bilinear(g, u, v).astype(np.float64) for g in self.level.gradients[i])
+        return FrameSample(sample.color[keep], sample.points[keep], u, v, sample.usable[keep], gu, gv)
 
     def update_visibility(self, est: Estimate, *, occlusion_test: bool, rel_tol: float, sensor_depths=None,
                           depth_K=None) -> None:
@@ -129,17 +129,27 @@ class LevelProblem:
     def evaluate(self, est: Estimate) -> Evaluation:
         """Residuals and energy of the estimate over all frames."""
         n, N = self.n_frames, self.level.grid.size
-        normals, dA = self.normals(est.z)
         P = self.points(est.z)
-        residual = np.zeros((n, N, 3))
-        color = np.zeros((n, N, 3))
-        shading = np.zeros((n, N))
-        usable = np.zeros((n, N), dtype=bool)
+        color = np.empty((n, N, 3))
+        usable = np.empty((n, N), dtype=bool)
         for i in range(n):
             s = self.sample(i, est.poses[i], P)
-            shading[i] = est.lights[i, 0] + normals @ est.lights[i, 1:]
-            color[i] = s.color
-            usable[i] = s.usable
-            residual[i] = np.where(s.usable[:, None], s.color - est.albedo * shading[i][:, None], 0.0)
+            color[i], usable[i] = s.color, s.usable
+        return self.evaluate_samples(est, color, usable, *self.normals(est.z))
+
+    def evaluate_samples(self, est: Estimate, color: np.ndarray, usable: np.ndarray, normals: np.ndarray,
+                         dA: np.ndarray) -> Evaluation:
+        """The evaluation of ``est`` from its warped colours (n, N, 3), usable (n, N) and normals.
+
+        Steps that leave z and the poses alone (albedo, lighting) or that sampled the frames
+        already (poses) reuse the samples instead of warping every frame again.
+        """
+        shading = est.lights[:, :1] + est.lights[:, 1:] @ normals.T  # (n, N)
+        residual = color - est.albedo[None] * shading[..., None]
+        residual *= usable[..., None]
         data = float(cauchy(residual, self.lam).sum())
         return Evaluation(residual, usable, color, shading, normals, dA, data, self.prior_energy(est.z))
+
+    def reevaluate(self, est: Estimate, ev: Evaluation) -> Evaluation:
+        """Evaluation of ``est`` whose z and poses are those ``ev`` was computed at."""
+        return self.evaluate_samples(est, ev.color, ev.usable, ev.normals, ev.dA)

@@ -94,7 +94,8 @@ class Level:
 
     grid: masked reference pixels. K: (3, 3) level intrinsics. size: (H, W).
     images: per frame an (H, W, 3) float32 linear RGB image.
-    gradients: per frame an (H, W, 6) float32 array [dI/du (3), dI/dv (3)].
+    gradients: per frame a (2, H, W, 3) float32 array [dI/du, dI/dv] (each channel-contiguous,
+        so sampling goes through cv2.remap).
     frame_masks: per frame an (H, W) bool mask or None. prior: the depth prior.
     """
 
@@ -114,7 +115,7 @@ def build_level(index: int, colors: list, masks: list, ref_mask: np.ndarray, K: 
     size = level_size(ref_mask.shape, index)
     K_level = scale_intrinsics(K, size[1] / ref_mask.shape[1], size[0] / ref_mask.shape[0])
     images = [resize(color, size).astype(np.float32) for color in colors]
-    gradients = [np.concatenate(image_gradients(img), axis=-1) for img in images]
+    gradients = [np.stack(image_gradients(img)) for img in images]
     frame_masks = [None if m is None else resize(m.astype(np.float32), size) > 0.5 for m in masks]
     mask = resize(ref_mask.astype(np.float32), size) > 0.5
     grid = masked_grid(mask, scheme)

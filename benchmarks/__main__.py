@@ -1,0 +1,52 @@
+"""Benchmarks of o3d_mvps: ``python -m benchmarks {accuracy,frames,tau,speed,all} [--quick] [--out DIR]``.
+
+accuracy: every method on rendered captures (bunny, armadillo; SF 2/4/8; 640x480, 20 frames).
+frames: error of ours against n in {5, ..., 30} (bunny, SF 4). tau: error against tau~.
+speed: wall time and peak RSS of odometry + refine at 640x480 / 160x120 and 1280x720 / 640x360.
+all: everything, one after the other. --quick runs a tiny case of each (CI, under a minute).
+Results go to DIR (default benchmarks/results) as JSON, summary.md and PNG plots.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from . import accuracy, speed, studies
+from .summary import write_summary
+
+STUDIES = ("accuracy", "frames", "tau", "speed")
+
+
+def _run(name: str, args) -> None:
+    if name == "accuracy":
+        accuracy.run(args)
+    elif name == "speed":
+        speed.run(args)
+    else:
+        studies.run(args, name)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m benchmarks", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--quick", action="store_true", help="tiny sizes (CI, under a minute)")
+    common.add_argument("--out", default="benchmarks/results", help="results folder")
+    sub = parser.add_subparsers(dest="command", required=True)
+    accuracy.add_arguments(sub.add_parser("accuracy", parents=[common], help="all methods, all cases"))
+    studies.add_arguments(sub.add_parser("frames", parents=[common], help="error against n"), "frames")
+    studies.add_arguments(sub.add_parser("tau", parents=[common], help="error against tau~"), "tau")
+    speed.add_arguments(sub.add_parser("speed", parents=[common], help="time and peak memory"))
+    sub.add_parser("all", parents=[common], help="every benchmark with its defaults")
+    args = parser.parse_args(argv)
+    if args.command == "all":
+        for name in STUDIES:
+            _run(name, parser.parse_args([name, *(["--quick"] if args.quick else []), "--out", args.out]))
+    else:
+        _run(args.command, args)
+    print(f"wrote {write_summary(args.out)}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,78 @@
+"""summary.md and the PNG plots, rebuilt from whichever result JSON files exist in a folder."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from .accuracy import markdown as accuracy_table
+from .plots import line_plot
+
+
+def _load(out: Path, name: str) -> list[dict]:
+    path = out / f"{name}.json"
+    return json.loads(path.read_text()) if path.is_file() else []
+
+
+def _study_table(rows: list[dict]) -> str:
+    lines = ["| mesh | SF | protocol | frames | tau~ | MAE (deg) | RMSE (mm) | seconds |",
+             "|---|---:|---|---:|---:|---:|---:|---:|"]
+    lines += [f"| {r['mesh']} | {r['sf']} | {r.get('protocol', 'dense')} | {r['frames']} | {r['tau']:g} | "
+              f"{r['mae_deg']:.2f} | {r['rmse_mm']:.3f} | {r['seconds']:.1f} |" for r in rows]
+    return "\n".join(lines)
+
+
+def _speed_table(rows: list[dict]) -> str:
+    stages = sorted({k for r in rows for k in r["breakdown"] if k != "total"})
+    lines = ["| colour | depth | frames | seconds | CPU seconds | peak MB | " + " | ".join(stages) + " |",
+             "|---|---|---:|---:|---:|---:|" + "---:|" * len(stages)]
+    for r in rows:
+        parts = " | ".join(f"{r['breakdown'].get(k, 0.0):.1f}" for k in stages)
+        lines.append(f"| {r['color']} | {r['depth']} | {r['frames']} | {r['seconds']:.1f} | "
+                     f"{r['cpu_seconds']:.1f} | {r['peak_mb']:.0f} | {parts} |")
+    return "\n".join(lines)
+
+
+def _study_plots(out: Path, rows: list[dict], study: str, key: str, xlabel: str, logx: bool) -> list[str]:
+    names = []
+    protocols = dict.fromkeys(r.get("protocol", "dense") for r in rows)
+    for metric, label in (("mae_deg", "MAE (deg)"), ("rmse_mm", "RMSE (mm)")):
+        name = f"{study}_{metric.split('_')[0]}.png"
+        series = {}
+        for protocol in protocols:
+            mine = [r for r in rows if r.get("protocol", "dense") == protocol]
+            label = f"{mine[0]['mesh']} SF {mine[0]['sf']}" + (f" {protocol}" if len(protocols) > 1 else "")
+            series[label] = ([r[key] for r in mine], [r[metric] for r in mine])
+        line_plot(out / name, series, title=f"{label} against {xlabel}", xlabel=xlabel, ylabel=label, logx=logx)
+        names.append(name)
+    return names
+
+
+def write_summary(out) -> Path:
+    """Write ``summary.md`` (all tables) and the plots into ``out``; returns the summary's path."""
+    out = Path(out)
+    parts = ["# Benchmark results", ""]
+    accuracy = _load(out, "accuracy")
+    if accuracy:
+        parts += ["## Accuracy (all methods)", "", accuracy_table(accuracy), ""]
+        for mesh in dict.fromkeys(r["mesh"] for r in accuracy):
+            mine = [r for r in accuracy if r["mesh"] == mesh]
+            methods = dict.fromkeys(r["method"] for r in mine)
+            series = {m: ([r["sf"] for r in mine if r["method"] == m], [r["mae_deg"] for r in mine if r["method"] == m])
+                      for m in methods}
+            if len({r["sf"] for r in mine}) > 1:
+                name = f"accuracy_{mesh}_mae.png"
+                line_plot(out / name, series, title=f"{mesh}: MAE against SF", xlabel="SF", ylabel="MAE (deg)")
+                parts += [f"![{mesh}]({name})", ""]
+    for study, key, xlabel, logx in (("frames", "frames", "frames n", False), ("tau", "tau", "tau~", True)):
+        rows = _load(out, study)
+        if rows:
+            parts += [f"## Error against {xlabel} (ours)", "", _study_table(rows), ""]
+            if len(rows) > 1:
+                parts += [f"![{name}]({name})" for name in _study_plots(out, rows, study, key, xlabel, logx)] + [""]
+    speed = _load(out, "speed")
+    if speed:
+        parts += ["## Speed and peak memory (odometry + refine, fresh process per case)", "", _speed_table(speed), ""]
+    path = out / "summary.md"
+    path.write_text("\n".join(parts))
+    return path
