@@ -36,14 +36,15 @@ def _speed_table(rows: list[dict]) -> str:
 def _study_plots(out: Path, rows: list[dict], study: str, key: str, xlabel: str, logx: bool) -> list[str]:
     names = []
     protocols = dict.fromkeys(r.get("protocol", "dense") for r in rows)
-    for metric, label in (("mae_deg", "MAE (deg)"), ("rmse_mm", "RMSE (mm)")):
+    for metric, metric_label in (("mae_deg", "MAE (deg)"), ("rmse_mm", "RMSE (mm)")):
         name = f"{study}_{metric.split('_')[0]}.png"
         series = {}
         for protocol in protocols:
             mine = [r for r in rows if r.get("protocol", "dense") == protocol]
-            label = f"{mine[0]['mesh']} SF {mine[0]['sf']}" + (f" {protocol}" if len(protocols) > 1 else "")
-            series[label] = ([r[key] for r in mine], [r[metric] for r in mine])
-        line_plot(out / name, series, title=f"{label} against {xlabel}", xlabel=xlabel, ylabel=label, logx=logx)
+            series_label = f"{mine[0]['mesh']} SF {mine[0]['sf']}" + (f" {protocol}" if len(protocols) > 1 else "")
+            series[series_label] = ([r[key] for r in mine], [r[metric] for r in mine])
+        line_plot(out / name, series, title=f"{metric_label} against {xlabel}", xlabel=xlabel, ylabel=metric_label,
+                  logx=logx)
         names.append(name)
     return names
 
