@@ -1,8 +1,9 @@
-"""Benchmarks of o3d_mvps: ``python -m benchmarks {accuracy,frames,tau,speed,all} [--quick] [--out DIR]``.
+"""Benchmarks of o3d_mvps: ``python -m benchmarks {accuracy,frames,tau,speed,figures,all} [--quick] [--out DIR]``.
 
 accuracy: every method on rendered captures (bunny, armadillo; SF 2/4/8; 640x480, 20 frames).
 frames: error of ours against n in {5, ..., 30} (bunny, SF 4). tau: error against tau~.
 speed: wall time and peak RSS of odometry + refine at 640x480 / 160x120 and 1280x720 / 640x360.
+figures: README pictures (normals of every method, textured preview).
 all: everything, one after the other. --quick runs a tiny case of each (CI, under a minute).
 Results go to DIR (default benchmarks/results) as JSON, summary.md and PNG plots.
 """
@@ -11,15 +12,17 @@ from __future__ import annotations
 
 import argparse
 
-from . import accuracy, speed, studies
+from . import accuracy, figures, speed, studies
 from .summary import write_summary
 
-STUDIES = ("accuracy", "frames", "tau", "speed")
+STUDIES = ("accuracy", "frames", "tau", "speed", "figures")
 
 
 def _run(name: str, args) -> None:
     if name == "accuracy":
         accuracy.run(args)
+    elif name == "figures":
+        figures.run(args)
     elif name == "speed":
         speed.run(args)
     else:
@@ -37,6 +40,7 @@ def main(argv=None) -> int:
     studies.add_arguments(sub.add_parser("frames", parents=[common], help="error against n"), "frames")
     studies.add_arguments(sub.add_parser("tau", parents=[common], help="error against tau~"), "tau")
     speed.add_arguments(sub.add_parser("speed", parents=[common], help="time and peak memory"))
+    figures.add_arguments(sub.add_parser("figures", parents=[common], help="README pictures (normals, preview)"))
     sub.add_parser("all", parents=[common], help="every benchmark with its defaults")
     args = parser.parse_args(argv)
     if args.command == "all":

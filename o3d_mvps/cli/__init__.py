@@ -12,7 +12,7 @@ import sys
 
 from ..errors import MVPSError
 
-SUBCOMMANDS = ["demo", "render", "refine", "export", "record"]
+SUBCOMMANDS = ["demo", "render", "refine", "export", "record", "bench"]
 
 
 def build_parser() -> argparse.ArgumentParser:
