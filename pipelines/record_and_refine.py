@@ -16,7 +16,7 @@ from pathlib import Path
 from _common import run_main, say
 
 from o3d_mvps import refine, write_capture
-from o3d_mvps.cli.argtypes import image_size, positive_int
+from o3d_mvps.cli.record import add_recording_arguments
 from o3d_mvps.cli.refine import add_solver_arguments, log_energy, options_from_args
 from o3d_mvps.errors import OutputExistsError
 from o3d_mvps.export import write_mesh
@@ -33,17 +33,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="record_and_refine.py", description=__doc__, epilog=EXAMPLES,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("out", type=Path, help="output folder: capture/, refined/, mesh.obj")
-    rec = parser.add_argument_group("recording")
-    rec.add_argument("--record-frames", type=positive_int, default=20, metavar="N", help="frames to record (default 20)")
-    rec.add_argument("--color", type=image_size, default=(1280, 720), metavar="WxH", help="colour size (default 1280x720)")
-    rec.add_argument("--depth", type=image_size, default=(640, 360), metavar="WxH", help="depth size (default 640x360)")
-    rec.add_argument("--fps", type=positive_int, default=30, help="stream rate (default 30)")
-    when = rec.add_mutually_exclusive_group()
-    when.add_argument("--interval", type=float, default=1.0, metavar="S", help="seconds between frames (default 1)")
-    when.add_argument("--on-key", action="store_true", help="take a frame at each Enter (q + Enter stops)")
-    rec.add_argument("--emitter", choices=["on", "off"], default="on", help="IR dot projector (default on)")
-    rec.add_argument("--exposure", type=float, metavar="US", help="fixed colour exposure in microseconds")
-    rec.add_argument("--serial", help="serial number of the camera when several are connected")
+    add_recording_arguments(parser.add_argument_group("recording"), frames_flag="--record-frames")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     parser.add_argument("--quiet", action="store_true", help="no progress bars or logs")
     add_solver_arguments(parser)

@@ -13,6 +13,26 @@ from ..errors import OutputExistsError
 from .argtypes import image_size, positive_int
 
 
+def add_recording_arguments(group, frames_flag: str = "--frames") -> None:
+    """Camera options shared by ``o3d-mvps record`` and pipelines/record_and_refine.py.
+
+    ``frames_flag`` names the frame count (dest ``record_frames``) where ``--frames`` is taken.
+    """
+    group.add_argument(frames_flag, dest="record_frames", type=positive_int, default=20, metavar="N",
+                       help="frames to record (default 20)")
+    group.add_argument("--color", type=image_size, default=(1280, 720), metavar="WxH",
+                       help="colour size (default 1280x720)")
+    group.add_argument("--depth", type=image_size, default=(640, 360), metavar="WxH",
+                       help="depth size (default 640x360)")
+    group.add_argument("--fps", type=positive_int, default=30, help="stream rate (default 30)")
+    when = group.add_mutually_exclusive_group()
+    when.add_argument("--interval", type=float, default=1.0, metavar="S", help="seconds between frames (default 1)")
+    when.add_argument("--on-key", action="store_true", help="take a frame at each Enter (q + Enter stops)")
+    group.add_argument("--emitter", choices=["on", "off"], default="on", help="IR dot projector (default on)")
+    group.add_argument("--exposure", type=float, metavar="US", help="fixed colour exposure in microseconds (default auto)")
+    group.add_argument("--serial", help="serial number of the camera when several are connected")
+
+
 def register(subparsers) -> None:
     rec = subparsers.add_parser(
         "record",
@@ -21,16 +41,7 @@ def register(subparsers) -> None:
         "capture folder OUT. Move slowly around the object, 0.5-1 m away, LED on, room lights dim.",
     )
     rec.add_argument("out", metavar="OUT", type=Path, help="capture folder to write")
-    rec.add_argument("--frames", type=positive_int, default=20, help="frames to record (default 20)")
-    rec.add_argument("--color", type=image_size, default=(1280, 720), metavar="WxH", help="colour size (default 1280x720)")
-    rec.add_argument("--depth", type=image_size, default=(640, 360), metavar="WxH", help="depth size (default 640x360)")
-    rec.add_argument("--fps", type=positive_int, default=30, help="stream rate (default 30)")
-    when = rec.add_mutually_exclusive_group()
-    when.add_argument("--interval", type=float, default=1.0, metavar="S", help="seconds between frames (default 1)")
-    when.add_argument("--on-key", action="store_true", help="take a frame at each Enter (q + Enter stops)")
-    rec.add_argument("--emitter", choices=["on", "off"], default="on", help="IR dot projector (default on)")
-    rec.add_argument("--exposure", type=float, metavar="US", help="fixed colour exposure in µs (default auto)")
-    rec.add_argument("--serial", help="serial number of the camera when several are connected")
+    add_recording_arguments(rec)
     rec.add_argument("--overwrite", action="store_true", help="replace an existing capture folder")
     rec.set_defaults(handler=run)
 
@@ -63,7 +74,7 @@ def run(args) -> int:
 
     _check_out(args.out, args.overwrite)
     capture = record_capture(
-        args.frames, args.color, args.depth, fps=args.fps, interval=args.interval, on_key=args.on_key,
+        args.record_frames, args.color, args.depth, fps=args.fps, interval=args.interval, on_key=args.on_key,
         emitter=args.emitter == "on", exposure_us=args.exposure, serial=args.serial,
         progress=not getattr(args, "quiet", False),
     )  # fmt: skip
