@@ -9,6 +9,7 @@ joint and two-stage rows) and ``accuracy.md`` into the output folder.
 from __future__ import annotations
 
 import argparse
+import json
 import time
 from pathlib import Path
 
@@ -91,6 +92,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sf", nargs="+", type=int, default=[2, 4, 8])
     parser.add_argument("--frames", type=int, default=20)
     parser.add_argument("--size", default="640x480")
+    parser.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS))
+    parser.add_argument("--options", type=json.loads, default={},
+                        help='RefineOptions overrides as JSON, e.g. \'{"max_iterations": 20}\'')
 
 
 def parse_size(text: str) -> tuple[int, int]:
@@ -100,16 +104,17 @@ def parse_size(text: str) -> tuple[int, int]:
 
 def run(args) -> list[dict]:
     """Run the accuracy benchmark; rewrites accuracy.json / accuracy.md in ``args.out`` after every case."""
-    size, frames, options = parse_size(args.size), args.frames, {}
+    size, frames, options = parse_size(args.size), args.frames, dict(args.options)
     meshes, sfs = args.meshes, args.sf
     if args.quick:
-        size, frames, options, meshes, sfs = QUICK_SIZE, QUICK_FRAMES, QUICK_OPTIONS, ["bunny"], [4]
+        size, frames, meshes, sfs = QUICK_SIZE, QUICK_FRAMES, ["bunny"], [4]
+        options = {**QUICK_OPTIONS, **options}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     rows = []
     for mesh in meshes:
         for sf in sfs:
-            case = run_case(mesh, sf, frames, size, options)
+            case = run_case(mesh, sf, frames, size, options, methods=args.methods)
             rows += case
             print(markdown(case).split("\n", 2)[2], flush=True)
             # rewritten after every case, so a long run that stops keeps what it measured

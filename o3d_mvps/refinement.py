@@ -103,8 +103,9 @@ class Refinement:
             if self.poses is not None:
                 np.save(tmp / POSES_NPY, self.poses.numpy())
             if self.lighting is not None:
-                lighting = {"model": "first-order SH, shading = l . [1, n_x, n_y, n_z]",
-                            "lighting": self.lighting.numpy().tolist()}
+                model = self.info.get("light_model", {"model": "sh",
+                                                      "formula": "shading = l . [1, n_x, n_y, n_z]"})
+                lighting = {**model, "lighting": self.lighting.numpy().tolist()}
                 (tmp / LIGHTING_JSON).write_text(json_text(lighting, "lighting"))
             write_intrinsic_json(tmp / INTRINSIC_JSON, self.intrinsic_matrix(), depth.shape)
             (tmp / REPORT_JSON).write_text(text)
@@ -115,7 +116,7 @@ class Refinement:
         """Build a Refinement from numpy arrays; normals are computed from depth (DESIGN section 2).
 
         depth (H, W) metres, mask (H, W) bool, K (3, 3), albedo (H, W, 3) or None,
-        poses (n, 4, 4) or None, lighting (n, 4) or None.
+        poses (n, 4, 4) or None, lighting (n, k) or None (k = 4 SH, 2 LED).
         """
         mask = np.asarray(mask, dtype=bool) & (np.asarray(depth) > 0)
         depth = np.where(mask, depth, 0.0).astype(np.float32)

@@ -699,6 +699,8 @@ def render_capture(
         sensor="synthetic",
         groundtruth=gt,
         metadata={
+            # what a user measures with a ruler and writes into capture.json (read by refine)
+            **({"led_offset": [float(v) for v in lighting.offset]} if isinstance(lighting, LEDLight) else {}),
             "synthetic": {
                 "mesh": str(mesh) if isinstance(mesh, (str, Path)) else type(mesh).__name__,
                 "frames": int(frames),

@@ -7,12 +7,15 @@ import argparse
 from ..capture import read_capture
 from ..report import accuracy_rows, markdown_table
 from ..solver.driver import refine
+from ..solver.lighting import LIGHT_MODELS
 from ..solver.options import RefineOptions
 
 EXAMPLES = """examples:
   o3d-mvps refine capture/ refined/
   o3d-mvps refine capture/ refined/ --frames 10 --tau 100 --iterations 5
   o3d-mvps refine capture/ two_stage/ --no-pose-refinement   # the paper's two-stage baseline
+  o3d-mvps refine capture/ refined/ --led-offset 0.03 -0.02 0  # LED 3 cm right of, 2 cm above the lens
+  o3d-mvps refine capture/ paper/ --light-model sh            # the paper's SH lighting
 """
 
 
@@ -31,12 +34,20 @@ def add_solver_arguments(parser: argparse.ArgumentParser) -> None:
                    help=f"relative energy change that ends a level (default {d.tolerance:g})")
     g.add_argument("--no-pose-refinement", action="store_true", help="keep the odometry poses (two-stage baseline)")
     g.add_argument("--no-occlusion-test", action="store_true", help="let hidden pixels enter the data term")
+    g.add_argument("--light-model", choices=LIGHT_MODELS, default=d.light_model,
+                   help=f"near-field LED or the paper's first-order SH (default {d.light_model})")
+    g.add_argument("--led-offset", type=float, nargs=3, metavar=("X", "Y", "Z"), default=None,
+                   help="LED position in metres from the colour lens (x right, y down, z forward); a ruler "
+                        "measure within ~1 cm is enough, the solver refines it (default: capture.json's "
+                        "metadata.led_offset, else 0 0 0)")
 
 
 def options_from_args(args) -> RefineOptions:
     return RefineOptions(frames=args.frames, tau=args.tau, cauchy_lambda=args.cauchy_lambda, levels=args.levels,
                          max_iterations=args.iterations, tolerance=args.tolerance,
                          refine_poses=not args.no_pose_refinement, occlusion_test=not args.no_occlusion_test,
+                         light_model=args.light_model,
+                         led_offset=None if args.led_offset is None else tuple(args.led_offset),
                          progress=not args.quiet)
 
 

@@ -19,3 +19,27 @@ def sh_basis(normals: np.ndarray) -> np.ndarray:
 def shading(normals: np.ndarray, light: np.ndarray) -> np.ndarray:
     """<l, m(n)>: (...) shading of unit normals (..., 3) under SH light (4,)."""
     return light[0] + normals @ np.asarray(light[1:], dtype=normals.dtype)
+
+
+def led_vectors(points: np.ndarray, light_position: np.ndarray) -> np.ndarray:
+    """Irradiance vectors (N, 3) of a unit point light at ``light_position`` (3,) on points (N, 3).
+
+    ``v = (s - X) / |s - X|^3`` (1/m^2): the light's shading of a unit normal n at X is
+    ``max(0, <n, v>)`` per unit intensity (inverse-square falloff, Lambertian). Points and the
+    light share one frame, in metres.
+    """
+    d = np.asarray(light_position, dtype=np.float64) - points
+    r2 = np.einsum("ij,ij->i", d, d)
+    return d / (r2 * np.sqrt(r2))[:, None]
+
+
+def led_vector_jacobian(points: np.ndarray, light_position: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """d<n, v>/dX (N, 3) of :func:`led_vectors`: ``-n / r^3 + 3 <n, d> d / r^5``, d = s - X.
+
+    The derivative with respect to the light position is its negative.
+    """
+    d = np.asarray(light_position, dtype=np.float64) - points
+    r2 = np.einsum("ij,ij->i", d, d)
+    r3 = r2 * np.sqrt(r2)
+    nd = np.einsum("ij,ij->i", normals, d)
+    return -normals / r3[:, None] + (3.0 * nd / (r3 * r2))[:, None] * d

@@ -1,8 +1,9 @@
 """Depth update: with dA and the warp frozen at the previous z, the IRLS energy is quadratic in z.
 
-Per frame i and pixel p the shading is ``s_i = l_i0 + (A_i z)_p / dA_p`` with
-``A_i = diag(alpha_i) Du + diag(beta_i) Dv + diag(gamma_i)``,
-``alpha_i = fx l_i1 - (u - cx) l_i3``, ``beta_i = fy l_i2 - (v - cy) l_i3``, ``gamma_i = -l_i3``.
+Per frame i and pixel p the light model gives the shading as ``s_i = c_i + <L_i, n>`` (SH: the
+frame's constant light vector; LED: a per-pixel vector, frozen at the previous z like dA), so
+``s_i = c_i + (A_i z)_p / dA_p`` with ``A_i = diag(alpha_i) Du + diag(beta_i) Dv + diag(gamma_i)``,
+``alpha_i = fx L_i1 - (u - cx) L_i3``, ``beta_i = fy L_i2 - (v - cy) L_i3``, ``gamma_i = -L_i3``.
 Minimising ``sum w/2 (I~ - rho s)^2 + tau ||D z - z0||^2`` gives the SPD system
 ``(sum_i A_i^T W_i A_i + 2 tau D^T D) z = sum_i A_i^T B_i + 2 tau D^T z0`` (7-point stencil),
 solved by CG preconditioned with smoothed-aggregation AMG (pyamg), warm-started at z.
@@ -34,27 +35,40 @@ def depth_system(problem: LevelProblem, est: Estimate, ev: Evaluation) -> DepthS
     """Assemble the depth step's normal equations at the current estimate."""
     g = problem.level.grid
     K = problem.level.K
-    lights = est.lights
     w = cauchy_weights(ev.residual, problem.lam) * ev.usable[..., None]  # (n, N, 3)
     q = est.albedo / ev.dA[:, None]  # (N, 3)
-    b = ev.color - est.albedo[None] * lights[:, None, 0:1]  # (n, N, 3)
-    W = np.einsum("inc,nc->in", w, q * q)  # (n, N)
-    B = np.einsum("inc,nc,inc->in", w, q, b)  # (n, N)
     du = g.u - K[0, 2]
     dv = g.v - K[1, 2]
-    alpha = K[0, 0] * lights[:, 1:2] - du[None] * lights[:, 3:4]  # (n, N)
-    beta = K[1, 1] * lights[:, 2:3] - dv[None] * lights[:, 3:4]
-    gamma = -lights[:, 3:4]
-    s = lambda x: np.sum(x, axis=0)  # noqa: E731  (sum over frames)
-    Saa, Sbb, Sgg = s(W * alpha**2), s(W * beta**2), s(W * gamma**2)
-    Sab, Sag, Sbg = s(W * alpha * beta), s(W * alpha * gamma), s(W * beta * gamma)
+    points_ref = problem.points(est.z)
+    # accumulated over frames: the six products of (alpha, beta, gamma) weighted by W, and
+    # (alpha, beta, gamma) times B
+    Saa, Sbb, Sgg, Sab, Sag, Sbg, Ba, Bb, Bg = np.zeros((9, g.size))
+    for i in range(problem.n_frames):
+        T = est.poses[i]
+        c, L = problem.light.field(est.lights[i], ev.normals, points_ref, T)
+        L = np.broadcast_to(L, (g.size, 3))
+        W = np.einsum("nc,nc->n", w[i], q * q)
+        B = np.einsum("nc,nc,nc->n", w[i], q, ev.color[i] - est.albedo * np.reshape(c, (-1, 1)))
+        alpha = K[0, 0] * L[:, 0] - du * L[:, 2]
+        beta = K[1, 1] * L[:, 1] - dv * L[:, 2]
+        gamma = -L[:, 2]
+        Wa, Wb = W * alpha, W * beta
+        Saa += Wa * alpha
+        Sbb += Wb * beta
+        Sgg += W * gamma * gamma
+        Sab += Wa * beta
+        Sag += Wa * gamma
+        Sbg += Wb * gamma
+        Ba += alpha * B
+        Bb += beta * B
+        Bg += gamma * B
     Du, Dv = g.difference_operators()
     diag = sp.diags
     cross = Du.T @ diag(Sab) @ Dv + Du.T @ diag(Sag) + Dv.T @ diag(Sbg)
     M = Du.T @ diag(Saa) @ Du + Dv.T @ diag(Sbb) @ Dv + diag(Sgg) + cross + cross.T
     prior = problem.level.prior
     M = M + (2.0 * problem.tau) * (prior.D.T @ prior.D)
-    rhs = Du.T @ s(alpha * B) + Dv.T @ s(beta * B) + s(gamma * B) + (2.0 * problem.tau) * (prior.D.T @ prior.z0)
+    rhs = Du.T @ Ba + Dv.T @ Bb + Bg + (2.0 * problem.tau) * (prior.D.T @ prior.z0)
     return DepthSystem(sp.csr_matrix(M), rhs)
 
 

@@ -9,6 +9,7 @@ lighting at every level).
 from __future__ import annotations
 
 import time
+import warnings
 from collections import defaultdict
 
 import cv2
@@ -18,8 +19,10 @@ from tqdm.auto import tqdm
 
 from ..capture import Capture
 from ..errors import CaptureError
+from ..model import se3
 from ..refinement import Refinement
 from .depth import update_depth
+from .lighting import make_light_model, update_led_offset
 from .options import RefineOptions
 from .pose import update_poses
 from .problem import Estimate, LevelProblem
@@ -37,6 +40,22 @@ def _check_device(device) -> None:
     name = str(device).upper()
     if not name.startswith("CPU"):
         raise ValueError(f"device {device!r}: this version of o3d_mvps solves on the CPU only; pass device='CPU:0'")
+
+
+def _led_offset(options: RefineOptions, capture: Capture) -> np.ndarray:
+    """The LED offset (3,) metres to start from: the option, else the capture's metadata, else 0."""
+    offset = options.led_offset if options.led_offset is not None else capture.metadata.get("led_offset")
+    if offset is None:
+        if options.light_model == "led":
+            warnings.warn("no LED offset given: starting from an LED at the colour lens (0, 0, 0). Measure where "
+                          "the LED sits relative to the lens (within ~1 cm) and pass RefineOptions(led_offset=...) "
+                          "or --led-offset, or write metadata.led_offset into capture.json", stacklevel=4)
+        return np.zeros(3)
+    offset = np.asarray(offset, dtype=np.float64)
+    if offset.shape != (3,) or not np.isfinite(offset).all() or np.abs(offset).max() > 1.0:
+        raise CaptureError(f"led_offset {offset.tolist()} must be (x, y, z) in metres within 1 m of the camera; "
+                           "fix 'led_offset' in capture.json's metadata or pass RefineOptions(led_offset=...)")
+    return offset
 
 
 def _reference_mask(capture: Capture) -> np.ndarray:
@@ -57,11 +76,15 @@ def _sweeps(problem: LevelProblem, est: Estimate, ev, options: RefineOptions, ti
     """
     level = problem.level
     refine_poses = options.refine_poses and problem.n_frames > 1 and level.grid.size >= options.pose_min_pixels
+    # the LED offset is estimated where the poses are (coarser levels constrain it as poorly)
+    refine_offset = (options.refine_led_offset and problem.light.name == "led"
+                     and level.grid.size >= options.pose_min_pixels)
     rows = [{"level": level.index, "iteration": 0, "energy": ev.energy}]
     bar = tqdm(range(1, options.max_iterations + 1), desc=f"level {level.index} ({level.size[1]}x{level.size[0]})",
                disable=not options.progress, leave=False)
     for iteration in bar:
         previous = ev.energy
+        start = _snapshot(est, problem, poses=refine_poses, offset=refine_offset)
         if refine_poses:
             t = time.perf_counter()
             est.poses, ev = update_poses(problem, est, ev, options.pose_iterations, options.pose_tolerance)
@@ -76,13 +99,65 @@ def _sweeps(problem: LevelProblem, est: Estimate, ev, options: RefineOptions, ti
         ev = problem.reevaluate(est, ev)
         est.lights = update_lighting(est, ev, problem.lam)
         ev = problem.reevaluate(est, ev)
+        if refine_offset:
+            ev = update_led_offset(problem, est, ev)
         timings["albedo_lighting"] += time.perf_counter() - t
+        if options.extrapolate:
+            t = time.perf_counter()
+            ev = _extrapolate(problem, est, ev, start)
+            timings["extrapolation"] += time.perf_counter() - t
         rows.append({"level": level.index, "iteration": iteration, "energy": ev.energy})
         bar.set_postfix(energy=f"{ev.energy:.5g}")
         if abs(previous - ev.energy) <= options.tolerance * abs(previous):
             break
     bar.close()
     return rows
+
+
+def _snapshot(est: Estimate, problem: LevelProblem, *, poses: bool, offset: bool) -> dict:
+    """Copies of the unknowns a level's sweeps estimate (poses and LED offset when they do)."""
+    state = {"z": est.z.copy(), "albedo": est.albedo.copy(), "lights": est.lights.copy()}
+    if poses:
+        state["poses"] = est.poses.copy()
+    if offset:
+        state["offset"] = problem.light.offset.copy()
+    return state
+
+
+def _extrapolate(problem: LevelProblem, est: Estimate, ev, before: dict, factors=(1.0, 2.0, 4.0)):
+    """Extrapolate the last sweep's move of every unknown; keep the best energy-lowering factor.
+
+    Alternating steps creep along the valley where poses, depth and albedo trade off against
+    each other (a rotation of a frame about the object moves the image by a fraction of a pixel);
+    continuing the sweep's own direction shortens the creep. ``before`` is the snapshot taken at
+    the start of the sweep, ``est`` (evaluated as ``ev``) where it ended.
+    """
+    best = None
+    if "poses" in before:
+        delta_poses = [se3.log(T @ np.linalg.inv(T0)) for T, T0 in zip(est.poses, before["poses"])]
+    end = _snapshot(est, problem, poses=False, offset="offset" in before)
+    for factor in factors:
+        poses = est.poses
+        if "poses" in before:
+            poses = np.stack([se3.exp(factor * d) @ T for d, T in zip(delta_poses, est.poses)])
+        z = est.z + factor * (est.z - before["z"])
+        if not np.all(z > 0):
+            break
+        trial = Estimate(z, est.albedo + factor * (est.albedo - before["albedo"]),
+                         est.lights + factor * (est.lights - before["lights"]), poses)
+        if "offset" in end:
+            problem.light.offset = end["offset"] + factor * (end["offset"] - before["offset"])
+        trial_ev = problem.evaluate(trial)
+        if trial_ev.energy < (ev.energy if best is None else best[1].energy):
+            best = (trial, trial_ev, problem.light.offset.copy() if "offset" in end else None)
+        else:
+            break
+    if "offset" in end:
+        problem.light.offset = end["offset"] if best is None else best[2]
+    if best is None:
+        return ev
+    est.z, est.albedo, est.lights, est.poses = best[0].z, best[0].albedo, best[0].lights, best[0].poses
+    return best[1]
 
 
 def refine(capture: Capture, options: RefineOptions | None = None, device="CPU:0", initial_poses=None) -> Refinement:
@@ -137,7 +212,9 @@ def _refine(capture: Capture, options: RefineOptions | None, device, initial_pos
     n_levels = int(options.levels)
     while n_levels > 1 and min(level_size(size, n_levels - 1)) < 8:
         n_levels -= 1
-    lights = np.tile(np.asarray(options.initial_light, dtype=np.float64), (capture.n_frames, 1))
+    light = make_light_model(options.light_model, initial_sh=options.initial_light,
+                             led_offset=_led_offset(options, capture))
+    lights = light.initial_lights(capture.n_frames, mean_z0)
     poses = initial_poses.copy()
     z_full = albedo_full = None
     history = []
@@ -158,7 +235,7 @@ def _refine(capture: Capture, options: RefineOptions | None, device, initial_pos
             albedo_full = resize(albedo_full, level.size, interpolation=cv2.INTER_LINEAR)
         est = Estimate(g.gather(z_full).astype(np.float64), g.gather(albedo_full).astype(np.float64), lights, poses)
         tau = normalised_tau(options.tau, capture.n_frames, mean_I, g.size, mean_z0, level.prior.rows)
-        problem = LevelProblem(level, tau, options.cauchy_lambda)
+        problem = LevelProblem(level, tau, options.cauchy_lambda, light)
         problem.update_visibility(est, occlusion_test=options.occlusion_test, rel_tol=options.occlusion_tolerance,
                                   sensor_depths=sensor_depths, depth_K=depth_K)
         ev = problem.evaluate(est)
@@ -180,5 +257,5 @@ def _refine(capture: Capture, options: RefineOptions | None, device, initial_pos
     return Refinement.from_arrays(
         depth, ref_mask, K, albedo=albedo, poses=poses, lighting=lights, method="ours",
         energy=history, timings=dict(timings),
-        info={"frames": frames, "options": options.to_dict(), **stats},
+        info={"frames": frames, "options": options.to_dict(), "light_model": light.describe(), **stats},
     )

@@ -7,6 +7,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from ..model.normals import SCHEMES
+from .lighting import LIGHT_MODELS
 
 
 @dataclass
@@ -30,7 +31,16 @@ class RefineOptions:
     occlusion_tolerance: relative depth tolerance of the occlusion test.
     difference_scheme: depth derivatives of the normals, "central" or the paper's "forward"
         (see o3d_mvps.model.normals).
-    initial_light: SH lighting every frame starts from.
+    extrapolate: after each sweep, try continuing its move of every unknown (x1, x2, x4) and keep
+        the best that lowers the energy; shortens the slow creep of poses, depth and albedo
+        against each other.
+    light_model: "led" (a point light moving with the camera, 1/r^2 falloff, plus ambient; the
+        paper's future work, see o3d_mvps.solver.lighting) or "sh" (the paper's first-order
+        spherical harmonics per frame).
+    led_offset: LED position (x, y, z) in metres in the colour camera's frame (x right, y down,
+        z forward); None takes ``led_offset`` from the capture's metadata, else (0, 0, 0).
+    refine_led_offset: estimate the LED offset jointly, starting from ``led_offset``.
+    initial_light: SH lighting every frame starts from (light_model "sh").
     progress: show a progress bar per level.
     """
 
@@ -49,6 +59,10 @@ class RefineOptions:
     cg_max_iterations: int = 300
     occlusion_tolerance: float = 0.02
     difference_scheme: str = "central"
+    extrapolate: bool = True
+    light_model: str = "led"
+    led_offset: tuple | None = None
+    refine_led_offset: bool = True
     initial_light: tuple = (0.2, 0.0, 0.0, -1.0)
     progress: bool = True
 
@@ -61,6 +75,9 @@ class RefineOptions:
             (self.tolerance >= 0, f"tolerance must be >= 0, got {self.tolerance}"),
             (len(self.initial_light) == 4, "initial_light must hold 4 SH coefficients"),
             (self.difference_scheme in SCHEMES, f"difference_scheme must be one of {SCHEMES}"),
+            (self.light_model in LIGHT_MODELS, f"light_model must be one of {LIGHT_MODELS}, got {self.light_model!r}"),
+            (self.led_offset is None or np.shape(self.led_offset) == (3,),
+             f"led_offset must be (x, y, z) in metres or None, got {self.led_offset!r}"),
         ]
         for ok, message in checks:
             if not ok:

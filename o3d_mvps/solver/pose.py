@@ -23,30 +23,45 @@ def pose_jacobian(sample: FrameSample, K: np.ndarray) -> np.ndarray:
     return J
 
 
-def update_pose(problem: LevelProblem, est: Estimate, i: int, points_ref: np.ndarray, shading: np.ndarray,
+def update_pose(problem: LevelProblem, est: Estimate, i: int, points_ref: np.ndarray, normals: np.ndarray,
                 iterations: int, max_halvings: int = 4, tolerance: float = 0.0) -> np.ndarray:
     """Refine frame i's pose (4x4) with IRLS Gauss-Newton; never increases its data energy.
 
-    Stops early once an iteration lowers the frame's energy by less than ``tolerance`` (relative).
+    points_ref (N, 3) and unit normals (N, 3) are the reference surface. Stops early once an
+    iteration lowers the frame's energy by less than ``tolerance`` (relative).
     """
-    return refine_pose(problem, est, i, points_ref, shading, iterations, max_halvings, tolerance)[0]
+    return refine_pose(problem, est, i, points_ref, normals, iterations, max_halvings, tolerance)[0]
 
 
-def refine_pose(problem: LevelProblem, est: Estimate, i: int, points_ref: np.ndarray, shading: np.ndarray,
+def refine_pose(problem: LevelProblem, est: Estimate, i: int, points_ref: np.ndarray, normals: np.ndarray,
                 iterations: int, max_halvings: int = 4, tolerance: float = 0.0) -> tuple[np.ndarray, FrameSample]:
-    """:func:`update_pose`, also returning frame i's sample under the refined pose."""
+    """:func:`update_pose`, also returning frame i's sample under the refined pose.
+
+    With a light model whose shading depends on the pose (the LED), the shading is recomputed
+    for every trial pose and its derivative enters the Jacobian.
+    """
     K = problem.level.K
-    model = est.albedo * shading[:, None]
+    light, albedo = est.lights[i], est.albedo
+
+    def energy_of(sample: FrameSample, pose: np.ndarray) -> float:
+        return problem.frame_data_energy(sample, albedo, problem.frame_shading(light, normals, points_ref, pose))
+
     pose = est.poses[i]
     sample = problem.sample(i, pose, points_ref)
-    energy = problem.frame_data_energy(sample, est.albedo, shading)
+    energy = energy_of(sample, pose)
     for _ in range(iterations):
         use = sample.usable
         if use.sum() < 12:
             break
-        r = (sample.color - model)[use]
+        points = points_ref[use]
+        shading = problem.frame_shading(light, normals[use], points, pose)
+        r = sample.color[use] - albedo[use] * shading[:, None]
         w = cauchy_weights(r, problem.lam)
-        J = pose_jacobian(problem.sample_gradients(i, sample, use), K).reshape(-1, 6)
+        J = pose_jacobian(problem.sample_gradients(i, sample, use), K)
+        dshading = problem.light.shading_jacobian(light, normals[use], points, pose)
+        if dshading is not None:
+            J -= albedo[use][:, :, None] * dshading[:, None, :]
+        J = J.reshape(-1, 6)
         wJ = J * w.reshape(-1, 1)
         H = wJ.T @ J
         g = wJ.T @ r.reshape(-1)
@@ -58,7 +73,7 @@ def refine_pose(problem: LevelProblem, est: Estimate, i: int, points_ref: np.nda
         for _ in range(max_halvings + 1):
             trial_pose = se3.exp(step) @ pose
             trial = problem.sample(i, trial_pose, points_ref)
-            trial_energy = problem.frame_data_energy(trial, est.albedo, shading)
+            trial_energy = energy_of(trial, trial_pose)
             if trial_energy <= energy:
                 converged = energy - trial_energy <= tolerance * energy
                 pose, sample, energy, accepted = trial_pose, trial, trial_energy, True
@@ -80,7 +95,7 @@ def update_poses(problem: LevelProblem, est: Estimate, ev: Evaluation, iteration
     poses = est.poses.copy()
     color, usable = ev.color.copy(), ev.usable.copy()
     for i in range(1, problem.n_frames):
-        poses[i], sample = refine_pose(problem, est, i, points_ref, ev.shading[i], iterations, tolerance=tolerance)
+        poses[i], sample = refine_pose(problem, est, i, points_ref, ev.normals, iterations, tolerance=tolerance)
         color[i], usable[i] = sample.color, sample.usable
     moved = Estimate(est.z, est.albedo, est.lights, poses)
     return poses, problem.evaluate_samples(moved, color, usable, ev.normals, ev.dA)

@@ -1,6 +1,7 @@
 """The energy of one pyramid level and the quantities every update step reads.
 
-E = sum_i sum_{p visible in i} sum_c phi(I~_ic(p) - rho_c(p) <l_i, m(n(p))>) + tau ||D z - z0||^2
+E = sum_i sum_{p visible in i} sum_c phi(I~_ic(p) - rho_c(p) s_i(p)) + tau ||D z - z0||^2, with the
+shading ``s_i(p) = <B_i(p), l_i>`` of the level's light model (see :mod:`.lighting`).
 """
 
 from __future__ import annotations
@@ -13,12 +14,13 @@ from ..model.camera import backproject
 from ..model.normals import unnormalised_normals
 from ..model.robust import cauchy
 from ..model.warping import in_view, sample_bilinear, visible, warp
+from .lighting import SHLight
 from .pyramid import Level
 
 
 @dataclass
 class Estimate:
-    """Unknowns on one level: z (N,) metres, albedo (N, 3), lights (n, 4), poses (n, 4, 4)."""
+    """Unknowns on one level: z (N,) metres, albedo (N, 3), lights (n, k), poses (n, 4, 4)."""
 
     z: np.ndarray
     albedo: np.ndarray
@@ -43,7 +45,8 @@ class FrameSample:
 @dataclass
 class Evaluation:
     """Residuals r (n, N, 3), usable (n, N), warped colours (n, N, 3), shading (n, N),
-    unit normals (N, 3), dA (N,), and the energy split into data and prior terms."""
+    unit normals (N, 3), dA (N,), light bases (m, N, k) (m = 1 when all frames share one),
+    and the energy split into data and prior terms."""
 
     residual: np.ndarray
     usable: np.ndarray
@@ -51,8 +54,13 @@ class Evaluation:
     shading: np.ndarray
     normals: np.ndarray
     dA: np.ndarray
+    basis: np.ndarray
     data: float
     prior: float
+
+    def frame_basis(self, i: int) -> np.ndarray:
+        """Frame i's light basis (N, k)."""
+        return self.basis[min(i, len(self.basis) - 1)]
 
     @property
     def energy(self) -> float:
@@ -62,8 +70,9 @@ class Evaluation:
 class LevelProblem:
     """Evaluates the level energy; holds the per-level visibility and tau."""
 
-    def __init__(self, level: Level, tau: float, cauchy_lambda: float):
+    def __init__(self, level: Level, tau: float, cauchy_lambda: float, light=None):
         self.level = level
+        self.light = SHLight() if light is None else light
         self.tau = float(tau)
         self.lam = float(cauchy_lambda)
         self.n_frames = len(level.images)
@@ -121,6 +130,17 @@ class LevelProblem:
         d = p.D @ z - p.z0
         return self.tau * float(d @ d)
 
+    def frame_shading(self, light: np.ndarray, normals: np.ndarray, points_ref: np.ndarray, pose: np.ndarray):
+        """Shading (N,) of the frame with ``pose`` and light parameters (k,) on the reference surface."""
+        return self.light.basis(normals, points_ref, pose) @ light
+
+    def bases(self, est: Estimate, normals: np.ndarray) -> np.ndarray:
+        """Light bases (m, N, k) of every frame, or (1, N, k) when the model shares one."""
+        if self.light.shares_basis:
+            return self.light.basis(normals, None, None)[None]
+        P = self.points(est.z)
+        return np.stack([self.light.basis(normals, P, T) for T in est.poses])
+
     def frame_data_energy(self, sample: FrameSample, albedo: np.ndarray, shading: np.ndarray) -> float:
         """Robust data energy of one frame for given shading (N,)."""
         r = sample.color - albedo * shading[:, None]
@@ -144,12 +164,18 @@ class LevelProblem:
         Steps that leave z and the poses alone (albedo, lighting) or that sampled the frames
         already (poses) reuse the samples instead of warping every frame again.
         """
-        shading = est.lights[:, :1] + est.lights[:, 1:] @ normals.T  # (n, N)
+        return self._evaluation(est, color, usable, normals, dA, self.bases(est, normals))
+
+    def _evaluation(self, est, color, usable, normals, dA, basis) -> Evaluation:
+        if len(basis) == 1:
+            shading = (basis[0] @ est.lights.T).T  # (n, N)
+        else:
+            shading = np.einsum("ink,ik->in", basis, est.lights)
         residual = color - est.albedo[None] * shading[..., None]
         residual *= usable[..., None]
         data = float(cauchy(residual, self.lam).sum())
-        return Evaluation(residual, usable, color, shading, normals, dA, data, self.prior_energy(est.z))
+        return Evaluation(residual, usable, color, shading, normals, dA, basis, data, self.prior_energy(est.z))
 
     def reevaluate(self, est: Estimate, ev: Evaluation) -> Evaluation:
-        """Evaluation of ``est`` whose z and poses are those ``ev`` was computed at."""
-        return self.evaluate_samples(est, ev.color, ev.usable, ev.normals, ev.dA)
+        """Evaluation of ``est`` whose z, poses and light model are those ``ev`` was computed at."""
+        return self._evaluation(est, ev.color, ev.usable, ev.normals, ev.dA, ev.basis)

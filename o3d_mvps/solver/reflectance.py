@@ -9,7 +9,6 @@ from __future__ import annotations
 import numpy as np
 
 from ..model.robust import cauchy_weights
-from ..model.shading import sh_basis
 from .problem import Estimate, Evaluation
 
 
@@ -24,8 +23,7 @@ def update_albedo(est: Estimate, ev: Evaluation, lam: float) -> np.ndarray:
 
 
 def update_lighting(est: Estimate, ev: Evaluation, lam: float) -> np.ndarray:
-    """l_i = argmin sum_{p,c} w (I~ - rho_c <l, m(n)>)^2 per frame: (n, 4)."""
-    m = sh_basis(ev.normals)  # (N, 4)
+    """l_i = argmin sum_{p,c} w (I~ - rho_c <l, B_i>)^2 per frame: (n, k), B_i the light basis."""
     w = cauchy_weights(ev.residual, lam) * ev.usable[..., None]  # (n, N, 3)
     wr2 = np.einsum("inc,nc->in", w, est.albedo**2)  # (n, N)
     wri = np.einsum("inc,nc,inc->in", w, est.albedo, ev.color)
@@ -33,10 +31,11 @@ def update_lighting(est: Estimate, ev: Evaluation, lam: float) -> np.ndarray:
     for i in range(lights.shape[0]):
         if ev.usable[i].sum() < 8:
             continue
+        m = ev.frame_basis(i)  # (N, k)
         A = (m * wr2[i][:, None]).T @ m
         rhs = m.T @ wri[i]
         try:
-            lights[i] = np.linalg.solve(A + 1e-12 * np.trace(A) * np.eye(4), rhs)
+            lights[i] = np.linalg.solve(A + 1e-12 * np.trace(A) * np.eye(len(rhs)), rhs)
         except np.linalg.LinAlgError:
             pass
     return lights

@@ -1,0 +1,165 @@
+"""The solver's light models: the paper's first-order SH and a near-field LED.
+
+Frame i's shading of a reference pixel is linear in that frame's light parameters l_i (k,):
+``s_i(p) = <B_i(p), l_i>``. Every method takes the reference surface, unit normals (N, 3) and
+points (N, 3) in reference coordinates (metres), and frame i's pose (4, 4) reference -> frame i.
+
+- :class:`SHLight` (k = 4, the paper): ``B = [1, n]``; l_i = (ambient, 3 directional terms) in
+  reference coordinates, so the shading does not depend on the pose.
+- :class:`LEDLight` (k = 2, the paper's future work): a point light at ``offset`` (3,) metres in
+  the camera frame, moving with the camera, plus ambient light:
+  ``B_i = [1, max(0, <n, v_i>)]``, ``v_i = (s_i - X) / |s_i - X|^3`` (1/m^2) with
+  ``s_i = R_i^T (o - t_i)`` the LED in reference coordinates; l_i = (ambient, intensity in
+  irradiance x m^2). The shading of frame i depends on its pose, and the offset can be estimated
+  with the rest (:func:`update_led_offset`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..model.robust import cauchy_weights
+from ..model.shading import led_vector_jacobian, led_vectors, sh_basis
+
+
+@dataclass
+class SHLight:
+    """First-order spherical harmonics per frame (DESIGN section 2); ``initial`` (4,)."""
+
+    initial: tuple = (0.2, 0.0, 0.0, -1.0)
+    name = "sh"
+    size = 4
+    shares_basis = True  # the basis is the same for every frame
+
+    def initial_lights(self, n_frames: int, mean_depth: float) -> np.ndarray:
+        """(n, 4) starting lights."""
+        return np.tile(np.asarray(self.initial, dtype=np.float64), (n_frames, 1))
+
+    def basis(self, normals: np.ndarray, points: np.ndarray, pose: np.ndarray) -> np.ndarray:
+        """(N, 4) ``[1, n]``."""
+        return sh_basis(normals)
+
+    def field(self, light: np.ndarray, normals: np.ndarray, points: np.ndarray, pose: np.ndarray):
+        """(c, L): shading ``c + <L, n>`` with n in reference coordinates; here (scalar, (3,))."""
+        return light[0], light[1:]
+
+    def shading_jacobian(self, light, normals, points, pose) -> None:
+        """d(shading)/d(xi): zero, the SH light lives in reference coordinates."""
+        return None
+
+    def describe(self) -> dict:
+        return {"model": "sh", "formula": "shading = l . [1, n_x, n_y, n_z], n in reference coordinates",
+                "parameters": ["ambient", "l_x", "l_y", "l_z"]}
+
+
+@dataclass
+class LEDLight:
+    """Near-field point light at ``offset`` (3,) metres in the camera frame, plus ambient."""
+
+    offset: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    name = "led"
+    size = 2
+    shares_basis = False
+
+    def __post_init__(self):
+        self.offset = np.asarray(self.offset, dtype=np.float64).reshape(3)
+
+    def initial_lights(self, n_frames: int, mean_depth: float) -> np.ndarray:
+        """(n, 2) starting lights: ambient 0.2 and an intensity lighting a frontal surface with 1."""
+        return np.tile([0.2, mean_depth**2], (n_frames, 1))
+
+    def position(self, pose: np.ndarray) -> np.ndarray:
+        """The LED (3,) in reference coordinates for the frame with ``pose``: R^T (o - t)."""
+        return pose[:3, :3].T @ (self.offset - pose[:3, 3])
+
+    def irradiance(self, normals: np.ndarray, points: np.ndarray, pose: np.ndarray) -> np.ndarray:
+        """<n, v_i> (N,) per unit intensity, unclamped (negative where the point faces away)."""
+        s = self.position(pose)
+        r2 = s @ s - 2.0 * (points @ s) + np.einsum("ij,ij->i", points, points)
+        return (normals @ s - np.einsum("ij,ij->i", normals, points)) / (r2 * np.sqrt(r2))
+
+    def basis(self, normals: np.ndarray, points: np.ndarray, pose: np.ndarray) -> np.ndarray:
+        """(N, 2) ``[1, max(0, <n, v_i>)]``."""
+        g = self.irradiance(normals, points, pose)
+        return np.stack([np.ones_like(g), np.maximum(g, 0.0)], axis=1)
+
+    def field(self, light: np.ndarray, normals: np.ndarray, points: np.ndarray, pose: np.ndarray):
+        """(c, L): shading ``c + <L, n>``; L (N, 3) is the intensity times v_i, zero where the
+        point faces away."""
+        v = led_vectors(points, self.position(pose))
+        lit = light[1] * (np.einsum("ij,ij->i", normals, v) > 0)
+        return light[0], v * lit[:, None]
+
+    def _camera_gradient(self, light, normals, points, pose):
+        """d(shading)/d(point) (N, 3) in frame i's camera coordinates, zero where unlit."""
+        s = self.position(pose)
+        J = led_vector_jacobian(points, s, normals)
+        lit = light[1] * (np.einsum("ij,ij->i", normals, s - points) > 0)
+        return (J * lit[:, None]) @ pose[:3, :3].T
+
+    def shading_jacobian(self, light: np.ndarray, normals: np.ndarray, points: np.ndarray,
+                         pose: np.ndarray) -> np.ndarray:
+        """d(shading)/d(xi) (N, 6) for a left update exp(xi) T, xi = (v, w).
+
+        Moving the camera moves the LED with it: s_i = T^-1 o, so with G the shading's gradient
+        with respect to the point in camera coordinates, ``d/dv = G`` and ``d/dw = o x G``.
+        """
+        G = self._camera_gradient(light, normals, points, pose)
+        return np.concatenate([G, np.cross(self.offset, G)], axis=1)
+
+    def offset_jacobian(self, light: np.ndarray, normals: np.ndarray, points: np.ndarray,
+                        pose: np.ndarray) -> np.ndarray:
+        """d(shading)/d(offset) (N, 3)."""
+        return -self._camera_gradient(light, normals, points, pose)
+
+    def describe(self) -> dict:
+        return {"model": "led",
+                "formula": "shading = ambient + intensity * max(0, n . (o - X)) / |o - X|^3, camera frame",
+                "parameters": ["ambient", "intensity"], "offset_m": self.offset.tolist()}
+
+
+LIGHT_MODELS = ("led", "sh")
+
+
+def make_light_model(name: str, *, initial_sh=(0.2, 0.0, 0.0, -1.0), led_offset=None):
+    """The light model ``name`` ("led" or "sh")."""
+    if name == "sh":
+        return SHLight(tuple(initial_sh))
+    if name == "led":
+        return LEDLight(np.zeros(3) if led_offset is None else led_offset)
+    raise ValueError(f"light_model must be one of {LIGHT_MODELS}, got {name!r}")
+
+
+def update_led_offset(problem, est, ev, *, max_halvings: int = 3):
+    """One IRLS Gauss-Newton step on the LED offset (all frames); returns the new evaluation.
+
+    Changes ``problem.light.offset`` in place only when the step lowers the energy.
+    """
+    light = problem.light
+    points_ref = problem.points(est.z)
+    H = np.zeros((3, 3))
+    g = np.zeros(3)
+    w = cauchy_weights(ev.residual, problem.lam) * ev.usable[..., None]  # (n, N, 3)
+    for i in range(problem.n_frames):
+        use = ev.usable[i]
+        if not use.any():
+            continue
+        ds = light.offset_jacobian(est.lights[i], ev.normals[use], points_ref[use], est.poses[i])  # (M, 3)
+        rho_w = est.albedo[use] ** 2 * w[i, use]  # (M, 3)
+        H += (ds * rho_w.sum(axis=1)[:, None]).T @ ds
+        # residual r = I - rho s: dr/do = -rho ds
+        g -= ds.T @ np.sum(w[i, use] * est.albedo[use] * ev.residual[i, use], axis=1)
+    if not np.isfinite(H).all() or np.trace(H) <= 0:
+        return ev
+    step = -np.linalg.solve(H + 1e-9 * np.trace(H) * np.eye(3), g)
+    start = light.offset.copy()
+    for _ in range(max_halvings + 1):
+        light.offset = start + step
+        trial = problem.evaluate_samples(est, ev.color, ev.usable, ev.normals, ev.dA)
+        if trial.energy <= ev.energy:
+            return trial
+        step *= 0.5
+    light.offset = start
+    return ev
