@@ -199,6 +199,15 @@ def test_pose_jacobian_matches_finite_differences():
         assert np.median(err) < 0.05 * scale
 
 
+def assert_gradient_at_random_pixels(energy, grad, z, rng, count=25, h=1e-7):
+    """Central differences of ``energy`` at ``count`` random entries of z match ``grad``."""
+    for k in rng.choice(z.size, count, replace=False):
+        d = np.zeros(z.size)
+        d[k] = h
+        fd = (energy(z + d) - energy(z - d)) / (2 * h)
+        assert fd == pytest.approx(grad[k], rel=1e-4, abs=1e-6 * np.abs(grad).max())
+
+
 def test_depth_system_gradient_matches_finite_differences_of_the_frozen_energy():
     """M z - rhs equals the gradient of the energy with the warp and dA frozen at z."""
     problem, est = make_problem()
@@ -218,12 +227,7 @@ def test_depth_system_gradient_matches_finite_differences_of_the_frozen_energy()
         return e
 
     rng = np.random.default_rng(3)
-    for k in rng.choice(g.size, 25, replace=False):
-        h = 1e-7
-        d = np.zeros(g.size)
-        d[k] = h
-        fd = (frozen_energy(est.z + d) - frozen_energy(est.z - d)) / (2 * h)
-        assert fd == pytest.approx(grad[k], rel=1e-4, abs=1e-6 * np.abs(grad).max())
+    assert_gradient_at_random_pixels(frozen_energy, grad, est.z, rng)
     assert frozen_energy(est.z) == pytest.approx(ev.energy, rel=1e-12)
     # the system is symmetric positive definite
     M = system.matrix
