@@ -31,7 +31,8 @@ class Refinement:
     albedo: (H, W, 3) float32 linear RGB, or None for methods that do not estimate it.
     mask: (H, W, 1) uint8, 255 where the method returns depth. intrinsic: (3, 3) float64
     colour intrinsics. poses: (n, 4, 4) float64 reference -> frame i, or None. lighting:
-    (n, 4) float64 first-order SH per frame, or None. energy: rows {"level", "iteration",
+    (n, k) float64 per frame, or None: k = 2 (LED ambient, intensity) or 4 (first-order SH);
+    ``info["light_model"]`` names the model (and the LED offset). energy: rows {"level", "iteration",
     "energy"}. timings: seconds per stage. method: the method's name.
     """
 
