@@ -98,6 +98,21 @@ def test_pose_gauss_newton_recovers_perturbed_poses_under_an_exact_model():
     assert np.all(after < 0.5) and np.all(after < 0.4 * before)
 
 
+def test_sweep_extrapolation_reaches_a_lower_energy(capture):
+    """Same sweeps from perturbed poses: continuing each sweep's move ends the finest level lower
+    (measured 17.0 against 20.5)."""
+    rng = np.random.default_rng(2)
+    start = capture.groundtruth.poses.copy()
+    for i in range(1, capture.n_frames):
+        kick = np.concatenate([rng.normal(0, 0.003, 3), np.radians(rng.normal(0, 0.4, 3))])
+        start[i] = se3.exp(kick) @ start[i]
+    final = {}
+    for extrapolate in (False, True):
+        result = refine(capture, RefineOptions(**FAST, extrapolate=extrapolate), initial_poses=start)
+        final[extrapolate] = [row["energy"] for row in result.energy if row["level"] == 0][-1]
+    assert final[True] < 0.95 * final[False], final
+
+
 def test_two_stage_mode_keeps_the_initial_poses(capture):
     start = capture.groundtruth.poses.copy()
     start[1:, :3, 3] += 0.003

@@ -135,7 +135,7 @@ def _extrapolate(problem: LevelProblem, est: Estimate, ev, before: dict, factors
     best = None
     if "poses" in before:
         delta_poses = [se3.log(T @ np.linalg.inv(T0)) for T, T0 in zip(est.poses, before["poses"])]
-    end = _snapshot(est, problem, poses=False, offset="offset" in before)
+    end_offset = problem.light.offset.copy() if "offset" in before else None
     for factor in factors:
         poses = est.poses
         if "poses" in before:
@@ -145,15 +145,15 @@ def _extrapolate(problem: LevelProblem, est: Estimate, ev, before: dict, factors
             break
         trial = Estimate(z, est.albedo + factor * (est.albedo - before["albedo"]),
                          est.lights + factor * (est.lights - before["lights"]), poses)
-        if "offset" in end:
-            problem.light.offset = end["offset"] + factor * (end["offset"] - before["offset"])
+        if end_offset is not None:
+            problem.light.offset = end_offset + factor * (end_offset - before["offset"])
         trial_ev = problem.evaluate(trial)
         if trial_ev.energy < (ev.energy if best is None else best[1].energy):
-            best = (trial, trial_ev, problem.light.offset.copy() if "offset" in end else None)
+            best = (trial, trial_ev, problem.light.offset.copy())
         else:
             break
-    if "offset" in end:
-        problem.light.offset = end["offset"] if best is None else best[2]
+    if end_offset is not None:
+        problem.light.offset = end_offset if best is None else best[2]
     if best is None:
         return ev
     est.z, est.albedo, est.lights, est.poses = best[0].z, best[0].albedo, best[0].lights, best[0].poses
