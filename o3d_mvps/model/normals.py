@@ -15,6 +15,7 @@ off the true poses. ``scheme="forward"`` keeps the paper's stencil for compariso
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
@@ -71,7 +72,12 @@ class MaskedGrid:
         return tuple(wf * (z[f] - z) + wb * (z - z[b]) for f, b, wf, wb in self._stencils())
 
     def difference_operators(self) -> tuple[sp.csr_matrix, sp.csr_matrix]:
-        """Sparse (N, N) matrices Du, Dv with Du @ z == gradient(z)[0] (and likewise Dv)."""
+        """Sparse (N, N) matrices Du, Dv with Du @ z == gradient(z)[0] (and likewise Dv); built
+        once per grid."""
+        return self._difference_operators
+
+    @cached_property
+    def _difference_operators(self) -> tuple[sp.csr_matrix, sp.csr_matrix]:
         n = self.size
         rows = np.arange(n)
         ops = []

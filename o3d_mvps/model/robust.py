@@ -11,10 +11,15 @@ import numpy as np
 
 
 def cauchy(r: np.ndarray, lam: float) -> np.ndarray:
-    """phi(r), elementwise."""
-    return 0.5 * lam * lam * np.log1p((r / lam) ** 2)
+    """phi(r), elementwise (computed in one temporary: the solver applies it to (n, N, 3) arrays)."""
+    out = np.asarray(np.square(np.multiply(r, 1.0 / lam)))  # 0-d for a scalar r, so out= works
+    np.log1p(out, out=out)
+    out *= 0.5 * lam * lam
+    return out
 
 
 def cauchy_weights(r: np.ndarray, lam: float) -> np.ndarray:
     """IRLS weights w(r) = 1 / (1 + r^2 / lam^2), elementwise, in (0, 1]."""
-    return 1.0 / (1.0 + (r / lam) ** 2)
+    out = np.asarray(np.square(np.multiply(r, 1.0 / lam)))  # 0-d for a scalar r, so out= works
+    out += 1.0
+    return np.reciprocal(out, out=out)

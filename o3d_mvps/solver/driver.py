@@ -1,7 +1,9 @@
 """Coarse-to-fine driver: ``refine(capture) -> Refinement``.
 
 Per level, sweeps of poses -> depth -> albedo -> lighting (DESIGN section 2) until the
-relative energy change falls below the tolerance or the sweep cap is reached. z and albedo are
+relative energy change falls below the tolerance or the sweep cap is reached. Where poses are
+refined, poses and depth take one joint Gauss-Newton step (:mod:`.joint`) and the whole
+reconstruction is then re-anchored against the reference camera (:mod:`.anchor`). z and albedo are
 upsampled bilinearly between levels; lighting and poses carry over (the authors' code reset
 lighting at every level).
 """
@@ -22,6 +24,8 @@ from ..errors import CaptureError
 from ..model import se3
 from ..refinement import Refinement
 from .depth import update_depth
+from .anchor import update_anchor
+from .joint import update_pose_depth
 from .lighting import make_light_model, update_led_offset
 from .options import RefineOptions
 from .pose import update_poses
@@ -70,7 +74,8 @@ def _reference_mask(capture: Capture) -> np.ndarray:
 
 
 def _sweeps(problem: LevelProblem, est: Estimate, ev, options: RefineOptions, timings: dict, stats: dict) -> list:
-    """Run one level's sweeps (poses -> depth -> albedo -> lighting) in place on ``est``.
+    """Run one level's sweeps in place on ``est``: poses and depth (one joint step, or the
+    paper's two), the rigid re-anchoring, albedo, lighting, LED offset, extrapolation.
 
     Returns the level's energy rows; stops at the relative energy change ``options.tolerance``.
     """
@@ -85,15 +90,26 @@ def _sweeps(problem: LevelProblem, est: Estimate, ev, options: RefineOptions, ti
     for iteration in bar:
         previous = ev.energy
         start = _snapshot(est, problem, poses=refine_poses, offset=refine_offset)
-        if refine_poses:
+        if refine_poses and options.joint_pose_depth and level.grid.size >= options.joint_min_pixels:
             t = time.perf_counter()
-            est.poses, ev = update_poses(problem, est, ev, options.pose_iterations, options.pose_tolerance)
-            timings["poses"] += time.perf_counter() - t
-        t = time.perf_counter()
-        est.z, ev, cg_iterations = update_depth(problem, est, ev, rtol=options.cg_tolerance,
-                                                maxiter=options.cg_max_iterations)
+            est.z, est.poses, ev, cg_iterations = update_pose_depth(problem, est, ev, rtol=options.joint_cg_tolerance,
+                                                                    maxiter=options.cg_max_iterations)
+            timings["poses_depth"] += time.perf_counter() - t
+        else:
+            if refine_poses:
+                t = time.perf_counter()
+                est.poses, ev = update_poses(problem, est, ev, options.pose_iterations, options.pose_tolerance)
+                timings["poses"] += time.perf_counter() - t
+            t = time.perf_counter()
+            est.z, ev, cg_iterations = update_depth(problem, est, ev, rtol=options.cg_tolerance,
+                                                    maxiter=options.cg_max_iterations)
+            timings["depth"] += time.perf_counter() - t
+        if refine_poses and options.anchor:
+            t = time.perf_counter()
+            moved, ev = update_anchor(problem, est, ev)
+            est.z, est.albedo, est.poses = moved.z, moved.albedo, moved.poses
+            timings["anchor"] += time.perf_counter() - t
         stats["cg_iterations"].append(cg_iterations)
-        timings["depth"] += time.perf_counter() - t
         t = time.perf_counter()
         est.albedo = update_albedo(est, ev, problem.lam)
         ev = problem.reevaluate(est, ev)
@@ -149,7 +165,7 @@ def _extrapolate(problem: LevelProblem, est: Estimate, ev, before: dict, factors
             problem.light.offset = end_offset + factor * (end_offset - before["offset"])
         trial_ev = problem.evaluate(trial)
         if trial_ev.energy < (ev.energy if best is None else best[1].energy):
-            best = (trial, trial_ev, problem.light.offset.copy())
+            best = (trial, trial_ev, None if end_offset is None else problem.light.offset.copy())
         else:
             break
     if end_offset is not None:

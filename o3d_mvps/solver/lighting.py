@@ -31,7 +31,6 @@ class SHLight:
     initial: tuple = (0.2, 0.0, 0.0, -1.0)
     name = "sh"
     size = 4
-    shares_basis = True  # the basis is the same for every frame
 
     def initial_lights(self, n_frames: int, mean_depth: float) -> np.ndarray:
         """(n, 4) starting lights."""
@@ -40,6 +39,10 @@ class SHLight:
     def basis(self, normals: np.ndarray, points: np.ndarray, pose: np.ndarray) -> np.ndarray:
         """(N, 4) ``[1, n]``."""
         return sh_basis(normals)
+
+    def bases(self, normals: np.ndarray, points: np.ndarray, poses: np.ndarray) -> np.ndarray:
+        """(1, N, 4): the one basis every frame shares."""
+        return sh_basis(normals)[None]
 
     def field(self, light: np.ndarray, normals: np.ndarray, points: np.ndarray, pose: np.ndarray):
         """(c, L): shading ``c + <L, n>`` with n in reference coordinates; here (scalar, (3,))."""
@@ -61,7 +64,6 @@ class LEDLight:
     offset: np.ndarray = field(default_factory=lambda: np.zeros(3))
     name = "led"
     size = 2
-    shares_basis = False
 
     def __post_init__(self):
         self.offset = np.asarray(self.offset, dtype=np.float64).reshape(3)
@@ -76,14 +78,28 @@ class LEDLight:
 
     def irradiance(self, normals: np.ndarray, points: np.ndarray, pose: np.ndarray) -> np.ndarray:
         """<n, v_i> (N,) per unit intensity, unclamped (negative where the point faces away)."""
-        s = self.position(pose)
-        r2 = s @ s - 2.0 * (points @ s) + np.einsum("ij,ij->i", points, points)
-        return (normals @ s - np.einsum("ij,ij->i", normals, points)) / (r2 * np.sqrt(r2))
+        return self.irradiances(normals, points, pose[None])[0]
+
+    def irradiances(self, normals: np.ndarray, points: np.ndarray, poses: np.ndarray) -> np.ndarray:
+        """:meth:`irradiance` (m, N) for the frames with ``poses`` (m, 4, 4), computed together."""
+        s = np.einsum("mji,mj->mi", poses[:, :3, :3], self.offset - poses[:, :3, 3])  # (m, 3): R^T (o - t)
+        r2 = (points @ (-2.0 * s.T)).T
+        r2 += np.einsum("ij,ij->i", points, points)
+        r2 += np.einsum("mi,mi->m", s, s)[:, None]
+        lit = (normals @ s.T).T
+        lit -= np.einsum("ij,ij->i", normals, points)
+        return lit / (r2 * np.sqrt(r2))
 
     def basis(self, normals: np.ndarray, points: np.ndarray, pose: np.ndarray) -> np.ndarray:
         """(N, 2) ``[1, max(0, <n, v_i>)]``."""
-        g = self.irradiance(normals, points, pose)
-        return np.stack([np.ones_like(g), np.maximum(g, 0.0)], axis=1)
+        return self.bases(normals, points, pose[None])[0]
+
+    def bases(self, normals: np.ndarray, points: np.ndarray, poses: np.ndarray) -> np.ndarray:
+        """(m, N, 2) :meth:`basis` of the frames with ``poses`` (m, 4, 4)."""
+        g = self.irradiances(normals, points, poses)
+        out = np.ones(g.shape + (2,))
+        np.maximum(g, 0.0, out=out[..., 1])
+        return out
 
     def field(self, light: np.ndarray, normals: np.ndarray, points: np.ndarray, pose: np.ndarray):
         """(c, L): shading ``c + <L, n>``; L (N, 3) is the intensity times v_i, zero where the
@@ -132,18 +148,22 @@ def make_light_model(name: str, *, initial_sh=(0.2, 0.0, 0.0, -1.0), led_offset=
     raise ValueError(f"light_model must be one of {LIGHT_MODELS}, got {name!r}")
 
 
-def update_led_offset(problem, est, ev, *, max_halvings: int = 3):
+def update_led_offset(problem, est, ev, *, max_halvings: int = 3, max_pixels: int = 4000):
     """One IRLS Gauss-Newton step on the LED offset (all frames); returns the new evaluation.
 
-    Changes ``problem.light.offset`` in place only when the step lowers the energy.
+    The step is computed from at most ``max_pixels`` evenly spread pixels per frame (three
+    unknowns need few), the line search on the full energy. Changes ``problem.light.offset``
+    in place only when the step lowers the energy.
     """
     light = problem.light
     points_ref = problem.points(est.z)
     H = np.zeros((3, 3))
     g = np.zeros(3)
     w = cauchy_weights(ev.residual, problem.lam) * ev.usable[..., None]  # (n, N, 3)
+    spread = np.zeros(ev.usable.shape[1], dtype=bool)
+    spread[::max(1, ev.usable.shape[1] // max_pixels)] = True
     for i in range(problem.n_frames):
-        use = ev.usable[i]
+        use = ev.usable[i] & spread
         if not use.any():
             continue
         ds = light.offset_jacobian(est.lights[i], ev.normals[use], points_ref[use], est.poses[i])  # (M, 3)

@@ -34,6 +34,12 @@ class RefineOptions:
     extrapolate: after each sweep, try continuing its move of every unknown (x1, x2, x4) and keep
         the best that lowers the energy; shortens the slow creep of poses, depth and albedo
         against each other.
+    joint_pose_depth: on levels that refine poses, replace the paper's pose and depth updates
+        by one Gauss-Newton step on both, with the warp's parallax in the depth (see
+        o3d_mvps.solver.joint); False runs the paper's two updates.
+    joint_cg_tolerance: relative CG tolerance of that step (an inexact Newton step).
+    anchor: where poses are refined, re-anchor the whole reconstruction against the reference
+        camera after the pose/depth update (see o3d_mvps.solver.anchor).
     light_model: "led" (a point light moving with the camera, 1/r^2 falloff, plus ambient; the
         paper's future work, see o3d_mvps.solver.lighting) or "sh" (the paper's first-order
         spherical harmonics per frame).
@@ -60,6 +66,10 @@ class RefineOptions:
     occlusion_tolerance: float = 0.02
     difference_scheme: str = "central"
     extrapolate: bool = True
+    joint_pose_depth: bool = True
+    joint_cg_tolerance: float = 1e-2
+    joint_min_pixels: int = 10000
+    anchor: bool = True
     light_model: str = "led"
     led_offset: tuple | None = None
     refine_led_offset: bool = True
@@ -73,6 +83,9 @@ class RefineOptions:
             (int(self.levels) >= 1, f"levels must be >= 1, got {self.levels}"),
             (int(self.max_iterations) >= 1, f"max_iterations must be >= 1, got {self.max_iterations}"),
             (self.tolerance >= 0, f"tolerance must be >= 0, got {self.tolerance}"),
+            (0 < self.cg_tolerance < 1 and 0 < self.joint_cg_tolerance < 1,
+             f"cg_tolerance and joint_cg_tolerance must lie in (0, 1), got {self.cg_tolerance}, "
+             f"{self.joint_cg_tolerance}"),
             (len(self.initial_light) == 4, "initial_light must hold 4 SH coefficients"),
             (self.difference_scheme in SCHEMES, f"difference_scheme must be one of {SCHEMES}"),
             (self.light_model in LIGHT_MODELS, f"light_model must be one of {LIGHT_MODELS}, got {self.light_model!r}"),

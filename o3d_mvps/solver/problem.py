@@ -77,7 +77,7 @@ class LevelProblem:
         self.lam = float(cauchy_lambda)
         self.n_frames = len(level.images)
         self.visibility = np.ones((self.n_frames, level.grid.size), dtype=bool)
-        self.depth_preconditioner = None  # AMG hierarchy, reused across the level's depth steps
+        self.depth_preconditioner = None  # AMG hierarchy, reused across the level's depth (or joint) steps
         self.depth_cg_baseline = None  # CG iterations of the hierarchy's first solve
 
     # geometry ----------------------------------------------------------------------------
@@ -136,10 +136,7 @@ class LevelProblem:
 
     def bases(self, est: Estimate, normals: np.ndarray) -> np.ndarray:
         """Light bases (m, N, k) of every frame, or (1, N, k) when the model shares one."""
-        if self.light.shares_basis:
-            return self.light.basis(normals, None, None)[None]
-        P = self.points(est.z)
-        return np.stack([self.light.basis(normals, P, T) for T in est.poses])
+        return self.light.bases(normals, self.points(est.z), est.poses)
 
     def frame_data_energy(self, sample: FrameSample, albedo: np.ndarray, shading: np.ndarray) -> float:
         """Robust data energy of one frame for given shading (N,)."""
@@ -171,7 +168,8 @@ class LevelProblem:
             shading = (basis[0] @ est.lights.T).T  # (n, N)
         else:
             shading = np.einsum("ink,ik->in", basis, est.lights)
-        residual = color - est.albedo[None] * shading[..., None]
+        residual = np.multiply(est.albedo[None], shading[..., None])
+        np.subtract(color, residual, out=residual)
         residual *= usable[..., None]
         data = float(cauchy(residual, self.lam).sum())
         return Evaluation(residual, usable, color, shading, normals, dA, basis, data, self.prior_energy(est.z))
