@@ -396,3 +396,12 @@ def test_update_anchor_undoes_a_rigid_move_without_raising_the_energy(problem):
     unreachable = dataclasses.replace(ev, data=-1.0, prior=0.0)
     kept, kept_ev = update_anchor(problem, est, unreachable)
     assert kept is est and kept_ev is unreachable
+
+
+def test_refine_options_validate_the_joint_step_settings():
+    for bad, message in [(dict(joint_min_pixels=-1), "joint_min_pixels"),
+                         (dict(joint_cg_tolerance=0.0), "joint_cg_tolerance"),
+                         (dict(cg_tolerance=1.5), "cg_tolerance")]:
+        with pytest.raises(ValueError, match=message):
+            RefineOptions(**bad)
+    assert RefineOptions(joint_min_pixels=0, anchor=False).joint_min_pixels == 0

@@ -74,7 +74,11 @@ class LEDLight:
 
     def position(self, pose: np.ndarray) -> np.ndarray:
         """The LED (3,) in reference coordinates for the frame with ``pose``: R^T (o - t)."""
-        return pose[:3, :3].T @ (self.offset - pose[:3, 3])
+        return self.positions(pose[None])[0]
+
+    def positions(self, poses: np.ndarray) -> np.ndarray:
+        """:meth:`position` (m, 3) of the frames with ``poses`` (m, 4, 4)."""
+        return np.einsum("mji,mj->mi", poses[:, :3, :3], self.offset - poses[:, :3, 3])
 
     def irradiance(self, normals: np.ndarray, points: np.ndarray, pose: np.ndarray) -> np.ndarray:
         """<n, v_i> (N,) per unit intensity, unclamped (negative where the point faces away)."""
@@ -82,7 +86,7 @@ class LEDLight:
 
     def irradiances(self, normals: np.ndarray, points: np.ndarray, poses: np.ndarray) -> np.ndarray:
         """:meth:`irradiance` (m, N) for the frames with ``poses`` (m, 4, 4), computed together."""
-        s = np.einsum("mji,mj->mi", poses[:, :3, :3], self.offset - poses[:, :3, 3])  # (m, 3): R^T (o - t)
+        s = self.positions(poses)
         r2 = (points @ (-2.0 * s.T)).T
         r2 += np.einsum("ij,ij->i", points, points)
         r2 += np.einsum("mi,mi->m", s, s)[:, None]

@@ -38,6 +38,9 @@ class RefineOptions:
         by one Gauss-Newton step on both, with the warp's parallax in the depth (see
         o3d_mvps.solver.joint); False runs the paper's two updates.
     joint_cg_tolerance: relative CG tolerance of that step (an inexact Newton step).
+    joint_min_pixels: take the joint step only on levels with this many object pixels; coarser
+        levels keep the paper's updates (there the joint step let the poses drift toward the
+        coarse images' biased minimum).
     anchor: where poses are refined, re-anchor the whole reconstruction against the reference
         camera after the pose/depth update (see o3d_mvps.solver.anchor).
     light_model: "led" (a point light moving with the camera, 1/r^2 falloff, plus ambient; the
@@ -83,6 +86,7 @@ class RefineOptions:
             (int(self.levels) >= 1, f"levels must be >= 1, got {self.levels}"),
             (int(self.max_iterations) >= 1, f"max_iterations must be >= 1, got {self.max_iterations}"),
             (self.tolerance >= 0, f"tolerance must be >= 0, got {self.tolerance}"),
+            (int(self.joint_min_pixels) >= 0, f"joint_min_pixels must be >= 0, got {self.joint_min_pixels}"),
             (0 < self.cg_tolerance < 1 and 0 < self.joint_cg_tolerance < 1,
              f"cg_tolerance and joint_cg_tolerance must lie in (0, 1), got {self.cg_tolerance}, "
              f"{self.joint_cg_tolerance}"),
