@@ -16,7 +16,7 @@ from o3d_mvps.errors import CaptureError
 from o3d_mvps.model import se3
 from o3d_mvps.model.normals import unnormalised_normals
 from o3d_mvps.model.robust import cauchy
-from o3d_mvps.solver.depth import depth_system
+from o3d_mvps.solver.normal_equations import joint_system
 from o3d_mvps.solver.lighting import LEDLight, update_led_offset
 from o3d_mvps.solver.problem import Estimate, LevelProblem
 from o3d_mvps.solver.pyramid import build_level
@@ -97,7 +97,7 @@ def test_led_field_reproduces_the_basis_and_is_zero_facing_away(rng):
 
 
 def test_depth_system_under_the_led_is_the_gradient_of_the_frozen_energy():
-    """M z - rhs equals the gradient of the energy with the warp, dA and the LED's per-pixel light
+    """-rhs of the depth step equals the gradient of the energy with the warp, dA and the LED's per-pixel light
     vectors L (from ``field`` at z) frozen; the LED light has k = 2 parameters per frame."""
     sh_problem, sh_est = make_problem()
     light = LEDLight(OFFSET)
@@ -106,8 +106,8 @@ def test_depth_system_under_the_led_is_the_gradient_of_the_frozen_energy():
     est = Estimate(sh_est.z, sh_est.albedo, lights, sh_est.poses)
     ev = problem.evaluate(est)
     assert ev.basis.shape == (2, problem.level.grid.size, 2)  # one basis per frame
-    system = depth_system(problem, est, ev)
-    grad = system.matrix @ est.z - system.rhs
+    system = joint_system(problem, est, ev, parallax=False, twists=False, project_albedo=False)
+    grad = -system.rhs_z
     g = problem.level.grid
     points = problem.points(est.z)
     frozen = [light.field(lights[i], ev.normals, points, est.poses[i]) for i in range(2)]

@@ -14,7 +14,7 @@ from o3d_mvps.model.normals import (
 from o3d_mvps.model.robust import cauchy, cauchy_weights
 from o3d_mvps.model.shading import sh_basis, shading
 from o3d_mvps.model.warping import sample_bilinear, visible, warp
-from o3d_mvps.solver.depth import depth_system
+from o3d_mvps.solver.normal_equations import joint_system
 from o3d_mvps.solver.pose import pose_jacobian
 from o3d_mvps.solver.problem import Estimate, LevelProblem
 from o3d_mvps.solver.pyramid import Level, depth_prior
@@ -209,11 +209,12 @@ def assert_gradient_at_random_pixels(energy, grad, z, rng, count=25, h=1e-7):
 
 
 def test_depth_system_gradient_matches_finite_differences_of_the_frozen_energy():
-    """M z - rhs equals the gradient of the energy with the warp and dA frozen at z."""
+    """-rhs of the paper's depth step (no parallax, no twists, albedo held) equals the gradient of
+    the energy with the warp and dA frozen at z."""
     problem, est = make_problem()
     ev = problem.evaluate(est)
-    system = depth_system(problem, est, ev)
-    grad = system.matrix @ est.z - system.rhs
+    system = joint_system(problem, est, ev, parallax=False, twists=False, project_albedo=False)
+    grad = -system.rhs_z
     g = problem.level.grid
     color, usable, dA = ev.color, ev.usable, ev.dA
 
@@ -234,3 +235,24 @@ def test_depth_system_gradient_matches_finite_differences_of_the_frozen_energy()
     assert abs(M - M.T).max() < 1e-9 * abs(M).max()
     x = rng.normal(size=g.size)
     assert x @ (M @ x) > 0
+
+
+def test_depth_envelope_bounds_each_pixel_by_the_sensor_depths_around_it():
+    """A 4x4 depth map at SF 2 with a 0.1 m step between columns 1 and 2: colour pixels over depth
+    column 0 see only the near side's neighbourhood (0.5 m), those over columns 1-2 both sides,
+    all widened by the relative margin; a missing depth pixel takes its nearest neighbour's."""
+    from o3d_mvps.solver.pyramid import depth_envelope
+
+    z0 = np.array([[0.5, 0.5, 0.6, 0.6]] * 4)
+    z0[3, 3] = 0.0
+    lower, upper = depth_envelope(z0, (8, 8), margin=0.02)
+    assert lower.shape == upper.shape == (8, 8)
+    np.testing.assert_allclose(upper[:, :2], 0.5 * 1.02)  # over depth column 0: its neighbours are all 0.5 m
+    np.testing.assert_allclose(lower[:, :2], 0.5 * 0.98)
+    np.testing.assert_allclose(upper[:, 2:6], 0.6 * 1.02)  # columns 1 and 2 straddle the step
+    np.testing.assert_allclose(lower[:, 2:6], 0.5 * 0.98)
+    np.testing.assert_allclose(lower[:, 6:], 0.6 * 0.98)  # the hole at (3, 3) is filled with 0.6, not 0
+    # a coarser level (one pixel per 2x2 depth pixels) widens the window to cover its footprint
+    lower2, upper2 = depth_envelope(z0, (2, 2), margin=0.0)
+    np.testing.assert_allclose(lower2, 0.5)
+    np.testing.assert_allclose(upper2, 0.6)

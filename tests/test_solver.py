@@ -38,6 +38,18 @@ def test_refinement_beats_bicubic_upsampling(capture, result):
     assert ours["rmse_mm"] < base["rmse_mm"]
 
 
+def test_refined_depth_stays_inside_the_sensor_envelope(capture, result):
+    """Every refined depth lies within the least and greatest sensor depth around its pixel,
+    widened by the default 2 % (o3d_mvps.solver.pyramid.depth_envelope)."""
+    from o3d_mvps.solver.pyramid import depth_envelope
+
+    lower, upper = depth_envelope(capture.depth_array(0).astype(np.float64), capture.color_size,
+                                  RefineOptions().depth_envelope)
+    depth, mask = result.depth_array(), result.mask_array()
+    assert np.all(depth[mask] >= lower[mask] - 1e-6) and np.all(depth[mask] <= upper[mask] + 1e-6)
+    assert np.ptp(depth[mask]) > 0.05  # the bounds are local: the object keeps its relief
+
+
 def test_result_shapes_and_types(capture, result):
     H, W = capture.color_size
     assert result.depth_array().shape == (H, W)
@@ -47,7 +59,7 @@ def test_result_shapes_and_types(capture, result):
     assert result.poses.numpy().shape == (6, 4, 4) and result.lighting.numpy().shape == (6, 2)  # LED: ambient, intensity
     np.testing.assert_allclose(result.poses.numpy()[0], np.eye(4))
     # levels below joint_min_pixels (all of this small capture's) take the paper's two steps
-    assert {"poses", "depth", "anchor", "albedo_lighting", "total"} <= set(result.timings)
+    assert {"poses", "depth", "albedo_lighting", "total"} <= set(result.timings)
     assert "poses_depth" not in result.timings
 
 

@@ -2,9 +2,9 @@
 
 Per level, sweeps of poses -> depth -> albedo -> lighting (DESIGN section 2) until the
 relative energy change falls below the tolerance or the sweep cap is reached. Where poses are
-refined, poses and depth take one joint Gauss-Newton step (:mod:`.joint`) and the whole
-reconstruction is then re-anchored against the reference camera (:mod:`.anchor`). z and albedo are
-upsampled bilinearly between levels; lighting and poses carry over (the authors' code reset
+refined, poses and depth take one joint Gauss-Newton step (:mod:`.joint`); the depth and
+joint steps move the albedo along (variable projection) and keep z inside the sensor's depth
+envelope (:func:`.pyramid.depth_envelope`). z and albedo are upsampled bilinearly between levels; lighting and poses carry over (the authors' code reset
 lighting at every level).
 """
 
@@ -24,7 +24,6 @@ from ..errors import CaptureError
 from ..model import se3
 from ..refinement import Refinement
 from .depth import update_depth
-from .anchor import update_anchor
 from .joint import update_pose_depth
 from .lighting import make_light_model, update_led_offset
 from .options import RefineOptions
@@ -75,7 +74,7 @@ def _reference_mask(capture: Capture) -> np.ndarray:
 
 def _sweeps(problem: LevelProblem, est: Estimate, ev, options: RefineOptions, timings: dict, stats: dict) -> list:
     """Run one level's sweeps in place on ``est``: poses and depth (one joint step, or the
-    paper's two), the rigid re-anchoring, albedo, lighting, LED offset, extrapolation.
+    paper's two), albedo, lighting, LED offset, extrapolation.
 
     Returns the level's energy rows; stops at the relative energy change ``options.tolerance``.
     """
@@ -84,6 +83,8 @@ def _sweeps(problem: LevelProblem, est: Estimate, ev, options: RefineOptions, ti
     # the LED offset is estimated where the poses are (coarser levels constrain it as poorly)
     refine_offset = (options.refine_led_offset and problem.light.name == "led"
                      and level.grid.size >= options.pose_min_pixels)
+    # one image cannot tell albedo from shading: projected out, the albedo would absorb all shading
+    project_albedo = options.project_albedo and problem.n_frames > 1
     rows = [{"level": level.index, "iteration": 0, "energy": ev.energy}]
     bar = tqdm(range(1, options.max_iterations + 1), desc=f"level {level.index} ({level.size[1]}x{level.size[0]})",
                disable=not options.progress, leave=False)
@@ -92,8 +93,10 @@ def _sweeps(problem: LevelProblem, est: Estimate, ev, options: RefineOptions, ti
         start = _snapshot(est, problem, poses=refine_poses, offset=refine_offset)
         if refine_poses and options.joint_pose_depth and level.grid.size >= options.joint_min_pixels:
             t = time.perf_counter()
-            est.z, est.poses, ev, cg_iterations = update_pose_depth(problem, est, ev, rtol=options.joint_cg_tolerance,
-                                                                    maxiter=options.cg_max_iterations)
+            stepped, ev, cg_iterations = update_pose_depth(problem, est, ev, rtol=options.joint_cg_tolerance,
+                                                           maxiter=options.cg_max_iterations,
+                                                           project_albedo=project_albedo)
+            est.z, est.albedo, est.poses = stepped.z, stepped.albedo, stepped.poses
             timings["poses_depth"] += time.perf_counter() - t
         else:
             if refine_poses:
@@ -101,14 +104,11 @@ def _sweeps(problem: LevelProblem, est: Estimate, ev, options: RefineOptions, ti
                 est.poses, ev = update_poses(problem, est, ev, options.pose_iterations, options.pose_tolerance)
                 timings["poses"] += time.perf_counter() - t
             t = time.perf_counter()
-            est.z, ev, cg_iterations = update_depth(problem, est, ev, rtol=options.cg_tolerance,
-                                                    maxiter=options.cg_max_iterations)
+            stepped, ev, cg_iterations = update_depth(problem, est, ev, rtol=options.cg_tolerance,
+                                                      maxiter=options.cg_max_iterations,
+                                                      project_albedo=project_albedo)
+            est.z, est.albedo = stepped.z, stepped.albedo
             timings["depth"] += time.perf_counter() - t
-        if refine_poses and options.anchor:
-            t = time.perf_counter()
-            moved, ev = update_anchor(problem, est, ev)
-            est.z, est.albedo, est.poses = moved.z, moved.albedo, moved.poses
-            timings["anchor"] += time.perf_counter() - t
         stats["cg_iterations"].append(cg_iterations)
         t = time.perf_counter()
         est.albedo = update_albedo(est, ev, problem.lam)
@@ -156,7 +156,7 @@ def _extrapolate(problem: LevelProblem, est: Estimate, ev, before: dict, factors
         poses = est.poses
         if "poses" in before:
             poses = np.stack([se3.exp(factor * d) @ T for d, T in zip(delta_poses, est.poses)])
-        z = est.z + factor * (est.z - before["z"])
+        z = problem.level.prior.clip(est.z + factor * (est.z - before["z"]))
         if not np.all(z > 0):
             break
         trial = Estimate(z, est.albedo + factor * (est.albedo - before["albedo"]),
@@ -238,7 +238,8 @@ def _refine(capture: Capture, options: RefineOptions | None, device, initial_pos
 
     for level_index in reversed(range(n_levels)):
         t = time.perf_counter()
-        level = build_level(level_index, colors, masks, ref_mask, K, z0, sf, options.difference_scheme)
+        level = build_level(level_index, colors, masks, ref_mask, K, z0, sf, options.difference_scheme,
+                            options.depth_envelope)
         g = level.grid
         if g.size < 16:
             continue
@@ -249,7 +250,7 @@ def _refine(capture: Capture, options: RefineOptions | None, device, initial_pos
         else:
             z_full = resize(z_full, level.size, interpolation=cv2.INTER_LINEAR)
             albedo_full = resize(albedo_full, level.size, interpolation=cv2.INTER_LINEAR)
-        est = Estimate(g.gather(z_full).astype(np.float64), g.gather(albedo_full).astype(np.float64), lights, poses)
+        est = Estimate(level.prior.clip(g.gather(z_full).astype(np.float64)), g.gather(albedo_full).astype(np.float64), lights, poses)
         tau = normalised_tau(options.tau, capture.n_frames, mean_I, g.size, mean_z0, level.prior.rows)
         problem = LevelProblem(level, tau, options.cauchy_lambda, light)
         problem.update_visibility(est, occlusion_test=options.occlusion_test, rel_tol=options.occlusion_tolerance,

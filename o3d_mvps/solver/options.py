@@ -41,8 +41,13 @@ class RefineOptions:
     joint_min_pixels: take the joint step only on levels with this many object pixels; coarser
         levels keep the paper's updates (there the joint step let the poses drift toward the
         coarse images' biased minimum).
-    anchor: where poses are refined, re-anchor the whole reconstruction against the reference
-        camera after the pose/depth update (see o3d_mvps.solver.anchor).
+    project_albedo: eliminate the albedo from the depth and joint steps (variable projection,
+        see o3d_mvps.solver.joint), so they move it along with z instead of leaving it to the
+        albedo update; False gives the paper's depth step with the albedo held fixed (as
+        does a single frame, whose one image cannot tell albedo from shading).
+    depth_envelope: keep each pixel's depth between the least and greatest sensor depth around
+        it, widened by this relative margin (None: unbounded); see
+        o3d_mvps.solver.pyramid.depth_envelope.
     light_model: "led" (a point light moving with the camera, 1/r^2 falloff, plus ambient; the
         paper's future work, see o3d_mvps.solver.lighting) or "sh" (the paper's first-order
         spherical harmonics per frame).
@@ -72,7 +77,8 @@ class RefineOptions:
     joint_pose_depth: bool = True
     joint_cg_tolerance: float = 1e-2
     joint_min_pixels: int = 10000
-    anchor: bool = True
+    project_albedo: bool = True
+    depth_envelope: float | None = 0.02
     light_model: str = "led"
     led_offset: tuple | None = None
     refine_led_offset: bool = True
@@ -86,6 +92,8 @@ class RefineOptions:
             (int(self.levels) >= 1, f"levels must be >= 1, got {self.levels}"),
             (int(self.max_iterations) >= 1, f"max_iterations must be >= 1, got {self.max_iterations}"),
             (self.tolerance >= 0, f"tolerance must be >= 0, got {self.tolerance}"),
+            (self.depth_envelope is None or 0 <= self.depth_envelope < 1,
+             f"depth_envelope must be None or a relative margin in [0, 1), got {self.depth_envelope}"),
             (int(self.joint_min_pixels) >= 0, f"joint_min_pixels must be >= 0, got {self.joint_min_pixels}"),
             (0 < self.cg_tolerance < 1 and 0 < self.joint_cg_tolerance < 1,
              f"cg_tolerance and joint_cg_tolerance must lie in (0, 1), got {self.cg_tolerance}, "

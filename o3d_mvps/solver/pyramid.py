@@ -56,10 +56,17 @@ def resample_valid(values: np.ndarray, valid: np.ndarray, size: tuple[int, int])
 
 @dataclass
 class DepthPrior:
-    """tau * || D z - z0 ||^2 on one level: D (M, N) sparse, z0 (M,) metres."""
+    """tau * || D z - z0 ||^2 on one level: D (M, N) sparse, z0 (M,) metres; the depth envelope
+    lower <= z <= upper, (N,) metres each (see :func:`depth_envelope`)."""
 
     D: sp.csr_matrix
     z0: np.ndarray
+    lower: np.ndarray | None = None
+    upper: np.ndarray | None = None
+
+    def clip(self, z: np.ndarray) -> np.ndarray:
+        """z (N,) clipped into the envelope."""
+        return z if self.lower is None else np.clip(z, self.lower, self.upper)
 
     @property
     def rows(self) -> int:
@@ -88,6 +95,25 @@ def depth_prior(grid: MaskedGrid, z0: np.ndarray, level_factor: float) -> DepthP
     return DepthPrior(D, z0_level[grid.v[on], grid.u[on]])
 
 
+def depth_envelope(z0: np.ndarray, size: tuple[int, int], margin: float) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds (H, W) metres each for the depth of a level of ``size`` (H, W): the least and
+    greatest sensor depth z0 (h, w) around each pixel (its depth pixel and their neighbours),
+    widened by the relative ``margin``.
+
+    The depth super-resolved from a block-average prior is free within a block where the
+    photometric terms say little (at depth discontinuities); without bounds a pixel there can
+    run off far behind or before everything the sensor saw while its block mean stays put.
+    """
+    valid = z0 > 0
+    filled = fill_outside(z0.astype(np.float64), valid)
+    h, w = z0.shape
+    radius = max(1, int(np.ceil(max(h / size[0], w / size[1]))))
+    kernel = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
+    lower = cv2.erode(filled, kernel) * (1.0 - margin)
+    upper = cv2.dilate(filled, kernel) * (1.0 + margin)
+    return tuple(cv2.resize(b, (size[1], size[0]), interpolation=cv2.INTER_NEAREST) for b in (lower, upper))
+
+
 @dataclass
 class Level:
     """Everything one pyramid level of the solver reads.
@@ -110,8 +136,9 @@ class Level:
 
 
 def build_level(index: int, colors: list, masks: list, ref_mask: np.ndarray, K: np.ndarray, z0: np.ndarray,
-                scale_factor: int, scheme: str = "central") -> Level:
-    """Level ``index`` from full-resolution colours (H, W, 3), masks, reference mask and z0."""
+                scale_factor: int, scheme: str = "central", envelope_margin: float | None = None) -> Level:
+    """Level ``index`` from full-resolution colours (H, W, 3), masks, reference mask and z0;
+    ``envelope_margin`` None leaves the depth unbounded (see :func:`depth_envelope`)."""
     size = level_size(ref_mask.shape, index)
     K_level = scale_intrinsics(K, size[1] / ref_mask.shape[1], size[0] / ref_mask.shape[0])
     images = [resize(color, size).astype(np.float32) for color in colors]
@@ -120,4 +147,6 @@ def build_level(index: int, colors: list, masks: list, ref_mask: np.ndarray, K: 
     mask = resize(ref_mask.astype(np.float32), size) > 0.5
     grid = masked_grid(mask, scheme)
     prior = depth_prior(grid, z0, scale_factor / 2**index)
+    if envelope_margin is not None:
+        prior.lower, prior.upper = (grid.gather(b) for b in depth_envelope(z0, size, envelope_margin))
     return Level(index, grid, K_level, size, images, gradients, frame_masks, prior)

@@ -1,0 +1,276 @@
+"""Gauss-Newton normal equations of the depth and joint pose-depth steps.
+
+Residual r_ic(p) = I~_ic(w_i(p)) - rho_c(p) s_i(p) of frame i, pixel p, channel c. Its row in
+the depth increment dz is ``a Du + b Dv + c I`` (7-point stencil): the frozen-dA shading of the
+paper, ``s_i = c_i + (alpha_i Du z + beta_i Dv z + gamma_i z) / dA`` with the light field frozen
+at the current surface (SH: the frame's light vector; LED: a per-pixel vector), so
+``a = -rho alpha / dA``, ``b = -rho beta / dA``, ``c = -rho gamma / dA``, plus, for the joint step,
+the warp's parallax (the change of the warped colour I_i(pi(T_i X(z))) and of the LED shading
+as z_p moves a point along its ray: ``g = dr/dX' . R_i ray_p``, added to c). The twists xi_i (6,)
+of frames 1..n-1 enter through the pose Jacobian of :mod:`.pose` (image and shading).
+
+The albedo is eliminated by variable projection (:class:`_AlbedoProjection`). With IRLS
+weights of the Cauchy loss the normal equations are
+``[[M, U], [U^T, H]] [dz; xi] = [b_z; b_xi]``: M (N, N) sparse 7-point plus 2 tau D^T D, U (N, 6m)
+dense, H (6m, 6m) dense. :meth:`JointSystem.schur_operator` eliminates the twists.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from ..model.robust import cauchy_weights
+from .pose import pose_jacobian
+from .problem import Estimate, Evaluation, LevelProblem
+
+
+@dataclass
+class JointSystem:
+    """Normal equations of the joint step for the increments dz (N,) and twists xi (6m,).
+
+    matrix (N, N) sparse: the depth block M; rhs_z (N,); coupling (N, 6m): U; hessian
+    (6m, 6m): H (block-diagonal per frame unless the albedo is projected out); rhs_xi (6m,);
+    frames (m,): the refined frames' indices.
+    """
+
+    matrix: sp.csr_matrix
+    rhs_z: np.ndarray
+    coupling: np.ndarray
+    hessian: np.ndarray
+    rhs_xi: np.ndarray
+    frames: list
+
+    def schur_operator(self) -> tuple[spla.LinearOperator, np.ndarray, np.ndarray]:
+        """(S, rhs, V): ``S = M - U H^-1 U^T`` as an operator, its right-hand side
+        ``b_z - U H^-1 b_xi`` and ``V = U H^-1`` (N, 6m)."""
+        if not self.frames:
+            return spla.aslinearoperator(self.matrix), self.rhs_z, np.zeros((self.rhs_z.size, 0))
+        factor = _cholesky(self.hessian)
+        V = scipy.linalg.cho_solve(factor, self.coupling.T).T
+        M, U = self.matrix, self.coupling
+
+        def matvec(x):
+            x = np.ravel(x)
+            return M @ x - V @ (U.T @ x)
+
+        S = spla.LinearOperator(M.shape, matvec=matvec, dtype=np.float64)
+        return S, self.rhs_z - V @ self.rhs_xi, V
+
+    def twists(self, dz: np.ndarray) -> np.ndarray:
+        """The twists (m, 6) that go with the depth increment dz (N,)."""
+        if not self.frames:
+            return np.zeros((0, 6))
+        return scipy.linalg.cho_solve(_cholesky(self.hessian), self.rhs_xi - self.coupling.T @ dz).reshape(-1, 6)
+
+
+def _cholesky(H: np.ndarray):
+    """Cholesky factor of the SPD twist Gram H (6m, 6m), with a 1e-12 relative ridge if rounding
+    left it semidefinite."""
+    try:
+        return scipy.linalg.cho_factor(H)
+    except np.linalg.LinAlgError:
+        return scipy.linalg.cho_factor(H + 1e-12 * np.abs(np.diag(H)).max() * np.eye(len(H)))
+
+
+def residual_jacobians(problem: LevelProblem, est: Estimate, ev: Evaluation, i: int, points_ref: np.ndarray):
+    """Frame i's derivatives on its usable pixels ``use`` (N,) bool.
+
+    Returns (use, J, g): J (M, 3, 6) d(residual)/d(xi_i) (None for the reference frame, whose
+    pose stays fixed) and g (M, 3) d(residual)/d(z_p) through the warp and the light position
+    (zero for the reference frame's warp, which moves along the ray).
+    """
+    use = ev.usable[i]
+    pose = est.poses[i]
+    points = points_ref[use]
+    ray = points / points[:, 2:3]  # d(point)/d(z), reference coordinates
+    dshading = problem.light.shading_jacobian(est.lights[i], ev.normals[use], points, pose)  # (M, 6) or None
+    albedo = est.albedo[use]
+    if i == 0:
+        if dshading is None:
+            return use, None, np.zeros((int(use.sum()), 3))
+        return use, None, -albedo * np.einsum("mj,mj->m", dshading[:, :3], ray)[:, None]
+    sample = problem.sample(i, pose, points_ref)
+    J = pose_jacobian(problem.sample_gradients(i, sample, use), problem.level.K)
+    if dshading is not None:
+        J -= albedo[:, :, None] * dshading[:, None, :]
+    g = np.einsum("mcj,mj->mc", J[..., :3], ray @ pose[:3, :3].T)  # d/dX' (camera frame) . R ray
+    return use, J, g
+
+
+def _channel_sum(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """sum_c a[:, c] b[:, c] of two (N, 3) arrays: (N,)."""
+    return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
+
+
+def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parallax: bool = True,
+                 twists: bool = True, project_albedo: bool = True, min_pixels: int = 12) -> JointSystem:
+    """Assemble the Gauss-Newton normal equations for the increments (dz, twists).
+
+    parallax: include the warp's (and the LED position's) dependence on z in the depth rows
+    (False: the paper's frozen-warp depth rows). twists: include frames 1..n-1's twists.
+    project_albedo: eliminate the albedo (variable projection, see :class:`_AlbedoProjection`).
+    """
+    grid = problem.level.grid
+    N = grid.size
+    w = cauchy_weights(ev.residual, problem.lam) * ev.usable[..., None]  # (n, N, 3)
+    q = est.albedo / ev.dA[:, None]  # (N, 3)
+    points_ref = problem.points(est.z)
+    # per pixel: weighted products of the row coefficients (a, b, c) of Du z, Dv z and z, summed
+    # over frames and channels, and the coefficients times the weighted residual
+    Saa, Sbb, Sgg, Sab, Sag, Sbg, Ba, Bb, Bg = np.zeros((9, N))
+    projection = _AlbedoProjection(w, ev) if project_albedo else None
+    couplings, hessians, rhs_xi, frames = [], [], [], []
+    for i in range(problem.n_frames):
+        _, alpha, beta, gamma = shading_rows(problem, est.lights[i], ev.normals, points_ref, est.poses[i])
+        c_diag = -q * gamma[:, None]
+        J = None
+        if parallax or (twists and i > 0):
+            use, J, g = residual_jacobians(problem, est, ev, i, points_ref)
+            if parallax:
+                c_diag[use] += g
+        # the row of residual (i, p, c) in dz is a Du + b Dv + c_diag I with a = -q alpha, b = -q beta
+        wi, ri = w[i], ev.residual[i]
+        wq = wi * q
+        W = _channel_sum(wq, q)
+        Wqc = _channel_sum(wq, c_diag)
+        Wqr = _channel_sum(wq, ri)
+        Saa += W * alpha * alpha
+        Sbb += W * beta * beta
+        Sab += W * alpha * beta
+        wc = wi * c_diag
+        Sgg += _channel_sum(wc, c_diag)
+        Sag -= alpha * Wqc
+        Sbg -= beta * Wqc
+        Ba -= alpha * Wqr
+        Bb -= beta * Wqr
+        Bg += _channel_sum(wc, ri)
+        if projection is not None:
+            projection.add_depth_rows(i, -q * alpha[:, None], -q * beta[:, None], c_diag)
+        if not twists or J is None or use.sum() < min_pixels:
+            continue
+        wJ = wi[use][..., None] * J  # (M, 3, 6)
+        H = wJ.reshape(-1, 6).T @ J.reshape(-1, 6)
+        if not np.isfinite(H).all() or np.linalg.cond(H) > 1e12:
+            continue
+        wqJ = np.zeros((N, 6))  # sum_c w q J
+        wqJ[use] = np.einsum("mc,mcj->mj", q[use], wJ)
+        wcJ = np.zeros((N, 6))  # sum_c w c_diag J
+        wcJ[use] = np.einsum("mc,mcj->mj", c_diag[use], wJ)
+        couplings.append(stencil_transpose(grid, -alpha[:, None] * wqJ, -beta[:, None] * wqJ, wcJ))
+        hessians.append(H)
+        rhs_xi.append(-(ri[use].reshape(1, -1) @ wJ.reshape(-1, 6)).ravel())
+        frames.append(i)
+        if projection is not None:
+            projection.add_twist_rows(i, use, J)
+    m = len(frames)
+    hessian = scipy.linalg.block_diag(*hessians) if m else np.zeros((0, 0))
+    coupling = np.concatenate(couplings, axis=1) if m else np.zeros((N, 0))
+    rhs_xi = np.concatenate(rhs_xi) if m else np.zeros(0)
+    if projection is not None:
+        Saa, Sbb, Sgg, Sab, Sag, Sbg = (S - dS for S, dS in zip((Saa, Sbb, Sgg, Sab, Sag, Sbg), projection.local()))
+        Ba, Bb, Bg = (B - dB for B, dB in zip((Ba, Bb, Bg), projection.local_rhs()))
+        if m:
+            coupling -= stencil_transpose(grid, *projection.coupling(frames))
+            hessian -= projection.hessian(frames)
+            rhs_xi += projection.twist_rhs(frames)
+    prior = problem.level.prior
+    two_tau = 2.0 * problem.tau
+    matrix = stencil_normal_matrix(grid, Saa, Sbb, Sgg, Sab, Sag, Sbg) + two_tau * (prior.D.T @ prior.D)
+    rhs_z = -stencil_transpose(grid, Ba, Bb, Bg) - two_tau * (prior.D.T @ (prior.D @ est.z - prior.z0))
+    return JointSystem(sp.csr_matrix(matrix), rhs_z, coupling, hessian, rhs_xi, frames)
+
+
+class _AlbedoProjection:
+    """Variable projection of the albedo out of the Gauss-Newton system (Golub-Pereyra, in
+    Kaufman's form).
+
+    The residual r_ic(p) = I~ - rho_c(p) s_i(p) is linear in the albedo with column -s over the
+    frames, so eliminating rho_c(p) replaces each (pixel, channel)'s Jacobian J by its part
+    W-orthogonal to s: the Gram J^T W J loses ``e e^T / d`` and the gradient J^T W r loses
+    ``e (s^T W r) / d``, with ``e = J^T W s`` and ``d = s^T W s``. The depth step then also moves
+    the albedo along (instead of leaving it to the next albedo update, a slow alternation),
+    and the frozen-dA error of the depth rows, ``s_i`` times a per-pixel factor, drops out
+    (frozen dA is exact up to the albedo direction).
+
+    Accumulates e per (pixel, channel) for the depth rows (a, b, c) and per refined frame for
+    the twist rows; all arrays (N, 3) unless stated.
+    """
+
+    def __init__(self, w: np.ndarray, ev: Evaluation):
+        self.ws = w * ev.shading[..., None]  # (n, N, 3)
+        d = np.einsum("inc,in->nc", self.ws, ev.shading)
+        self.inv_d = np.where(d > 1e-12, 1.0 / np.where(d > 1e-12, d, 1.0), 0.0)
+        self.sWr = np.einsum("inc,inc->nc", self.ws, ev.residual)
+        self.e = np.zeros((3,) + d.shape)  # e for the a, b, c rows
+        self.f = {}  # frame -> (N, 3, 6): w s J
+
+    def add_depth_rows(self, i: int, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> None:
+        for k, coefficient in enumerate((a, b, c)):
+            self.e[k] += self.ws[i] * coefficient
+
+    def add_twist_rows(self, i: int, use: np.ndarray, J: np.ndarray) -> None:
+        f = np.zeros(self.ws.shape[1:] + (6,))
+        f[use] = self.ws[i][use][..., None] * J
+        self.f[i] = f
+
+    def local(self):
+        """Downdates (N,) of Saa, Sbb, Sgg, Sab, Sag, Sbg."""
+        a, b, c = self.e * self.inv_d
+        ea, eb, ec = self.e
+        return (_channel_sum(a, ea), _channel_sum(b, eb), _channel_sum(c, ec), _channel_sum(a, eb),
+                _channel_sum(a, ec), _channel_sum(b, ec))
+
+    def local_rhs(self):
+        """Downdates (N,) of Ba, Bb, Bg."""
+        return tuple(_channel_sum(e * self.inv_d, self.sWr) for e in self.e)
+
+    def coupling(self, frames: list):
+        """Downdates (N, 6m) of the a, b, c rows' coupling with the twists of ``frames``."""
+        scaled = self.e * self.inv_d  # (3, N, 3)
+        parts = np.concatenate([np.einsum("knc,ncj->knj", scaled, self.f[i]) for i in frames], axis=2)
+        return tuple(parts)
+
+    def hessian(self, frames: list) -> np.ndarray:
+        """Downdate (6m, 6m) of the twists' Gram: sum over (pixel, channel) of f f^T / d."""
+        scale = np.sqrt(self.inv_d)[..., None]
+        F = np.concatenate([(self.f[i] * scale).reshape(-1, 6) for i in frames], axis=1)
+        return F.T @ F
+
+    def twist_rhs(self, frames: list) -> np.ndarray:
+        """Correction (6m,) of the twists' right-hand side: + sum f (s^T W r) / d."""
+        t = self.sWr * self.inv_d
+        return np.concatenate([np.einsum("nc,ncj->j", t, self.f[i]) for i in frames])
+
+
+def shading_rows(problem: LevelProblem, light: np.ndarray, normals: np.ndarray, points_ref: np.ndarray,
+                 pose: np.ndarray):
+    """(c, alpha, beta, gamma), (N,) each (c may be a scalar), with the light field frozen at
+    the current surface: the shading is ``c + (alpha Du z + beta Dv z + gamma z) / dA``."""
+    g, K = problem.level.grid, problem.level.K
+    c, L = problem.light.field(light, normals, points_ref, pose)
+    L = np.broadcast_to(L, (g.size, 3))
+    alpha = K[0, 0] * L[:, 0] - (g.u - K[0, 2]) * L[:, 2]
+    beta = K[1, 1] * L[:, 1] - (g.v - K[1, 2]) * L[:, 2]
+    return c, alpha, beta, -L[:, 2]
+
+
+def stencil_normal_matrix(grid, Saa, Sbb, Sgg, Sab, Sag, Sbg) -> sp.csr_matrix:
+    """sum over rows of R^T W R for rows ``R = a Du + b Dv + c I``, from the per-pixel weighted
+    products (N,) each (``Saa = sum w a a``, ...): an (N, N) sparse 7-point-stencil matrix."""
+    Du, Dv = grid.difference_operators()
+    diag = sp.diags
+    cross = Du.T @ diag(Sab) @ Dv + Du.T @ diag(Sag) + Dv.T @ diag(Sbg)
+    return sp.csr_matrix(Du.T @ diag(Saa) @ Du + Dv.T @ diag(Sbb) @ Dv + diag(Sgg) + cross + cross.T)
+
+
+def stencil_transpose(grid, Ba, Bb, Bg):
+    """``Du^T Ba + Dv^T Bb + Bg``: R^T applied to per-pixel values, (N,) or (N, k) each."""
+    Du, Dv = grid.difference_operators()
+    return Du.T @ Ba + Dv.T @ Bb + Bg
+
+
