@@ -30,7 +30,6 @@ from o3d_mvps.model.robust import cauchy, cauchy_weights
 from o3d_mvps.model.warping import image_gradients
 from o3d_mvps.solver.joint import update_pose_depth
 from o3d_mvps.solver.normal_equations import joint_system, residual_jacobians
-from o3d_mvps.solver.reflectance import update_albedo
 from o3d_mvps.solver.problem import Estimate, LevelProblem
 
 LIGHTS = np.array([[0.2, 0.1, -0.1, -1.0], [0.1, -0.2, 0.05, -0.9], [0.15, 0.05, 0.2, -0.95]])
