@@ -33,7 +33,7 @@ class Refinement:
     colour intrinsics. poses: (n, 4, 4) float64 reference -> frame i, or None. lighting:
     (n, k) float64 per frame, or None: k = 2 (LED ambient, intensity) or 4 (first-order SH);
     ``info["light_model"]`` names the model (and the LED offset). energy: rows {"level", "iteration",
-    "energy"}. timings: seconds per stage. method: the method's name.
+    "energy", "cg_iterations"} (the sweep's depth or joint step's CG iterations). timings: seconds per stage. method: the method's name.
     """
 
     depth: o3d.t.geometry.Image

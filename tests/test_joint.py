@@ -216,7 +216,8 @@ def test_depth_rhs_is_minus_the_gradient_of_the_frozen_energy(problem):
     est = kicked_estimate(problem)
     ev = problem.evaluate(est)
     system = joint_system(problem, est, ev, project_albedo=False)
-    assert frozen_energy(problem, est, ev, est.z) == pytest.approx(ev.energy, rel=1e-12)
+    # the solver sums float32 logarithms (model.robust.cauchy_energy, ~1e-7 relative); the test's float64
+    assert frozen_energy(problem, est, ev, est.z) == pytest.approx(ev.energy, rel=1e-7)
 
     directions = smooth_directions(problem.level.grid)
     fd, fd_no_warp = (np.array([central_difference(partial(frozen_energy, problem, est, ev, live_warp=live), est.z,
@@ -260,9 +261,10 @@ def test_joint_matrix_is_the_gauss_newton_matrix_of_the_residuals(problem):
     J_xi, parallax = np.zeros((problem.n_frames, est.z.size, 3, 6)), np.zeros(ev.residual.shape)
     for i in range(problem.n_frames):
         use, J, g = residual_jacobians(problem, est, ev, i, points)
-        parallax[i, use] = g
+        assert not np.any(g[~use]) and (J is None or not np.any(J[~use]))
+        parallax[i] = g
         if J is not None:
-            J_xi[i, use] = J
+            J_xi[i] = J
     J_all = np.concatenate([J_xi[i] for i in system.frames], axis=-1)  # (N, 3, 12) frame i's columns
     sWJ = np.concatenate([(w[i] * s[i])[..., None] * J_xi[i] for i in system.frames], axis=-1)  # (N, 3, 12)
     H = scipy.linalg.block_diag(*[np.einsum("nc,ncj,nck->jk", w[i], J_xi[i], J_xi[i]) for i in system.frames])

@@ -122,7 +122,7 @@ def test_depth_system_under_the_led_is_the_gradient_of_the_frozen_energy():
             e += cauchy(r, problem.lam).sum()
         return e
 
-    assert frozen_energy(est.z) == pytest.approx(ev.energy, rel=1e-12)
+    assert frozen_energy(est.z) == pytest.approx(ev.energy, rel=1e-7)  # solver: float32 logarithms
     rng = np.random.default_rng(3)
     assert_gradient_at_random_pixels(frozen_energy, grad, est.z, rng)
     M = system.matrix

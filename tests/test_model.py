@@ -229,7 +229,7 @@ def test_depth_system_gradient_matches_finite_differences_of_the_frozen_energy()
 
     rng = np.random.default_rng(3)
     assert_gradient_at_random_pixels(frozen_energy, grad, est.z, rng)
-    assert frozen_energy(est.z) == pytest.approx(ev.energy, rel=1e-12)
+    assert frozen_energy(est.z) == pytest.approx(ev.energy, rel=1e-7)  # solver: float32 logarithms
     # the system is symmetric positive definite
     M = system.matrix
     assert abs(M - M.T).max() < 1e-9 * abs(M).max()

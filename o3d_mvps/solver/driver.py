@@ -122,7 +122,7 @@ def _sweeps(problem: LevelProblem, est: Estimate, ev, options: RefineOptions, ti
             t = time.perf_counter()
             ev = _extrapolate(problem, est, ev, start)
             timings["extrapolation"] += time.perf_counter() - t
-        rows.append({"level": level.index, "iteration": iteration, "energy": ev.energy})
+        rows.append({"level": level.index, "iteration": iteration, "energy": ev.energy, "cg_iterations": cg_iterations})
         bar.set_postfix(energy=f"{ev.energy:.5g}")
         if abs(previous - ev.energy) <= options.tolerance * abs(previous):
             break

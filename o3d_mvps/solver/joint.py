@@ -6,7 +6,8 @@ unknowns frozen, so the poses converged at ~7 % per sweep on the finest level. T
 linearises the robust energy in both at once (:func:`~.normal_equations.joint_system`, with the
 warp's parallax in the depth rows and the albedo projected out), solves the Schur complement
 ``M - U H^-1 U^T`` by CG preconditioned with AMG on M, recovers the twists, and takes a
-backtracking line search on the true energy, so every accepted step lowers it.
+backtracking line search on the true energy (:mod:`.line_search`), so every accepted step
+lowers it.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..model import se3
-from .depth import backtracking_search, solve_with_level_preconditioner
+from .depth import search_estimates
 from .normal_equations import joint_system
 from .problem import Estimate, Evaluation, LevelProblem
 
@@ -26,11 +27,10 @@ def update_pose_depth(problem: LevelProblem, est: Estimate, ev: Evaluation, *, r
     (returns ``est`` unchanged when no step length lowers it)."""
     system = joint_system(problem, est, ev, project_albedo=project_albedo)
     S, rhs, _ = system.schur_operator()
-    dz, iterations = solve_with_level_preconditioner(problem, S, rhs, np.zeros_like(est.z), rtol, maxiter,
-                                                     schur=system.matrix)
+    dz, iterations = problem.preconditioner.solve(S, rhs, rtol, maxiter, sparse_part=system.matrix)
     xi = system.twists(dz)
 
-    def trial(t: float):
+    def moved(t: float):
         z = problem.level.prior.clip(est.z + t * dz)
         if not np.all(z > 0):
             return None
@@ -39,5 +39,4 @@ def update_pose_depth(problem: LevelProblem, est: Estimate, ev: Evaluation, *, r
             poses[i] = se3.exp(t * x) @ est.poses[i]
         return Estimate(z, est.albedo, est.lights, poses)
 
-    found = backtracking_search(problem, ev, trial, max_halvings, refit_albedo=project_albedo)
-    return (est, ev, iterations) if found is None else (*found, iterations)
+    return (*search_estimates(problem, est, ev, moved, max_halvings, refit_albedo=project_albedo), iterations)

@@ -22,6 +22,8 @@ import numpy as np
 
 from ..model.robust import cauchy_weights
 from ..model.shading import led_vector_jacobian, led_vectors, sh_basis
+from .line_search import backtrack
+from .linear import ridge_solve
 
 
 @dataclass
@@ -175,15 +177,20 @@ def update_led_offset(problem, est, ev, *, max_halvings: int = 3, max_pixels: in
         H += (ds * rho_w.sum(axis=1)[:, None]).T @ ds
         # residual r = I - rho s: dr/do = -rho ds
         g -= ds.T @ np.sum(w[i, use] * est.albedo[use] * ev.residual[i, use], axis=1)
-    if not np.isfinite(H).all() or np.trace(H) <= 0:
+    step = ridge_solve(H, -g) if np.trace(H) > 0 else None
+    if step is None:
         return ev
-    step = -np.linalg.solve(H + 1e-9 * np.trace(H) * np.eye(3), g)
     start = light.offset.copy()
-    for _ in range(max_halvings + 1):
-        light.offset = start + step
-        trial = problem.evaluate_samples(est, ev.color, ev.usable, ev.normals, ev.dA)
-        if trial.energy <= ev.energy:
-            return trial
-        step *= 0.5
-    light.offset = start
-    return ev
+
+    def trial(t: float):
+        light.offset = start + t * step
+        trial_ev = problem.evaluate_samples(est, ev.color, ev.usable, ev.normals, ev.dA)
+        return trial_ev, trial_ev.energy
+
+    found = backtrack(trial, ev.energy, max_halvings)
+    if found is None:
+        light.offset = start
+        return ev
+    t, trial_ev, _ = found
+    light.offset = start + t * step
+    return trial_ev

@@ -78,33 +78,41 @@ def _cholesky(H: np.ndarray):
 
 
 def residual_jacobians(problem: LevelProblem, est: Estimate, ev: Evaluation, i: int, points_ref: np.ndarray):
-    """Frame i's derivatives on its usable pixels ``use`` (N,) bool.
+    """Frame i's derivatives on every reference pixel, zero where frame i does not see it.
 
-    Returns (use, J, g): J (M, 3, 6) d(residual)/d(xi_i) (None for the reference frame, whose
-    pose stays fixed) and g (M, 3) d(residual)/d(z_p) through the warp and the light position
-    (zero for the reference frame's warp, which moves along the ray).
+    Returns (use, J, g): ``use`` (N,) bool the usable pixels, J (N, 3, 6) d(residual)/d(xi_i)
+    (None for the reference frame, whose pose stays fixed) and g (N, 3) d(residual)/d(z_p)
+    through the warp and the light position (zero for the reference frame's warp, which moves
+    along the ray). Full-size arrays let the assembly write whole columns instead of scattering.
     """
     use = ev.usable[i]
     pose = est.poses[i]
-    points = points_ref[use]
-    ray = points / points[:, 2:3]  # d(point)/d(z), reference coordinates
-    dshading = problem.light.shading_jacobian(est.lights[i], ev.normals[use], points, pose)  # (M, 6) or None
-    albedo = est.albedo[use]
+    ray = points_ref / points_ref[:, 2:3]  # d(point)/d(z), reference coordinates
+    dshading = problem.light.shading_jacobian(est.lights[i], ev.normals, points_ref, pose)  # (N, 6) or None
     if i == 0:
         if dshading is None:
-            return use, None, np.zeros((int(use.sum()), 3))
-        return use, None, -albedo * np.einsum("mj,mj->m", dshading[:, :3], ray)[:, None]
+            return use, None, np.zeros(points_ref.shape)
+        return use, None, -est.albedo * (_row_dot(dshading[:, :3], ray) * use)[:, None]
     sample = problem.sample(i, pose, points_ref)
-    J = pose_jacobian(problem.sample_gradients(i, sample, use), problem.level.K)
+    J = pose_jacobian(problem.sample_gradients(i, sample), problem.level.K)
     if dshading is not None:
-        J -= albedo[:, :, None] * dshading[:, None, :]
-    g = np.einsum("mcj,mj->mc", J[..., :3], ray @ pose[:3, :3].T)  # d/dX' (camera frame) . R ray
+        J -= est.albedo[:, :, None] * dshading[:, None, :]
+    J[~use] = 0.0  # also clears what pixels behind the camera gave
+    ray_i = ray @ pose[:3, :3].T  # d(frame-i point)/d(z)
+    g = np.matmul(J[..., :3], ray_i[:, :, None])[..., 0]  # d/dX' (camera frame) . R ray, (N, 3)
     return use, J, g
 
 
-def _channel_sum(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """sum_c a[:, c] b[:, c] of two (N, 3) arrays: (N,)."""
+def _row_dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """sum_j a[:, j] b[:, j] of two (N, 3) arrays: (N,)."""
     return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
+
+
+
+def _contract_channels(coefficients: np.ndarray, J: np.ndarray) -> np.ndarray:
+    """sum_c coefficients[:, c] J[:, c, :] of (M, 3) and (M, 3, k): (M, k) (a batched matmul:
+    ten times faster than einsum's generic loop or three broadcast products)."""
+    return np.matmul(coefficients[:, None, :], J)[:, 0, :]
 
 
 def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parallax: bool = True,
@@ -114,70 +122,82 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
     parallax: include the warp's (and the LED position's) dependence on z in the depth rows
     (False: the paper's frozen-warp depth rows). twists: include frames 1..n-1's twists.
     project_albedo: eliminate the albedo (variable projection, see :class:`_AlbedoProjection`).
+
+    One pass over the frames; every per-frame quantity is formed on the frame's usable pixels
+    only, and the twist columns of all frames are written into one (N, 3, 6m) array the
+    projection's dense parts are read from.
     """
     grid = problem.level.grid
     N = grid.size
-    w = cauchy_weights(ev.residual, problem.lam) * ev.usable[..., None]  # (n, N, 3)
+    w = cauchy_weights(ev.residual, problem.lam)
+    w *= ev.usable[..., None]  # (n, N, 3)
     q = est.albedo / ev.dA[:, None]  # (N, 3)
     points_ref = problem.points(est.z)
     # per pixel: weighted products of the row coefficients (a, b, c) of Du z, Dv z and z, summed
     # over frames and channels, and the coefficients times the weighted residual
     Saa, Sbb, Sgg, Sab, Sag, Sbg, Ba, Bb, Bg = np.zeros((9, N))
     projection = _AlbedoProjection(w, ev) if project_albedo else None
-    couplings, hessians, rhs_xi, frames = [], [], [], []
+    candidates = [i for i in range(1, problem.n_frames) if twists and ev.usable[i].sum() >= min_pixels]
+    slot = {i: k for k, i in enumerate(candidates)}
+    # frame-major, so each frame writes contiguous memory: per pixel, before the stencil, the
+    # a, b, c rows' coupling with the frame's twist, and w s J (the projection's twist columns)
+    rows = np.empty((3, len(candidates), N, 6))
+    F = np.empty((len(candidates), N, 3, 6)) if projection is not None else None
+    hessians, rhs_xi, frames = [], [], []
     for i in range(problem.n_frames):
         _, alpha, beta, gamma = shading_rows(problem, est.lights[i], ev.normals, points_ref, est.poses[i])
         c_diag = -q * gamma[:, None]
         J = None
-        if parallax or (twists and i > 0):
+        if parallax or i in slot:
             use, J, g = residual_jacobians(problem, est, ev, i, points_ref)
             if parallax:
-                c_diag[use] += g
+                c_diag += g
         # the row of residual (i, p, c) in dz is a Du + b Dv + c_diag I with a = -q alpha, b = -q beta
         wi, ri = w[i], ev.residual[i]
         wq = wi * q
-        W = _channel_sum(wq, q)
-        Wqc = _channel_sum(wq, c_diag)
-        Wqr = _channel_sum(wq, ri)
+        W = _row_dot(wq, q)
+        Wqc = _row_dot(wq, c_diag)
+        Wqr = _row_dot(wq, ri)
         Saa += W * alpha * alpha
         Sbb += W * beta * beta
         Sab += W * alpha * beta
         wc = wi * c_diag
-        Sgg += _channel_sum(wc, c_diag)
+        Sgg += _row_dot(wc, c_diag)
         Sag -= alpha * Wqc
         Sbg -= beta * Wqc
         Ba -= alpha * Wqr
         Bb -= beta * Wqr
-        Bg += _channel_sum(wc, ri)
+        Bg += _row_dot(wc, ri)
         if projection is not None:
-            projection.add_depth_rows(i, -q * alpha[:, None], -q * beta[:, None], c_diag)
-        if not twists or J is None or use.sum() < min_pixels:
+            projection.add_depth_rows(i, alpha, beta, q, c_diag)
+        if J is None or i not in slot:
             continue
-        wJ = wi[use][..., None] * J  # (M, 3, 6)
+        wJ = wi[..., None] * J  # (N, 3, 6)
         H = wJ.reshape(-1, 6).T @ J.reshape(-1, 6)
         if not np.isfinite(H).all() or np.linalg.cond(H) > 1e12:
             continue
-        wqJ = np.zeros((N, 6))  # sum_c w q J
-        wqJ[use] = np.einsum("mc,mcj->mj", q[use], wJ)
-        wcJ = np.zeros((N, 6))  # sum_c w c_diag J
-        wcJ[use] = np.einsum("mc,mcj->mj", c_diag[use], wJ)
-        couplings.append(stencil_transpose(grid, -alpha[:, None] * wqJ, -beta[:, None] * wqJ, wcJ))
+        k = len(frames)  # the frame's slot among those kept
+        wqJ = _contract_channels(q, wJ)  # sum_c w q J
+        np.multiply(wqJ, -alpha[:, None], out=rows[0, k])
+        np.multiply(wqJ, -beta[:, None], out=rows[1, k])
+        rows[2, k] = _contract_channels(c_diag, wJ)  # sum_c w c_diag J
         hessians.append(H)
-        rhs_xi.append(-(ri[use].reshape(1, -1) @ wJ.reshape(-1, 6)).ravel())
+        rhs_xi.append(-(ri.reshape(1, -1) @ wJ.reshape(-1, 6)).ravel())
         frames.append(i)
-        if projection is not None:
-            projection.add_twist_rows(i, use, J)
+        if F is not None:
+            np.multiply(projection.ws[i][..., None], J, out=F[k])
     m = len(frames)
+    rows = rows[:, :m]  # frames dropped as ill-conditioned left their slots unused at the end
+    F = None if F is None else F[:m]
     hessian = scipy.linalg.block_diag(*hessians) if m else np.zeros((0, 0))
-    coupling = np.concatenate(couplings, axis=1) if m else np.zeros((N, 0))
     rhs_xi = np.concatenate(rhs_xi) if m else np.zeros(0)
     if projection is not None:
         Saa, Sbb, Sgg, Sab, Sag, Sbg = (S - dS for S, dS in zip((Saa, Sbb, Sgg, Sab, Sag, Sbg), projection.local()))
         Ba, Bb, Bg = (B - dB for B, dB in zip((Ba, Bb, Bg), projection.local_rhs()))
         if m:
-            coupling -= stencil_transpose(grid, *projection.coupling(frames))
-            hessian -= projection.hessian(frames)
-            rhs_xi += projection.twist_rhs(frames)
+            projection.downdate_twists(F, rows, hessian, rhs_xi)
+    # (N, 6m) with frame j's twist in columns 6j..6j+5
+    coupling = stencil_transpose(grid, *(r.transpose(1, 0, 2).reshape(N, 6 * m) for r in rows)) if m else np.zeros((N, 0))
     prior = problem.level.prior
     two_tau = 2.0 * problem.tau
     matrix = stencil_normal_matrix(grid, Saa, Sbb, Sgg, Sab, Sag, Sbg) + two_tau * (prior.D.T @ prior.D)
@@ -197,54 +217,54 @@ class _AlbedoProjection:
     and the frozen-dA error of the depth rows, ``s_i`` times a per-pixel factor, drops out
     (frozen dA is exact up to the albedo direction).
 
-    Accumulates e per (pixel, channel) for the depth rows (a, b, c) and per refined frame for
-    the twist rows; all arrays (N, 3) unless stated.
+    Accumulates e per (pixel, channel) for the depth rows (a, b, c); the twist rows' e are the
+    columns of ``F`` (N, 3, 6m), w s J, filled by :func:`joint_system`. Arrays (N, 3) unless stated.
     """
 
     def __init__(self, w: np.ndarray, ev: Evaluation):
         self.ws = w * ev.shading[..., None]  # (n, N, 3)
-        d = np.einsum("inc,in->nc", self.ws, ev.shading)
+        d = np.sum(self.ws * ev.shading[..., None], axis=0)
         self.inv_d = np.where(d > 1e-12, 1.0 / np.where(d > 1e-12, d, 1.0), 0.0)
-        self.sWr = np.einsum("inc,inc->nc", self.ws, ev.residual)
+        self.sWr = np.sum(self.ws * ev.residual, axis=0)
         self.e = np.zeros((3,) + d.shape)  # e for the a, b, c rows
-        self.f = {}  # frame -> (N, 3, 6): w s J
 
-    def add_depth_rows(self, i: int, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> None:
-        for k, coefficient in enumerate((a, b, c)):
-            self.e[k] += self.ws[i] * coefficient
-
-    def add_twist_rows(self, i: int, use: np.ndarray, J: np.ndarray) -> None:
-        f = np.zeros(self.ws.shape[1:] + (6,))
-        f[use] = self.ws[i][use][..., None] * J
-        self.f[i] = f
+    def add_depth_rows(self, i: int, alpha: np.ndarray, beta: np.ndarray, q: np.ndarray, c: np.ndarray) -> None:
+        """Frame i's depth rows a = -q alpha, b = -q beta (alpha, beta (N,), q (N, 3)) and c (N, 3)."""
+        wsq = self.ws[i] * q
+        self.e[0] -= wsq * alpha[:, None]
+        self.e[1] -= wsq * beta[:, None]
+        self.e[2] += self.ws[i] * c
 
     def local(self):
         """Downdates (N,) of Saa, Sbb, Sgg, Sab, Sag, Sbg."""
         a, b, c = self.e * self.inv_d
         ea, eb, ec = self.e
-        return (_channel_sum(a, ea), _channel_sum(b, eb), _channel_sum(c, ec), _channel_sum(a, eb),
-                _channel_sum(a, ec), _channel_sum(b, ec))
+        return (_row_dot(a, ea), _row_dot(b, eb), _row_dot(c, ec), _row_dot(a, eb),
+                _row_dot(a, ec), _row_dot(b, ec))
 
     def local_rhs(self):
         """Downdates (N,) of Ba, Bb, Bg."""
-        return tuple(_channel_sum(e * self.inv_d, self.sWr) for e in self.e)
+        return tuple(_row_dot(e * self.inv_d, self.sWr) for e in self.e)
 
-    def coupling(self, frames: list):
-        """Downdates (N, 6m) of the a, b, c rows' coupling with the twists of ``frames``."""
+    def downdate_twists(self, F: np.ndarray, rows: np.ndarray, hessian: np.ndarray, rhs_xi: np.ndarray) -> None:
+        """Project the twist parts in place: the coupling rows (3, m, N, 6) lose
+        ``sum_c (e_k / d) f``, the Gram (6m, 6m) loses ``sum f f^T / d`` and the right-hand side
+        (6m,) gains ``sum f (s^T W r) / d`` over pixels and channels; F (m, N, 3, 6) = w s J of
+        the m refined frames is scaled in place."""
         scaled = self.e * self.inv_d  # (3, N, 3)
-        parts = np.concatenate([np.einsum("knc,ncj->knj", scaled, self.f[i]) for i in frames], axis=2)
-        return tuple(parts)
+        for k in range(3):
+            for j in range(len(F)):
+                rows[k, j] -= _contract_channels(scaled[k], F[j])
+        F *= np.sqrt(self.inv_d)[None, ..., None]
+        columns = F.transpose(1, 2, 0, 3).reshape(-1, 6 * len(F))  # (3N, 6m): frame j in columns 6j..
+        rhs_xi += (self.sWr * np.sqrt(self.inv_d)).reshape(-1) @ columns
+        hessian -= _gram(columns)
 
-    def hessian(self, frames: list) -> np.ndarray:
-        """Downdate (6m, 6m) of the twists' Gram: sum over (pixel, channel) of f f^T / d."""
-        scale = np.sqrt(self.inv_d)[..., None]
-        F = np.concatenate([(self.f[i] * scale).reshape(-1, 6) for i in frames], axis=1)
-        return F.T @ F
 
-    def twist_rhs(self, frames: list) -> np.ndarray:
-        """Correction (6m,) of the twists' right-hand side: + sum f (s^T W r) / d."""
-        t = self.sWr * self.inv_d
-        return np.concatenate([np.einsum("nc,ncj->j", t, self.f[i]) for i in frames])
+def _gram(F: np.ndarray) -> np.ndarray:
+    """F^T F (k, k) of a tall (R, k) array by BLAS's symmetric rank-k update (half a product)."""
+    upper = scipy.linalg.blas.dsyrk(1.0, F.T)  # F.T is Fortran-ordered: no copy
+    return np.triu(upper) + np.triu(upper, 1).T
 
 
 def shading_rows(problem: LevelProblem, light: np.ndarray, normals: np.ndarray, points_ref: np.ndarray,

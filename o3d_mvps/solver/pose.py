@@ -6,6 +6,8 @@ import numpy as np
 
 from ..model import se3
 from ..model.robust import cauchy_weights
+from .line_search import backtrack
+from .linear import ridge_solve
 from .problem import Estimate, Evaluation, FrameSample, LevelProblem
 
 
@@ -65,21 +67,22 @@ def refine_pose(problem: LevelProblem, est: Estimate, i: int, points_ref: np.nda
         wJ = J * w.reshape(-1, 1)
         H = wJ.T @ J
         g = wJ.T @ r.reshape(-1)
-        try:
-            step = -np.linalg.solve(H + 1e-9 * np.trace(H) * np.eye(6), g)
-        except np.linalg.LinAlgError:
+        step = ridge_solve(H, -g)
+        if step is None:
             break
-        accepted = converged = False
-        for _ in range(max_halvings + 1):
-            trial_pose = se3.exp(step) @ pose
-            trial = problem.sample(i, trial_pose, points_ref)
-            trial_energy = energy_of(trial, trial_pose)
-            if trial_energy <= energy:
-                converged = energy - trial_energy <= tolerance * energy
-                pose, sample, energy, accepted = trial_pose, trial, trial_energy, True
-                break
-            step = 0.5 * step
-        if not accepted or converged or np.linalg.norm(step) < 1e-10:
+
+        def trial(t: float):
+            trial_pose = se3.exp(t * step) @ pose
+            trial_sample = problem.sample(i, trial_pose, points_ref)
+            return (trial_pose, trial_sample), energy_of(trial_sample, trial_pose)
+
+        found = backtrack(trial, energy, max_halvings)
+        if found is None:
+            break
+        t, (pose, sample), trial_energy = found
+        converged = energy - trial_energy <= tolerance * energy
+        energy = trial_energy
+        if converged or t * np.linalg.norm(step) < 1e-10:
             break
     return pose, sample
 
@@ -99,3 +102,4 @@ def update_poses(problem: LevelProblem, est: Estimate, ev: Evaluation, iteration
         color[i], usable[i] = sample.color, sample.usable
     moved = Estimate(est.z, est.albedo, est.lights, poses)
     return poses, problem.evaluate_samples(moved, color, usable, ev.normals, ev.dA)
+

@@ -12,9 +12,10 @@ import numpy as np
 
 from ..model.camera import backproject
 from ..model.normals import unnormalised_normals
-from ..model.robust import cauchy
+from ..model.robust import cauchy_energy
 from ..model.warping import in_view, sample_bilinear, visible, warp
 from .lighting import SHLight
+from .linear import LevelPreconditioner
 from .pyramid import Level
 
 
@@ -77,8 +78,7 @@ class LevelProblem:
         self.lam = float(cauchy_lambda)
         self.n_frames = len(level.images)
         self.visibility = np.ones((self.n_frames, level.grid.size), dtype=bool)
-        self.depth_preconditioner = None  # AMG hierarchy, reused across the level's depth (or joint) steps
-        self.depth_cg_baseline = None  # CG iterations of the hierarchy's first solve
+        self.preconditioner = LevelPreconditioner()  # reused across the level's depth (or joint) solves
 
     # geometry ----------------------------------------------------------------------------
     def points(self, z: np.ndarray) -> np.ndarray:
@@ -100,11 +100,14 @@ class LevelProblem:
         color = sample_bilinear(self.level.images[i], u, v).astype(np.float64)
         return FrameSample(color, points, u, v, usable)
 
-    def sample_gradients(self, i: int, sample: FrameSample, keep: np.ndarray) -> FrameSample:
-        """The ``keep`` subset (N,) bool of a sample, with frame i's colour gradients added."""
-        u, v = sample.u[keep], sample.v[keep]
-        gu, gv = (sample_bilinear(g, u, v).astype(np.float64) for g in self.level.gradients[i])
-        return FrameSample(sample.color[keep], sample.points[keep], u, v, sample.usable[keep], gu, gv)
+    def sample_gradients(self, i: int, sample: FrameSample, keep: np.ndarray | None = None) -> FrameSample:
+        """The ``keep`` subset (N,) bool of a sample (None: all of it), with frame i's colour
+        gradients added."""
+        if keep is not None:
+            sample = FrameSample(sample.color[keep], sample.points[keep], sample.u[keep], sample.v[keep],
+                                 sample.usable[keep])
+        gu, gv = (sample_bilinear(g, sample.u, sample.v).astype(np.float64) for g in self.level.gradients[i])
+        return FrameSample(sample.color, sample.points, sample.u, sample.v, sample.usable, gu, gv)
 
     def update_visibility(self, est: Estimate, *, occlusion_test: bool, rel_tol: float, sensor_depths=None,
                           depth_K=None) -> None:
@@ -141,7 +144,7 @@ class LevelProblem:
     def frame_data_energy(self, sample: FrameSample, albedo: np.ndarray, shading: np.ndarray) -> float:
         """Robust data energy of one frame for given shading (N,)."""
         r = sample.color - albedo * shading[:, None]
-        return float(cauchy(r[sample.usable], self.lam).sum())
+        return cauchy_energy(r[sample.usable], self.lam)
 
     def evaluate(self, est: Estimate) -> Evaluation:
         """Residuals and energy of the estimate over all frames."""
@@ -171,7 +174,7 @@ class LevelProblem:
         residual = np.multiply(est.albedo[None], shading[..., None])
         np.subtract(color, residual, out=residual)
         residual *= usable[..., None]
-        data = float(cauchy(residual, self.lam).sum())
+        data = cauchy_energy(residual, self.lam)
         return Evaluation(residual, usable, color, shading, normals, dA, basis, data, self.prior_energy(est.z))
 
     def reevaluate(self, est: Estimate, ev: Evaluation) -> Evaluation:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..model.robust import cauchy_weights
+from .linear import ridge_solve
 from .problem import Estimate, Evaluation
 
 
@@ -33,9 +34,7 @@ def update_lighting(est: Estimate, ev: Evaluation, lam: float) -> np.ndarray:
             continue
         m = ev.frame_basis(i)  # (N, k)
         A = (m * wr2[i][:, None]).T @ m
-        rhs = m.T @ wri[i]
-        try:
-            lights[i] = np.linalg.solve(A + 1e-12 * np.trace(A) * np.eye(len(rhs)), rhs)
-        except np.linalg.LinAlgError:
-            pass
+        solution = ridge_solve(A, m.T @ wri[i], ridge=1e-12)
+        if solution is not None:
+            lights[i] = solution
     return lights
