@@ -1,17 +1,30 @@
-"""Initial camera poses from Open3D point-to-plane ICP on the low-resolution depth (DESIGN section 2).
+"""Initial camera poses by registering the low-resolution depth clouds (Open3D ICP and global registration).
 
 Each depth frame (h, w) in metres is lightly denoised (normalised Gaussian convolution over
 valid pixels, ``SMOOTH_PX``), its silhouette is eroded by one pixel (unless that leaves fewer than
-``4 * MIN_POINTS`` points), and it is back-projected
-with the depth intrinsics into a point cloud with normals (radius ``NORMAL_RADIUS``). Frame i
-is registered to the reference by Open3D's multi-scale point-to-plane ICP
-(``o3d.pipelines.registration.registration_icp``, correspondence distances ``ICP_DISTANCES``),
-starting from the estimate of frame i - 1; if that fails, frame i is registered to frame i - 1
-and the result is chained.
+``4 * MIN_POINTS`` points), and it is back-projected with the depth intrinsics into a point cloud
+with normals (radius ``NORMAL_RADIUS``) and the colour area-averaged onto the depth grid.
 
-Direction (pinned by ``tests/test_odometry.py``): ICP with ``source`` = reference cloud and
-``target`` = frame-i cloud returns the transform mapping reference-camera coordinates to
-frame-i camera coordinates, i.e. ``T_i`` of the package's convention.
+The registration chain (:func:`register_frames`), per frame i, until one step is accepted:
+
+1. multi-scale point-to-plane ICP to the reference frame 0, starting from the previous frame's
+   pose (``o3d.pipelines.registration.registration_icp``, distances ``ICP_DISTANCES``);
+2. the same ICP to the previous registered frame, chained onto its pose;
+3. global registration to the reference: FPFH features and RANSAC
+   (``registration_ransac_based_on_feature_matching``) and the ICP results refused only for their
+   step size, each refined by coloured ICP (``registration_colored_icp``); the best is accepted
+   at a stricter fitness (``GLOBAL_MIN_FITNESS``). For wide baselines, where ICP has no good start
+   or its (right) answer lies farther from the start than the step check allows.
+
+A step is accepted when its fitness is at least ``MIN_FITNESS`` and it moves the camera less than
+``MAX_STEP_DEG`` / ``MAX_STEP_M`` from where it started; a frame with fewer than ``MIN_POINTS``
+depth points cannot be registered. A frame no step registers is dropped with a warning naming it
+and each step's cause, while at least ``MIN_FRAMES`` frames remain (``strict=True`` makes it an
+error).
+
+Direction (pinned by ``tests/test_odometry.py``): registering ``source`` = reference cloud onto
+``target`` = frame-i cloud gives the transform mapping reference-camera coordinates to frame-i
+camera coordinates, i.e. ``T_i`` of the package's convention (README "Poses from other tools").
 
 Why not RGB-D odometry (``o3d.t.pipelines.odometry.rgbd_odometry_multi_scale``), measured on
 ``render_capture('bunny', scale_factor=4, light='led')``: point-to-plane odometry on the
@@ -20,11 +33,15 @@ systems, a 18 deg failure on the 8-frame orbit) and on depth upsampled to colour
 at the initial pose; hybrid odometry at colour size reaches 1.3 deg on the 8-frame orbit but is
 biased by the LED moving with the camera (1.3 deg even without noise, where ICP gets 0.74 deg)
 and diverges on ``trajectory='orbit-translate'`` (3-5 deg, sometimes tens of degrees). ICP is
-the most accurate and robust; see ``initial_poses`` for its figures.
+the most accurate and robust; see ``register_frames`` for its figures.
 """
 
 from __future__ import annotations
 
+import warnings
+from dataclasses import dataclass, field
+
+import cv2
 import numpy as np
 import open3d as o3d
 from scipy import ndimage
@@ -48,13 +65,58 @@ MIN_POINTS = 50
 #: A registration is accepted when at least this fraction of the source points has a
 #: correspondence within the finest distance ...
 MIN_FITNESS = 0.3
-#: ... and it moves the camera by less than this much from its initial estimate.
+#: ... and it moves the camera by less than this much from where it started.
 MAX_STEP_DEG = 30.0
 MAX_STEP_M = 0.3
+#: Global registration: voxel of the FPFH clouds (at least GLOBAL_VOXEL m, or this many point
+#: spacings of the source cloud), feature radius in voxels, RANSAC budget.
+GLOBAL_VOXEL = 0.005
+GLOBAL_VOXEL_SPACINGS = 1.5
+FPFH_RADIUS_VOXELS = 5
+GLOBAL_MIN_FITNESS = 0.6
+RANSAC_ITERATIONS, RANSAC_CONFIDENCE = 100_000, 0.999
+#: Frames never dropped below this count (a refinement needs a reference and two views).
+MIN_FRAMES = 3
+
+#: The fix for each kind of failure, quoted in the messages.
+FIXES = {
+    "points": "bring the object into the depth range (or raise max_depth), or remove the frame",
+    "fitness": "the frames overlap too little: record with smaller steps between frames, or give poses from "
+               "another tool (--poses FILE)",
+    "step": "the frame is far from its starting estimate (a wide baseline): give poses from another tool "
+            "(--poses FILE), or record with smaller steps between frames",
+}
 
 
-def depth_cloud(depth: np.ndarray, K: np.ndarray, max_depth: float = 3.0) -> o3d.geometry.PointCloud:
-    """Denoised point cloud with camera-facing normals of one depth frame.
+@dataclass
+class Attempt:
+    """One registration step of a frame: what it was, and why it was refused (None: accepted)."""
+
+    step: str
+    T: np.ndarray
+    fitness: float
+    failure: str | None = None
+    kind: str | None = None  # key of FIXES
+
+
+@dataclass
+class FrameRegistration:
+    """Poses of the registered frames of a capture.
+
+    frames: indices (into the capture) of the frames kept, reference first. poses: (len(frames),
+    4, 4) float64, reference -> frame. steps: for every kept frame index, the chain step that
+    registered it. dropped: for every dropped frame index, why (each step's cause and the fix).
+    """
+
+    frames: list
+    poses: np.ndarray
+    steps: dict = field(default_factory=dict)
+    dropped: dict = field(default_factory=dict)
+
+
+def depth_cloud(depth: np.ndarray, K: np.ndarray, max_depth: float = 3.0,
+                color: np.ndarray | None = None) -> o3d.geometry.PointCloud:
+    """Denoised point cloud with camera-facing normals (and colours) of one depth frame.
 
     Parameters
     ----------
@@ -64,6 +126,9 @@ def depth_cloud(depth: np.ndarray, K: np.ndarray, max_depth: float = 3.0) -> o3d
         Intrinsic matrix of the depth image (pixels).
     max_depth : float
         Depth at or beyond this many metres is ignored.
+    color : (H, W, 3) array, optional
+        Linear RGB of the frame at colour resolution (an integer multiple of (h, w)); area-averaged
+        onto the depth grid as the points' colours (coloured ICP needs them).
 
     Returns
     -------
@@ -80,67 +145,215 @@ def depth_cloud(depth: np.ndarray, K: np.ndarray, max_depth: float = 3.0) -> o3d
     if keep.sum() < 4 * MIN_POINTS:  # ... but a small object (e.g. at SF 8) cannot spare them
         keep = valid
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(backproject(z, np.asarray(K, dtype=np.float64))[keep]))
+    if color is not None:
+        low = cv2.resize(np.asarray(color, dtype=np.float32), (z.shape[1], z.shape[0]), interpolation=cv2.INTER_AREA)
+        cloud.colors = o3d.utility.Vector3dVector(low[keep].astype(np.float64))
     if len(cloud.points) >= 3:
         cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=NORMAL_RADIUS, max_nn=NORMAL_MAX_NN))
         cloud.orient_normals_towards_camera_location(np.zeros(3))
     return cloud
 
 
-def register(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, init: np.ndarray) -> tuple[np.ndarray, float, bool]:
-    """Multi-scale point-to-plane ICP of ``source`` onto ``target``.
+def _judge(step: str, T: np.ndarray, fitness: float, start: np.ndarray) -> Attempt:
+    """Accept a registration result, or name why not (fitness, step size)."""
+    move = T @ np.linalg.inv(start)
+    angle, shift = rotation_angle_deg(move[:3, :3]), float(np.linalg.norm(move[:3, 3]))
+    if not np.all(np.isfinite(T)):
+        return Attempt(step, T, fitness, "diverged (non-finite transform)", "step")
+    if fitness < MIN_FITNESS:
+        return Attempt(step, T, fitness, f"fitness {fitness:.2f} (at least {MIN_FITNESS} needed)", "fitness")
+    if angle >= MAX_STEP_DEG or shift >= MAX_STEP_M:
+        return Attempt(step, T, fitness, f"fitness {fitness:.2f} passed, but it moved the camera {angle:.0f} deg / "
+                       f"{shift * 1000:.0f} mm from its start (at most {MAX_STEP_DEG:g} deg / {MAX_STEP_M:g} m)",
+                       "step")
+    return Attempt(step, T, fitness)
+
+
+def register(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, init: np.ndarray,
+             step: str = "ICP", colored: bool = False) -> Attempt:
+    """Multi-scale point-to-plane (or coloured) ICP of ``source`` onto ``target``, judged.
 
     Parameters
     ----------
     source, target : o3d.geometry.PointCloud
-        Clouds with normals (target's are used), metres.
+        Clouds with normals (and colours for ``colored``), metres.
     init : (4, 4) array
         Initial source -> target transform.
+    step : str
+        Name of the step in messages.
+    colored : bool
+        Open3D coloured ICP (geometry and colour) instead of point-to-plane.
 
     Returns
     -------
-    T : (4, 4) float64 array
-        Transform mapping source coordinates to target coordinates.
-    fitness : float
-        Fraction of source points with a correspondence within the finest ICP distance.
-    accepted : bool
-        Fitness at least ``MIN_FITNESS`` and a step from ``init`` below ``MAX_STEP_DEG`` /
-        ``MAX_STEP_M``.
+    Attempt
+        ``T`` (4, 4) maps source coordinates to target coordinates; ``fitness`` is the fraction of
+        source points with a correspondence within the finest ICP distance; ``failure`` is None
+        when the fitness is at least ``MIN_FITNESS`` and the move from ``init`` is below
+        ``MAX_STEP_DEG`` / ``MAX_STEP_M``.
     """
-    if len(source.points) < MIN_POINTS or len(target.points) < MIN_POINTS:
-        return np.asarray(init, dtype=np.float64), 0.0, False
+    init = np.asarray(init, dtype=np.float64)
+    few = min(len(source.points), len(target.points))
+    if few < MIN_POINTS:
+        return Attempt(step, init, 0.0, f"too few depth points ({few}, at least {MIN_POINTS} needed)", "points")
     reg = o3d.pipelines.registration
-    T = np.asarray(init, dtype=np.float64)
+    estimation = reg.TransformationEstimationForColoredICP() if colored else reg.TransformationEstimationPointToPlane()
+    icp = reg.registration_colored_icp if colored else reg.registration_icp
     criteria = reg.ICPConvergenceCriteria(relative_fitness=1e-7, relative_rmse=1e-7, max_iteration=ICP_MAX_ITERATIONS)
+    T = init
     for distance in ICP_DISTANCES:
-        result = reg.registration_icp(source, target, distance, T, reg.TransformationEstimationPointToPlane(), criteria)
+        try:
+            result = icp(source, target, distance, T, estimation, criteria)
+        except RuntimeError:  # coloured ICP raises when no point has a correspondence
+            return Attempt(step, T, 0.0, f"fitness 0 (no correspondence within {distance * 1000:.0f} mm)", "fitness")
         T = np.asarray(result.transformation, dtype=np.float64)
-    step = T @ np.linalg.inv(init)
-    accepted = bool(np.all(np.isfinite(T)) and result.fitness >= MIN_FITNESS
-                    and rotation_angle_deg(step[:3, :3]) < MAX_STEP_DEG and np.linalg.norm(step[:3, 3]) < MAX_STEP_M)
-    return T, float(result.fitness), accepted
+    return _judge(step, T, float(result.fitness), init)
 
 
-def initial_poses(capture, *, method: str = "point_to_plane", max_depth: float = 3.0, progress: bool = False) -> np.ndarray:
-    """Camera poses of every frame relative to the reference, from Open3D ICP on the depth.
+def _fpfh(cloud: o3d.geometry.PointCloud, voxel: float):
+    """Voxel-downsampled cloud (with normals) and its FPFH features (radius FPFH_RADIUS_VOXELS voxels)."""
+    down = cloud.voxel_down_sample(voxel)
+    down.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * voxel, max_nn=NORMAL_MAX_NN))
+    down.orient_normals_towards_camera_location(np.zeros(3))
+    feature = o3d.pipelines.registration.compute_fpfh_feature(
+        down, o3d.geometry.KDTreeSearchParamHybrid(radius=FPFH_RADIUS_VOXELS * voxel, max_nn=100))
+    return down, feature
 
-    Frame i is registered directly to the reference (frame 0) starting from the estimate of
-    frame i - 1 (the camera moves little between frames). When that fails (fitness below
-    ``MIN_FITNESS`` or an implausible jump), frame i is registered to frame i - 1 and chained:
-    ``T_i = T_{i-1 -> i} @ T_{i-1}``.
+
+def register_globally(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, candidates=(),
+                      step: str = "global registration") -> Attempt:
+    """Registration of ``source`` onto ``target`` without a trusted start: FPFH + RANSAC, then coloured ICP.
+
+    The RANSAC estimate (seeded with ``o3d.utility.random.seed(0)``, so a capture always
+    registers the same way) and the ``candidates`` (4, 4) (e.g. ICP results refused only for
+    their step size) are each refined by ICP (coloured ICP for the RANSAC estimate: the LED's
+    shading, which moves with the camera, misleads it from a good start); the accepted one of
+    highest fitness is returned,
+    accepted when its fitness is at least ``GLOBAL_MIN_FITNESS`` (stricter than ICP's: nothing
+    vouches for the start). Single views of ~1000 noisy points give unreliable FPFH matches
+    (13-25 deg off at 30-45 deg baselines on the rendered bunny), which this threshold refuses.
+    """
+    few = min(len(source.points), len(target.points))
+    if few < MIN_POINTS:
+        return Attempt(step, np.eye(4), 0.0, f"too few depth points ({few}, at least {MIN_POINTS} needed)", "points")
+    reg = o3d.pipelines.registration
+    o3d.utility.random.seed(0)
+    spacing = float(np.median(np.asarray(source.compute_nearest_neighbor_distance())))
+    voxel = max(GLOBAL_VOXEL, GLOBAL_VOXEL_SPACINGS * spacing)
+    (src, src_fpfh), (tgt, tgt_fpfh) = _fpfh(source, voxel), _fpfh(target, voxel)
+    distance = 1.5 * voxel
+    ransac = reg.registration_ransac_based_on_feature_matching(
+        src, tgt, src_fpfh, tgt_fpfh, True, distance, reg.TransformationEstimationPointToPoint(False), 3,
+        [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(distance)],
+        reg.RANSACConvergenceCriteria(RANSAC_ITERATIONS, RANSAC_CONFIDENCE))
+    # colour misleads ICP where the LED moves with the camera: the candidates keep point-to-plane ICP
+    refined = [register(source, target, np.asarray(ransac.transformation), step, colored=True)]
+    refined += [register(source, target, np.asarray(T), step) for T in candidates]
+    best = max(refined, key=lambda a: (a.failure is None, a.fitness))
+    if best.failure is None and best.fitness < GLOBAL_MIN_FITNESS:
+        best.failure, best.kind = f"fitness {best.fitness:.2f} (at least {GLOBAL_MIN_FITNESS} needed)", "fitness"
+    return best
+
+
+def register_frames(capture, *, strict: bool = False, max_depth: float = 3.0,
+                    progress: bool = False) -> FrameRegistration:
+    """Register every frame to the reference by the chain of the module docstring; drop what fails.
 
     Measured on ``render_capture('bunny', scale_factor=4, light='led', seed=0)`` with noise:
     8 frames at 320 x 240 (80 x 60 depth, ~300 object points, 2-15 deg from the reference):
     max 1.7 deg / 16 mm, median 0.8 deg / 8 mm; 20 frames at 640 x 480: max 0.8 deg / 8 mm,
     median 0.5 deg / 5 mm (orbit-translate: 0.9 deg / 10 mm), about 1 s. Without noise at
     320 x 240: max 0.7 deg / 7 mm. The accuracy is limited by the sparse, noisy depth
-    (~3.6 mm noise at 0.6 m); the joint refinement improves the poses afterwards.
+    (~3.6 mm noise at 0.6 m); the joint refinement improves the poses afterwards. A frame
+    50 deg from the reference (tests/test_odometry.py), which ICP cannot register, is found by
+    the global step.
 
     Parameters
     ----------
     capture : Capture
-        n >= 1 frames; uses the depth (metres, 0 = missing) and the depth intrinsics.
+        n >= 1 frames; uses the depth (metres, 0 = missing), colour and the depth intrinsics.
+    strict : bool
+        Raise OdometryError on the first frame that cannot be registered instead of dropping it.
+    max_depth : float
+        Depth at or beyond this many metres is ignored.
+    progress : bool
+        Show a tqdm progress bar over frames.
+
+    Returns
+    -------
+    FrameRegistration
+        Kept frames and their poses ``T_i`` (reference-camera coordinates in metres -> frame-i
+        camera coordinates; the reference's is the identity), with a warning per dropped frame.
+
+    Raises
+    ------
+    OdometryError
+        The reference has too few depth points; a frame cannot be registered and ``strict`` is
+        set, or dropping it would leave fewer than ``MIN_FRAMES`` frames.
+    """
+    n = capture.n_frames
+    K = np.asarray(capture.depth_K(), dtype=np.float64)
+    clouds = [depth_cloud(capture.depth_array(i), K, max_depth, capture.color_array(i)) for i in range(n)]
+    if len(clouds[0].points) < MIN_POINTS:
+        raise OdometryError(f"the reference frame 0 has only {len(clouds[0].points)} valid depth points below "
+                            f"{max_depth} m (at least {MIN_POINTS} are needed): {FIXES['points']}, so that another "
+                            "frame becomes the reference")
+    result = FrameRegistration(frames=[0], poses=np.eye(4)[None], steps={0: "reference"})
+    indices = range(1, n)
+    if progress:
+        from tqdm.auto import tqdm
+
+        indices = tqdm(indices, desc="registration", unit="frame")
+    for i in indices:
+        attempts = _register_frame(clouds, i, result)
+        accepted = attempts[-1]
+        if accepted.failure is None:
+            result.frames.append(i)
+            result.poses = np.concatenate([result.poses, accepted.T[None]])
+            result.steps[i] = accepted.step
+            continue
+        reason = _failure_message(i, attempts)
+        if strict or n - len(result.dropped) - 1 < MIN_FRAMES:
+            why = "" if strict else f" (dropping it would leave fewer than {MIN_FRAMES} frames)"
+            raise OdometryError(f"{reason}{why}")
+        result.dropped[i] = reason
+        warnings.warn(f"{reason}. Frame {i} is dropped; pass strict=True (--strict) to stop instead", stacklevel=2)
+    return result
+
+
+def _register_frame(clouds: list, i: int, result: FrameRegistration) -> list[Attempt]:
+    """The chain for frame i (see the module docstring); the last attempt is the accepted one if any."""
+    previous, T_previous = result.frames[-1], result.poses[-1]
+    attempts = [register(clouds[0], clouds[i], T_previous, "ICP to the reference frame 0")]
+    if previous != 0 and attempts[-1].failure is not None:
+        chained = register(clouds[previous], clouds[i], np.eye(4), f"ICP to frame {previous}")
+        chained.T = chained.T @ T_previous
+        attempts.append(chained)
+    if attempts[-1].failure is not None:
+        # ICP results refused only for their step size are candidates the global step verifies
+        candidates = [a.T for a in attempts if a.kind == "step"]
+        found = register_globally(clouds[0], clouds[i], candidates,
+                                  "global registration (FPFH + RANSAC, coloured ICP) to frame 0")
+        attempts.append(found)
+    return attempts
+
+
+def _failure_message(i: int, attempts: list[Attempt]) -> str:
+    """'cannot register frame i: <step>: <cause>; ...; fix: ...' naming each distinct fix once."""
+    causes = "; ".join(f"{a.step}: {a.failure}" for a in attempts)
+    fixes = "; ".join(dict.fromkeys(FIXES[a.kind] for a in attempts))
+    return f"cannot register frame {i}: {causes}. Fix: {fixes}"
+
+
+def initial_poses(capture, *, method: str = "point_to_plane", max_depth: float = 3.0, progress: bool = False) -> np.ndarray:
+    """Poses of every frame of a capture (:func:`register_frames` with ``strict=True``).
+
+    Parameters
+    ----------
+    capture : Capture
+        n >= 1 frames.
     method : {"point_to_plane"}
-        Registration method (Open3D point-to-plane ICP).
+        Registration method (the chain of the module docstring).
     max_depth : float
         Depth at or beyond this many metres is ignored.
     progress : bool
@@ -155,43 +368,12 @@ def initial_poses(capture, *, method: str = "point_to_plane", max_depth: float =
     Raises
     ------
     OdometryError
-        When a frame has too few valid depth points or registers neither to the reference
-        nor to its predecessor.
+        When a frame cannot be registered (use :func:`register_frames` to drop such frames).
     ValueError
         On an unknown ``method``.
     """
     if method not in METHODS:
         raise ValueError(f"initial_poses: unknown method {method!r}; use one of {list(METHODS)}")
-    n = capture.n_frames
-    poses = np.tile(np.eye(4), (n, 1, 1))
-    if n == 1:
-        return poses
-    K = np.asarray(capture.depth_K(), dtype=np.float64)
-    clouds = [depth_cloud(capture.depth_array(i), K, max_depth) for i in range(n)]
-    for i, cloud in enumerate(clouds):
-        if len(cloud.points) < MIN_POINTS:
-            raise OdometryError(
-                f"frame {i} has only {len(cloud.points)} valid depth points below {max_depth} m "
-                f"(at least {MIN_POINTS} are needed to register it): drop frame {i} (Capture.select), "
-                f"move the object into the depth range, or raise max_depth."
-            )
-    indices = range(1, n)
-    if progress:
-        from tqdm.auto import tqdm
-
-        indices = tqdm(indices, desc="odometry", unit="frame")
-    for i in indices:
-        T, fitness, ok = register(clouds[0], clouds[i], poses[i - 1])
-        fitness_prev = 0.0
-        if not ok:
-            step, fitness_prev, ok = register(clouds[i - 1], clouds[i], np.eye(4))
-            T = step @ poses[i - 1]
-        if not ok:
-            raise OdometryError(
-                f"ICP could not register frame {i} to the reference frame 0 (fitness {fitness:.2f}) "
-                f"nor to frame {i - 1} (fitness {fitness_prev:.2f}; at least {MIN_FITNESS} needed): "
-                f"the frames barely overlap. Move the camera more slowly, drop frame {i} "
-                f"(Capture.select), or use fewer frames."
-            )
-        poses[i] = T
-    return poses
+    if capture.n_frames == 1:
+        return np.eye(4)[None]
+    return register_frames(capture, strict=True, max_depth=max_depth, progress=progress).poses

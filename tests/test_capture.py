@@ -9,7 +9,7 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from o3d_mvps import capture as capture_module
+from o3d_mvps.capture import writing as capture_writing
 from o3d_mvps import fileio
 from o3d_mvps.capture import (
     Capture,
@@ -307,9 +307,75 @@ def test_read_greyscale_colour(folder):
         read_capture(folder)
 
 
-def test_read_corrupt_groundtruth(folder):
-    (folder / "groundtruth" / "poses.npy").write_bytes(b"junk")
-    with pytest.raises(CaptureError, match="cannot read ground truth .*poses.npy"):
+@pytest.mark.parametrize("damage, problem", [
+    ("corrupt", r"cannot read it \(.*"),
+    ("partial", r"cannot read it \(.*normals.npy"),
+    ("foreign", r"ground truth depth has shape \(5, 5\), expected \(24, 32\)"),
+])
+def test_unusable_groundtruth_is_reported_and_ignored(folder, damage, problem):
+    gt = folder / "groundtruth"
+    if damage == "corrupt":
+        (gt / "poses.npy").write_bytes(b"junk")
+    elif damage == "partial":  # a real capture's folder holding only depth.npy
+        for p in gt.iterdir():
+            if p.name != "depth.npy":
+                p.unlink()
+    else:
+        np.save(gt / "depth.npy", np.zeros((5, 5), np.float32))
+    with pytest.warns(UserWarning, match=rf"ignoring .*groundtruth: {problem}.*refinement goes on without it"):
+        capture = read_capture(folder)
+    assert capture.groundtruth is None
+    np.testing.assert_array_equal(capture.color_array(0), make_capture().color_array(0))
+
+
+# --- what real files get wrong ------------------------------------------------------------
+
+
+def test_read_depth_in_whole_metres(folder):
+    metres = np.random.default_rng(0).integers(0, 4, size=(H // SF, W // SF)).astype(np.uint16)  # float m cast
+    cv2.imwrite(str(folder / "depth" / "000001.png"), metres)
+    message = r"000001.png holds only the values 1..3: it looks like depth in metres stored as integers.*millimetres"
+    with pytest.raises(CaptureError, match=message):
+        read_capture(folder)
+
+
+def test_read_depth_from_another_camera(folder):
+    for i in range(N):  # a 640x480 depth camera beside a 1920x1080 colour camera, scaled down
+        cv2.imwrite(str(folder / "depth" / f"{i:06d}.png"), np.full((9, 12), 600, np.uint16))
+    message = r"depth is 12x9 but colour is 32x24.*integer multiple.*different cameras.*register_depth"
+    with pytest.raises(CaptureError, match=message):
+        read_capture(folder)
+
+
+def test_read_intrinsics_of_a_resized_image(folder):
+    edit_json(folder / "intrinsic.json", width=64, height=48)
+    with pytest.raises(CaptureError, match=r"frames are 0.5 times that size.*scale the intrinsics by 0.5"):
+        read_capture(folder)
+
+
+def test_read_exif_rotated_jpeg(folder):
+    from PIL import Image
+
+    (folder / "color" / "000001.png").unlink()
+    exif = Image.Exif()
+    exif[0x0112] = 6  # "rotate 90 degrees clockwise to display"
+    Image.fromarray(np.zeros((H, W, 3), np.uint8)).save(folder / "color" / "000001.jpg", exif=exif)
+    message = r"000001.jpg carries EXIF orientation 6 .*clear the tag \(exiftool -Orientation=1 -n FILE\)"
+    with pytest.raises(CaptureError, match=message):
+        read_capture(folder)
+
+
+def test_read_upright_jpeg(folder):
+    from PIL import Image
+
+    (folder / "color" / "000001.png").unlink()
+    Image.fromarray(np.full((H, W, 3), 128, np.uint8)).save(folder / "color" / "000001.jpg", quality=100)
+    assert read_capture(folder).color_size == (H, W)
+
+
+def test_read_frame_without_depth(folder):
+    cv2.imwrite(str(folder / "depth" / "000002.png"), np.zeros((H // SF, W // SF), np.uint16))
+    with pytest.raises(CaptureError, match=r"depth frame 2 \(000002\) has no measurement at all.*remove the frame"):
         read_capture(folder)
 
 
@@ -368,7 +434,11 @@ BAD_CAPTURES = {
     ),
     "no depth": (
         lambda c: replace(c, depth=[image_from_array(depth_of() * 0) for _ in range(N)]),
-        "no frame has any valid",
+        r"depth frame 0 has no measurement at all \(every pixel 0\)",
+    ),
+    "one frame without depth": (
+        lambda c: replace(c, depth=with_frame(c.depth, 1, depth_of() * 0)),
+        r"depth frame 1 has no measurement at all \(every pixel 0\): re-export that depth frame, or remove",
     ),
     "intrinsic NaN": (
         lambda c: replace(c, color_intrinsic=o3d.core.Tensor(np.where(K == 1, np.nan, K))),
@@ -446,7 +516,7 @@ def test_write_onto_a_file_refused(tmp_path):
 
 def failing_writer(monkeypatch, after: int):
     """Make the PNG writer raise on its (after+1)-th call."""
-    real, calls = capture_module._write_png, []
+    real, calls = capture_writing._write_png, []
 
     def write(path, image):
         calls.append(path)
@@ -454,7 +524,7 @@ def failing_writer(monkeypatch, after: int):
             raise OSError("disk full (simulated)")
         real(path, image)
 
-    monkeypatch.setattr(capture_module, "_write_png", write)
+    monkeypatch.setattr(capture_writing, "_write_png", write)
 
 
 def test_failed_write_leaves_nothing(tmp_path, monkeypatch):

@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import argparse
 
-from ..capture import read_capture
+from dataclasses import replace
+
+from ..capture import read_capture, read_capture_poses, relative_to_reference
+from ..odometry import register_frames
 from ..report import accuracy_rows, markdown_table
 from ..solver.driver import refine
 from ..solver.lighting import LIGHT_MODELS
@@ -16,6 +19,7 @@ EXAMPLES = """examples:
   o3d-mvps refine capture/ two_stage/ --no-pose-refinement   # the paper's two-stage baseline
   o3d-mvps refine capture/ refined/ --led-offset 0.03 -0.02 0  # LED 3 cm right of, 2 cm above the lens
   o3d-mvps refine capture/ paper/ --light-model sh            # the paper's SH lighting
+  o3d-mvps refine capture/ refined/ --poses trajectory.log     # poses from Open3D's reconstruction system
 """
 
 
@@ -57,6 +61,11 @@ def register(subparsers) -> None:
     p.add_argument("capture", help="capture folder (color/, depth/, intrinsic.json, ...)")
     p.add_argument("out", help="output folder for the refinement")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
+    p.add_argument("--poses", default=None, metavar="FILE",
+                   help="initial poses: Open3D trajectory .json or .log, TUM .txt, or (n, 4, 4) .npy (README "
+                        "'Poses from other tools'; default: the capture folder's poses.* if any, else registration)")
+    p.add_argument("--strict", action="store_true",
+                   help="stop when a frame cannot be registered, instead of dropping it with a warning")
     add_solver_arguments(p)
     p.set_defaults(handler=run)
 
@@ -75,11 +84,24 @@ def log_energy(refinement, quiet: bool) -> None:
 
 def run(args) -> int:
     capture = read_capture(args.capture)
-    refinement = refine(capture, options_from_args(args))
+    given = read_capture_poses(args.capture, args.poses)
+    options = options_from_args(args)
+    frames = options.frame_indices(capture.n_frames)
+    capture = capture.select(frames)
+    if given is not None:
+        poses = relative_to_reference(given[0][frames])
+        if not args.quiet:
+            print(f"poses: from {given[1]}")
+    else:
+        registration = register_frames(capture, strict=args.strict, progress=not args.quiet)
+        capture, poses = capture.select(registration.frames), registration.poses
+        frames = [frames[i] for i in registration.frames]
+    refinement = refine(capture, replace(options, frames=None), initial_poses=poses)
+    refinement.info["frames"] = frames  # indices into the capture folder
     log_energy(refinement, args.quiet)
     extra = {}
     if capture.groundtruth is not None:
-        rows = accuracy_rows(capture.select(refinement.info["frames"]), refinement)
+        rows = accuracy_rows(capture, refinement)
         extra["accuracy"] = rows
         if not args.quiet:
             print(markdown_table(rows))

@@ -1,0 +1,12 @@
+"""Names and defaults of the capture folder format (the layout is drawn in ``o3d_mvps.capture``)."""
+
+COLOR_DIR, DEPTH_DIR, MASK_DIR, GROUNDTRUTH_DIR = "color", "depth", "mask", "groundtruth"
+INTRINSIC_JSON, DEPTH_INTRINSIC_JSON, CAPTURE_JSON = "intrinsic.json", "depth_intrinsic.json", "capture.json"
+COLOR_ENCODINGS = ("srgb", "linear")
+#: Plausible median depth (m); outside it the unit is almost surely wrong.
+DEPTH_RANGE_M = (0.05, 20.0)
+#: Colour frame suffixes read (.jpg: Open3D's reconstruction system writes those).
+COLOR_SUFFIXES = (".png", ".jpg", ".jpeg")
+#: Ground-truth arrays, each groundtruth/<name>.npy, besides groundtruth/light.json.
+GT_ARRAYS = ("depth", "normals", "albedo", "poses", "mesh_to_reference")
+DEFAULT_SETTINGS = {"depth_scale": 1000.0, "depth_trunc": 3.0, "color_encoding": "srgb", "sensor": "unknown"}

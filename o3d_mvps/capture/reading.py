@@ -1,0 +1,323 @@
+"""Read a capture folder into a Capture (layout in ``o3d_mvps.capture``), checking what real files get wrong."""
+
+from __future__ import annotations
+
+import json
+import warnings
+from pathlib import Path
+
+import cv2
+import numpy as np
+import open3d as o3d
+
+from ..colour import srgb_to_linear
+from ..errors import CaptureError
+from .layout import (
+    CAPTURE_JSON,
+    COLOR_DIR,
+    COLOR_SUFFIXES,
+    DEFAULT_SETTINGS,
+    DEPTH_DIR,
+    DEPTH_INTRINSIC_JSON,
+    DEPTH_RANGE_M,
+    GROUNDTRUTH_DIR,
+    GT_ARRAYS,
+    INTRINSIC_JSON,
+    MASK_DIR,
+)
+from .types import Capture, GroundTruth, default_depth_intrinsic, image_from_array
+from .validation import check_settings, groundtruth_problem, intrinsic_matrix, size_text, validate_capture
+
+#: EXIF tag of the image orientation (1 = stored as displayed).
+EXIF_ORIENTATION = 0x0112
+
+
+def read_capture(path) -> Capture:
+    """Read a capture folder (layout in the ``o3d_mvps.capture`` docstring).
+
+    Colour PNGs (8- or 16-bit; .jpg also read) become float32 linear RGB in [0, 1] (sRGB ones
+    are linearised); their bit depth goes to ``metadata["color_bit_depth"]``. Depth PNGs
+    (uint16) become float32 metres (value / depth_scale; 0 = missing). Frames are paired by
+    file name in sorted order. A missing ``capture.json`` means the defaults (depth_scale 1000,
+    depth_trunc 3 m, sRGB colour); a missing ``depth_intrinsic.json`` means
+    ``default_depth_intrinsic``. Depth beyond depth_trunc is kept (depth_trunc is passed on
+    for fusion). A missing mask/ folder gives ``masks=None``. A ``groundtruth/`` folder that is
+    incomplete or does not fit the capture is reported (a warning) and ignored: only the
+    evaluation needs it. Initial poses (``poses.*``) are read by :func:`read_capture_poses`.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The capture folder.
+
+    Returns
+    -------
+    Capture
+
+    Raises
+    ------
+    CaptureError
+        The folder, a file or the frames are missing, unreadable or inconsistent.
+    """
+    root = capture_root(path)
+    settings = _read_settings(root / CAPTURE_JSON)
+    color_K, color_K_size = read_intrinsic_json(root / INTRINSIC_JSON)
+    depth_K, depth_K_size = None, None
+    if (root / DEPTH_INTRINSIC_JSON).exists():
+        depth_K, depth_K_size = read_intrinsic_json(root / DEPTH_INTRINSIC_JSON)
+
+    color_files, depth_files = paired_frame_files(root, settings["frames"])
+    names = list(color_files)
+
+    color, bit_depths = [], set()
+    for file in color_files.values():
+        array, bits = _decode_color(_read_image(file), settings["color_encoding"], file)
+        color.append(image_from_array(array))
+        bit_depths.add(bits)
+    if len(bit_depths) > 1:
+        raise CaptureError(f"{root / COLOR_DIR} mixes 8- and 16-bit frames; save every colour frame at one bit depth")
+    depth = [image_from_array(_decode_depth(_read_image(f), settings["depth_scale"], f)) for f in depth_files.values()]
+    capture = Capture(
+        color=color,
+        depth=depth,
+        color_intrinsic=o3d.core.Tensor(color_K),
+        depth_intrinsic=o3d.core.Tensor(color_K if depth_K is None else depth_K),  # default set once SF is known
+        masks=_read_masks(root / MASK_DIR, names),
+        depth_scale=settings["depth_scale"],
+        depth_trunc=settings["depth_trunc"],
+        color_encoding=settings["color_encoding"],
+        sensor=settings["sensor"],
+        metadata={**settings["metadata"], "color_bit_depth": bit_depths.pop()},
+    )
+    validate_capture(capture, names)
+    _check_intrinsic_size(root / INTRINSIC_JSON, color_K_size, capture.color_size, COLOR_DIR)
+    if depth_K is None:
+        capture.depth_intrinsic = o3d.core.Tensor(default_depth_intrinsic(color_K, capture.scale_factor))
+    else:
+        _check_intrinsic_size(root / DEPTH_INTRINSIC_JSON, depth_K_size, capture.depth_size, DEPTH_DIR)
+    if (root / GROUNDTRUTH_DIR).is_dir():
+        capture.groundtruth = _read_groundtruth(root / GROUNDTRUTH_DIR, capture.n_frames, capture.color_size)
+    return capture
+
+
+def capture_root(path) -> Path:
+    """The capture folder as a Path; CaptureError when it is missing or a file."""
+    root = Path(path).expanduser()
+    if not root.exists():
+        raise CaptureError(f"capture folder {root} does not exist; check the path")
+    if not root.is_dir():
+        raise CaptureError(f"{root} is a file, not a capture folder; give the folder holding color/ and depth/")
+    return root
+
+
+def load_json(path: Path):
+    """A JSON file's content; CaptureError naming the file when it cannot be read."""
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise CaptureError(f"cannot read {path} ({e}); fix or rewrite the JSON file") from None
+
+
+def read_intrinsic_json(path: Path) -> tuple[np.ndarray, tuple[int, int]]:
+    """Open3D PinholeCameraIntrinsic JSON -> ((3, 3) float64 K, image size (H, W))."""
+    if not path.exists():
+        raise CaptureError(
+            f"{path} is missing; write the camera intrinsics as Open3D PinholeCameraIntrinsic JSON "
+            "(o3d.io.write_pinhole_camera_intrinsic)"
+        )
+    data = load_json(path)
+    try:
+        size = (int(data["height"]), int(data["width"]))
+        K = np.asarray(data["intrinsic_matrix"], dtype=np.float64).reshape(3, 3).T  # stored column-major
+    except (KeyError, TypeError, ValueError):
+        raise CaptureError(
+            f"{path} is not an Open3D PinholeCameraIntrinsic JSON; it needs \"width\", \"height\" and "
+            "\"intrinsic_matrix\" (9 numbers, column-major): rewrite it with o3d.io.write_pinhole_camera_intrinsic"
+        ) from None
+    return intrinsic_matrix(K, str(path)), size
+
+
+def paired_frame_files(root: Path, expected: int | None) -> tuple[dict[str, Path], dict[str, Path]]:
+    """Colour and depth frame files by name; CaptureError unless they pair up (and number ``expected``)."""
+    color_files = _frame_files(root / COLOR_DIR, COLOR_SUFFIXES)
+    depth_files = _frame_files(root / DEPTH_DIR, (".png",))
+    if len(color_files) != len(depth_files):
+        raise CaptureError(
+            f"{root}: {COLOR_DIR}/ has {len(color_files)} frames but {DEPTH_DIR}/ has {len(depth_files)}; "
+            "every colour frame needs a depth frame with the same file name"
+        )
+    if list(color_files) != list(depth_files):
+        only = sorted(set(color_files) ^ set(depth_files))[0]
+        raise CaptureError(
+            f"{root}: frame {only!r} is in only one of {COLOR_DIR}/ and {DEPTH_DIR}/; "
+            "colour and depth frames are paired by file name, rename or remove it"
+        )
+    if expected is not None and expected != len(color_files):
+        raise CaptureError(
+            f"{root / CAPTURE_JSON} says {expected} frames but {COLOR_DIR}/ has {len(color_files)}; "
+            "restore the missing frames or correct \"frames\""
+        )
+    return color_files, depth_files
+
+
+def _frame_files(folder: Path, suffixes) -> dict[str, Path]:
+    """Frame files of a folder by stem, in sorted name order; CaptureError if none."""
+    if not folder.is_dir():
+        raise CaptureError(
+            f"{folder} is missing; a capture folder needs {COLOR_DIR}/ and {DEPTH_DIR}/ with one PNG per frame"
+        )
+    files = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in suffixes)
+    if not files:
+        raise CaptureError(f"{folder} holds no frames; add {'/'.join(suffixes)} images named like 000000.png")
+    by_stem = {p.stem: p for p in files}
+    if len(by_stem) != len(files):
+        raise CaptureError(f"{folder} has two frames with the same name but different suffixes; keep one of each")
+    return by_stem
+
+
+def _exif_orientation(path: Path) -> int:
+    """The EXIF orientation tag of a JPEG (1 = stored as displayed, also when there is no tag)."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as image:
+            return int(image.getexif().get(EXIF_ORIENTATION, 1))
+    except (OSError, UnidentifiedImageError, ValueError):
+        return 1  # unreadable EXIF: cv2 reports an unreadable image itself
+
+
+def _read_image(path: Path) -> np.ndarray:
+    """An image file as stored (uint8/uint16; RGB(A) order for colour); CaptureError if unreadable.
+
+    A JPEG whose EXIF orientation asks viewers to rotate it is refused: its stored pixels and
+    its displayed picture differ, and only one of them matches the depth frame.
+    """
+    if path.suffix.lower() in (".jpg", ".jpeg"):
+        orientation = _exif_orientation(path)
+        if orientation != 1:
+            raise CaptureError(
+                f"colour frame {path} carries EXIF orientation {orientation} (viewers show it rotated or "
+                "mirrored), so it is unclear which way matches the depth frame. If the stored pixels match "
+                "the depth, clear the tag (exiftool -Orientation=1 -n FILE); if the picture was rotated for "
+                "display, rotate it back; or save the colour frames as PNG"
+            )
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise CaptureError(f"cannot read image {path} (corrupt or not an image); re-export or remove that frame")
+    if image.ndim == 3 and image.shape[2] in (3, 4):
+        image = cv2.cvtColor(image, cv2.COLOR_BGR2RGB if image.shape[2] == 3 else cv2.COLOR_BGRA2RGBA)
+    return image
+
+
+def _decode_color(raw: np.ndarray, encoding: str, path: Path) -> tuple[np.ndarray, int]:
+    """Stored colour -> ((H, W, 3) float32 linear RGB in [0, 1], bit depth)."""
+    if raw.dtype not in (np.uint8, np.uint16) or raw.ndim != 3:
+        raise CaptureError(
+            f"colour frame {path} is {raw.dtype} with shape {raw.shape}; save colour as 8- or 16-bit RGB PNG"
+        )
+    bits = 8 * raw.dtype.itemsize
+    value = raw[..., :3] / float(2**bits - 1)  # float64, so k / 255 is exactly what callers compute
+    return (srgb_to_linear(value) if encoding == "srgb" else value.astype(np.float32)), bits
+
+
+def _decode_depth(raw: np.ndarray, depth_scale: float, path: Path) -> np.ndarray:
+    """Stored uint16 depth -> (h, w, 1) float32 metres.
+
+    Refuses depth whose measured values are all at most DEPTH_RANGE_M's upper end (20): that is
+    depth in metres cast to integers, which keeps whole metres only.
+    """
+    if raw.dtype != np.uint16 or raw.ndim != 2:
+        raise CaptureError(
+            f"depth frame {path} is {raw.dtype} with shape {raw.shape}; depth must be a single-channel "
+            "16-bit PNG (units 1/depth_scale m)"
+        )
+    measured = raw[raw > 0]
+    if measured.size and measured.max() <= DEPTH_RANGE_M[1]:
+        raise CaptureError(
+            f"depth frame {path} holds only the values {int(measured.min())}..{int(measured.max())}: it looks like "
+            "depth in metres stored as integers, which keeps whole metres only. Re-export the depth in millimetres "
+            "(uint16 PNG of round(metres * 1000), depth_scale 1000 in capture.json)"
+        )
+    return (raw.astype(np.float64) / depth_scale).astype(np.float32)[..., None]
+
+
+def _read_masks(folder: Path, names: list[str]) -> list | None:
+    """Masks matched to frame names: None if there is no mask folder, else one entry per frame."""
+    if not folder.is_dir():
+        return None
+    files = {p.stem: p for p in sorted(folder.iterdir()) if p.is_file() and p.suffix.lower() == ".png"}
+    if not files:
+        return None
+    stray = sorted(set(files) - set(names))
+    if stray:
+        raise CaptureError(
+            f"mask {files[stray[0]]} has no colour frame of the same name; rename it to match a frame or remove it"
+        )
+    masks = []
+    for name in names:
+        if name not in files:
+            masks.append(None)
+            continue
+        m = _read_image(files[name])
+        m = np.any(m != 0, axis=-1) if m.ndim == 3 else m != 0
+        masks.append(image_from_array((m * np.uint8(255))[..., None]))
+    return masks
+
+
+def _read_settings(path: Path) -> dict:
+    """capture.json with defaults filled in; 'frames' is None when absent."""
+    settings = {**DEFAULT_SETTINGS, "frames": None, "metadata": {}}
+    if not path.exists():
+        return settings
+    data = load_json(path)
+    if not isinstance(data, dict):
+        raise CaptureError(f"{path} must hold a JSON object like {{\"depth_scale\": 1000, ...}}")
+    settings.update({k: data[k] for k in settings if k in data})
+    try:
+        settings["depth_scale"] = float(settings["depth_scale"])
+        settings["depth_trunc"] = float(settings["depth_trunc"])
+        settings["frames"] = None if settings["frames"] is None else int(settings["frames"])
+    except (TypeError, ValueError):
+        raise CaptureError(f"{path}: depth_scale, depth_trunc and frames must be numbers; fix the file") from None
+    check_settings(settings["depth_scale"], settings["depth_trunc"], settings["color_encoding"], 8, f"{path}: ")
+    if not isinstance(settings["metadata"], dict):
+        raise CaptureError(f"{path}: metadata must be a JSON object")
+    settings["sensor"] = str(settings["sensor"])
+    return settings
+
+
+def _check_intrinsic_size(path: Path, size, image_size, images: str) -> None:
+    """CaptureError when intrinsics for ``size`` (H, W) are given for frames of ``image_size``."""
+    if tuple(size) == tuple(image_size):
+        return
+    ratio = image_size[0] / size[0]
+    hint = ""
+    if np.isclose(image_size[1] / size[1], ratio):
+        hint = (f" The frames are {ratio:g} times that size: if they were resized after calibration, scale the "
+                f"intrinsics by {ratio:g} (o3d_mvps.model.camera.scale_intrinsics) and fix width and height.")
+    raise CaptureError(
+        f"{path} is for {size_text(size)} images but {images}/ frames are {size_text(image_size)} (WxH); "
+        f"use the intrinsics of the camera mode the frames were recorded in.{hint}"
+    )
+
+
+def _read_groundtruth(folder: Path, n_frames: int, color_size) -> GroundTruth | None:
+    """The ground truth of a synthetic capture, or None (with a warning) when incomplete or foreign."""
+    arrays = {}
+    try:
+        for name in GT_ARRAYS:
+            arrays[name] = np.load(folder / f"{name}.npy", allow_pickle=False)
+        light = json.loads((folder / "light.json").read_text())
+    except (OSError, ValueError, UnicodeDecodeError) as e:
+        problem = f"cannot read it ({e})"
+    else:
+        gt = GroundTruth(light=light, **arrays)
+        problem = groundtruth_problem(gt, n_frames, color_size)
+        if problem is None:
+            return gt
+    warnings.warn(
+        f"ignoring {folder}: {problem}. Only the evaluation against ground truth needs it (a synthetic capture "
+        f"holds {', '.join(n + '.npy' for n in GT_ARRAYS)} and light.json); refinement goes on without it",
+        stacklevel=3,
+    )
+    return None

@@ -1,0 +1,121 @@
+"""The Capture type: n RGB-D frames of one object, frame 0 the reference, and its ground truth."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import open3d as o3d
+
+from ..model.camera import as_intrinsic_matrix, scale_intrinsics
+from .validation import integer_scale_factor
+
+
+@dataclass
+class GroundTruth:
+    """Ground truth of a synthetic capture (reference frame 0, colour resolution).
+
+    depth: (H, W) float32 metres, 0 off the object. normals: (H, W, 3) float32, reference
+    camera frame, unit, pointing to the camera, 0 off the object. albedo: (H, W, 3) float32
+    linear RGB. poses: (n, 4, 4) float64 mapping reference-camera coordinates to frame-i
+    coordinates. light: JSON-serialisable light parameters (``"model"``: ``"led"`` or
+    ``"directional"``; the directional model stores ``"sh"``: n x 4 first-order SH vectors in
+    reference coordinates). mesh_to_reference: (4, 4) float64 mesh -> reference camera.
+    """
+
+    depth: np.ndarray
+    normals: np.ndarray
+    albedo: np.ndarray
+    poses: np.ndarray
+    light: dict
+    mesh_to_reference: np.ndarray
+
+
+@dataclass
+class Capture:
+    """n RGB-D frames; frame 0 is the reference.
+
+    color: n images (H, W, 3) float32 linear RGB in [0, 1].
+    depth: n images (h, w, 1) float32 metres, 0 = no measurement; h = H/SF, w = W/SF.
+    color_intrinsic, depth_intrinsic: (3, 3) float64 tensors (pixels).
+    masks: None, or n entries each None or an (H, W, 1) uint8 image (nonzero = object).
+    depth_scale: depth PNG units per metre (1000 = mm). depth_trunc: metres.
+    color_encoding: how colour PNGs are encoded on disk ("srgb" or "linear").
+    """
+
+    color: list
+    depth: list
+    color_intrinsic: o3d.core.Tensor
+    depth_intrinsic: o3d.core.Tensor
+    masks: list | None = None
+    depth_scale: float = 1000.0
+    depth_trunc: float = 3.0
+    color_encoding: str = "srgb"
+    sensor: str = "unknown"
+    groundtruth: GroundTruth | None = None
+    metadata: dict = field(default_factory=dict)
+
+    # --- sizes -------------------------------------------------------------------------
+    @property
+    def n_frames(self) -> int:
+        return len(self.color)
+
+    @property
+    def color_size(self) -> tuple[int, int]:
+        """(H, W) of the colour frames."""
+        return (self.color[0].rows, self.color[0].columns)
+
+    @property
+    def depth_size(self) -> tuple[int, int]:
+        """(h, w) of the depth frames."""
+        return (self.depth[0].rows, self.depth[0].columns)
+
+    @property
+    def scale_factor(self) -> int:
+        """Integer super-resolution factor SF = H / h = W / w (CaptureError when there is none)."""
+        return integer_scale_factor(self.color_size, self.depth_size)
+
+    # --- numpy views (what the solver works on) ----------------------------------------
+    def color_array(self, i: int) -> np.ndarray:
+        """Frame i colour, (H, W, 3) float32 linear RGB."""
+        return np.asarray(self.color[i].as_tensor().numpy(), dtype=np.float32).reshape(*self.color_size, 3)
+
+    def depth_array(self, i: int) -> np.ndarray:
+        """Frame i depth, (h, w) float32 metres, 0 = missing."""
+        return np.asarray(self.depth[i].as_tensor().numpy(), dtype=np.float32).reshape(self.depth_size)
+
+    def mask_array(self, i: int) -> np.ndarray | None:
+        """Frame i object mask, (H, W) bool, or None when the frame has none."""
+        if self.masks is None or self.masks[i] is None:
+            return None
+        return np.asarray(self.masks[i].as_tensor().numpy()).reshape(self.color_size) > 0
+
+    def color_K(self) -> np.ndarray:
+        """Colour intrinsics as a (3, 3) float64 numpy array."""
+        return as_intrinsic_matrix(self.color_intrinsic)
+
+    def depth_K(self) -> np.ndarray:
+        """Depth intrinsics as a (3, 3) float64 numpy array."""
+        return as_intrinsic_matrix(self.depth_intrinsic)
+
+    def select(self, frames) -> "Capture":
+        """A capture of the listed frame indices; the first one becomes the reference.
+
+        Ground truth is kept only when the reference stays frame 0 (poses are re-indexed).
+        """
+        frames = [int(i) for i in frames]
+        pick = lambda seq: None if seq is None else [seq[i] for i in frames]  # noqa: E731
+        gt = self.groundtruth
+        if gt is not None:
+            gt = replace(gt, poses=gt.poses[frames]) if frames[0] == 0 else None
+        return replace(self, color=pick(self.color), depth=pick(self.depth), masks=pick(self.masks), groundtruth=gt)
+
+
+def default_depth_intrinsic(color_K: np.ndarray, scale_factor: int) -> np.ndarray:
+    """Depth intrinsics of a depth grid that area-averages SF x SF colour pixels."""
+    return scale_intrinsics(color_K, 1.0 / scale_factor)
+
+
+def image_from_array(array: np.ndarray) -> o3d.t.geometry.Image:
+    """An o3d.t.geometry.Image holding a contiguous copy of an (H, W) or (H, W, C) array."""
+    return o3d.t.geometry.Image(o3d.core.Tensor(np.ascontiguousarray(array)))
