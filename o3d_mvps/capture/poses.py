@@ -32,6 +32,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..errors import CaptureError
+from ..model.se3 import relative_to_reference
 from .reading import capture_root, load_json, paired_frame_files
 
 #: Suffixes of the pose file formats (see the module docstring).
@@ -110,12 +111,6 @@ def read_poses(path, frame_names: list[str]) -> np.ndarray:
             raise CaptureError(f"{path}: pose {i} is not a rigid transform (rotation and translation, last row "
                                "0 0 0 1); fix or re-export the file")
     return relative_to_reference(world_to_camera)
-
-
-def relative_to_reference(world_to_camera: np.ndarray) -> np.ndarray:
-    """(n, 4, 4) world-to-camera transforms E_i -> T_i = E_i E_0^-1 (reference -> frame i)."""
-    E = np.asarray(world_to_camera, dtype=np.float64)
-    return E @ np.linalg.inv(E[0])
 
 
 def _check_frames(path: Path, count: int, ids: list[float] | None, frame_names: list[str]) -> None:

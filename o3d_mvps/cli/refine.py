@@ -6,8 +6,7 @@ import argparse
 
 from dataclasses import replace
 
-from ..capture import read_capture, read_capture_poses, relative_to_reference
-from ..odometry import register_frames
+from ..capture import read_capture, read_capture_poses
 from ..report import accuracy_rows, markdown_table
 from ..solver.driver import refine
 from ..solver.lighting import LIGHT_MODELS
@@ -85,19 +84,10 @@ def log_energy(refinement, quiet: bool) -> None:
 def run(args) -> int:
     capture = read_capture(args.capture)
     given = read_capture_poses(args.capture, args.poses)
-    options = options_from_args(args)
-    frames = options.frame_indices(capture.n_frames)
-    capture = capture.select(frames)
-    if given is not None:
-        poses = relative_to_reference(given[0][frames])
-        if not args.quiet:
-            print(f"poses: from {given[1]}")
-    else:
-        registration = register_frames(capture, strict=args.strict, progress=not args.quiet)
-        capture, poses = capture.select(registration.frames), registration.poses
-        frames = [frames[i] for i in registration.frames]
-    refinement = refine(capture, replace(options, frames=None), initial_poses=poses)
-    refinement.info["frames"] = frames  # indices into the capture folder
+    options = replace(options_from_args(args), strict_registration=args.strict)
+    if given is not None and not args.quiet:
+        print(f"poses: from {given[1]}")
+    refinement = refine(capture, options, initial_poses=None if given is None else given[0])
     log_energy(refinement, args.quiet)
     extra = {}
     if capture.groundtruth is not None:

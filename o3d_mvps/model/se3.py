@@ -66,3 +66,10 @@ def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
     """(rotation error in degrees, translation error in metres) between two 4x4 poses."""
     D = T_est @ np.linalg.inv(T_true)
     return rotation_angle_deg(D[:3, :3]), float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]))
+
+
+def relative_to_reference(world_to_camera: np.ndarray) -> np.ndarray:
+    """(n, 4, 4) world-to-camera transforms E_i -> T_i = E_i E_0^-1 (reference -> frame i);
+    poses already relative to some frame re-base onto frame 0 the same way."""
+    E = np.asarray(world_to_camera, dtype=np.float64)
+    return E @ np.linalg.inv(E[0])

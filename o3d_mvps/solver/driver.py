@@ -180,7 +180,9 @@ def refine(capture: Capture, options: RefineOptions | None = None, device="CPU:0
     """Jointly estimate depth (colour resolution), albedo, lighting and poses from a capture.
 
     capture: frame 0 is the reference; ``initial_poses`` (n, 4, 4) reference -> frame i
-    (default: Open3D RGB-D odometry). Returns a :class:`~o3d_mvps.Refinement`.
+    (default: the registration chain of :func:`o3d_mvps.odometry.register_frames`, which drops
+    a frame it cannot place, with a warning, unless ``options.strict_registration``). Returns a
+    :class:`~o3d_mvps.Refinement`; ``info["frames"]`` lists the capture's frames it used.
     """
     # The solver's BLAS calls are vector dots/norms (CG, AMG) and thin products: on a loaded
     # 2-core machine OpenBLAS's threads made each 60k-vector norm take ~5 ms instead of 30 us
@@ -197,16 +199,18 @@ def _refine(capture: Capture, options: RefineOptions | None, device, initial_pos
         initial_poses = np.asarray(initial_poses, dtype=np.float64)
         if initial_poses.shape != (capture.n_frames, 4, 4):
             raise ValueError(f"initial_poses must be ({capture.n_frames}, 4, 4), got {initial_poses.shape}")
-        initial_poses = initial_poses[frames]
+        initial_poses = se3.relative_to_reference(initial_poses[frames])  # onto the first frame used
     capture = capture.select(frames)
     timings = defaultdict(float)
 
     t0 = time.perf_counter()
     if initial_poses is None:
         if capture.n_frames > 1:
-            from ..odometry import initial_poses as odometry_poses
+            from ..odometry import register_frames
 
-            initial_poses = odometry_poses(capture, progress=options.progress)
+            registration = register_frames(capture, strict=options.strict_registration, progress=options.progress)
+            capture, initial_poses = capture.select(registration.frames), registration.poses
+            frames = [frames[k] for k in registration.frames]
         else:
             initial_poses = np.eye(4)[None]
     timings["odometry"] += time.perf_counter() - t0

@@ -55,6 +55,8 @@ class RefineOptions:
         z forward); None takes ``led_offset`` from the capture's metadata, else (0, 0, 0).
     refine_led_offset: estimate the LED offset jointly, starting from ``led_offset``.
     initial_light: SH lighting every frame starts from (light_model "sh").
+    strict_registration: without initial poses, raise when the registration cannot place a
+        frame instead of dropping it with a warning (see o3d_mvps.odometry.register_frames).
     progress: show a progress bar per level.
     """
 
@@ -83,6 +85,7 @@ class RefineOptions:
     led_offset: tuple | None = None
     refine_led_offset: bool = True
     initial_light: tuple = (0.2, 0.0, 0.0, -1.0)
+    strict_registration: bool = False
     progress: bool = True
 
     def __post_init__(self):
