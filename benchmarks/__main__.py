@@ -3,6 +3,8 @@
 accuracy: every method on rendered captures (bunny, armadillo; SF 2/4/8; 640x480, 20 frames).
 frames: error of ours against n in {5, ..., 30} (bunny, SF 4). tau: error against tau~.
 speed: wall time and peak RSS of odometry + refine at 640x480 / 160x120 and 1280x720 / 640x360.
+scaling: time, memory, sweeps and CG iterations against object pixels x frames (--baseline REV
+runs an earlier commit side by side; not part of 'all': hours at the default sizes).
 figures: README pictures (normals of every method, textured preview).
 all: everything, one after the other. --quick runs a tiny case of each (CI, under a minute).
 Results go to DIR (default benchmarks/results) as JSON, summary.md and PNG plots.
@@ -12,7 +14,7 @@ from __future__ import annotations
 
 import argparse
 
-from . import accuracy, figures, speed, studies
+from . import accuracy, figures, scaling, speed, studies
 from .summary import write_summary
 
 STUDIES = ("accuracy", "frames", "tau", "speed", "figures")
@@ -25,6 +27,8 @@ def _run(name: str, args) -> None:
         figures.run(args)
     elif name == "speed":
         speed.run(args)
+    elif name == "scaling":
+        scaling.run(args)
     else:
         studies.run(args, name)
 
@@ -40,6 +44,8 @@ def main(argv=None) -> int:
     studies.add_arguments(sub.add_parser("frames", parents=[common], help="error against n"), "frames")
     studies.add_arguments(sub.add_parser("tau", parents=[common], help="error against tau~"), "tau")
     speed.add_arguments(sub.add_parser("speed", parents=[common], help="time and peak memory"))
+    scaling.add_arguments(sub.add_parser("scaling", parents=[common],
+                                         help="time against object pixels x frames, against a baseline revision"))
     figures.add_arguments(sub.add_parser("figures", parents=[common], help="README pictures (normals, preview)"))
     sub.add_parser("all", parents=[common], help="every benchmark with its defaults")
     args = parser.parse_args(argv)

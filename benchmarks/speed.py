@@ -47,8 +47,11 @@ def measure(capture_folder: str, options: dict) -> dict:
     seconds = time.perf_counter() - t
     usage = resource.getrusage(resource.RUSAGE_SELF)
     # cpu_seconds (user + system, this process) is what the wall time would be without other load
+    finest = [row for row in result.energy if row["level"] == 0 and row["iteration"] > 0]
     return {"seconds": seconds, "cpu_seconds": usage.ru_utime + usage.ru_stime, "peak_mb": usage.ru_maxrss / 1024.0,
-            "breakdown": result.timings}
+            "breakdown": result.timings,
+            "sweeps": len([row for row in result.energy if row["iteration"] > 0]),
+            "finest_cg_iterations": [row.get("cg_iterations") for row in finest]}
 
 
 def run_case(mesh: str, size: tuple[int, int], sf: int, frames: int, options: dict) -> dict:
