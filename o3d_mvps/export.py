@@ -65,7 +65,7 @@ PIECES = ("largest", "all")
 # Textured mesh
 # ------------------------------------------------------------------------------------------
 def refinement_to_mesh(refinement, *, max_depth_jump: float | None = DEFAULT_MAX_DEPTH_JUMP,
-                       max_triangles: int | None = None) -> o3d.t.geometry.TriangleMesh:
+                       max_triangles: int | None = None, skirts: bool = True) -> o3d.t.geometry.TriangleMesh:
     """Triangulate a refinement's depth into a textured mesh in the reference camera frame.
 
     Every mask pixel with positive depth is back-projected to a vertex (metres, reference
@@ -73,8 +73,17 @@ def refinement_to_mesh(refinement, *, max_depth_jump: float | None = DEFAULT_MAX
     when its four corners are usable, or one when three are; the quad's diagonal is the one
     with the smaller depth difference. A triangle is dropped when one of its edges spans a
     depth discontinuity (see ``max_depth_jump``). Vertices joining two otherwise separate
-    triangle fans ("bow-ties") lose their triangles, so the result is edge- and
+    triangle fans ("bow-ties") lose their triangles, so the relief is edge- and
     vertex-manifold, and all triangles face the camera.
+
+    Cutting a quad at a depth jump leaves a crack, up to one pixel wide, through which the
+    reference camera would see the background. With ``skirts`` the far surface is extended
+    under the near edge to close it: the missing triangles of a cut quad are added with their
+    near corners moved back along their camera rays to the quad's far depth (extra vertices).
+    Seen from the reference camera the mesh then covers every quad of the mask, and still no
+    triangle joins the near and the far surface. A skirt can touch the relief at a single far
+    vertex (not vertex-manifold there); :func:`printable_solid`, which needs a manifold relief,
+    meshes without skirts.
 
     Parameters
     ----------
@@ -94,6 +103,8 @@ def refinement_to_mesh(refinement, *, max_depth_jump: float | None = DEFAULT_MAX
         recomputed by projecting the vertices into the reference camera (exact for this
         texture), colours are re-sampled bilinearly from the albedo and normals are recomputed
         from the triangles.
+    skirts : bool
+        Close the cracks at depth jumps (see above). :func:`printable_solid` meshes without.
 
     Returns
     -------
@@ -121,16 +132,21 @@ def refinement_to_mesh(refinement, *, max_depth_jump: float | None = DEFAULT_MAX
     if not mask.any():
         raise ExportError("the refinement's mask is empty (no pixel with positive depth); nothing to mesh")
 
-    tri = _grid_triangles(depth, mask, K, max_depth_jump)
+    tri, missing = _grid_triangles(depth, mask, K, max_depth_jump)
     tri = _drop_bowties(tri, height * width)
+    vertex_depth = depth.ravel()
+    if skirts and missing.size and len(tri):
+        skirt, far_depth = _skirt_triangles(depth, missing)
+        tri = np.concatenate([tri, skirt])
+        vertex_depth = np.concatenate([vertex_depth, far_depth])  # vertex HW + p: pixel p moved back
     if len(tri) == 0:
         raise ExportError(
             f"no triangle could be built from {int(mask.sum())} mask pixels: the mask has no 2x2 block "
             "of valid pixels, or every edge exceeds max_depth_jump (raise it, or pass None)"
         )
-    pixels, tri = _compact(tri)
-    v, u = np.divmod(pixels, width)
-    positions = backproject(depth[v, u], K, u.astype(np.float64), v.astype(np.float64))
+    ids, tri = _compact(tri)
+    v, u = np.divmod(ids % (height * width), width)
+    positions = backproject(vertex_depth[ids], K, u.astype(np.float64), v.astype(np.float64))
 
     albedo = refinement.albedo_array()
     srgb = None if albedo is None else linear_to_srgb(albedo)
@@ -163,8 +179,10 @@ def refinement_to_mesh(refinement, *, max_depth_jump: float | None = DEFAULT_MAX
     return mesh
 
 
-def _grid_triangles(depth: np.ndarray, mask: np.ndarray, K: np.ndarray, max_depth_jump: float | None) -> np.ndarray:
-    """Triangles (T, 3) int64 of flat pixel indices (v * W + u), counter-clockwise seen from the camera.
+def _grid_triangles(depth: np.ndarray, mask: np.ndarray, K: np.ndarray,
+                    max_depth_jump: float | None) -> tuple[np.ndarray, np.ndarray]:
+    """Triangles (T, 3) int64 of flat pixel indices (v * W + u), counter-clockwise seen from the
+    camera, and the triangles (M, 3) of quads inside the mask that were cut at a depth jump.
 
     Quad corners: a = (u, v), b = (u + 1, v), c = (u, v + 1), d = (u + 1, v + 1). The quad is
     split along b-c into (a, c, b) + (b, c, d) or along a-d into (a, d, b) + (a, c, d); a
@@ -201,13 +219,31 @@ def _grid_triangles(depth: np.ndarray, mask: np.ndarray, K: np.ndarray, max_dept
 
     index = np.arange(height * width, dtype=np.int64).reshape(height, width)
     ia, ib, ic, id_ = (index[s] for s in corners.values())
-    parts = []
-    for keep, (p, q, r) in (
-        (t_abc & ~use_ad, (ia, ic, ib)), (t_bcd & ~use_ad, (ib, ic, id_)),
-        (t_abd & use_ad, (ia, id_, ib)), (t_acd & use_ad, (ia, ic, id_)),
+    inside = m["a"] & m["b"] & m["c"] & m["d"]
+    parts, missing = [], []
+    for exists, chosen, (p, q, r) in (
+        (t_abc, ~use_ad, (ia, ic, ib)), (t_bcd, ~use_ad, (ib, ic, id_)),
+        (t_abd, use_ad, (ia, id_, ib)), (t_acd, use_ad, (ia, ic, id_)),
     ):
-        parts.append(np.stack([p[keep], q[keep], r[keep]], axis=1))
-    return np.concatenate(parts, axis=0)
+        for keep, out in ((exists & chosen, parts), (~exists & chosen & inside, missing)):
+            out.append(np.stack([p[keep], q[keep], r[keep]], axis=1))
+    return np.concatenate(parts, axis=0), np.concatenate(missing, axis=0)
+
+
+def _skirt_triangles(depth: np.ndarray, missing: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Triangles closing the cracks of cut quads, and the depths (HW,) of the moved-back vertices.
+
+    ``missing`` (M, 3) triangles of flat pixel indices left out at depth jumps. In each, the
+    corners nearer than its farthest corner by more than 1 % of the depth become vertex
+    ``HW + p`` (pixel p at depth ``far_depth[p]``, the largest far depth of its skirts).
+    """
+    n = depth.size
+    z = depth.ravel()[missing]  # (M, 3)
+    far = z.max(axis=1, keepdims=True)
+    near = z < far * 0.99
+    far_depth = depth.ravel().copy()
+    np.maximum.at(far_depth, missing[near], np.broadcast_to(far, z.shape)[near])
+    return np.where(near, missing + n, missing), far_depth
 
 
 def _drop_bowties(tri: np.ndarray, n_vertices: int) -> np.ndarray:
@@ -373,7 +409,7 @@ def printable_solid(source, *, size_mm: float = 120.0, base_mm: float = 4.0, pie
                               "in the reference camera frame as refinement_to_mesh returns it")
         tri = _drop_bowties(_orient_toward_camera(positions, tri), len(positions))
     else:
-        mesh = refinement_to_mesh(source, max_depth_jump=max_depth_jump, max_triangles=max_triangles)
+        mesh = refinement_to_mesh(source, max_depth_jump=max_depth_jump, max_triangles=max_triangles, skirts=False)
         positions, tri = mesh_arrays(mesh)[:2]
         positions = positions.astype(np.float64)
         if max_triangles is not None:
