@@ -291,7 +291,7 @@ def test_failed_write_leaves_no_output(holed, tmp_path, monkeypatch):
     def broken(*args, **kwargs):
         raise RuntimeError("disk full")
 
-    monkeypatch.setattr(export, "_write_obj", broken)
+    monkeypatch.setattr(export.writers, "write_obj", broken)
     with pytest.raises(RuntimeError, match="disk full"):
         write_mesh(mesh, tmp_path / "scan.obj")
     assert list(tmp_path.iterdir()) == []  # neither the texture, the .mtl nor temporary files
