@@ -18,7 +18,7 @@ from .colour import srgb_to_linear
 from .errors import CaptureError
 from .model.camera import as_intrinsic_matrix
 from .model.resampling import resample_valid
-from .model.sensor import check_depth_unit, scale_factor as choose_scale_factor
+from .model.sensor import check_depth_unit, choose_scale_factor
 from .solver.driver import refine
 from .solver.options import RefineOptions
 

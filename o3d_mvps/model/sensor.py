@@ -14,7 +14,7 @@ from ..errors import CaptureError
 DEPTH_RANGE_M = (0.05, 20.0)
 
 
-def scale_factor(colour_size: tuple[int, int], depth_size: tuple[int, int], requested: int | None = None, *,
+def choose_scale_factor(colour_size: tuple[int, int], depth_size: tuple[int, int], requested: int | None = None, *,
                  exact: bool = False) -> int:
     """The super-resolution factor SF for colour (H, W) and depth (h, w) sizes.
 
