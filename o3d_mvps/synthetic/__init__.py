@@ -1,6 +1,7 @@
 """Synthetic captures: a mesh rendered by ray casting under an LED that moves with the camera.
 
-The benchmark protocol of the paper's experiments (Sec. 5; README "Benchmarks"). Conventions (all lengths in metres):
+The benchmark protocol of the paper's synthetic experiments (Sec. 5.1; README "Results").
+Conventions (all lengths in metres):
 
 - Reference camera (frame 0) at the origin, looking along +z, x right, y down (OpenCV /
   Open3D). The mesh (assumed y-up, Stanford style) is turned upright (180 degrees about x, so
