@@ -256,3 +256,47 @@ def test_depth_envelope_bounds_each_pixel_by_the_sensor_depths_around_it():
     lower2, upper2 = depth_envelope(z0, (2, 2), margin=0.0)
     np.testing.assert_allclose(lower2, 0.5)
     np.testing.assert_allclose(upper2, 0.6)
+
+
+def test_block_average_and_valid_resampling_agree_on_full_blocks():
+    from o3d_mvps.model.resampling import block_average, resample_valid
+
+    rng = np.random.default_rng(1)
+    depth = rng.uniform(0.5, 0.7, size=(8, 12))
+    depth[0, 0] = 0.0  # one missing pixel in the first 4 x 4 block
+    blocks = depth.reshape(2, 4, 3, 4).mean(axis=(1, 3))
+    np.testing.assert_allclose(block_average(depth, 4), blocks, rtol=1e-12)
+    strict, ok_strict = resample_valid(depth, depth > 0, (2, 3), min_valid_fraction=1.0)
+    lenient, ok_lenient = resample_valid(depth, depth > 0, (2, 3), min_valid_fraction=1e-6)
+    assert not ok_strict[0, 0] and strict[0, 0] == 0.0 and ok_strict.sum() == 5  # a sensor drops mixed blocks
+    np.testing.assert_allclose(strict[ok_strict], blocks[ok_strict], rtol=1e-12)
+    assert ok_lenient.all()
+    np.testing.assert_allclose(lenient[0, 0], depth[:4, :4].sum() / 15, rtol=1e-12)  # mean of the 15 valid pixels
+
+
+def test_fill_nearest_valid_copies_the_nearest_valid_pixel():
+    from o3d_mvps.model.resampling import fill_nearest_valid
+
+    image = np.zeros((5, 7, 2))
+    image[1, 1], image[3, 6] = (1.0, 2.0), (3.0, 4.0)
+    filled = fill_nearest_valid(image, image[..., 0] > 0)
+    np.testing.assert_array_equal(filled[0, 0], (1.0, 2.0))
+    np.testing.assert_array_equal(filled[4, 5], (3.0, 4.0))
+    np.testing.assert_array_equal(fill_nearest_valid(image, np.zeros((5, 7), bool)), image)  # nothing to copy from
+
+
+def test_scale_factor_rule_of_native_and_registered_depth():
+    from o3d_mvps.errors import CaptureError
+    from o3d_mvps.model.sensor import check_depth_unit, choose_scale_factor
+
+    assert choose_scale_factor((720, 1280), (480, 848)) == 2   # RealSense: depth registered onto 640x360
+    assert choose_scale_factor((720, 1280), (360, 640)) == 2
+    assert choose_scale_factor((240, 320), (240, 320)) == 1
+    assert choose_scale_factor((240, 320), (240, 320), 4, exact=True) == 4  # colour-resolution depth, averaged
+    with pytest.raises(CaptureError, match="SF 4 here"):
+        choose_scale_factor((240, 320), (60, 79), exact=True)
+    with pytest.raises(CaptureError, match="not divisible by scale_factor 7"):
+        choose_scale_factor((240, 320), (60, 80), 7)
+    check_depth_unit(np.array([0.0, 0.6, 0.61]), "frame 0", "fix it")
+    with pytest.raises(CaptureError, match="frame 0 has a median depth of 605 m.*fix it"):
+        check_depth_unit(np.array([0.0, 600.0, 610.0]), "frame 0", "fix it")
