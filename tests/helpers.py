@@ -1,4 +1,5 @@
-"""Helpers shared by the test files: perturbed starts for the solver and an analytic scene.
+"""Helpers shared by the test files: a small solver problem, perturbed starts for the solver,
+finite-difference checks and an analytic scene.
 
 The analytic scene is rendered here from closed-form geometry with the model's own shading
 (:mod:`o3d_mvps.model.shading`), without :mod:`o3d_mvps.synthetic`, so a solver test on it does
@@ -11,12 +12,19 @@ import dataclasses
 
 import numpy as np
 import open3d as o3d
+import pytest
 
 from o3d_mvps.capture import Capture, GroundTruth, default_depth_intrinsic, image_from_array
 from o3d_mvps.model import se3
-from o3d_mvps.model.camera import backproject
+from o3d_mvps.metrics import reprojection_error_px
+from o3d_mvps.model.camera import backproject, pixel_grid
+from o3d_mvps.model.normals import masked_grid
 from o3d_mvps.model.resampling import block_average
 from o3d_mvps.model.shading import led_vectors
+from o3d_mvps.model.warping import image_gradients
+from o3d_mvps.solver.pose import update_pose
+from o3d_mvps.solver.problem import Estimate, LevelProblem
+from o3d_mvps.solver.pyramid import Level, depth_prior
 
 #: LED offset error handed to the solver by accuracy tests (metres, camera frame): 1.5 cm off.
 LED_OFFSET_ERROR = np.array([0.012, -0.009, 0.0])
@@ -37,6 +45,67 @@ def kicked_poses(poses: np.ndarray, seed: int = 2, metres: float = 0.003, degree
         kick = np.concatenate([rng.normal(0, metres, 3), np.radians(rng.normal(0, degrees, 3))])
         start[i] = se3.exp(kick) @ start[i]
     return start
+
+
+# ------------------------------------------------------------------------------------------
+# A small level problem on a bump (K, SIZE) for derivative checks
+# ------------------------------------------------------------------------------------------
+K = np.array([[120.0, 0, 31.5], [0, 120.0, 23.5], [0, 0, 1]])
+SIZE = (48, 64)
+
+
+def bump_depth(size=SIZE, K=K, depth=0.6, height=0.04):
+    u, v = pixel_grid(*size)
+    x, y = (u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1]
+    return depth - height * np.exp(-(x**2 + y**2) / 0.02)
+
+
+def smooth_image(size=SIZE):
+    u, v = pixel_grid(*size)
+    return np.stack([0.5 + 0.3 * np.sin(u / 7.0) * np.cos(v / 9.0), 0.4 + 0.2 * np.cos(u / 5.0 + v / 11.0),
+                     0.5 + 0.25 * np.sin((u + v) / 8.0)], -1).astype(np.float64)
+
+
+def make_problem(n_frames=2, tau=1.0):
+    z = bump_depth()
+    mask = np.zeros(SIZE, bool)
+    mask[6:-6, 8:-8] = True
+    grid = masked_grid(mask)
+    images = [smooth_image() for _ in range(n_frames)]
+    gradients = [np.stack(image_gradients(img)) for img in images]
+    z0 = z.reshape(SIZE[0] // 2, 2, SIZE[1] // 2, 2).mean(axis=(1, 3))
+    level = Level(0, grid, K, SIZE, images, gradients, [None] * n_frames, depth_prior(grid, z0, 2.0))
+    problem = LevelProblem(level, tau, 0.04)
+    rng = np.random.default_rng(1)
+    poses = np.stack([np.eye(4)] + [se3.exp([0.01, -0.005, 0.002, 0.01, -0.02, 0.005])] * (n_frames - 1))
+    lights = np.array([[0.2, 0.1, -0.1, -1.0], [0.1, -0.2, 0.05, -0.9]])[:n_frames]
+    est = Estimate(grid.gather(z) + rng.normal(0, 1e-3, grid.size), 0.5 + 0.1 * rng.random((grid.size, 3)), lights,
+                   poses)
+    return problem, est
+
+
+def assert_gradient_at_random_pixels(energy, grad, z, rng, count=25, h=1e-7):
+    """Central differences of ``energy`` at ``count`` random entries of z match ``grad``."""
+    for k in rng.choice(z.size, count, replace=False):
+        d = np.zeros(z.size)
+        d[k] = h
+        fd = (energy(z + d) - energy(z - d)) / (2 * h)
+        assert fd == pytest.approx(grad[k], rel=1e-4, abs=1e-6 * np.abs(grad).max())
+
+
+def perturb_and_refine_poses(problem, est, true_poses, points, normals, seed=7):
+    """Kick frames 1.. of ``est`` off the true poses (~2 mm, ~0.25 deg) and refine each with the
+    pose step; returns the reprojection errors (px) before and after, each (n - 1,)."""
+    rng = np.random.default_rng(seed)
+    before, after = [], []
+    K = problem.level.K
+    for i in range(1, problem.n_frames):
+        kick = np.concatenate([rng.normal(0, 0.002, 3), np.radians(rng.normal(0, 0.25, 3))])
+        est.poses[i] = se3.exp(kick) @ true_poses[i]
+        before.append(reprojection_error_px(est.poses[i], true_poses[i], points, K))
+        refined = update_pose(problem, est, i, points, normals, iterations=10)
+        after.append(reprojection_error_px(refined, true_poses[i], points, K))
+    return np.array(before), np.array(after)
 
 
 # ------------------------------------------------------------------------------------------

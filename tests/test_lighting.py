@@ -8,8 +8,7 @@ import numpy as np
 import pytest
 
 # pytest puts tests/ (no __init__.py) on sys.path, so the model tests' helpers import directly
-from test_model import K, assert_gradient_at_random_pixels, make_problem
-from test_solver import perturb_and_refine_poses
+from helpers import K, assert_gradient_at_random_pixels, make_problem, perturb_and_refine_poses
 
 from o3d_mvps import RefineOptions, refine
 from o3d_mvps.errors import CaptureError

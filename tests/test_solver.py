@@ -10,14 +10,12 @@ from o3d_mvps import RefineOptions, read_refinement, refine, write_capture
 from o3d_mvps.capture import image_from_array
 from o3d_mvps.cli import main
 from o3d_mvps.errors import CaptureError
-from o3d_mvps.metrics import evaluate, reprojection_error_px
-from o3d_mvps.model import se3
-from o3d_mvps.solver.pose import update_pose
+from o3d_mvps.metrics import evaluate
 from o3d_mvps.solver.problem import Estimate, LevelProblem
 from o3d_mvps.solver.pyramid import build_level
 from o3d_mvps.synthetic import render_capture
 
-from helpers import kicked_poses, with_led_offset_error
+from helpers import kicked_poses, perturb_and_refine_poses, with_led_offset_error
 
 FAST = dict(progress=False, levels=4, max_iterations=4)
 
@@ -85,21 +83,6 @@ def test_energy_never_increases_within_a_level(name, request):
         e = np.array(energies)
         assert np.all(np.diff(e) <= 1e-5 * e[:-1]), energies
         assert e[-1] < e[0]
-
-
-def perturb_and_refine_poses(problem, est, true_poses, points, normals, seed=7):
-    """Kick frames 1.. of ``est`` off the true poses (~2 mm, ~0.25 deg) and refine each with the
-    pose step; returns the reprojection errors (px) before and after, each (n - 1,)."""
-    rng = np.random.default_rng(seed)
-    before, after = [], []
-    K = problem.level.K
-    for i in range(1, problem.n_frames):
-        kick = np.concatenate([rng.normal(0, 0.002, 3), np.radians(rng.normal(0, 0.25, 3))])
-        est.poses[i] = se3.exp(kick) @ true_poses[i]
-        before.append(reprojection_error_px(est.poses[i], true_poses[i], points, K))
-        refined = update_pose(problem, est, i, points, normals, iterations=10)
-        after.append(reprojection_error_px(refined, true_poses[i], points, K))
-    return np.array(before), np.array(after)
 
 
 def test_pose_gauss_newton_recovers_perturbed_poses_under_an_exact_model():
