@@ -1,4 +1,9 @@
-"""Wavefront OBJ text, formatted with vectorised numpy (Open3D's writer is 3.5x slower on the demo mesh)."""
+"""Wavefront OBJ text, formatted with vectorised numpy.
+
+Open3D 0.20's ``o3d.t.io.write_triangle_mesh`` keeps the albedo texture too, but is much
+slower: 0.41 s against 0.12 s for the demo mesh (44k triangles; trimesh 0.48 s) and 45 s
+against 5.6 s for a 1280x720 relief (1.8M triangles), measured on a busy 2-core machine.
+"""
 
 from __future__ import annotations
 
@@ -9,7 +14,7 @@ import numpy as np
 from .topology import unique
 
 # OBJ text is formatted with vectorised numpy (a character table per block of rows): a
-# formatted Python string per record takes ~10 s for a 1280x720 mesh, this well under 2 s.
+# formatted Python string per record takes several times longer.
 _ROWS_PER_BLOCK = 1 << 17
 
 
