@@ -29,12 +29,13 @@ def refinement_to_mesh(refinement, *, max_depth_jump: float | None = DEFAULT_MAX
     triangle fans ("bow-ties") lose their triangles, so the relief is edge- and
     vertex-manifold, and all triangles face the camera.
 
-    Cutting a quad at a depth jump leaves a crack, up to one pixel wide, through which the
-    reference camera would see the background. With ``skirts`` the far surface is extended
-    under the near edge to close it: the missing triangles of a cut quad are added with their
-    near corners moved back along their camera rays to the quad's far depth (extra vertices).
+    Cutting a quad at a depth jump (or dropping a bow-tie's triangles) leaves a crack, up to one
+    pixel wide, through which the reference camera would see the background. With ``skirts``
+    the far surface is extended under the near edge to close it: the missing triangles of a cut
+    quad are added with their near corners moved back along their camera rays to the quad's far
+    depth (extra vertices), and dropped bow-tie triangles are put back.
     Seen from the reference camera the mesh then covers every quad of the mask, and still no
-    triangle joins the near and the far surface. A skirt can touch the relief at a single far
+    triangle joins the near and the far surface. A skirt can touch the relief at a single
     vertex (not vertex-manifold there); :func:`printable_solid`, which needs a manifold relief,
     meshes without skirts.
 
@@ -86,7 +87,8 @@ def refinement_to_mesh(refinement, *, max_depth_jump: float | None = DEFAULT_MAX
         raise ExportError("the refinement's mask is empty (no pixel with positive depth); nothing to mesh")
 
     tri, missing = _grid_triangles(depth, mask, K, max_depth_jump)
-    tri = drop_bowties(tri, height * width)
+    keep = drop_bowties(tri, height * width)
+    tri, missing = tri[keep], np.concatenate([missing, tri[~keep]])  # skirts also fill bow-tie gaps
     vertex_depth = depth.ravel()
     if skirts and missing.size and len(tri):
         skirt, far_depth = _skirt_triangles(depth, missing)
@@ -200,23 +202,26 @@ def _skirt_triangles(depth: np.ndarray, missing: np.ndarray) -> tuple[np.ndarray
 
 
 def drop_bowties(tri: np.ndarray, n_vertices: int) -> np.ndarray:
-    """Remove the triangles around vertices where separate triangle fans meet.
+    """Which triangles (T,) bool to keep so that no vertex joins separate triangle fans.
 
     For a triangulation embedded in the image plane, the link of vertex p (the edges opposite
     p) has L(p) vertices (distinct neighbours) and T(p) edges (incident triangles); it is one
-    path or one cycle, i.e. p is manifold, exactly when ``L(p) - T(p) <= 1``. Repeats until no
-    such vertex is left (each pass only removes triangles, so it terminates).
+    path or one cycle, i.e. p is manifold, exactly when ``L(p) - T(p) <= 1``. The triangles
+    around other vertices are dropped, repeatedly until none is left (each pass only drops
+    triangles, so it terminates).
     """
-    while len(tri):
-        edges = np.sort(tri[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    keep = np.ones(len(tri), dtype=bool)
+    while keep.any():
+        kept = tri[keep]
+        edges = np.sort(kept[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
         keys = unique(edges[:, 0] * n_vertices + edges[:, 1])[0]
         link = np.bincount(keys // n_vertices, minlength=n_vertices) + np.bincount(keys % n_vertices, minlength=n_vertices)
-        fans = link - np.bincount(tri.ravel(), minlength=n_vertices)
+        fans = link - np.bincount(kept.ravel(), minlength=n_vertices)
         bad = fans >= 2
         if not bad.any():
             break
-        tri = tri[~bad[tri].any(axis=1)]
-    return tri
+        keep[np.flatnonzero(keep)[bad[kept].any(axis=1)]] = False
+    return keep
 
 
 def compact_vertices(tri: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

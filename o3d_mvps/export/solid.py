@@ -39,7 +39,7 @@ def printable_solid(source, *, size_mm: float = 120.0, base_mm: float = 4.0, pie
     ----------
     source : Refinement or o3d.t.geometry.TriangleMesh or o3d.geometry.TriangleMesh
         A refinement, or a relief mesh in the reference camera frame (every z > 0, each camera
-        ray crossing it at most once, as for the meshes of :func:`refinement_to_mesh`).
+        ray crossing it at most once, as for the meshes of ``refinement_to_mesh(..., skirts=False)``).
     size_mm : float
         Largest bounding-box extent of the solid, millimetres.
     base_mm : float
@@ -79,13 +79,15 @@ def printable_solid(source, *, size_mm: float = 120.0, base_mm: float = 4.0, pie
         if not np.all(positions[:, 2] > 0):
             raise ExportError("the relief mesh must lie in front of the camera (every z > 0), "
                               "in the reference camera frame as refinement_to_mesh returns it")
-        tri = drop_bowties(_orient_toward_camera(positions, tri), len(positions))
+        tri = _orient_toward_camera(positions, tri)
+        tri = tri[drop_bowties(tri, len(positions))]
     else:
         mesh = refinement_to_mesh(source, max_depth_jump=max_depth_jump, max_triangles=max_triangles, skirts=False)
         positions, tri = mesh_arrays(mesh)[:2]
         positions = positions.astype(np.float64)
         if max_triangles is not None:
-            tri = drop_bowties(_orient_toward_camera(positions, tri), len(positions))
+            tri = _orient_toward_camera(positions, tri)
+            tri = tri[drop_bowties(tri, len(positions))]
     if len(tri) == 0:
         raise ExportError("no triangle is left after removing non-manifold vertices; nothing to close into a solid")
     tri = _select_pieces(positions, tri, pieces)
