@@ -1,4 +1,4 @@
-"""Baselines for depth super-resolution (DESIGN section 5): bicubic and guided-filter upsampling.
+"""Baselines for depth super-resolution: bicubic and guided-filter upsampling (paper Sec. 5.1; README "Results").
 
 Both upsample the reference frame's low-resolution depth (h x w, metres, 0 = missing) to the
 colour grid (H x W = SF h x SF w) and return a :class:`~o3d_mvps.refinement.Refinement`
@@ -23,9 +23,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import scipy.sparse as sp
-from scipy import ndimage
 
 from .errors import CaptureError
+from .model.resampling import block_average, fill_nearest_valid
 from .refinement import Refinement
 
 #: Rec. 709 luminance weights of linear RGB, for the guided filter's grey guide.
@@ -84,31 +84,6 @@ def upsample_bicubic(image: np.ndarray, factor: int) -> np.ndarray:
     return np.asarray((cols @ (rows @ image).T).T)
 
 
-def fill_missing_nearest(image: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
-    """Copy of an (h, w) array with every invalid pixel replaced by the nearest valid one.
-
-    ``valid`` (h, w) bool defaults to ``image > 0`` (depth, 0 = missing). Raises CaptureError
-    when no pixel is valid.
-    """
-    valid = image > 0 if valid is None else np.asarray(valid, dtype=bool)
-    if not valid.any():
-        raise CaptureError(
-            "the reference frame has no valid depth (all zeros); check depth_scale / depth_trunc or "
-            "choose another reference frame"
-        )
-    if valid.all():
-        return image.copy()
-    _, (iv, iu) = ndimage.distance_transform_edt(~valid, return_indices=True)
-    return image[iv, iu]
-
-
-def area_average(image: np.ndarray, factor: int) -> np.ndarray:
-    """Mean over factor x factor blocks of an (H, W, ...) array; H and W multiples of factor."""
-    H, W = image.shape[:2]
-    blocks = image.reshape(H // factor, factor, W // factor, factor, *image.shape[2:])
-    return blocks.mean(axis=(1, 3))
-
-
 def _reference(capture) -> tuple[np.ndarray, np.ndarray, int]:
     """(bicubic depth (H, W) float64 metres, mask (H, W) bool, SF) of the reference frame."""
     depth_lr = capture.depth_array(0).astype(np.float64)
@@ -119,7 +94,12 @@ def _reference(capture) -> tuple[np.ndarray, np.ndarray, int]:
             f"colour {W}x{H} is not an integer multiple of depth {depth_lr.shape[1]}x{depth_lr.shape[0]}; "
             "crop the colour frames to SF times the depth size"
         )
-    depth = upsample_bicubic(fill_missing_nearest(depth_lr), sf)
+    if not (depth_lr > 0).any():
+        raise CaptureError(
+            "the reference frame has no valid depth (all zeros); check depth_scale / depth_trunc or "
+            "choose another reference frame"
+        )
+    depth = upsample_bicubic(fill_nearest_valid(depth_lr, depth_lr > 0), sf)
     mask = capture.mask_array(0)
     if mask is None:  # the depth sensor's coverage, each LR pixel covering its SF x SF block
         mask = np.kron(depth_lr > 0, np.ones((sf, sf), dtype=bool))
@@ -243,11 +223,11 @@ def guided(capture, radius: int = 1, eps: float = 0.3) -> Refinement:
     depth_lr = capture.depth_array(0).astype(np.float64)
     _, mask, sf = _reference(capture)
     guide = capture.color_array(0).astype(np.float64) @ LUMINANCE
-    guide_lr = area_average(guide, sf)
+    guide_lr = block_average(guide, sf)
     valid_lr = depth_lr > 0
     eps_abs = eps * max(float(np.var(guide[mask])) if mask.any() else 0.0, 1e-12)
     A, B, covered = guided_coefficients(guide_lr, depth_lr, valid_lr, int(radius), eps_abs)
-    A = upsample_bicubic(fill_missing_nearest(A, covered), sf)
-    B = upsample_bicubic(fill_missing_nearest(B, covered), sf)
+    A = upsample_bicubic(fill_nearest_valid(A, covered), sf)
+    B = upsample_bicubic(fill_nearest_valid(B, covered), sf)
     depth = A * guide + B
     return Refinement.from_arrays(depth, mask & (depth > 0), capture.color_K(), method="guided", albedo=None)

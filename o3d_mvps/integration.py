@@ -13,17 +13,12 @@ from __future__ import annotations
 import numpy as np
 import open3d as o3d
 
-from .baselines import area_average
-from .capture import (
-    DEPTH_RANGE_M,
-    Capture,
-    default_depth_intrinsic,
-    image_from_array,
-    validate_capture,
-)
+from .capture import Capture, default_depth_intrinsic, image_from_array, validate_capture
 from .colour import srgb_to_linear
 from .errors import CaptureError
 from .model.camera import as_intrinsic_matrix
+from .model.resampling import resample_valid
+from .model.sensor import check_depth_unit, choose_scale_factor
 from .solver.driver import refine
 from .solver.options import RefineOptions
 
@@ -141,13 +136,14 @@ def capture_from_rgbd(rgbd_images, intrinsic, *, scale_factor: int | None = None
     H, W = _common_size(colour, "colour")
     h, w = _common_size(depth, "depth")
     _check_intrinsic_size(intrinsic, (H, W))
-    sf = _scale_factor((H, W), (h, w), scale_factor)
+    sf = choose_scale_factor((H, W), (h, w), scale_factor, exact=True)
     if not (np.isfinite(depth_scale) and depth_scale > 0):
         raise CaptureError(f"depth_scale {depth_scale!r} must be a positive number (1000 for millimetres)")
 
     depth_m = [_depth_metres(d, depth_scale, i) for i, d in enumerate(depth)]
     if (h, w) == (H, W) and sf > 1:
-        depth_m = [_valid_area_average(d, sf) for d in depth_m]
+        # a block keeps the mean of its valid pixels (any one suffices)
+        depth_m = [resample_valid(d, d > 0, (h // sf, w // sf), min_valid_fraction=1e-6)[0] for d in depth_m]
     capture = Capture(
         color=[image_from_array(_linear_colour(c, i)) for i, c in enumerate(colour)],
         depth=[image_from_array(d.astype(np.float32)[..., None]) for d in depth_m],
@@ -220,28 +216,6 @@ def _common_size(arrays, kind: str) -> tuple[int, int]:
     return first
 
 
-def _scale_factor(colour_size, depth_size, scale_factor) -> int:
-    (H, W), (h, w) = colour_size, depth_size
-    if scale_factor is not None and (int(scale_factor) != scale_factor or scale_factor < 1):
-        raise CaptureError(f"scale_factor {scale_factor!r} must be an integer >= 1 (2, 4 or 8)")
-    if (h, w) == (H, W):
-        sf = 1 if scale_factor is None else int(scale_factor)
-        if H % sf or W % sf:
-            raise CaptureError(f"colour {W}x{H} is not divisible by scale_factor {sf}; crop the frames to a multiple")
-        return sf
-    if h == 0 or w == 0 or H % h or W % w or H // h != W // w:
-        raise CaptureError(
-            f"depth is {w}x{h} but colour is {W}x{H} (WxH): depth must be at colour resolution or colour an integer "
-            "multiple SF of it in both directions (W = SF*w, H = SF*h); crop or resample one of them"
-        )
-    if scale_factor is not None and int(scale_factor) != H // h:
-        raise CaptureError(
-            f"scale_factor {scale_factor} does not match the sizes: colour {W}x{H} / depth {w}x{h} is {H // h}; "
-            "omit scale_factor for native-resolution depth"
-        )
-    return H // h
-
-
 def _depth_metres(depth: np.ndarray, depth_scale: float, i: int) -> np.ndarray:
     """(h, w) float64 metres of a uint16 (units 1/depth_scale m) or float (metres) depth image."""
     d = depth[..., 0] if depth.ndim == 3 and depth.shape[2] == 1 else depth
@@ -257,21 +231,8 @@ def _depth_metres(depth: np.ndarray, depth_scale: float, i: int) -> np.ndarray:
         raise CaptureError(f"depth of rgbd_images[{i}] is {d.dtype}; use uint16 (with depth_scale) or float32 metres")
     if not np.all(np.isfinite(z)) or (z < 0).any():
         raise CaptureError(f"depth of rgbd_images[{i}] has NaN, inf or negative values; use 0 for no measurement")
-    valid = z[z > 0]
-    lo, hi = DEPTH_RANGE_M
-    if valid.size and not lo <= float(np.median(valid)) <= hi:
-        raise CaptureError(
-            f"depth of rgbd_images[{i}] ({unit}) has a median of {np.median(valid):.4g} m, outside {lo:g}-{hi:g} m, "
-            f"so its unit looks wrong: {fix}"
-        )
+    check_depth_unit(z, f"depth of rgbd_images[{i}] ({unit})", fix)
     return z
-
-
-def _valid_area_average(depth: np.ndarray, sf: int) -> np.ndarray:
-    """(H/sf, W/sf) mean of each sf x sf block over its valid (> 0) pixels; 0 for blocks without any."""
-    valid = (depth > 0).astype(np.float64)
-    total, fraction = area_average(depth, sf), area_average(valid, sf)
-    return np.where(fraction > 0, total / np.maximum(fraction, 1e-12), 0.0)
 
 
 def _linear_colour(colour: np.ndarray, i: int) -> np.ndarray:

@@ -64,11 +64,12 @@ def render_preview(mesh, path, *, size: tuple[int, int] = (800, 600), view: str 
     if width < 16 or height < 16:
         raise ExportError(f"preview size must be at least 16 x 16 pixels, got {size}")
     path = Path(path)
-    positions, tri, _, colours, uvs, texture = mesh_arrays(mesh)
+    positions, tri, normals, colours, uvs, texture = mesh_arrays(mesh)
     if len(tri) == 0:
         raise ExportError("the mesh has no triangles; nothing to render")
 
-    if uvs is not None and texture is not None:
+    textured = uvs is not None and texture is not None
+    if textured:
         # VTK wants texture coordinates per point: give every triangle corner its own point.
         points = positions[tri].reshape(-1, 3)
         faces = np.arange(points.shape[0]).reshape(-1, 3)
@@ -82,7 +83,12 @@ def render_preview(mesh, path, *, size: tuple[int, int] = (800, 600), view: str 
             mesh_kwargs = {"scalars": "rgb", "rgb": True}
         else:
             mesh_kwargs = {"color": "lightgray"}
-    poly = poly.compute_normals(auto_orient_normals=False, consistent_normals=False, split_vertices=False)
+    if normals is not None:  # the mesh's own (photometric) normals, per VTK point
+        poly.point_data["Normals"] = np.asarray(normals, dtype=np.float32)[tri].reshape(-1, 3) if textured \
+            else np.asarray(normals, dtype=np.float32)
+        poly.point_data.active_normals_name = "Normals"
+    else:  # per-triangle normals would show every facet: average them per vertex
+        poly = poly.compute_normals(auto_orient_normals=False, consistent_normals=False, split_vertices=False)
 
     plotter = pv.Plotter(off_screen=True, window_size=(width, height))
     try:

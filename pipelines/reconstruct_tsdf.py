@@ -39,7 +39,7 @@ from o3d_mvps.integration import capture_from_rgbd
 from o3d_mvps.model.camera import transform
 from o3d_mvps.synthetic import (
     DEPTH_SCALE,
-    _rng,
+    random_stream,
     build_scene,
     make_light,
     quantise_srgb8,
@@ -86,7 +86,7 @@ def render_ring(args):
     scene = build_scene(args.mesh, size=args.size, seed=args.seed)
     poses = ring_trajectory(args.ring_frames, scene.distance, args.elevation)
     light = make_light("led", scene.distance)
-    color_rng, depth_rng = _rng(args.seed, "color"), _rng(args.seed, "depth")
+    color_rng, depth_rng = random_stream(args.seed, "color"), random_stream(args.seed, "depth")
     images, masks, renders = [], [], []
     for pose in poses:
         frame = render_frame(scene, pose, light)

@@ -5,7 +5,8 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from o3d_mvps.baselines import area_average, bicubic, guided, upsample_bicubic
+from o3d_mvps.baselines import bicubic, guided, upsample_bicubic
+from o3d_mvps.model.resampling import block_average
 from o3d_mvps.capture import Capture, default_depth_intrinsic, image_from_array
 from o3d_mvps.errors import CaptureError
 from o3d_mvps.model.camera import pixel_grid
@@ -116,7 +117,7 @@ def test_guided_sharpens_a_depth_step_aligned_with_a_colour_edge():
     color = np.repeat(np.where(x < edge, 0.2, 0.7)[..., None], 3, axis=2)
     rng = np.random.default_rng(1)
     color += rng.normal(0, 0.005, color.shape)  # a little sensor noise
-    capture = make_capture(area_average(depth_hr, SF), color)
+    capture = make_capture(block_average(depth_hr, SF), color)
     near = np.abs(x + 0.5 - edge) <= 2 * SF  # within two LR pixels of the edge
 
     def edge_error(refinement):

@@ -18,7 +18,7 @@ import pytest
 import scipy.linalg
 
 # pytest puts tests/ (no __init__.py) on sys.path, so the model tests' helpers import directly
-from test_model import SIZE, K, bump_depth, make_problem
+from helpers import SIZE, K, bump_depth, make_problem
 from threadpoolctl import threadpool_limits
 
 from o3d_mvps import RefineOptions

@@ -16,18 +16,8 @@ from o3d_mvps.model.shading import sh_basis, shading
 from o3d_mvps.model.warping import sample_bilinear, visible, warp
 from o3d_mvps.solver.normal_equations import joint_system
 from o3d_mvps.solver.pose import pose_jacobian
-from o3d_mvps.solver.problem import Estimate, LevelProblem
-from o3d_mvps.solver.pyramid import Level, depth_prior
 
-K = np.array([[120.0, 0, 31.5], [0, 120.0, 23.5], [0, 0, 1]])
-SIZE = (48, 64)
-
-
-def bump_depth(size=SIZE, K=K, depth=0.6, height=0.04):
-    u, v = pixel_grid(*size)
-    x, y = (u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1]
-    return depth - height * np.exp(-(x**2 + y**2) / 0.02)
-
+from helpers import SIZE, K, assert_gradient_at_random_pixels, bump_depth, make_problem
 
 def test_se3_round_trip_and_composition(rng):
     for _ in range(20):
@@ -153,32 +143,6 @@ def test_warp_with_identity_and_occlusion_test():
     assert not visible(u, v, Z, SIZE, sensor_depth=sensor, sensor_uv=(su, sv)).any()
 
 
-def smooth_image(size=SIZE):
-    u, v = pixel_grid(*size)
-    return np.stack([0.5 + 0.3 * np.sin(u / 7.0) * np.cos(v / 9.0), 0.4 + 0.2 * np.cos(u / 5.0 + v / 11.0),
-                     0.5 + 0.25 * np.sin((u + v) / 8.0)], -1).astype(np.float64)
-
-
-def make_problem(n_frames=2, tau=1.0):
-    from o3d_mvps.model.warping import image_gradients
-
-    z = bump_depth()
-    mask = np.zeros(SIZE, bool)
-    mask[6:-6, 8:-8] = True
-    grid = masked_grid(mask)
-    images = [smooth_image() for _ in range(n_frames)]
-    gradients = [np.stack(image_gradients(img)) for img in images]
-    z0 = z.reshape(SIZE[0] // 2, 2, SIZE[1] // 2, 2).mean(axis=(1, 3))
-    level = Level(0, grid, K, SIZE, images, gradients, [None] * n_frames, depth_prior(grid, z0, 2.0))
-    problem = LevelProblem(level, tau, 0.04)
-    rng = np.random.default_rng(1)
-    poses = np.stack([np.eye(4)] + [se3.exp([0.01, -0.005, 0.002, 0.01, -0.02, 0.005])] * (n_frames - 1))
-    lights = np.array([[0.2, 0.1, -0.1, -1.0], [0.1, -0.2, 0.05, -0.9]])[:n_frames]
-    est = Estimate(grid.gather(z) + rng.normal(0, 1e-3, grid.size), 0.5 + 0.1 * rng.random((grid.size, 3)), lights,
-                   poses)
-    return problem, est
-
-
 def test_pose_jacobian_matches_finite_differences():
     problem, est = make_problem()
     P = problem.points(est.z)
@@ -197,15 +161,6 @@ def test_pose_jacobian_matches_finite_differences():
         err = np.abs(fd[keep] - J[keep, :, k])
         scale = np.abs(fd[keep]).mean()
         assert np.median(err) < 0.05 * scale
-
-
-def assert_gradient_at_random_pixels(energy, grad, z, rng, count=25, h=1e-7):
-    """Central differences of ``energy`` at ``count`` random entries of z match ``grad``."""
-    for k in rng.choice(z.size, count, replace=False):
-        d = np.zeros(z.size)
-        d[k] = h
-        fd = (energy(z + d) - energy(z - d)) / (2 * h)
-        assert fd == pytest.approx(grad[k], rel=1e-4, abs=1e-6 * np.abs(grad).max())
 
 
 def test_depth_system_gradient_matches_finite_differences_of_the_frozen_energy():
@@ -256,3 +211,47 @@ def test_depth_envelope_bounds_each_pixel_by_the_sensor_depths_around_it():
     lower2, upper2 = depth_envelope(z0, (2, 2), margin=0.0)
     np.testing.assert_allclose(lower2, 0.5)
     np.testing.assert_allclose(upper2, 0.6)
+
+
+def test_block_average_and_valid_resampling_agree_on_full_blocks():
+    from o3d_mvps.model.resampling import block_average, resample_valid
+
+    rng = np.random.default_rng(1)
+    depth = rng.uniform(0.5, 0.7, size=(8, 12))
+    depth[0, 0] = 0.0  # one missing pixel in the first 4 x 4 block
+    blocks = depth.reshape(2, 4, 3, 4).mean(axis=(1, 3))
+    np.testing.assert_allclose(block_average(depth, 4), blocks, rtol=1e-12)
+    strict, ok_strict = resample_valid(depth, depth > 0, (2, 3), min_valid_fraction=1.0)
+    lenient, ok_lenient = resample_valid(depth, depth > 0, (2, 3), min_valid_fraction=1e-6)
+    assert not ok_strict[0, 0] and strict[0, 0] == 0.0 and ok_strict.sum() == 5  # a sensor drops mixed blocks
+    np.testing.assert_allclose(strict[ok_strict], blocks[ok_strict], rtol=1e-12)
+    assert ok_lenient.all()
+    np.testing.assert_allclose(lenient[0, 0], depth[:4, :4].sum() / 15, rtol=1e-12)  # mean of the 15 valid pixels
+
+
+def test_fill_nearest_valid_copies_the_nearest_valid_pixel():
+    from o3d_mvps.model.resampling import fill_nearest_valid
+
+    image = np.zeros((5, 7, 2))
+    image[1, 1], image[3, 6] = (1.0, 2.0), (3.0, 4.0)
+    filled = fill_nearest_valid(image, image[..., 0] > 0)
+    np.testing.assert_array_equal(filled[0, 0], (1.0, 2.0))
+    np.testing.assert_array_equal(filled[4, 5], (3.0, 4.0))
+    np.testing.assert_array_equal(fill_nearest_valid(image, np.zeros((5, 7), bool)), image)  # nothing to copy from
+
+
+def test_scale_factor_rule_of_native_and_registered_depth():
+    from o3d_mvps.errors import CaptureError
+    from o3d_mvps.model.sensor import check_depth_unit, choose_scale_factor
+
+    assert choose_scale_factor((720, 1280), (480, 848)) == 2   # RealSense: depth registered onto 640x360
+    assert choose_scale_factor((720, 1280), (360, 640)) == 2
+    assert choose_scale_factor((240, 320), (240, 320)) == 1
+    assert choose_scale_factor((240, 320), (240, 320), 4, exact=True) == 4  # colour-resolution depth, averaged
+    with pytest.raises(CaptureError, match="SF 4 here"):
+        choose_scale_factor((240, 320), (60, 79), exact=True)
+    with pytest.raises(CaptureError, match="not divisible by scale_factor 7"):
+        choose_scale_factor((240, 320), (60, 80), 7)
+    check_depth_unit(np.array([0.0, 0.6, 0.61]), "frame 0", "fix it")
+    with pytest.raises(CaptureError, match="frame 0 has a median depth of 605 m.*fix it"):
+        check_depth_unit(np.array([0.0, 600.0, 610.0]), "frame 0", "fix it")

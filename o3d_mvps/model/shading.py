@@ -1,4 +1,4 @@
-"""First-order spherical-harmonics shading (DESIGN section 2).
+"""First-order spherical-harmonics shading (paper Sec. 3.2).
 
 ``m(n) = [1, n_x, n_y, n_z]``; frame i's shading of a unit normal n is ``<l_i, m(n)>``.
 """

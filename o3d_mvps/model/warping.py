@@ -1,7 +1,7 @@
 """Warping reference pixels into other frames, bilinear sampling and the occlusion test.
 
 A reference pixel p with depth z(p) back-projects to P = pi^-1(p, z); frame i sees it at
-``w_i(p) = pi(R_i P + t_i)`` (DESIGN section 2). Pixel centres sit at integer coordinates.
+``w_i(p) = pi(R_i P + t_i)`` (paper Sec. 3.3). Pixel centres sit at integer coordinates.
 """
 
 from __future__ import annotations

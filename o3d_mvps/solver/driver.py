@@ -29,7 +29,8 @@ from .lighting import make_light_model, update_led_offset
 from .options import RefineOptions
 from .pose import update_poses
 from .problem import Estimate, LevelProblem
-from .pyramid import build_level, fill_outside, level_size, resize
+from ..model.resampling import fill_nearest_valid, resize
+from .pyramid import build_level, level_size
 from .reflectance import update_albedo, update_lighting
 
 
@@ -248,7 +249,7 @@ def _refine(capture: Capture, options: RefineOptions | None, device, initial_pos
         if g.size < 16:
             continue
         if z_full is None:
-            zl = fill_outside(z0, z0 > 0)
+            zl = fill_nearest_valid(z0, z0 > 0)
             z_full = resize(zl, level.size, interpolation=cv2.INTER_LINEAR)
             albedo_full = level.images[0].astype(np.float64)
         else:
@@ -269,8 +270,8 @@ def _refine(capture: Capture, options: RefineOptions | None, device, initial_pos
         timings["setup"] += time.perf_counter() - t
         history += _sweeps(problem, est, ev, options, timings, stats)
         lights, poses = est.lights, est.poses
-        z_full = fill_outside(g.scatter(est.z), g.mask)
-        albedo_full = fill_outside(g.scatter(est.albedo), g.mask)
+        z_full = fill_nearest_valid(g.scatter(est.z), g.mask)
+        albedo_full = fill_nearest_valid(g.scatter(est.albedo), g.mask)
 
     depth = np.where(ref_mask, z_full, 0.0)
     albedo = np.clip(np.where(ref_mask[..., None], albedo_full, 0.0), 0.0, None)

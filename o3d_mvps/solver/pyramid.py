@@ -12,11 +12,11 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-import scipy.ndimage as ndi
 import scipy.sparse as sp
 
 from ..model.camera import scale_intrinsics
 from ..model.normals import MaskedGrid, masked_grid
+from ..model.resampling import fill_nearest_valid, resample_valid, resize
 from ..model.warping import image_gradients
 
 
@@ -24,34 +24,6 @@ def level_size(size: tuple[int, int], level: int) -> tuple[int, int]:
     """(H, W) of pyramid level ``level`` for a colour size (H, W)."""
     f = 2**level
     return max(1, int(round(size[0] / f))), max(1, int(round(size[1] / f)))
-
-
-def resize(image: np.ndarray, size: tuple[int, int], interpolation=cv2.INTER_AREA) -> np.ndarray:
-    """Resize an (H, W) or (H, W, C) float image to size (H', W') (pixel-centre aligned)."""
-    if image.shape[:2] == tuple(size):
-        return image.copy()
-    out = cv2.resize(np.ascontiguousarray(image), (size[1], size[0]), interpolation=interpolation)
-    return out.reshape(size + image.shape[2:])
-
-
-def fill_outside(image: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """Copy of ``image`` (H, W[, C]) with pixels outside ``valid`` set to the nearest valid value."""
-    if valid.all() or not valid.any():
-        return image.copy()
-    _, (iv, iu) = ndi.distance_transform_edt(~valid, return_indices=True)
-    return image[iv, iu]
-
-
-def resample_valid(values: np.ndarray, valid: np.ndarray, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """Area-resample a sparse map (H, W) to ``size`` averaging valid pixels only.
-
-    Returns (values', valid') where valid' marks target pixels whose source area is at least
-    half valid.
-    """
-    weight = resize(valid.astype(np.float64), size)
-    total = resize(np.where(valid, values, 0.0).astype(np.float64), size)
-    ok = weight >= 0.5
-    return np.where(ok, total / np.maximum(weight, 1e-12), 0.0), ok
 
 
 @dataclass
@@ -105,7 +77,7 @@ def depth_envelope(z0: np.ndarray, size: tuple[int, int], margin: float) -> tupl
     run off far behind or before everything the sensor saw while its block mean stays put.
     """
     valid = z0 > 0
-    filled = fill_outside(z0.astype(np.float64), valid)
+    filled = fill_nearest_valid(z0.astype(np.float64), valid)
     h, w = z0.shape
     radius = max(1, int(np.ceil(max(h / size[0], w / size[1]))))
     kernel = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
