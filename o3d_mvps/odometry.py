@@ -346,31 +346,9 @@ def _failure_message(i: int, attempts: list[Attempt]) -> str:
 
 
 def initial_poses(capture, *, method: str = "point_to_plane", max_depth: float = 3.0, progress: bool = False) -> np.ndarray:
-    """Poses of every frame of a capture (:func:`register_frames` with ``strict=True``).
-
-    Parameters
-    ----------
-    capture : Capture
-        n >= 1 frames.
-    method : {"point_to_plane"}
-        Registration method (the chain of the module docstring).
-    max_depth : float
-        Depth at or beyond this many metres is ignored.
-    progress : bool
-        Show a tqdm progress bar over frames.
-
-    Returns
-    -------
-    (n, 4, 4) float64 array
-        ``T_i`` mapping reference-camera coordinates (metres) to frame-i camera coordinates;
-        ``T_0`` is the identity.
-
-    Raises
-    ------
-    OdometryError
-        When a frame cannot be registered (use :func:`register_frames` to drop such frames).
-    ValueError
-        On an unknown ``method``.
+    """Poses (n, 4, 4) of every frame of a capture: :func:`register_frames` with ``strict=True``
+    (same arguments), so a frame that cannot be registered raises OdometryError instead of
+    being dropped. ``method``: "point_to_plane", the only one (ValueError otherwise).
     """
     if method not in METHODS:
         raise ValueError(f"initial_poses: unknown method {method!r}; use one of {list(METHODS)}")

@@ -123,7 +123,7 @@ def test_errors(capture):
         refine_rgbd([mm_float], K)
     with pytest.raises(CaptureError, match="pass the right depth_scale"):
         refine_rgbd(good, K, depth_scale=1.0)
-    with pytest.raises(CaptureError, match="SF 2 here"):
+    with pytest.raises(CaptureError, match="SF 2 was asked for"):
         refine_rgbd(good, K, scale_factor=2)
     with pytest.raises(CaptureError, match="1 masks for 2 frames"):
         refine_rgbd(good, K, masks=[None])

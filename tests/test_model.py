@@ -248,10 +248,10 @@ def test_scale_factor_rule_of_native_and_registered_depth():
     assert choose_scale_factor((720, 1280), (360, 640)) == 2
     assert choose_scale_factor((240, 320), (240, 320)) == 1
     assert choose_scale_factor((240, 320), (240, 320), 4, exact=True) == 4  # colour-resolution depth, averaged
-    with pytest.raises(CaptureError, match="SF 4 here"):
+    with pytest.raises(CaptureError, match="SF 4 is the nearest.*register_depth"):
         choose_scale_factor((240, 320), (60, 79), exact=True)
     with pytest.raises(CaptureError, match="not divisible by scale_factor 7"):
         choose_scale_factor((240, 320), (60, 80), 7)
     check_depth_unit(np.array([0.0, 0.6, 0.61]), "frame 0", "fix it")
-    with pytest.raises(CaptureError, match="frame 0 has a median depth of 605 m.*fix it"):
+    with pytest.raises(CaptureError, match="frame 0: median depth 605 m.*fix it"):
         check_depth_unit(np.array([0.0, 600.0, 610.0]), "frame 0", "fix it")

@@ -1,10 +1,10 @@
 """Names and defaults of the capture folder format (the layout is drawn in ``o3d_mvps.capture``)."""
 
+from ..model.sensor import DEPTH_RANGE_M  # noqa: F401  (plausible median depth, m: re-exported here)
+
 COLOR_DIR, DEPTH_DIR, MASK_DIR, GROUNDTRUTH_DIR = "color", "depth", "mask", "groundtruth"
 INTRINSIC_JSON, DEPTH_INTRINSIC_JSON, CAPTURE_JSON = "intrinsic.json", "depth_intrinsic.json", "capture.json"
 COLOR_ENCODINGS = ("srgb", "linear")
-#: Plausible median depth (m); outside it the unit is almost surely wrong.
-DEPTH_RANGE_M = (0.05, 20.0)
 #: Colour frame suffixes read (.jpg: Open3D's reconstruction system writes those).
 COLOR_SUFFIXES = (".png", ".jpg", ".jpeg")
 #: Ground-truth arrays, each groundtruth/<name>.npy, besides groundtruth/light.json.

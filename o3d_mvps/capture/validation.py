@@ -8,7 +8,8 @@ import numpy as np
 
 from ..errors import CaptureError
 from ..model.camera import as_intrinsic_matrix
-from .layout import COLOR_ENCODINGS, DEPTH_RANGE_M
+from ..model.sensor import check_depth_unit, choose_scale_factor
+from .layout import COLOR_ENCODINGS
 
 if TYPE_CHECKING:
     from .types import Capture, GroundTruth
@@ -57,20 +58,10 @@ def validate_capture(capture: Capture, frame_names: list[str] | None = None) -> 
 
 
 def integer_scale_factor(color_size, depth_size) -> int:
-    """The capture's scale-factor rule: SF = H / h = W / w, an integer >= 1.
-
-    color_size (H, W) and depth_size (h, w) in pixels. Raises CaptureError otherwise: such
-    sizes mean colour and depth come from different cameras or modes.
-    """
-    (H, W), (h, w) = color_size, depth_size
-    if h == 0 or w == 0 or H % h or W % w or H // h != W // w:
-        raise CaptureError(
-            f"depth is {size_text(depth_size)} but colour is {size_text(color_size)} (WxH): colour must be an integer "
-            "multiple SF >= 1 of depth in both directions (W = SF*w, H = SF*h). Colour and depth from different "
-            "cameras (or camera modes) must first be registered to the colour camera "
-            "(o3d_mvps.registration.register_depth), or crop or resample one of them"
-        )
-    return H // h
+    """The capture's scale-factor rule: SF = H / h = W / w, an integer >= 1 (color_size (H, W),
+    depth_size (h, w) in pixels); :func:`o3d_mvps.model.sensor.choose_scale_factor` with exact
+    grids, whose CaptureError names the mismatch and the fix."""
+    return choose_scale_factor(color_size, depth_size, exact=True)
 
 
 def pixels(image) -> np.ndarray:
@@ -153,7 +144,6 @@ def _check_frames(frames, kind, channels, label, value_range) -> tuple[int, int]
 
 def _check_depth_unit(depth, label) -> None:
     """Every frame needs some depth, and its median valid depth must lie in DEPTH_RANGE_M."""
-    lo, hi = DEPTH_RANGE_M
     for i, frame in enumerate(depth):
         d = pixels(frame)
         valid = d[d > 0]
@@ -162,13 +152,9 @@ def _check_depth_unit(depth, label) -> None:
                 f"depth {label(i)} has no measurement at all (every pixel 0): re-export that depth frame, or "
                 "remove the frame (its colour and depth files, or Capture.select without it)"
             )
-        median = float(np.median(valid))
-        if not lo <= median <= hi:
-            raise CaptureError(
-                f"depth {label(i)}: median depth {median:.4g} m is outside {lo:g}-{hi:g} m, so the unit looks wrong: "
-                "depth_scale in capture.json is probably wrong (1000 for millimetres), or in-memory depth "
-                "is not in metres"
-            )
+        check_depth_unit(valid, f"depth {label(i)}",
+                         "depth_scale in capture.json is probably wrong (1000 for millimetres), or in-memory depth "
+                         "is not in metres")
 
 
 def _check_masks(masks, n, color_size, label) -> None:

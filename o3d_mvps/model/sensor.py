@@ -45,8 +45,10 @@ def choose_scale_factor(colour_size: tuple[int, int], depth_size: tuple[int, int
             sf -= 1
     if exact and (h, w) not in ((H // sf, W // sf), (H, W)):
         raise CaptureError(
-            f"depth is {w}x{h} but colour is {W}x{H} (WxH): depth must be at colour resolution or colour an integer "
-            f"multiple SF of it in both directions (W = SF*w, H = SF*h; SF {sf} here); crop or resample one of them"
+            f"depth is {w}x{h} but colour is {W}x{H} (WxH): colour must be an integer multiple SF >= 1 of depth in "
+            f"both directions (W = SF*w, H = SF*h; SF {sf} {'was asked for' if requested is not None else 'is the nearest'}). Colour and depth from different cameras "
+            "(or camera modes) must first be registered to the colour camera (o3d_mvps.registration.register_depth), "
+            "or crop or resample one of them"
         )
     return sf
 
@@ -57,5 +59,5 @@ def check_depth_unit(z: np.ndarray, what: str, fix: str) -> None:
     valid = np.asarray(z)[np.asarray(z) > 0]
     lo, hi = DEPTH_RANGE_M
     if valid.size and not lo <= float(np.median(valid)) <= hi:
-        raise CaptureError(f"{what} has a median depth of {np.median(valid):.4g} m, outside {lo:g}-{hi:g} m, "
-                           f"so its unit looks wrong: {fix}")
+        raise CaptureError(f"{what}: median depth {np.median(valid):.4g} m is outside {lo:g}-{hi:g} m, "
+                           f"so the unit looks wrong: {fix}")

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 #: Initial lighting of every frame: a little ambient plus frontal light (normals point to -z).
-INITIAL_LIGHT = np.array([0.2, 0.0, 0.0, -1.0])
+INITIAL_LIGHT = (0.2, 0.0, 0.0, -1.0)
 
 
 def sh_basis(normals: np.ndarray) -> np.ndarray:

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..model.robust import cauchy_weights
-from ..model.shading import led_vector_jacobian, led_vectors, sh_basis
+from ..model.shading import INITIAL_LIGHT, led_vector_jacobian, led_vectors, sh_basis
 from .line_search import backtrack
 from .linear import ridge_solve
 
@@ -30,7 +30,7 @@ from .linear import ridge_solve
 class SHLight:
     """First-order spherical harmonics per frame (DESIGN section 2); ``initial`` (4,)."""
 
-    initial: tuple = (0.2, 0.0, 0.0, -1.0)
+    initial: tuple = INITIAL_LIGHT
     name = "sh"
     size = 4
 
@@ -145,7 +145,7 @@ class LEDLight:
 LIGHT_MODELS = ("led", "sh")
 
 
-def make_light_model(name: str, *, initial_sh=(0.2, 0.0, 0.0, -1.0), led_offset=None):
+def make_light_model(name: str, *, initial_sh=INITIAL_LIGHT, led_offset=None):
     """The light model ``name`` ("led" or "sh")."""
     if name == "sh":
         return SHLight(tuple(initial_sh))

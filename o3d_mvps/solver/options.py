@@ -7,6 +7,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from ..model.normals import SCHEMES
+from ..model.shading import INITIAL_LIGHT
 from .lighting import LIGHT_MODELS
 
 
@@ -84,7 +85,7 @@ class RefineOptions:
     light_model: str = "led"
     led_offset: tuple | None = None
     refine_led_offset: bool = True
-    initial_light: tuple = (0.2, 0.0, 0.0, -1.0)
+    initial_light: tuple = INITIAL_LIGHT
     strict_registration: bool = False
     progress: bool = True
 
