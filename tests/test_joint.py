@@ -109,7 +109,7 @@ def level():
 
 @pytest.fixture
 def problem(level):
-    """A fresh problem per test (update steps cache a preconditioner on it)."""
+    """A fresh problem per test."""
     return LevelProblem(level, 1.0, 0.04)
 
 

@@ -2,7 +2,7 @@
 
 The Gauss-Newton normal equations of :func:`~.normal_equations.joint_system` without parallax
 or twists (frozen dA and light field, albedo projected out), ``M dz = b`` with M sparse SPD
-(7-point stencil plus 2 tau D^T D), solved by PCG with the level's AMG cycle
+(7-point stencil plus 2 tau D^T D), solved by AMG-preconditioned CG
 (:mod:`.linear`), then a backtracking line search on the true energy (:mod:`.line_search`).
 """
 
@@ -13,6 +13,7 @@ from typing import Callable
 import numpy as np
 
 from .line_search import backtrack
+from .linear import solve_spd
 from .normal_equations import joint_system
 from .problem import Estimate, Evaluation, LevelProblem
 from .reflectance import update_albedo
@@ -23,7 +24,7 @@ def update_depth(problem: LevelProblem, est: Estimate, ev: Evaluation, *, rtol: 
     """One depth step (warp frozen; with ``project_albedo`` the albedo eliminated and refitted at
     every trial): returns (estimate, its evaluation, CG iterations); never raises the energy."""
     system = joint_system(problem, est, ev, parallax=False, twists=False, project_albedo=project_albedo)
-    step, iterations = problem.preconditioner.solve(system.matrix, system.rhs_z, rtol, maxiter)
+    step, iterations = solve_spd(system.matrix, system.rhs_z, rtol, maxiter)
 
     def moved(t: float):
         z = problem.level.prior.clip(est.z + t * step)

@@ -22,6 +22,7 @@ from tqdm.auto import tqdm
 from ..capture import Capture
 from ..errors import CaptureError
 from ..model import se3
+from ..model.resampling import fill_nearest_valid, resize
 from ..refinement import Refinement
 from .depth import update_depth
 from .joint import update_pose_depth
@@ -29,7 +30,6 @@ from .lighting import make_light_model, update_led_offset
 from .options import RefineOptions
 from .pose import update_poses
 from .problem import Estimate, LevelProblem
-from ..model.resampling import fill_nearest_valid, resize
 from .pyramid import build_level, level_size
 from .reflectance import update_albedo, update_lighting
 

@@ -16,6 +16,7 @@ import numpy as np
 
 from ..model import se3
 from .depth import search_estimates
+from .linear import solve_spd
 from .normal_equations import joint_system
 from .problem import Estimate, Evaluation, LevelProblem
 
@@ -27,7 +28,7 @@ def update_pose_depth(problem: LevelProblem, est: Estimate, ev: Evaluation, *, r
     (returns ``est`` unchanged when no step length lowers it)."""
     system = joint_system(problem, est, ev, project_albedo=project_albedo)
     S, rhs, _ = system.schur_operator()
-    dz, iterations = problem.preconditioner.solve(S, rhs, rtol, maxiter, sparse_part=system.matrix)
+    dz, iterations = solve_spd(S, rhs, rtol, maxiter, sparse_part=system.matrix)
     xi = system.twists(dz)
 
     def moved(t: float):

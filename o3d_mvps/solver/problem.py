@@ -15,7 +15,6 @@ from ..model.normals import unnormalised_normals
 from ..model.robust import cauchy_energy
 from ..model.warping import in_view, sample_bilinear, visible, warp
 from .lighting import SHLight
-from .linear import LevelPreconditioner
 from .pyramid import Level
 
 
@@ -78,7 +77,6 @@ class LevelProblem:
         self.lam = float(cauchy_lambda)
         self.n_frames = len(level.images)
         self.visibility = np.ones((self.n_frames, level.grid.size), dtype=bool)
-        self.preconditioner = LevelPreconditioner()  # reused across the level's depth (or joint) solves
 
     # geometry ----------------------------------------------------------------------------
     def points(self, z: np.ndarray) -> np.ndarray:
