@@ -1,4 +1,4 @@
-"""Baselines for depth super-resolution (DESIGN section 5): bicubic and guided-filter upsampling.
+"""Baselines for depth super-resolution: bicubic and guided-filter upsampling (README "Results").
 
 Both upsample the reference frame's low-resolution depth (h x w, metres, 0 = missing) to the
 colour grid (H x W = SF h x SF w) and return a :class:`~o3d_mvps.refinement.Refinement`

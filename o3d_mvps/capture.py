@@ -271,8 +271,8 @@ def write_capture(capture: Capture, path, overwrite: bool = False) -> None:
     """Write a capture folder (layout in the module docstring), all or nothing.
 
     Everything is written into a temporary sibling folder which is then renamed into place,
-    so a failure never leaves a half-written capture; with ``overwrite=True`` the old folder
-    is renamed aside first and deleted only once the new one is in place. Colour is encoded
+    so a failure never leaves a half-written capture; with ``overwrite=True`` the old capture's
+    entries are moved aside and deleted only once the new ones are in place (other files stay). Colour is encoded
     as ``capture.color_encoding`` at ``metadata["color_bit_depth"]`` bits (8 by default);
     depth as uint16 round(metres * depth_scale).
 
@@ -301,7 +301,7 @@ def write_capture(capture: Capture, path, overwrite: bool = False) -> None:
             "lower depth_scale or zero the far depth"
         )
 
-    with atomic_folder(path, overwrite=overwrite, what="capture folder") as tmp:
+    with atomic_folder(path, overwrite=overwrite, what="capture folder", layout=(MASK_DIR, GROUNDTRUTH_DIR)) as tmp:
         _write_folder(capture, tmp, bits)
 
 
