@@ -43,7 +43,7 @@ def register(subparsers) -> None:
     p.add_argument("--size", type=image_size, default=(640, 480), metavar="WxH", help="colour resolution (default 640x480)")
     p.add_argument("--seed", type=int, default=0,
                    help="seed of the rendered albedo texture and sensor noise; the same seed gives the same "
-                        "capture and the same numbers (default 0)")
+                        "capture, bit for bit, and the same printed accuracy (default 0)")
     p.set_defaults(handler=run)
 
 
