@@ -39,7 +39,7 @@ $(STAMP): pyproject.toml
 	@touch $(STAMP)
 
 demo: setup
-	$(VENV)/bin/o3d-mvps demo --out out/demo
+	$(VENV)/bin/o3d-mvps demo --out out/demo --overwrite
 
 test: setup
 	$(PY) -m pytest -q

@@ -1,4 +1,4 @@
-"""Accuracy of every method on rendered captures (DESIGN section 5 protocol).
+"""Accuracy of every method on rendered captures (the synthetic protocol of the paper, its section 5.1).
 
 Methods: bicubic and guided upsampling, single-frame shading refinement (n = 1), the two-stage
 variant (odometry poses kept fixed) and ours (joint). Writes ``accuracy.json`` (rows

@@ -3,38 +3,55 @@
 An LED attached to an RGB-D camera lights the object differently in every frame; from ~20
 frames ``refine`` jointly estimates camera poses, depth at colour resolution, RGB albedo and
 per-frame lighting (Sang, Haefner, Cremers, WACV 2020).
+
+Names and submodules load on first use (module ``__getattr__``): ``import o3d_mvps`` is quick,
+``o3d_mvps.synthetic.render_capture`` works without importing the submodule first, and the
+numerical core (``o3d_mvps.model``) imports without Open3D.
 """
 
-from .capture import Capture, GroundTruth, read_capture, write_capture
-from .errors import (
-    CaptureError,
-    ExportError,
-    MVPSError,
-    OdometryError,
-    OutputExistsError,
-    RecordingError,
-)
-from .integration import refine_rgbd
-from .refinement import Refinement, read_refinement
-from .solver.driver import refine
-from .solver.options import RefineOptions
+from __future__ import annotations
+
+import importlib
 
 __version__ = "0.1.0"
 
-__all__ = [
-    "Capture",
-    "GroundTruth",
-    "read_capture",
-    "write_capture",
-    "Refinement",
-    "read_refinement",
-    "refine",
-    "refine_rgbd",
-    "RefineOptions",
-    "MVPSError",
-    "CaptureError",
-    "OutputExistsError",
-    "OdometryError",
-    "RecordingError",
-    "ExportError",
-]
+#: Public name -> submodule that defines it.
+_EXPORTS = {
+    "Capture": "capture",
+    "GroundTruth": "capture",
+    "read_capture": "capture",
+    "write_capture": "capture",
+    "Refinement": "refinement",
+    "read_refinement": "refinement",
+    "refine": "solver.driver",
+    "refine_rgbd": "integration",
+    "RefineOptions": "solver.options",
+    "MVPSError": "errors",
+    "CaptureError": "errors",
+    "OutputExistsError": "errors",
+    "OdometryError": "errors",
+    "RecordingError": "errors",
+    "ExportError": "errors",
+}
+
+#: Submodules reachable as attributes (``o3d_mvps.synthetic``) without an import of their own.
+_SUBMODULES = {"baselines", "capture", "cli", "colour", "datasets", "errors", "export", "fileio", "integration",
+               "metrics", "model", "odometry", "realsense", "refinement", "registration", "report", "solver",
+               "synthetic", "viz"}
+
+__all__ = list(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        value = getattr(importlib.import_module(f".{_EXPORTS[name]}", __name__), name)
+    elif name in _SUBMODULES:
+        value = importlib.import_module(f".{name}", __name__)
+    else:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    globals()[name] = value  # later look-ups skip __getattr__
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_EXPORTS) | _SUBMODULES)

@@ -8,12 +8,15 @@ import shutil
 import uuid
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
+from typing import Iterable, Iterator
 
 import cv2
 import numpy as np
 
 from .errors import OutputExistsError
+
+#: How a Python caller allows replacing outputs; the command line passes "--overwrite" instead.
+PYTHON_OVERWRITE = "overwrite=True"
 
 
 def sibling(path: Path, tag: str) -> Path:
@@ -21,42 +24,84 @@ def sibling(path: Path, tag: str) -> Path:
     return path.with_name(f".{path.name}.{tag}-{uuid.uuid4().hex[:8]}")
 
 
-def swap_into_place(new: Path, path: Path) -> None:
-    """Rename folder new to path; an existing path is moved aside and deleted only after success."""
-    if not path.exists():
-        os.rename(new, path)
-        return
-    old = sibling(path, "old")
-    os.rename(path, old)
-    try:
-        os.rename(new, path)
-    except BaseException:
-        os.rename(old, path)
-        raise
-    shutil.rmtree(old, ignore_errors=True)
+def check_output_folder(path, overwrite: bool, *, what: str = "output folder", flag: str = PYTHON_OVERWRITE) -> Path:
+    """The absolute path of an output folder, after checking that writing it replaces nothing unasked.
 
-
-@contextmanager
-def atomic_folder(path, *, overwrite: bool = False, what: str = "output folder") -> Iterator[Path]:
-    """Write a folder all or nothing: yields an empty temporary sibling, renamed into place on success.
-
-    Refuses a file or a non-empty folder at ``path`` unless ``overwrite`` (OutputExistsError);
-    on any exception the temporary folder is removed and an earlier output stays intact.
+    Raises OutputExistsError when ``path`` is a file, or a non-empty folder and not ``overwrite``;
+    ``flag`` names how the caller's user allows it (``overwrite=True`` or ``--overwrite``).
     """
     root = Path(os.path.abspath(os.path.expanduser(path)))
     if root.exists() and not root.is_dir():
         raise OutputExistsError(f"{root} is a file, not a {what}; choose another output path")
     if root.is_dir() and any(root.iterdir()) and not overwrite:
         raise OutputExistsError(
-            f"{what} {root} already exists and is not empty; pass overwrite=True (--overwrite) "
-            "to replace it, or choose another path"
+            f"{what} {root} already exists and is not empty; pass {flag} to replace the files this writes "
+            "there (other files are kept), or choose another path"
         )
+    return root
+
+
+def check_output_files(paths: Iterable, overwrite: bool, *, flag: str = PYTHON_OVERWRITE) -> list[Path]:
+    """The paths as Path objects; raises OutputExistsError when one exists and not ``overwrite``."""
+    paths = [Path(p) for p in paths]
+    existing = [str(p) for p in paths if p.exists()]
+    if existing and not overwrite:
+        raise OutputExistsError(f"{', '.join(existing)} already exist(s); pass {flag} to replace, "
+                                "or choose another output path")
+    return paths
+
+
+def move_into(new: Path, root: Path, layout: Iterable[str] = ()) -> None:
+    """Move the entries of folder ``new`` into folder ``root`` (created if missing), then remove ``new``.
+
+    Entries of ``root`` with the names of ``new``'s entries or of ``layout`` (outputs the writer
+    may produce but did not this time, so a stale one cannot pass for part of the new result)
+    are moved aside and deleted only once every new entry is in place; any other entry of
+    ``root`` (a user's file) stays. On failure ``root`` is restored as it was.
+    """
+    if not root.exists():
+        os.rename(new, root)
+        return
+    entries = sorted(p.name for p in new.iterdir())
+    replaced = [n for n in sorted(set(entries) | set(layout)) if os.path.lexists(root / n)]
+    old = sibling(root, "old")
+    old.mkdir()
+    aside, placed = [], []
+    try:
+        for name in replaced:
+            os.rename(root / name, old / name)
+            aside.append(name)
+        for name in entries:
+            os.rename(new / name, root / name)
+            placed.append(name)
+    except BaseException:
+        for name in placed:
+            os.rename(root / name, new / name)
+        for name in aside:
+            os.rename(old / name, root / name)
+        shutil.rmtree(old, ignore_errors=True)
+        raise
+    shutil.rmtree(old, ignore_errors=True)
+    new.rmdir()
+
+
+@contextmanager
+def atomic_folder(path, *, overwrite: bool = False, what: str = "output folder",
+                  layout: Iterable[str] = ()) -> Iterator[Path]:
+    """Write a folder all or nothing: yields an empty temporary sibling, moved into place on success.
+
+    Refuses a file or a non-empty folder at ``path`` unless ``overwrite`` (OutputExistsError,
+    see check_output_folder). With ``overwrite`` only the entries written (and those named in
+    ``layout``) are replaced; other files in the folder stay (see move_into). On any exception
+    the temporary folder is removed and an earlier output stays intact.
+    """
+    root = check_output_folder(path, overwrite, what=what)
     root.parent.mkdir(parents=True, exist_ok=True)
     tmp = sibling(root, "tmp")
     tmp.mkdir()
     try:
         yield tmp
-        swap_into_place(tmp, root)
+        move_into(tmp, root, layout)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
@@ -70,12 +115,7 @@ def atomic_files(paths: list[Path], overwrite: bool) -> Iterator[list[Path]]:
     Refuses (OutputExistsError) before anything is written when a target exists and not
     ``overwrite``. Temporary names keep the target's suffix, for writers that infer the format.
     """
-    paths = [Path(p) for p in paths]
-    if not overwrite:
-        existing = [str(p) for p in paths if p.exists()]
-        if existing:
-            raise OutputExistsError(f"{', '.join(existing)} already exist(s); pass overwrite=True "
-                                    "(--overwrite) to replace, or choose another output path")
+    paths = check_output_files(paths, overwrite)
     for p in paths:
         p.parent.mkdir(parents=True, exist_ok=True)
     token = uuid.uuid4().hex[:8]

@@ -1,4 +1,5 @@
-"""Accuracy metrics of a refinement against synthetic ground truth (DESIGN section 5).
+"""Accuracy metrics of a refinement against synthetic ground truth (the paper's MAE and RMSE,
+its section 5.1; README "Results").
 
 - MAE: mean angle in degrees between estimated and true unit normals.
 - RMSE: root-mean-square depth error in millimetres (depths are given in metres).

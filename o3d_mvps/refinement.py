@@ -20,6 +20,8 @@ from .model.normals import perspective_normals
 DEPTH_NPY, DEPTH_PNG, MASK_PNG = "depth.npy", "depth_mm.png", "mask.png"
 ALBEDO_NPY, ALBEDO_PNG, NORMALS_NPY, NORMALS_PNG = "albedo.npy", "albedo.png", "normals.npy", "normals.png"
 POSES_NPY, LIGHTING_JSON, INTRINSIC_JSON, REPORT_JSON = "poses.npy", "lighting.json", "intrinsic.json", "report.json"
+REFINEMENT_FILES = (DEPTH_NPY, DEPTH_PNG, MASK_PNG, ALBEDO_NPY, ALBEDO_PNG, NORMALS_NPY, NORMALS_PNG, POSES_NPY,
+                    LIGHTING_JSON, INTRINSIC_JSON, REPORT_JSON)
 
 
 @dataclass
@@ -82,7 +84,8 @@ class Refinement:
         return {"method": self.method, "energy": self.energy, "timings": self.timings, "info": self.info}
 
     def save(self, folder, *, overwrite: bool = False, extra_report: dict | None = None) -> None:
-        """Write the result folder all or nothing (never over an earlier output unless ``overwrite``).
+        """Write the result folder all or nothing (never over an earlier output unless ``overwrite``;
+        then only the files below are replaced, any other file in the folder stays).
 
         Files: depth.npy (H, W) float32 metres and depth_mm.png uint16 millimetres, mask.png,
         normals.npy (H, W, 3) and normals.png ((n + 1) / 2 as 8-bit RGB), albedo.npy (linear)
@@ -92,7 +95,7 @@ class Refinement:
         depth, mask, normals, albedo = self.depth_array(), self.mask_array(), self.normals_array(), self.albedo_array()
         report = {**self.report(), **(extra_report or {})}
         text = json_text(report, "the refinement report")
-        with atomic_folder(folder, overwrite=overwrite, what="refinement folder") as tmp:
+        with atomic_folder(folder, overwrite=overwrite, what="refinement folder", layout=REFINEMENT_FILES) as tmp:
             np.save(tmp / DEPTH_NPY, depth)
             write_png(tmp / DEPTH_PNG, np.clip(np.rint(depth * 1000.0), 0, 65535).astype(np.uint16))
             write_png(tmp / MASK_PNG, mask.astype(np.uint8) * np.uint8(255))
@@ -114,7 +117,8 @@ class Refinement:
     @classmethod
     def from_arrays(cls, depth: np.ndarray, mask: np.ndarray, K: np.ndarray, *, albedo=None, poses=None,
                     lighting=None, method: str = "ours", **kwargs) -> "Refinement":
-        """Build a Refinement from numpy arrays; normals are computed from depth (DESIGN section 2).
+        """Build a Refinement from numpy arrays; normals are computed from depth (perspective
+        normals, the paper's section 3.2).
 
         depth (H, W) metres, mask (H, W) bool, K (3, 3), albedo (H, W, 3) or None,
         poses (n, 4, 4) or None, lighting (n, k) or None (k = 4 SH, 2 LED).

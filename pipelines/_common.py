@@ -3,22 +3,14 @@
 from __future__ import annotations
 
 import argparse
-import sys
 
-from o3d_mvps.errors import MVPSError
+from o3d_mvps.cli import run_handler
 
 
 def run_main(parser: argparse.ArgumentParser, run, argv=None) -> int:
-    """Parse ``argv``, call ``run(args)``; on a failure print ``PROG: error: message``, return 1.
-
-    Exit codes as for ``o3d-mvps``: 0 ok, 1 failure (the message names the fix), 2 usage.
-    """
-    args = parser.parse_args(argv)
-    try:
-        return int(run(args) or 0)
-    except (MVPSError, OSError, ValueError) as err:
-        print(f"{parser.prog}: error: {err}", file=sys.stderr)
-        return 1
+    """Parse ``argv`` and call ``run(args)``; exit codes as for ``o3d-mvps``: 0 ok, 1 failure
+    (``PROG: error: message`` naming the fix), 2 usage, 130 interrupted (Ctrl-C)."""
+    return run_handler(parser.prog, run, parser.parse_args(argv))
 
 
 def say(args, *text) -> None:

@@ -16,8 +16,8 @@ from _common import run_main, say
 
 from o3d_mvps import read_capture, refine
 from o3d_mvps.cli.argtypes import positive_float, positive_int
+from o3d_mvps.cli.outputs import add_overwrite_argument, check_files, check_folder
 from o3d_mvps.cli.refine import add_solver_arguments, log_energy, options_from_args
-from o3d_mvps.errors import OutputExistsError
 from o3d_mvps.export import PIECES, printable_solid, write_stl
 
 EXAMPLES = """examples:
@@ -48,15 +48,16 @@ def build_parser() -> argparse.ArgumentParser:
     solid.add_argument("--max-triangles", type=positive_int, metavar="N",
                        help="simplify the relief to at most N triangles")
     parser.add_argument("--save-refined", type=Path, metavar="DIR", help="also write the refinement folder")
-    parser.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    add_overwrite_argument(parser, "output file or folder")
     parser.add_argument("--quiet", action="store_true", help="no progress bars or logs")
     add_solver_arguments(parser)
     return parser
 
 
 def run(args) -> int:
-    if args.out.exists() and not args.overwrite:  # fail before the (slow) refinement
-        raise OutputExistsError(f"{args.out} already exists; pass --overwrite or choose another path")
+    check_files([args.out], args.overwrite)  # fail before the (slow) refinement
+    if args.save_refined is not None:
+        check_folder(args.save_refined, args.overwrite, "refinement folder")
     capture = read_capture(args.capture)
     refinement = refine(capture, options_from_args(args))
     log_energy(refinement, args.quiet)
@@ -65,7 +66,8 @@ def run(args) -> int:
     write_stl(solid, args.out, overwrite=args.overwrite)
     if args.save_refined is not None:
         refinement.save(args.save_refined, overwrite=args.overwrite)
-    say(args, f"solid: {len(solid.triangle.indices)} triangles, {args.size_mm:g} mm; wrote {args.out}")
+    say(args, f"solid: {len(solid.triangle.indices)} triangles, {args.size_mm:g} mm")
+    print(f"wrote {args.out}" + ("" if args.save_refined is None else f" and {args.save_refined}"))
     return 0
 
 

@@ -32,6 +32,7 @@ from _common import run_main, say
 from o3d_mvps import RefineOptions, refine_rgbd
 from o3d_mvps.baselines import bicubic
 from o3d_mvps.cli.argtypes import image_size, positive_float, positive_int
+from o3d_mvps.cli.outputs import add_overwrite_argument, check_folder
 from o3d_mvps.colour import linear_to_srgb
 from o3d_mvps.datasets import MESHES
 from o3d_mvps.fileio import atomic_folder
@@ -76,7 +77,7 @@ def build_parser() -> argparse.ArgumentParser:
     fusion.add_argument("--tau", type=positive_float, default=10.0, help="depth-prior weight (default 10)")
     fusion.add_argument("--voxel-mm", type=positive_float, default=1.5, help="TSDF voxel size (default 1.5 mm)")
     parser.add_argument("--out", type=Path, help="write raw_mesh.ply, refined_mesh.ply and report.json here")
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
+    add_overwrite_argument(parser, "output folder")
     parser.add_argument("--quiet", action="store_true", help="no logs")
     return parser
 
@@ -133,6 +134,8 @@ def run(args) -> int:
     if 2 * args.neighbours + 1 > n or args.references > n:
         raise ValueError(f"--ring-frames {n} is too few for --references {args.references} and "
                          f"--neighbours {args.neighbours}; render more frames")
+    if args.out is not None:
+        check_folder(args.out, args.overwrite, "output folder")
     t0 = time.perf_counter()
     scene, poses, images, masks, renders = render_ring(args)
     K = scene.K
@@ -173,7 +176,7 @@ def run(args) -> int:
                 o3d.t.io.write_triangle_mesh(str(tmp / f"{name}_mesh.ply"), mesh)
             (tmp / "report.json").write_text(json.dumps(report, indent=2))
             (tmp / "report.md").write_text("\n".join(lines) + "\n")
-        say(args, f"wrote {args.out}")
+        print(f"wrote {args.out}")
     return 0
 
 

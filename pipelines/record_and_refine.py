@@ -16,9 +16,9 @@ from pathlib import Path
 from _common import run_main, say
 
 from o3d_mvps import refine, write_capture
+from o3d_mvps.cli.outputs import add_overwrite_argument, check_folder
 from o3d_mvps.cli.record import add_recording_arguments
 from o3d_mvps.cli.refine import add_solver_arguments, log_energy, options_from_args
-from o3d_mvps.errors import OutputExistsError
 from o3d_mvps.export import write_mesh
 from o3d_mvps.fileio import atomic_folder
 
@@ -34,7 +34,7 @@ def build_parser() -> argparse.ArgumentParser:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("out", type=Path, help="output folder: capture/, refined/, mesh.obj")
     add_recording_arguments(parser.add_argument_group("recording"), frames_flag="--record-frames")
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
+    add_overwrite_argument(parser, "output folder")
     parser.add_argument("--quiet", action="store_true", help="no progress bars or logs")
     add_solver_arguments(parser)
     return parser
@@ -43,8 +43,7 @@ def build_parser() -> argparse.ArgumentParser:
 def run(args) -> int:
     from o3d_mvps.realsense import record_capture
 
-    if args.out.exists() and not args.overwrite and (not args.out.is_dir() or any(args.out.iterdir())):
-        raise OutputExistsError(f"{args.out} already exists and is not empty; choose another folder or pass --overwrite")
+    check_folder(args.out, args.overwrite, "output folder")
     capture = record_capture(args.record_frames, args.color, args.depth, fps=args.fps, interval=args.interval,
                              on_key=args.on_key, emitter=args.emitter == "on", exposure_us=args.exposure,
                              serial=args.serial, progress=not args.quiet)
@@ -55,7 +54,7 @@ def run(args) -> int:
         write_capture(capture, tmp / "capture")
         refinement.save(tmp / "refined")
         write_mesh(refinement.to_mesh(), tmp / "mesh.obj")
-    say(args, f"wrote {args.out}/capture, {args.out}/refined, {args.out}/mesh.obj")
+    print(f"wrote {args.out}/capture, {args.out}/refined, {args.out}/mesh.obj")
     return 0
 
 

@@ -18,6 +18,7 @@ from pathlib import Path
 from _common import run_main, say
 
 from o3d_mvps import read_capture, refine
+from o3d_mvps.cli.outputs import add_overwrite_argument, check_folder
 from o3d_mvps.cli.refine import add_solver_arguments, log_energy, options_from_args
 from o3d_mvps.export import write_mesh
 from o3d_mvps.fileio import atomic_folder
@@ -34,7 +35,7 @@ def build_parser() -> argparse.ArgumentParser:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("capture", type=Path, help="capture folder (color/, depth/, intrinsic.json, ...)")
     parser.add_argument("out", type=Path, help="output folder: refined/, mesh.obj, report.md")
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
+    add_overwrite_argument(parser, "output folder")
     parser.add_argument("--quiet", action="store_true", help="no progress bars or logs")
     add_solver_arguments(parser)
     return parser
@@ -53,6 +54,7 @@ def report_text(capture_path, refinement, rows) -> str:
 
 
 def run(args) -> int:
+    check_folder(args.out, args.overwrite, "output folder")
     capture = read_capture(args.capture)
     refinement = refine(capture, options_from_args(args))
     log_energy(refinement, args.quiet)
@@ -64,7 +66,7 @@ def run(args) -> int:
         refinement.save(tmp / "refined", extra_report={"accuracy": rows} if rows else None)
         write_mesh(refinement.to_mesh(), tmp / "mesh.obj")
         (tmp / "report.md").write_text(report_text(args.capture, refinement, rows))
-    say(args, f"wrote {args.out}/refined, {args.out}/mesh.obj, {args.out}/report.md")
+    print(f"wrote {args.out}/refined, {args.out}/mesh.obj, {args.out}/report.md")
     return 0
 
 

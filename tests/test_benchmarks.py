@@ -22,10 +22,3 @@ def test_quick_benchmarks_write_results(tmp_path):
     for png in ("frames_mae.png", "frames_rmse.png", "tau_mae.png", "tau_rmse.png"):
         assert (tmp_path / png).stat().st_size > 1000
 
-
-def test_bench_subcommand_runs_the_benchmarks_of_the_checkout(tmp_path):
-    from o3d_mvps.cli import main
-
-    assert main(["--quiet", "bench", "tau", "--quick", "--out", str(tmp_path)]) == 0
-    rows = json.loads((tmp_path / "tau.json").read_text())
-    assert rows and all(0 < row["mae_deg"] < 90 and row["rmse_mm"] > 0 for row in rows)

@@ -488,7 +488,7 @@ def test_validate_accepts_good_capture():
 
 def test_overwrite_refused_keeps_earlier_output(folder):
     before = snapshot(folder)
-    message = r"capture .* already exists and is not empty; pass overwrite=True \(--overwrite\)"
+    message = r"capture .* already exists and is not empty; pass overwrite=True to replace"
     with pytest.raises(OutputExistsError, match=message):
         write_capture(make_capture("linear", seed=1), folder)
     assert snapshot(folder) == before

@@ -46,7 +46,7 @@ def test_refine_capture(capture_dir, tmp_path):
     refinement = read_refinement(out / "refined")
     assert refinement.depth_array().shape == (120, 160)
     again = run_script("refine_capture.py", capture_dir, out, *TINY_SOLVER)  # never over earlier output
-    assert again.returncode == 1 and "--overwrite" in again.stderr
+    assert again.returncode == 1 and "pass --overwrite" in again.stderr and "overwrite=True" not in again.stderr
 
 
 def test_print_scan(capture_dir, tmp_path):

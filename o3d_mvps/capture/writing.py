@@ -30,8 +30,9 @@ def write_capture(capture: Capture, path, overwrite: bool = False) -> None:
     """Write a capture folder (layout in the ``o3d_mvps.capture`` docstring), all or nothing.
 
     Everything is written into a temporary sibling folder which is then renamed into place,
-    so a failure never leaves a half-written capture; with ``overwrite=True`` the old folder
-    is renamed aside first and deleted only once the new one is in place. Colour is encoded
+    so a failure never leaves a half-written capture; with ``overwrite=True`` the old capture's
+    entries (an earlier mask/ and groundtruth/ too) are moved aside and deleted only once the
+    new ones are in place; other files in the folder stay. Colour is encoded
     as ``capture.color_encoding`` at ``metadata["color_bit_depth"]`` bits (8 by default);
     depth as uint16 round(metres * depth_scale).
 
@@ -60,7 +61,7 @@ def write_capture(capture: Capture, path, overwrite: bool = False) -> None:
             "lower depth_scale or zero the far depth"
         )
 
-    with atomic_folder(path, overwrite=overwrite, what="capture folder") as tmp:
+    with atomic_folder(path, overwrite=overwrite, what="capture folder", layout=(MASK_DIR, GROUNDTRUTH_DIR)) as tmp:
         _write_folder(capture, tmp, bits)
 
 

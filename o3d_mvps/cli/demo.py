@@ -1,15 +1,9 @@
-"""``o3d-mvps demo``: render a synthetic LED capture of a shipped mesh, refine it, report accuracy.
-
-Writes OUT/capture (the rendered capture), OUT/refined (the refinement), OUT/report.md, the
-textured mesh (OUT/mesh.obj with .mtl and texture, OUT/mesh.glb), the print-ready solid
-OUT/print.stl and a preview picture OUT/preview.png.
-"""
+"""``o3d-mvps demo``: render a synthetic LED capture of a shipped mesh, refine it, report accuracy."""
 
 from __future__ import annotations
 
 import argparse
 import time
-from pathlib import Path
 
 from ..capture import write_capture
 from ..datasets import DATA_DIR, MESHES
@@ -21,23 +15,40 @@ from ..solver.options import RefineOptions
 from ..synthetic import render_capture
 from ..viz import render_preview
 from .argtypes import image_size, positive_int
+from .outputs import add_overwrite_argument, check_folder
 from .refine import log_energy
+
+DESCRIPTION = """\
+Render a synthetic LED-lit capture of a shipped mesh, refine it and report the accuracy
+against the baselines. Writes into OUT: capture/ (the rendered capture), refined/ (the
+refinement), report.md (accuracy table), mesh.obj (+ .mtl + albedo texture), mesh.glb,
+print.stl (print-ready solid) and preview.png.
+"""
+
+EXAMPLES = """\
+examples:
+  o3d-mvps demo --out out/demo
+  o3d-mvps demo --out out/arma --mesh armadillo --frames 20 --overwrite
+"""
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("demo", help="render, refine and report on a shipped mesh", description=__doc__,
-                              formatter_class=argparse.RawDescriptionHelpFormatter,
-                              epilog="example:\n  o3d-mvps demo --out out/demo --mesh bunny --frames 20\n")
-    p.add_argument("--out", default="out/demo", help="output folder (replaced as a whole; default out/demo)")
+    p = subparsers.add_parser("demo", help="render, refine and report on a shipped mesh", description=DESCRIPTION,
+                              formatter_class=argparse.RawDescriptionHelpFormatter, epilog=EXAMPLES)
+    p.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
+    add_overwrite_argument(p, "demo folder")
     p.add_argument("--mesh", default="bunny", choices=sorted(MESHES), help="shipped mesh (default bunny)")
     p.add_argument("--frames", type=positive_int, default=20, help="frames to render (default 20)")
     p.add_argument("--scale-factor", type=positive_int, default=4, help="depth super-resolution factor (default 4)")
     p.add_argument("--size", type=image_size, default=(640, 480), metavar="WxH", help="colour resolution (default 640x480)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0,
+                   help="seed of the rendered albedo texture and sensor noise; the same seed gives the same "
+                        "capture, bit for bit, and the same printed accuracy (default 0)")
     p.set_defaults(handler=run)
 
 
 def run(args) -> int:
+    out = check_folder(args.out, args.overwrite, "demo folder")
     say = (lambda *a: None) if args.quiet else print
     t0 = time.perf_counter()
     say(f"rendering {args.frames} LED-lit frames of the {args.mesh} (see {DATA_DIR / 'PROVENANCE.md'}) ...")
@@ -48,7 +59,7 @@ def run(args) -> int:
     log_energy(refinement, args.quiet)
     rows = accuracy_rows(capture, refinement)
     table = markdown_table(rows)
-    with atomic_folder(args.out, overwrite=True, what="demo folder") as tmp:
+    with atomic_folder(out, overwrite=args.overwrite, what="demo folder") as tmp:
         write_capture(capture, tmp / "capture")
         refinement.save(tmp / "refined", extra_report={"accuracy": rows})
         report = [f"# o3d_mvps demo: {args.mesh}, {args.size[0]}x{args.size[1]}, SF {args.scale_factor}, {args.frames} frames", "",
@@ -62,5 +73,5 @@ def run(args) -> int:
         write_stl(printable_solid(refinement), tmp / "print.stl")
         render_preview(mesh, tmp / "preview.png")
     say(table)
-    say(f"wrote {Path(args.out).resolve()}")
+    print(f"wrote {out}")
     return 0

@@ -5,9 +5,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..errors import ExportError, OutputExistsError
+from ..errors import ExportError
 from ..export import DEFAULT_MAX_DEPTH_JUMP, MESH_SUFFIXES
 from .argtypes import positive_float, positive_int
+from .outputs import add_overwrite_argument, check_files
 
 DESCRIPTION = """\
 Turn a refinement (a folder written by Refinement.save / `o3d-mvps refine`) into a mesh.
@@ -70,7 +71,7 @@ def register(subparsers) -> None:
                         help="cut edges whose depth step exceeds K pixel footprints, i.e. surfaces steeper than "
                              "atan(K) to the image plane; 'none' keeps all (default: %(default)s)")
     parser.add_argument("--preview", type=_png_path, metavar="PNG", help="also render an off-screen preview image")
-    parser.add_argument("--overwrite", action="store_true", help="replace existing output files")
+    add_overwrite_argument(parser, "output file")
     parser.set_defaults(handler=run)
 
 
@@ -80,16 +81,12 @@ def run(args) -> int:
 
     out: Path = args.out
     make_solid = args.print_solid or out.suffix.lower() == ".stl"
-    if not args.overwrite:  # fail before the (slow) meshing; the writers check again
-        targets = [out]
-        if out.suffix.lower() == ".obj" and not make_solid:
-            targets += [out.with_suffix(".mtl"), out.with_name(out.stem + "_albedo.png")]
-        if args.preview is not None:
-            targets.append(args.preview)
-        existing = [str(p) for p in targets if p.exists()]
-        if existing:
-            raise OutputExistsError(f"{', '.join(existing)} already exist(s); pass --overwrite to replace, "
-                                    "or choose another output path")
+    targets = [out]  # checked before the (slow) meshing; the writers check again
+    if out.suffix.lower() == ".obj" and not make_solid:
+        targets += [out.with_suffix(".mtl"), out.with_name(out.stem + "_albedo.png")]
+    if args.preview is not None:
+        targets.append(args.preview)
+    check_files(targets, args.overwrite)
     if not args.refined.is_dir():
         raise ExportError(f"{args.refined} is not a folder; pass the folder written by Refinement.save (o3d-mvps refine)")
 
@@ -104,9 +101,9 @@ def run(args) -> int:
         from ..viz import render_preview
 
         written.append(render_preview(mesh, args.preview, view="iso" if make_solid else "camera", overwrite=args.overwrite))
-    if not getattr(args, "quiet", False):
+    if not args.quiet:
         kind = f"solid, {args.size_mm:g} mm" if make_solid else "mesh"
         print(f"{kind}: {len(mesh.vertex.positions)} vertices, {len(mesh.triangle.indices)} triangles")
-        for path in written:
-            print(f"wrote {path}")
+    for path in written:
+        print(f"wrote {path}")
     return 0

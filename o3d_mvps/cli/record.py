@@ -1,16 +1,31 @@
 """``o3d-mvps record`` (live, from a RealSense camera) and ``o3d-mvps convert`` (a recording).
 
-Both write a capture folder (DESIGN section 3) with depth registered to the colour camera at
-the sensor's native resolution (colour / SF), ready for ``o3d-mvps refine``.
+Both write a capture folder (layout in README's "Capture guide" and ``o3d_mvps.capture``) with
+depth registered to the colour camera at the sensor's native resolution (colour / SF), ready
+for ``o3d-mvps refine``.
 """
 
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
 
 from ..capture import write_capture
-from ..errors import OutputExistsError
 from .argtypes import image_size, positive_int
+from .outputs import add_overwrite_argument, check_folder
+
+RECORD_EXAMPLES = """\
+examples:
+  o3d-mvps record capture/                               # 20 frames, one a second
+  o3d-mvps record capture/ --frames 30 --interval 0.5 --exposure 8000
+  o3d-mvps record capture/ --on-key --color 1920x1080 --depth 1280x720
+"""
+
+CONVERT_EXAMPLES = """\
+examples:
+  o3d-mvps convert recording.db3 capture/                # pyrealsense2 2.59+ recording
+  o3d-mvps convert viewer.bag capture/ --frames 30 --stride 5
+"""
 
 
 def add_recording_arguments(group, frames_flag: str = "--frames") -> None:
@@ -39,10 +54,11 @@ def register(subparsers) -> None:
         help="record a capture live with a RealSense D415",
         description="Record a capture with a connected RealSense camera (an LED attached to it) and write the "
         "capture folder OUT. Move slowly around the object, 0.5-1 m away, LED on, room lights dim.",
+        epilog=RECORD_EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     rec.add_argument("out", metavar="OUT", type=Path, help="capture folder to write")
     add_recording_arguments(rec)
-    rec.add_argument("--overwrite", action="store_true", help="replace an existing capture folder")
+    add_overwrite_argument(rec, "capture folder")
     rec.set_defaults(handler=run)
 
     conv = subparsers.add_parser(
@@ -51,6 +67,7 @@ def register(subparsers) -> None:
         description="Read a RealSense recording (.bag from the RealSense Viewer or older SDKs, .db3 from "
         "pyrealsense2 2.59+), keep sharp, overlapping frames and write the capture folder OUT with depth at "
         "its native resolution.",
+        epilog=CONVERT_EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     conv.add_argument("recording", metavar="RECORDING", type=Path, help=".bag or .db3 recording")
     conv.add_argument("out", metavar="OUT", type=Path, help="capture folder to write")
@@ -59,24 +76,18 @@ def register(subparsers) -> None:
     conv.add_argument(
         "--scale-factor", type=positive_int, metavar="SF", help="depth grid = colour / SF (default: from the sizes)"
     )
-    conv.add_argument("--overwrite", action="store_true", help="replace an existing capture folder")
+    add_overwrite_argument(conv, "capture folder")
     conv.set_defaults(handler=run_convert)
-
-
-def _check_out(out: Path, overwrite: bool) -> None:
-    """Fail before recording rather than after, when OUT would be overwritten."""
-    if out.exists() and not overwrite and (not out.is_dir() or any(out.iterdir())):
-        raise OutputExistsError(f"{out} already exists and is not empty; choose another folder or pass --overwrite")
 
 
 def run(args) -> int:
     from ..realsense import record_capture
 
-    _check_out(args.out, args.overwrite)
+    check_folder(args.out, args.overwrite, "capture folder")
     capture = record_capture(
         args.record_frames, args.color, args.depth, fps=args.fps, interval=args.interval, on_key=args.on_key,
         emitter=args.emitter == "on", exposure_us=args.exposure, serial=args.serial,
-        progress=not getattr(args, "quiet", False),
+        progress=not args.quiet,
     )  # fmt: skip
     write_capture(capture, args.out, overwrite=args.overwrite)
     _report(args, capture)
@@ -86,16 +97,14 @@ def run(args) -> int:
 def run_convert(args) -> int:
     from ..realsense import read_recording
 
-    _check_out(args.out, args.overwrite)
+    check_folder(args.out, args.overwrite, "capture folder")
     capture = read_recording(args.recording, frames=args.frames, stride=args.stride, scale_factor=args.scale_factor,
-                             progress=not getattr(args, "quiet", False))  # fmt: skip
+                             progress=not args.quiet)  # fmt: skip
     write_capture(capture, args.out, overwrite=args.overwrite)
     _report(args, capture)
     return 0
 
 
 def _report(args, capture) -> None:
-    if not getattr(args, "quiet", False):
-        (H, W), (h, w) = capture.color_size, capture.depth_size
-        sf = capture.scale_factor
-        print(f"wrote {capture.n_frames} frames to {args.out} (colour {W}x{H}, depth {w}x{h}, SF {sf})")
+    (H, W), (h, w) = capture.color_size, capture.depth_size
+    print(f"wrote {capture.n_frames} frames to {args.out} (colour {W}x{H}, depth {w}x{h}, SF {capture.scale_factor})")

@@ -11,6 +11,14 @@ from ..report import accuracy_rows, markdown_table
 from ..solver.driver import refine
 from ..solver.lighting import LIGHT_MODELS
 from ..solver.options import RefineOptions
+from .outputs import add_overwrite_argument, check_folder
+
+DESCRIPTION = """\
+Refine a capture folder: depth at colour resolution, RGB albedo, per-frame lighting and
+refined camera poses of the reference view (the first frame), written to the folder OUT
+(depth.npy, depth_mm.png, normals, albedo, poses.npy, lighting.json, report.json). For a
+synthetic capture (with groundtruth/) the accuracy against the baselines is printed too.
+"""
 
 EXAMPLES = """examples:
   o3d-mvps refine capture/ refined/
@@ -55,11 +63,11 @@ def options_from_args(args) -> RefineOptions:
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("refine", help="refine a capture folder", description=__doc__, epilog=EXAMPLES,
+    p = subparsers.add_parser("refine", help="refine a capture folder", description=DESCRIPTION, epilog=EXAMPLES,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("capture", help="capture folder (color/, depth/, intrinsic.json, ...)")
     p.add_argument("out", help="output folder for the refinement")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
+    add_overwrite_argument(p, "output folder")
     p.add_argument("--poses", default=None, metavar="FILE",
                    help="initial poses: Open3D trajectory .json or .log, TUM .txt, or (n, 4, 4) .npy (README "
                         "'Poses from other tools'; default: the capture folder's poses.* if any, else registration)")
@@ -82,6 +90,7 @@ def log_energy(refinement, quiet: bool) -> None:
 
 
 def run(args) -> int:
+    out = check_folder(args.out, args.overwrite, "refinement folder")
     capture = read_capture(args.capture)
     given = read_capture_poses(args.capture, args.poses)
     options = replace(options_from_args(args), strict_registration=args.strict)
@@ -95,7 +104,6 @@ def run(args) -> int:
         extra["accuracy"] = rows
         if not args.quiet:
             print(markdown_table(rows))
-    refinement.save(args.out, overwrite=args.overwrite, extra_report=extra)
-    if not args.quiet:
-        print(f"wrote {args.out}")
+    refinement.save(out, overwrite=args.overwrite, extra_report=extra)
+    print(f"wrote {out}")
     return 0

@@ -7,6 +7,7 @@ import time
 from pathlib import Path
 
 from .argtypes import image_size, positive_int
+from .outputs import add_overwrite_argument, check_folder
 
 EXAMPLES = """\
 examples:
@@ -50,20 +51,16 @@ def register(subparsers) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of the albedo texture and noise (default 0)")
     p.add_argument("--no-noise", dest="noise", action="store_false",
                    help="no colour or depth noise (quantisation stays)")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing capture folder")
+    add_overwrite_argument(p, "capture folder")
     p.set_defaults(handler=run)
 
 
 def run(args) -> int:
     """Render and write the capture; returns the exit code."""
     from ..capture import write_capture
-    from ..errors import OutputExistsError
     from ..synthetic import render_capture
 
-    out = args.out
-    if out.exists() and not args.overwrite and (not out.is_dir() or any(out.iterdir())):
-        raise OutputExistsError(f"{out} already exists and is not empty; choose another folder or pass --overwrite")
-    quiet = getattr(args, "quiet", False)
+    out = check_folder(args.out, args.overwrite, "capture folder")
     start = time.perf_counter()
     capture = render_capture(
         args.mesh,
@@ -74,13 +71,10 @@ def run(args) -> int:
         light=args.light,
         seed=args.seed,
         noise=args.noise,
-        progress=not quiet,
+        progress=not args.quiet,
     )
     write_capture(capture, out, overwrite=args.overwrite)
-    if not quiet:
-        (H, W), (h, w) = capture.color_size, capture.depth_size
-        print(
-            f"wrote {capture.n_frames} frames ({W}x{H} colour, {w}x{h} depth) to {out} "
-            f"in {time.perf_counter() - start:.1f} s"
-        )
+    (H, W), (h, w) = capture.color_size, capture.depth_size
+    print(f"wrote {capture.n_frames} frames ({W}x{H} colour, {w}x{h} depth) to {out} "
+          f"in {time.perf_counter() - start:.1f} s")
     return 0

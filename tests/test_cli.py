@@ -1,0 +1,164 @@
+"""The o3d-mvps command line as a user meets it: outputs checked before any work and named in
+command-line wording, --overwrite replacing only what a command writes, --quiet on either side
+of the subcommand, Ctrl-C, help texts, and the package's lazy attribute access."""
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import o3d_mvps.realsense
+import o3d_mvps.refinement
+import o3d_mvps.synthetic
+from o3d_mvps import read_refinement, write_capture
+from o3d_mvps.cli import SUBCOMMANDS, build_parser, main
+from o3d_mvps.cli import demo as demo_cli
+from o3d_mvps.cli import refine as refine_cli
+from o3d_mvps.synthetic import render_capture
+
+REPO = Path(__file__).resolve().parents[1]
+TINY_SOLVER = ["--levels", "2", "--iterations", "2"]
+
+
+@pytest.fixture(scope="module")
+def capture_dir(tmp_path_factory):
+    path = tmp_path_factory.mktemp("cli") / "capture"
+    write_capture(render_capture("bunny", frames=3, scale_factor=2, size=(80, 60), seed=1, progress=False), path)
+    return path
+
+
+def users_folder(path: Path) -> Path:
+    """A non-empty folder holding a file of the user's."""
+    path.mkdir(parents=True, exist_ok=True)
+    (path / "notes.txt").write_text("mine")
+    return path
+
+
+def no_work(*args, **kwargs):
+    raise AssertionError("the command started its work before checking its output")
+
+
+# command line, function that would start the work (patched to fail), folder or file to pre-fill
+COMMANDS = {
+    "refine": (lambda cap, out: ["refine", cap, out], (refine_cli, "refine"), "folder"),
+    "demo": (lambda cap, out: ["demo", "--out", out, "--size", "80x60"], (demo_cli, "render_capture"), "folder"),
+    "render": (lambda cap, out: ["render", "bunny", out], (o3d_mvps.synthetic, "render_capture"), "folder"),
+    "record": (lambda cap, out: ["record", out], (o3d_mvps.realsense, "record_capture"), "folder"),
+    "convert": (lambda cap, out: ["convert", "scan.db3", out], (o3d_mvps.realsense, "read_recording"), "folder"),
+    "export": (lambda cap, out: ["export", cap, out / "mesh.ply"], (o3d_mvps.refinement, "read_refinement"), "file"),
+}
+
+
+@pytest.mark.parametrize("command", sorted(COMMANDS))
+def test_existing_output_is_refused_before_any_work(command, capture_dir, tmp_path, monkeypatch, capsys):
+    argv, (module, work), kind = COMMANDS[command]
+    monkeypatch.setattr(module, work, no_work)
+    out = users_folder(tmp_path / "out")
+    if kind == "file":
+        (out / "mesh.ply").write_text("an earlier mesh")
+    assert main([str(a) for a in argv(capture_dir, out)]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith(f"o3d-mvps {command}: error:") and "pass --overwrite" in err
+    assert "overwrite=True" not in err  # command-line wording, not the Python keyword
+    assert (out / "notes.txt").read_text() == "mine"
+
+
+def test_every_subcommand_is_checked():
+    assert set(COMMANDS) == set(build_parser()._subparsers._group_actions[0].choices)
+
+
+def test_refine_overwrite_keeps_the_users_files(capture_dir, tmp_path, capsys):
+    out = tmp_path / "refined"
+    assert main(["--quiet", "refine", str(capture_dir), str(out), *TINY_SOLVER]) == 0
+    (out / "notes.txt").write_text("mine")
+    (out / "depth.npy").write_bytes(b"stale")
+    assert main(["--quiet", "refine", str(capture_dir), str(out), "--overwrite", "--tau", "20", *TINY_SOLVER]) == 0
+    assert (out / "notes.txt").read_text() == "mine"
+    assert read_refinement(out).depth_array().shape == (60, 80)  # the stale depth.npy was replaced
+    assert json.loads((out / "report.json").read_text())["info"]["options"]["tau"] == 20.0
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary folders left
+
+
+def test_quiet_after_the_subcommand_prints_only_the_result(capture_dir, tmp_path, capsys):
+    for i, argv in enumerate([["--quiet", "refine"], ["refine", "--quiet"]]):
+        out = tmp_path / f"out{i}"
+        assert main([*argv, str(capture_dir), str(out), *TINY_SOLVER]) == 0
+        printed = capsys.readouterr()
+        assert printed.out == f"wrote {out}\n" and printed.err == ""
+    assert main(["refine", str(capture_dir), str(tmp_path / "loud"), *TINY_SOLVER]) == 0
+    assert "| ours |" in capsys.readouterr().out  # without --quiet: the accuracy table too
+
+
+def test_ctrl_c_is_one_line_and_exit_130(monkeypatch, capture_dir, tmp_path, capsys):
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(refine_cli, "refine", interrupted)
+    assert main(["refine", str(capture_dir), str(tmp_path / "out")]) == 130
+    assert capsys.readouterr().err == "o3d-mvps refine: interrupted\n"
+    assert "130 (interrupted" in (REPO / "README.md").read_text()
+
+
+def test_ctrl_c_on_a_running_command(tmp_path):
+    out = tmp_path / "demo"
+    proc = subprocess.Popen([sys.executable, "-u", "-m", "o3d_mvps", "demo", "--out", str(out), "--frames", "40",
+                             "--size", "320x240"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO)
+    assert proc.stdout.readline().startswith("rendering")  # the work has started
+    time.sleep(0.5)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130
+    assert "Traceback" not in err and err.rstrip().splitlines()[-1].endswith("o3d-mvps demo: interrupted")
+    assert list(tmp_path.iterdir()) == []  # nothing written, no temporary folder left
+
+
+def help_text(command: str, capsys) -> str:
+    with pytest.raises(SystemExit) as stop:
+        main([command, "--help"])
+    assert stop.value.code == 0
+    return capsys.readouterr().out
+
+
+@pytest.mark.parametrize("command", SUBCOMMANDS + ["convert"])
+def test_help_reads_as_terminal_text_with_examples(command, capsys):
+    text = help_text(command, capsys)
+    description = text.split("\n\n")[1]
+    assert "``" not in text and ":func:" not in text and description[0].isupper(), description
+    assert "\nexamples:\n  o3d-mvps " + command in text
+    assert "--quiet" in text
+
+
+def test_demo_seed_has_help(capsys):
+    assert "seed of the rendered albedo texture and sensor noise" in " ".join(help_text("demo", capsys).split())
+
+
+def test_bench_is_python_m_benchmarks(capsys):
+    with pytest.raises(SystemExit) as stop:
+        main(["bench"])
+    assert stop.value.code == 2 and "invalid choice: 'bench'" in capsys.readouterr().err
+    readme = (REPO / "README.md").read_text()
+    assert "o3d-mvps bench" not in readme and "python -m benchmarks" in readme
+
+
+def python(code: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, timeout=120)
+
+
+def test_submodules_after_a_plain_import():
+    run = python("import o3d_mvps\n"
+                 "capture = o3d_mvps.synthetic.render_capture('bunny', frames=2, size=(32, 24), scale_factor=2, "
+                 "progress=False)\n"
+                 "print(capture.n_frames, callable(o3d_mvps.realsense.read_recording))")
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.split() == ["2", "True"]
+
+
+def test_model_and_solver_import_without_open3d():
+    run = python("import sys, o3d_mvps, o3d_mvps.model, o3d_mvps.solver\nprint('open3d' in sys.modules)")
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.strip() == "False"
