@@ -64,10 +64,9 @@ def printable_solid(source, *, size_mm: float = 120.0, base_mm: float = 4.0, pie
     ExportError
         Bad options, an empty relief, or a solid failing one of :func:`check_solid`'s checks.
     """
-    if not (np.isfinite(size_mm) and size_mm > 0):
-        raise ExportError(f"size_mm must be a positive number of millimetres, got {size_mm}")
-    if not (np.isfinite(base_mm) and base_mm > 0):
-        raise ExportError(f"base_mm must be a positive number of millimetres, got {base_mm}")
+    for name, value in (("size_mm", size_mm), ("base_mm", base_mm)):
+        if not (np.isfinite(value) and value > 0):
+            raise ExportError(f"{name} must be a positive number of millimetres, got {value}")
     if pieces not in PIECES:
         raise ExportError(f"pieces must be one of {PIECES}, got {pieces!r}")
 

@@ -1,1 +1,1 @@
-"""The joint variational solver (DESIGN section 2, paper sections 3-4)."""
+"""The joint variational solver (paper sections 3-4; README "How it works")."""

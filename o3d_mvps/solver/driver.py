@@ -1,6 +1,6 @@
 """Coarse-to-fine driver: ``refine(capture) -> Refinement``.
 
-Per level, sweeps of poses -> depth -> albedo -> lighting (DESIGN section 2) until the
+Per level, sweeps of poses -> depth -> albedo -> lighting (paper section 4) until the
 relative energy change falls below the tolerance or the sweep cap is reached. Where poses are
 refined, poses and depth take one joint Gauss-Newton step (:mod:`.joint`); the depth and
 joint steps move the albedo along (variable projection) and keep z inside the sensor's depth

@@ -28,7 +28,7 @@ from .linear import ridge_solve
 
 @dataclass
 class SHLight:
-    """First-order spherical harmonics per frame (DESIGN section 2); ``initial`` (4,)."""
+    """First-order spherical harmonics per frame (paper section 3); ``initial`` (4,)."""
 
     initial: tuple = INITIAL_LIGHT
     name = "sh"
