@@ -80,7 +80,7 @@ def test_refine_overwrite_keeps_the_users_files(capture_dir, tmp_path, capsys):
     assert main(["--quiet", "refine", str(capture_dir), str(out), "--overwrite", "--tau", "20", *TINY_SOLVER]) == 0
     assert (out / "notes.txt").read_text() == "mine"
     assert read_refinement(out).depth_array().shape == (60, 80)  # the stale depth.npy was replaced
-    assert json.loads((out / "report.json").read_text())["info"]["options"]["tau"] == 20.0
+    assert json.loads((out / "report.json").read_text())["info"]["options"]["model"]["tau"] == 20.0
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary folders left
 
 

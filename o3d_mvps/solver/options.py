@@ -1,8 +1,18 @@
-"""RefineOptions: everything a researcher varies in a refinement."""
+"""RefineOptions: everything a researcher varies in a refinement, in three groups.
+
+Like the option structs of Open3D's pipelines, the options are grouped by meaning:
+:class:`ModelOptions` (the energy: paper section 3), :class:`ConvergenceCriteria` (when the
+iterations of paper section 4 stop) and :class:`StepOptions` (which updates a sweep runs; README
+"How it works, and where it departs from the paper"). ``RefineOptions(tau=100, refine_poses=False)``
+still takes every field by its flat name and ``options.tau`` still reads it.
+"""
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+import math
+import numbers
+from dataclasses import asdict, dataclass, field, fields
+from enum import Enum
 
 import numpy as np
 
@@ -11,120 +21,273 @@ from ..model.shading import INITIAL_LIGHT
 from .lighting import LIGHT_MODELS
 
 
-@dataclass
-class RefineOptions:
-    """Options of :func:`o3d_mvps.refine`.
+class _Choice(str, Enum):
+    """A string option with fixed values; equal to its plain string (``LightModel.LED == "led"``)."""
 
-    frames: number of frames to use (the first ``frames``), a list of indices, or None for all.
-    tau: normalised depth-prior weight tau~ (paper default 10; the authors' code used ~100).
-    cauchy_lambda: Cauchy scale lambda (intensity units, linear RGB in [0, 1]).
-    levels: coarse-to-fine pyramid levels (coarsest is 1 / 2^(levels-1) of the colour size).
-    max_iterations: sweep cap per level (one sweep = poses, depth, albedo, lighting).
-    tolerance: stop a level when the relative energy change falls below it.
-    refine_poses: refine poses jointly (False gives the paper's two-stage baseline).
-    occlusion_test: drop reference pixels hidden or out of view in frame i from its data term.
-    pose_iterations: Gauss-Newton iterations per frame and sweep.
-    pose_tolerance: stop a frame's Gauss-Newton iterations once one lowers its energy by less
-        than this fraction (0: always run ``pose_iterations``).
-    pose_min_pixels: refine poses only on levels whose reference mask has this many pixels
-        (coarser levels see too little of the object to constrain six degrees of freedom).
-    cg_tolerance, cg_max_iterations: preconditioned CG for the depth system.
-    occlusion_tolerance: relative depth tolerance of the occlusion test.
-    difference_scheme: depth derivatives of the normals, "central" or the paper's "forward"
-        (see o3d_mvps.model.normals).
-    extrapolate: after each sweep, try continuing its move of every unknown (x1, x2, x4) and keep
-        the best that lowers the energy; shortens the slow creep of poses, depth and albedo
-        against each other.
-    joint_pose_depth: on levels that refine poses, replace the paper's pose and depth updates
-        by one Gauss-Newton step on both, with the warp's parallax in the depth (see
-        o3d_mvps.solver.joint); False runs the paper's two updates.
-    joint_cg_tolerance: relative CG tolerance of that step (an inexact Newton step).
-    joint_min_pixels: take the joint step only on levels with this many object pixels; coarser
-        levels keep the paper's updates (there the joint step let the poses drift toward the
-        coarse images' biased minimum).
-    project_albedo: eliminate the albedo from the depth and joint steps (variable projection,
-        see o3d_mvps.solver.joint), so they move it along with z instead of leaving it to the
-        albedo update; False gives the paper's depth step with the albedo held fixed (as
-        does a single frame, whose one image cannot tell albedo from shading).
-    depth_envelope: keep each pixel's depth between the least and greatest sensor depth around
-        it, widened by this relative margin (None: unbounded); see
-        o3d_mvps.solver.pyramid.depth_envelope.
-    light_model: "led" (a point light moving with the camera, 1/r^2 falloff, plus ambient; the
-        paper's future work, see o3d_mvps.solver.lighting) or "sh" (the paper's first-order
-        spherical harmonics per frame).
+    def __str__(self) -> str:
+        return self.value
+
+    __format__ = str.__format__
+
+    @classmethod
+    def parse(cls, name: str, value):
+        """``value`` (a member or its string) as a member; ValueError naming ``name`` and the choices."""
+        try:
+            return cls(value)
+        except ValueError:
+            raise ValueError(f"{name} must be one of {[m.value for m in cls]}, got {value!r}") from None
+
+
+LightModel = _Choice("LightModel", {v.upper(): v for v in LIGHT_MODELS})
+LightModel.__doc__ = ('Light model: LED ("led", a point light moving with the camera, paper section 6\'s '
+                      'future work) or SH ("sh", first-order spherical harmonics per frame, paper section 3.2).')
+DifferenceScheme = _Choice("DifferenceScheme", {v.upper(): v for v in SCHEMES})
+DifferenceScheme.__doc__ = 'Depth derivatives of the normals: CENTRAL ("central") or the paper\'s FORWARD ("forward").'
+
+
+def _number(name, value, low, high, *, integer=False, low_open=False, high_open=False, none_ok=False):
+    """``value`` checked to lie in the range and converted to int/float; ValueError naming all three."""
+    if value is None and none_ok:
+        return None
+    lo, hi = ("(" if low_open else "[") + f"{low:g}", f"{high:g}" + (")" if high_open else "]")
+    kind = "an integer" if integer else "a number"
+    allowed = f"{kind} in {lo}, {hi}" + (" or None" if none_ok else "")
+    ok = isinstance(value, numbers.Integral if integer else numbers.Real) and not isinstance(value, (bool, np.bool_))
+    if ok:
+        v = float(value)
+        ok = math.isfinite(v) and (v > low if low_open else v >= low) and (v < high if high_open else v <= high)
+    if not ok:
+        raise ValueError(f"{name} must be {allowed}, got {value!r}")
+    return int(value) if integer else float(value)
+
+
+def _flag(name, value):
+    if not isinstance(value, (bool, np.bool_)):
+        raise ValueError(f"{name} must be True or False, got {value!r}")
+    return bool(value)
+
+
+def _vector(name, value, size, what, *, none_ok=False):
+    if value is None and none_ok:
+        return None
+    try:
+        v = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        v = None
+    if v is None or v.shape != (size,) or not np.isfinite(v).all():
+        raise ValueError(f"{name} must be {what}" + (" or None" if none_ok else "") + f", got {value!r}")
+    return tuple(v.tolist())
+
+
+def _set(obj, **values):
+    for k, v in values.items():
+        object.__setattr__(obj, k, v)
+
+
+@dataclass(frozen=True)
+class ModelOptions:
+    """The energy being minimised (paper section 3.4) and its light model.
+
+    tau: normalised depth-prior weight tau~ (paper default 10; the authors' code used ~100), > 0.
+    cauchy_lambda: Cauchy scale lambda (intensity units, linear RGB in [0, 1]), > 0.
+    light_model: :class:`LightModel` "led" (point light moving with the camera, 1/r^2 falloff,
+        plus ambient; o3d_mvps.solver.lighting) or "sh" (the paper's first-order SH per frame).
     led_offset: LED position (x, y, z) in metres in the colour camera's frame (x right, y down,
         z forward); None takes ``led_offset`` from the capture's metadata, else (0, 0, 0).
-    refine_led_offset: estimate the LED offset jointly, starting from ``led_offset``.
-    initial_light: SH lighting every frame starts from (light_model "sh").
-    strict_registration: without initial poses, raise when the registration cannot place a
-        frame instead of dropping it with a warning (see o3d_mvps.odometry.register_frames).
-    progress: show a progress bar per level.
+    initial_light: the 4 SH coefficients every frame starts from (light_model "sh"; section 4).
+    difference_scheme: :class:`DifferenceScheme` of the normals' depth derivatives, "central" or
+        the paper's "forward" (o3d_mvps.model.normals).
+    depth_envelope: keep each pixel's depth between the least and greatest sensor depth around it,
+        widened by this relative margin in [0, 1) (None: unbounded; README "How it works").
+    occlusion_test: drop reference pixels hidden or out of view in frame i from its data term.
+    occlusion_tolerance: relative depth tolerance of that test, in [0, 1).
     """
 
-    frames: int | list | None = None
     tau: float = 10.0
     cauchy_lambda: float = 0.04
+    light_model: LightModel = LightModel.LED
+    led_offset: tuple | None = None
+    initial_light: tuple = INITIAL_LIGHT
+    difference_scheme: DifferenceScheme = DifferenceScheme.CENTRAL
+    depth_envelope: float | None = 0.02
+    occlusion_test: bool = True
+    occlusion_tolerance: float = 0.02
+
+    def __post_init__(self):
+        _set(self,
+             tau=_number("tau", self.tau, 0, math.inf, low_open=True, high_open=True),
+             cauchy_lambda=_number("cauchy_lambda", self.cauchy_lambda, 0, math.inf, low_open=True, high_open=True),
+             light_model=LightModel.parse("light_model", self.light_model),
+             led_offset=_vector("led_offset", self.led_offset, 3, "(x, y, z) in metres", none_ok=True),
+             initial_light=_vector("initial_light", self.initial_light, 4, "4 SH coefficients"),
+             difference_scheme=DifferenceScheme.parse("difference_scheme", self.difference_scheme),
+             depth_envelope=_number("depth_envelope", self.depth_envelope, 0, 1, high_open=True, none_ok=True),
+             occlusion_test=_flag("occlusion_test", self.occlusion_test),
+             occlusion_tolerance=_number("occlusion_tolerance", self.occlusion_tolerance, 0, 1, high_open=True))
+
+
+@dataclass(frozen=True)
+class ConvergenceCriteria:
+    """When the iterations stop (paper section 4: coarse-to-fine sweeps until the relative energy
+    change falls below 1e-5).
+
+    levels: coarse-to-fine pyramid levels, >= 1 (coarsest is 1 / 2^(levels-1) of the colour size).
+    max_iterations: sweep cap per level, >= 1 (one sweep = poses, depth, albedo, lighting).
+    tolerance: stop a level when the relative energy change falls below it, in [0, 1).
+    pose_iterations: Gauss-Newton iterations per frame and sweep, >= 1.
+    pose_tolerance: stop a frame's Gauss-Newton iterations once one lowers its energy by less than
+        this fraction, in [0, 1) (0: always run ``pose_iterations``).
+    cg_tolerance, cg_max_iterations: preconditioned CG for the depth system (tolerance in (0, 1)).
+    joint_cg_tolerance: relative CG tolerance of the joint pose-depth step (an inexact Newton
+        step), in (0, 1).
+    """
+
     levels: int = 5
     max_iterations: int = 10
     tolerance: float = 1e-5
-    refine_poses: bool = True
-    occlusion_test: bool = True
     pose_iterations: int = 3
     pose_tolerance: float = 1e-3
-    pose_min_pixels: int = 1000
     cg_tolerance: float = 1e-4
     cg_max_iterations: int = 300
-    occlusion_tolerance: float = 0.02
-    difference_scheme: str = "central"
-    extrapolate: bool = True
-    joint_pose_depth: bool = True
     joint_cg_tolerance: float = 1e-2
-    joint_min_pixels: int = 10000
-    project_albedo: bool = True
-    depth_envelope: float | None = 0.02
-    light_model: str = "led"
-    led_offset: tuple | None = None
-    refine_led_offset: bool = True
-    initial_light: tuple = INITIAL_LIGHT
-    strict_registration: bool = False
-    progress: bool = True
 
     def __post_init__(self):
-        checks = [
-            (self.tau > 0, f"tau must be > 0, got {self.tau}"),
-            (self.cauchy_lambda > 0, f"cauchy_lambda must be > 0, got {self.cauchy_lambda}"),
-            (int(self.levels) >= 1, f"levels must be >= 1, got {self.levels}"),
-            (int(self.max_iterations) >= 1, f"max_iterations must be >= 1, got {self.max_iterations}"),
-            (self.tolerance >= 0, f"tolerance must be >= 0, got {self.tolerance}"),
-            (self.depth_envelope is None or 0 <= self.depth_envelope < 1,
-             f"depth_envelope must be None or a relative margin in [0, 1), got {self.depth_envelope}"),
-            (int(self.joint_min_pixels) >= 0, f"joint_min_pixels must be >= 0, got {self.joint_min_pixels}"),
-            (0 < self.cg_tolerance < 1 and 0 < self.joint_cg_tolerance < 1,
-             f"cg_tolerance and joint_cg_tolerance must lie in (0, 1), got {self.cg_tolerance}, "
-             f"{self.joint_cg_tolerance}"),
-            (len(self.initial_light) == 4, "initial_light must hold 4 SH coefficients"),
-            (self.difference_scheme in SCHEMES, f"difference_scheme must be one of {SCHEMES}"),
-            (self.light_model in LIGHT_MODELS, f"light_model must be one of {LIGHT_MODELS}, got {self.light_model!r}"),
-            (self.led_offset is None or np.shape(self.led_offset) == (3,),
-             f"led_offset must be (x, y, z) in metres or None, got {self.led_offset!r}"),
-        ]
-        for ok, message in checks:
-            if not ok:
-                raise ValueError(message)
+        _set(self,
+             levels=_number("levels", self.levels, 1, math.inf, integer=True),
+             max_iterations=_number("max_iterations", self.max_iterations, 1, math.inf, integer=True),
+             tolerance=_number("tolerance", self.tolerance, 0, 1, high_open=True),
+             pose_iterations=_number("pose_iterations", self.pose_iterations, 1, math.inf, integer=True),
+             pose_tolerance=_number("pose_tolerance", self.pose_tolerance, 0, 1, high_open=True),
+             cg_tolerance=_number("cg_tolerance", self.cg_tolerance, 0, 1, low_open=True, high_open=True),
+             cg_max_iterations=_number("cg_max_iterations", self.cg_max_iterations, 1, math.inf, integer=True),
+             joint_cg_tolerance=_number("joint_cg_tolerance", self.joint_cg_tolerance, 0, 1,
+                                        low_open=True, high_open=True))
+
+
+@dataclass(frozen=True)
+class StepOptions:
+    """Which updates a sweep runs (paper section 4's sweep and the departures README "How it works,
+    and where it departs from the paper" describes).
+
+    refine_poses: refine poses jointly (False gives the paper's two-stage baseline, section 5.1).
+    pose_min_pixels: refine poses only on levels whose reference mask has this many pixels, >= 0
+        (coarser levels see too little of the object to constrain six degrees of freedom).
+    joint_pose_depth: on levels that refine poses, replace the paper's pose and depth updates by one
+        Gauss-Newton step on both, with the warp's parallax in the depth (o3d_mvps.solver.joint).
+    joint_min_pixels: take the joint step only on levels with this many object pixels, >= 0;
+        coarser levels keep the paper's updates.
+    project_albedo: eliminate the albedo from the depth and joint steps (variable projection,
+        o3d_mvps.solver.joint); False gives the paper's depth step with the albedo held fixed.
+    extrapolate: after each sweep, try continuing its move of every unknown and keep the best that
+        lowers the energy.
+    refine_led_offset: estimate the LED offset jointly, starting from ``led_offset``.
+    strict_registration: without initial poses, raise when the registration cannot place a frame
+        instead of dropping it with a warning (o3d_mvps.odometry.register_frames).
+    """
+
+    refine_poses: bool = True
+    pose_min_pixels: int = 1000
+    joint_pose_depth: bool = True
+    joint_min_pixels: int = 10000
+    project_albedo: bool = True
+    extrapolate: bool = True
+    refine_led_offset: bool = True
+    strict_registration: bool = False
+
+    def __post_init__(self):
+        _set(self, **{f.name: (_number(f.name, getattr(self, f.name), 0, math.inf, integer=True)
+                               if f.name.endswith("_pixels") else _flag(f.name, getattr(self, f.name)))
+                      for f in fields(self)})
+
+
+GROUPS = {"model": ModelOptions, "convergence": ConvergenceCriteria, "steps": StepOptions}
+_GROUP_OF = {f.name: group for group, cls in GROUPS.items() for f in fields(cls)}
+
+
+@dataclass(frozen=True)
+class RefineOptions:
+    """Options of :func:`o3d_mvps.refine`: three groups plus the frames to use and the progress bar.
+
+    ``RefineOptions(model=ModelOptions(tau=100), convergence=ConvergenceCriteria(levels=3))`` or,
+    equally, ``RefineOptions(tau=100, levels=3)``: every field of a group is also a keyword (it
+    overrides that field of a group given alongside) and a read-only attribute (``options.tau``).
+    ``dataclasses.replace(options, tau=20)`` works too.
+
+    frames: number of frames to use (the first ``frames``), a list of indices, or None for all.
+    progress: show a progress bar per level.
+    """
+
+    model: ModelOptions = field(default_factory=ModelOptions)
+    convergence: ConvergenceCriteria = field(default_factory=ConvergenceCriteria)
+    steps: StepOptions = field(default_factory=StepOptions)
+    frames: int | list | None = None
+    progress: bool = True
+
+    def __init__(self, model: ModelOptions | None = None, convergence: ConvergenceCriteria | None = None,
+                 steps: StepOptions | None = None, frames: int | list | None = None, progress: bool = True,
+                 **flat):
+        unknown = sorted(set(flat) - set(_GROUP_OF))
+        if unknown:
+            valid = ", ".join([*GROUPS, "frames", "progress", *_GROUP_OF])
+            raise TypeError(f"RefineOptions got unknown keyword(s) {', '.join(unknown)}; valid keywords: {valid}")
+        given = {"model": model, "convergence": convergence, "steps": steps}
+        groups = {}
+        for group, cls in GROUPS.items():
+            base = given[group] if given[group] is not None else cls()
+            if not isinstance(base, cls):
+                raise TypeError(f"{group} must be a {cls.__name__}, got {type(base).__name__}")
+            changes = {k: v for k, v in flat.items() if _GROUP_OF[k] == group}
+            groups[group] = cls(**{**asdict(base), **changes}) if changes else base
+        _set(self, **groups, frames=_frames(frames), progress=_flag("progress", progress))
 
     def frame_indices(self, n_available: int) -> list[int]:
         """The frame indices to use out of ``n_available``; frame 0 is always the reference."""
         if self.frames is None:
             return list(range(n_available))
-        if np.isscalar(self.frames):
-            n = int(self.frames)
-            if not 1 <= n <= n_available:
-                raise ValueError(f"frames={n} but the capture has {n_available} frames; use 1..{n_available}")
-            return list(range(n))
-        indices = [int(i) for i in self.frames]
-        if not indices or min(indices) < 0 or max(indices) >= n_available or len(set(indices)) != len(indices):
-            raise ValueError(f"frames={indices} must be distinct indices in 0..{n_available - 1}")
-        return indices
+        if isinstance(self.frames, int):
+            if not self.frames <= n_available:
+                raise ValueError(f"frames={self.frames} but the capture has {n_available} frames; "
+                                 f"use 1..{n_available}")
+            return list(range(self.frames))
+        if max(self.frames) >= n_available:
+            raise ValueError(f"frames={self.frames} must be distinct indices in 0..{n_available - 1}")
+        return list(self.frames)
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        """JSON-ready nested dict: {"model": {...}, "convergence": {...}, "steps": {...}, "frames", "progress"}."""
+        d = asdict(self)
+        for group in GROUPS:
+            d[group] = {k: (v.value if isinstance(v, Enum) else list(v) if isinstance(v, tuple) else v)
+                        for k, v in d[group].items()}
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> RefineOptions:
+        """The options ``to_dict`` gave (nested), or flat keywords as a dict."""
+        return cls(**{k: (GROUPS[k](**v) if k in GROUPS else v) for k, v in d.items()})
+
+
+def _frames(frames):
+    """``frames`` checked: None, a count >= 1, or distinct indices >= 0 (a list of int)."""
+    if frames is None:
+        return None
+    if isinstance(frames, numbers.Integral) and not isinstance(frames, (bool, np.bool_)):
+        return _number("frames", frames, 1, math.inf, integer=True)
+    try:
+        indices = [int(i) for i in frames if isinstance(i, numbers.Integral) and not isinstance(i, bool)]
+        ok = len(indices) == len(frames) and indices and min(indices) >= 0 and len(set(indices)) == len(indices)
+    except TypeError:
+        ok = False
+    if not ok:
+        raise ValueError(f"frames must be None, a count >= 1 or a list of distinct indices >= 0, got {frames!r}")
+    return indices
+
+
+def _group_property(group: str, name: str) -> property:
+    return property(lambda self: getattr(getattr(self, group), name),
+                    doc=f"``{group}.{name}`` (read-only; see {GROUPS[group].__name__}).")
+
+
+for _name, _group in _GROUP_OF.items():
+    setattr(RefineOptions, _name, _group_property(_group, _name))
+del _name, _group
