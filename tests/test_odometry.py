@@ -12,7 +12,7 @@ from dataclasses import replace
 
 import open3d as o3d
 
-from o3d_mvps import odometry
+from o3d_mvps import RefineOptions, odometry, refine
 from o3d_mvps.capture import Capture, default_depth_intrinsic, image_from_array
 from o3d_mvps.errors import OdometryError
 from o3d_mvps.model.se3 import pose_error
@@ -104,7 +104,22 @@ def test_unregistrable_frame_is_dropped_with_a_warning(capture, kind):
     with pytest.raises(OdometryError, match=r"cannot register frame 3\b"):
         register_frames(bad, strict=True)
     with pytest.raises(OdometryError, match=r"cannot register frame 3\b"):
-        initial_poses(bad)  # the solver's entry point: strict
+        initial_poses(bad)  # strict
+    options = RefineOptions(progress=False, levels=2, max_iterations=1)
+    with pytest.warns(UserWarning, match=r"cannot register frame 3"):
+        refined = refine(bad, options)  # refine() registers the same way: frame 3 left out
+    assert refined.info["frames"] == [0, 1, 2, 4, 5, 6, 7] and refined.poses.shape[0] == 7
+    with pytest.raises(OdometryError, match=r"cannot register frame 3\b"):
+        refine(bad, replace(options, strict_registration=True))
+
+
+def test_given_poses_are_rebased_onto_the_first_frame_used(capture):
+    """refine(frames=[2, 3, 4]) with poses relative to frame 0 keeps them, re-based onto frame 2."""
+    truth = capture.groundtruth.poses
+    options = RefineOptions(progress=False, frames=[2, 3, 4], levels=1, max_iterations=1, refine_poses=False)
+    refined = refine(capture, options, initial_poses=truth)
+    expected = truth[[2, 3, 4]] @ np.linalg.inv(truth[2])
+    np.testing.assert_allclose(refined.poses.numpy(), expected, atol=1e-12)
 
 
 def test_dropping_stops_at_three_frames(capture):

@@ -108,7 +108,6 @@ def _row_dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
 
 
-
 def _contract_channels(coefficients: np.ndarray, J: np.ndarray) -> np.ndarray:
     """sum_c coefficients[:, c] J[:, c, :] of (M, 3) and (M, 3, k): (M, k) (a batched matmul:
     ten times faster than einsum's generic loop or three broadcast products)."""
@@ -123,9 +122,9 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
     (False: the paper's frozen-warp depth rows). twists: include frames 1..n-1's twists.
     project_albedo: eliminate the albedo (variable projection, see :class:`_AlbedoProjection`).
 
-    One pass over the frames; every per-frame quantity is formed on the frame's usable pixels
-    only, and the twist columns of all frames are written into one (N, 3, 6m) array the
-    projection's dense parts are read from.
+    One pass over the frames, on full-size arrays (zero where a frame does not see a pixel):
+    each refined frame writes its coupling rows and, with the projection, its w s J into
+    frame-major arrays, from which the projection's dense parts are formed after the pass.
     """
     grid = problem.level.grid
     N = grid.size
@@ -217,8 +216,9 @@ class _AlbedoProjection:
     and the frozen-dA error of the depth rows, ``s_i`` times a per-pixel factor, drops out
     (frozen dA is exact up to the albedo direction).
 
-    Accumulates e per (pixel, channel) for the depth rows (a, b, c); the twist rows' e are the
-    columns of ``F`` (N, 3, 6m), w s J, filled by :func:`joint_system`. Arrays (N, 3) unless stated.
+    Accumulates e per (pixel, channel) for the depth rows (a, b, c); the twist rows' e are
+    ``F`` (m, N, 3, 6), w s J of the m refined frames, filled by :func:`joint_system`. Arrays
+    (N, 3) unless stated.
     """
 
     def __init__(self, w: np.ndarray, ev: Evaluation):
