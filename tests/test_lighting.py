@@ -209,16 +209,16 @@ def test_update_led_offset_moves_a_wrong_offset_toward_the_truth(led_capture):
         est.lights = update_lighting(est, ev, problem.lam)
         ev = problem.reevaluate(est, ev)
         energies.append(ev.energy)
-        before = problem.light.offset.copy()
-        ev = update_led_offset(problem, est, ev)
-        moved += not np.array_equal(before, problem.light.offset)
+        before = problem.light_model(est).offset.copy()
+        est.led_offset, ev = update_led_offset(problem, est, ev)
+        moved += not np.array_equal(before, est.led_offset)
         energies.append(ev.energy)
         # the returned evaluation is that of the (possibly) moved offset
         assert ev.energy == pytest.approx(problem.evaluate(est).energy, rel=1e-9)
     assert moved >= 4
     e = np.array(energies)
     assert np.all(np.diff(e) <= 1e-9 * e[0]), energies
-    error0, error = start - true_offset, problem.light.offset - true_offset
+    error0, error = start - true_offset, est.led_offset - true_offset
     lateral0, lateral = np.linalg.norm(error0[:2]), np.linalg.norm(error[:2])
     assert lateral < 0.4 * lateral0, error  # measured 0.19x
     assert np.linalg.norm(error) < np.linalg.norm(error0), error  # measured 8.5 mm from 12.8 mm

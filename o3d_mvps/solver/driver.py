@@ -91,7 +91,7 @@ def _sweeps(problem: LevelProblem, est: Estimate, ev, options: RefineOptions, ti
                disable=not options.progress, leave=False)
     for iteration in bar:
         previous = ev.energy
-        start = _snapshot(est, problem, poses=refine_poses, offset=refine_offset)
+        start = _snapshot(est)
         if refine_poses and options.joint_pose_depth and level.grid.size >= options.joint_min_pixels:
             t = time.perf_counter()
             stepped, ev, cg_iterations = update_pose_depth(problem, est, ev, rtol=options.joint_cg_tolerance,
@@ -117,7 +117,7 @@ def _sweeps(problem: LevelProblem, est: Estimate, ev, options: RefineOptions, ti
         est.lights = update_lighting(est, ev, problem.lam)
         ev = problem.reevaluate(est, ev)
         if refine_offset:
-            ev = update_led_offset(problem, est, ev)
+            est.led_offset, ev = update_led_offset(problem, est, ev)
         timings["albedo_lighting"] += time.perf_counter() - t
         if options.extrapolate:
             t = time.perf_counter()
@@ -131,49 +131,42 @@ def _sweeps(problem: LevelProblem, est: Estimate, ev, options: RefineOptions, ti
     return rows
 
 
-def _snapshot(est: Estimate, problem: LevelProblem, *, poses: bool, offset: bool) -> dict:
-    """Copies of the unknowns a level's sweeps estimate (poses and LED offset when they do)."""
-    state = {"z": est.z.copy(), "albedo": est.albedo.copy(), "lights": est.lights.copy()}
-    if poses:
-        state["poses"] = est.poses.copy()
-    if offset:
-        state["offset"] = problem.light.offset.copy()
-    return state
+def _snapshot(est: Estimate) -> Estimate:
+    """A copy of the unknowns, taken at the start of a sweep."""
+    return Estimate(est.z.copy(), est.albedo.copy(), est.lights.copy(), est.poses.copy(),
+                    None if est.led_offset is None else est.led_offset.copy())
 
 
-def _extrapolate(problem: LevelProblem, est: Estimate, ev, before: dict, factors=(1.0, 2.0, 4.0)):
+def _extrapolate(problem: LevelProblem, est: Estimate, ev, before: Estimate, factors=(1.0, 2.0, 4.0)):
     """Extrapolate the last sweep's move of every unknown; keep the best energy-lowering factor.
 
     Alternating steps creep along the valley where poses, depth and albedo trade off against
     each other (a rotation of a frame about the object moves the image by a fraction of a pixel);
     continuing the sweep's own direction shortens the creep. ``before`` is the snapshot taken at
-    the start of the sweep, ``est`` (evaluated as ``ev``) where it ended.
+    the start of the sweep, ``est`` (evaluated as ``ev``) where it ended; unknowns the sweep did
+    not move stay put.
     """
     best = None
-    if "poses" in before:
-        delta_poses = [se3.log(T @ np.linalg.inv(T0)) for T, T0 in zip(est.poses, before["poses"])]
-    end_offset = problem.light.offset.copy() if "offset" in before else None
+    poses_moved = not np.array_equal(est.poses, before.poses)  # else kept exactly (no log/exp round trip)
+    delta_poses = [se3.log(T @ np.linalg.inv(T0)) for T, T0 in zip(est.poses, before.poses)] if poses_moved else []
     for factor in factors:
-        poses = est.poses
-        if "poses" in before:
-            poses = np.stack([se3.exp(factor * d) @ T for d, T in zip(delta_poses, est.poses)])
-        z = problem.level.prior.clip(est.z + factor * (est.z - before["z"]))
+        z = problem.level.prior.clip(est.z + factor * (est.z - before.z))
         if not np.all(z > 0):
             break
-        trial = Estimate(z, est.albedo + factor * (est.albedo - before["albedo"]),
-                         est.lights + factor * (est.lights - before["lights"]), poses)
-        if end_offset is not None:
-            problem.light.offset = end_offset + factor * (end_offset - before["offset"])
+        offset = None if est.led_offset is None else est.led_offset + factor * (est.led_offset - before.led_offset)
+        trial = Estimate(z, est.albedo + factor * (est.albedo - before.albedo),
+                         est.lights + factor * (est.lights - before.lights),
+                         np.stack([se3.exp(factor * d) @ T for d, T in zip(delta_poses, est.poses)])
+                         if poses_moved else est.poses, offset)
         trial_ev = problem.evaluate(trial)
         if trial_ev.energy < (ev.energy if best is None else best[1].energy):
-            best = (trial, trial_ev, None if end_offset is None else problem.light.offset.copy())
+            best = (trial, trial_ev)
         else:
             break
-    if end_offset is not None:
-        problem.light.offset = end_offset if best is None else best[2]
     if best is None:
         return ev
-    est.z, est.albedo, est.lights, est.poses = best[0].z, best[0].albedo, best[0].lights, best[0].poses
+    est.z, est.albedo, est.lights, est.poses, est.led_offset = (best[0].z, best[0].albedo, best[0].lights,
+                                                                best[0].poses, best[0].led_offset)
     return best[1]
 
 
@@ -236,6 +229,7 @@ def _refine(capture: Capture, options: RefineOptions | None, device, initial_pos
     light = make_light_model(options.light_model, initial_sh=options.initial_light,
                              led_offset=_led_offset(options, capture))
     lights = light.initial_lights(capture.n_frames, mean_z0)
+    led_offset = light.offset.copy() if light.name == "led" else None  # an unknown, carried in the Estimate
     poses = initial_poses.copy()
     z_full = albedo_full = None
     history = []
@@ -255,7 +249,8 @@ def _refine(capture: Capture, options: RefineOptions | None, device, initial_pos
         else:
             z_full = resize(z_full, level.size, interpolation=cv2.INTER_LINEAR)
             albedo_full = resize(albedo_full, level.size, interpolation=cv2.INTER_LINEAR)
-        est = Estimate(level.prior.clip(g.gather(z_full).astype(np.float64)), g.gather(albedo_full).astype(np.float64), lights, poses)
+        est = Estimate(level.prior.clip(g.gather(z_full).astype(np.float64)), g.gather(albedo_full).astype(np.float64),
+                       lights, poses, led_offset)
         tau = normalised_tau(options.tau, capture.n_frames, mean_I, g.size, mean_z0, level.prior.rows)
         problem = LevelProblem(level, tau, options.cauchy_lambda, light)
         problem.update_visibility(est, occlusion_test=options.occlusion_test, rel_tol=options.occlusion_tolerance,
@@ -269,7 +264,7 @@ def _refine(capture: Capture, options: RefineOptions | None, device, initial_pos
         ev = problem.reevaluate(est, ev)
         timings["setup"] += time.perf_counter() - t
         history += _sweeps(problem, est, ev, options, timings, stats)
-        lights, poses = est.lights, est.poses
+        lights, poses, led_offset = est.lights, est.poses, est.led_offset
         z_full = fill_nearest_valid(g.scatter(est.z), g.mask)
         albedo_full = fill_nearest_valid(g.scatter(est.albedo), g.mask)
 
@@ -279,5 +274,6 @@ def _refine(capture: Capture, options: RefineOptions | None, device, initial_pos
     return Refinement.from_arrays(
         depth, ref_mask, K, albedo=albedo, poses=poses, lighting=lights, method="ours",
         energy=history, timings=dict(timings),
-        info={"frames": frames, "options": options.to_dict(), "light_model": light.describe(), **stats},
+        info={"frames": frames, "options": options.to_dict(),
+              "light_model": (light if led_offset is None else light.at(led_offset)).describe(), **stats},
     )

@@ -16,6 +16,7 @@ points (N, 3) in reference coordinates (metres), and frame i's pose (4, 4) refer
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -69,6 +70,10 @@ class LEDLight:
 
     def __post_init__(self):
         self.offset = np.asarray(self.offset, dtype=np.float64).reshape(3)
+
+    def at(self, offset: np.ndarray) -> "LEDLight":
+        """The same model with the LED at ``offset`` (3,) metres."""
+        return LEDLight(offset)
 
     def initial_lights(self, n_frames: int, mean_depth: float) -> np.ndarray:
         """(n, 2) starting lights: ambient 0.2 and an intensity lighting a frontal surface with 1."""
@@ -155,13 +160,13 @@ def make_light_model(name: str, *, initial_sh=INITIAL_LIGHT, led_offset=None):
 
 
 def update_led_offset(problem, est, ev, *, max_halvings: int = 3, max_pixels: int = 4000):
-    """One IRLS Gauss-Newton step on the LED offset (all frames); returns the new evaluation.
+    """One IRLS Gauss-Newton step on the LED offset (all frames): returns (offset (3,), evaluation).
 
     The step is computed from at most ``max_pixels`` evenly spread pixels per frame (three
-    unknowns need few), the line search on the full energy. Changes ``problem.light.offset``
-    in place only when the step lowers the energy.
+    unknowns need few), the line search on the full energy; the offset is ``est``'s (or the
+    light model's) unchanged, with ``ev``, when no step lowers the energy.
     """
-    light = problem.light
+    light = problem.light_model(est)
     points_ref = problem.points(est.z)
     H = np.zeros((3, 3))
     g = np.zeros(3)
@@ -177,20 +182,15 @@ def update_led_offset(problem, est, ev, *, max_halvings: int = 3, max_pixels: in
         H += (ds * rho_w.sum(axis=1)[:, None]).T @ ds
         # residual r = I - rho s: dr/do = -rho ds
         g -= ds.T @ np.sum(w[i, use] * est.albedo[use] * ev.residual[i, use], axis=1)
+    start = light.offset
     step = ridge_solve(H, -g) if np.trace(H) > 0 else None
     if step is None:
-        return ev
-    start = light.offset.copy()
+        return start, ev
 
     def trial(t: float):
-        light.offset = start + t * step
-        trial_ev = problem.evaluate_samples(est, ev.color, ev.usable, ev.normals, ev.dA)
-        return trial_ev, trial_ev.energy
+        moved = dataclasses.replace(est, led_offset=start + t * step)
+        trial_ev = problem.evaluate_samples(moved, ev.color, ev.usable, ev.normals, ev.dA)
+        return (moved.led_offset, trial_ev), trial_ev.energy
 
     found = backtrack(trial, ev.energy, max_halvings)
-    if found is None:
-        light.offset = start
-        return ev
-    t, trial_ev, _ = found
-    light.offset = start + t * step
-    return trial_ev
+    return (start, ev) if found is None else found[1]

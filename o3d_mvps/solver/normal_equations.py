@@ -88,7 +88,7 @@ def residual_jacobians(problem: LevelProblem, est: Estimate, ev: Evaluation, i: 
     use = ev.usable[i]
     pose = est.poses[i]
     ray = points_ref / points_ref[:, 2:3]  # d(point)/d(z), reference coordinates
-    dshading = problem.light.shading_jacobian(est.lights[i], ev.normals, points_ref, pose)  # (N, 6) or None
+    dshading = problem.light_model(est).shading_jacobian(est.lights[i], ev.normals, points_ref, pose)  # (N, 6)|None
     if i == 0:
         if dshading is None:
             return use, None, np.zeros(points_ref.shape)
@@ -144,7 +144,7 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
     F = np.empty((len(candidates), N, 3, 6)) if projection is not None else None
     hessians, rhs_xi, frames = [], [], []
     for i in range(problem.n_frames):
-        _, alpha, beta, gamma = shading_rows(problem, est.lights[i], ev.normals, points_ref, est.poses[i])
+        _, alpha, beta, gamma = shading_rows(problem, est, i, ev.normals, points_ref)
         c_diag = -q * gamma[:, None]
         J = None
         if parallax or i in slot:
@@ -267,12 +267,11 @@ def _gram(F: np.ndarray) -> np.ndarray:
     return np.triu(upper) + np.triu(upper, 1).T
 
 
-def shading_rows(problem: LevelProblem, light: np.ndarray, normals: np.ndarray, points_ref: np.ndarray,
-                 pose: np.ndarray):
-    """(c, alpha, beta, gamma), (N,) each (c may be a scalar), with the light field frozen at
-    the current surface: the shading is ``c + (alpha Du z + beta Dv z + gamma z) / dA``."""
+def shading_rows(problem: LevelProblem, est: Estimate, i: int, normals: np.ndarray, points_ref: np.ndarray):
+    """(c, alpha, beta, gamma) of frame i, (N,) each (c may be a scalar), with the light field
+    frozen at the current surface: the shading is ``c + (alpha Du z + beta Dv z + gamma z) / dA``."""
     g, K = problem.level.grid, problem.level.K
-    c, L = problem.light.field(light, normals, points_ref, pose)
+    c, L = problem.light_model(est).field(est.lights[i], normals, points_ref, est.poses[i])
     L = np.broadcast_to(L, (g.size, 3))
     alpha = K[0, 0] * L[:, 0] - (g.u - K[0, 2]) * L[:, 2]
     beta = K[1, 1] * L[:, 1] - (g.v - K[1, 2]) * L[:, 2]

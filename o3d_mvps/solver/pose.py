@@ -43,10 +43,10 @@ def refine_pose(problem: LevelProblem, est: Estimate, i: int, points_ref: np.nda
     for every trial pose and its derivative enters the Jacobian.
     """
     K = problem.level.K
-    light, albedo = est.lights[i], est.albedo
+    model, light, albedo = problem.light_model(est), est.lights[i], est.albedo
 
     def energy_of(sample: FrameSample, pose: np.ndarray) -> float:
-        return problem.frame_data_energy(sample, albedo, problem.frame_shading(light, normals, points_ref, pose))
+        return problem.frame_data_energy(sample, albedo, model.basis(normals, points_ref, pose) @ light)
 
     pose = est.poses[i]
     sample = problem.sample(i, pose, points_ref)
@@ -56,11 +56,11 @@ def refine_pose(problem: LevelProblem, est: Estimate, i: int, points_ref: np.nda
         if use.sum() < 12:
             break
         points = points_ref[use]
-        shading = problem.frame_shading(light, normals[use], points, pose)
+        shading = model.basis(normals[use], points, pose) @ light
         r = sample.color[use] - albedo[use] * shading[:, None]
         w = cauchy_weights(r, problem.lam)
         J = pose_jacobian(problem.sample_gradients(i, sample, use), K)
-        dshading = problem.light.shading_jacobian(light, normals[use], points, pose)
+        dshading = model.shading_jacobian(light, normals[use], points, pose)
         if dshading is not None:
             J -= albedo[use][:, :, None] * dshading[:, None, :]
         J = J.reshape(-1, 6)

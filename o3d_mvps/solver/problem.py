@@ -20,12 +20,15 @@ from .pyramid import Level
 
 @dataclass
 class Estimate:
-    """Unknowns on one level: z (N,) metres, albedo (N, 3), lights (n, k), poses (n, 4, 4)."""
+    """Unknowns on one level: z (N,) metres, albedo (N, 3), lights (n, k), poses (n, 4, 4) and
+    the LED offset (3,) metres in the camera frame (None: the light model's own, or a model
+    without one)."""
 
     z: np.ndarray
     albedo: np.ndarray
     lights: np.ndarray
     poses: np.ndarray
+    led_offset: np.ndarray | None = None
 
 
 @dataclass
@@ -131,13 +134,13 @@ class LevelProblem:
         d = p.D @ z - p.z0
         return self.tau * float(d @ d)
 
-    def frame_shading(self, light: np.ndarray, normals: np.ndarray, points_ref: np.ndarray, pose: np.ndarray):
-        """Shading (N,) of the frame with ``pose`` and light parameters (k,) on the reference surface."""
-        return self.light.basis(normals, points_ref, pose) @ light
+    def light_model(self, est: Estimate):
+        """The level's light model at the estimate's LED offset (its own where the estimate has none)."""
+        return self.light if est.led_offset is None else self.light.at(est.led_offset)
 
     def bases(self, est: Estimate, normals: np.ndarray) -> np.ndarray:
         """Light bases (m, N, k) of every frame, or (1, N, k) when the model shares one."""
-        return self.light.bases(normals, self.points(est.z), est.poses)
+        return self.light_model(est).bases(normals, self.points(est.z), est.poses)
 
     def frame_data_energy(self, sample: FrameSample, albedo: np.ndarray, shading: np.ndarray) -> float:
         """Robust data energy of one frame for given shading (N,)."""
