@@ -144,7 +144,9 @@ def test_reads_open3d_written_folder_with_defaults(tmp_path):
         o3d.t.io.write_image(str(root / "depth" / f"{i:06d}.png"), image_from_array(depth))
     o3d.io.write_pinhole_camera_intrinsic(str(root / "intrinsic.json"), o3d.camera.PinholeCameraIntrinsic(W, H, K))
 
-    capture = read_capture(root)
+    with pytest.raises(CaptureError, match="automatic object mask of frame 0 is empty"):
+        read_capture(root)  # no mask/: automatic masks, and a flat depth holds nothing but a wall
+    capture = read_capture(root, mask="none")
 
     np.testing.assert_array_equal(capture.color_array(1)[0, 0], [1.0, 0.0, 0.0])
     np.testing.assert_allclose(capture.depth_array(0), 0.6, rtol=1e-6)

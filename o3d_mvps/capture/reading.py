@@ -25,6 +25,7 @@ from .layout import (
     INTRINSIC_JSON,
     MASK_DIR,
 )
+from .masks import auto_masks
 from .types import Capture, GroundTruth, default_depth_intrinsic, image_from_array
 from .validation import check_settings, groundtruth_problem, intrinsic_matrix, size_text, validate_capture
 
@@ -32,7 +33,11 @@ from .validation import check_settings, groundtruth_problem, intrinsic_matrix, s
 EXIF_ORIENTATION = 0x0112
 
 
-def read_capture(path) -> Capture:
+#: Where the object masks come from: the folder's mask/, automatic (depth), or none.
+MASK_SOURCES = ("auto", "none", "folder")
+
+
+def read_capture(path, mask: str | None = None, depth_range=None) -> Capture:
     """Read a capture folder (layout in the ``o3d_mvps.capture`` docstring).
 
     Colour PNGs (8- or 16-bit; .jpg also read) become float32 linear RGB in [0, 1] (sRGB ones
@@ -41,7 +46,11 @@ def read_capture(path) -> Capture:
     file name in sorted order. A missing ``capture.json`` means the defaults (depth_scale 1000,
     depth_trunc 3 m, sRGB colour); a missing ``depth_intrinsic.json`` means
     ``default_depth_intrinsic``. Depth beyond depth_trunc is kept (depth_trunc is passed on
-    for fusion). A missing mask/ folder gives ``masks=None``. A ``groundtruth/`` folder that is
+    for fusion). Masks (``mask``): ``"folder"`` reads mask/ (CaptureError when missing),
+    ``"auto"`` computes them from depth (:func:`o3d_mvps.capture.masks.object_mask`: the connected
+    depth region nearest the image centre within ``depth_range``, background planes cut),
+    ``"none"`` gives ``masks=None``; by default mask/ when present, else ``"auto"``
+    (:func:`mask_source` says which, in words). A ``groundtruth/`` folder that is
     incomplete or does not fit the capture is reported (a warning) and ignored: only the
     evaluation needs it. Initial poses (``poses.*``) are read by :func:`read_capture_poses`.
 
@@ -49,6 +58,10 @@ def read_capture(path) -> Capture:
     ----------
     path : str or os.PathLike
         The capture folder.
+    mask : {"auto", "none", "folder"} or None
+        Where the object masks come from (None: mask/ when present, else "auto").
+    depth_range : (near, far) metres or None
+        The automatic masks' depth range (None: around the depth at the image centre).
 
     Returns
     -------
@@ -60,6 +73,7 @@ def read_capture(path) -> Capture:
         The folder, a file or the frames are missing, unreadable or inconsistent.
     """
     root = capture_root(path)
+    mask = _choose_mask_source(root, mask, depth_range)
     settings = _read_settings(root / CAPTURE_JSON)
     color_K, color_K_size = read_intrinsic_json(root / INTRINSIC_JSON)
     depth_K, depth_K_size = None, None
@@ -82,7 +96,7 @@ def read_capture(path) -> Capture:
         depth=depth,
         color_intrinsic=o3d.core.Tensor(color_K),
         depth_intrinsic=o3d.core.Tensor(color_K if depth_K is None else depth_K),  # default set once SF is known
-        masks=_read_masks(root / MASK_DIR, names),
+        masks=_read_masks(root / MASK_DIR, names) if mask == "folder" else None,
         depth_scale=settings["depth_scale"],
         depth_trunc=settings["depth_trunc"],
         color_encoding=settings["color_encoding"],
@@ -95,9 +109,42 @@ def read_capture(path) -> Capture:
         capture.depth_intrinsic = o3d.core.Tensor(default_depth_intrinsic(color_K, capture.scale_factor))
     else:
         _check_intrinsic_size(root / DEPTH_INTRINSIC_JSON, depth_K_size, capture.depth_size, DEPTH_DIR)
+    if mask == "auto":
+        masks = auto_masks([capture.depth_array(i) for i in range(capture.n_frames)], capture.depth_K(),
+                           capture.scale_factor, depth_range)
+        capture.masks = [image_from_array((m * np.uint8(255))[..., None]) for m in masks]
     if (root / GROUNDTRUTH_DIR).is_dir():
         capture.groundtruth = _read_groundtruth(root / GROUNDTRUTH_DIR, capture.n_frames, capture.color_size)
     return capture
+
+
+def _choose_mask_source(root: Path, mask: str | None, depth_range) -> str:
+    """The mask source to use ("auto", "none" or "folder"); CaptureError for a bad choice or range."""
+    if mask is None:
+        mask = "folder" if (root / MASK_DIR).is_dir() else "auto"
+    if mask not in MASK_SOURCES:
+        raise CaptureError(f"mask={mask!r} is not a mask source; use one of {', '.join(MASK_SOURCES)}")
+    if mask == "folder" and not (root / MASK_DIR).is_dir():
+        raise CaptureError(f"{root / MASK_DIR} is missing; add the masks, or use automatic masks (--mask auto)")
+    if depth_range is not None:
+        near, far = (float(x) for x in depth_range)
+        if not 0 <= near < far:
+            raise CaptureError(f"depth range {near:g}-{far:g} m is empty or negative; give NEAR < FAR in metres")
+    return mask
+
+
+def mask_source(path, mask: str | None = None, depth_range=None) -> str:
+    """Where :func:`read_capture` (same arguments) takes the masks of the capture folder ``path``
+    from, in words (for logs); CaptureError for a bad choice or depth range."""
+    root = capture_root(path)
+    mask = _choose_mask_source(root, mask, depth_range)
+    if mask == "folder":
+        return f"folder {root / MASK_DIR}"
+    if mask == "none":
+        return "none"
+    if depth_range is None:
+        return "auto (depth region nearest the image centre, range around the centre depth)"
+    return f"auto (depth region nearest the image centre, range {depth_range[0]:g}-{depth_range[1]:g} m)"
 
 
 def capture_root(path) -> Path:

@@ -7,6 +7,7 @@ import argparse
 from dataclasses import replace
 
 from ..capture import read_capture, read_capture_poses
+from ..capture.reading import MASK_SOURCES, mask_source
 from ..report import accuracy_rows, markdown_table
 from ..solver.driver import refine
 from ..solver.lighting import LIGHT_MODELS
@@ -27,6 +28,7 @@ EXAMPLES = """examples:
   o3d-mvps refine capture/ refined/ --led-offset 0.03 -0.02 0  # LED 3 cm right of, 2 cm above the lens
   o3d-mvps refine capture/ paper/ --light-model sh            # the paper's SH lighting
   o3d-mvps refine capture/ refined/ --poses trajectory.log     # poses from Open3D's reconstruction system
+  o3d-mvps refine capture/ refined/ --mask auto --depth-range 0.3 1.2  # object mask from depth
 """
 
 
@@ -73,6 +75,13 @@ def register(subparsers) -> None:
                         "'Poses from other tools'; default: the capture folder's poses.* if any, else registration)")
     p.add_argument("--strict", action="store_true",
                    help="stop when a frame cannot be registered, instead of dropping it with a warning")
+    p.add_argument("--mask", choices=MASK_SOURCES, default=None,
+                   help="object masks: the capture's mask/ folder, automatic from depth (the connected region "
+                        "nearest the image centre, table and wall planes cut), or none (default: mask/ when "
+                        "present, else auto)")
+    p.add_argument("--depth-range", type=float, nargs=2, metavar=("NEAR", "FAR"), default=None,
+                   help="metres; the automatic mask keeps only depths in this range (default: around the "
+                        "depth at the image centre)")
     add_solver_arguments(p)
     p.set_defaults(handler=run)
 
@@ -91,7 +100,9 @@ def log_energy(refinement, quiet: bool) -> None:
 
 def run(args) -> int:
     out = check_folder(args.out, args.overwrite, "refinement folder")
-    capture = read_capture(args.capture)
+    capture = read_capture(args.capture, mask=args.mask, depth_range=args.depth_range)
+    if not args.quiet:
+        print(f"masks: {mask_source(args.capture, args.mask, args.depth_range)}")
     given = read_capture_poses(args.capture, args.poses)
     options = replace(options_from_args(args), strict_registration=args.strict)
     if given is not None and not args.quiet:
