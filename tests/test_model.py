@@ -229,6 +229,15 @@ def test_block_average_and_valid_resampling_agree_on_full_blocks():
     np.testing.assert_allclose(lenient[0, 0], depth[:4, :4].sum() / 15, rtol=1e-12)  # mean of the 15 valid pixels
 
 
+def test_repeat_pixels_is_undone_by_block_averaging():
+    from o3d_mvps.model.resampling import block_average, repeat_pixels
+
+    mask = np.random.default_rng(2).random((6, 9)) > 0.5
+    big = repeat_pixels(mask, 4)
+    assert big.shape == (24, 36) and big.dtype == bool and big[13, 22] == mask[3, 5]
+    np.testing.assert_array_equal(block_average(big.astype(float), 4), mask.astype(float))
+
+
 def test_fill_nearest_valid_copies_the_nearest_valid_pixel():
     from o3d_mvps.model.resampling import fill_nearest_valid
 

@@ -13,6 +13,7 @@ import scipy.ndimage as ndi
 
 from ..errors import CaptureError
 from ..model.camera import backproject
+from ..model.resampling import repeat_pixels
 
 #: Half-width of the default depth range, as a fraction of the depth at the image centre
 #: (0.35 at 0.8 m: 0.52-1.08 m, room for an object up to ~0.3 m deep and its table).
@@ -144,5 +145,5 @@ def auto_masks(depths: list, K_depth: np.ndarray, scale_factor: int, depth_range
                 "with --depth-range NEAR FAR (read_capture(..., depth_range=(near, far))), aim the camera at "
                 "the object, or provide masks in mask/"
             )
-        masks.append(np.kron(mask, np.ones((scale_factor, scale_factor), dtype=bool)))
+        masks.append(repeat_pixels(mask, scale_factor))
     return masks

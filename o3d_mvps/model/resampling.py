@@ -51,3 +51,9 @@ def fill_nearest_valid(image: np.ndarray, valid: np.ndarray) -> np.ndarray:
         return image.copy()
     _, (iv, iu) = ndi.distance_transform_edt(~valid, return_indices=True)
     return image[iv, iu]
+
+
+def repeat_pixels(image: np.ndarray, factor: int) -> np.ndarray:
+    """(h, w) image -> (factor h, factor w): each pixel repeated over a factor x factor block
+    (a depth-grid mask onto the colour grid)."""
+    return np.repeat(np.repeat(image, factor, axis=0), factor, axis=1)

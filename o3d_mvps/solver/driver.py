@@ -22,7 +22,7 @@ from tqdm.auto import tqdm
 from ..capture import Capture
 from ..errors import CaptureError
 from ..model import se3
-from ..model.resampling import fill_nearest_valid, resize
+from ..model.resampling import fill_nearest_valid, repeat_pixels, resize
 from ..refinement import Refinement
 from .depth import update_depth
 from .joint import update_pose_depth
@@ -66,8 +66,7 @@ def _reference_mask(capture: Capture) -> np.ndarray:
     mask = capture.mask_array(0)
     z0 = capture.depth_array(0)
     if mask is None:
-        sf = capture.scale_factor
-        mask = np.kron(z0 > 0, np.ones((sf, sf), dtype=bool)).astype(bool)
+        mask = repeat_pixels(z0 > 0, capture.scale_factor)
     if not mask.any():
         raise CaptureError("the reference mask is empty (no object pixel in frame 0); give a mask that covers the object")
     return mask
