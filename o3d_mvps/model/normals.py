@@ -75,6 +75,14 @@ class MaskedGrid:
         once per grid."""
         return self._difference_operators
 
+    def transposed_difference_operators(self) -> tuple[sp.csr_matrix, sp.csr_matrix]:
+        """Du^T, Dv^T as CSR matrices (row access for products), built once per grid."""
+        return self._transposed_difference_operators
+
+    @cached_property
+    def _transposed_difference_operators(self) -> tuple[sp.csr_matrix, sp.csr_matrix]:
+        return tuple(sp.csr_matrix(D.T) for D in self.difference_operators())
+
     @cached_property
     def _difference_operators(self) -> tuple[sp.csr_matrix, sp.csr_matrix]:
         n = self.size

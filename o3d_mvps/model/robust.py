@@ -7,6 +7,9 @@ weights w(r_k) / 2 never increases the robust energy (majorise-minimise).
 
 from __future__ import annotations
 
+import math
+
+import numba
 import numpy as np
 
 
@@ -26,14 +29,20 @@ def cauchy_weights(r: np.ndarray, lam: float) -> np.ndarray:
 
 
 def cauchy_energy(r: np.ndarray, lam: float) -> float:
-    """sum phi(r) over all elements: the energy of a residual array.
+    """sum phi(r) over all elements: the energy of a residual array (any shape, float64 sum).
 
-    The logarithms are taken in float32 (``log(1 + x)``, relative error ~1e-7 a term, where a
-    term below 6e-8 lam^2 rounds to zero) and summed in float64: on the solver's (n, N, 3)
-    arrays that is six times faster than float64 ``log1p``, and the line searches compare
-    energies far more different than that.
+    One compiled parallel pass: NumPy's version made two temporaries of the solver's
+    (n, N, 3) residuals and took most of an evaluation's time.
     """
-    x = np.square(np.multiply(r, 1.0 / lam, dtype=np.float32))
-    x += 1.0
-    np.log(x, out=x)
-    return 0.5 * lam * lam * float(np.sum(x, dtype=np.float64))
+    flat = np.ascontiguousarray(r, dtype=np.float64).reshape(-1)
+    return 0.5 * lam * lam * _log1p_square_sum(flat, 1.0 / lam)
+
+
+@numba.njit(parallel=True, cache=True)
+def _log1p_square_sum(x, scale):  # pragma: no cover - compiled
+    """sum log(1 + (scale x)^2) over a 1-D array."""
+    total = 0.0
+    for i in numba.prange(x.size):
+        y = x[i] * scale
+        total += math.log1p(y * y)
+    return total

@@ -27,7 +27,7 @@ def update_pose_depth(problem: LevelProblem, est: Estimate, ev: Evaluation, *, r
     every trial): returns (estimate, its evaluation, CG iterations); never raises the energy
     (returns ``est`` unchanged when no step length lowers it)."""
     system = joint_system(problem, est, ev, project_albedo=project_albedo)
-    S, rhs, _ = system.schur_operator()
+    S, rhs = system.schur_operator()
     dz, iterations = solve_spd(S, rhs, rtol, maxiter, sparse_part=system.matrix)
     xi = system.twists(dz)
 

@@ -25,6 +25,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from ..model.robust import cauchy_weights
+from .kernels import accumulate_frame, add_sparse_product, chunk_count, project_twist_rows
 from .pose import pose_jacobian
 from .problem import Estimate, Evaluation, LevelProblem
 
@@ -45,21 +46,21 @@ class JointSystem:
     rhs_xi: np.ndarray
     frames: list
 
-    def schur_operator(self) -> tuple[spla.LinearOperator, np.ndarray, np.ndarray]:
-        """(S, rhs, V): ``S = M - U H^-1 U^T`` as an operator, its right-hand side
-        ``b_z - U H^-1 b_xi`` and ``V = U H^-1`` (N, 6m)."""
+    def schur_operator(self) -> tuple[spla.LinearOperator, np.ndarray]:
+        """(S, rhs): ``S = M - U H^-1 U^T`` as an operator and its right-hand side
+        ``b_z - U H^-1 b_xi``. S is applied as M x - U (H^-1 (U^T x)): two passes over U per
+        product, where forming U H^-1 (N, 6m) once cost as much as twenty products."""
         if not self.frames:
-            return spla.aslinearoperator(self.matrix), self.rhs_z, np.zeros((self.rhs_z.size, 0))
+            return spla.aslinearoperator(self.matrix), self.rhs_z
         factor = _cholesky(self.hessian)
-        V = scipy.linalg.cho_solve(factor, self.coupling.T).T
         M, U = self.matrix, self.coupling
 
         def matvec(x):
             x = np.ravel(x)
-            return M @ x - V @ (U.T @ x)
+            return M @ x - U @ scipy.linalg.cho_solve(factor, U.T @ x)
 
         S = spla.LinearOperator(M.shape, matvec=matvec, dtype=np.float64)
-        return S, self.rhs_z - V @ self.rhs_xi, V
+        return S, self.rhs_z - U @ scipy.linalg.cho_solve(factor, self.rhs_xi)
 
     def twists(self, dz: np.ndarray) -> np.ndarray:
         """The twists (m, 6) that go with the depth increment dz (N,)."""
@@ -83,7 +84,8 @@ def residual_jacobians(problem: LevelProblem, est: Estimate, ev: Evaluation, i: 
     Returns (use, J, g): ``use`` (N,) bool the usable pixels, J (N, 3, 6) d(residual)/d(xi_i)
     (None for the reference frame, whose pose stays fixed) and g (N, 3) d(residual)/d(z_p)
     through the warp and the light position (zero for the reference frame's warp, which moves
-    along the ray). Full-size arrays let the assembly write whole columns instead of scattering.
+    along the ray). The assembly computes the same per pixel in :func:`.kernels.accumulate_frame`;
+    this vectorised form is its reference (tests compare the two).
     """
     use = ev.usable[i]
     pose = est.poses[i]
@@ -92,9 +94,8 @@ def residual_jacobians(problem: LevelProblem, est: Estimate, ev: Evaluation, i: 
     if i == 0:
         if dshading is None:
             return use, None, np.zeros(points_ref.shape)
-        return use, None, -est.albedo * (_row_dot(dshading[:, :3], ray) * use)[:, None]
-    sample = problem.sample(i, pose, points_ref)
-    J = pose_jacobian(problem.sample_gradients(i, sample), problem.level.K)
+        return use, None, _reference_parallax(est, dshading, ray, use)
+    J = pose_jacobian(problem.warped_gradients(i, pose, points_ref), problem.level.K)
     if dshading is not None:
         J -= est.albedo[:, :, None] * dshading[:, None, :]
     J[~use] = 0.0  # also clears what pixels behind the camera gave
@@ -103,15 +104,17 @@ def residual_jacobians(problem: LevelProblem, est: Estimate, ev: Evaluation, i: 
     return use, J, g
 
 
+def _reference_parallax(est: Estimate, dshading: np.ndarray, ray: np.ndarray, use: np.ndarray) -> np.ndarray:
+    """d(residual)/dz (N, 3) of the reference frame: only its LED shading moves with z."""
+    return -est.albedo * (_row_dot(dshading[:, :3], ray) * use)[:, None]
+
+
 def _row_dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """sum_j a[:, j] b[:, j] of two (N, 3) arrays: (N,)."""
     return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
 
 
-def _contract_channels(coefficients: np.ndarray, J: np.ndarray) -> np.ndarray:
-    """sum_c coefficients[:, c] J[:, c, :] of (M, 3) and (M, 3, k): (M, k) (a batched matmul:
-    ten times faster than einsum's generic loop or three broadcast products)."""
-    return np.matmul(coefficients[:, None, :], J)[:, 0, :]
+_NONE3, _NONE6 = np.zeros((0, 3)), np.zeros((0, 6))
 
 
 def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parallax: bool = True,
@@ -122,86 +125,80 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
     (False: the paper's frozen-warp depth rows). twists: include frames 1..n-1's twists.
     project_albedo: eliminate the albedo (variable projection, see :class:`_AlbedoProjection`).
 
-    One pass over the frames, on full-size arrays (zero where a frame does not see a pixel):
-    each refined frame writes its coupling rows and, with the projection, its w s J into
-    frame-major arrays, from which the projection's dense parts are formed after the pass.
+    One pass over the frames; per frame, one compiled kernel (:func:`.kernels.accumulate_frame`)
+    adds its depth rows to per-pixel sums and writes its twist rows and w s J into pixel-major
+    arrays, from which the coupling and the projection's dense parts are formed after the pass
+    without copies.
     """
-    grid = problem.level.grid
+    grid, K = problem.level.grid, problem.level.K
     N = grid.size
     w = cauchy_weights(ev.residual, problem.lam)
     w *= ev.usable[..., None]  # (n, N, 3)
     q = est.albedo / ev.dA[:, None]  # (N, 3)
     points_ref = problem.points(est.z)
+    ray = points_ref / points_ref[:, 2:3]  # d(point)/d(z), reference coordinates
+    model = problem.light_model(est)
     # per pixel: weighted products of the row coefficients (a, b, c) of Du z, Dv z and z, summed
-    # over frames and channels, and the coefficients times the weighted residual
-    Saa, Sbb, Sgg, Sab, Sag, Sbg, Ba, Bb, Bg = np.zeros((9, N))
+    # over frames and channels (Saa, Sbb, Sgg, Sab, Sag, Sbg), and the coefficients times the
+    # weighted residual (Ba, Bb, Bg)
+    sums = np.zeros((9, N))
     projection = _AlbedoProjection(w, ev) if project_albedo else None
     candidates = [i for i in range(1, problem.n_frames) if twists and ev.usable[i].sum() >= min_pixels]
     slot = {i: k for k, i in enumerate(candidates)}
-    # frame-major, so each frame writes contiguous memory: per pixel, before the stencil, the
-    # a, b, c rows' coupling with the frame's twist, and w s J (the projection's twist columns)
-    rows = np.empty((3, len(candidates), N, 6))
-    F = np.empty((len(candidates), N, 3, 6)) if projection is not None else None
+    # pixel-major, so the coupling (N, 6m) and the projection's columns (3N, 6m) are views
+    rows = np.empty((3, N, len(candidates), 6))
+    F = np.empty((N, 3, len(candidates), 6)) if projection is not None else np.empty((0, 3, 1, 6))
+    gram, rhs = np.empty((chunk_count(N), 6, 6)), np.empty((chunk_count(N), 6))
     hessians, rhs_xi, frames = [], [], []
     for i in range(problem.n_frames):
+        pose, use = est.poses[i], ev.usable[i]
         _, alpha, beta, gamma = shading_rows(problem, est, i, ev.normals, points_ref)
-        c_diag = -q * gamma[:, None]
-        J = None
-        if parallax or i in slot:
-            use, J, g = residual_jacobians(problem, est, ev, i, points_ref)
-            if parallax:
-                c_diag += g
-        # the row of residual (i, p, c) in dz is a Du + b Dv + c_diag I with a = -q alpha, b = -q beta
-        wi, ri = w[i], ev.residual[i]
-        wq = wi * q
-        W = _row_dot(wq, q)
-        Wqc = _row_dot(wq, c_diag)
-        Wqr = _row_dot(wq, ri)
-        Saa += W * alpha * alpha
-        Sbb += W * beta * beta
-        Sab += W * alpha * beta
-        wc = wi * c_diag
-        Sgg += _row_dot(wc, c_diag)
-        Sag -= alpha * Wqc
-        Sbg -= beta * Wqc
-        Ba -= alpha * Wqr
-        Bb -= beta * Wqr
-        Bg += _row_dot(wc, ri)
-        if projection is not None:
-            projection.add_depth_rows(i, alpha, beta, q, c_diag)
-        if J is None or i not in slot:
+        with_jacobian = i > 0 and (parallax or i in slot)
+        dshading = (model.shading_jacobian(est.lights[i], ev.normals, points_ref, pose)
+                    if with_jacobian or (i == 0 and parallax) else None)
+        extra_c = _NONE3
+        if i == 0 and parallax and dshading is not None:
+            extra_c = _reference_parallax(est, dshading, ray, use)
+        points_i = grad_u = grad_v = ray_i = _NONE3
+        if with_jacobian:
+            sample = problem.warped_gradients(i, pose, points_ref)
+            points_i, grad_u, grad_v = sample.points, sample.grad_u, sample.grad_v
+            ray_i = ray @ pose[:3, :3].T  # d(frame-i point)/d(z)
+        k = len(frames) if i in slot else -1  # the frame's slot among those kept
+        accumulate_frame(w[i], ev.residual[i], q, _NONE3 if projection is None else projection.ws[i],
+                         alpha, beta, gamma, extra_c, use, grad_u, grad_v, points_i, ray_i,
+                         _NONE6 if dshading is None or not with_jacobian else dshading, est.albedo, K,
+                         with_jacobian, parallax, sums, _NONE_E if projection is None else projection.e,
+                         rows, F, k, gram, rhs)
+        if k < 0:
             continue
-        wJ = wi[..., None] * J  # (N, 3, 6)
-        H = wJ.reshape(-1, 6).T @ J.reshape(-1, 6)
+        H = gram.sum(axis=0)
         if not np.isfinite(H).all() or np.linalg.cond(H) > 1e12:
             continue
-        k = len(frames)  # the frame's slot among those kept
-        wqJ = _contract_channels(q, wJ)  # sum_c w q J
-        np.multiply(wqJ, -alpha[:, None], out=rows[0, k])
-        np.multiply(wqJ, -beta[:, None], out=rows[1, k])
-        rows[2, k] = _contract_channels(c_diag, wJ)  # sum_c w c_diag J
         hessians.append(H)
-        rhs_xi.append(-(ri.reshape(1, -1) @ wJ.reshape(-1, 6)).ravel())
+        rhs_xi.append(rhs.sum(axis=0))
         frames.append(i)
-        if F is not None:
-            np.multiply(projection.ws[i][..., None], J, out=F[k])
     m = len(frames)
-    rows = rows[:, :m]  # frames dropped as ill-conditioned left their slots unused at the end
-    F = None if F is None else F[:m]
+    rows = rows[:, :, :m]  # frames dropped as ill-conditioned left their slots unused at the end
     hessian = scipy.linalg.block_diag(*hessians) if m else np.zeros((0, 0))
     rhs_xi = np.concatenate(rhs_xi) if m else np.zeros(0)
+    Saa, Sbb, Sgg, Sab, Sag, Sbg, Ba, Bb, Bg = sums
     if projection is not None:
         Saa, Sbb, Sgg, Sab, Sag, Sbg = (S - dS for S, dS in zip((Saa, Sbb, Sgg, Sab, Sag, Sbg), projection.local()))
         Ba, Bb, Bg = (B - dB for B, dB in zip((Ba, Bb, Bg), projection.local_rhs()))
         if m:
-            projection.downdate_twists(F, rows, hessian, rhs_xi)
+            projection.downdate_twists(F[:, :, :m], rows, hessian, rhs_xi)
     # (N, 6m) with frame j's twist in columns 6j..6j+5
-    coupling = stencil_transpose(grid, *(r.transpose(1, 0, 2).reshape(N, 6 * m) for r in rows)) if m else np.zeros((N, 0))
+    coupling = (stencil_transpose(grid, *(np.ascontiguousarray(r).reshape(N, 6 * m) for r in rows), in_place=True)
+                if m else np.zeros((N, 0)))
     prior = problem.level.prior
     two_tau = 2.0 * problem.tau
     matrix = stencil_normal_matrix(grid, Saa, Sbb, Sgg, Sab, Sag, Sbg) + two_tau * (prior.D.T @ prior.D)
     rhs_z = -stencil_transpose(grid, Ba, Bb, Bg) - two_tau * (prior.D.T @ (prior.D @ est.z - prior.z0))
     return JointSystem(sp.csr_matrix(matrix), rhs_z, coupling, hessian, rhs_xi, frames)
+
+
+_NONE_E = np.zeros((0, 1, 3))
 
 
 class _AlbedoProjection:
@@ -216,9 +213,9 @@ class _AlbedoProjection:
     and the frozen-dA error of the depth rows, ``s_i`` times a per-pixel factor, drops out
     (frozen dA is exact up to the albedo direction).
 
-    Accumulates e per (pixel, channel) for the depth rows (a, b, c); the twist rows' e are
-    ``F`` (m, N, 3, 6), w s J of the m refined frames, filled by :func:`joint_system`. Arrays
-    (N, 3) unless stated.
+    ``e`` (3, N, 3) holds e per (pixel, channel) for the depth rows (a, b, c), accumulated by
+    :func:`.kernels.accumulate_frame`; the twist rows' e are ``F`` (N, 3, m, 6), w s J of the
+    m refined frames, written by the same kernel. Arrays (N, 3) unless stated.
     """
 
     def __init__(self, w: np.ndarray, ev: Evaluation):
@@ -227,13 +224,6 @@ class _AlbedoProjection:
         self.inv_d = np.where(d > 1e-12, 1.0 / np.where(d > 1e-12, d, 1.0), 0.0)
         self.sWr = np.sum(self.ws * ev.residual, axis=0)
         self.e = np.zeros((3,) + d.shape)  # e for the a, b, c rows
-
-    def add_depth_rows(self, i: int, alpha: np.ndarray, beta: np.ndarray, q: np.ndarray, c: np.ndarray) -> None:
-        """Frame i's depth rows a = -q alpha, b = -q beta (alpha, beta (N,), q (N, 3)) and c (N, 3)."""
-        wsq = self.ws[i] * q
-        self.e[0] -= wsq * alpha[:, None]
-        self.e[1] -= wsq * beta[:, None]
-        self.e[2] += self.ws[i] * c
 
     def local(self):
         """Downdates (N,) of Saa, Sbb, Sgg, Sab, Sag, Sbg."""
@@ -247,17 +237,14 @@ class _AlbedoProjection:
         return tuple(_row_dot(e * self.inv_d, self.sWr) for e in self.e)
 
     def downdate_twists(self, F: np.ndarray, rows: np.ndarray, hessian: np.ndarray, rhs_xi: np.ndarray) -> None:
-        """Project the twist parts in place: the coupling rows (3, m, N, 6) lose
+        """Project the twist parts in place: the coupling rows (3, N, m, 6) lose
         ``sum_c (e_k / d) f``, the Gram (6m, 6m) loses ``sum f f^T / d`` and the right-hand side
-        (6m,) gains ``sum f (s^T W r) / d`` over pixels and channels; F (m, N, 3, 6) = w s J of
+        (6m,) gains ``sum f (s^T W r) / d`` over pixels and channels; F (N, 3, m, 6) = w s J of
         the m refined frames is scaled in place."""
-        scaled = self.e * self.inv_d  # (3, N, 3)
-        for k in range(3):
-            for j in range(len(F)):
-                rows[k, j] -= _contract_channels(scaled[k], F[j])
-        F *= np.sqrt(self.inv_d)[None, ..., None]
-        columns = F.transpose(1, 2, 0, 3).reshape(-1, 6 * len(F))  # (3N, 6m): frame j in columns 6j..
-        rhs_xi += (self.sWr * np.sqrt(self.inv_d)).reshape(-1) @ columns
+        sqrt_inv_d = np.sqrt(self.inv_d)
+        project_twist_rows(rows, F, self.e * self.inv_d, sqrt_inv_d)
+        columns = np.ascontiguousarray(F).reshape(-1, F.shape[2] * 6)  # (3N, 6m): frame j in columns 6j..
+        rhs_xi += (self.sWr * sqrt_inv_d).reshape(-1) @ columns
         hessian -= _gram(columns)
 
 
@@ -287,9 +274,16 @@ def stencil_normal_matrix(grid, Saa, Sbb, Sgg, Sab, Sag, Sbg) -> sp.csr_matrix:
     return sp.csr_matrix(Du.T @ diag(Saa) @ Du + Dv.T @ diag(Sbb) @ Dv + diag(Sgg) + cross + cross.T)
 
 
-def stencil_transpose(grid, Ba, Bb, Bg):
-    """``Du^T Ba + Dv^T Bb + Bg``: R^T applied to per-pixel values, (N,) or (N, k) each."""
-    Du, Dv = grid.difference_operators()
-    return Du.T @ Ba + Dv.T @ Bb + Bg
+def stencil_transpose(grid, Ba, Bb, Bg, *, in_place: bool = False):
+    """``Du^T Ba + Dv^T Bb + Bg``: R^T applied to per-pixel values, (N,) or (N, k) each.
 
-
+    in_place: accumulate into Bg (a C-contiguous float64 (N, k) array the caller gives up)
+    instead of a copy of it.
+    """
+    DuT, DvT = grid.transposed_difference_operators()
+    if Bg.ndim == 1:
+        return DuT @ Ba + DvT @ Bb + Bg
+    out = Bg if in_place else np.array(Bg, dtype=np.float64, order="C")
+    for D, B in ((DuT, Ba), (DvT, Bb)):
+        add_sparse_product(D.indptr, D.indices, D.data, np.ascontiguousarray(B, dtype=np.float64), out)
+    return out

@@ -14,6 +14,7 @@ from ..model.camera import backproject
 from ..model.normals import unnormalised_normals
 from ..model.robust import cauchy_energy
 from ..model.warping import in_view, sample_bilinear, visible, warp
+from .kernels import shading_residuals
 from .lighting import SHLight
 from .pyramid import Level
 
@@ -110,6 +111,14 @@ class LevelProblem:
         gu, gv = (sample_bilinear(g, sample.u, sample.v).astype(np.float64) for g in self.level.gradients[i])
         return FrameSample(sample.color, sample.points, sample.u, sample.v, sample.usable, gu, gv)
 
+    def warped_gradients(self, i: int, pose: np.ndarray, points_ref: np.ndarray) -> FrameSample:
+        """Frame i's colour gradients at the warped reference points (no colour, no usable mask:
+        what a Jacobian needs)."""
+        points, u, v, _ = warp(points_ref, pose, self.level.K)
+        u, v = np.nan_to_num(u), np.nan_to_num(v)
+        gu, gv = (sample_bilinear(g, u, v).astype(np.float64) for g in self.level.gradients[i])
+        return FrameSample(None, points, u, v, None, gu, gv)
+
     def update_visibility(self, est: Estimate, *, occlusion_test: bool, rel_tol: float, sensor_depths=None,
                           depth_K=None) -> None:
         """Recompute which reference pixels each frame sees (held fixed while a level runs)."""
@@ -168,13 +177,10 @@ class LevelProblem:
         return self._evaluation(est, color, usable, normals, dA, self.bases(est, normals))
 
     def _evaluation(self, est, color, usable, normals, dA, basis) -> Evaluation:
-        if len(basis) == 1:
-            shading = (basis[0] @ est.lights.T).T  # (n, N)
-        else:
-            shading = np.einsum("ink,ik->in", basis, est.lights)
-        residual = np.multiply(est.albedo[None], shading[..., None])
-        np.subtract(color, residual, out=residual)
-        residual *= usable[..., None]
+        n, N = usable.shape
+        shading, residual = np.empty((n, N)), np.empty((n, N, 3))
+        shading_residuals(color, est.albedo, basis, np.ascontiguousarray(est.lights, dtype=np.float64), usable,
+                          shading, residual)
         data = cauchy_energy(residual, self.lam)
         return Evaluation(residual, usable, color, shading, normals, dA, basis, data, self.prior_energy(est.z))
 

@@ -8,26 +8,24 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..model.robust import cauchy_weights
+from .kernels import weighted_albedo_sums, weighted_lighting_sums
 from .linear import ridge_solve
 from .problem import Estimate, Evaluation
 
 
 def update_albedo(est: Estimate, ev: Evaluation, lam: float) -> np.ndarray:
-    """rho_c(p) = sum_i w I~ s / sum_i w s^2, per pixel and channel: (N, 3)."""
-    w = cauchy_weights(ev.residual, lam) * ev.usable[..., None]  # (n, N, 3)
-    s = ev.shading[..., None]
-    num = np.sum(w * ev.color * s, axis=0)
-    den = np.sum(w * s * s, axis=0)
+    """rho_c(p) = sum_i w I~ s / sum_i w s^2, per pixel and channel: (N, 3), w the Cauchy
+    IRLS weights of the current residuals."""
+    num, den = np.empty_like(est.albedo), np.empty_like(est.albedo)
+    weighted_albedo_sums(ev.residual, ev.usable, ev.color, ev.shading, 1.0 / lam, num, den)
     ok = den > 1e-8
     return np.where(ok, num / np.where(ok, den, 1.0), est.albedo)
 
 
 def update_lighting(est: Estimate, ev: Evaluation, lam: float) -> np.ndarray:
     """l_i = argmin sum_{p,c} w (I~ - rho_c <l, B_i>)^2 per frame: (n, k), B_i the light basis."""
-    w = cauchy_weights(ev.residual, lam) * ev.usable[..., None]  # (n, N, 3)
-    wr2 = np.einsum("inc,nc->in", w, est.albedo**2)  # (n, N)
-    wri = np.einsum("inc,nc,inc->in", w, est.albedo, ev.color)
+    wr2, wri = np.empty(ev.usable.shape), np.empty(ev.usable.shape)  # sum_c w rho^2, sum_c w rho I~: (n, N)
+    weighted_lighting_sums(ev.residual, ev.usable, ev.color, np.ascontiguousarray(est.albedo), 1.0 / lam, wr2, wri)
     lights = est.lights.copy()
     for i in range(lights.shape[0]):
         if ev.usable[i].sum() < 8:

@@ -1,0 +1,247 @@
+"""Compiled per-pixel loops of the solver (numba, parallel over pixels or pixel chunks).
+
+Each kernel reads its per-pixel arrays once and writes or accumulates everything a step needs
+from them, where the vectorised NumPy form made a dozen temporaries of frames x pixels x
+channels (x 6) per step. The maths is documented where it is used (:mod:`.normal_equations`,
+:mod:`.problem`, :mod:`.reflectance`); these are its loops. Reductions over pixels (the 6x6
+twist Gram) go to per-chunk partial sums added up afterwards, so threads never share an
+accumulator.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+# OpenMP first: the TBB that Open3D's wheels may put on the path can be too old for numba,
+# which then warns on every first parallel call.
+numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
+
+#: Pixels per chunk of the parallel loops: large enough to amortise a chunk's set-up, small
+#: enough to balance the threads.
+CHUNK = 16384
+
+
+def chunk_count(n_pixels: int) -> int:
+    """Number of pixel chunks of :data:`CHUNK` pixels covering ``n_pixels``."""
+    return max(1, -(-n_pixels // CHUNK))
+
+
+@numba.njit(parallel=True, cache=True, fastmath=False)
+def accumulate_frame(w, r, q, ws, alpha, beta, gamma, extra_c, use, grad_u, grad_v, points, ray, dshading, albedo,
+                     K, with_jacobian, parallax, sums, e, rows, F, slot, gram, rhs):  # pragma: no cover - compiled
+    """Add frame i's depth rows to the per-pixel sums and, with its pose Jacobian, write its
+    twist rows.
+
+    Per pixel p and channel c, with weight w (N, 3), residual r (N, 3), q = albedo / dA (N, 3)
+    and the frozen light field's row coefficients alpha, beta, gamma (N,): the residual's row in
+    dz is ``a Du + b Dv + c I`` with ``a = -q alpha``, ``b = -q beta``,
+    ``c = -q gamma + extra_c + g`` (g: the parallax d(residual)/dz through the warp, when
+    ``parallax``; extra_c (N, 3) or (0, 3) for none).
+
+    sums (9, N) += Saa, Sbb, Sgg, Sab, Sag, Sbg, Ba, Bb, Bg (w-weighted products of a, b, c and
+    r summed over channels); e (3, N, 3) (0-sized: no albedo projection) += ws a, ws b, ws c.
+
+    with_jacobian: the pose Jacobian J (3, 6) per pixel from the warped colour gradients
+    grad_u, grad_v (N, 3), frame-i points (N, 3), intrinsics K (3, 3), minus albedo (N, 3) x
+    dshading (N, 6) (or (0, 6)), zero where ``use`` (N,) is False; ray (N, 3) is
+    d(frame-i point)/dz. Then, into slot ``slot`` of rows (3, N, m, 6): ``sum_c w q J`` times
+    -alpha and -beta, and ``sum_c w c J``; of F (N, 3, m, 6) (0-sized: none): ws J; per chunk,
+    gram (chunks, 6, 6) = sum w J^T J and rhs (chunks, 6) = -sum w r J. slot -1: J only
+    for the parallax, no twist rows.
+    """
+    n = w.shape[0]
+    n_chunks = gram.shape[0]
+    fx, fy = K[0, 0], K[1, 1]
+    project = e.shape[0] > 0
+    with_extra = extra_c.shape[0] > 0
+    with_dshading = dshading.shape[0] > 0
+    with_F = F.shape[0] > 0
+    emit = with_jacobian and slot >= 0
+    for chunk in numba.prange(n_chunks):
+        J = np.zeros((3, 6))
+        G = np.zeros((6, 6))
+        b = np.zeros(6)
+        wqJ = np.zeros(6)
+        wcJ = np.zeros(6)
+        for p in range(chunk * CHUNK, min(n, (chunk + 1) * CHUNK)):
+            al, be = alpha[p], beta[p]
+            W = 0.0
+            Wqc = 0.0
+            Wqr = 0.0
+            Sgg = 0.0
+            Bg = 0.0
+            jac = with_jacobian and use[p]
+            if jac:
+                X, Y, Z = points[p, 0], points[p, 1], points[p, 2]
+                iz = 1.0 / Z
+                for j in range(6):
+                    wqJ[j] = 0.0
+                    wcJ[j] = 0.0
+            for c in range(3):
+                wc_ = w[p, c]
+                qc = q[p, c]
+                cc = -qc * gamma[p]
+                if with_extra:
+                    cc += extra_c[p, c]
+                if jac:
+                    ja = grad_u[p, c] * fx * iz  # dI/dX'
+                    jb = grad_v[p, c] * fy * iz  # dI/dY'
+                    jc = -iz * (ja * X + jb * Y)  # dI/dZ'
+                    J[c, 0] = ja
+                    J[c, 1] = jb
+                    J[c, 2] = jc
+                    J[c, 3] = Y * jc - Z * jb  # rotation: P' x (a, b, c)
+                    J[c, 4] = Z * ja - X * jc
+                    J[c, 5] = X * jb - Y * ja
+                    if with_dshading:
+                        for j in range(6):
+                            J[c, j] -= albedo[p, c] * dshading[p, j]
+                    if parallax:
+                        cc += J[c, 0] * ray[p, 0] + J[c, 1] * ray[p, 1] + J[c, 2] * ray[p, 2]
+                wq = wc_ * qc
+                W += wq * qc
+                Wqc += wq * cc
+                Wqr += wq * r[p, c]
+                Sgg += wc_ * cc * cc
+                Bg += wc_ * cc * r[p, c]
+                if project:
+                    wsq = ws[p, c] * qc
+                    e[0, p, c] -= wsq * al
+                    e[1, p, c] -= wsq * be
+                    e[2, p, c] += ws[p, c] * cc
+                if jac and emit:
+                    for j in range(6):
+                        Jj = J[c, j]
+                        wqJ[j] += wq * Jj
+                        wcJ[j] += wc_ * cc * Jj
+                        b[j] -= wc_ * r[p, c] * Jj
+                        for l in range(j, 6):
+                            G[j, l] += wc_ * Jj * J[c, l]
+                        if with_F:
+                            F[p, c, slot, j] = ws[p, c] * Jj
+            sums[0, p] += W * al * al
+            sums[1, p] += W * be * be
+            sums[2, p] += Sgg
+            sums[3, p] += W * al * be
+            sums[4, p] -= al * Wqc
+            sums[5, p] -= be * Wqc
+            sums[6, p] -= al * Wqr
+            sums[7, p] -= be * Wqr
+            sums[8, p] += Bg
+            if emit:
+                if jac:
+                    for j in range(6):
+                        rows[0, p, slot, j] = -al * wqJ[j]
+                        rows[1, p, slot, j] = -be * wqJ[j]
+                        rows[2, p, slot, j] = wcJ[j]
+                else:
+                    for k in range(3):
+                        for j in range(6):
+                            rows[k, p, slot, j] = 0.0
+                    if with_F:
+                        for c in range(3):
+                            for j in range(6):
+                                F[p, c, slot, j] = 0.0
+        for j in range(6):
+            rhs[chunk, j] = b[j]
+            for l in range(6):
+                gram[chunk, j, l] = G[min(j, l), max(j, l)]
+
+
+@numba.njit(parallel=True, cache=True)
+def project_twist_rows(rows, F, scaled, sqrt_inv_d):  # pragma: no cover - compiled
+    """The albedo projection of the twist rows, in place: rows (3, N, m, 6) lose
+    ``sum_c scaled[k, p, c] F[p, c]`` and F (N, 3, m, 6) is scaled by sqrt_inv_d (N, 3)."""
+    n, m = F.shape[0], F.shape[2]
+    for p in numba.prange(n):
+        for k in range(3):
+            for c in range(3):
+                s = scaled[k, p, c]
+                if s != 0.0:
+                    for f in range(m):
+                        for j in range(6):
+                            rows[k, p, f, j] -= s * F[p, c, f, j]
+        for c in range(3):
+            s = sqrt_inv_d[p, c]
+            for f in range(m):
+                for j in range(6):
+                    F[p, c, f, j] *= s
+
+
+@numba.njit(parallel=True, cache=True)
+def add_sparse_product(indptr, indices, data, X, out):  # pragma: no cover - compiled
+    """out (R, k) += A X for a CSR matrix A (R, C) given by its arrays and a dense X (C, k),
+    in parallel over A's rows (SciPy's product with a block of columns is single-threaded and
+    strides through X column by column)."""
+    for row in numba.prange(out.shape[0]):
+        for nz in range(indptr[row], indptr[row + 1]):
+            a = data[nz]
+            col = indices[nz]
+            for j in range(X.shape[1]):
+                out[row, j] += a * X[col, j]
+
+
+@numba.njit(parallel=True, cache=True)
+def shading_residuals(color, albedo, basis, lights, usable, shading, residual):  # pragma: no cover - compiled
+    """Per frame i, pixel p, channel c: the shading s = <basis, light_i> (n, N) and the
+    residual ``(I - rho_c s) usable`` (n, N, 3), written into ``shading`` and ``residual``.
+
+    color (n, N, 3) warped colours, albedo (N, 3), basis (m, N, k) with m = n, or 1 when the
+    frames share it, lights (n, k), usable (n, N) bool.
+    """
+    n, N = usable.shape
+    shared = basis.shape[0] == 1
+    k = basis.shape[2]
+    for p in numba.prange(N):
+        for i in range(n):
+            b = 0 if shared else i
+            s = 0.0
+            for j in range(k):
+                s += basis[b, p, j] * lights[i, j]
+            shading[i, p] = s
+            if usable[i, p]:
+                for c in range(3):
+                    residual[i, p, c] = color[i, p, c] - albedo[p, c] * s
+            else:
+                for c in range(3):
+                    residual[i, p, c] = 0.0
+
+
+@numba.njit(parallel=True, cache=True)
+def weighted_albedo_sums(residual, usable, color, shading, inv_lam, num, den):  # pragma: no cover - compiled
+    """num (N, 3) = sum_i w I s and den (N, 3) = sum_i w s^2 over the frames, with the Cauchy
+    IRLS weight w = usable / (1 + (r inv_lam)^2) of residual (n, N, 3); color (n, N, 3),
+    shading (n, N), usable (n, N) bool."""
+    n, N = usable.shape
+    for p in numba.prange(N):
+        for c in range(3):
+            a = 0.0
+            b = 0.0
+            for i in range(n):
+                if usable[i, p]:
+                    x = residual[i, p, c] * inv_lam
+                    ws = shading[i, p] / (1.0 + x * x)
+                    a += ws * color[i, p, c]
+                    b += ws * shading[i, p]
+            num[p, c] = a
+            den[p, c] = b
+
+
+@numba.njit(parallel=True, cache=True)
+def weighted_lighting_sums(residual, usable, color, albedo, inv_lam, wr2, wri):  # pragma: no cover - compiled
+    """wr2 (n, N) = sum_c w rho^2 and wri (n, N) = sum_c w rho I over the channels, with the
+    Cauchy IRLS weight w = usable / (1 + (r inv_lam)^2) of residual (n, N, 3)."""
+    n, N = usable.shape
+    for p in numba.prange(N):
+        for i in range(n):
+            a = 0.0
+            b = 0.0
+            if usable[i, p]:
+                for c in range(3):
+                    x = residual[i, p, c] * inv_lam
+                    w = 1.0 / (1.0 + x * x)
+                    a += w * albedo[p, c] * albedo[p, c]
+                    b += w * albedo[p, c] * color[i, p, c]
+            wr2[i, p] = a
+            wri[i, p] = b

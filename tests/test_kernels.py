@@ -1,0 +1,64 @@
+"""The compiled loops (o3d_mvps.solver.kernels, model.robust.cauchy_energy) against their
+NumPy definitions on random data: equal to float64 round-off (relative 1e-12)."""
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from o3d_mvps.model.robust import cauchy, cauchy_energy, cauchy_weights
+from o3d_mvps.solver.kernels import (add_sparse_product, shading_residuals, weighted_albedo_sums,
+                                     weighted_lighting_sums)
+
+RNG = np.random.default_rng(7)
+N_FRAMES, N_PIXELS, LAM = 4, 3000, 0.1
+
+
+@pytest.fixture
+def data():
+    residual = RNG.normal(size=(N_FRAMES, N_PIXELS, 3)) * 0.1
+    usable = RNG.random((N_FRAMES, N_PIXELS)) > 0.2
+    color = RNG.random((N_FRAMES, N_PIXELS, 3))
+    shading = RNG.random((N_FRAMES, N_PIXELS))
+    albedo = RNG.random((N_PIXELS, 3))
+    return residual, usable, color, shading, albedo
+
+
+def test_cauchy_energy_is_the_sum_of_phi(data):
+    residual = data[0]
+    assert cauchy_energy(residual, LAM) == pytest.approx(cauchy(residual, LAM).sum(), rel=1e-12)
+    assert cauchy_energy(residual[:, ::7, 1:], LAM) == pytest.approx(cauchy(residual[:, ::7, 1:], LAM).sum(), rel=1e-12)
+
+
+def test_weighted_sums_match_numpy(data):
+    residual, usable, color, shading, albedo = data
+    w = cauchy_weights(residual, LAM) * usable[..., None]
+    num, den = np.empty((N_PIXELS, 3)), np.empty((N_PIXELS, 3))
+    weighted_albedo_sums(residual, usable, color, shading, 1.0 / LAM, num, den)
+    np.testing.assert_allclose(num, np.sum(w * color * shading[..., None], axis=0), rtol=1e-12)
+    np.testing.assert_allclose(den, np.sum(w * shading[..., None] ** 2, axis=0), rtol=1e-12)
+    wr2, wri = np.empty((N_FRAMES, N_PIXELS)), np.empty((N_FRAMES, N_PIXELS))
+    weighted_lighting_sums(residual, usable, color, albedo, 1.0 / LAM, wr2, wri)
+    np.testing.assert_allclose(wr2, np.einsum("inc,nc->in", w, albedo**2), rtol=1e-12)
+    np.testing.assert_allclose(wri, np.einsum("inc,nc,inc->in", w, albedo, color), rtol=1e-12)
+
+
+@pytest.mark.parametrize("shared", [True, False])
+def test_shading_residuals_match_numpy(data, shared):
+    _, usable, color, _, albedo = data
+    basis = RNG.random((1 if shared else N_FRAMES, N_PIXELS, 2))
+    lights = RNG.random((N_FRAMES, 2))
+    shading, residual = np.empty((N_FRAMES, N_PIXELS)), np.empty((N_FRAMES, N_PIXELS, 3))
+    shading_residuals(color, albedo, basis, lights, usable, shading, residual)
+    expected = np.einsum("ink,ik->in", np.broadcast_to(basis, (N_FRAMES, N_PIXELS, 2)), lights)
+    np.testing.assert_allclose(shading, expected, rtol=1e-12)
+    np.testing.assert_allclose(residual, (color - albedo * expected[..., None]) * usable[..., None], rtol=1e-12,
+                               atol=1e-15)
+
+
+def test_sparse_product_accumulates():
+    A = sp.random(500, 400, density=0.01, random_state=1, format="csr")
+    X = RNG.normal(size=(400, 7))
+    out = RNG.normal(size=(500, 7))
+    expected = out + A @ X
+    add_sparse_product(A.indptr, A.indices, A.data, X, out)
+    np.testing.assert_allclose(out, expected, rtol=1e-12, atol=1e-14)
