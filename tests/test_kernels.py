@@ -1,5 +1,6 @@
 """The compiled loops (o3d_mvps.solver.kernels, model.robust.cauchy_energy) against their
-NumPy definitions on random data: equal to float64 round-off (relative 1e-12)."""
+NumPy definitions on random data: equal to float64 round-off (relative 1e-12), the energy to
+its float32 logarithms (1e-6)."""
 
 import numpy as np
 import pytest
@@ -25,8 +26,8 @@ def data():
 
 def test_cauchy_energy_is_the_sum_of_phi(data):
     residual = data[0]
-    assert cauchy_energy(residual, LAM) == pytest.approx(cauchy(residual, LAM).sum(), rel=1e-12)
-    assert cauchy_energy(residual[:, ::7, 1:], LAM) == pytest.approx(cauchy(residual[:, ::7, 1:], LAM).sum(), rel=1e-12)
+    assert cauchy_energy(residual, LAM) == pytest.approx(cauchy(residual, LAM).sum(), rel=1e-6)
+    assert cauchy_energy(residual[:, ::7, 1:], LAM) == pytest.approx(cauchy(residual[:, ::7, 1:], LAM).sum(), rel=1e-6)
 
 
 def test_weighted_sums_match_numpy(data):

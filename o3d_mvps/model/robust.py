@@ -29,20 +29,23 @@ def cauchy_weights(r: np.ndarray, lam: float) -> np.ndarray:
 
 
 def cauchy_energy(r: np.ndarray, lam: float) -> float:
-    """sum phi(r) over all elements: the energy of a residual array (any shape, float64 sum).
+    """sum phi(r) over all elements: the energy of a residual array (any shape).
 
-    One compiled parallel pass: NumPy's version made two temporaries of the solver's
-    (n, N, 3) residuals and took most of an evaluation's time.
+    One compiled parallel pass, logarithms in float32 (``log(1 + x)``, relative error ~1e-7 a
+    term, where a term below 6e-8 lam^2 rounds to zero) summed in float64: vectorised, three
+    times faster than float64 ``log1p``, and the line searches compare energies far more
+    different than that. NumPy's version made two temporaries of the solver's (n, N, 3)
+    residuals and took most of an evaluation's time.
     """
     flat = np.ascontiguousarray(r, dtype=np.float64).reshape(-1)
     return 0.5 * lam * lam * _log1p_square_sum(flat, 1.0 / lam)
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True, fastmath=True)
 def _log1p_square_sum(x, scale):  # pragma: no cover - compiled
-    """sum log(1 + (scale x)^2) over a 1-D array."""
+    """sum log(1 + (scale x)^2) over a 1-D array (float32 terms, float64 sum)."""
     total = 0.0
     for i in numba.prange(x.size):
-        y = x[i] * scale
-        total += math.log1p(y * y)
+        y = np.float32(x[i] * scale)
+        total += math.log(np.float32(1.0) + y * y)
     return total

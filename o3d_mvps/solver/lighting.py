@@ -159,32 +159,36 @@ def make_light_model(name: str, *, initial_sh=INITIAL_LIGHT, led_offset=None):
     raise ValueError(f"light_model must be one of {LIGHT_MODELS}, got {name!r}")
 
 
-def update_led_offset(problem, est, ev, *, max_halvings: int = 3, max_pixels: int = 4000):
+def update_led_offset(problem, est, ev, *, max_halvings: int = 3, max_pixels: int = 4000, min_decrease: float = 0.0):
     """One IRLS Gauss-Newton step on the LED offset (all frames): returns (offset (3,), evaluation).
 
     The step is computed from at most ``max_pixels`` evenly spread pixels per frame (three
     unknowns need few), the line search on the full energy; the offset is ``est``'s (or the
-    light model's) unchanged, with ``ev``, when no step lowers the energy.
+    light model's) unchanged, with ``ev``, when no step lowers the energy, or when the
+    Gauss-Newton model predicts a decrease below ``min_decrease`` (energy units; each line
+    search trial costs a full evaluation, and near convergence they nearly all fail).
     """
     light = problem.light_model(est)
     points_ref = problem.points(est.z)
     H = np.zeros((3, 3))
     g = np.zeros(3)
-    w = cauchy_weights(ev.residual, problem.lam) * ev.usable[..., None]  # (n, N, 3)
+    stride = max(1, ev.usable.shape[1] // max_pixels)
     spread = np.zeros(ev.usable.shape[1], dtype=bool)
-    spread[::max(1, ev.usable.shape[1] // max_pixels)] = True
+    spread[::stride] = True
     for i in range(problem.n_frames):
         use = ev.usable[i] & spread
         if not use.any():
             continue
         ds = light.offset_jacobian(est.lights[i], ev.normals[use], points_ref[use], est.poses[i])  # (M, 3)
-        rho_w = est.albedo[use] ** 2 * w[i, use]  # (M, 3)
+        w = cauchy_weights(ev.residual[i, use], problem.lam)  # (M, 3)
+        rho_w = est.albedo[use] ** 2 * w
         H += (ds * rho_w.sum(axis=1)[:, None]).T @ ds
         # residual r = I - rho s: dr/do = -rho ds
-        g -= ds.T @ np.sum(w[i, use] * est.albedo[use] * ev.residual[i, use], axis=1)
+        g -= ds.T @ np.sum(w * est.albedo[use] * ev.residual[i, use], axis=1)
     start = light.offset
     step = ridge_solve(H, -g) if np.trace(H) > 0 else None
-    if step is None:
+    # the IRLS model's decrease -g.step / 2 on the spread pixels, scaled to all of them
+    if step is None or -0.5 * float(g @ step) * stride < min_decrease:
         return start, ev
 
     def trial(t: float):
