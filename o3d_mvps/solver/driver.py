@@ -116,7 +116,7 @@ def _sweeps(problem: LevelProblem, est: Estimate, ev, options: RefineOptions, ti
         est.lights = update_lighting(est, ev, problem.lam)
         ev = problem.reevaluate(est, ev)
         if refine_offset:
-            est.led_offset, ev = update_led_offset(problem, est, ev, min_decrease=options.tolerance * ev.energy)
+            est.led_offset, ev = update_led_offset(problem, est, ev, min_decrease=0.1 * options.tolerance * ev.energy)
         timings["albedo_lighting"] += time.perf_counter() - t
         if options.extrapolate:
             t = time.perf_counter()
