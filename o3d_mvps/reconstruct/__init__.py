@@ -1,0 +1,11 @@
+"""Whole objects: refine reference views all round a capture in parallel and fuse one mesh.
+
+:func:`reconstruct` (``o3d-mvps reconstruct``) returns a :class:`Reconstruction`: a coloured
+mesh in the capture's frame-0 camera (metres) and, via ``printable_solid``, a closed solid in
+millimetres.
+"""
+
+from .api import Reconstruction, ReconstructOptions, reconstruct
+from .references import azimuth_span_deg, choose_references
+
+__all__ = ["reconstruct", "Reconstruction", "ReconstructOptions", "choose_references", "azimuth_span_deg"]
