@@ -25,7 +25,6 @@ _EXPORTS = {
     "read_refinement": "refinement",
     "refine": "solver.driver",
     "refine_rgbd": "integration",
-    "reconstruct": "reconstruct",
     "ReconstructOptions": "reconstruct",
     "RefineOptions": "solver.options",
     "ModelOptions": "solver.options",

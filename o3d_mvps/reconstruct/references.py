@@ -23,10 +23,17 @@ def viewing_directions(poses: np.ndarray) -> np.ndarray:
 
 
 def up_direction(poses: np.ndarray) -> np.ndarray:
-    """World 'up' (3,): the mean of the cameras' image-up axes (-y), which for a ring without roll
-    is its axis."""
-    up = -poses[:, 1, :3].mean(axis=0)
-    return up / np.linalg.norm(up)
+    """World 'up' (3,): the axis of the cone the viewing directions lie on (the normal of the plane
+    through their tips, for a ring or an arc at one elevation), signed along the cameras' mean
+    image-up (-y); that mean itself when the directions do not span a plane (fewer than 3 views)."""
+    mean_up = -poses[:, 1, :3].mean(axis=0)
+    tips = viewing_directions(poses)
+    if len(tips) >= 3:
+        _, singular, vt = np.linalg.svd(tips - tips.mean(axis=0))
+        if singular[1] > 1e-3 * max(singular[0], 1e-12):
+            axis = vt[2]
+            return axis * np.sign(axis @ mean_up or 1.0)
+    return mean_up / np.linalg.norm(mean_up)
 
 
 def azimuths_deg(poses: np.ndarray) -> np.ndarray:
