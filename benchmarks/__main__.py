@@ -3,6 +3,7 @@
 accuracy: every method on rendered captures (bunny, armadillo; SF 2/4/8; 640x480, 20 frames).
 frames: error of ours against n in {5, ..., 30} (bunny, SF 4). tau: error against tau~.
 speed: wall time and peak RSS of odometry + refine at 640x480 / 160x120 and 1280x720 / 640x360.
+object: reconstruct rendered 360-degree rings with raw and refined depth; Chamfer, normals, 1/2 workers.
 scaling: time, memory, sweeps and CG iterations against object pixels x frames (--baseline REV
 runs an earlier commit side by side; not part of 'all': hours at the default sizes).
 figures: README pictures (normals of every method, textured preview).
@@ -14,7 +15,7 @@ from __future__ import annotations
 
 import argparse
 
-from . import accuracy, figures, scaling, speed, studies
+from . import accuracy, figures, object as object_study, scaling, speed, studies
 from .summary import write_summary
 
 STUDIES = ("accuracy", "frames", "tau", "speed", "figures")
@@ -29,6 +30,8 @@ def _run(name: str, args) -> None:
         speed.run(args)
     elif name == "scaling":
         scaling.run(args)
+    elif name == "object":
+        object_study.run(args)
     else:
         studies.run(args, name)
 
@@ -46,6 +49,8 @@ def main(argv=None) -> int:
     speed.add_arguments(sub.add_parser("speed", parents=[common], help="time and peak memory"))
     scaling.add_arguments(sub.add_parser("scaling", parents=[common],
                                          help="time against object pixels x frames, against a baseline revision"))
+    object_study.add_arguments(sub.add_parser("object", parents=[common],
+                                              help="whole-object reconstruction on 360-degree rings, raw vs refined"))
     figures.add_arguments(sub.add_parser("figures", parents=[common], help="README pictures (normals, preview)"))
     sub.add_parser("all", parents=[common], help="every benchmark with its defaults")
     args = parser.parse_args(argv)

@@ -25,6 +25,7 @@ _EXPORTS = {
     "read_refinement": "refinement",
     "refine": "solver.driver",
     "refine_rgbd": "integration",
+    "ReconstructOptions": "reconstruct",
     "RefineOptions": "solver.options",
     "ModelOptions": "solver.options",
     "ConvergenceCriteria": "solver.options",
@@ -41,8 +42,8 @@ _EXPORTS = {
 
 #: Submodules reachable as attributes (``o3d_mvps.synthetic``) without an import of their own.
 _SUBMODULES = {"baselines", "capture", "cli", "colour", "datasets", "errors", "export", "fileio", "integration",
-               "metrics", "model", "odometry", "realsense", "refinement", "registration", "report", "solver",
-               "synthetic", "viz"}
+               "metrics", "model", "odometry", "realsense", "reconstruct", "refinement", "registration", "report", "solver",
+               "synthetic", "views", "viz"}
 
 __all__ = list(_EXPORTS)
 

@@ -19,6 +19,7 @@ from o3d_mvps import read_refinement, write_capture
 from o3d_mvps.cli import SUBCOMMANDS, build_parser, main
 from o3d_mvps.cli import demo as demo_cli
 from o3d_mvps.cli import refine as refine_cli
+from o3d_mvps.cli import reconstruct as reconstruct_cli
 from o3d_mvps.synthetic import render_capture
 
 REPO = Path(__file__).resolve().parents[1]
@@ -46,6 +47,7 @@ def no_work(*args, **kwargs):
 # command line, function that would start the work (patched to fail), folder or file to pre-fill
 COMMANDS = {
     "refine": (lambda cap, out: ["refine", cap, out], (refine_cli, "refine"), "folder"),
+    "reconstruct": (lambda cap, out: ["reconstruct", cap, out], (reconstruct_cli, "reconstruct"), "folder"),
     "demo": (lambda cap, out: ["demo", "--out", out, "--size", "80x60"], (demo_cli, "render_capture"), "folder"),
     "render": (lambda cap, out: ["render", "bunny", out], (o3d_mvps.synthetic, "render_capture"), "folder"),
     "record": (lambda cap, out: ["record", out], (o3d_mvps.realsense, "record_capture"), "folder"),

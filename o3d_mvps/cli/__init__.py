@@ -13,7 +13,7 @@ import sys
 
 from ..errors import MVPSError
 
-SUBCOMMANDS = ["demo", "render", "refine", "export", "record"]
+SUBCOMMANDS = ["demo", "render", "refine", "reconstruct", "export", "record"]
 QUIET_HELP = "no progress bars or intermediate logs (the final 'wrote ...' lines are still printed)"
 INTERRUPTED = 130  # 128 + SIGINT, the shell's code for a command stopped by Ctrl-C
 

@@ -12,6 +12,7 @@ from ..report import accuracy_rows, markdown_table
 from ..solver.driver import refine
 from ..solver.lighting import LIGHT_MODELS
 from ..solver.options import RefineOptions
+from ..views import ViewSelection
 from .outputs import add_overwrite_argument, check_folder
 
 DESCRIPTION = """\
@@ -109,6 +110,9 @@ def run(args) -> int:
         print(f"poses: from {given[1]}")
     refinement = refine(capture, options, initial_poses=None if given is None else given[0])
     log_energy(refinement, args.quiet)
+    views = refinement.info.get("views")
+    if views and views["left_out"] and not args.quiet:
+        print(ViewSelection.from_dict(views).describe())
     extra = {}
     if capture.groundtruth is not None:
         rows = accuracy_rows(capture, refinement)

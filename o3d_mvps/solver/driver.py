@@ -24,6 +24,7 @@ from ..errors import CaptureError
 from ..model import se3
 from ..model.resampling import fill_nearest_valid, repeat_pixels, resize
 from ..refinement import Refinement
+from ..views import MIN_OTHER_FRAMES, frames_seeing_reference
 from .depth import update_depth
 from .joint import update_pose_depth
 from .lighting import make_light_model, update_led_offset
@@ -174,8 +175,11 @@ def refine(capture: Capture, options: RefineOptions | None = None, device="CPU:0
 
     capture: frame 0 is the reference; ``initial_poses`` (n, 4, 4) reference -> frame i
     (default: the registration chain of :func:`o3d_mvps.odometry.register_frames`, which drops
-    a frame it cannot place, with a warning, unless ``options.strict_registration``). Returns a
-    :class:`~o3d_mvps.Refinement`; ``info["frames"]`` lists the capture's frames it used.
+    a frame it cannot place, with a warning, unless ``options.strict_registration``). Of more
+    than three frames, those that see too little of the reference's surface are left out
+    (:func:`o3d_mvps.views.frames_seeing_reference`). Returns a :class:`~o3d_mvps.Refinement`;
+    ``info["frames"]`` lists the capture's frames it used, ``info["views"]`` each frame's
+    covisibility and why a frame was left out.
     """
     # The solver's BLAS calls are vector dots/norms (CG, AMG) and thin products: on a loaded
     # 2-core machine OpenBLAS's threads made each 60k-vector norm take ~5 ms instead of 30 us
@@ -207,6 +211,11 @@ def _refine(capture: Capture, options: RefineOptions | None, device, initial_pos
         else:
             initial_poses = np.eye(4)[None]
     timings["odometry"] += time.perf_counter() - t0
+    views = None
+    if capture.n_frames > MIN_OTHER_FRAMES + 1:  # e.g. a ring: keep the frames that see the reference's surface
+        views = frames_seeing_reference(capture, initial_poses, frame_ids=frames)
+        keep = [frames.index(i) for i in views.frames]
+        capture, initial_poses, frames = capture.select(keep), initial_poses[keep], views.frames
 
     K = capture.color_K()
     size = capture.color_size
@@ -273,6 +282,6 @@ def _refine(capture: Capture, options: RefineOptions | None, device, initial_pos
     return Refinement.from_arrays(
         depth, ref_mask, K, albedo=albedo, poses=poses, lighting=lights, method="ours",
         energy=history, timings=dict(timings),
-        info={"frames": frames, "options": options.to_dict(),
+        info={"frames": frames, **({"views": views.to_dict()} if views else {}), "options": options.to_dict(),
               "light_model": (light if led_offset is None else light.at(led_offset)).describe(), **stats},
     )

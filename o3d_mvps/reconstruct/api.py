@@ -1,0 +1,173 @@
+"""``reconstruct(capture) -> Reconstruction``: refine reference views around the object, fuse one mesh.
+
+Steps: poses (given, else the registration chain); ``references`` reference views with
+spread-out viewing directions; for each, the frames that see its surface
+(:func:`o3d_mvps.views.frames_seeing_reference`) and a refinement with the poses re-based onto
+it, as Dask tasks (:mod:`.parallel`); the refined depths fused with per-pixel weights
+(:mod:`.fusion`); the mesh's largest piece kept, small holes closed, vertices coloured from
+the refined albedos (:mod:`.surface`). :meth:`Reconstruction.printable_solid` closes it for
+printing (:mod:`.solid`). World frame: the capture's frame-0 camera, metres.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import open3d as o3d
+
+from ..errors import MVPSError
+from ..solver.options import RefineOptions
+from ..views import MIN_COVISIBILITY
+from .fusion import GRAZING_EXPONENT, TSDFVolume, pixel_weights
+from .references import FULL_TURN_DEG, azimuth_span_deg, choose_references, up_direction
+from .solid import closed_solid
+from .surface import clean_mesh, colour_vertices
+from .views import DEPTH_SOURCES, plan_view, run_view
+
+
+@dataclass
+class ReconstructOptions:
+    """Options of :func:`reconstruct`.
+
+    references: reference views refined and fused. frames_per_reference: most frames refined
+    with a reference besides it (those seeing most of its surface). min_covisibility: least
+    fraction of a reference's surface a frame must see. depth: "refined" or "raw" (the sensor
+    depth bicubic-upsampled, for comparison). voxel_mm: TSDF voxel edge. edge_px: width of the
+    silhouette ramp of the fusion weights. weight_threshold: least accumulated weight of a
+    fused surface voxel. hole_mm: largest hole closed in the mesh. refine: the solver's
+    options. workers: local Dask worker processes (default: the CPU count). progress: bars.
+    """
+
+    references: int = 8
+    frames_per_reference: int = 4
+    min_covisibility: float = MIN_COVISIBILITY
+    depth: str = "refined"
+    voxel_mm: float = 1.5
+    edge_px: float = 3.0
+    weight_threshold: float = 0.5
+    hole_mm: float = 15.0
+    refine: RefineOptions = field(default_factory=lambda: RefineOptions(progress=False))
+    workers: int | None = None
+    progress: bool = True
+
+    def __post_init__(self):
+        if self.depth not in DEPTH_SOURCES:
+            raise ValueError(f"depth={self.depth!r}; choose one of {', '.join(DEPTH_SOURCES)}")
+        for name in ("voxel_mm", "edge_px", "weight_threshold", "hole_mm"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise ValueError(f"{name}={value!r} must be a positive number")
+        if not (isinstance(self.references, int) and self.references >= 1):
+            raise ValueError(f"references={self.references!r} must be an integer >= 1")
+        if not (isinstance(self.frames_per_reference, int) and self.frames_per_reference >= 2):
+            raise ValueError(f"frames_per_reference={self.frames_per_reference!r} must be an integer >= 2")
+
+
+@dataclass
+class Reconstruction:
+    """The fused mesh and how it was made.
+
+    mesh: o3d.t TriangleMesh, metres in the capture's frame-0 camera, vertex normals and
+    sRGB vertex colours. views: the reference views fused (:class:`~.views.ViewResult`).
+    failed: {reference: error} of views that failed. goes_around: whether the frames cover
+    the object all round (else the back is missing). azimuth_span_deg: degrees covered.
+    up: (3,) the capture's up axis. info: settings, selections, timings (JSON-ready).
+    """
+
+    mesh: o3d.t.geometry.TriangleMesh
+    views: list
+    failed: dict
+    goes_around: bool
+    azimuth_span_deg: float
+    up: np.ndarray
+    voxel: float
+    info: dict
+
+    def printable_solid(self, size_mm: float = 100.0) -> o3d.t.geometry.TriangleMesh:
+        """A closed solid of the object in millimetres (largest extent ``size_mm``, +z up), carved
+        from the views' depths; what no view saw (the bottom; the back of an arc) is closed flat."""
+        positions = self.mesh.vertex.positions.numpy().astype(np.float64)
+        return closed_solid(self.views, positions, self.up, self.voxel, size_mm)
+
+
+def reconstruct(capture, options: ReconstructOptions | None = None, *, poses=None, client=None,
+                scheduler: str | None = None) -> Reconstruction:
+    """Reconstruct the whole object of a capture that goes around it (module docstring).
+
+    Parameters
+    ----------
+    capture : Capture
+        Frames around the object; frame 0 defines the world frame.
+    options : ReconstructOptions
+    poses : (n, 4, 4) array, optional
+        Frame 0 -> frame i (e.g. :func:`o3d_mvps.capture.read_capture_poses`); default: the
+        registration chain (frames it cannot place are dropped with a warning).
+    client : dask.distributed.Client, optional
+        Where the refinements run; ``scheduler`` (``tcp://HOST:PORT``) connects to one;
+        default: a local cluster of ``options.workers`` single-threaded processes.
+
+    Raises
+    ------
+    MVPSError
+        Every reference view failed (each failure is named), or the fused mesh is empty.
+    """
+    options = options or ReconstructOptions()
+    t0 = time.perf_counter()
+    if poses is None:
+        from ..odometry import register_frames
+
+        registration = register_frames(capture, progress=options.progress)
+        capture, poses = capture.select(registration.frames), registration.poses
+    poses = np.asarray(poses, dtype=np.float64)
+    if poses.shape != (capture.n_frames, 4, 4):
+        raise ValueError(f"poses must be ({capture.n_frames}, 4, 4) for the capture's frames, got {poses.shape}")
+    span = azimuth_span_deg(poses)
+    goes_around = span >= FULL_TURN_DEG
+    if not goes_around:
+        warnings.warn(f"the frames cover {span:.0f} degrees around the object: the mesh holds what they saw, the "
+                      "back is missing (walk all round the object for a closed mesh)", stacklevel=2)
+    references = choose_references(poses, min(options.references, capture.n_frames))
+    jobs = [plan_view(capture, poses, k, min_covisibility=options.min_covisibility,
+                      max_frames=options.frames_per_reference) for k in references]
+    refine_options = replace(options.refine, frames=None, progress=False)
+    t_plan = time.perf_counter()
+    if options.depth == "refined":
+        from .parallel import dask_client, run_views
+
+        with dask_client(client, scheduler, options.workers or min(len(jobs), _cpu_count())) as dask:
+            views, failed = run_views(jobs, refine_options, "refined", dask, options.progress)
+    else:
+        views, failed = [run_view(job, refine_options, "raw") for job in jobs], {}
+    for reference, error in failed.items():
+        warnings.warn(f"reference view {reference} failed and is left out: {error}", stacklevel=2)
+    if not views:
+        raise MVPSError("every reference view failed: " + "; ".join(f"{k}: {e}" for k, e in failed.items()))
+    t_views = time.perf_counter()
+
+    volume = TSDFVolume(options.voxel_mm / 1000)
+    for view in views:
+        weights = pixel_weights(view.depth, view.mask, view.K, GRAZING_EXPONENT[options.depth], options.edge_px)
+        volume.integrate(view.depth, weights, view.K, view.world_to_camera)
+    fused = volume.extract_mesh(options.weight_threshold)
+    if "positions" not in fused.vertex or len(fused.vertex.positions) == 0:
+        raise MVPSError("the fused mesh is empty: the views' depths do not agree; check the poses, or use a larger "
+                        "voxel_mm (--voxel-mm)")
+    mesh = clean_mesh(fused, options.hole_mm / 1000)
+    positions = mesh.vertex.positions.numpy().astype(np.float64)
+    normals = mesh.vertex.normals.numpy().astype(np.float64)
+    mesh.vertex.colors = o3d.core.Tensor(colour_vertices(positions, normals, views, options.edge_px).astype(np.float32))
+    info = {"references": references, "failed": {str(k): e for k, e in failed.items()},
+            "views": [{"reference": v.reference, "seconds": round(v.seconds, 3), **v.selection} for v in views],
+            "azimuth_span_deg": round(span, 1), "goes_around": goes_around, "depth": options.depth,
+            "voxel_mm": options.voxel_mm, "vertices": len(positions), "triangles": int(len(mesh.triangle.indices)),
+            "timings": {"plan": t_plan - t0, "views": t_views - t_plan, "fusion": time.perf_counter() - t_views}}
+    return Reconstruction(mesh, views, failed, goes_around, span, up_direction(poses), options.voxel_mm / 1000, info)
+
+
+def _cpu_count() -> int:
+    import os
+
+    return os.cpu_count() or 1

@@ -1,0 +1,163 @@
+"""Which frames see a reference view's surface (covisibility), and which to refine it with.
+
+A capture that goes around the object (a 360-degree ring) has frames that see the reference's
+surface from behind or not at all; such frames only add outliers to the reference's data
+term. For a reference frame, its object surface is unprojected from its depth (and mask) with
+its intrinsics; each other frame's *covisibility* is the fraction of that surface, weighted by
+area, that the frame sees: the point projects inside the frame, in front of it, faces it
+within ``max_angle_deg`` and is not hidden behind that frame's own depth measurement (when the
+frame has one there). Open3D-free: NumPy arrays in, NumPy arrays out.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import CaptureError
+from .model.camera import backproject, project, transform
+from .model.normals import perspective_normals
+from .model.warping import in_view
+
+logger = logging.getLogger(__name__)
+
+#: Default least covisibility of a frame kept for a reference (fraction of its surface seen).
+MIN_COVISIBILITY = 0.4
+#: Default largest angle between a surface normal and the direction to a camera that sees it.
+MAX_VIEW_ANGLE_DEG = 75.0
+#: Default relative depth margin of the occlusion test (a frame's depth in front by more hides a point).
+OCCLUSION_TOLERANCE = 0.03
+#: Frames besides the reference that a selection always has (else it is an error).
+MIN_OTHER_FRAMES = 2
+
+
+def reference_surface(depth: np.ndarray, K: np.ndarray, mask: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
+    """Points (m, 3) metres, unit normals (m, 3) toward the camera and areas (m,) m^2 of a depth map.
+
+    depth: (h, w) metres, 0 = missing; K: (3, 3) intrinsics of that grid; mask: (h, w) bool or None.
+    """
+    valid = depth > 0 if mask is None else (depth > 0) & mask
+    normals, area = perspective_normals(depth, K, valid)
+    keep = valid & (area > 0)
+    # a pixel's surface patch has area |n~| z / (fx fy) (n~ of model.normals; z^2 / (fx fy) when frontal)
+    return backproject(depth, K)[keep], normals[keep], area[keep] * depth[keep] / (K[0, 0] * K[1, 1])
+
+
+def covisibility(points: np.ndarray, normals: np.ndarray, areas: np.ndarray, poses: np.ndarray, K: np.ndarray,
+                 size: tuple[int, int], depths: list | None = None, *, max_angle_deg: float = MAX_VIEW_ANGLE_DEG,
+                 occlusion_tolerance: float = OCCLUSION_TOLERANCE) -> np.ndarray:
+    """Fraction (n,) of the reference surface's area that each frame sees (module docstring).
+
+    points, normals: (m, 3) reference camera frame; areas: (m,); poses: (n, 4, 4) reference ->
+    frame i; K: (3, 3) intrinsics of the frames' (H, W) ``size`` grid; depths: None or n entries,
+    each None or an (H, W) depth map in metres (0 = missing) on that grid.
+    """
+    total = float(areas.sum())
+    if total <= 0:
+        raise CaptureError("the reference mask is empty or holds no valid depth (no object surface in frame 0); "
+                           "give a mask that covers the object and check frame 0's depth")
+    cos_min = np.cos(np.radians(max_angle_deg))
+    fractions = np.zeros(len(poses))
+    for i, T in enumerate(poses):
+        q = transform(T, points)
+        u, v, Z = project(q, K)
+        seen = in_view(u, v, Z, size)
+        facing = -np.einsum("ij,ij->i", normals @ T[:3, :3].T, q) / np.maximum(np.linalg.norm(q, axis=1), 1e-12)
+        seen &= facing >= cos_min
+        if depths is not None and depths[i] is not None:
+            iu = np.rint(np.where(seen, u, 0)).astype(np.int64)
+            iv = np.rint(np.where(seen, v, 0)).astype(np.int64)
+            measured = depths[i][iv, iu]
+            seen &= ~((measured > 0) & (measured < Z * (1 - occlusion_tolerance)))
+        fractions[i] = float(areas[seen].sum()) / total
+    return fractions
+
+
+@dataclass
+class ViewSelection:
+    """The frames chosen for a reference and why the others were left out.
+
+    frames: chosen indices, the reference first. covisibility: {frame index: fraction of the
+    reference surface seen}. left_out: {frame index: reason}.
+    """
+
+    frames: list
+    covisibility: dict
+    left_out: dict = field(default_factory=dict)
+
+    def describe(self) -> str:
+        """One line: the frames used and, per frame left out, why."""
+        used = ", ".join(f"{i} ({self.covisibility[i]:.0%})" for i in self.frames[1:])
+        line = f"reference {self.frames[0]}: refined with frames {used}"
+        if self.left_out:
+            line += "; left out " + ", ".join(f"{i} ({why})" for i, why in sorted(self.left_out.items()))
+        return line
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "ViewSelection":
+        """The selection :meth:`to_dict` gave (e.g. a refinement's ``info["views"]``)."""
+        return cls(list(d["frames"]), {int(i): c for i, c in d["covisibility"].items()},
+                   {int(i): why for i, why in d["left_out"].items()})
+
+    def to_dict(self) -> dict:
+        """JSON-ready: {"frames", "covisibility", "left_out"} with string keys."""
+        return {"frames": [int(i) for i in self.frames],
+                "covisibility": {str(i): round(float(c), 4) for i, c in self.covisibility.items()},
+                "left_out": {str(i): why for i, why in self.left_out.items()}}
+
+
+def select_views(fractions: np.ndarray, reference: int = 0, *, min_covisibility: float = MIN_COVISIBILITY,
+                 max_frames: int | None = None, frame_ids=None) -> ViewSelection:
+    """Frames that see at least ``min_covisibility`` of the reference, the best ``max_frames`` of them.
+
+    fractions: (n,) covisibility of each frame (the reference's own entry is ignored).
+    frame_ids: names of the n frames in messages and in the result (default 0..n-1).
+
+    Raises
+    ------
+    CaptureError
+        Fewer than two frames besides the reference see enough of it.
+    """
+    ids = list(range(len(fractions))) if frame_ids is None else [int(i) for i in frame_ids]
+    others = sorted((k for k in range(len(fractions)) if k != reference), key=lambda k: -fractions[k])
+    chosen, left_out = [], {}
+    for k in others:
+        if fractions[k] < min_covisibility:
+            left_out[ids[k]] = f"sees {fractions[k]:.0%} of the reference surface, below {min_covisibility:.0%}"
+        elif max_frames is not None and len(chosen) >= max_frames:
+            left_out[ids[k]] = f"sees {fractions[k]:.0%}, but {max_frames} frames that see more were chosen"
+        else:
+            chosen.append(k)
+    covis = {ids[k]: float(fractions[k]) for k in range(len(fractions)) if k != reference}
+    if len(chosen) < MIN_OTHER_FRAMES:
+        best = ", ".join(f"frame {ids[k]} {fractions[k]:.0%}" for k in others[:4]) or "no other frame"
+        raise CaptureError(f"only {len(chosen)} frame(s) see at least {min_covisibility:.0%} of reference frame "
+                           f"{ids[reference]}'s surface ({best}); at least {MIN_OTHER_FRAMES} are needed: capture "
+                           "frames closer to the reference (15-30 degrees apart) or lower min_covisibility")
+    return ViewSelection([ids[reference]] + [ids[k] for k in sorted(chosen)], covis, left_out)
+
+
+def frames_seeing_reference(capture, poses: np.ndarray, *, min_covisibility: float = MIN_COVISIBILITY,
+                            max_frames: int | None = None, frame_ids=None, **options) -> ViewSelection:
+    """:func:`select_views` for a :class:`~o3d_mvps.Capture`'s frame 0, from its sensor depth.
+
+    poses: (n, 4, 4) reference -> frame i. The reference surface is frame 0's depth inside its
+    mask (the mask block-averaged onto the depth grid, kept where more than half covers it);
+    ``options`` go to :func:`covisibility`.
+    """
+    sf = capture.scale_factor
+    depth = capture.depth_array(0).astype(np.float64)
+    mask = capture.mask_array(0)
+    if mask is not None:
+        h, w = depth.shape
+        mask = mask.reshape(h, sf, w, sf).mean(axis=(1, 3)) > 0.5
+    points, normals, areas = reference_surface(depth, capture.depth_K(), mask)
+    depths = [capture.depth_array(i) for i in range(capture.n_frames)]
+    fractions = covisibility(points, normals, areas, np.asarray(poses, dtype=np.float64), capture.depth_K(),
+                             capture.depth_size, depths, **options)
+    selection = select_views(fractions, 0, min_covisibility=min_covisibility, max_frames=max_frames,
+                             frame_ids=frame_ids)
+    logger.info(selection.describe())
+    return selection

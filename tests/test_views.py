@@ -1,0 +1,80 @@
+"""Covisibility of a reference's surface and the frames chosen to refine it (o3d_mvps.views)."""
+
+import numpy as np
+import pytest
+
+from benchmarks.ring import render_ring
+from o3d_mvps import RefineOptions, refine
+from o3d_mvps.errors import CaptureError
+from o3d_mvps.model import se3
+from o3d_mvps.views import ViewSelection, covisibility, frames_seeing_reference, reference_surface, select_views
+
+K = np.array([[100.0, 0, 31.5], [0, 100.0, 23.5], [0, 0, 1]])
+SIZE = (48, 64)
+
+
+def orbit(degrees: float, distance: float = 0.5) -> np.ndarray:
+    """Reference -> camera pose of a camera turned ``degrees`` about the vertical axis through (0, 0, distance)."""
+    centre = np.eye(4)
+    centre[2, 3] = distance
+    turn = se3.exp(np.array([0, 0, 0, 0, np.radians(degrees), 0]))
+    return centre @ np.linalg.inv(turn) @ np.linalg.inv(centre)
+
+
+def plane_surface():
+    depth = np.full(SIZE, 0.5)
+    mask = np.zeros(SIZE, bool)
+    mask[16:32, 24:40] = True  # a small frontal patch, inside every orbiting camera's view
+    return reference_surface(depth, K, mask)
+
+
+def test_frontal_patch_area_and_normals():
+    points, normals, areas = plane_surface()
+    assert len(points) == 16 * 16
+    np.testing.assert_allclose(normals, np.tile([0, 0, -1.0], (len(points), 1)), atol=1e-9)
+    # 256 pixels of (0.5 m / 100 px)^2 each
+    assert areas.sum() == pytest.approx(256 * 0.005**2, rel=1e-9)
+
+
+def test_covisibility_follows_the_viewing_angle_and_occlusion():
+    points, normals, areas = plane_surface()
+    poses = np.stack([np.eye(4), orbit(30), orbit(-60), orbit(80), orbit(180)])
+    seen = covisibility(points, normals, areas, poses, K, SIZE)
+    # within 75 degrees the whole patch is seen; at 80 degrees it is grazing, from behind never
+    np.testing.assert_allclose(seen, [1, 1, 1, 0, 0])
+    # a frame whose depth lies 10 cm in front of the patch everywhere sees none of it
+    blocked = [None, np.full(SIZE, 0.3), None, None, None]
+    assert covisibility(points, normals, areas, poses, K, SIZE, blocked)[1] == 0
+    missing = [None, np.zeros(SIZE), None, None, None]  # no measurement: no evidence of occlusion
+    assert covisibility(points, normals, areas, poses, K, SIZE, missing)[1] == 1
+
+
+def test_selection_threshold_cap_and_error():
+    fractions = np.array([1.0, 0.9, 0.2, 0.6, 0.5])
+    sel = select_views(fractions, min_covisibility=0.4, max_frames=2)
+    assert sel.frames == [0, 1, 3]
+    assert sorted(sel.left_out) == [2, 4] and "20%" in sel.left_out[2] and "2 frames" in sel.left_out[4]
+    assert ViewSelection.from_dict(sel.to_dict()) == sel
+    assert "left out 2 (sees 20%" in sel.describe()
+    with pytest.raises(CaptureError, match="only 1 frame.*frame 1 90%.*at least 2"):
+        select_views(np.array([1.0, 0.9, 0.1, 0.2]), min_covisibility=0.4)
+
+
+def test_ring_frames_seeing_the_reference():
+    capture, _ = render_ring("bunny", frames=12, size=(160, 120))
+    sel = frames_seeing_reference(capture, capture.groundtruth.poses)
+    c = sel.covisibility
+    # 30 degrees on either side see most of the surface, the far side of the ring none of it
+    assert min(c[1], c[11]) > 0.8 and max(c[5], c[6], c[7]) == 0
+    assert sel.frames == [0, 1, 2, 10, 11]
+    assert set(sel.left_out) == {3, 4, 5, 6, 7, 8, 9}
+
+
+def test_refine_on_a_ring_uses_the_frames_that_see_the_reference():
+    capture, _ = render_ring("bunny", frames=12, size=(96, 72))
+    options = RefineOptions(levels=2, max_iterations=1, progress=False, refine_poses=False)
+    refinement = refine(capture, options, initial_poses=capture.groundtruth.poses)
+    assert refinement.info["frames"] == [0, 1, 2, 10, 11]
+    views = refinement.info["views"]
+    assert views["frames"] == [0, 1, 2, 10, 11] and set(map(int, views["left_out"])) == {3, 4, 5, 6, 7, 8, 9}
+    assert views["covisibility"]["6"] == 0
