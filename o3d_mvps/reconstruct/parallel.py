@@ -15,8 +15,9 @@ from tqdm.auto import tqdm
 
 from .views import run_view
 
-#: Environment of the local workers: one thread for every BLAS/OpenMP pool.
-SINGLE_THREAD_ENV = {name: "1" for name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
+#: Environment of the local workers: one thread for every BLAS/OpenMP pool and numba's kernels.
+SINGLE_THREAD_ENV = {name: "1" for name in (
+    "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")}
 
 
 @contextmanager
