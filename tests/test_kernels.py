@@ -7,7 +7,7 @@ import pytest
 import scipy.sparse as sp
 
 from o3d_mvps.model.robust import cauchy, cauchy_energy, cauchy_weights
-from o3d_mvps.solver.kernels import (add_sparse_product, shading_residuals, weighted_albedo_sums,
+from o3d_mvps.solver.kernels import (add_sparse_product_rows, shading_residuals, weighted_albedo_sums,
                                      weighted_lighting_sums)
 
 RNG = np.random.default_rng(7)
@@ -58,8 +58,8 @@ def test_shading_residuals_match_numpy(data, shared):
 
 def test_sparse_product_accumulates():
     A = sp.random(500, 400, density=0.01, random_state=1, format="csr")
-    X = RNG.normal(size=(400, 7))
-    out = RNG.normal(size=(500, 7))
-    expected = out + A @ X
-    add_sparse_product(A.indptr, A.indices, A.data, X, out)
+    X = RNG.normal(size=(7, 400))
+    out = RNG.normal(size=(7, 500))
+    expected = out + (A @ X.T).T
+    add_sparse_product_rows(A.indptr, A.indices, A.data, X, out)
     np.testing.assert_allclose(out, expected, rtol=1e-12, atol=1e-14)

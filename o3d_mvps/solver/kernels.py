@@ -10,6 +10,8 @@ accumulator.
 
 from __future__ import annotations
 
+import math
+
 import numba
 import numpy as np
 
@@ -27,9 +29,9 @@ def chunk_count(n_pixels: int) -> int:
     return max(1, -(-n_pixels // CHUNK))
 
 
-@numba.njit(parallel=True, cache=True, fastmath=False)
+@numba.njit(parallel=True, cache=True)
 def accumulate_frame(w, r, q, ws, alpha, beta, gamma, extra_c, use, grad_u, grad_v, points, ray, dshading, albedo,
-                     K, with_jacobian, parallax, sums, e, rows, F, slot, gram, rhs):  # pragma: no cover - compiled
+                     K, with_jacobian, parallax, sums, e, rows, F, slot, weighted_J, rhs):  # pragma: no cover - compiled
     """Add frame i's depth rows to the per-pixel sums and, with its pose Jacobian, write its
     twist rows.
 
@@ -45,13 +47,14 @@ def accumulate_frame(w, r, q, ws, alpha, beta, gamma, extra_c, use, grad_u, grad
     with_jacobian: the pose Jacobian J (3, 6) per pixel from the warped colour gradients
     grad_u, grad_v (N, 3), frame-i points (N, 3), intrinsics K (3, 3), minus albedo (N, 3) x
     dshading (N, 6) (or (0, 6)), zero where ``use`` (N,) is False; ray (N, 3) is
-    d(frame-i point)/dz. Then, into slot ``slot`` of rows (3, N, m, 6): ``sum_c w q J`` times
-    -alpha and -beta, and ``sum_c w c J``; of F (N, 3, m, 6) (0-sized: none): ws J; per chunk,
-    gram (chunks, 6, 6) = sum w J^T J and rhs (chunks, 6) = -sum w r J. slot -1: J only
-    for the parallax, no twist rows.
+    d(frame-i point)/dz. Then, in slot ``slot`` of rows (3, m, 6, N): ``sum_c w q J`` times
+    -alpha and -beta, and ``sum_c w c J``; of F (m, 6, N, 3) (0-sized: none): ws J;
+    weighted_J (6, N, 3) = sqrt(w) J (the frame's Gram is weighted_J weighted_J^T, a BLAS
+    product) and, per pixel chunk, rhs (chunks, 6) = -sum w r J. Twist-component-major arrays,
+    so that each pixel's writes stream. slot -1: J only for the parallax, no twist rows.
     """
     n = w.shape[0]
-    n_chunks = gram.shape[0]
+    n_chunks = rhs.shape[0]
     fx, fy = K[0, 0], K[1, 1]
     project = e.shape[0] > 0
     with_extra = extra_c.shape[0] > 0
@@ -60,7 +63,6 @@ def accumulate_frame(w, r, q, ws, alpha, beta, gamma, extra_c, use, grad_u, grad
     emit = with_jacobian and slot >= 0
     for chunk in numba.prange(n_chunks):
         J = np.zeros((3, 6))
-        G = np.zeros((6, 6))
         b = np.zeros(6)
         wqJ = np.zeros(6)
         wcJ = np.zeros(6)
@@ -110,16 +112,22 @@ def accumulate_frame(w, r, q, ws, alpha, beta, gamma, extra_c, use, grad_u, grad
                     e[0, p, c] -= wsq * al
                     e[1, p, c] -= wsq * be
                     e[2, p, c] += ws[p, c] * cc
-                if jac and emit:
-                    for j in range(6):
-                        Jj = J[c, j]
-                        wqJ[j] += wq * Jj
-                        wcJ[j] += wc_ * cc * Jj
-                        b[j] -= wc_ * r[p, c] * Jj
-                        for l in range(j, 6):
-                            G[j, l] += wc_ * Jj * J[c, l]
-                        if with_F:
-                            F[p, c, slot, j] = ws[p, c] * Jj
+                if emit:
+                    if jac:
+                        root_w = math.sqrt(wc_)
+                        for j in range(6):
+                            Jj = J[c, j]
+                            wqJ[j] += wq * Jj
+                            wcJ[j] += wc_ * cc * Jj
+                            b[j] -= wc_ * r[p, c] * Jj
+                            weighted_J[j, p, c] = root_w * Jj
+                            if with_F:
+                                F[slot, j, p, c] = ws[p, c] * Jj
+                    else:
+                        for j in range(6):
+                            weighted_J[j, p, c] = 0.0
+                            if with_F:
+                                F[slot, j, p, c] = 0.0
             sums[0, p] += W * al * al
             sums[1, p] += W * be * be
             sums[2, p] += Sgg
@@ -130,56 +138,44 @@ def accumulate_frame(w, r, q, ws, alpha, beta, gamma, extra_c, use, grad_u, grad
             sums[7, p] -= be * Wqr
             sums[8, p] += Bg
             if emit:
-                if jac:
-                    for j in range(6):
-                        rows[0, p, slot, j] = -al * wqJ[j]
-                        rows[1, p, slot, j] = -be * wqJ[j]
-                        rows[2, p, slot, j] = wcJ[j]
-                else:
-                    for k in range(3):
-                        for j in range(6):
-                            rows[k, p, slot, j] = 0.0
-                    if with_F:
-                        for c in range(3):
-                            for j in range(6):
-                                F[p, c, slot, j] = 0.0
+                for j in range(6):
+                    if jac:
+                        rows[0, slot, j, p] = -al * wqJ[j]
+                        rows[1, slot, j, p] = -be * wqJ[j]
+                        rows[2, slot, j, p] = wcJ[j]
+                    else:
+                        rows[0, slot, j, p] = 0.0
+                        rows[1, slot, j, p] = 0.0
+                        rows[2, slot, j, p] = 0.0
         for j in range(6):
             rhs[chunk, j] = b[j]
-            for l in range(6):
-                gram[chunk, j, l] = G[min(j, l), max(j, l)]
 
 
 @numba.njit(parallel=True, cache=True)
 def project_twist_rows(rows, F, scaled, sqrt_inv_d):  # pragma: no cover - compiled
-    """The albedo projection of the twist rows, in place: rows (3, N, m, 6) lose
-    ``sum_c scaled[k, p, c] F[p, c]`` and F (N, 3, m, 6) is scaled by sqrt_inv_d (N, 3)."""
-    n, m = F.shape[0], F.shape[2]
-    for p in numba.prange(n):
-        for k in range(3):
-            for c in range(3):
-                s = scaled[k, p, c]
-                if s != 0.0:
-                    for f in range(m):
-                        for j in range(6):
-                            rows[k, p, f, j] -= s * F[p, c, f, j]
-        for c in range(3):
-            s = sqrt_inv_d[p, c]
-            for f in range(m):
-                for j in range(6):
-                    F[p, c, f, j] *= s
+    """The albedo projection of the twist rows, in place: rows (3, m, 6, N) lose
+    ``sum_c scaled[k, p, c] F[., ., p, c]`` and F (m, 6, N, 3) is scaled by sqrt_inv_d (N, 3)."""
+    m, N = F.shape[0], F.shape[2]
+    for f in numba.prange(m):
+        for j in range(6):
+            for p in range(N):
+                for k in range(3):
+                    rows[k, f, j, p] -= (scaled[k, p, 0] * F[f, j, p, 0] + scaled[k, p, 1] * F[f, j, p, 1]
+                                         + scaled[k, p, 2] * F[f, j, p, 2])
+                for c in range(3):
+                    F[f, j, p, c] *= sqrt_inv_d[p, c]
 
 
 @numba.njit(parallel=True, cache=True)
-def add_sparse_product(indptr, indices, data, X, out):  # pragma: no cover - compiled
-    """out (R, k) += A X for a CSR matrix A (R, C) given by its arrays and a dense X (C, k),
-    in parallel over A's rows (SciPy's product with a block of columns is single-threaded and
-    strides through X column by column)."""
-    for row in numba.prange(out.shape[0]):
-        for nz in range(indptr[row], indptr[row + 1]):
-            a = data[nz]
-            col = indices[nz]
-            for j in range(X.shape[1]):
-                out[row, j] += a * X[col, j]
+def add_sparse_product_rows(indptr, indices, data, X, out):  # pragma: no cover - compiled
+    """out (k, R) += (A X^T)^T, i.e. each row x of X (k, C) adds A x, for a CSR matrix A (R, C)
+    given by its arrays; in parallel over X's rows."""
+    for j in numba.prange(X.shape[0]):
+        for row in range(out.shape[1]):
+            total = 0.0
+            for nz in range(indptr[row], indptr[row + 1]):
+                total += data[nz] * X[j, indices[nz]]
+            out[j, row] += total
 
 
 @numba.njit(parallel=True, cache=True)

@@ -25,7 +25,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from ..model.robust import cauchy_weights
-from .kernels import accumulate_frame, add_sparse_product, chunk_count, project_twist_rows
+from .kernels import accumulate_frame, add_sparse_product_rows, chunk_count, project_twist_rows
 from .pose import pose_jacobian
 from .problem import Estimate, Evaluation, LevelProblem
 
@@ -126,9 +126,9 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
     project_albedo: eliminate the albedo (variable projection, see :class:`_AlbedoProjection`).
 
     One pass over the frames; per frame, one compiled kernel (:func:`.kernels.accumulate_frame`)
-    adds its depth rows to per-pixel sums and writes its twist rows and w s J into pixel-major
-    arrays, from which the coupling and the projection's dense parts are formed after the pass
-    without copies.
+    adds its depth rows to per-pixel sums and writes its twist rows and w s J into
+    twist-component-major arrays, from which the coupling and the projection's dense parts are
+    formed after the pass without copies.
     """
     grid, K = problem.level.grid, problem.level.K
     N = grid.size
@@ -145,10 +145,11 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
     projection = _AlbedoProjection(w, ev) if project_albedo else None
     candidates = [i for i in range(1, problem.n_frames) if twists and ev.usable[i].sum() >= min_pixels]
     slot = {i: k for k, i in enumerate(candidates)}
-    # pixel-major, so the coupling (N, 6m) and the projection's columns (3N, 6m) are views
-    rows = np.empty((3, N, len(candidates), 6))
-    F = np.empty((N, 3, len(candidates), 6)) if projection is not None else np.empty((0, 3, 1, 6))
-    gram, rhs = np.empty((chunk_count(N), 6, 6)), np.empty((chunk_count(N), 6))
+    # twist-component-major, so the transposed coupling (6m, N) and the projection's rows
+    # (6m, 3N) are views
+    rows = np.empty((3, len(candidates), 6, N))
+    F = np.empty((len(candidates), 6, N, 3)) if projection is not None else np.empty((0, 6, 1, 3))
+    weighted_J, rhs = np.empty((6, N, 3)), np.empty((chunk_count(N), 6))
     hessians, rhs_xi, frames = [], [], []
     for i in range(problem.n_frames):
         pose, use = est.poses[i], ev.usable[i]
@@ -169,17 +170,17 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
                          alpha, beta, gamma, extra_c, use, grad_u, grad_v, points_i, ray_i,
                          _NONE6 if dshading is None or not with_jacobian else dshading, est.albedo, K,
                          with_jacobian, parallax, sums, _NONE_E if projection is None else projection.e,
-                         rows, F, k, gram, rhs)
+                         rows, F, k, weighted_J, rhs)
         if k < 0:
             continue
-        H = gram.sum(axis=0)
+        H = _gram(weighted_J.reshape(6, -1))
         if not np.isfinite(H).all() or np.linalg.cond(H) > 1e12:
             continue
         hessians.append(H)
         rhs_xi.append(rhs.sum(axis=0))
         frames.append(i)
     m = len(frames)
-    rows = rows[:, :, :m]  # frames dropped as ill-conditioned left their slots unused at the end
+    rows = rows[:, :m]  # frames dropped as ill-conditioned left their slots unused at the end
     hessian = scipy.linalg.block_diag(*hessians) if m else np.zeros((0, 0))
     rhs_xi = np.concatenate(rhs_xi) if m else np.zeros(0)
     Saa, Sbb, Sgg, Sab, Sag, Sbg, Ba, Bb, Bg = sums
@@ -187,9 +188,9 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
         Saa, Sbb, Sgg, Sab, Sag, Sbg = (S - dS for S, dS in zip((Saa, Sbb, Sgg, Sab, Sag, Sbg), projection.local()))
         Ba, Bb, Bg = (B - dB for B, dB in zip((Ba, Bb, Bg), projection.local_rhs()))
         if m:
-            projection.downdate_twists(F[:, :, :m], rows, hessian, rhs_xi)
-    # (N, 6m) with frame j's twist in columns 6j..6j+5
-    coupling = (stencil_transpose(grid, *(np.ascontiguousarray(r).reshape(N, 6 * m) for r in rows), in_place=True)
+            projection.downdate_twists(F[:m], rows, hessian, rhs_xi)
+    # (N, 6m) with frame j's twist in columns 6j..6j+5: the transpose of a (6m, N) array
+    coupling = (stencil_transpose_rows(grid, *(np.ascontiguousarray(r).reshape(6 * m, N) for r in rows)).T
                 if m else np.zeros((N, 0)))
     prior = problem.level.prior
     two_tau = 2.0 * problem.tau
@@ -237,20 +238,21 @@ class _AlbedoProjection:
         return tuple(_row_dot(e * self.inv_d, self.sWr) for e in self.e)
 
     def downdate_twists(self, F: np.ndarray, rows: np.ndarray, hessian: np.ndarray, rhs_xi: np.ndarray) -> None:
-        """Project the twist parts in place: the coupling rows (3, N, m, 6) lose
+        """Project the twist parts in place: the coupling rows (3, m, 6, N) lose
         ``sum_c (e_k / d) f``, the Gram (6m, 6m) loses ``sum f f^T / d`` and the right-hand side
-        (6m,) gains ``sum f (s^T W r) / d`` over pixels and channels; F (N, 3, m, 6) = w s J of
+        (6m,) gains ``sum f (s^T W r) / d`` over pixels and channels; F (m, 6, N, 3) = w s J of
         the m refined frames is scaled in place."""
         sqrt_inv_d = np.sqrt(self.inv_d)
         project_twist_rows(rows, F, self.e * self.inv_d, sqrt_inv_d)
-        columns = np.ascontiguousarray(F).reshape(-1, F.shape[2] * 6)  # (3N, 6m): frame j in columns 6j..
-        rhs_xi += (self.sWr * sqrt_inv_d).reshape(-1) @ columns
-        hessian -= _gram(columns)
+        f = np.ascontiguousarray(F).reshape(6 * len(F), -1)  # (6m, 3N): frame j in rows 6j..
+        rhs_xi += f @ (self.sWr * sqrt_inv_d).reshape(-1)
+        hessian -= _gram(f)
 
 
-def _gram(F: np.ndarray) -> np.ndarray:
-    """F^T F (k, k) of a tall (R, k) array by BLAS's symmetric rank-k update (half a product)."""
-    upper = scipy.linalg.blas.dsyrk(1.0, F.T)  # F.T is Fortran-ordered: no copy
+def _gram(A: np.ndarray) -> np.ndarray:
+    """A A^T (k, k) of a wide C-ordered (k, R) array by BLAS's symmetric rank-k update (half a
+    product)."""
+    upper = scipy.linalg.blas.dsyrk(1.0, A.T, trans=1)  # A.T is Fortran-ordered: no copy
     return np.triu(upper) + np.triu(upper, 1).T
 
 
@@ -274,16 +276,16 @@ def stencil_normal_matrix(grid, Saa, Sbb, Sgg, Sab, Sag, Sbg) -> sp.csr_matrix:
     return sp.csr_matrix(Du.T @ diag(Saa) @ Du + Dv.T @ diag(Sbb) @ Dv + diag(Sgg) + cross + cross.T)
 
 
-def stencil_transpose(grid, Ba, Bb, Bg, *, in_place: bool = False):
-    """``Du^T Ba + Dv^T Bb + Bg``: R^T applied to per-pixel values, (N,) or (N, k) each.
-
-    in_place: accumulate into Bg (a C-contiguous float64 (N, k) array the caller gives up)
-    instead of a copy of it.
-    """
+def stencil_transpose(grid, Ba, Bb, Bg):
+    """``Du^T Ba + Dv^T Bb + Bg``: R^T applied to per-pixel values (N,) each."""
     DuT, DvT = grid.transposed_difference_operators()
-    if Bg.ndim == 1:
-        return DuT @ Ba + DvT @ Bb + Bg
-    out = Bg if in_place else np.array(Bg, dtype=np.float64, order="C")
+    return DuT @ Ba + DvT @ Bb + Bg
+
+
+def stencil_transpose_rows(grid, Ba, Bb, Bg):
+    """:func:`stencil_transpose` of each row of (k, N) arrays, accumulated into Bg (a
+    C-ordered float64 array the caller gives up) and returned: (k, N)."""
+    DuT, DvT = grid.transposed_difference_operators()
     for D, B in ((DuT, Ba), (DvT, Bb)):
-        add_sparse_product(D.indptr, D.indices, D.data, np.ascontiguousarray(B, dtype=np.float64), out)
-    return out
+        add_sparse_product_rows(D.indptr, D.indices, D.data, B, Bg)
+    return Bg
