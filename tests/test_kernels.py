@@ -7,6 +7,7 @@ import pytest
 import scipy.sparse as sp
 
 from o3d_mvps.model.robust import cauchy, cauchy_energy, cauchy_weights
+from o3d_mvps.model.shading import led_irradiances, led_vectors
 from o3d_mvps.solver.kernels import (add_sparse_product_rows, shading_residuals, weighted_albedo_sums,
                                      weighted_lighting_sums)
 
@@ -63,3 +64,12 @@ def test_sparse_product_accumulates():
     expected = out + (A @ X.T).T
     add_sparse_product_rows(A.indptr, A.indices, A.data, X, out)
     np.testing.assert_allclose(out, expected, rtol=1e-12, atol=1e-14)
+
+
+def test_led_irradiances_match_led_vectors():
+    points = RNG.normal(size=(N_PIXELS, 3)) * 0.05 + [0.0, 0.0, 0.6]
+    normals = RNG.normal(size=(N_PIXELS, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    positions = RNG.normal(size=(5, 3)) * 0.05
+    expected = np.stack([np.einsum("ij,ij->i", normals, led_vectors(points, s)) for s in positions])
+    np.testing.assert_allclose(led_irradiances(normals, points, positions), expected, rtol=1e-12, atol=1e-12)

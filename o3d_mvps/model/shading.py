@@ -5,6 +5,9 @@
 
 from __future__ import annotations
 
+import math
+
+import numba
 import numpy as np
 
 #: Initial lighting of every frame: a little ambient plus frontal light (normals point to -z).
@@ -31,6 +34,26 @@ def led_vectors(points: np.ndarray, light_position: np.ndarray) -> np.ndarray:
     d = np.asarray(light_position, dtype=np.float64) - points
     r2 = np.einsum("ij,ij->i", d, d)
     return d / (r2 * np.sqrt(r2))[:, None]
+
+
+def led_irradiances(normals: np.ndarray, points: np.ndarray, light_positions: np.ndarray) -> np.ndarray:
+    """``<n, v>`` (m, N) of :func:`led_vectors` for m light positions (m, 3) at once, unclamped
+    (negative where a point faces away): unit normals and points (N, 3), one frame, metres."""
+    out = np.empty((len(light_positions), len(points)))
+    _led_irradiances(np.ascontiguousarray(normals, dtype=np.float64), np.ascontiguousarray(points, dtype=np.float64),
+                     np.ascontiguousarray(light_positions, dtype=np.float64), out)
+    return out
+
+
+@numba.njit(parallel=True, cache=True)
+def _led_irradiances(normals, points, positions, out):  # pragma: no cover - compiled
+    for p in numba.prange(points.shape[0]):
+        for i in range(positions.shape[0]):
+            d0 = positions[i, 0] - points[p, 0]
+            d1 = positions[i, 1] - points[p, 1]
+            d2 = positions[i, 2] - points[p, 2]
+            r2 = d0 * d0 + d1 * d1 + d2 * d2
+            out[i, p] = (normals[p, 0] * d0 + normals[p, 1] * d1 + normals[p, 2] * d2) / (r2 * math.sqrt(r2))
 
 
 def led_vector_jacobian(points: np.ndarray, light_position: np.ndarray, normals: np.ndarray) -> np.ndarray:

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..model.robust import cauchy_weights
-from ..model.shading import INITIAL_LIGHT, led_vector_jacobian, led_vectors, sh_basis
+from ..model.shading import INITIAL_LIGHT, led_irradiances, led_vector_jacobian, led_vectors, sh_basis
 from .line_search import backtrack
 from .linear import ridge_solve
 
@@ -93,13 +93,7 @@ class LEDLight:
 
     def irradiances(self, normals: np.ndarray, points: np.ndarray, poses: np.ndarray) -> np.ndarray:
         """:meth:`irradiance` (m, N) for the frames with ``poses`` (m, 4, 4), computed together."""
-        s = self.positions(poses)
-        r2 = (points @ (-2.0 * s.T)).T
-        r2 += np.einsum("ij,ij->i", points, points)
-        r2 += np.einsum("mi,mi->m", s, s)[:, None]
-        lit = (normals @ s.T).T
-        lit -= np.einsum("ij,ij->i", normals, points)
-        return lit / (r2 * np.sqrt(r2))
+        return led_irradiances(normals, points, self.positions(poses))
 
     def basis(self, normals: np.ndarray, points: np.ndarray, pose: np.ndarray) -> np.ndarray:
         """(N, 2) ``[1, max(0, <n, v_i>)]``."""
