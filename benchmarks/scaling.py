@@ -29,6 +29,7 @@ import numpy as np
 from o3d_mvps.fileio import json_text
 
 from .plots import line_plot
+from .speed import warm_up
 
 REPOSITORY = Path(__file__).resolve().parent.parent
 #: object pixels of the default bunny (0.2 m at 0.6 m) at 1280 x 720, measured
@@ -104,6 +105,7 @@ def run(args) -> list[dict]:
     versions = {"current": None} if args.baseline is None else {"current": None, args.baseline: args.baseline}
     with contextlib.ExitStack() as stack:
         trees = {name: stack.enter_context(checkout(rev)) for name, rev in versions.items()}
+        warm_up(trees.values())
         for target in pixels:
             size = colour_size(target)
             for n in frames:
