@@ -134,7 +134,7 @@ def test_unreadable_problem_files_name_the_file_and_the_fix(capture, tmp_path):
     expected = {"missing.npz": "no such file", "junk.npz": "is not a saved o3d_mvps problem",
                 "foreign.npz": "is an .npz but not a saved o3d_mvps problem",
                 "newer.npz": r"format version 2, newer than this o3d_mvps reads \(1\); upgrade",
-                "truncated.npz": "damaged: write it again"}
+                "truncated.npz": "lacks the array 'depths'; the file is damaged: write it again"}
     for name, problem in expected.items():
         with pytest.raises(MVPSError, match=problem) as error:
             read_problem(tmp_path / name)
@@ -191,8 +191,8 @@ def test_cpu_device_names():
     (None, "cuda", r"needs CuPy, which is not installed: pip install o3d-mvps\[cuda\] \(CuPy for CUDA 12; for "
                    r"CUDA 13 run pip install cupy-cuda13x instead\)"),
     (fake_cupy(None), "CUDA:0", "CuPy sees no GPU; check the NVIDIA driver"),
-    (fake_cupy(1), "cuda:1", r"CuPy sees 1 GPU\(s\), cuda:0 to cuda:0"),
-    (fake_cupy(1), "cuda:0", "no CUDA solver path yet; pass device='cpu'"),
+    (fake_cupy(1), "cuda:1", r"CuPy sees 1 GPU\(s\), cuda:0 to cuda:0; .* or solve on the CPU instead"),
+    (fake_cupy(1), "cuda:0", r"no CUDA solver path yet; solve on the CPU instead \(device='cpu', --device cpu\)"),
 ])
 def test_cuda_device_says_what_is_missing(monkeypatch, cupy, device, message):
     monkeypatch.setitem(sys.modules, "cupy", cupy)

@@ -15,10 +15,10 @@ from .solution import ENERGY_COLUMNS, write_solution
 
 PROG = "python -m o3d_mvps.solver"
 DESCRIPTION = f"""\
-Solve a problem saved by `{SAVE_HOW}` and write the
-solution to OUT.npz: depth (H, W) metres, mask, albedo (H, W, 3), K, lighting (n, k), poses
-(n, 4, 4), energy (m, 4: {", ".join(ENERGY_COLUMNS)}) and report (JSON: energy rows, timings,
-info). Needs NumPy, SciPy, OpenCV and pyamg, not Open3D.
+Solve a problem saved by `{SAVE_HOW}`
+and write the solution to OUT.npz: depth (H, W) metres, mask, albedo (H, W, 3), K,
+lighting (n, k), poses (n, 4, 4), energy (m, 4: {", ".join(ENERGY_COLUMNS)})
+and report (JSON: energy rows, timings, info). Needs NumPy, SciPy, OpenCV and pyamg, not Open3D.
 """
 
 

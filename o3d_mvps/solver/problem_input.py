@@ -122,7 +122,10 @@ def read_problem(path) -> SolverInput:
     if str(data.get("format", "")) != PROBLEM_FORMAT:
         raise MVPSError(f"{path} is an .npz but not a saved o3d_mvps problem (no format '{PROBLEM_FORMAT}'); give "
                         f"the .npz that `{SAVE_HOW}` wrote")
-    version = int(data["format_version"])
+    try:
+        version = int(data["format_version"])
+    except (KeyError, TypeError, ValueError):
+        raise MVPSError(f"{path} has no readable format_version; {remake}") from None
     if version > PROBLEM_VERSION:
         raise MVPSError(f"{path} is a saved problem of format version {version}, newer than this o3d_mvps reads "
                         f"({PROBLEM_VERSION}); upgrade o3d_mvps (pip install -U o3d-mvps) where you solve it")
@@ -130,6 +133,8 @@ def read_problem(path) -> SolverInput:
         masks = [m if has else None for m, has in zip(data["masks"], data["has_mask"])]
         options = RefineOptions.from_dict(json.loads(str(data["options"])))
         return SolverInput(**{name: data[name] for name in _ARRAYS}, masks=list(masks), options=options)
-    except (KeyError, TypeError, ValueError) as e:
+    except KeyError as e:
+        raise MVPSError(f"{path} lacks the array {e}; {remake}") from None
+    except (TypeError, ValueError) as e:
         raise MVPSError(f"{path}: {e}; {remake}") from None
 
