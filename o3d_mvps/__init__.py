@@ -23,7 +23,12 @@ _EXPORTS = {
     "write_capture": "capture",
     "Refinement": "refinement",
     "read_refinement": "refinement",
-    "refine": "solver.driver",
+    "refine": "solving",
+    "solve": "solver.driver",
+    "SolverInput": "solver.problem_input",
+    "SolverOutput": "solver.solution",
+    "read_problem": "solver.problem_input",
+    "write_problem": "solver.problem_input",
     "refine_rgbd": "integration",
     "ReconstructOptions": "reconstruct",
     "RefineOptions": "solver.options",
@@ -38,12 +43,13 @@ _EXPORTS = {
     "OdometryError": "errors",
     "RecordingError": "errors",
     "ExportError": "errors",
+    "DeviceError": "errors",
 }
 
 #: Submodules reachable as attributes (``o3d_mvps.synthetic``) without an import of their own.
 _SUBMODULES = {"baselines", "capture", "cli", "colour", "datasets", "errors", "export", "fileio", "integration",
                "metrics", "model", "odometry", "realsense", "reconstruct", "refinement", "registration", "report", "solver",
-               "synthetic", "views", "viz"}
+               "solving", "synthetic", "views", "viz"}
 
 __all__ = list(_EXPORTS)
 

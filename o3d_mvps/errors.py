@@ -23,3 +23,7 @@ class RecordingError(MVPSError, RuntimeError):
 
 class ExportError(MVPSError, ValueError):
     """A mesh or print-ready solid cannot be built or fails its checks."""
+
+
+class DeviceError(MVPSError, RuntimeError):
+    """The device asked for cannot run the solver (no CuPy, no GPU, or no solver path for it)."""

@@ -13,14 +13,14 @@ from __future__ import annotations
 import numpy as np
 import open3d as o3d
 
-from .capture import Capture, default_depth_intrinsic, image_from_array, validate_capture
+from .capture import Capture, default_depth_intrinsic, image_from_array, to_host, validate_capture
 from .colour import srgb_to_linear
 from .errors import CaptureError
 from .model.camera import as_intrinsic_matrix
 from .model.resampling import resample_valid
 from .model.sensor import check_depth_unit, choose_scale_factor
-from .solver.driver import refine
 from .solver.options import RefineOptions
+from .solving import refine
 
 
 def refine_rgbd(
@@ -112,7 +112,9 @@ def refine_rgbd(
     refinement = refine(capture, options, initial_poses=initial_poses)
     reference = refinement.info["frames"][0]
     depth = np.ascontiguousarray(refinement.depth_array()[..., None], dtype=np.float32)
-    refined = o3d.t.geometry.RGBDImage(rgbd_images[reference].color, image_from_array(depth), True)
+    color = rgbd_images[reference].color
+    depth_image = image_from_array(depth).to(color.device)  # on the frames' device (e.g. CUDA:0); no copy on CPU
+    refined = o3d.t.geometry.RGBDImage(color, depth_image, True)
     return [refined], refinement.poses.numpy()
 
 
@@ -184,7 +186,7 @@ def _colour_intrinsic(intrinsic) -> np.ndarray:
         raise CaptureError("the colour camera intrinsics are missing: pass intrinsic= an "
                            "o3d.camera.PinholeCameraIntrinsic or a 3x3 matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]")
     try:
-        return as_intrinsic_matrix(intrinsic)
+        return as_intrinsic_matrix(to_host(intrinsic))
     except (ValueError, TypeError) as e:
         raise CaptureError(f"intrinsic: {e}") from None
 
@@ -201,8 +203,8 @@ def _check_intrinsic_size(intrinsic, colour_size) -> None:
 
 
 def _pixels(image) -> np.ndarray:
-    """(rows, cols[, C]) numpy copy of an o3d.t.geometry.Image on any device."""
-    return np.asarray(image.as_tensor().cpu().numpy())
+    """(rows, cols[, C]) numpy array of an o3d.t.geometry.Image on any device."""
+    return to_host(image.as_tensor())
 
 
 def _common_size(arrays, kind: str) -> tuple[int, int]:
@@ -258,7 +260,7 @@ def _masks(masks, n: int):
         if m is None:
             out.append(None)
             continue
-        a = (_pixels(m) if hasattr(m, "as_tensor") else np.asarray(m)) != 0
+        a = (_pixels(m) if hasattr(m, "as_tensor") else np.asarray(to_host(m))) != 0
         a = a.astype(np.uint8) * np.uint8(255)
         out.append(image_from_array(a[..., None] if a.ndim == 2 else a))  # shape checked by validate_capture
     return out

@@ -19,6 +19,7 @@ import numpy as np
 from .errors import CaptureError
 from .model.camera import backproject, project, transform
 from .model.normals import perspective_normals
+from .model.resampling import block_average
 from .model.warping import in_view
 
 logger = logging.getLogger(__name__)
@@ -147,12 +148,10 @@ def frames_seeing_reference(capture, poses: np.ndarray, *, min_covisibility: flo
     mask (the mask block-averaged onto the depth grid, kept where more than half covers it);
     ``options`` go to :func:`covisibility`.
     """
-    sf = capture.scale_factor
     depth = capture.depth_array(0).astype(np.float64)
     mask = capture.mask_array(0)
     if mask is not None:
-        h, w = depth.shape
-        mask = mask.reshape(h, sf, w, sf).mean(axis=(1, 3)) > 0.5
+        mask = block_average(mask, capture.scale_factor) > 0.5
     points, normals, areas = reference_surface(depth, capture.depth_K(), mask)
     depths = [capture.depth_array(i) for i in range(capture.n_frames)]
     fractions = covisibility(points, normals, areas, np.asarray(poses, dtype=np.float64), capture.depth_K(),

@@ -158,9 +158,3 @@ def test_submodules_after_a_plain_import():
                  "print(capture.n_frames, callable(o3d_mvps.realsense.read_recording))")
     assert run.returncode == 0, run.stderr
     assert run.stdout.split() == ["2", "True"]
-
-
-def test_model_and_solver_import_without_open3d():
-    run = python("import sys, o3d_mvps, o3d_mvps.model, o3d_mvps.solver\nprint('open3d' in sys.modules)")
-    assert run.returncode == 0, run.stderr
-    assert run.stdout.strip() == "False"

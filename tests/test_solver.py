@@ -9,7 +9,7 @@ import pytest
 from o3d_mvps import RefineOptions, read_refinement, refine, write_capture
 from o3d_mvps.capture import image_from_array
 from o3d_mvps.cli import main
-from o3d_mvps.errors import CaptureError
+from o3d_mvps.errors import CaptureError, DeviceError
 from o3d_mvps.metrics import evaluate
 from o3d_mvps.solver.problem import Estimate, LevelProblem
 from o3d_mvps.solver.pyramid import build_level
@@ -158,7 +158,7 @@ def test_save_and_read_round_trip(tmp_path, result):
 
 
 def test_bad_input_errors(capture):
-    with pytest.raises(ValueError, match="CPU"):
+    with pytest.raises(DeviceError, match="'CUDA:0'"):  # what is missing: tests/test_saved_problem.py
         refine(capture, RefineOptions(**FAST), device="CUDA:0")
     with pytest.raises(ValueError, match=r"initial_poses must be \(6, 4, 4\)"):
         refine(capture, RefineOptions(**FAST), initial_poses=np.eye(4))

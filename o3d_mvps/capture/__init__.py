@@ -31,12 +31,12 @@ from .layout import (
 )
 from .poses import read_capture_poses, read_poses, relative_to_reference
 from .reading import load_json, read_capture, read_intrinsic_json
-from .types import Capture, GroundTruth, default_depth_intrinsic, image_from_array
+from .types import Capture, GroundTruth, default_depth_intrinsic, image_from_array, to_host
 from .validation import integer_scale_factor, validate_capture
 from .writing import write_capture
 
 __all__ = [
-    "Capture", "GroundTruth", "default_depth_intrinsic", "image_from_array", "read_capture", "write_capture",
+    "Capture", "GroundTruth", "default_depth_intrinsic", "image_from_array", "to_host", "read_capture", "write_capture",
     "validate_capture", "integer_scale_factor", "read_capture_poses", "read_poses", "relative_to_reference",
     "load_json", "read_intrinsic_json", "CAPTURE_JSON", "COLOR_DIR", "DEPTH_DIR", "DEPTH_INTRINSIC_JSON",
     "DEPTH_RANGE_M", "GROUNDTRUTH_DIR", "INTRINSIC_JSON", "MASK_DIR",

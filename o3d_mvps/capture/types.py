@@ -78,25 +78,25 @@ class Capture:
     # --- numpy views (what the solver works on) ----------------------------------------
     def color_array(self, i: int) -> np.ndarray:
         """Frame i colour, (H, W, 3) float32 linear RGB."""
-        return np.asarray(self.color[i].as_tensor().numpy(), dtype=np.float32).reshape(*self.color_size, 3)
+        return np.asarray(to_host(self.color[i].as_tensor()), dtype=np.float32).reshape(*self.color_size, 3)
 
     def depth_array(self, i: int) -> np.ndarray:
         """Frame i depth, (h, w) float32 metres, 0 = missing."""
-        return np.asarray(self.depth[i].as_tensor().numpy(), dtype=np.float32).reshape(self.depth_size)
+        return np.asarray(to_host(self.depth[i].as_tensor()), dtype=np.float32).reshape(self.depth_size)
 
     def mask_array(self, i: int) -> np.ndarray | None:
         """Frame i object mask, (H, W) bool, or None when the frame has none."""
         if self.masks is None or self.masks[i] is None:
             return None
-        return np.asarray(self.masks[i].as_tensor().numpy()).reshape(self.color_size) > 0
+        return to_host(self.masks[i].as_tensor()).reshape(self.color_size) > 0
 
     def color_K(self) -> np.ndarray:
         """Colour intrinsics as a (3, 3) float64 numpy array."""
-        return as_intrinsic_matrix(self.color_intrinsic)
+        return as_intrinsic_matrix(to_host(self.color_intrinsic))
 
     def depth_K(self) -> np.ndarray:
         """Depth intrinsics as a (3, 3) float64 numpy array."""
-        return as_intrinsic_matrix(self.depth_intrinsic)
+        return as_intrinsic_matrix(to_host(self.depth_intrinsic))
 
     def select(self, frames) -> "Capture":
         """A capture of the listed frame indices; the first one becomes the reference.
@@ -109,6 +109,13 @@ class Capture:
         if gt is not None:
             gt = replace(gt, poses=gt.poses[frames]) if frames[0] == 0 else None
         return replace(self, color=pick(self.color), depth=pick(self.depth), masks=pick(self.masks), groundtruth=gt)
+
+
+def to_host(value):
+    """An o3d.core.Tensor on any device as a NumPy array in host memory (a CUDA tensor is copied;
+    a CPU one shared); any other value unchanged. The CPU solver needs host arrays; handing CUDA
+    tensors over without a copy (DLPack) belongs to a GPU solver path."""
+    return value.cpu().numpy() if isinstance(value, o3d.core.Tensor) else value
 
 
 def default_depth_intrinsic(color_K: np.ndarray, scale_factor: int) -> np.ndarray:

@@ -10,13 +10,12 @@ from ..datasets import DATA_DIR, MESHES
 from ..export import printable_solid, write_mesh, write_stl
 from ..fileio import atomic_folder
 from ..report import accuracy_rows, markdown_table
-from ..solver.driver import refine
 from ..solver.options import RefineOptions
+from ..solving import refine
 from ..synthetic import render_capture
 from ..viz import render_preview
 from .argtypes import image_size, positive_int
-from .outputs import add_overwrite_argument, check_folder
-from .refine import log_energy
+from .outputs import add_overwrite_argument, check_folder, log_energy
 
 DESCRIPTION = """\
 Render a synthetic LED-lit capture of a shipped mesh, refine it and report the accuracy

@@ -1,5 +1,5 @@
-"""The ``--overwrite`` option of the subcommands: outputs are checked before any work, and the
-refusal names the command-line flag."""
+"""The ``--overwrite`` option of the subcommands (outputs are checked before any work, and the
+refusal names the command-line flag) and the solver's log of what it did."""
 
 from __future__ import annotations
 
@@ -22,3 +22,15 @@ def check_folder(path, overwrite: bool, what: str):
 def check_files(paths, overwrite: bool) -> list:
     """The output paths; OutputExistsError (naming --overwrite) if one exists and not ``overwrite``."""
     return check_output_files(paths, overwrite, flag=OVERWRITE_FLAG)
+
+
+def log_energy(refinement, quiet: bool) -> None:
+    """Print the final energy of each level and the time per stage (of a Refinement or SolverOutput)."""
+    if quiet:
+        return
+    last = {}
+    for row in refinement.energy:
+        last[row["level"]] = row
+    for level, row in sorted(last.items(), reverse=True):
+        print(f"level {level}: {row['iteration']} sweeps, energy {row['energy']:.6g}")
+    print("time: " + ", ".join(f"{k} {v:.1f}s" for k, v in refinement.timings.items()))

@@ -9,11 +9,12 @@ from dataclasses import replace
 from ..capture import read_capture, read_capture_poses
 from ..capture.reading import MASK_SOURCES, mask_source
 from ..report import accuracy_rows, markdown_table
-from ..solver.driver import refine
+from ..solver.device import DEVICE_HELP, check_device
 from ..solver.lighting import LIGHT_MODELS
 from ..solver.options import RefineOptions
+from ..solving import refine
 from ..views import ViewSelection
-from .outputs import add_overwrite_argument, check_folder
+from .outputs import add_overwrite_argument, check_files, check_folder, log_energy
 
 DESCRIPTION = """\
 Refine a capture folder: depth at colour resolution, RGB albedo, per-frame lighting and
@@ -30,6 +31,8 @@ EXAMPLES = """examples:
   o3d-mvps refine capture/ paper/ --light-model sh            # the paper's SH lighting
   o3d-mvps refine capture/ refined/ --poses trajectory.log     # poses from Open3D's reconstruction system
   o3d-mvps refine capture/ refined/ --mask auto --depth-range 0.3 1.2  # object mask from depth
+  o3d-mvps refine capture/ refined/ --save-problem problem.npz  # also keep the solver's input
+  python -m o3d_mvps.solver problem.npz solution.npz           # solve it again (no Open3D needed)
 """
 
 
@@ -70,7 +73,7 @@ def register(subparsers) -> None:
                               formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("capture", help="capture folder (color/, depth/, intrinsic.json, ...)")
     p.add_argument("out", help="output folder for the refinement")
-    add_overwrite_argument(p, "output folder")
+    add_overwrite_argument(p, "output folder (or --save-problem file)")
     p.add_argument("--poses", default=None, metavar="FILE",
                    help="initial poses: Open3D trajectory .json or .log, TUM .txt, or (n, 4, 4) .npy (README "
                         "'Poses from other tools'; default: the capture folder's poses.* if any, else registration)")
@@ -80,6 +83,11 @@ def register(subparsers) -> None:
                    help="object masks: the capture's mask/ folder, automatic from depth (the connected region "
                         "nearest the image centre, table and wall planes cut), or none (default: mask/ when "
                         "present, else auto)")
+    p.add_argument("--device", default="cpu", help=DEVICE_HELP)
+    p.add_argument("--save-problem", default=None, metavar="FILE.npz",
+                   help="also write the solver's input (frames, depth, masks, intrinsics, registered poses, "
+                        "options) to this file once the capture is read, masked and registered; `python -m "
+                        "o3d_mvps.solver FILE.npz OUT.npz` solves it, without Open3D (bug reports, a GPU box)")
     p.add_argument("--depth-range", type=float, nargs=2, metavar=("NEAR", "FAR"), default=None,
                    help="metres; the automatic mask keeps only depths in this range (default: around the "
                         "depth at the image centre)")
@@ -87,20 +95,11 @@ def register(subparsers) -> None:
     p.set_defaults(handler=run)
 
 
-def log_energy(refinement, quiet: bool) -> None:
-    """Print the final energy of each level and the time per stage."""
-    if quiet:
-        return
-    last = {}
-    for row in refinement.energy:
-        last[row["level"]] = row
-    for level, row in sorted(last.items(), reverse=True):
-        print(f"level {level}: {row['iteration']} sweeps, energy {row['energy']:.6g}")
-    print("time: " + ", ".join(f"{k} {v:.1f}s" for k, v in refinement.timings.items()))
-
-
 def run(args) -> int:
     out = check_folder(args.out, args.overwrite, "refinement folder")
+    check_device(args.device)
+    if args.save_problem is not None:
+        check_files([args.save_problem], args.overwrite)
     capture = read_capture(args.capture, mask=args.mask, depth_range=args.depth_range)
     if not args.quiet:
         print(f"masks: {mask_source(args.capture, args.mask, args.depth_range)}")
@@ -108,7 +107,8 @@ def run(args) -> int:
     options = replace(options_from_args(args), strict_registration=args.strict)
     if given is not None and not args.quiet:
         print(f"poses: from {given[1]}")
-    refinement = refine(capture, options, initial_poses=None if given is None else given[0])
+    refinement = refine(capture, options, args.device, initial_poses=None if given is None else given[0],
+                        save_problem=args.save_problem, overwrite=args.overwrite)
     log_energy(refinement, args.quiet)
     views = refinement.info.get("views")
     if views and views["left_out"] and not args.quiet:

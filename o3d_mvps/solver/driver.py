@@ -1,4 +1,5 @@
-"""Coarse-to-fine driver: ``refine(capture) -> Refinement``.
+"""Coarse-to-fine driver: ``solve(SolverInput) -> SolverOutput`` (NumPy in, NumPy out; the
+Open3D-facing ``refine(capture) -> Refinement`` is :func:`o3d_mvps.solving.refine`).
 
 Per level, sweeps of poses -> depth -> albedo -> lighting (paper section 4) until the
 relative energy change falls below the tolerance or the sweep cap is reached. Where poses are
@@ -11,7 +12,6 @@ lighting at every level).
 from __future__ import annotations
 
 import time
-import warnings
 from collections import defaultdict
 
 import cv2
@@ -19,20 +19,20 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 from tqdm.auto import tqdm
 
-from ..capture import Capture
 from ..errors import CaptureError
 from ..model import se3
 from ..model.resampling import fill_nearest_valid, repeat_pixels, resize
-from ..refinement import Refinement
-from ..views import MIN_OTHER_FRAMES, frames_seeing_reference
 from .depth import update_depth
+from .device import check_device
 from .joint import update_pose_depth
 from .lighting import make_light_model, update_led_offset
 from .options import RefineOptions
 from .pose import update_poses
 from .problem import Estimate, LevelProblem
+from .problem_input import SolverInput
 from .pyramid import build_level, level_size
 from .reflectance import update_albedo, update_lighting
+from .solution import SolverOutput
 
 
 def normalised_tau(tau_tilde: float, n_frames: int, mean_intensity: float, n_hr: int, mean_z0: float, n_lr: int,
@@ -41,33 +41,11 @@ def normalised_tau(tau_tilde: float, n_frames: int, mean_intensity: float, n_hr:
     return tau_tilde * n_frames * mean_intensity**2 * n_hr * channels / (mean_z0**2 * max(n_lr, 1))
 
 
-def _check_device(device) -> None:
-    name = str(device).upper()
-    if not name.startswith("CPU"):
-        raise ValueError(f"device {device!r}: this version of o3d_mvps solves on the CPU only; pass device='CPU:0'")
-
-
-def _led_offset(options: RefineOptions, capture: Capture) -> np.ndarray:
-    """The LED offset (3,) metres to start from: the option, else the capture's metadata, else 0."""
-    offset = options.led_offset if options.led_offset is not None else capture.metadata.get("led_offset")
-    if offset is None:
-        if options.light_model == "led":
-            warnings.warn("no LED offset given: starting from an LED at the colour lens (0, 0, 0). Measure where "
-                          "the LED sits relative to the lens (within ~1 cm) and pass RefineOptions(led_offset=...) "
-                          "or --led-offset, or write metadata.led_offset into capture.json", stacklevel=4)
-        return np.zeros(3)
-    offset = np.asarray(offset, dtype=np.float64)
-    if offset.shape != (3,) or not np.isfinite(offset).all() or np.abs(offset).max() > 1.0:
-        raise CaptureError(f"led_offset {offset.tolist()} must be (x, y, z) in metres within 1 m of the camera; "
-                           "fix 'led_offset' in capture.json's metadata or pass RefineOptions(led_offset=...)")
-    return offset
-
-
-def _reference_mask(capture: Capture) -> np.ndarray:
-    mask = capture.mask_array(0)
-    z0 = capture.depth_array(0)
+def _reference_mask(problem_input: SolverInput) -> np.ndarray:
+    """(H, W) bool: frame 0's mask, else its valid depth pixels."""
+    mask = problem_input.masks[0]
     if mask is None:
-        mask = repeat_pixels(z0 > 0, capture.scale_factor)
+        mask = repeat_pixels(problem_input.depths[0] > 0, problem_input.scale_factor)
     if not mask.any():
         raise CaptureError("the reference mask is empty (no object pixel in frame 0); give a mask that covers the object")
     return mask
@@ -170,64 +148,37 @@ def _extrapolate(problem: LevelProblem, est: Estimate, ev, before: Estimate, fac
     return best[1]
 
 
-def refine(capture: Capture, options: RefineOptions | None = None, device="CPU:0", initial_poses=None) -> Refinement:
-    """Jointly estimate depth (colour resolution), albedo, lighting and poses from a capture.
+def solve(problem_input: SolverInput, options: RefineOptions | None = None, device="cpu") -> SolverOutput:
+    """Jointly estimate depth (colour resolution), albedo, lighting and poses of ``problem_input``.
 
-    capture: frame 0 is the reference; ``initial_poses`` (n, 4, 4) reference -> frame i
-    (default: the registration chain of :func:`o3d_mvps.odometry.register_frames`, which drops
-    a frame it cannot place, with a warning, unless ``options.strict_registration``). Of more
-    than three frames, those that see too little of the reference's surface are left out
-    (:func:`o3d_mvps.views.frames_seeing_reference`). Returns a :class:`~o3d_mvps.Refinement`;
-    ``info["frames"]`` lists the capture's frames it used, ``info["views"]`` each frame's
-    covisibility and why a frame was left out.
+    options: None solves with ``problem_input.options``. device: "cpu" ("CPU:0"); a CUDA device
+    raises :class:`~o3d_mvps.errors.DeviceError` saying what is missing
+    (:func:`.device.check_device`).
     """
+    options = problem_input.options if options is None else options
+    check_device(device)
     # The solver's BLAS calls are vector dots/norms (CG, AMG) and thin products: on a loaded
     # 2-core machine OpenBLAS's threads made each 60k-vector norm take ~5 ms instead of 30 us
     # (~20 % of a 640x480 refinement); one thread loses nothing on an idle machine.
     with threadpool_limits(1, user_api="blas"):
-        return _refine(capture, options, device, initial_poses)
+        return _solve(problem_input, options)
 
 
-def _refine(capture: Capture, options: RefineOptions | None, device, initial_poses) -> Refinement:
-    options = options or RefineOptions()
-    _check_device(device)
-    frames = options.frame_indices(capture.n_frames)
-    if initial_poses is not None:
-        initial_poses = np.asarray(initial_poses, dtype=np.float64)
-        if initial_poses.shape != (capture.n_frames, 4, 4):
-            raise ValueError(f"initial_poses must be ({capture.n_frames}, 4, 4), got {initial_poses.shape}")
-        initial_poses = se3.relative_to_reference(initial_poses[frames])  # onto the first frame used
-    capture = capture.select(frames)
+def _solve(problem_input: SolverInput, options: RefineOptions) -> SolverOutput:
     timings = defaultdict(float)
-
     t0 = time.perf_counter()
-    if initial_poses is None:
-        if capture.n_frames > 1:
-            from ..odometry import register_frames
-
-            registration = register_frames(capture, strict=options.strict_registration, progress=options.progress)
-            capture, initial_poses = capture.select(registration.frames), registration.poses
-            frames = [frames[k] for k in registration.frames]
-        else:
-            initial_poses = np.eye(4)[None]
-    timings["odometry"] += time.perf_counter() - t0
-    views = None
-    if capture.n_frames > MIN_OTHER_FRAMES + 1:  # e.g. a ring: keep the frames that see the reference's surface
-        views = frames_seeing_reference(capture, initial_poses, frame_ids=frames)
-        keep = [frames.index(i) for i in views.frames]
-        capture, initial_poses, frames = capture.select(keep), initial_poses[keep], views.frames
-
-    K = capture.color_K()
-    size = capture.color_size
-    colors = [capture.color_array(i).astype(np.float32) for i in range(capture.n_frames)]
-    masks = [capture.mask_array(i) for i in range(capture.n_frames)]
-    ref_mask = _reference_mask(capture)
-    z0 = capture.depth_array(0).astype(np.float64)
+    K = problem_input.K
+    size = problem_input.color_size
+    colors = problem_input.colors
+    masks = problem_input.masks
+    ref_mask = _reference_mask(problem_input)
+    z0 = problem_input.depths[0].astype(np.float64)
     if not (z0 > 0).any():
         raise CaptureError("the reference depth has no valid pixel; check the depth image of frame 0")
-    sensor_depths = [capture.depth_array(i) for i in range(capture.n_frames)]
-    depth_K = capture.depth_K()
-    sf = capture.scale_factor
+    sensor_depths = problem_input.depths
+    depth_K = problem_input.depth_K
+    sf = problem_input.scale_factor
+    n_frames = problem_input.n_frames
     mean_z0 = float(z0[z0 > 0].mean())
     mean_I = float(colors[0][ref_mask].mean())
 
@@ -235,10 +186,10 @@ def _refine(capture: Capture, options: RefineOptions | None, device, initial_pos
     while n_levels > 1 and min(level_size(size, n_levels - 1)) < 8:
         n_levels -= 1
     light = make_light_model(options.light_model, initial_sh=options.initial_light,
-                             led_offset=_led_offset(options, capture))
-    lights = light.initial_lights(capture.n_frames, mean_z0)
+                             led_offset=problem_input.led_offset)
+    lights = light.initial_lights(n_frames, mean_z0)
     led_offset = light.offset.copy() if light.name == "led" else None  # an unknown, carried in the Estimate
-    poses = initial_poses.copy()
+    poses = problem_input.initial_poses.copy()
     z_full = albedo_full = None
     history = []
     stats = {"cg_iterations": [], "levels": n_levels}
@@ -259,7 +210,7 @@ def _refine(capture: Capture, options: RefineOptions | None, device, initial_pos
             albedo_full = resize(albedo_full, level.size, interpolation=cv2.INTER_LINEAR)
         est = Estimate(level.prior.clip(g.gather(z_full).astype(np.float64)), g.gather(albedo_full).astype(np.float64),
                        lights, poses, led_offset)
-        tau = normalised_tau(options.tau, capture.n_frames, mean_I, g.size, mean_z0, level.prior.rows)
+        tau = normalised_tau(options.tau, n_frames, mean_I, g.size, mean_z0, level.prior.rows)
         problem = LevelProblem(level, tau, options.cauchy_lambda, light)
         problem.update_visibility(est, occlusion_test=options.occlusion_test, rel_tol=options.occlusion_tolerance,
                                   sensor_depths=sensor_depths, depth_K=depth_K)
@@ -279,9 +230,18 @@ def _refine(capture: Capture, options: RefineOptions | None, device, initial_pos
     depth = np.where(ref_mask, z_full, 0.0)
     albedo = np.clip(np.where(ref_mask[..., None], albedo_full, 0.0), 0.0, None)
     timings["total"] = time.perf_counter() - t0
-    return Refinement.from_arrays(
-        depth, ref_mask, K, albedo=albedo, poses=poses, lighting=lights, method="ours",
-        energy=history, timings=dict(timings),
-        info={"frames": frames, **({"views": views.to_dict()} if views else {}), "options": options.to_dict(),
+    return SolverOutput(
+        depth, ref_mask, albedo, K, lighting=lights, poses=poses, energy=history, timings=dict(timings),
+        info={"frames": problem_input.frames, "options": options.to_dict(),
               "light_model": (light if led_offset is None else light.at(led_offset)).describe(), **stats},
     )
+
+
+def __getattr__(name: str):
+    """``from o3d_mvps.solver.driver import refine`` (its home before the Open3D side moved out)
+    still works, importing Open3D only then."""
+    if name == "refine":
+        from ..solving import refine
+
+        return refine
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

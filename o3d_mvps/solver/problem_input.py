@@ -1,0 +1,140 @@
+"""SolverInput: the arrays the solver works on, and its saved-problem file (.npz).
+
+A capture, once read, masked and registered (the Open3D side, :mod:`o3d_mvps.solving`), becomes
+plain NumPy arrays; :func:`o3d_mvps.solver.driver.solve` needs nothing else. A saved problem
+holds them in one .npz (the options as JSON), so a problem can be solved where Open3D is not
+installed (``python -m o3d_mvps.solver``) or attached to a bug report.
+"""
+
+from __future__ import annotations
+
+import json
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import MVPSError
+from ..fileio import atomic_files, json_text
+from .options import RefineOptions
+
+#: What a saved problem calls itself, and the newest format version this code reads and writes.
+PROBLEM_FORMAT, PROBLEM_VERSION = "o3d_mvps.solver_input", 1
+SAVE_HOW = "o3d-mvps refine CAPTURE OUT --save-problem FILE.npz"
+
+
+@dataclass
+class SolverInput:
+    """n frames of one object (frame 0 the reference) as the solver reads them.
+
+    colors: (n, H, W, 3) float32 linear RGB in [0, 1]. depths: (n, h, w) float32 metres at the
+    depth sensor's resolution (h = H / scale_factor), 0 = no measurement. masks: n entries, each
+    None or an (H, W) bool object mask. K, depth_K: (3, 3) float64 colour and depth intrinsics
+    (pixels). scale_factor: integer H / h. initial_poses: (n, 4, 4) float64 reference -> frame i,
+    initial_poses[0] the identity. led_offset: (3,) float64 metres, the LED position in the colour
+    camera's frame to start from. frames: the capture's indices of the n frames (reported back).
+    options: the refinement options (``options.frames`` was applied when the frames were picked).
+    """
+
+    colors: np.ndarray
+    depths: np.ndarray
+    masks: list
+    K: np.ndarray
+    depth_K: np.ndarray
+    scale_factor: int
+    initial_poses: np.ndarray
+    led_offset: np.ndarray
+    frames: list
+    options: RefineOptions
+
+    def __post_init__(self):
+        self.colors = np.ascontiguousarray(self.colors, dtype=np.float32)
+        self.depths = np.ascontiguousarray(self.depths, dtype=np.float32)
+        self.K, self.depth_K = (np.asarray(a, dtype=np.float64) for a in (self.K, self.depth_K))
+        self.initial_poses = np.asarray(self.initial_poses, dtype=np.float64)
+        self.led_offset = np.asarray(self.led_offset, dtype=np.float64)
+        self.scale_factor, self.frames = int(self.scale_factor), [int(i) for i in self.frames]
+        self.masks = [None if m is None else np.asarray(m, dtype=bool) for m in self.masks]
+        n = len(self.colors)
+        H, W = self.colors.shape[1:3] if self.colors.ndim == 4 else (0, 0)
+        sf = max(self.scale_factor, 1)
+        expected = {"colors": (n, H, W, 3), "depths": (n, H // sf, W // sf), "K": (3, 3), "depth_K": (3, 3),
+                    "initial_poses": (n, 4, 4), "led_offset": (3,)}
+        wrong = [f"{name} has shape {getattr(self, name).shape}, not {shape}" for name, shape in expected.items()
+                 if getattr(self, name).shape != shape]
+        wrong += [f"masks[{i}] has shape {m.shape}, not {(H, W)}" for i, m in enumerate(self.masks)
+                  if m is not None and m.shape != (H, W)]
+        wrong += [f"{name} has {len(getattr(self, name))} entries for {n} frames" for name in ("masks", "frames")
+                  if len(getattr(self, name)) != n]
+        if n < 1 or self.scale_factor < 1 or H % sf or W % sf:
+            wrong.insert(0, f"{n} frames of {W}x{H} colour, scale factor {self.scale_factor} (need n >= 1 and "
+                            "H, W multiples of the scale factor)")
+        if wrong:
+            raise ValueError("inconsistent solver input: " + "; ".join(wrong))
+        if not isinstance(self.options, RefineOptions):
+            raise ValueError(f"options must be a RefineOptions, got {type(self.options).__name__}")
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.colors)
+
+    @property
+    def color_size(self) -> tuple[int, int]:
+        """(H, W) of the colour frames."""
+        return self.colors.shape[1:3]
+
+
+#: SolverInput fields stored as one array each under their own name.
+_ARRAYS = ("colors", "depths", "K", "depth_K", "scale_factor", "initial_poses", "led_offset", "frames")
+
+
+def write_problem(problem: SolverInput, path, *, overwrite: bool = False) -> Path:
+    """Write ``problem`` to the .npz ``path`` (compressed; refuses an existing file unless ``overwrite``).
+
+    Keys: format, format_version, the arrays of :class:`SolverInput` under their names, masks
+    (n, H, W) bool with has_mask (n,) bool (False: the frame had no mask), options (JSON).
+    """
+    path = Path(path)
+    H, W = problem.color_size
+    arrays = {name: np.asarray(getattr(problem, name)) for name in _ARRAYS}
+    arrays["masks"] = np.stack([np.zeros((H, W), bool) if m is None else m for m in problem.masks])
+    arrays["has_mask"] = np.array([m is not None for m in problem.masks])
+    arrays["options"] = np.array(json_text(problem.options.to_dict(), "the options"))
+    with atomic_files([path], overwrite) as (tmp,), open(tmp, "wb") as file:
+        np.savez_compressed(file, format=np.array(PROBLEM_FORMAT), format_version=np.array(PROBLEM_VERSION), **arrays)
+    return path
+
+
+def read_problem(path) -> SolverInput:
+    """The :class:`SolverInput` of a file :func:`write_problem` wrote; MVPSError naming the file
+    and the fix when it is missing, not a saved problem, from a newer version, or corrupt."""
+    path = Path(path)
+    if not path.is_file():
+        raise MVPSError(f"{path}: no such file; give the .npz that `{SAVE_HOW}` wrote")
+    remake = f"the file is damaged: write it again with `{SAVE_HOW}`"
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            data = {key: npz[key] for key in npz.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
+        raise MVPSError(f"{path} is not a saved o3d_mvps problem (cannot read it as .npz: {e}); give the .npz "
+                        f"that `{SAVE_HOW}` wrote") from None
+    if str(data.get("format", "")) != PROBLEM_FORMAT:
+        raise MVPSError(f"{path} is an .npz but not a saved o3d_mvps problem (no format '{PROBLEM_FORMAT}'); give "
+                        f"the .npz that `{SAVE_HOW}` wrote")
+    try:
+        version = int(data["format_version"])
+    except (KeyError, TypeError, ValueError):
+        raise MVPSError(f"{path} has no readable format_version; {remake}") from None
+    if version > PROBLEM_VERSION:
+        raise MVPSError(f"{path} is a saved problem of format version {version}, newer than this o3d_mvps reads "
+                        f"({PROBLEM_VERSION}); upgrade o3d_mvps (pip install -U o3d-mvps) where you solve it")
+    try:
+        masks = [m if has else None for m, has in zip(data["masks"], data["has_mask"])]
+        options = RefineOptions.from_dict(json.loads(str(data["options"])))
+        return SolverInput(**{name: data[name] for name in _ARRAYS}, masks=list(masks), options=options)
+    except KeyError as e:
+        raise MVPSError(f"{path} lacks the array {e}; {remake}") from None
+    except (TypeError, ValueError) as e:
+        raise MVPSError(f"{path}: {e}; {remake}") from None
+
