@@ -100,7 +100,7 @@ def run_view(job: ViewJob, options, depth_source: str = "refined") -> ViewResult
     t0 = time.perf_counter()
     capture = capture_from_arrays(job.arrays)
     if depth_source == "refined":
-        from ..solver.driver import refine
+        from ..solving import refine
 
         result = refine(capture, options, initial_poses=job.poses)
         albedo = result.albedo_array()
