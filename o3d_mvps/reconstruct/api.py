@@ -46,7 +46,7 @@ class ReconstructOptions:
     """
 
     references: int = 8
-    frames_per_reference: int = 4
+    frames_per_reference: int = 8
     min_covisibility: float = MIN_COVISIBILITY
     depth: str = "refined"
     voxel_mm: float = 1.5
