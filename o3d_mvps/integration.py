@@ -39,8 +39,8 @@ def refine_rgbd(
     reference view only, using the other frames (lit differently by the LED) as photometric
     constraints, and refines every frame's pose. So the result is **one** RGB-D image, the
     refined reference, in a list (the list form lets a loop over several references
-    concatenate results). To refine other views, call again with that frame first (see
-    ``pipelines/reconstruct_tsdf.py``).
+    concatenate results). To refine other views, call again with that frame first, or
+    reconstruct the whole object with :func:`o3d_mvps.reconstruct`.
 
     Parameters
     ----------

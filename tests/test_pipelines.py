@@ -1,4 +1,4 @@
-"""pipelines/*.py: every script's --help, and refine_capture / print_scan end to end on a tiny capture."""
+"""pipelines/*.py: every script's --help, and refine_capture / print_scan / reconstruct_object end to end on tiny captures."""
 
 import subprocess
 import sys
@@ -10,7 +10,7 @@ from o3d_mvps import read_refinement, write_capture
 from o3d_mvps.synthetic import render_capture
 
 PIPELINES = Path(__file__).resolve().parents[1] / "pipelines"
-SCRIPTS = ["refine_capture.py", "print_scan.py", "record_and_refine.py", "reconstruct_tsdf.py"]
+SCRIPTS = ["refine_capture.py", "print_scan.py", "record_and_refine.py", "reconstruct_object.py"]
 TINY_SOLVER = ["--levels", "3", "--iterations", "2", "--quiet"]
 
 
@@ -61,6 +61,26 @@ def test_print_scan(capture_dir, tmp_path):
     assert max(extent) == pytest.approx(60.0, rel=1e-3)
     usage = run_script("print_scan.py", capture_dir, tmp_path / "scan.obj")
     assert usage.returncode == 2 and "*.stl" in usage.stderr
+
+
+def test_reconstruct_object(tmp_path):
+    import numpy as np
+    import trimesh
+
+    from benchmarks.ring import render_ring
+
+    ring, _ = render_ring("bunny", frames=8, size=(96, 72))
+    write_capture(ring, tmp_path / "ring")
+    np.save(tmp_path / "ring" / "poses.npy", ring.groundtruth.poses)
+    done = run_script("reconstruct_object.py", tmp_path / "ring", tmp_path / "object", "--references", "3",
+                      "--depth", "raw", "--print-mm", "50", "--quiet")
+    assert done.returncode == 0, done.stderr
+    assert sorted(p.name for p in (tmp_path / "object").iterdir()) == ["mesh.mtl", "mesh.obj", "mesh_albedo.png",
+                                                                        "print.stl"]
+    mesh = trimesh.load(tmp_path / "object" / "mesh.obj", force="mesh")
+    assert len(mesh.faces) > 500 and np.asarray(mesh.visual.material.image).shape[:2] == (1024, 1024)
+    solid = trimesh.load(tmp_path / "object" / "print.stl")
+    assert solid.is_volume and max(solid.extents) == pytest.approx(50.0, rel=1e-4)
 
 
 def test_failures_exit_1_with_the_message(tmp_path, monkeypatch, capsys):

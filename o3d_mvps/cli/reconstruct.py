@@ -18,8 +18,9 @@ from .refine import add_solver_arguments, options_from_args
 DESCRIPTION = """\
 Reconstruct a whole object from a capture that goes around it: K reference views spread round
 the ring are each refined with the frames that see them (in parallel, as Dask tasks), their
-refined depths fused into one mesh, cleaned and coloured from the refined albedos. Writes OUT/
-mesh.ply, mesh.glb (vertex colours), mesh.obj and report.json; --print MM adds print.stl, a
+refined depths fused into one mesh, cleaned and textured from the refined albedos (one UV
+atlas). Writes OUT/mesh.obj (+ mesh.mtl, mesh_albedo.png), mesh.glb (texture embedded),
+mesh.ply (vertex colours) and report.json; --print MM adds print.stl, a
 closed solid MM millimetres across. A capture that does not go all round gives a mesh of what
 was seen (with a warning), and --print closes its back flat.
 """
@@ -50,6 +51,8 @@ def register(subparsers) -> None:
     p.add_argument("--depth", choices=("refined", "raw"), default="refined",
                    help="fuse refined depth, or the sensor's depth bicubic-upsampled (for comparison)")
     p.add_argument("--voxel-mm", type=float, default=d.voxel_mm, help=f"fusion voxel (default {d.voxel_mm} mm)")
+    p.add_argument("--texture-px", type=int, default=d.texture_px,
+                   help=f"edge of the square albedo texture, 0 for vertex colours only (default {d.texture_px})")
     p.add_argument("--print", dest="print_mm", type=float, default=None, metavar="MM",
                    help="also write print.stl, a closed solid MM millimetres across")
     p.add_argument("--workers", type=int, default=None, help="local worker processes (default: CPU count)")
@@ -64,7 +67,8 @@ def run(args) -> int:
     capture = read_capture(args.capture, mask=args.mask)
     given = read_capture_poses(args.capture, args.poses)
     options = ReconstructOptions(references=args.references, frames_per_reference=args.frames_per_reference,
-                                 depth=args.depth, voxel_mm=args.voxel_mm, workers=args.workers,
+                                 depth=args.depth, voxel_mm=args.voxel_mm, texture_px=args.texture_px,
+                                 workers=args.workers,
                                  refine=replace(options_from_args(args), progress=False), progress=not args.quiet)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")

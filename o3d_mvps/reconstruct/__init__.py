@@ -1,6 +1,6 @@
 """Whole objects: refine reference views all round a capture in parallel and fuse one mesh.
 
-:func:`reconstruct` (``o3d-mvps reconstruct``) returns a :class:`Reconstruction`: a coloured
+:func:`reconstruct` (``o3d-mvps reconstruct``) returns a :class:`Reconstruction`: a textured
 mesh in the capture's frame-0 camera (metres) and, via ``printable_solid``, a closed solid in
 millimetres. The package itself is callable, so ``o3d_mvps.reconstruct(capture, options)``
 calls :func:`reconstruct`.

@@ -4,8 +4,9 @@ Steps: poses (given, else the registration chain); ``references`` reference view
 spread-out viewing directions; for each, the frames that see its surface
 (:func:`o3d_mvps.views.frames_seeing_reference`) and a refinement with the poses re-based onto
 it, as Dask tasks (:mod:`.parallel`); the refined depths fused with per-pixel weights
-(:mod:`.fusion`); the mesh's largest piece kept, small holes closed, vertices coloured from
-the refined albedos (:mod:`.surface`). :meth:`Reconstruction.printable_solid` closes it for
+(:mod:`.fusion`); the mesh's largest piece kept, small holes closed (:mod:`.surface`), vertices
+coloured from the refined albedos (:mod:`.colour`) and one UV atlas texture baked from them
+(:mod:`.texture`). :meth:`Reconstruction.printable_solid` closes it for
 printing (:mod:`.solid`). World frame: the capture's frame-0 camera, metres.
 """
 
@@ -24,7 +25,9 @@ from ..views import MIN_COVISIBILITY
 from .fusion import GRAZING_EXPONENT, TSDFVolume, pixel_weights
 from .references import FULL_TURN_DEG, azimuth_span_deg, choose_references, up_direction
 from .solid import closed_solid
-from .surface import clean_mesh, colour_vertices
+from .colour import ViewColours
+from .surface import clean_mesh
+from .texture import texture_mesh
 from .views import DEPTH_SOURCES, plan_view, run_view
 
 
@@ -37,18 +40,20 @@ class ReconstructOptions:
     fraction of a reference's surface a frame must see. depth: "refined" or "raw" (the sensor
     depth bicubic-upsampled, for comparison). voxel_mm: TSDF voxel edge. edge_px: width of the
     silhouette ramp of the fusion weights. weight_threshold: least accumulated weight of a
-    fused surface voxel. hole_mm: largest hole closed in the mesh. refine: the solver's
+    fused surface voxel. hole_mm: largest hole closed in the mesh. texture_px: edge of the
+    square albedo texture (0: vertex colours only). refine: the solver's
     options. workers: local Dask worker processes (default: the CPU count). progress: bars.
     """
 
     references: int = 8
-    frames_per_reference: int = 4
+    frames_per_reference: int = 8
     min_covisibility: float = MIN_COVISIBILITY
     depth: str = "refined"
     voxel_mm: float = 1.5
     edge_px: float = 3.0
     weight_threshold: float = 0.5
     hole_mm: float = 15.0
+    texture_px: int = 1024
     refine: RefineOptions = field(default_factory=lambda: RefineOptions(progress=False))
     workers: int | None = None
     progress: bool = True
@@ -64,14 +69,17 @@ class ReconstructOptions:
             raise ValueError(f"references={self.references!r} must be an integer >= 1")
         if not (isinstance(self.frames_per_reference, int) and self.frames_per_reference >= 2):
             raise ValueError(f"frames_per_reference={self.frames_per_reference!r} must be an integer >= 2")
+        if not (isinstance(self.texture_px, int) and self.texture_px >= 0):
+            raise ValueError(f"texture_px={self.texture_px!r} must be an integer >= 0 (0: no texture)")
 
 
 @dataclass
 class Reconstruction:
     """The fused mesh and how it was made.
 
-    mesh: o3d.t TriangleMesh, metres in the capture's frame-0 camera, vertex normals and
-    sRGB vertex colours. views: the reference views fused (:class:`~.views.ViewResult`).
+    mesh: o3d.t TriangleMesh, metres in the capture's frame-0 camera, vertex normals, sRGB
+    vertex colours and (unless ``texture_px=0`` or the atlas failed) ``triangle.texture_uvs``
+    with an sRGB albedo texture in its material. views: the reference views fused (:class:`~.views.ViewResult`).
     failed: {reference: error} of views that failed. goes_around: whether the frames cover
     the object all round (else the back is missing). azimuth_span_deg: degrees covered.
     up: (3,) the capture's up axis. info: settings, selections, timings (JSON-ready).
@@ -158,12 +166,16 @@ def reconstruct(capture, options: ReconstructOptions | None = None, *, poses=Non
     mesh = clean_mesh(fused, options.hole_mm / 1000)
     positions = mesh.vertex.positions.numpy().astype(np.float64)
     normals = mesh.vertex.normals.numpy().astype(np.float64)
-    mesh.vertex.colors = o3d.core.Tensor(colour_vertices(positions, normals, views, options.edge_px).astype(np.float32))
+    colouring = ViewColours(views, options.edge_px, positions, normals)
+    mesh.vertex.colors = o3d.core.Tensor(colouring.vertex_colours(positions, normals).astype(np.float32))
+    t_fusion = time.perf_counter()
+    textured = options.texture_px > 0 and texture_mesh(mesh, colouring, options.texture_px)
     info = {"references": references, "failed": {str(k): e for k, e in failed.items()},
             "views": [{"reference": v.reference, "seconds": round(v.seconds, 3), **v.selection} for v in views],
             "azimuth_span_deg": round(span, 1), "goes_around": goes_around, "depth": options.depth,
-            "voxel_mm": options.voxel_mm, "vertices": len(positions), "triangles": int(len(mesh.triangle.indices)),
-            "timings": {"plan": t_plan - t0, "views": t_views - t_plan, "fusion": time.perf_counter() - t_views}}
+            "voxel_mm": options.voxel_mm, "vertices": len(positions), "triangles": int(len(mesh.triangle.indices)), "textured": bool(textured),
+            "timings": {"plan": t_plan - t0, "views": t_views - t_plan, "fusion": t_fusion - t_views,
+                        "texture": time.perf_counter() - t_fusion}}
     return Reconstruction(mesh, views, failed, goes_around, span, up_direction(poses), options.voxel_mm / 1000, info)
 
 

@@ -17,6 +17,9 @@ import scipy.ndimage as ndi
 from ..export import check_solid, solid_volume
 from ..model.camera import project, transform
 
+#: Least distance of the smoothed occupancy from the contoured level at any grid point.
+LEVEL_CLEARANCE = 1e-3
+
 
 def carve(views: list, lower: np.ndarray, upper: np.ndarray, voxel: float, margin: float) -> tuple[np.ndarray, np.ndarray]:
     """Occupancy (nx, ny, nz) float32 in {0, 1} of voxels over the box [lower, upper] (world, metres)
@@ -42,7 +45,11 @@ def contour(occupancy: np.ndarray, origin: np.ndarray, voxel: float) -> tuple[np
     import pyvista as pv
 
     field = np.pad(ndi.gaussian_filter(occupancy, 1.0), 1)  # an empty layer all round closes the surface
-    field[np.abs(field - 0.5) < 1e-6] = 0.5 + 1e-6  # no grid point exactly on the level
+    # no grid point on or within LEVEL_CLEARANCE of the level: a crossing that near a grid point
+    # puts the vertices of that point's edges within float32 rounding of one another, and a
+    # slicer that merges equal STL vertices would then see a non-manifold surface
+    near = np.abs(field - 0.5) < LEVEL_CLEARANCE
+    field[near] = np.where(field[near] < 0.5, 0.5 - LEVEL_CLEARANCE, 0.5 + LEVEL_CLEARANCE)
     grid = pv.ImageData(dimensions=field.shape, spacing=(voxel,) * 3, origin=tuple(origin - voxel))
     grid.point_data["occupancy"] = field.ravel(order="F")
     surface = grid.contour([0.5], scalars="occupancy").triangulate().clean()
