@@ -78,3 +78,24 @@ def test_refine_on_a_ring_uses_the_frames_that_see_the_reference():
     views = refinement.info["views"]
     assert views["frames"] == [0, 1, 2, 10, 11] and set(map(int, views["left_out"])) == {3, 4, 5, 6, 7, 8, 9}
     assert views["covisibility"]["6"] == 0
+
+
+def test_fine_quantised_depth_does_not_hide_the_surface():
+    """A sphere cap 0.6 m away in a 2000 px wide depth map with 1 mm steps (a sensor's): frames
+    20 degrees around still see nearly all of it (finite differences at full resolution follow
+    the steps: without the coarse surface grid the 20-degree frames saw 72 %, with it 94 %)."""
+    H, W, f = 1500, 2000, 1700.0
+    K_fine = np.array([[f, 0, (W - 1) / 2], [0, f, (H - 1) / 2], [0, 0, 1]])
+    v, u = np.mgrid[0:H, 0:W]
+    x, y = (u - K_fine[0, 2]) / f, (v - K_fine[1, 2]) / f
+    # ray (x, y, 1) t hits the sphere of radius 0.1 m centred 0.7 m ahead where t is the nearer root
+    b, c = 0.7, 0.7**2 - 0.1**2
+    a = 1 + x**2 + y**2
+    disc = b**2 - a * c
+    mask = disc > 0.002 * b**2  # away from the grazing rim
+    depth = np.where(mask, np.round((b - np.sqrt(np.where(mask, disc, 0))) / a * 1000) / 1000, 0.0)
+    points, normals, areas = reference_surface(depth, K_fine, mask)
+    assert len(points) > 300
+    poses = np.stack([np.eye(4), orbit(20, 0.7), orbit(-20, 0.7)])
+    seen = covisibility(points, normals, areas, poses, K_fine, (H, W))
+    assert min(seen[1:]) > 0.9
