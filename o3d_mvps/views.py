@@ -44,7 +44,7 @@ def reference_surface(depth: np.ndarray, K: np.ndarray, mask: np.ndarray | None 
     """Points (m, 3) metres, unit normals (m, 3) toward the camera and areas (m,) m^2 of a depth map.
 
     depth: (h, w) metres, 0 = missing; K: (3, 3) intrinsics of that grid; mask: (h, w) bool or
-    None. A map wider than ``max_width`` is first area-averaged (over fully valid blocks) onto a
+    None. A map wider than ``max_width`` is first area-averaged (over blocks at least half valid) onto a
     grid at most that wide.
     """
     valid = depth > 0 if mask is None else (depth > 0) & mask
@@ -52,7 +52,7 @@ def reference_surface(depth: np.ndarray, K: np.ndarray, mask: np.ndarray | None 
     if k > 1:
         h, w = depth.shape
         size = (h // k, w // k)
-        depth, valid = resample_valid(depth, valid, size, min_valid_fraction=1.0)
+        depth, valid = resample_valid(depth, valid, size, min_valid_fraction=0.5)
         K = scale_intrinsics(K, size[1] / w, size[0] / h)
     normals, area = perspective_normals(depth, K, valid)
     keep = valid & (area > 0)
