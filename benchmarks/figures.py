@@ -43,7 +43,7 @@ def add_arguments(parser) -> None:
 def reconstruct_picture(mesh: str, path: Path, quick: bool) -> None:
     """The textured mesh reconstructed from a rendered ring of ``mesh`` beside its print solid
     (both turned up and seen obliquely from above), as one PNG."""
-    from .ring import render_ring
+    from o3d_mvps.synthetic import render_ring
 
     frames, size, references = (12, (160, 120), 4) if quick else (16, (320, 240), 8)
     capture, _ = render_ring(mesh, frames=frames, size=size)

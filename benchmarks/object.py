@@ -1,6 +1,6 @@
 """Whole-object reconstruction on rendered 360-degree rings: raw against refined fusion.
 
-For each shipped mesh: a ring of LED-lit frames (:mod:`benchmarks.ring`), reconstructed with
+For each shipped mesh: a ring of LED-lit frames (:func:`o3d_mvps.synthetic.render_ring`), reconstructed with
 the known poses from the sensor depth (bicubic, ``depth="raw"``) and from refined depth, each
 scored against the true mesh: accuracy (mean distance of mesh vertices to the true surface),
 completeness (mean distance of true surface points to the mesh), Chamfer = their mean (mm),
@@ -24,7 +24,7 @@ from o3d_mvps.datasets import load_mesh
 from o3d_mvps.fileio import json_text
 from o3d_mvps.reconstruct import ReconstructOptions, reconstruct
 
-from .ring import render_ring
+from o3d_mvps.synthetic import render_ring
 
 MESHES = ("bunny", "armadillo")
 WORKERS = (1, 2, 4)

@@ -67,7 +67,7 @@ def test_reconstruct_object(tmp_path):
     import numpy as np
     import trimesh
 
-    from benchmarks.ring import render_ring
+    from o3d_mvps.synthetic import render_ring
 
     ring, _ = render_ring("bunny", frames=8, size=(96, 72))
     write_capture(ring, tmp_path / "ring")

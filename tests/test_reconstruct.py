@@ -10,7 +10,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 import o3d_mvps
-from benchmarks.ring import render_ring
+from o3d_mvps.synthetic import render_ring
 from o3d_mvps.capture import write_capture
 from o3d_mvps.cli import main
 from o3d_mvps.export import check_solid, write_mesh

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from benchmarks.ring import render_ring
+from o3d_mvps.synthetic import render_ring
 from o3d_mvps import RefineOptions, refine
 from o3d_mvps.errors import CaptureError
 from o3d_mvps.model import se3

@@ -34,12 +34,13 @@ from .capture import MAX_SCALE_FACTOR, render_capture
 from .lights import (LED_AMBIENT, LED_FRONTAL_IRRADIANCE, LED_OFFSET, LIGHTS, SH_AMBIENT, SH_DIRECTION, SH_STRENGTH,
                      DirectionalLight, PointLight, make_light)
 from .render import FrameRender, render_frame
+from .ring import render_ring
 from .scene import ProceduralAlbedo, SyntheticScene, build_scene, placement_transform, random_stream
 from .sensor import (COLOR_NOISE_SIGMA, DEPTH_SCALE, SRGB8_TO_LINEAR, depth_noise_sigma, quantise_srgb8,
                      simulate_depth_sensor)
 
 __all__ = [
-    "render_capture", "build_scene", "render_frame", "make_light", "PointLight", "DirectionalLight", "FrameRender",
+    "render_capture", "render_ring", "build_scene", "render_frame", "make_light", "PointLight", "DirectionalLight", "FrameRender",
     "SyntheticScene", "ProceduralAlbedo", "placement_transform", "random_stream", "synthetic_intrinsics",
     "camera_rays", "look_at_pose", "orbit_trajectory", "ring_trajectory", "quantise_srgb8", "depth_noise_sigma",
     "simulate_depth_sensor", "TRAJECTORIES", "LIGHTS", "MAX_SCALE_FACTOR", "HORIZONTAL_FOV_DEG", "MAX_ORBIT_DEG",

@@ -69,20 +69,25 @@ def orbit_trajectory(
     return poses
 
 
-def ring_trajectory(frames: int, distance: float, elevation_deg: float = 15.0) -> np.ndarray:
-    """Camera poses (frames, 4, 4) of a full 360-degree ring around the object, reference -> frame i.
+def ring_trajectory(frames: int, distance: float, elevation_deg: float = 15.0, arc_deg: float = 360.0) -> np.ndarray:
+    """Camera poses (frames, 4, 4) evenly around the object, reference -> frame i.
 
     The cameras sit at ``distance`` from the object centre ``(0, 0, distance)`` (reference
-    frame), ``elevation_deg`` above it (toward -y, image up), at azimuths ``360 * i / frames``
-    degrees about the vertical axis through the centre, looking at the centre without roll.
-    Unlike :func:`orbit_trajectory`, ``poses[0]`` is the identity only for ``elevation_deg=0``:
-    the reference frame stays the level camera the object was placed for (:func:`build_scene`).
+    frame), ``elevation_deg`` above it (toward -y, image up), looking at the centre without
+    roll, at azimuths about the vertical axis through the centre: ``360 * i / frames`` degrees
+    for a full ring, else evenly over ``arc_deg`` degrees centred on azimuth 0 (both ends
+    included). Unlike :func:`orbit_trajectory`, ``poses[0]`` is the identity only for
+    ``elevation_deg=0`` (and a full ring): the reference frame stays the level camera the object
+    was placed for (:func:`build_scene`).
     """
     target = np.array([0.0, 0.0, distance])
     elevation = np.radians(elevation_deg)
+    full = arc_deg >= 360.0
+    step = 360.0 / frames if full else arc_deg / max(int(frames) - 1, 1)
+    start = 0.0 if full else -arc_deg / 2
     poses = np.empty((int(frames), 4, 4))
     for i in range(int(frames)):
-        azimuth = 2 * np.pi * i / frames
+        azimuth = np.radians(start + step * i)
         direction = np.array([np.sin(azimuth) * np.cos(elevation), np.sin(elevation),
                               np.cos(azimuth) * np.cos(elevation)])  # camera -> centre
         poses[i] = look_at_pose(target - distance * direction, target)

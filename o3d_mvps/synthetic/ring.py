@@ -1,9 +1,9 @@
 """Synthetic captures that go around the object: a ring (or an arc of it) of LED-lit frames.
 
-Frames sit on :func:`o3d_mvps.synthetic.ring_trajectory`'s ring (``arc_deg`` of it, evenly
-spaced), rendered like :func:`o3d_mvps.synthetic.render_capture` (8-bit sRGB colour, noisy 1 mm
-depth at 1/SF resolution, exact masks). Used by ``python -m benchmarks object`` and the
-reconstruction tests.
+Frames sit on :func:`.camera.ring_trajectory`'s ring (``arc_deg`` of it, evenly spaced),
+rendered like :func:`.capture.render_capture` (8-bit sRGB colour, noisy 1 mm depth at 1/SF
+resolution, exact masks). Used by ``python -m benchmarks object``, the reconstruction tests and
+the notebook.
 """
 
 from __future__ import annotations
@@ -11,24 +11,13 @@ from __future__ import annotations
 import numpy as np
 import open3d as o3d
 
-from o3d_mvps.capture import Capture, GroundTruth, default_depth_intrinsic, image_from_array
-from o3d_mvps.model.se3 import relative_to_reference
-from o3d_mvps.synthetic import (DEPTH_SCALE, build_scene, look_at_pose, make_light, quantise_srgb8, random_stream,
-                                render_frame, simulate_depth_sensor)
-
-
-def ring_poses(frames: int, distance: float, elevation_deg: float, arc_deg: float = 360.0) -> np.ndarray:
-    """World (level reference camera) -> camera i poses (frames, 4, 4) evenly over ``arc_deg`` of the ring."""
-    target = np.array([0.0, 0.0, distance])
-    elevation = np.radians(elevation_deg)
-    step = arc_deg / frames if arc_deg >= 360 else arc_deg / max(frames - 1, 1)
-    poses = np.empty((frames, 4, 4))
-    for i in range(frames):
-        azimuth = np.radians(step * i - (0 if arc_deg >= 360 else arc_deg / 2))
-        direction = np.array([np.sin(azimuth) * np.cos(elevation), np.sin(elevation),
-                              np.cos(azimuth) * np.cos(elevation)])
-        poses[i] = look_at_pose(target - distance * direction, target)
-    return poses
+from ..capture import Capture, GroundTruth, default_depth_intrinsic, image_from_array
+from ..model.se3 import relative_to_reference
+from .camera import ring_trajectory
+from .lights import make_light
+from .render import render_frame
+from .scene import build_scene, random_stream
+from .sensor import DEPTH_SCALE, quantise_srgb8, simulate_depth_sensor
 
 
 def render_ring(mesh="bunny", *, frames: int = 12, size=(160, 120), scale_factor: int = 4, arc_deg: float = 360.0,
@@ -40,7 +29,7 @@ def render_ring(mesh="bunny", *, frames: int = 12, size=(160, 120), scale_factor
     reference camera (the frame the scene's ray caster works in).
     """
     scene = build_scene(mesh, size=size, object_size=object_size, distance=distance, seed=seed)
-    world = ring_poses(frames, distance, elevation_deg, arc_deg)
+    world = ring_trajectory(frames, distance, elevation_deg, arc_deg)
     light = make_light("led", distance)
     color_rng, depth_rng = random_stream(seed, "color"), random_stream(seed, "depth")
     color, depth, masks, renders = [], [], [], []
