@@ -114,7 +114,8 @@ def _row_dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
 
 
-_NONE3, _NONE6 = np.zeros((0, 3)), np.zeros((0, 6))
+# empty stand-ins for the kernel's optional arrays
+_NONE3, _NONE6, _NONE_E = np.zeros((0, 3)), np.zeros((0, 6)), np.zeros((0, 1, 3))
 
 
 def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parallax: bool = True,
@@ -199,9 +200,6 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
     return JointSystem(sp.csr_matrix(matrix), rhs_z, coupling, hessian, rhs_xi, frames)
 
 
-_NONE_E = np.zeros((0, 1, 3))
-
-
 class _AlbedoProjection:
     """Variable projection of the albedo out of the Gauss-Newton system (Golub-Pereyra, in
     Kaufman's form).
@@ -215,7 +213,7 @@ class _AlbedoProjection:
     (frozen dA is exact up to the albedo direction).
 
     ``e`` (3, N, 3) holds e per (pixel, channel) for the depth rows (a, b, c), accumulated by
-    :func:`.kernels.accumulate_frame`; the twist rows' e are ``F`` (N, 3, m, 6), w s J of the
+    :func:`.kernels.accumulate_frame`; the twist rows' e are ``F`` (m, 6, N, 3), w s J of the
     m refined frames, written by the same kernel. Arrays (N, 3) unless stated.
     """
 
