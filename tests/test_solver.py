@@ -202,3 +202,21 @@ def test_refined_scan_exports_a_textured_mesh_and_a_watertight_solid(tmp_path, r
     back = trimesh.load(tmp_path / "scan.stl")
     assert back.is_watertight and back.is_volume
     assert max(back.extents) == pytest.approx(80.0, rel=1e-5)
+
+
+def test_coarse_to_fine_runs_coarsest_first_and_passes_skipped_levels_on():
+    """Levels 3 .. 0 in turn; a level returning None (too small) hands on what it got; nothing
+    solved at all is an error."""
+    from o3d_mvps.errors import CaptureError
+    from o3d_mvps.solver.driver import coarse_to_fine
+
+    calls = []
+
+    def solve_level(index, carried):
+        calls.append((index, carried))
+        return None if index == 2 else f"level {index}"
+
+    assert coarse_to_fine(4, solve_level) == "level 0"
+    assert calls == [(3, None), (2, "level 3"), (1, "level 3"), (0, "level 1")]
+    with pytest.raises(CaptureError, match="no pyramid level"):
+        coarse_to_fine(2, lambda index, carried: None)

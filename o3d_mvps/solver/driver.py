@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import time
 from collections import defaultdict
+from collections.abc import Callable
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -148,6 +150,37 @@ def _extrapolate(problem: LevelProblem, est: Estimate, ev, before: Estimate, fac
     return best[1]
 
 
+@dataclass
+class Carried:
+    """The unknowns handed from one pyramid level to the next: z (H, W) metres and albedo
+    (H, W, 3) on the level's full image grid (filled outside the mask), lights (n, k), poses
+    (n, 4, 4) and the LED offset (3,) or None."""
+
+    z: np.ndarray
+    albedo: np.ndarray
+    lights: np.ndarray
+    poses: np.ndarray
+    led_offset: np.ndarray | None
+
+    def resized(self, size: tuple[int, int]) -> "Carried":
+        """The same unknowns with z and albedo bilinearly resampled to a (H, W) grid."""
+        return replace(self, z=resize(self.z, size, interpolation=cv2.INTER_LINEAR),
+                       albedo=resize(self.albedo, size, interpolation=cv2.INTER_LINEAR))
+
+
+def coarse_to_fine(n_levels: int, solve_level: Callable[[int, "Carried | None"], "Carried | None"]) -> Carried:
+    """Solve levels n_levels - 1 (coarsest) .. 0 (finest) in turn: ``solve_level(index, carried)``
+    gets what the last solved level returned (None before the first) and returns the level's
+    result, or None to pass ``carried`` on (a level too small to solve). The per-level solve is
+    kept apart from the loop (the shape of scikit-image's ``coarse_to_fine(..., solver)``)."""
+    carried = None
+    for index in reversed(range(n_levels)):
+        carried = solve_level(index, carried) or carried
+    if carried is None:
+        raise CaptureError("no pyramid level has 16 object pixels; give a larger mask or more depth pixels")
+    return carried
+
+
 def solve(problem_input: SolverInput, options: RefineOptions | None = None, device="cpu") -> SolverOutput:
     """Jointly estimate depth (colour resolution), albedo, lighting and poses of ``problem_input``.
 
@@ -187,29 +220,29 @@ def _solve(problem_input: SolverInput, options: RefineOptions) -> SolverOutput:
         n_levels -= 1
     light = make_light_model(options.light_model, initial_sh=options.initial_light,
                              led_offset=problem_input.led_offset)
-    lights = light.initial_lights(n_frames, mean_z0)
-    led_offset = light.offset.copy() if light.name == "led" else None  # an unknown, carried in the Estimate
-    poses = problem_input.initial_poses.copy()
-    z_full = albedo_full = None
     history = []
     stats = {"cg_iterations": [], "levels": n_levels}
 
-    for level_index in reversed(range(n_levels)):
+    def solve_level(level_index: int, carried: Carried | None) -> Carried | None:
+        """One level: the level's problem, the unknowns gathered from ``carried`` (None on the
+        first level: the sensor depth, the reference image, the initial lights and poses), the
+        initial albedo fit and the sweeps; returns the unknowns on the level's full grid (None
+        for a level too small to solve, which passes ``carried`` on)."""
         t = time.perf_counter()
         level = build_level(level_index, colors, masks, ref_mask, K, z0, sf, options.difference_scheme,
                             options.depth_envelope)
         g = level.grid
         if g.size < 16:
-            continue
-        if z_full is None:
-            zl = fill_nearest_valid(z0, z0 > 0)
-            z_full = resize(zl, level.size, interpolation=cv2.INTER_LINEAR)
-            albedo_full = level.images[0].astype(np.float64)
+            return None
+        if carried is None:
+            z_full = resize(fill_nearest_valid(z0, z0 > 0), level.size, interpolation=cv2.INTER_LINEAR)
+            carried = Carried(z_full, level.images[0].astype(np.float64), light.initial_lights(n_frames, mean_z0),
+                              problem_input.initial_poses.copy(),
+                              light.offset.copy() if light.name == "led" else None)  # an unknown, like the rest
         else:
-            z_full = resize(z_full, level.size, interpolation=cv2.INTER_LINEAR)
-            albedo_full = resize(albedo_full, level.size, interpolation=cv2.INTER_LINEAR)
-        est = Estimate(level.prior.clip(g.gather(z_full).astype(np.float64)), g.gather(albedo_full).astype(np.float64),
-                       lights, poses, led_offset)
+            carried = carried.resized(level.size)
+        est = Estimate(level.prior.clip(g.gather(carried.z).astype(np.float64)),
+                       g.gather(carried.albedo).astype(np.float64), carried.lights, carried.poses, carried.led_offset)
         tau = normalised_tau(options.tau, n_frames, mean_I, g.size, mean_z0, level.prior.rows)
         problem = LevelProblem(level, tau, options.cauchy_lambda, light)
         problem.update_visibility(est, occlusion_test=options.occlusion_test, rel_tol=options.occlusion_tolerance,
@@ -222,11 +255,13 @@ def _solve(problem_input: SolverInput, options: RefineOptions) -> SolverOutput:
         est.albedo = update_albedo(est, ev, problem.lam)
         ev = problem.reevaluate(est, ev)
         timings["setup"] += time.perf_counter() - t
-        history += _sweeps(problem, est, ev, options, timings, stats)
-        lights, poses, led_offset = est.lights, est.poses, est.led_offset
-        z_full = fill_nearest_valid(g.scatter(est.z), g.mask)
-        albedo_full = fill_nearest_valid(g.scatter(est.albedo), g.mask)
+        history.extend(_sweeps(problem, est, ev, options, timings, stats))
+        return Carried(fill_nearest_valid(g.scatter(est.z), g.mask), fill_nearest_valid(g.scatter(est.albedo), g.mask),
+                       est.lights, est.poses, est.led_offset)
 
+    result = coarse_to_fine(n_levels, solve_level)
+    z_full, albedo_full, lights, poses, led_offset = (result.z, result.albedo, result.lights, result.poses,
+                                                      result.led_offset)
     depth = np.where(ref_mask, z_full, 0.0)
     albedo = np.clip(np.where(ref_mask[..., None], albedo_full, 0.0), 0.0, None)
     timings["total"] = time.perf_counter() - t0
