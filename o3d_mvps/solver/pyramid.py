@@ -113,7 +113,10 @@ def build_level(index: int, colors: list, masks: list, ref_mask: np.ndarray, K: 
     ``envelope_margin`` None leaves the depth unbounded (see :func:`depth_envelope`)."""
     size = level_size(ref_mask.shape, index)
     K_level = scale_intrinsics(K, size[1] / ref_mask.shape[1], size[0] / ref_mask.shape[0])
-    images = [resize(color, size).astype(np.float32) for color in colors]
+    # the finest level reads the full-resolution float32 colours themselves (no copy: they are
+    # only read), coarser levels area-averaged copies
+    images = [color if color.shape[:2] == tuple(size) and color.dtype == np.float32
+              else resize(color, size).astype(np.float32) for color in colors]
     gradients = [np.stack(image_gradients(img)) for img in images]
     frame_masks = [None if m is None else resize(m.astype(np.float32), size) > 0.5 for m in masks]
     mask = resize(ref_mask.astype(np.float32), size) > 0.5
