@@ -14,6 +14,7 @@ import numpy as np
 import open3d as o3d
 
 from .capture import Capture, default_depth_intrinsic, image_from_array, to_host, validate_capture
+from .capture.layout import CAPTURE_LIGHTS
 from .colour import srgb_to_linear
 from .errors import CaptureError
 from .model.camera import as_intrinsic_matrix
@@ -32,6 +33,7 @@ def refine_rgbd(
     masks=None,
     depth_scale: float = 1000.0,
     initial_poses=None,
+    light: str = "led",
 ) -> tuple[list, np.ndarray]:
     """Refine the first of a list of RGB-D frames: super-resolved depth at colour resolution.
 
@@ -80,6 +82,9 @@ def refine_rgbd(
         (invert its camera-to-world poses and multiply by the reference's). Default: Open3D
         ICP odometry on the sensor depth, which registers the frames in list order, so order
         the frames along the camera path.
+    light : {"led", "room"}
+        What lit the frames (a capture folder's ``capture.json`` "light"): the LED on the camera
+        (default) or room light; picks the light model unless ``options.light_model`` is set.
 
     Returns
     -------
@@ -107,8 +112,11 @@ def refine_rgbd(
     >>> color = refined[0].color.to(o3d.core.float32, scale=1 / 255)  # doctest: +SKIP
     >>> vbg.integrate(coords, refined[0].depth, color, K, extrinsic, 1.0, 3.0)  # doctest: +SKIP
     """
+    if light not in CAPTURE_LIGHTS:
+        raise CaptureError(f"light must be one of {', '.join(map(repr, CAPTURE_LIGHTS))}, got {light!r}")
     capture = capture_from_rgbd(rgbd_images, intrinsic, scale_factor=scale_factor, masks=masks,
                                 depth_scale=depth_scale)
+    capture.light = light
     refinement = refine(capture, options, initial_poses=initial_poses)
     reference = refinement.info["frames"][0]
     depth = np.ascontiguousarray(refinement.depth_array()[..., None], dtype=np.float32)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import time
 import warnings
+from dataclasses import replace
 
 import numpy as np
 
@@ -49,7 +50,7 @@ def refine(capture: Capture, options: RefineOptions | None = None, device="CPU:0
     odometry = time.perf_counter() - t0
     if save_problem is not None:
         write_problem(problem_input, save_problem, overwrite=overwrite)
-    output = solve(problem_input, options, device)
+    output = solve(problem_input, problem_input.options, device)
     return Refinement.from_arrays(
         output.depth, output.mask, output.K, albedo=output.albedo, poses=output.poses, lighting=output.lighting,
         method="ours", energy=output.energy, info={**output.info, **({"views": views.to_dict()} if views else {})},
@@ -61,7 +62,9 @@ def problem_from_capture(capture: Capture, options: RefineOptions,
                          initial_poses=None) -> tuple[SolverInput, ViewSelection | None]:
     """The solver's input from a capture: the frames ``options.frames`` picks, minus those the
     registration drops when no ``initial_poses`` are given and those that do not see the
-    reference (see :func:`refine`); and that view selection (None with three frames or fewer)."""
+    reference (see :func:`refine`); and that view selection (None with three frames or fewer).
+    The input's options name the light model (:func:`with_light_model`)."""
+    options = with_light_model(options, capture)
     frames = options.frame_indices(capture.n_frames)
     if initial_poses is not None:
         initial_poses = np.asarray(to_host(initial_poses), dtype=np.float64)
@@ -91,6 +94,23 @@ def problem_from_capture(capture: Capture, options: RefineOptions,
         K=capture.color_K(), depth_K=capture.depth_K(), scale_factor=capture.scale_factor,
         initial_poses=initial_poses, led_offset=_led_offset(options, capture), frames=frames, options=options,
     ), views
+
+
+#: The solver's light model for each capture.json "light".
+LIGHT_MODEL_OF_CAPTURE = {"led": "led", "room": "sh"}
+
+
+def with_light_model(options: RefineOptions, capture: Capture) -> RefineOptions:
+    """``options`` with a light model: the one given, else the capture's (:data:`LIGHT_MODEL_OF_CAPTURE`),
+    else the LED model with a warning saying how to choose."""
+    if options.light_model is not None:
+        return options
+    if capture.light is None:
+        warnings.warn('the capture does not say what lit it (no "light" in capture.json): using the LED model. '
+                      'Write "light": "led" (the LED on the camera) or "room" (room light) into capture.json, or '
+                      "pass --light-model led|sh (RefineOptions(light_model=...))", stacklevel=4)
+        return replace(options, light_model="led")
+    return replace(options, light_model=LIGHT_MODEL_OF_CAPTURE[capture.light])
 
 
 def _led_offset(options: RefineOptions, capture: Capture) -> np.ndarray:

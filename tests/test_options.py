@@ -8,7 +8,7 @@ import pytest
 from o3d_mvps.solver.options import (ConvergenceCriteria, DifferenceScheme, LightModel, ModelOptions, RefineOptions,
                                      StepOptions)
 
-FLAT = dict(tau=100.0, cauchy_lambda=0.1, light_model="sh", led_offset=(0.03, -0.02, 0.0), initial_light=(0.1, 0, 0, -1),
+FLAT = dict(tau=100.0, smoothness=5.0, cauchy_lambda=0.1, light_model="sh", led_offset=(0.03, -0.02, 0.0), initial_light=(0.1, 0, 0, -1),
             difference_scheme="forward", depth_envelope=None, occlusion_test=False, occlusion_tolerance=0.05,
             levels=3, max_iterations=4, tolerance=1e-4, pose_iterations=2, pose_tolerance=0.0, cg_tolerance=1e-3,
             cg_max_iterations=50, joint_cg_tolerance=0.1, refine_poses=False, pose_min_pixels=0,
@@ -50,6 +50,7 @@ def test_fields_are_read_only():
 # One bad value per field, and the allowed range the message must state.
 BAD = [
     ("tau", 0.0, "(0, inf)"), ("tau", float("nan"), "(0, inf)"), ("cauchy_lambda", -0.1, "(0, inf)"),
+    ("smoothness", -1.0, "[0, inf) or None"),
     ("depth_envelope", 1.0, "[0, 1) or None"), ("occlusion_tolerance", -0.01, "[0, 1)"),
     ("levels", 0, "an integer in [1, inf]"), ("levels", 2.5, "an integer"), ("max_iterations", 0, "[1, inf]"),
     ("tolerance", 1.0, "[0, 1)"), ("pose_iterations", 0, "[1, inf]"), ("pose_tolerance", -1e-3, "[0, 1)"),
@@ -72,14 +73,14 @@ def test_each_field_rejects_a_bad_value_naming_field_value_and_range(name, value
 def test_every_numeric_field_is_covered_by_the_bad_values():
     numeric = {f.name for cls in (ModelOptions, ConvergenceCriteria, StepOptions) for f in dataclasses.fields(cls)
                if f.type in ("int", "float", "float | None")}
-    assert len(numeric) == 14 and numeric <= {name for name, _, _ in BAD}
+    assert len(numeric) == 15 and numeric <= {name for name, _, _ in BAD}
 
 
 def test_enums_take_plain_strings_and_reject_others_with_the_choices():
     options = RefineOptions(light_model="sh", difference_scheme=DifferenceScheme.FORWARD)
     assert options.light_model is LightModel.SH and options.light_model == "sh"
     assert options.difference_scheme is DifferenceScheme.FORWARD and f"{options.difference_scheme}" == "forward"
-    assert RefineOptions().light_model == "led" and RefineOptions().difference_scheme == "central"
+    assert RefineOptions().light_model is None and RefineOptions().difference_scheme == "central"  # None: the capture says
     with pytest.raises(ValueError, match=r"light_model must be one of \['led', 'sh'\], got 'point'"):
         RefineOptions(light_model="point")
     with pytest.raises(ValueError, match=r"difference_scheme must be one of \['central', 'forward'\], got 'backward'"):

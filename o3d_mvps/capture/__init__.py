@@ -9,7 +9,8 @@ Folder layout (the same names as Open3D's reconstruction system; README "Capture
       intrinsic.json           colour camera, Open3D PinholeCameraIntrinsic JSON
       depth_intrinsic.json     optional; default: colour intrinsics scaled by 1/SF
       capture.json             depth_scale, depth_trunc, color_encoding (srgb|linear), sensor,
-                               frames, metadata; optional (defaults 1000, 3.0 m, srgb)
+                               frames, light (led|room: picks refine's light model),
+                               metadata; optional (defaults 1000, 3.0 m, srgb)
       poses.{json,log,txt,npy} optional initial poses from another tool (see .poses)
       groundtruth/             synthetic captures only: depth.npy, normals.npy, albedo.npy,
                                poses.npy, mesh_to_reference.npy, light.json

@@ -9,4 +9,6 @@ COLOR_ENCODINGS = ("srgb", "linear")
 COLOR_SUFFIXES = (".png", ".jpg", ".jpeg")
 #: Ground-truth arrays, each groundtruth/<name>.npy, besides groundtruth/light.json.
 GT_ARRAYS = ("depth", "normals", "albedo", "poses", "mesh_to_reference")
+#: capture.json's "light": the LED on the camera, or room light (the solver's "led" and "sh" models).
+CAPTURE_LIGHTS = ("led", "room")
 DEFAULT_SETTINGS = {"depth_scale": 1000.0, "depth_trunc": 3.0, "color_encoding": "srgb", "sensor": "unknown"}

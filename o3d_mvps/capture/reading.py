@@ -14,6 +14,7 @@ from ..colour import srgb_to_linear
 from ..errors import CaptureError
 from .layout import (
     CAPTURE_JSON,
+    CAPTURE_LIGHTS,
     COLOR_DIR,
     COLOR_SUFFIXES,
     DEFAULT_SETTINGS,
@@ -102,6 +103,7 @@ def read_capture(path, mask: str | None = None, depth_range=None) -> Capture:
         color_encoding=settings["color_encoding"],
         sensor=settings["sensor"],
         metadata={**settings["metadata"], "color_bit_depth": bit_depths.pop()},
+        light=settings["light"],
     )
     validate_capture(capture, names)
     _check_intrinsic_size(root / INTRINSIC_JSON, color_K_size, capture.color_size, COLOR_DIR)
@@ -313,7 +315,7 @@ def _read_masks(folder: Path, names: list[str]) -> list | None:
 
 def _read_settings(path: Path) -> dict:
     """capture.json with defaults filled in; 'frames' is None when absent."""
-    settings = {**DEFAULT_SETTINGS, "frames": None, "metadata": {}}
+    settings = {**DEFAULT_SETTINGS, "frames": None, "metadata": {}, "light": None}
     if not path.exists():
         return settings
     data = load_json(path)
@@ -330,6 +332,9 @@ def _read_settings(path: Path) -> dict:
     if not isinstance(settings["metadata"], dict):
         raise CaptureError(f"{path}: metadata must be a JSON object")
     settings["sensor"] = str(settings["sensor"])
+    if settings["light"] is not None and settings["light"] not in CAPTURE_LIGHTS:
+        raise CaptureError(f"{path}: light must be one of {', '.join(map(repr, CAPTURE_LIGHTS))} (the LED on the camera "
+                           f"or room light), got {settings['light']!r}; fix the file or remove the key")
     return settings
 
 

@@ -19,8 +19,8 @@ class GroundTruth:
     camera frame, unit, pointing to the camera, 0 off the object. albedo: (H, W, 3) float32
     linear RGB. poses: (n, 4, 4) float64 mapping reference-camera coordinates to frame-i
     coordinates. light: JSON-serialisable light parameters (``"model"``: ``"led"`` or
-    ``"directional"``; the directional model stores ``"sh"``: n x 4 first-order SH vectors in
-    reference coordinates). mesh_to_reference: (4, 4) float64 mesh -> reference camera.
+    ``"directional"`` or ``"room"``; the directional model stores ``"sh"``: n x 4 first-order SH
+    vectors in reference coordinates). mesh_to_reference: (4, 4) float64 mesh -> reference camera.
     """
 
     depth: np.ndarray
@@ -41,6 +41,8 @@ class Capture:
     masks: None, or n entries each None or an (H, W, 1) uint8 image (nonzero = object).
     depth_scale: depth PNG units per metre (1000 = mm). depth_trunc: metres.
     color_encoding: how colour PNGs are encoded on disk ("srgb" or "linear").
+    light: what lit the frames (capture.json's "light"): "led" (the LED on the camera) or "room"
+    (room light); None when the capture does not say.
     """
 
     color: list
@@ -54,6 +56,7 @@ class Capture:
     sensor: str = "unknown"
     groundtruth: GroundTruth | None = None
     metadata: dict = field(default_factory=dict)
+    light: str | None = None
 
     # --- sizes -------------------------------------------------------------------------
     @property

@@ -94,6 +94,7 @@ def _write_folder(capture: Capture, root: Path, bits: int) -> None:
         "color_encoding": capture.color_encoding,
         "sensor": capture.sensor,
         "frames": capture.n_frames,
+        **({"light": capture.light} if capture.light is not None else {}),
         "metadata": {**capture.metadata, "color_bit_depth": bits},
     }
     (root / CAPTURE_JSON).write_text(_capture_json(settings, "capture settings"))

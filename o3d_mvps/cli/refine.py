@@ -51,8 +51,9 @@ def add_solver_arguments(parser: argparse.ArgumentParser) -> None:
                    help=f"relative energy change that ends a level (default {d.tolerance:g})")
     g.add_argument("--no-pose-refinement", action="store_true", help="keep the odometry poses (two-stage baseline)")
     g.add_argument("--no-occlusion-test", action="store_true", help="let hidden pixels enter the data term")
-    g.add_argument("--light-model", choices=LIGHT_MODELS, default=d.light_model,
-                   help=f"near-field LED or the paper's first-order SH (default {d.light_model})")
+    g.add_argument("--light-model", choices=LIGHT_MODELS, default=None,
+                   help="near-field LED or the paper's first-order SH (default: capture.json's light, "
+                        "led -> led, room -> sh; led when it does not say)")
     g.add_argument("--led-offset", type=float, nargs=3, metavar=("X", "Y", "Z"), default=None,
                    help="LED position in metres from the colour lens (x right, y down, z forward); a ruler "
                         "measure within ~1 cm is enough, the solver refines it (default: capture.json's "

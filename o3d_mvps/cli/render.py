@@ -1,4 +1,4 @@
-"""``o3d-mvps render``: render a synthetic LED-lit capture (with ground truth) of a mesh."""
+"""``o3d-mvps render``: render a synthetic capture (with ground truth) of a mesh, alone or in a room."""
 
 from __future__ import annotations
 
@@ -14,10 +14,12 @@ examples:
   o3d-mvps render bunny captures/bunny
   o3d-mvps render armadillo captures/arma --frames 30 --scale-factor 8 --size 1280x720
   o3d-mvps render my_scan.ply captures/scan --trajectory orbit-translate --light directional --seed 3
+  o3d-mvps render bunny captures/room --scene --light room --frames 20   # table, wall, 360-degree ring
 
 The folder holds color/, depth/, mask/, intrinsic.json, depth_intrinsic.json, capture.json and
 groundtruth/ (reference depth, normals, albedo, poses, light, mesh_to_reference); read it with
-o3d_mvps.read_capture or refine it with `o3d-mvps refine`.
+o3d_mvps.read_capture or refine it with `o3d-mvps refine`. A --scene capture has no mask/: refine
+finds the object with its automatic masks, as in a user's capture.
 """
 
 
@@ -46,8 +48,12 @@ def register(subparsers) -> None:
                    help="orbit: yaw/pitch up to 15 deg around the object; orbit-translate: plus a few cm of "
                    "translation and distance change (default orbit)")
     p.add_argument("--light", choices=LIGHTS, default="led",
-                   help="led: point light near the camera, 1/r^2, shadows; directional: first-order SH, exact "
-                   "(default led)")
+                   help="led: point light near the camera, 1/r^2, shadows; directional: first-order SH, exact; "
+                   "room: ambient plus three distant lights fixed in the room, shadows (default led)")
+    p.add_argument("--scene", action="store_true",
+                   help="scene mode: the object on a table in front of a wall, frames on a 360-degree ring "
+                   "(360/FRAMES degrees apart, 20 degrees above the table), no mask/ folder; --trajectory is "
+                   "ignored")
     p.add_argument("--seed", type=int, default=0, help="seed of the albedo texture and noise (default 0)")
     p.add_argument("--no-noise", dest="noise", action="store_false",
                    help="no colour or depth noise (quantisation stays)")
@@ -58,21 +64,16 @@ def register(subparsers) -> None:
 def run(args) -> int:
     """Render and write the capture; returns the exit code."""
     from ..capture import write_capture
-    from ..synthetic import render_capture
+    from ..synthetic import render_capture, render_ring
 
     out = check_folder(args.out, args.overwrite, "capture folder")
     start = time.perf_counter()
-    capture = render_capture(
-        args.mesh,
-        frames=args.frames,
-        scale_factor=args.scale_factor,
-        size=args.size,
-        trajectory=args.trajectory,
-        light=args.light,
-        seed=args.seed,
-        noise=args.noise,
-        progress=not args.quiet,
-    )
+    common = dict(frames=args.frames, scale_factor=args.scale_factor, size=args.size, light=args.light, seed=args.seed,
+                  noise=args.noise, progress=not args.quiet)
+    if args.scene:
+        capture, _ = render_ring(args.mesh, surroundings=True, **common)
+    else:
+        capture = render_capture(args.mesh, trajectory=args.trajectory, **common)
     write_capture(capture, out, overwrite=args.overwrite)
     (H, W), (h, w) = capture.color_size, capture.depth_size
     print(f"wrote {capture.n_frames} frames ({W}x{H} colour, {w}x{h} depth) to {out} "

@@ -1,4 +1,5 @@
-"""Synthetic captures: a mesh rendered by ray casting under an LED that moves with the camera.
+"""Synthetic captures: a mesh rendered by ray casting under an LED that moves with the camera,
+alone or (scene mode, :func:`render_ring` with ``surroundings=True``) on a table in front of a wall.
 
 The benchmark protocol of the paper's synthetic experiments (Sec. 5.1; README "Results").
 Conventions (all lengths in metres):
@@ -26,21 +27,25 @@ Lights (``groundtruth.light``):
 - ``"directional"``: SH-exact, ``I = albedo * <l_i, [1, n_x, n_y, n_z]>`` with n the unit normal
   (pointing to the camera) in reference-camera coordinates and ``l_i = light["sh"][i]``;
   no clamping, no shadows (the shading is positive for every normal).
+- ``"room"``: room light fixed in the scene, ``I = albedo * (ambient + sum_k s_k V_k max(0, n.d_k))``
+  over three distant lights (directions d_k in reference coordinates, V_k shadow visibility);
+  every frame sees the same light. A capture's ``light`` is "led" for the LED, else "room".
 """
 
 from .camera import (HORIZONTAL_FOV_DEG, MAX_ORBIT_DEG, ORBIT_TURNS, TRAJECTORIES, camera_rays, look_at_pose,
                      orbit_trajectory, ring_trajectory, synthetic_intrinsics)
 from .capture import MAX_SCALE_FACTOR, render_capture
 from .lights import (LED_AMBIENT, LED_FRONTAL_IRRADIANCE, LED_OFFSET, LIGHTS, SH_AMBIENT, SH_DIRECTION, SH_STRENGTH,
-                     DirectionalLight, PointLight, make_light)
-from .render import FrameRender, render_frame
+                     DirectionalLight, PointLight, RoomLight, make_light)
+from .render import FrameRender, SensorFrames, render_frame, render_sensor_frames
 from .ring import render_ring
 from .scene import ProceduralAlbedo, SyntheticScene, build_scene, placement_transform, random_stream
 from .sensor import (COLOR_NOISE_SIGMA, DEPTH_SCALE, SRGB8_TO_LINEAR, depth_noise_sigma, quantise_srgb8,
                      simulate_depth_sensor)
 
 __all__ = [
-    "render_capture", "render_ring", "build_scene", "render_frame", "make_light", "PointLight", "DirectionalLight", "FrameRender",
+    "render_capture", "render_ring", "build_scene", "render_frame", "render_sensor_frames", "SensorFrames", "make_light",
+    "PointLight", "DirectionalLight", "RoomLight", "FrameRender",
     "SyntheticScene", "ProceduralAlbedo", "placement_transform", "random_stream", "synthetic_intrinsics",
     "camera_rays", "look_at_pose", "orbit_trajectory", "ring_trajectory", "quantise_srgb8", "depth_noise_sigma",
     "simulate_depth_sensor", "TRAJECTORIES", "LIGHTS", "MAX_SCALE_FACTOR", "HORIZONTAL_FOV_DEG", "MAX_ORBIT_DEG",

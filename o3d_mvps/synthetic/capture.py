@@ -7,18 +7,18 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
-from ..capture import Capture, GroundTruth, default_depth_intrinsic, image_from_array
+from ..capture import Capture, default_depth_intrinsic
 from .camera import TRAJECTORIES, orbit_trajectory
 from .lights import LIGHTS, PointLight, make_light
-from .render import render_frame
-from .scene import build_scene, random_stream
-from .sensor import DEPTH_SCALE, quantise_srgb8, simulate_depth_sensor
+from .render import render_sensor_frames
+from .scene import build_scene
+from .sensor import DEPTH_SCALE
 
 MAX_SCALE_FACTOR = 16
 
 
-def _check_arguments(frames, scale_factor, size, trajectory, light, object_size, distance) -> tuple[int, int]:
-    """Validate render_capture's arguments; returns (W, H)."""
+def check_render_arguments(frames, scale_factor, size, trajectory, light, object_size, distance) -> tuple[int, int]:
+    """Validate the renderers' arguments (``trajectory`` None: a ring, nothing to check); returns (W, H)."""
     if isinstance(frames, bool) or not isinstance(frames, (int, np.integer)) or frames < 1:
         raise ValueError(
             f"frames must be an integer >= 1 (the reference is frame 0), got {frames!r}; pass e.g. frames=20"
@@ -44,7 +44,7 @@ def _check_arguments(frames, scale_factor, size, trajectory, light, object_size,
             f"scale_factor {scale_factor} does not divide the size {W}x{H}; choose a size whose width and "
             f"height are multiples of {scale_factor} (e.g. {W - W % scale_factor}x{H - H % scale_factor})"
         )
-    if trajectory not in TRAJECTORIES:
+    if trajectory is not None and trajectory not in TRAJECTORIES:
         raise ValueError(f"unknown trajectory {trajectory!r}; choose one of {list(TRAJECTORIES)}")
     if light not in LIGHTS:
         raise ValueError(f"unknown light {light!r}; choose one of {list(LIGHTS)}")
@@ -89,8 +89,9 @@ def render_capture(
         Colour resolution (W, H) in pixels.
     trajectory : {"orbit", "orbit-translate"}
         See :func:`orbit_trajectory`.
-    light : {"led", "directional"}
-        Point LED with shadows, or the SH-exact directional light (module docstring).
+    light : {"led", "directional", "room"}
+        Point LED with shadows, the SH-exact directional light, or room light (ambient plus
+        distant lights fixed in the scene, with shadows); see the module docstring.
     seed : int
         Seeds the albedo texture and the noise; equal seeds give identical captures.
     noise : bool
@@ -106,42 +107,24 @@ def render_capture(
         Colour (H, W, 3) linear floats of 8-bit sRGB values, depth (h, w, 1) metres in 1 mm
         steps, masks (H, W, 1) uint8 255 on the object, and :class:`GroundTruth`.
     """
-    W, H = _check_arguments(frames, scale_factor, size, trajectory, light, object_size, distance)
+    W, H = check_render_arguments(frames, scale_factor, size, trajectory, light, object_size, distance)
     scene = build_scene(mesh, size=(W, H), object_size=object_size, distance=distance, seed=seed)
     poses = orbit_trajectory(int(frames), distance, trajectory)
     lighting = make_light(light, distance)
-    color_rng = random_stream(seed, "color") if noise else None
-    depth_rng = random_stream(seed, "depth") if noise else None
-
-    color, depth, masks = [], [], []
-    reference = None
-    for i in _progress(range(int(frames)), progress):
-        frame = render_frame(scene, poses[i], lighting)
-        reference = frame if i == 0 else reference
-        color.append(image_from_array(quantise_srgb8(frame.color, color_rng).astype(np.float32)))
-        z = simulate_depth_sensor(frame.depth, scale_factor, depth_rng)
-        depth.append(image_from_array(z.astype(np.float32)[:, :, None]))
-        masks.append(image_from_array((frame.mask * np.uint8(255))[:, :, None]))
-
+    rendered = render_sensor_frames(scene, poses, lighting, scale_factor, seed=seed, noise=noise, progress=progress)
     K = scene.K
-    gt = GroundTruth(
-        depth=reference.depth.astype(np.float32),
-        normals=reference.normals.astype(np.float32),
-        albedo=reference.albedo.astype(np.float32),
-        poses=poses,
-        light=lighting.parameters(poses),
-        mesh_to_reference=scene.mesh_to_reference,
-    )
+    gt = rendered.groundtruth(poses, lighting.parameters(poses), scene.mesh_to_reference)
     return Capture(
-        color=color,
-        depth=depth,
+        color=rendered.color,
+        depth=rendered.depth,
         color_intrinsic=o3d.core.Tensor(K),
         depth_intrinsic=o3d.core.Tensor(default_depth_intrinsic(K, scale_factor)),
-        masks=masks,
+        masks=rendered.masks,
         depth_scale=DEPTH_SCALE,
         depth_trunc=3.0,
         color_encoding="srgb",
         sensor="synthetic",
+        light=capture_light(light),
         groundtruth=gt,
         metadata={
             # what a user measures with a ruler and writes into capture.json (read by refine)
@@ -162,10 +145,7 @@ def render_capture(
     )
 
 
-def _progress(iterable, enabled: bool):
-    """Wrap ``iterable`` in a tqdm bar when ``enabled``."""
-    if not enabled:
-        return iterable
-    from tqdm.auto import tqdm
-
-    return tqdm(iterable, desc="rendering", unit="frame")
+def capture_light(light: str) -> str:
+    """capture.json's ``light`` of a rendered light: "led" for the LED, "room" for the others (distant
+    lights, which the first-order SH model describes)."""
+    return "led" if light == "led" else "room"

@@ -1,4 +1,4 @@
-"""Rendering one frame: ray casting, normals, albedo and shading at colour resolution."""
+"""Rendering frames: ray casting, normals, albedo and shading at colour resolution, then the sensors."""
 
 from __future__ import annotations
 
@@ -7,31 +7,41 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 
-from .scene import SyntheticScene, apply_matrix
+from ..capture import GroundTruth, image_from_array
+from .scene import SyntheticScene, apply_matrix, random_stream
+from .sensor import quantise_srgb8, simulate_depth_sensor
 
 
 @dataclass
 class FrameRender:
     """Noise-free buffers of one frame at colour resolution (H, W), camera-frame quantities.
 
-    ``mask`` (H, W) bool hit; ``depth`` (H, W) float64 z metres (0 off the object);
-    ``points`` (H, W, 3) camera-frame hit points; ``normals`` (H, W, 3) unit face normals,
-    camera frame, pointing to the camera; ``albedo`` (H, W, 3) linear RGB;
-    ``color`` (H, W, 3) linear RGB ``albedo * shading`` (not clipped). Zero off the object.
+    ``mask`` (H, W) bool on the object; ``hit`` (H, W) bool on any surface (the object, and in
+    scene mode the table and wall); ``depth`` (H, W) float64 z metres; ``points`` (H, W, 3)
+    camera-frame hit points; ``normals`` (H, W, 3) unit normals, camera frame, pointing to the
+    camera; ``albedo`` (H, W, 3) linear RGB; ``color`` (H, W, 3) linear RGB ``albedo * shading``
+    (not clipped). Zero where nothing was hit.
     """
 
     mask: np.ndarray
+    hit: np.ndarray
     depth: np.ndarray
     points: np.ndarray
     normals: np.ndarray
     albedo: np.ndarray
     color: np.ndarray
 
+    @property
+    def object_depth(self) -> np.ndarray:
+        """``depth`` (H, W) on the object, 0 elsewhere (the ground truth's depth)."""
+        return np.where(self.mask, self.depth, 0.0)
+
 
 def render_frame(scene: SyntheticScene, pose: np.ndarray, light) -> FrameRender:
     """Ray-cast one frame with ``pose`` (4, 4) reference -> frame; one ray per pixel centre.
 
-    ``light`` is a :class:`PointLight` or :class:`DirectionalLight` (see :func:`make_light`).
+    ``light`` is a :class:`PointLight`, :class:`DirectionalLight` or :class:`RoomLight` (see
+    :func:`make_light`); it shades every surface hit.
     """
     W, H = scene.size
     R_c2r = pose[:3, :3].T
@@ -43,28 +53,89 @@ def render_frame(scene: SyntheticScene, pose: np.ndarray, light) -> FrameRender:
     hit = scene.raycaster.cast_rays(o3d.core.Tensor(rays), nthreads=0)
     t = hit["t_hit"].numpy()  # distance along the unit ray
     index = np.flatnonzero(np.isfinite(t))
+    geometry = hit["geometry_ids"].numpy()[index].astype(np.int64)
+    on_object = geometry == scene.object_id
     d_hit = d_cam[index]
     points = t[index, None].astype(np.float64) * d_hit
-    smooth = scene.smooth_normals(hit["primitive_ids"].numpy()[index].astype(np.int64),
-                                  hit["primitive_uvs"].numpy()[index].astype(np.float64))
-    normals = apply_matrix(R_c2r.T, smooth)
+    points_scene = apply_matrix(R_c2r, points) + C
+    normals_scene = np.empty_like(points)
+    albedo = np.empty_like(points)
+    normals_scene[on_object] = scene.smooth_normals(hit["primitive_ids"].numpy()[index[on_object]].astype(np.int64),
+                                                    hit["primitive_uvs"].numpy()[index[on_object]].astype(np.float64))
+    albedo[on_object] = scene.albedo(scene.object_coordinates(points_scene[on_object]))
+    if scene.surroundings is not None:
+        room = ~on_object
+        normals_scene[room] = scene.surroundings.normals(geometry[room])
+        albedo[room] = scene.surroundings.albedo(geometry[room], points_scene[room])
+    normals = apply_matrix(R_c2r.T, normals_scene)
     normals *= np.where(np.einsum("ij,ij->i", normals, d_hit) > 0, -1.0, 1.0)[:, None]  # face the camera
-    albedo = scene.albedo(scene.object_coordinates(apply_matrix(R_c2r, points) + C))
 
     def image(values: np.ndarray) -> np.ndarray:
         out = np.zeros((H * W,) + values.shape[1:])
         out[index] = values
         return out.reshape((H, W) + values.shape[1:])
 
-    mask = np.zeros(H * W, dtype=bool)
-    mask[index] = True
+    mask, any_hit = np.zeros(H * W, dtype=bool), np.zeros(H * W, dtype=bool)
+    mask[index[on_object]] = True
+    any_hit[index] = True
     frame = FrameRender(
         mask=mask.reshape(H, W),
+        hit=any_hit.reshape(H, W),
         depth=image(points[:, 2]),
         points=image(points),
         normals=image(normals),
         albedo=image(albedo),
         color=np.zeros((H, W, 3)),
     )
-    frame.color[frame.mask] = albedo * light.shading(scene, pose, frame)[:, None]
+    frame.color[frame.hit] = albedo * light.shading(scene, pose, frame)[:, None]
     return frame
+
+
+@dataclass
+class SensorFrames:
+    """What the cameras recorded: ``color`` n (H, W, 3) float32 images (8-bit sRGB values,
+    linearised), ``depth`` n (h, w, 1) float32 images (metres, 1 mm steps), ``masks`` n (H, W, 1)
+    uint8 images of the object or None, and the reference frame's noise-free ``reference``."""
+
+    color: list
+    depth: list
+    masks: list | None
+    reference: FrameRender
+
+    def groundtruth(self, poses: np.ndarray, light: dict, mesh_to_reference: np.ndarray) -> GroundTruth:
+        """The reference frame's ground truth on the object (zero on the table and wall), with the
+        capture's ``poses`` (n, 4, 4; frame 0 -> frame i), ``light`` parameters and placement."""
+        frame, on_object = self.reference, self.reference.mask[..., None]
+        return GroundTruth(depth=frame.object_depth.astype(np.float32),
+                           normals=np.where(on_object, frame.normals, 0.0).astype(np.float32),
+                           albedo=np.where(on_object, frame.albedo, 0.0).astype(np.float32),
+                           poses=poses, light=light, mesh_to_reference=mesh_to_reference)
+
+
+def render_sensor_frames(scene: SyntheticScene, poses: np.ndarray, light, scale_factor: int, *, seed: int = 0,
+                         noise: bool = True, masks: bool = True, progress: bool = False) -> SensorFrames:
+    """Render every pose (n, 4, 4; scene frame -> camera) and simulate the colour and depth sensors.
+
+    Noise (colour and depth) is drawn from ``seed``'s streams when ``noise``; ``masks=False``
+    leaves the object masks out (what a user's capture without a ``mask/`` folder looks like).
+    """
+    color_rng = random_stream(seed, "color") if noise else None
+    depth_rng = random_stream(seed, "depth") if noise else None
+    color, depth, object_masks, reference = [], [], [], None
+    for pose in _progress(poses, progress):
+        frame = render_frame(scene, pose, light)
+        reference = frame if reference is None else reference
+        color.append(image_from_array(quantise_srgb8(frame.color, color_rng).astype(np.float32)))
+        z = simulate_depth_sensor(frame.depth, scale_factor, depth_rng)
+        depth.append(image_from_array(z.astype(np.float32)[:, :, None]))
+        object_masks.append(image_from_array((frame.mask * np.uint8(255))[:, :, None]))
+    return SensorFrames(color, depth, object_masks if masks else None, reference)
+
+
+def _progress(iterable, enabled: bool):
+    """Wrap ``iterable`` in a tqdm bar when ``enabled``."""
+    if not enabled:
+        return iterable
+    from tqdm.auto import tqdm
+
+    return tqdm(iterable, desc="rendering", unit="frame")

@@ -11,6 +11,7 @@ import open3d as o3d
 from scipy.spatial import cKDTree
 
 from .camera import camera_rays, synthetic_intrinsics
+from .surroundings import Surroundings, add_surroundings
 
 # Rotations turning a shipped mesh's front toward its +z axis (the side the camera sees).
 FRONT_ROTATIONS = {"armadillo": np.diag([-1.0, 1.0, -1.0])}
@@ -131,6 +132,8 @@ class SyntheticScene:
     intrinsics for ``size`` = (W, H). ``mesh_to_reference`` (4, 4) similarity;
     ``object_size`` metres; ``albedo`` the surface texture (object coordinates
     ``q = R^T (x_ref - t) / object_size`` with R, t the rotation/translation of the placement).
+    ``object_id``: the mesh's geometry id in the ray caster; ``surroundings``: scene mode's table
+    and wall, or None for the object alone.
     """
 
     raycaster: o3d.t.geometry.RaycastingScene
@@ -142,6 +145,8 @@ class SyntheticScene:
     albedo: ProceduralAlbedo
     triangles: np.ndarray | None = None
     vertex_normals: np.ndarray | None = None
+    object_id: int = 0
+    surroundings: Surroundings | None = None
 
     def smooth_normals(self, primitive_ids: np.ndarray, primitive_uvs: np.ndarray) -> np.ndarray:
         """Unit normals (N, 3), reference frame, interpolated from vertex normals at hit points.
@@ -172,10 +177,12 @@ class SyntheticScene:
         return apply_matrix(R.T, points_ref - M[:3, 3]) / self.object_size
 
 
-def build_scene(mesh, *, size=(640, 480), object_size=0.2, distance=0.6, seed=0) -> SyntheticScene:
+def build_scene(mesh, *, size=(640, 480), object_size=0.2, distance=0.6, seed=0,
+                surroundings: bool = False) -> SyntheticScene:
     """Place ``mesh`` (tensor/legacy TriangleMesh, name or path) in front of the reference camera.
 
-    ``size`` (W, H) pixels; ``object_size``, ``distance`` metres; ``seed`` draws the albedo.
+    ``size`` (W, H) pixels; ``object_size``, ``distance`` metres; ``seed`` draws the albedo;
+    ``surroundings`` stands the object on a table in front of a wall (:mod:`.surroundings`).
     """
     front = FRONT_ROTATIONS.get(mesh) if isinstance(mesh, str) else None
     legacy = _as_legacy_mesh(mesh)
@@ -183,17 +190,18 @@ def build_scene(mesh, *, size=(640, 480), object_size=0.2, distance=0.6, seed=0)
     M = placement_transform(vertices, object_size, distance, front)
     placed = apply_matrix(M[:3, :3], vertices) + M[:3, 3]
     raycaster = o3d.t.geometry.RaycastingScene()
-    raycaster.add_triangles(
+    object_id = raycaster.add_triangles(
         o3d.core.Tensor(placed.astype(np.float32)),
         o3d.core.Tensor(np.asarray(legacy.triangles, dtype=np.uint32)),
     )
+    room = add_surroundings(raycaster, float(placed[:, 1].max()), float(distance)) if surroundings else None
     albedo = ProceduralAlbedo.random(random_stream(seed, "albedo"))
     W, H = (int(s) for s in size)
     legacy.compute_vertex_normals()
     vertex_normals = apply_matrix(M[:3, :3], np.asarray(legacy.vertex_normals, dtype=np.float64))
     vertex_normals /= np.maximum(np.linalg.norm(vertex_normals, axis=1, keepdims=True), 1e-12)
     return SyntheticScene(raycaster, synthetic_intrinsics(W, H), (W, H), M, float(object_size), float(distance),
-                          albedo, np.asarray(legacy.triangles, dtype=np.int64), vertex_normals)
+                          albedo, np.asarray(legacy.triangles, dtype=np.int64), vertex_normals, int(object_id), room)
 
 
 def random_stream(seed: int, stream: str) -> np.random.Generator:
