@@ -3,7 +3,13 @@
 Each depth frame (h, w) in metres is lightly denoised (normalised Gaussian convolution over
 valid pixels, ``SMOOTH_PX``), its silhouette is eroded by one pixel (unless that leaves fewer than
 ``4 * MIN_POINTS`` points), and it is back-projected with the depth intrinsics into a point cloud
-with normals (radius ``NORMAL_RADIUS``) and the colour area-averaged onto the depth grid.
+with normals (radius ``NORMAL_RADIUS``) and the colour area-averaged onto the depth grid. When
+the frames have object masks (given, or automatic), a cloud keeps the object only
+(:func:`registration_region`): in a room the table and wall outnumber the object's points and
+ICP slid along the table, where a rotation about its normal costs nothing. On a rendered room
+scene (320 x 240, 20 frames 18 deg apart, automatic masks) frame 2 was 51 mm off and frames 4-19
+stayed where the chain started them (18-174 deg off); on the object alone frames 1-3 and 17-19
+are 0.9-4.5 deg off (a margin of table around the object, 8 % of its size, gave 2-17 deg).
 
 The registration chain (:func:`register_frames`), per frame i, until one step is accepted:
 
@@ -114,8 +120,15 @@ class FrameRegistration:
     dropped: dict = field(default_factory=dict)
 
 
+def registration_region(mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """(h, w) bool: the depth-grid pixels a frame's cloud keeps, given its object ``mask`` (H, W)
+    at colour resolution: depth pixels more than half covered by the object."""
+    h, w = shape
+    return cv2.resize(mask.astype(np.float32), (w, h), interpolation=cv2.INTER_AREA) > 0.5
+
+
 def depth_cloud(depth: np.ndarray, K: np.ndarray, max_depth: float = 3.0,
-                color: np.ndarray | None = None) -> o3d.geometry.PointCloud:
+                color: np.ndarray | None = None, region: np.ndarray | None = None) -> o3d.geometry.PointCloud:
     """Denoised point cloud with camera-facing normals (and colours) of one depth frame.
 
     Parameters
@@ -129,6 +142,8 @@ def depth_cloud(depth: np.ndarray, K: np.ndarray, max_depth: float = 3.0,
     color : (H, W, 3) array, optional
         Linear RGB of the frame at colour resolution (an integer multiple of (h, w)); area-averaged
         onto the depth grid as the points' colours (coloured ICP needs them).
+    region : (h, w) bool array, optional
+        Pixels to keep (e.g. :func:`registration_region`); None keeps every valid one.
 
     Returns
     -------
@@ -137,6 +152,8 @@ def depth_cloud(depth: np.ndarray, K: np.ndarray, max_depth: float = 3.0,
     """
     z = np.asarray(depth, dtype=np.float64).reshape(np.shape(depth)[:2])
     valid = (z > 0) & (z < max_depth) & np.isfinite(z)
+    if region is not None:
+        valid &= region
     v = valid.astype(np.float64)
     num = ndimage.gaussian_filter(np.where(valid, z, 0.0), SMOOTH_PX, mode="constant")
     den = ndimage.gaussian_filter(v, SMOOTH_PX, mode="constant")
@@ -293,7 +310,8 @@ def register_frames(capture, *, strict: bool = False, max_depth: float = 3.0,
     """
     n = capture.n_frames
     K = np.asarray(capture.depth_K(), dtype=np.float64)
-    clouds = [depth_cloud(capture.depth_array(i), K, max_depth, capture.color_array(i)) for i in range(n)]
+    clouds = [depth_cloud(capture.depth_array(i), K, max_depth, capture.color_array(i), _region(capture, i))
+              for i in range(n)]
     if len(clouds[0].points) < MIN_POINTS:
         raise OdometryError(f"the reference frame 0 has only {len(clouds[0].points)} valid depth points below "
                             f"{max_depth} m (at least {MIN_POINTS} are needed): {FIXES['points']}, so that another "
@@ -319,6 +337,13 @@ def register_frames(capture, *, strict: bool = False, max_depth: float = 3.0,
         result.dropped[i] = reason
         warnings.warn(f"{reason}. Frame {i} is dropped; pass strict=True (--strict) to stop instead", stacklevel=2)
     return result
+
+
+def _region(capture, i: int) -> np.ndarray | None:
+    """Frame i's :func:`registration_region`, or None when its mask is missing or empty (an empty
+    reference mask is reported by the solver, which names it)."""
+    mask = capture.mask_array(i)
+    return None if mask is None or not mask.any() else registration_region(mask, capture.depth_size)
 
 
 def _register_frame(clouds: list, i: int, result: FrameRegistration) -> list[Attempt]:

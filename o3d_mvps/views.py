@@ -3,10 +3,13 @@
 A capture that goes around the object (a 360-degree ring) has frames that see the reference's
 surface from behind or not at all; such frames only add outliers to the reference's data
 term. For a reference frame, its object surface is unprojected from its depth (and mask) with
-its intrinsics; each other frame's *covisibility* is the fraction of that surface, weighted by
-area, that the frame sees: the point projects inside the frame, in front of it, faces it
-within ``max_angle_deg`` and is not hidden behind that frame's own depth measurement (when the
-frame has one there). Open3D-free: NumPy arrays in, NumPy arrays out.
+its intrinsics; each other frame's *covisibility* is the fraction of that surface's pixels
+that the frame sees: the point projects inside the frame, in front of it, faces it within
+``max_angle_deg`` and is not hidden behind that frame's own depth measurement (when the frame
+has one there). Pixels, not surface area: the data term is a sum over the reference's pixels,
+and a sensor's mixed depths along a silhouette in front of a wall look like steep surface of
+large area (weighted by area, a room scene's neighbouring frames seemed to see 38 % of the
+reference, with pixels 83 %). Open3D-free: NumPy arrays in, NumPy arrays out.
 """
 
 from __future__ import annotations
@@ -41,7 +44,7 @@ SURFACE_WIDTH_PX = 160
 
 def reference_surface(depth: np.ndarray, K: np.ndarray, mask: np.ndarray | None = None,
                       max_width: int = SURFACE_WIDTH_PX) -> tuple[np.ndarray, ...]:
-    """Points (m, 3) metres, unit normals (m, 3) toward the camera and areas (m,) m^2 of a depth map.
+    """Points (m, 3) metres and unit normals (m, 3) toward the camera of a depth map's valid pixels.
 
     depth: (h, w) metres, 0 = missing; K: (3, 3) intrinsics of that grid; mask: (h, w) bool or
     None. A map wider than ``max_width`` is first area-averaged (over blocks at least half valid) onto a
@@ -56,21 +59,19 @@ def reference_surface(depth: np.ndarray, K: np.ndarray, mask: np.ndarray | None 
         K = scale_intrinsics(K, size[1] / w, size[0] / h)
     normals, area = perspective_normals(depth, K, valid)
     keep = valid & (area > 0)
-    # a pixel's surface patch has area |n~| z / (fx fy) (n~ of model.normals; z^2 / (fx fy) when frontal)
-    return backproject(depth, K)[keep], normals[keep], area[keep] * depth[keep] / (K[0, 0] * K[1, 1])
+    return backproject(depth, K)[keep], normals[keep]
 
 
-def covisibility(points: np.ndarray, normals: np.ndarray, areas: np.ndarray, poses: np.ndarray, K: np.ndarray,
+def covisibility(points: np.ndarray, normals: np.ndarray, poses: np.ndarray, K: np.ndarray,
                  size: tuple[int, int], depths: list | None = None, *, max_angle_deg: float = MAX_VIEW_ANGLE_DEG,
                  occlusion_tolerance: float = OCCLUSION_TOLERANCE) -> np.ndarray:
-    """Fraction (n,) of the reference surface's area that each frame sees (module docstring).
+    """Fraction (n,) of the reference surface's pixels that each frame sees (module docstring).
 
-    points, normals: (m, 3) reference camera frame; areas: (m,); poses: (n, 4, 4) reference ->
+    points, normals: (m, 3) reference camera frame; poses: (n, 4, 4) reference ->
     frame i; K: (3, 3) intrinsics of the frames' (H, W) ``size`` grid; depths: None or n entries,
     each None or an (H, W) depth map in metres (0 = missing) on that grid.
     """
-    total = float(areas.sum())
-    if total <= 0:
+    if len(points) == 0:
         raise CaptureError("the reference mask is empty or holds no valid depth (no object surface in frame 0); "
                            "give a mask that covers the object and check frame 0's depth")
     cos_min = np.cos(np.radians(max_angle_deg))
@@ -86,7 +87,7 @@ def covisibility(points: np.ndarray, normals: np.ndarray, areas: np.ndarray, pos
             iv = np.rint(np.where(seen, v, 0)).astype(np.int64)
             measured = depths[i][iv, iu]
             seen &= ~((measured > 0) & (measured < Z * (1 - occlusion_tolerance)))
-        fractions[i] = float(areas[seen].sum()) / total
+        fractions[i] = float(seen.mean())
     return fractions
 
 
@@ -166,9 +167,9 @@ def frames_seeing_reference(capture, poses: np.ndarray, *, min_covisibility: flo
     mask = capture.mask_array(0)
     if mask is not None:
         mask = block_average(mask, capture.scale_factor) > 0.5
-    points, normals, areas = reference_surface(depth, capture.depth_K(), mask)
+    points, normals = reference_surface(depth, capture.depth_K(), mask)
     depths = [capture.depth_array(i) for i in range(capture.n_frames)]
-    fractions = covisibility(points, normals, areas, np.asarray(poses, dtype=np.float64), capture.depth_K(),
+    fractions = covisibility(points, normals, np.asarray(poses, dtype=np.float64), capture.depth_K(),
                              capture.depth_size, depths, **options)
     selection = select_views(fractions, 0, min_covisibility=min_covisibility, max_frames=max_frames,
                              frame_ids=frame_ids)

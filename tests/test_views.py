@@ -3,8 +3,10 @@
 import numpy as np
 import pytest
 
-from o3d_mvps.synthetic import render_ring
 from o3d_mvps import RefineOptions, refine
+from o3d_mvps.capture import image_from_array
+from o3d_mvps.capture.masks import auto_masks
+from o3d_mvps.synthetic import render_ring
 from o3d_mvps.errors import CaptureError
 from o3d_mvps.model import se3
 from o3d_mvps.views import ViewSelection, covisibility, frames_seeing_reference, reference_surface, select_views
@@ -28,25 +30,25 @@ def plane_surface():
     return reference_surface(depth, K, mask)
 
 
-def test_frontal_patch_area_and_normals():
-    points, normals, areas = plane_surface()
+def test_frontal_patch_points_and_normals():
+    points, normals = plane_surface()
     assert len(points) == 16 * 16
     np.testing.assert_allclose(normals, np.tile([0, 0, -1.0], (len(points), 1)), atol=1e-9)
-    # 256 pixels of (0.5 m / 100 px)^2 each
-    assert areas.sum() == pytest.approx(256 * 0.005**2, rel=1e-9)
+    np.testing.assert_allclose(points[:, 2], 0.5)
+    np.testing.assert_allclose(points[0, :2], [(24 - 31.5) * 0.005, (16 - 23.5) * 0.005])
 
 
 def test_covisibility_follows_the_viewing_angle_and_occlusion():
-    points, normals, areas = plane_surface()
+    points, normals = plane_surface()
     poses = np.stack([np.eye(4), orbit(30), orbit(-60), orbit(80), orbit(180)])
-    seen = covisibility(points, normals, areas, poses, K, SIZE)
+    seen = covisibility(points, normals, poses, K, SIZE)
     # within 75 degrees the whole patch is seen; at 80 degrees it is grazing, from behind never
     np.testing.assert_allclose(seen, [1, 1, 1, 0, 0])
     # a frame whose depth lies 10 cm in front of the patch everywhere sees none of it
     blocked = [None, np.full(SIZE, 0.3), None, None, None]
-    assert covisibility(points, normals, areas, poses, K, SIZE, blocked)[1] == 0
+    assert covisibility(points, normals, poses, K, SIZE, blocked)[1] == 0
     missing = [None, np.zeros(SIZE), None, None, None]  # no measurement: no evidence of occlusion
-    assert covisibility(points, normals, areas, poses, K, SIZE, missing)[1] == 1
+    assert covisibility(points, normals, poses, K, SIZE, missing)[1] == 1
 
 
 def test_selection_threshold_cap_and_error():
@@ -83,7 +85,7 @@ def test_refine_on_a_ring_uses_the_frames_that_see_the_reference():
 def test_fine_quantised_depth_does_not_hide_the_surface():
     """A sphere cap 0.6 m away in a 2000 px wide depth map with 1 mm steps (a sensor's): frames
     20 degrees around still see nearly all of it (finite differences at full resolution follow
-    the steps: without the coarse surface grid the 20-degree frames saw 72 %, with it 88 %)."""
+    the steps: without the coarse surface grid the 20-degree frames see 79 %, with it 92 %)."""
     H, W, f = 1500, 2000, 1700.0
     K_fine = np.array([[f, 0, (W - 1) / 2], [0, f, (H - 1) / 2], [0, 0, 1]])
     v, u = np.mgrid[0:H, 0:W]
@@ -94,8 +96,22 @@ def test_fine_quantised_depth_does_not_hide_the_surface():
     disc = b**2 - a * c
     mask = disc > 0.002 * b**2  # away from the grazing rim
     depth = np.where(mask, np.round((b - np.sqrt(np.where(mask, disc, 0))) / a * 1000) / 1000, 0.0)
-    points, normals, areas = reference_surface(depth, K_fine, mask)
+    points, normals = reference_surface(depth, K_fine, mask)
     assert len(points) > 300
     poses = np.stack([np.eye(4), orbit(20, 0.7), orbit(-20, 0.7)])
-    seen = covisibility(points, normals, areas, poses, K_fine, (H, W))
-    assert min(seen[1:]) > 0.85  # measured 0.88
+    seen = covisibility(points, normals, poses, K_fine, (H, W))
+    assert min(seen[1:]) > 0.85  # measured 0.92
+
+
+def test_a_room_scene_ring_keeps_the_neighbouring_frames():
+    """Table, wall and automatic masks: the sensor's mixed depths along the silhouette, steep and
+    of large area, do not outweigh the object (weighted by area the frames 18 degrees away saw
+    38-40 % of the reference and were left out; by pixels 83-84 %)."""
+    capture, _ = render_ring("bunny", frames=20, size=(320, 240), light="room", surroundings=True)
+    masks = auto_masks([capture.depth_array(i) for i in range(capture.n_frames)], capture.depth_K(),
+                       capture.scale_factor)
+    capture.masks = [image_from_array((m * np.uint8(255))[..., None]) for m in masks]
+    sel = frames_seeing_reference(capture, capture.groundtruth.poses)
+    c = sel.covisibility
+    assert min(c[1], c[19]) > 0.75 and max(c[9], c[10], c[11]) < 0.1
+    assert sel.frames == [0, 1, 2, 3, 16, 17, 18, 19]
