@@ -4,6 +4,7 @@ accuracy: every method on rendered captures (bunny, armadillo; SF 2/4/8; 640x480
 frames: error of ours against n in {5, ..., 30} (bunny, SF 4). tau: error against tau~.
 speed: wall time and peak RSS of odometry + refine at 640x480 / 160x120 and 1280x720 / 640x360.
 object: reconstruct rendered 360-degree rings with raw and refined depth; Chamfer, normals, 1/2 workers.
+room: a room-lit scene (table, wall, automatic masks): error and banding along the 1 mm depth steps.
 scaling: time, memory, sweeps and CG iterations against object pixels x frames (--baseline REV
 runs an earlier commit side by side; not part of 'all': hours at the default sizes).
 figures: README pictures (normals of every method, textured preview).
@@ -15,10 +16,10 @@ from __future__ import annotations
 
 import argparse
 
-from . import accuracy, figures, object as object_study, scaling, speed, studies
+from . import accuracy, figures, object as object_study, room, scaling, speed, studies
 from .summary import write_summary
 
-STUDIES = ("accuracy", "frames", "tau", "speed", "figures")
+STUDIES = ("accuracy", "frames", "tau", "speed", "room", "figures")
 
 
 def _run(name: str, args) -> None:
@@ -32,6 +33,8 @@ def _run(name: str, args) -> None:
         scaling.run(args)
     elif name == "object":
         object_study.run(args)
+    elif name == "room":
+        room.run(args)
     else:
         studies.run(args, name)
 
@@ -51,6 +54,8 @@ def main(argv=None) -> int:
                                          help="time against object pixels x frames, against a baseline revision"))
     object_study.add_arguments(sub.add_parser("object", parents=[common],
                                               help="whole-object reconstruction on 360-degree rings, raw vs refined"))
+    room.add_arguments(sub.add_parser("room", parents=[common],
+                                      help="room light and the 1 mm depth steps: error and banding"))
     figures.add_arguments(sub.add_parser("figures", parents=[common], help="README pictures (normals, preview)"))
     sub.add_parser("all", parents=[common], help="every benchmark with its defaults")
     args = parser.parse_args(argv)

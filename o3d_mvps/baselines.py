@@ -23,10 +23,12 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import scipy.sparse as sp
+from scipy.sparse.linalg import spsolve
 
 from .errors import CaptureError
 from .model.resampling import block_average, fill_nearest_valid
 from .refinement import Refinement
+from .solver.options import DEFAULT_SMOOTHNESS
 
 #: Rec. 709 luminance weights of linear RGB, for the guided filter's grey guide.
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
@@ -231,3 +233,28 @@ def guided(capture, radius: int = 1, eps: float = 0.3) -> Refinement:
     B = upsample_bicubic(fill_nearest_valid(B, covered), sf)
     depth = A * guide + B
     return Refinement.from_arrays(depth, mask & (depth > 0), capture.color_K(), method="guided", albedo=None)
+
+
+def smooth_fit(capture, smoothness: float = DEFAULT_SMOOTHNESS["sh"], tau: float = 10.0) -> Refinement:
+    """The smooth fit of the sensor depth: the refinement's prior alone, no photometric term.
+
+    Minimises ``tau ||D z - z0||^2 + mu ||S z||^2`` over the reference mask at colour resolution,
+    with the solver's block average D, second differences S and weights normalised as the solver's
+    (:func:`o3d_mvps.solver.driver.normalised_tau`, :func:`~o3d_mvps.solver.driver.normalised_smoothness`);
+    what the refinement falls back to where the images say nothing (room light). Starts from bicubic.
+    """
+    from .model.normals import masked_grid
+    from .solver.driver import normalised_smoothness, normalised_tau
+    from .solver.pyramid import depth_prior, second_differences
+
+    start, mask, sf = _reference(capture)
+    grid = masked_grid(mask)
+    prior = depth_prior(grid, capture.depth_array(0).astype(np.float64), sf)
+    prior.S = second_differences(grid)
+    # the common factor n mean(I)^2 |C| / mean(z0)^2 of both weights drops out of the minimiser
+    hessian, rhs = prior.normal_equations(grid.gather(start), normalised_tau(tau, 1, 1.0, grid.size, 1.0, prior.rows),
+                                          normalised_smoothness(smoothness, 1, 1.0, 1.0, 0))
+    ridge = 1e-9 * float(hessian.diagonal().mean())  # pixels outside every full block and stencil stay put
+    step = spsolve((hessian + ridge * sp.identity(grid.size)).tocsc(), rhs)
+    depth = grid.scatter(grid.gather(start) + step)
+    return Refinement.from_arrays(depth, mask, capture.color_K(), method="smooth fit", albedo=None)

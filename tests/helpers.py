@@ -186,9 +186,58 @@ def relief_capture(frames: int = 6, size=(160, 120), scale_factor: int = 4, max_
         color=[image_from_array(c.astype(np.float32)) for c in color],
         depth=[image_from_array(d.astype(np.float32)[..., None]) for d in depth],
         color_intrinsic=o3d.core.Tensor(K), depth_intrinsic=o3d.core.Tensor(default_depth_intrinsic(K, scale_factor)),
-        color_encoding="linear", sensor="analytic relief",
+        color_encoding="linear", sensor="analytic relief", light="led",
         groundtruth=GroundTruth(depth=reference[0].astype(np.float32), normals=reference[1].astype(np.float32),
                                 albedo=reference[2].astype(np.float32), poses=poses, light={"model": "led"},
                                 mesh_to_reference=np.eye(4)),
         metadata={"led_offset": LED.tolist()},
     )
+
+
+# --- pose files of other tools -------------------------------------------------------------
+def world_to_camera(truth: np.ndarray) -> np.ndarray:
+    """The true poses (n, 4, 4; reference -> frame) as world-to-camera extrinsics of an arbitrary
+    world (not the reference camera), as another tool would write them."""
+    from scipy.spatial.transform import Rotation
+
+    world_to_reference = np.eye(4)
+    world_to_reference[:3, :3] = Rotation.from_rotvec([0.3, -1.1, 0.4]).as_matrix()
+    world_to_reference[:3, 3] = [0.5, -2.0, 1.2]
+    return truth @ world_to_reference
+
+
+def write_open3d(path, extrinsics) -> None:
+    """Open3D's own writer (.json PinholeCameraTrajectory or .log camera-to-world) of (n, 4, 4) extrinsics."""
+    trajectory = o3d.camera.PinholeCameraTrajectory()
+    params = []
+    for E in extrinsics:
+        p = o3d.camera.PinholeCameraParameters()
+        p.intrinsic = o3d.camera.PinholeCameraIntrinsic(160, 120, 150.0, 150.0, 79.5, 59.5)
+        p.extrinsic = E
+        params.append(p)
+    trajectory.parameters = params
+    assert o3d.io.write_pinhole_camera_trajectory(str(path), trajectory)
+
+
+def write_tum(path, extrinsics, ids) -> None:
+    """TUM lines ``id tx ty tz qx qy qz qw`` (camera-to-world) of (n, 4, 4) extrinsics."""
+    from scipy.spatial.transform import Rotation
+
+    lines = ["# id tx ty tz qx qy qz qw"]
+    for i, E in zip(ids, extrinsics):
+        C = np.linalg.inv(E)
+        q = Rotation.from_matrix(C[:3, :3]).as_quat()
+        lines.append(f"{i} " + " ".join(f"{v:.9f}" for v in [*C[:3, 3], *q]))
+    path.write_text("\n".join(lines) + "\n")
+
+
+def write_pose_file(path, truth: np.ndarray) -> None:
+    """Write the true poses (n, 4, 4) to ``path`` in the format its suffix names (.json, .log, .txt, .npy)."""
+    E = world_to_camera(truth)
+    if path.suffix in (".json", ".log"):
+        write_open3d(path, E)
+    elif path.suffix == ".txt":
+        write_tum(path, E, range(len(E)))
+    else:
+        np.save(path, E)
+

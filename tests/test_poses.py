@@ -3,14 +3,14 @@
 import json
 
 import numpy as np
-import open3d as o3d
 import pytest
-from scipy.spatial.transform import Rotation
 
 from o3d_mvps.capture import read_capture_poses, write_capture
 from o3d_mvps.cli import main
 from o3d_mvps.errors import CaptureError
 from o3d_mvps.synthetic import render_capture
+
+from helpers import world_to_camera, write_open3d, write_pose_file, write_tum
 
 N = 4
 
@@ -27,46 +27,10 @@ def truth(folder):
     return np.load(folder / "groundtruth" / "poses.npy")
 
 
-def world_to_camera(truth):
-    """The true poses as world-to-camera extrinsics of an arbitrary world (not the reference camera)."""
-    world_to_reference = np.eye(4)
-    world_to_reference[:3, :3] = Rotation.from_rotvec([0.3, -1.1, 0.4]).as_matrix()
-    world_to_reference[:3, 3] = [0.5, -2.0, 1.2]
-    return truth @ world_to_reference
-
-
-def write_open3d(path, extrinsics):
-    """Open3D's own writer (.json PinholeCameraTrajectory or .log camera-to-world)."""
-    trajectory = o3d.camera.PinholeCameraTrajectory()
-    params = []
-    for E in extrinsics:
-        p = o3d.camera.PinholeCameraParameters()
-        p.intrinsic = o3d.camera.PinholeCameraIntrinsic(160, 120, 150.0, 150.0, 79.5, 59.5)
-        p.extrinsic = E
-        params.append(p)
-    trajectory.parameters = params
-    assert o3d.io.write_pinhole_camera_trajectory(str(path), trajectory)
-
-
-def write_tum(path, extrinsics, ids):
-    lines = ["# id tx ty tz qx qy qz qw"]
-    for i, E in zip(ids, extrinsics):
-        C = np.linalg.inv(E)
-        q = Rotation.from_matrix(C[:3, :3]).as_quat()
-        lines.append(f"{i} " + " ".join(f"{v:.9f}" for v in [*C[:3, 3], *q]))
-    path.write_text("\n".join(lines) + "\n")
-
-
 @pytest.mark.parametrize("name", ["poses.json", "poses.log", "poses.txt", "poses.npy"])
 def test_each_format_round_trips_the_true_poses(folder, truth, tmp_path, name):
-    E = world_to_camera(truth)
     path = tmp_path / name
-    if name.endswith((".json", ".log")):
-        write_open3d(path, E)
-    elif name.endswith(".txt"):
-        write_tum(path, E, range(N))
-    else:
-        np.save(path, E)
+    write_pose_file(path, truth)
     poses, read_from = read_capture_poses(folder, path)
     assert read_from == path
     tolerance = 1e-6  # .log and TUM files hold 8-9 decimals

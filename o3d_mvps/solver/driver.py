@@ -43,6 +43,14 @@ def normalised_tau(tau_tilde: float, n_frames: int, mean_intensity: float, n_hr:
     return tau_tilde * n_frames * mean_intensity**2 * n_hr * channels / (mean_z0**2 * max(n_lr, 1))
 
 
+def normalised_smoothness(mu_tilde: float, n_frames: int, mean_intensity: float, mean_z0: float, level: int,
+                          channels: int = 3) -> float:
+    """mu = mu~ n mean(I)^2 |C| / (mean(z0)^2 16^level): per pixel on the data term's scale, and
+    on every level the same penalty of a surface's curvature (a second difference over pixels
+    2^level times wider is 4^level times larger)."""
+    return mu_tilde * n_frames * mean_intensity**2 * channels / (mean_z0**2 * 16.0**level)
+
+
 def _reference_mask(problem_input: SolverInput) -> np.ndarray:
     """(H, W) bool: frame 0's mask, else its valid depth pixels."""
     mask = problem_input.masks[0]
@@ -190,6 +198,9 @@ def solve(problem_input: SolverInput, options: RefineOptions | None = None, devi
     """
     options = problem_input.options if options is None else options
     check_device(device)
+    if options.light_model is None:
+        raise ValueError("options.light_model is None: the solver needs 'led' or 'sh' (o3d_mvps.refine takes it "
+                         "from the capture's light)")
     # The solver's BLAS calls are vector dots/norms (CG, AMG) and thin products: on a loaded
     # 2-core machine OpenBLAS's threads made each 60k-vector norm take ~5 ms instead of 30 us
     # (~20 % of a 640x480 refinement); one thread loses nothing on an idle machine.
@@ -244,7 +255,8 @@ def _solve(problem_input: SolverInput, options: RefineOptions) -> SolverOutput:
         est = Estimate(level.prior.clip(g.gather(carried.z).astype(np.float64)),
                        g.gather(carried.albedo).astype(np.float64), carried.lights, carried.poses, carried.led_offset)
         tau = normalised_tau(options.tau, n_frames, mean_I, g.size, mean_z0, level.prior.rows)
-        problem = LevelProblem(level, tau, options.cauchy_lambda, light)
+        mu = normalised_smoothness(options.model.smoothness_weight(), n_frames, mean_I, mean_z0, level_index)
+        problem = LevelProblem(level, tau, options.cauchy_lambda, light, mu)
         problem.update_visibility(est, occlusion_test=options.occlusion_test, rel_tol=options.occlusion_tolerance,
                                   sensor_depths=sensor_depths, depth_K=depth_K)
         ev = problem.evaluate(est)

@@ -193,10 +193,9 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
     # (N, 6m) with frame j's twist in columns 6j..6j+5: the transpose of a (6m, N) array
     coupling = (stencil_transpose_rows(grid, *(np.ascontiguousarray(r).reshape(6 * m, N) for r in rows)).T
                 if m else np.zeros((N, 0)))
-    prior = problem.level.prior
-    two_tau = 2.0 * problem.tau
-    matrix = stencil_normal_matrix(grid, Saa, Sbb, Sgg, Sab, Sag, Sbg) + two_tau * (prior.D.T @ prior.D)
-    rhs_z = -stencil_transpose(grid, Ba, Bb, Bg) - two_tau * (prior.D.T @ (prior.D @ est.z - prior.z0))
+    prior_hessian, prior_rhs = problem.level.prior.normal_equations(est.z, problem.tau, problem.mu)
+    matrix = stencil_normal_matrix(grid, Saa, Sbb, Sgg, Sab, Sag, Sbg) + prior_hessian
+    rhs_z = -stencil_transpose(grid, Ba, Bb, Bg) + prior_rhs
     return JointSystem(sp.csr_matrix(matrix), rhs_z, coupling, hessian, rhs_xi, frames)
 
 

@@ -1,7 +1,8 @@
 """The energy of one pyramid level and the quantities every update step reads.
 
-E = sum_i sum_{p visible in i} sum_c phi(I~_ic(p) - rho_c(p) s_i(p)) + tau ||D z - z0||^2, with the
-shading ``s_i(p) = <B_i(p), l_i>`` of the level's light model (see :mod:`.lighting`).
+E = sum_i sum_{p visible in i} sum_c phi(I~_ic(p) - rho_c(p) s_i(p)) + tau ||D z - z0||^2 + mu ||S z||^2,
+with the shading ``s_i(p) = <B_i(p), l_i>`` of the level's light model (see :mod:`.lighting`) and
+S the depth's second differences (:func:`.pyramid.second_differences`).
 """
 
 from __future__ import annotations
@@ -72,12 +73,13 @@ class Evaluation:
 
 
 class LevelProblem:
-    """Evaluates the level energy; holds the per-level visibility and tau."""
+    """Evaluates the level energy; holds the per-level visibility, tau and mu (the smoothness weight)."""
 
-    def __init__(self, level: Level, tau: float, cauchy_lambda: float, light=None):
+    def __init__(self, level: Level, tau: float, cauchy_lambda: float, light=None, smoothness: float = 0.0):
         self.level = level
         self.light = SHLight() if light is None else light
         self.tau = float(tau)
+        self.mu = float(smoothness)
         self.lam = float(cauchy_lambda)
         self.n_frames = len(level.images)
         self.visibility = np.ones((self.n_frames, level.grid.size), dtype=bool)
@@ -139,9 +141,8 @@ class LevelProblem:
 
     # energy ------------------------------------------------------------------------------
     def prior_energy(self, z: np.ndarray) -> float:
-        p = self.level.prior
-        d = p.D @ z - p.z0
-        return self.tau * float(d @ d)
+        """The prior's energy at depth z (N,) metres (:meth:`.pyramid.DepthPrior.energy`)."""
+        return self.level.prior.energy(z, self.tau, self.mu)
 
     def light_model(self, est: Estimate):
         """The level's light model at the estimate's LED offset (its own where the estimate has none)."""

@@ -4,6 +4,7 @@ Level 0 is the colour resolution; level l has the colour size divided by 2^l. Th
 prior compares D z with the low-resolution reference depth z0: where a level's grid is finer
 than the depth grid by an integer factor k >= 2, D averages k x k blocks (only blocks fully
 inside the mask with a valid z0); otherwise D is the identity on z0 resampled to the level.
+Its smoothness part S takes the depth's second differences along rows and columns.
 """
 
 from __future__ import annotations
@@ -28,13 +29,34 @@ def level_size(size: tuple[int, int], level: int) -> tuple[int, int]:
 
 @dataclass
 class DepthPrior:
-    """tau * || D z - z0 ||^2 on one level: D (M, N) sparse, z0 (M,) metres; the depth envelope
-    lower <= z <= upper, (N,) metres each (see :func:`depth_envelope`)."""
+    """tau * || D z - z0 ||^2 + mu * || S z ||^2 on one level: D (M, N) sparse, z0 (M,) metres;
+    S (K, N) sparse second differences (:func:`second_differences`, None: no smoothness term);
+    the depth envelope lower <= z <= upper, (N,) metres each (see :func:`depth_envelope`)."""
 
     D: sp.csr_matrix
     z0: np.ndarray
     lower: np.ndarray | None = None
     upper: np.ndarray | None = None
+    S: sp.csr_matrix | None = None
+
+    def energy(self, z: np.ndarray, tau: float, mu: float) -> float:
+        """tau ||D z - z0||^2 + mu ||S z||^2 of depth z (N,) metres."""
+        d = self.D @ z - self.z0
+        e = tau * float(d @ d)
+        if mu > 0 and self.S is not None:
+            s = self.S @ z
+            e += mu * float(s @ s)
+        return e
+
+    def normal_equations(self, z: np.ndarray, tau: float, mu: float) -> tuple[sp.csr_matrix, np.ndarray]:
+        """The energy's Hessian (N, N) and minus its gradient (N,) at depth z (N,)."""
+        hessian = 2.0 * tau * (self.D.T @ self.D)
+        rhs = -2.0 * tau * (self.D.T @ (self.D @ z - self.z0))
+        if mu > 0 and self.S is not None:
+            StS = self.S.T @ self.S
+            hessian = hessian + 2.0 * mu * StS
+            rhs = rhs - 2.0 * mu * (StS @ z)
+        return hessian, rhs
 
     def clip(self, z: np.ndarray) -> np.ndarray:
         """z (N,) clipped into the envelope."""
@@ -65,6 +87,22 @@ def depth_prior(grid: MaskedGrid, z0: np.ndarray, level_factor: float) -> DepthP
     cols = np.nonzero(on)[0]
     D = sp.csr_matrix((np.ones(cols.size), (np.arange(cols.size), cols)), shape=(cols.size, grid.size))
     return DepthPrior(D, z0_level[grid.v[on], grid.u[on]])
+
+
+def second_differences(grid: MaskedGrid) -> sp.csr_matrix:
+    """S (K, N): the second differences z[p-1] - 2 z[p] + z[p+1] along rows and along columns, at
+    every masked pixel whose two neighbours in that direction are masked (metres for z in metres)."""
+    rows, cols, vals = [], [], []
+    count = 0
+    own = np.arange(grid.size)
+    for fwd, bwd, wf, wb in ((grid.fwd_u, grid.bwd_u, grid.wf_u, grid.wb_u), (grid.fwd_v, grid.bwd_v, grid.wf_v, grid.wb_v)):
+        both = own[(wf == 0.5) & (wb == 0.5)]
+        r = count + np.arange(both.size)
+        rows += [r, r, r]
+        cols += [bwd[both], both, fwd[both]]
+        vals += [np.ones(both.size), np.full(both.size, -2.0), np.ones(both.size)]
+        count += both.size
+    return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(count, grid.size))
 
 
 def depth_envelope(z0: np.ndarray, size: tuple[int, int], margin: float) -> tuple[np.ndarray, np.ndarray]:
@@ -122,6 +160,7 @@ def build_level(index: int, colors: list, masks: list, ref_mask: np.ndarray, K: 
     mask = resize(ref_mask.astype(np.float32), size) > 0.5
     grid = masked_grid(mask, scheme)
     prior = depth_prior(grid, z0, scale_factor / 2**index)
+    prior.S = second_differences(grid)
     if envelope_margin is not None:
         prior.lower, prior.upper = (grid.gather(b) for b in depth_envelope(z0, size, envelope_margin))
     return Level(index, grid, K_level, size, images, gradients, frame_masks, prior)
