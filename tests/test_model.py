@@ -264,3 +264,26 @@ def test_scale_factor_rule_of_native_and_registered_depth():
     check_depth_unit(np.array([0.0, 0.6, 0.61]), "frame 0", "fix it")
     with pytest.raises(CaptureError, match="frame 0: median depth 605 m.*fix it"):
         check_depth_unit(np.array([0.0, 600.0, 610.0]), "frame 0", "fix it")
+
+
+def test_smoothness_prior_is_zero_on_planes_and_its_gradient_matches_finite_differences():
+    from o3d_mvps.model.normals import masked_grid
+    from o3d_mvps.solver.pyramid import depth_prior, second_differences
+
+    rng = np.random.default_rng(0)
+    mask = np.zeros((24, 32), bool)
+    mask[3:21, 4:30] = True
+    mask[10:14, 10:13] = False  # a hole: no stencil reaches across it
+    grid = masked_grid(mask)
+    S = second_differences(grid)
+    plane = 0.6 + 0.002 * grid.u - 0.001 * grid.v
+    np.testing.assert_allclose(S @ plane, 0.0, atol=1e-12)
+    assert S.shape[0] > 0 and np.all(np.abs(S).sum(axis=1) == 4)  # 1, -2, 1 on three masked pixels
+    prior = depth_prior(grid, rng.uniform(0.55, 0.65, (6, 8)), 4.0)
+    prior.S = S
+    z = plane + 0.001 * rng.normal(size=grid.size)
+    hessian, rhs = prior.normal_equations(z, 3.0, 5.0)
+    step = 1e-6 * rng.normal(size=grid.size)
+    change = prior.energy(z + step, 3.0, 5.0) - prior.energy(z - step, 3.0, 5.0)
+    assert change == pytest.approx(-2 * rhs @ step, rel=1e-6)  # rhs is minus the gradient
+    np.testing.assert_allclose(hessian @ step, -(prior.normal_equations(z + step, 3.0, 5.0)[1] - rhs), rtol=1e-6, atol=1e-12)
