@@ -14,7 +14,7 @@ import numpy as np
 import open3d as o3d
 
 from .capture import Capture, default_depth_intrinsic, image_from_array, to_host, validate_capture
-from .capture.layout import CAPTURE_LIGHTS
+from .capture.validation import check_light
 from .colour import srgb_to_linear
 from .errors import CaptureError
 from .model.camera import as_intrinsic_matrix
@@ -112,8 +112,7 @@ def refine_rgbd(
     >>> color = refined[0].color.to(o3d.core.float32, scale=1 / 255)  # doctest: +SKIP
     >>> vbg.integrate(coords, refined[0].depth, color, K, extrinsic, 1.0, 3.0)  # doctest: +SKIP
     """
-    if light not in CAPTURE_LIGHTS:
-        raise CaptureError(f"light must be one of {', '.join(map(repr, CAPTURE_LIGHTS))}, got {light!r}")
+    check_light(light)
     capture = capture_from_rgbd(rgbd_images, intrinsic, scale_factor=scale_factor, masks=masks,
                                 depth_scale=depth_scale)
     capture.light = light

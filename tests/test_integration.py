@@ -127,4 +127,6 @@ def test_errors(capture):
         refine_rgbd(good, K, scale_factor=2)
     with pytest.raises(CaptureError, match="1 masks for 2 frames"):
         refine_rgbd(good, K, masks=[None])
+    with pytest.raises(CaptureError, match=r"light must be one of 'led', 'room'.*got 'flash'"):
+        refine_rgbd(good, K, light="flash")
     assert o3d_mvps.refine_rgbd is refine_rgbd

@@ -38,9 +38,10 @@ def test_scene_mode_renders_a_room_without_masks(scene):
     # the sensor sees the table and wall around the object: most of the image has depth, most of it not the object
     assert (depth > 0).mean() > 0.8 and on_object.mean() < 0.1
     assert capture.groundtruth.light["model"] == "room"
-    # the automatic masks find the object: IoU with the true silhouette (measured 0.88; blocky at 80 x 60 depth)
+    # the automatic masks find the object: IoU with the true silhouette (measured 0.88, blocky at 80 x 60
+    # depth; 0.84 before thin parts were grown back)
     mask = read_capture(folder).mask_array(0)
-    assert (mask & on_object).sum() / (mask | on_object).sum() > 0.83
+    assert (mask & on_object).sum() / (mask | on_object).sum() > 0.86
 
 
 def shading_change(light: str) -> float:
@@ -78,6 +79,21 @@ def test_the_light_model_comes_from_capture_json(scene):
     led.light = None
     with pytest.warns(UserWarning, match='no "light" in capture.json.*"led".*"room"'):
         assert with_light_model(RefineOptions(), led).light_model == "led"
+
+
+def test_the_smoothness_follows_the_light_model_unless_given():
+    assert RefineOptions(light_model="sh").model.smoothness_weight() == 30.0  # room light: the images pin little
+    assert RefineOptions(light_model="led").model.smoothness_weight() == 0.0
+    assert RefineOptions(light_model="led", smoothness=5).model.smoothness_weight() == 5.0
+
+
+def test_render_cli_scene_mode(tmp_path):
+    assert main(["--quiet", "render", "bunny", str(tmp_path / "room"), "--scene", "--light", "room", "--frames", "3",
+                 "--size", "64x48"]) == 0
+    settings = json.loads((tmp_path / "room" / "capture.json").read_text())
+    assert settings["light"] == "room" and settings["frames"] == 3 and not (tmp_path / "room" / "mask").exists()
+    capture = read_capture(tmp_path / "room", mask="none")
+    assert (capture.depth_array(0) > 0).mean() > 0.8  # the table and wall have depth
 
 
 def test_a_bad_light_in_capture_json_is_named(scene, tmp_path):

@@ -14,7 +14,6 @@ from ..colour import srgb_to_linear
 from ..errors import CaptureError
 from .layout import (
     CAPTURE_JSON,
-    CAPTURE_LIGHTS,
     COLOR_DIR,
     COLOR_SUFFIXES,
     DEFAULT_SETTINGS,
@@ -28,7 +27,7 @@ from .layout import (
 )
 from .masks import auto_masks
 from .types import Capture, GroundTruth, default_depth_intrinsic, image_from_array
-from .validation import check_settings, groundtruth_problem, intrinsic_matrix, size_text, validate_capture
+from .validation import check_light, check_settings, groundtruth_problem, intrinsic_matrix, size_text, validate_capture
 
 #: EXIF tag of the image orientation (1 = stored as displayed).
 EXIF_ORIENTATION = 0x0112
@@ -332,9 +331,7 @@ def _read_settings(path: Path) -> dict:
     if not isinstance(settings["metadata"], dict):
         raise CaptureError(f"{path}: metadata must be a JSON object")
     settings["sensor"] = str(settings["sensor"])
-    if settings["light"] is not None and settings["light"] not in CAPTURE_LIGHTS:
-        raise CaptureError(f"{path}: light must be one of {', '.join(map(repr, CAPTURE_LIGHTS))} (the LED on the camera "
-                           f"or room light), got {settings['light']!r}; fix the file or remove the key")
+    check_light(settings["light"], f"{path}: ")
     return settings
 
 

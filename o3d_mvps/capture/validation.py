@@ -9,7 +9,7 @@ import numpy as np
 from ..errors import CaptureError
 from ..model.camera import as_intrinsic_matrix
 from ..model.sensor import check_depth_unit, choose_scale_factor
-from .layout import COLOR_ENCODINGS
+from .layout import CAPTURE_LIGHTS, COLOR_ENCODINGS
 
 if TYPE_CHECKING:
     from .types import Capture, GroundTruth
@@ -92,6 +92,13 @@ def check_settings(depth_scale, depth_trunc, color_encoding, color_bit_depth, wh
         raise CaptureError(f"{where}color_encoding {color_encoding!r} is unknown; use one of {COLOR_ENCODINGS}")
     if color_bit_depth not in (8, 16):
         raise CaptureError(f"{where}color_bit_depth {color_bit_depth!r} is unsupported; use 8 or 16")
+
+
+def check_light(light, where: str = "") -> None:
+    """Check a capture's ``light`` (None, or one of :data:`.layout.CAPTURE_LIGHTS`); ``where`` prefixes the message."""
+    if light is not None and light not in CAPTURE_LIGHTS:
+        raise CaptureError(f"{where}light must be one of {', '.join(map(repr, CAPTURE_LIGHTS))} (the LED on the camera "
+                           f"or room light), got {light!r}")
 
 
 def groundtruth_problem(gt: GroundTruth, n: int, color_size) -> str | None:

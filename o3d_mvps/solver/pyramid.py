@@ -10,6 +10,7 @@ Its smoothness part S takes the depth's second differences along rows and column
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import cv2
 import numpy as np
@@ -48,14 +49,23 @@ class DepthPrior:
             e += mu * float(s @ s)
         return e
 
+    @cached_property
+    def DtD(self) -> sp.csr_matrix:
+        """D^T D (N, N), built once per level."""
+        return (self.D.T @ self.D).tocsr()
+
+    @cached_property
+    def StS(self) -> sp.csr_matrix:
+        """S^T S (N, N), built once per level (S is set when the level is built, before any use)."""
+        return (self.S.T @ self.S).tocsr()
+
     def normal_equations(self, z: np.ndarray, tau: float, mu: float) -> tuple[sp.csr_matrix, np.ndarray]:
         """The energy's Hessian (N, N) and minus its gradient (N,) at depth z (N,)."""
-        hessian = 2.0 * tau * (self.D.T @ self.D)
+        hessian = 2.0 * tau * self.DtD
         rhs = -2.0 * tau * (self.D.T @ (self.D @ z - self.z0))
         if mu > 0 and self.S is not None:
-            StS = self.S.T @ self.S
-            hessian = hessian + 2.0 * mu * StS
-            rhs = rhs - 2.0 * mu * (StS @ z)
+            hessian = hessian + 2.0 * mu * self.StS
+            rhs = rhs - 2.0 * mu * (self.StS @ z)
         return hessian, rhs
 
     def clip(self, z: np.ndarray) -> np.ndarray:
