@@ -6,10 +6,16 @@ no noise, so the depth's 1 mm quantisation steps are the iso-depth lines)
 is refined with the true poses, without the smoothness term (``smoothness=0``, the model before
 it) and with the room-light default; against bicubic upsampling and the smooth fit of the sensor
 depth (:func:`o3d_mvps.baselines.smooth_fit`, what the refinement falls back to where the
-photometric terms say nothing). Banding: the normal error on *step pixels* (colour pixels whose
-depth pixel differs from a neighbouring depth pixel by a quantisation step: the iso-depth lines)
-against the other evaluated pixels; a ratio above 1 means the steps show through. Writes
-``room.json``, ``room.md`` and ``room_banding.png`` (normal error maps).
+photometric terms say nothing).
+
+Banding is measured by the *quantisation phase* of each colour pixel: where its true depth lies
+between two of the sensor's levels, ``frac(z / step + 1/2)`` (0 and 1 on an iso-depth line, where
+the sensor's reading jumps; 1/2 mid-terrace). Pixels within 1/8 of a step of an iso-depth line
+are "on the lines", the rest "elsewhere"; a ratio of their mean normal errors above 1 means the
+steps show through. Every slope spreads its pixels evenly over the phase, so the ratio does not
+confuse steep parts (more steps, larger errors) with banding, as counting the pixels beside a
+sensor step did (that measure is kept as ``mae_beside_steps_deg``). Writes ``room.json``,
+``room.md`` and ``room_banding.png`` (normal error maps; error against phase).
 """
 
 from __future__ import annotations
@@ -28,10 +34,12 @@ from o3d_mvps.capture import read_capture, write_capture
 from o3d_mvps.fileio import json_text
 from o3d_mvps.metrics import evaluation_mask
 from o3d_mvps.model.resampling import repeat_pixels
-from o3d_mvps.synthetic import render_ring
+from o3d_mvps.synthetic import DEPTH_SCALE, render_ring
 
 FULL = {"size": (640, 480), "scale_factor": 4, "frames": 20}
 QUICK = {"size": (160, 120), "scale_factor": 4, "frames": 12}
+ON_LINE = 0.125  # phase distance (steps) from an iso-depth line that counts as "on the line"
+PHASE_BINS = 8
 
 
 def add_arguments(parser) -> None:
@@ -51,6 +59,20 @@ def step_pixels(depth_lr: np.ndarray, scale_factor: int) -> np.ndarray:
     return repeat_pixels(step, scale_factor)
 
 
+def quantisation_phase(depth: np.ndarray, step: float = 1.0 / DEPTH_SCALE) -> np.ndarray:
+    """(H, W) in [0, 1): where a true depth (m) lies between two sensor levels (0 = on an iso-depth line)."""
+    return np.mod(depth / step + 0.5, 1.0)
+
+
+def phase_profile(error: np.ndarray, phase: np.ndarray, bins: int = PHASE_BINS) -> list[float]:
+    """Mean error (deg) of the evaluated pixels in each of ``bins`` equal phase bins."""
+    common = np.isfinite(error)
+    index = np.minimum((phase[common] * bins).astype(int), bins - 1)
+    sums = np.bincount(index, weights=error[common], minlength=bins)
+    counts = np.bincount(index, minlength=bins)
+    return [float(s / c) if c else float("nan") for s, c in zip(sums, counts)]
+
+
 def angular_error(refinement, groundtruth) -> np.ndarray:
     """(H, W) degrees between the refinement's normals and the true ones (NaN off the evaluated pixels)."""
     common = evaluation_mask(refinement, groundtruth)
@@ -65,11 +87,16 @@ def row(name: str, refinement, capture, steps: np.ndarray, seconds: float | None
     common = np.isfinite(error)
     depth = refinement.depth_array()
     rmse = 1000 * float(np.sqrt(np.mean((depth[common] - capture.groundtruth.depth[common]) ** 2)))
-    on, off = error[common & steps], error[common & ~steps]
+    phase = quantisation_phase(capture.groundtruth.depth)
+    on_line = np.minimum(phase, 1.0 - phase) < ON_LINE
+    on, off = error[common & on_line], error[common & ~on_line]
     mean_on, mean_off = (float(np.mean(e)) if e.size else None for e in (on, off))
+    beside = error[common & steps]
     return {"method": name, "mae_deg": float(np.mean(error[common])), "rmse_mm": rmse,
-            "mae_steps_deg": mean_on, "mae_elsewhere_deg": mean_off,
-            "banding_ratio": mean_on / mean_off if on.size and off.size else None, "step_pixels": int(on.size),
+            "mae_on_lines_deg": mean_on, "mae_elsewhere_deg": mean_off,
+            "banding_ratio": mean_on / mean_off if on.size and off.size else None,
+            "mae_by_phase_deg": phase_profile(error, phase),
+            "mae_beside_steps_deg": float(np.mean(beside)) if beside.size else None,
             "pixels": int(common.sum()), "seconds": seconds}, error
 
 
@@ -101,14 +128,19 @@ def run(args) -> None:
     (out / "room.json").write_text(json_text(result, "room study"))
     lines = [f"# Room light, {args.mesh}, {case['size'][0]}x{case['size'][1]}, SF {case['scale_factor']}, "
              f"{case['frames']} frames (table, wall, automatic masks, true poses)", "",
-             "| method | MAE deg | RMSE mm | MAE on steps | MAE elsewhere | banding ratio | seconds |",
+             "| method | MAE deg | RMSE mm | MAE on iso-depth lines | MAE elsewhere | banding ratio | seconds |",
              "|---|---|---|---|---|---|---|"]
     def cell(value, digits=2):
         return "" if value is None else f"{value:.{digits}f}"
 
     for r in rows:
-        lines.append(f"| {r['method']} | {cell(r['mae_deg'])} | {cell(r['rmse_mm'])} | {cell(r['mae_steps_deg'])} | "
+        lines.append(f"| {r['method']} | {cell(r['mae_deg'])} | {cell(r['rmse_mm'])} | {cell(r['mae_on_lines_deg'])} | "
                      f"{cell(r['mae_elsewhere_deg'])} | {cell(r['banding_ratio'])} | {cell(r['seconds'], 1)} |")
+    centres = [f"{(i + 0.5) / PHASE_BINS:.2f}" for i in range(PHASE_BINS)]
+    lines += ["", "Mean normal error (deg) against the quantisation phase of the true depth (0 and 1: on an "
+              "iso-depth line; 0.5: mid-terrace):", "",
+              "| method | " + " | ".join(centres) + " |", "|---|" + "---|" * PHASE_BINS]
+    lines += [f"| {r['method']} | " + " | ".join(cell(v) for v in r["mae_by_phase_deg"]) + " |" for r in rows]
     (out / "room.md").write_text("\n".join(lines) + "\n")
     _picture(maps, out / "room_banding.png")
 

@@ -46,7 +46,7 @@ def run(args) -> int:
     check_folder(args.out, args.overwrite, "output folder")
     capture = record_capture(args.record_frames, args.color, args.depth, fps=args.fps, interval=args.interval,
                              on_key=args.on_key, emitter=args.emitter == "on", exposure_us=args.exposure,
-                             serial=args.serial, progress=not args.quiet)
+                             serial=args.serial, light=args.light, progress=not args.quiet)
     say(args, f"recorded {capture.n_frames} frames; refining ...")
     refinement = refine(capture, options_from_args(args))
     log_energy(refinement, args.quiet)

@@ -381,6 +381,8 @@ def test_cli_parsers():
     args = parser.parse_args(["record", "out", "--frames", "5", "--color", "1280x720", "--depth", "848x480",
                               "--on-key", "--emitter", "off", "--exposure", "8000"])  # fmt: skip
     assert args.color == (1280, 720) and args.depth == (848, 480) and args.on_key and args.emitter == "off"
+    assert args.light == "led"  # the product's camera carries an LED
+    assert parser.parse_args(["convert", "in.bag", "out"]).light is None
     with pytest.raises(SystemExit):
         parser.parse_args(["record", "out", "--interval", "1", "--on-key"])
     with pytest.raises(SystemExit):
@@ -401,3 +403,16 @@ def test_convert_writes_a_readable_capture(recorded, tmp_path):
     k = meta["frame_numbers"][0]
     np.testing.assert_allclose(capture.depth_array(0), recorded[2][k] * UNITS, atol=1e-6)  # whole mm survive PNG
     assert cli_main(["--quiet", "convert", str(recorded[0]), str(out)]) == 1  # exists, no --overwrite
+    assert capture.light is None  # not said: refine assumes the LED and warns
+    assert cli_main(["--quiet", "convert", str(recorded[0]), str(out), "--frames", "3", "--light", "room",
+                     "--overwrite"]) == 0  # fmt: skip
+    assert read_capture(out).light == "room"
+
+
+def test_light_is_checked_before_reading(tmp_path):
+    from o3d_mvps.errors import CaptureError
+
+    with pytest.raises(CaptureError, match="light must be one of 'led', 'room'.*got 'flash'"):
+        read_recording(tmp_path / "missing.db3", light="flash")  # the light is refused, not the missing file
+    with pytest.raises(CaptureError, match="light must be one of"):
+        record_capture(frames=2, light="sun", progress=False)  # before looking for a camera

@@ -11,6 +11,7 @@ import argparse
 from pathlib import Path
 
 from ..capture import write_capture
+from ..capture.layout import CAPTURE_LIGHTS
 from .argtypes import image_size, positive_int
 from .outputs import add_overwrite_argument, check_folder
 
@@ -46,6 +47,9 @@ def add_recording_arguments(group, frames_flag: str = "--frames") -> None:
     group.add_argument("--emitter", choices=["on", "off"], default="on", help="IR dot projector (default on)")
     group.add_argument("--exposure", type=float, metavar="US", help="fixed colour exposure in microseconds (default auto)")
     group.add_argument("--serial", help="serial number of the camera when several are connected")
+    group.add_argument("--light", choices=CAPTURE_LIGHTS, default="led",
+                       help="what lights the object, written to capture.json for refine's light model: the LED on "
+                       "the camera (default) or room light")
 
 
 def register(subparsers) -> None:
@@ -76,6 +80,9 @@ def register(subparsers) -> None:
     conv.add_argument(
         "--scale-factor", type=positive_int, metavar="SF", help="depth grid = colour / SF (default: from the sizes)"
     )
+    conv.add_argument("--light", choices=CAPTURE_LIGHTS,
+                      help="what lit the object, written to capture.json for refine's light model: the LED on the "
+                      "camera or room light (default: not written; refine then assumes the LED and warns)")
     add_overwrite_argument(conv, "capture folder")
     conv.set_defaults(handler=run_convert)
 
@@ -86,7 +93,7 @@ def run(args) -> int:
     check_folder(args.out, args.overwrite, "capture folder")
     capture = record_capture(
         args.record_frames, args.color, args.depth, fps=args.fps, interval=args.interval, on_key=args.on_key,
-        emitter=args.emitter == "on", exposure_us=args.exposure, serial=args.serial,
+        emitter=args.emitter == "on", exposure_us=args.exposure, serial=args.serial, light=args.light,
         progress=not args.quiet,
     )  # fmt: skip
     write_capture(capture, args.out, overwrite=args.overwrite)
@@ -99,7 +106,7 @@ def run_convert(args) -> int:
 
     check_folder(args.out, args.overwrite, "capture folder")
     capture = read_recording(args.recording, frames=args.frames, stride=args.stride, scale_factor=args.scale_factor,
-                             progress=not args.quiet)  # fmt: skip
+                             light=args.light, progress=not args.quiet)  # fmt: skip
     write_capture(capture, args.out, overwrite=args.overwrite)
     _report(args, capture)
     return 0

@@ -8,6 +8,7 @@ import open3d as o3d
 import pyrealsense2 as rs
 
 from ..capture import Capture, default_depth_intrinsic, image_from_array
+from ..capture.validation import check_light
 from ..colour import srgb_to_linear
 from ..errors import CaptureError, RecordingError
 from ..model.sensor import choose_scale_factor
@@ -41,7 +42,7 @@ def depth_frame_to_z16(frame) -> np.ndarray:
 
 def capture_from_frames(
     colors: list[np.ndarray], depths: list[np.ndarray], info: StreamInfo, scale_factor: int | None = None,
-    metadata: dict | None = None,
+    metadata: dict | None = None, light: str | None = None,
 ) -> Capture:  # fmt: skip
     """Build a Capture from native RealSense frames.
 
@@ -58,6 +59,8 @@ def capture_from_frames(
         integer to the width ratio dividing the colour size). Colour sides must divide by it.
     metadata : dict, optional
         Extra entries stored under ``capture.metadata["realsense"]``.
+    light : {"led", "room"}, optional
+        What lit the frames (``Capture.light``; refine picks its light model from it).
 
     Returns
     -------
@@ -65,6 +68,7 @@ def capture_from_frames(
         Colour (H, W, 3) linear, depth (H/SF, W/SF, 1) metres registered to the colour camera,
         depth intrinsics ``default_depth_intrinsic(color_K, SF)``.
     """
+    check_light(light, "capture ")
     W, H = info.color_size
     try:  # sizes (width, height) here, (rows, columns) in the shared rule
         sf = choose_scale_factor((H, W), info.depth_size[::-1], scale_factor)
@@ -82,5 +86,5 @@ def capture_from_frames(
         color=color_imgs, depth=depth_imgs,
         color_intrinsic=o3d.core.Tensor(info.color_K),
         depth_intrinsic=o3d.core.Tensor(default_depth_intrinsic(info.color_K, sf)),
-        depth_scale=1000.0, color_encoding="srgb", sensor=info.sensor, metadata={"realsense": meta},
+        depth_scale=1000.0, color_encoding="srgb", sensor=info.sensor, metadata={"realsense": meta}, light=light,
     )  # fmt: skip

@@ -12,6 +12,7 @@ import numpy as np
 import pyrealsense2 as rs
 
 from ..capture import Capture
+from ..capture.validation import check_light
 from ..errors import RecordingError
 from .frames import capture_from_frames, color_frame_to_rgb8, depth_frame_to_z16
 from .playback import progress_bar
@@ -102,7 +103,7 @@ def record_capture(
     frames: int = 20, color_size: tuple[int, int] = (1280, 720), depth_size: tuple[int, int] = (640, 360), *,
     fps: int = 30, interval: float | None = 1.0, on_key: bool = False, emitter: bool = True,
     exposure_us: float | None = None, serial: str | None = None, warmup_s: float = 2.0,
-    blur_fraction: float = 0.5, min_overlap: float = 0.5, progress: bool = True, out=None,
+    blur_fraction: float = 0.5, min_overlap: float = 0.5, light: str = "led", progress: bool = True, out=None,
 ) -> Capture:  # fmt: skip
     """Record a capture live from a connected RealSense camera.
 
@@ -132,6 +133,8 @@ def record_capture(
         Serial number of the camera to use when several are connected.
     warmup_s : float
         Seconds streamed before the first frame, for auto exposure to settle.
+    light : {"led", "room"}
+        What lights the object, written to ``capture.json`` (refine picks its light model from it).
     progress : bool
         Show a tqdm bar and print instructions to ``out`` (default ``sys.stdout``).
 
@@ -145,6 +148,7 @@ def record_capture(
     RecordingError
         No camera, USB 2 bandwidth too low, unsupported modes, or the stream failing.
     """
+    check_light(light, "capture ")
     context = rs.context()
     device = find_device(serial, context)
     check_modes(device, color_size, depth_size, fps)
@@ -214,7 +218,7 @@ def record_capture(
         "source": "live", "timestamps_ms": times, "emitter": bool(emitter), "exposure_us": exposure_us,
         "selection": {"sharpness": scores, "blur_fraction": blur_fraction, "min_overlap": min_overlap},
     }  # fmt: skip
-    return capture_from_frames([k[0] for k in kept], [k[1] for k in kept], info, None, meta)
+    return capture_from_frames([k[0] for k in kept], [k[1] for k in kept], info, None, meta, light)
 
 
 def _set_options(device, emitter: bool, exposure_us: float | None) -> None:

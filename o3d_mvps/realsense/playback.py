@@ -12,6 +12,7 @@ import numpy as np
 import pyrealsense2 as rs
 
 from ..capture import Capture
+from ..capture.validation import check_light
 from ..errors import RecordingError
 from .frames import capture_from_frames, color_frame_to_rgb8, depth_frame_to_z16
 from .selection import grey_thumbnail, select_frames
@@ -110,7 +111,7 @@ class _PairCollector:
 def read_recording(
     path, frames: int = 20, stride: int | None = None, scale_factor: int | None = None, *,
     blur_fraction: float = 0.5, min_overlap: float = 0.5, max_candidates: int | None = None,
-    progress: bool = False, stall_timeout_s: float = 10.0,
+    light: str | None = None, progress: bool = False, stall_timeout_s: float = 10.0,
 ) -> Capture:  # fmt: skip
     """Read a RealSense recording (``.bag`` or ``.db3``) into a Capture at native depth resolution.
 
@@ -134,6 +135,9 @@ def read_recording(
         Frame selection thresholds, see :func:`select_frames`.
     max_candidates : int, optional
         Memory bound on candidates for the automatic stride; default ``max(3 * frames, 30)``.
+    light : {"led", "room"}, optional
+        What lit the object, written to ``capture.json`` (refine picks its light model from it;
+        without it refine assumes the LED and warns).
     progress : bool
         Show a tqdm bar (colour frames played back).
     stall_timeout_s : float
@@ -151,6 +155,7 @@ def read_recording(
         Missing, corrupt, truncated or empty recordings, or recordings without colour or depth.
     """
     path = Path(path)
+    check_light(light, "capture ")
     if stride is not None and int(stride) < 1:
         raise ValueError(f"stride must be a positive integer, got {stride}")
     device, playback, sensors = _load_recording(path)
@@ -212,7 +217,7 @@ def read_recording(
                       "min_overlap": min_overlap, "sharpness": [choice.sharpness[i] for i in choice.indices],
                       "overlap": [choice.overlap[i] for i in choice.indices]},
     }  # fmt: skip
-    return capture_from_frames([c["rgb"] for c in chosen], [c["depth"] for c in chosen], info, scale_factor, meta)
+    return capture_from_frames([c["rgb"] for c in chosen], [c["depth"] for c in chosen], info, scale_factor, meta, light)
 
 
 def progress_bar(enabled: bool, **kwargs):
