@@ -27,6 +27,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from scipy import ndimage
 
 from o3d_mvps import RefineOptions, refine
 from o3d_mvps.baselines import bicubic, smooth_fit
@@ -40,6 +41,7 @@ FULL = {"size": (640, 480), "scale_factor": 4, "frames": 20}
 QUICK = {"size": (160, 120), "scale_factor": 4, "frames": 12}
 ON_LINE = 0.125  # phase distance (steps) from an iso-depth line that counts as "on the line"
 PHASE_BINS = 8
+RIM_PX = 12  # colour pixels from the evaluated region's edge that count as the rim (silhouette errors)
 
 
 def add_arguments(parser) -> None:
@@ -92,7 +94,9 @@ def row(name: str, refinement, capture, steps: np.ndarray, seconds: float | None
     on, off = error[common & on_line], error[common & ~on_line]
     mean_on, mean_off = (float(np.mean(e)) if e.size else None for e in (on, off))
     beside = error[common & steps]
+    interior = ndimage.binary_erosion(common, iterations=RIM_PX)
     return {"method": name, "mae_deg": float(np.mean(error[common])), "rmse_mm": rmse,
+            "mae_interior_deg": float(np.mean(error[interior])), "mae_rim_deg": float(np.mean(error[common & ~interior])),
             "mae_on_lines_deg": mean_on, "mae_elsewhere_deg": mean_off,
             "banding_ratio": mean_on / mean_off if on.size and off.size else None,
             "mae_by_phase_deg": phase_profile(error, phase),
@@ -128,13 +132,15 @@ def run(args) -> None:
     (out / "room.json").write_text(json_text(result, "room study"))
     lines = [f"# Room light, {args.mesh}, {case['size'][0]}x{case['size'][1]}, SF {case['scale_factor']}, "
              f"{case['frames']} frames (table, wall, automatic masks, true poses)", "",
-             "| method | MAE deg | RMSE mm | MAE on iso-depth lines | MAE elsewhere | banding ratio | seconds |",
-             "|---|---|---|---|---|---|---|"]
+             "| method | MAE deg | RMSE mm | MAE interior | MAE rim | MAE on iso-depth lines | MAE elsewhere | "
+             "banding ratio | seconds |",
+             "|---|---|---|---|---|---|---|---|---|"]
     def cell(value, digits=2):
         return "" if value is None else f"{value:.{digits}f}"
 
     for r in rows:
-        lines.append(f"| {r['method']} | {cell(r['mae_deg'])} | {cell(r['rmse_mm'])} | {cell(r['mae_on_lines_deg'])} | "
+        lines.append(f"| {r['method']} | {cell(r['mae_deg'])} | {cell(r['rmse_mm'])} | {cell(r['mae_interior_deg'])} | "
+                     f"{cell(r['mae_rim_deg'])} | {cell(r['mae_on_lines_deg'])} | "
                      f"{cell(r['mae_elsewhere_deg'])} | {cell(r['banding_ratio'])} | {cell(r['seconds'], 1)} |")
     centres = [f"{(i + 0.5) / PHASE_BINS:.2f}" for i in range(PHASE_BINS)]
     lines += ["", "Mean normal error (deg) against the quantisation phase of the true depth (0 and 1: on an "

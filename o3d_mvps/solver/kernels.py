@@ -10,8 +10,6 @@ accumulator.
 
 from __future__ import annotations
 
-import math
-
 import numba
 import numpy as np
 
@@ -31,7 +29,7 @@ def chunk_count(n_pixels: int) -> int:
 
 @numba.njit(parallel=True, cache=True)
 def accumulate_frame(w, r, q, ws, alpha, beta, gamma, extra_c, use, grad_u, grad_v, points, ray, dshading, albedo,
-                     K, with_jacobian, parallax, sums, e, rows, F, slot, weighted_J, rhs):  # pragma: no cover - compiled
+                     K, with_jacobian, parallax, sums, e, rows, F, slot, gram, rhs):  # pragma: no cover - compiled
     """Add frame i's depth rows to the per-pixel sums and, with its pose Jacobian, write its
     twist rows.
 
@@ -49,9 +47,9 @@ def accumulate_frame(w, r, q, ws, alpha, beta, gamma, extra_c, use, grad_u, grad
     dshading (N, 6) (or (0, 6)), zero where ``use`` (N,) is False; ray (N, 3) is
     d(frame-i point)/dz. Then, in slot ``slot`` of rows (3, m, 6, N): ``sum_c w q J`` times
     -alpha and -beta, and ``sum_c w c J``; of F (m, 6, N, 3) (0-sized: none): ws J;
-    weighted_J (6, N, 3) = sqrt(w) J (the frame's Gram is weighted_J weighted_J^T, a BLAS
-    product) and, per pixel chunk, rhs (chunks, 6) = -sum w r J. Twist-component-major arrays,
-    so that each pixel's writes stream. slot -1: J only for the parallax, no twist rows.
+    and, per pixel chunk, the upper triangle of the frame's Gram gram (chunks, 6, 6) =
+    sum w J^T J and rhs (chunks, 6) = -sum w r J. Twist-component-major arrays, so that each
+    pixel's writes stream. slot -1: J only for the parallax, no twist rows.
     """
     n = w.shape[0]
     n_chunks = rhs.shape[0]
@@ -63,6 +61,7 @@ def accumulate_frame(w, r, q, ws, alpha, beta, gamma, extra_c, use, grad_u, grad
     emit = with_jacobian and slot >= 0
     for chunk in numba.prange(n_chunks):
         J = np.zeros((3, 6))
+        G = np.zeros((6, 6))
         b = np.zeros(6)
         wqJ = np.zeros(6)
         wcJ = np.zeros(6)
@@ -114,20 +113,19 @@ def accumulate_frame(w, r, q, ws, alpha, beta, gamma, extra_c, use, grad_u, grad
                     e[2, p, c] += ws[p, c] * cc
                 if emit:
                     if jac:
-                        root_w = math.sqrt(wc_)
                         for j in range(6):
                             Jj = J[c, j]
+                            wJj = wc_ * Jj
                             wqJ[j] += wq * Jj
-                            wcJ[j] += wc_ * cc * Jj
-                            b[j] -= wc_ * r[p, c] * Jj
-                            weighted_J[j, p, c] = root_w * Jj
+                            wcJ[j] += wJj * cc
+                            b[j] -= wJj * r[p, c]
+                            for k in range(j, 6):
+                                G[j, k] += wJj * J[c, k]
                             if with_F:
                                 F[slot, j, p, c] = ws[p, c] * Jj
-                    else:
+                    elif with_F:
                         for j in range(6):
-                            weighted_J[j, p, c] = 0.0
-                            if with_F:
-                                F[slot, j, p, c] = 0.0
+                            F[slot, j, p, c] = 0.0
             sums[0, p] += W * al * al
             sums[1, p] += W * be * be
             sums[2, p] += Sgg
@@ -149,6 +147,8 @@ def accumulate_frame(w, r, q, ws, alpha, beta, gamma, extra_c, use, grad_u, grad
                         rows[2, slot, j, p] = 0.0
         for j in range(6):
             rhs[chunk, j] = b[j]
+            for k in range(6):
+                gram[chunk, j, k] = G[j, k]
 
 
 @numba.njit(parallel=True, cache=True)

@@ -150,7 +150,7 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
     # (6m, 3N) are views
     rows = np.empty((3, len(candidates), 6, N))
     F = np.empty((len(candidates), 6, N, 3)) if projection is not None else np.empty((0, 6, 1, 3))
-    weighted_J, rhs = np.empty((6, N, 3)), np.empty((chunk_count(N), 6))
+    gram, rhs = np.empty((chunk_count(N), 6, 6)), np.empty((chunk_count(N), 6))
     hessians, rhs_xi, frames = [], [], []
     for i in range(problem.n_frames):
         pose, use = est.poses[i], ev.usable[i]
@@ -171,10 +171,11 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
                          alpha, beta, gamma, extra_c, use, grad_u, grad_v, points_i, ray_i,
                          _NONE6 if dshading is None or not with_jacobian else dshading, est.albedo, K,
                          with_jacobian, parallax, sums, _NONE_E if projection is None else projection.e,
-                         rows, F, k, weighted_J, rhs)
+                         rows, F, k, gram, rhs)
         if k < 0:
             continue
-        H = _gram(weighted_J.reshape(6, -1))
+        H = np.triu(gram.sum(axis=0))
+        H += np.triu(H, 1).T
         if not np.isfinite(H).all() or np.linalg.cond(H) > 1e12:
             continue
         hessians.append(H)
