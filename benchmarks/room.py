@@ -75,6 +75,17 @@ def phase_profile(error: np.ndarray, phase: np.ndarray, bins: int = PHASE_BINS) 
     return [float(s / c) if c else float("nan") for s, c in zip(sums, counts)]
 
 
+def banding(error: np.ndarray, true_depth: np.ndarray) -> tuple[float, float, float]:
+    """Mean normal error (deg) on the iso-depth lines (within :data:`ON_LINE` of a step in
+    quantisation phase), elsewhere, and their ratio (> 1: the steps show through), over the
+    finite pixels of an (H, W) error map, given the (H, W) true depth in metres."""
+    phase = quantisation_phase(true_depth)
+    on_line = np.minimum(phase, 1.0 - phase) < ON_LINE
+    common = np.isfinite(error)
+    on, off = float(np.mean(error[common & on_line])), float(np.mean(error[common & ~on_line]))
+    return on, off, on / off
+
+
 def angular_error(refinement, groundtruth) -> np.ndarray:
     """(H, W) degrees between the refinement's normals and the true ones (NaN off the evaluated pixels)."""
     common = evaluation_mask(refinement, groundtruth)
@@ -89,17 +100,14 @@ def row(name: str, refinement, capture, steps: np.ndarray, seconds: float | None
     common = np.isfinite(error)
     depth = refinement.depth_array()
     rmse = 1000 * float(np.sqrt(np.mean((depth[common] - capture.groundtruth.depth[common]) ** 2)))
-    phase = quantisation_phase(capture.groundtruth.depth)
-    on_line = np.minimum(phase, 1.0 - phase) < ON_LINE
-    on, off = error[common & on_line], error[common & ~on_line]
-    mean_on, mean_off = (float(np.mean(e)) if e.size else None for e in (on, off))
+    true_depth = np.asarray(capture.groundtruth.depth, dtype=np.float64)
+    mean_on, mean_off, ratio = banding(error, true_depth)
     beside = error[common & steps]
     interior = ndimage.binary_erosion(common, iterations=RIM_PX)
     return {"method": name, "mae_deg": float(np.mean(error[common])), "rmse_mm": rmse,
             "mae_interior_deg": float(np.mean(error[interior])), "mae_rim_deg": float(np.mean(error[common & ~interior])),
-            "mae_on_lines_deg": mean_on, "mae_elsewhere_deg": mean_off,
-            "banding_ratio": mean_on / mean_off if on.size and off.size else None,
-            "mae_by_phase_deg": phase_profile(error, phase),
+            "mae_on_lines_deg": mean_on, "mae_elsewhere_deg": mean_off, "banding_ratio": ratio,
+            "mae_by_phase_deg": phase_profile(error, quantisation_phase(true_depth)),
             "mae_beside_steps_deg": float(np.mean(beside)) if beside.size else None,
             "pixels": int(common.sum()), "seconds": seconds}, error
 

@@ -22,3 +22,31 @@ def test_quick_benchmarks_write_results(tmp_path):
     for png in ("frames_mae.png", "frames_rmse.png", "tau_mae.png", "tau_rmse.png"):
         assert (tmp_path / png).stat().st_size > 1000
 
+
+
+def test_banding_measure_flags_terraces_and_not_a_smooth_slope():
+    """A depth that keeps the sensor's 1 mm terraces (the sawtooth a sloped plane gets from
+    rounding, softened as an upsampler would) has its normal errors on the iso-depth lines; the
+    true plane with an error that does not depend on the phase gives a ratio of 1."""
+    import numpy as np
+    from scipy import ndimage
+
+    from benchmarks.room import banding, quantisation_phase
+    from o3d_mvps.model.normals import perspective_normals
+    from o3d_mvps.synthetic import DEPTH_SCALE
+
+    H, W = 64, 400
+    K = np.array([[500.0, 0, W / 2], [0, 500.0, H / 2], [0, 0, 1]])
+    u = np.arange(W)[None, :].repeat(H, axis=0)
+    true = 0.5 + 0.1e-3 * u  # 0.1 mm per pixel: a terrace every 10 pixels
+    terraced = ndimage.gaussian_filter1d(np.rint(true * DEPTH_SCALE) / DEPTH_SCALE, 1.5, axis=1)
+    normals_true = perspective_normals(true, K)[0]
+    error = np.degrees(np.arccos(np.clip(np.sum(perspective_normals(terraced, K)[0] * normals_true, axis=2), -1, 1)))
+    error[:, :8], error[:, -8:] = np.nan, np.nan  # the filter's borders
+    on, off, ratio = banding(error, true)
+    assert ratio > 1.5 and on > off + 2.0  # measured 1.69 (6.1 deg against 3.6): the risers sit on the lines
+    phase = quantisation_phase(true)
+    assert abs(phase[0, 0] - 0.5) < 1e-6  # 0.5 m: a sensor level, mid-terrace
+    assert min(phase[0, 5], 1 - phase[0, 5]) < 1e-6  # 0.5005 m: where the reading jumps, a line
+    flat = np.where(np.isfinite(error), 2.0, np.nan)
+    assert banding(flat, true)[2] == 1.0
