@@ -47,9 +47,9 @@ def accumulate_frame(w, r, q, ws, alpha, beta, gamma, extra_c, use, grad_u, grad
     dshading (N, 6) (or (0, 6)), zero where ``use`` (N,) is False; ray (N, 3) is
     d(frame-i point)/dz. Then, in slot ``slot`` of rows (3, m, 6, N): ``sum_c w q J`` times
     -alpha and -beta, and ``sum_c w c J``; of F (m, 6, N, 3) (0-sized: none): ws J;
-    and, per pixel chunk, the upper triangle of the frame's Gram gram (chunks, 6, 6) =
-    sum w J^T J and rhs (chunks, 6) = -sum w r J. Twist-component-major arrays, so that each
-    pixel's writes stream. slot -1: J only for the parallax, no twist rows.
+    and per pixel chunk: gram (chunks, 6, 6), the upper triangle of the frame's Gram sum w J^T J
+    (lower triangle 0), and rhs (chunks, 6) = -sum w r J. Twist-component-major arrays, so that
+    each pixel's writes stream. slot -1: J only for the parallax, no twist rows.
     """
     n = w.shape[0]
     n_chunks = rhs.shape[0]
