@@ -23,7 +23,6 @@ def test_quick_benchmarks_write_results(tmp_path):
         assert (tmp_path / png).stat().st_size > 1000
 
 
-
 def test_banding_measure_flags_terraces_and_not_a_smooth_slope():
     """A depth that keeps the sensor's 1 mm terraces (the sawtooth a sloped plane gets from
     rounding, softened as an upsampler would) has its normal errors on the iso-depth lines; the
