@@ -88,7 +88,7 @@ def problem_from_capture(capture: Capture, options: RefineOptions,
         capture, initial_poses, frames = capture.select(keep), initial_poses[keep], views.frames
     n = capture.n_frames
     return SolverInput(
-        colors=np.stack([capture.color_array(i) for i in range(n)]),
+        colors=[capture.color_array(i) for i in range(n)],  # the capture's frames, not a copy
         depths=np.stack([capture.depth_array(i) for i in range(n)]),
         masks=[capture.mask_array(i) for i in range(n)],
         K=capture.color_K(), depth_K=capture.depth_K(), scale_factor=capture.scale_factor,

@@ -21,7 +21,6 @@ from o3d_mvps.model.camera import backproject, pixel_grid
 from o3d_mvps.model.normals import masked_grid
 from o3d_mvps.model.resampling import block_average
 from o3d_mvps.model.shading import led_vectors
-from o3d_mvps.model.warping import image_gradients
 from o3d_mvps.solver.pose import update_pose
 from o3d_mvps.solver.problem import Estimate, LevelProblem
 from o3d_mvps.solver.pyramid import Level, depth_prior
@@ -72,9 +71,8 @@ def make_problem(n_frames=2, tau=1.0):
     mask[6:-6, 8:-8] = True
     grid = masked_grid(mask)
     images = [smooth_image() for _ in range(n_frames)]
-    gradients = [np.stack(image_gradients(img)) for img in images]
     z0 = z.reshape(SIZE[0] // 2, 2, SIZE[1] // 2, 2).mean(axis=(1, 3))
-    level = Level(0, grid, K, SIZE, images, gradients, [None] * n_frames, depth_prior(grid, z0, 2.0))
+    level = Level(0, grid, K, SIZE, images, [None] * n_frames, depth_prior(grid, z0, 2.0))
     problem = LevelProblem(level, tau, 0.04)
     rng = np.random.default_rng(1)
     poses = np.stack([np.eye(4)] + [se3.exp([0.01, -0.005, 0.002, 0.01, -0.02, 0.005])] * (n_frames - 1))

@@ -27,7 +27,6 @@ from o3d_mvps.model import se3
 from o3d_mvps.model.camera import pixel_grid
 from o3d_mvps.model.normals import unnormalised_normals
 from o3d_mvps.model.robust import cauchy, cauchy_weights
-from o3d_mvps.model.warping import image_gradients
 from o3d_mvps.solver.joint import update_pose_depth
 from o3d_mvps.solver.normal_equations import joint_system, residual_jacobians
 from o3d_mvps.solver.problem import Estimate, LevelProblem
@@ -103,8 +102,7 @@ def one_blas_thread():
 def level():
     """make_problem's 3-frame level (grid, K, depth prior at the true bump) with rendered images."""
     images = [render(T, light) for T, light in zip(POSES, LIGHTS)]
-    return dataclasses.replace(make_problem(3)[0].level, images=images,
-                               gradients=[np.stack(image_gradients(image)) for image in images])
+    return dataclasses.replace(make_problem(3)[0].level, images=images)
 
 
 @pytest.fixture
@@ -326,6 +324,25 @@ def test_schur_route_solves_the_full_system(problem, rng, project_albedo):
     assert xi.shape == (2, 6)
     assert relative_error(dz, solution[:N]) < 1e-6
     assert relative_error(xi.ravel(), solution[N:]) < 1e-6
+
+
+@pytest.mark.parametrize("project_albedo", [False, True])
+def test_blocks_of_pixels_give_the_same_system(problem, project_albedo):
+    """Assembled in blocks of reference pixels (97 and 1000 here, 65536 on real images), every
+    part of the system is the one-block system to rounding: the sums over frames are per pixel,
+    the sums over pixels (twist Grams, projection, coupling's stencil) add up across blocks."""
+    est = kicked_estimate(problem)
+    ev = problem.evaluate(est)
+    whole = joint_system(problem, est, ev, project_albedo=project_albedo)
+    assert problem.level.grid.size > 1000 and len(whole.frames) == 2
+    for block_pixels in (97, 1000):
+        blocked = joint_system(problem, est, ev, project_albedo=project_albedo, block_pixels=block_pixels)
+        assert blocked.frames == whole.frames
+        assert abs(blocked.matrix - whole.matrix).max() <= 1e-12 * abs(whole.matrix).max()
+        for part in ("rhs_z", "coupling", "hessian", "rhs_xi"):
+            expected = getattr(whole, part)
+            np.testing.assert_allclose(getattr(blocked, part), expected, rtol=1e-11,
+                                       atol=1e-12 * np.abs(expected).max(), err_msg=part)
 
 
 # ---------------------------------------------------------------------------------------------

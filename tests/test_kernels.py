@@ -8,7 +8,7 @@ import scipy.sparse as sp
 
 from o3d_mvps.model.robust import cauchy, cauchy_energy, cauchy_weights
 from o3d_mvps.model.shading import led_irradiances, led_vectors
-from o3d_mvps.solver.kernels import (add_sparse_product_rows, shading_residuals, weighted_albedo_sums,
+from o3d_mvps.solver.kernels import (scatter_sparse_transpose_rows, shading_residuals, weighted_albedo_sums,
                                      weighted_lighting_sums)
 
 RNG = np.random.default_rng(7)
@@ -57,12 +57,13 @@ def test_shading_residuals_match_numpy(data, shared):
                                atol=1e-15)
 
 
-def test_sparse_product_accumulates():
+def test_sparse_transpose_product_scatters_and_accumulates():
+    """A block of rows of an operator scatters into every column: out += (A^T X^T)^T."""
     A = sp.random(500, 400, density=0.01, random_state=1, format="csr")
-    X = RNG.normal(size=(7, 400))
-    out = RNG.normal(size=(7, 500))
-    expected = out + (A @ X.T).T
-    add_sparse_product_rows(A.indptr, A.indices, A.data, X, out)
+    X = RNG.normal(size=(7, 500))
+    out = RNG.normal(size=(7, 400))
+    expected = out + (A.T @ X.T).T
+    scatter_sparse_transpose_rows(A.indptr, A.indices, A.data, X, out)
     np.testing.assert_allclose(out, expected, rtol=1e-12, atol=1e-14)
 
 

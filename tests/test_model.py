@@ -13,7 +13,7 @@ from o3d_mvps.model.normals import (
 )
 from o3d_mvps.model.robust import cauchy, cauchy_weights
 from o3d_mvps.model.shading import sh_basis, shading
-from o3d_mvps.model.warping import sample_bilinear, visible, warp
+from o3d_mvps.model.warping import sample_bilinear, sample_image_gradients, visible, warp
 from o3d_mvps.solver.normal_equations import joint_system
 from o3d_mvps.solver.pose import pose_jacobian
 
@@ -112,6 +112,26 @@ def test_bilinear_sampling_is_exact_on_linear_images():
     image = np.stack([2 * u + 3 * v, u - v], -1)
     su, sv = np.array([0.0, 10.25, 62.9]), np.array([0.0, 7.5, 46.1])
     np.testing.assert_allclose(sample_bilinear(image, su, sv), np.stack([2 * su + 3 * sv, su - sv], -1), atol=1e-12)
+
+
+def test_image_gradients_are_the_samples_of_central_difference_images(rng):
+    """Away from the border the sampled gradients are the bilinear samples of the image's
+    central-difference gradient images (interpolation commutes with whole-pixel shifts), to
+    rounding for a float64 image and to float32's for one sampled through cv2.remap."""
+    H, W = SIZE
+    u, v = pixel_grid(*SIZE)
+    image = np.stack([np.sin(u / 5.0) * np.cos(v / 7.0), np.cos((u + 2 * v) / 9.0), 0.01 * u * v], -1)
+    grad_u, grad_v = np.zeros_like(image), np.zeros_like(image)
+    grad_u[:, 1:-1] = 0.5 * (image[:, 2:] - image[:, :-2])
+    grad_v[1:-1] = 0.5 * (image[2:] - image[:-2])
+    su, sv = rng.uniform(1.0, W - 2.0, 500), rng.uniform(1.0, H - 2.0, 500)
+    gu, gv = sample_image_gradients(image, su, sv)
+    np.testing.assert_allclose(gu, sample_bilinear(grad_u, su, sv), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(gv, sample_bilinear(grad_v, su, sv), rtol=0, atol=1e-12)
+    gu32, gv32 = sample_image_gradients(image.astype(np.float32), su, sv)
+    assert gu32.dtype == np.float64
+    np.testing.assert_allclose(gu32, gu, rtol=0, atol=1e-3 * np.abs(gu).max())
+    np.testing.assert_allclose(gv32, gv, rtol=0, atol=1e-3 * np.abs(gv).max())
 
 
 def test_warp_with_identity_and_occlusion_test():

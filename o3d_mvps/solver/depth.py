@@ -49,7 +49,7 @@ def search_estimates(problem: LevelProblem, est: Estimate, ev: Evaluation, moved
         candidate_ev = problem.evaluate(candidate)
         if refit_albedo:
             candidate.albedo = update_albedo(candidate, candidate_ev, problem.lam)
-            candidate_ev = problem.reevaluate(candidate, candidate_ev)
+            candidate_ev = problem.reevaluate(candidate, candidate_ev, overwrite=True)
         return (candidate, candidate_ev), candidate_ev.energy
 
     found = backtrack(trial, ev.energy, max_halvings)

@@ -61,13 +61,24 @@ def _reference_mask(problem_input: SolverInput) -> np.ndarray:
     return mask
 
 
-def _sweeps(problem: LevelProblem, est: Estimate, ev, options: RefineOptions, timings: dict, stats: dict) -> list:
-    """Run one level's sweeps in place on ``est``: poses and depth (one joint step, or the
-    paper's two), albedo, lighting, LED offset, extrapolation.
+def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timings: dict, stats: dict) -> list:
+    """Run one level's sweeps in place on ``est``: the albedo fitted to the level's images, then
+    sweeps of poses and depth (one joint step, or the paper's two), albedo, lighting, LED offset,
+    extrapolation. The level's evaluations live here only (no caller holds a stale one: each
+    holds frames x pixels arrays).
 
     Returns the level's energy rows; stops at the relative energy change ``options.tolerance``.
     """
     level = problem.level
+    t = time.perf_counter()
+    ev = problem.evaluate(est)
+    # fit the albedo to this level's images under the current lighting before the sweeps: the
+    # coarse (or, on the first level, the reference image's) albedo lacks the detail the pose
+    # and depth steps compare against. Fitting lighting first would explain the reference image
+    # by ambient light alone, since the initial albedo is that image.
+    est.albedo = update_albedo(est, ev, problem.lam)
+    ev = problem.reevaluate(est, ev, overwrite=True)
+    timings["setup"] += time.perf_counter() - t
     refine_poses = options.refine_poses and problem.n_frames > 1 and level.grid.size >= options.pose_min_pixels
     # the LED offset is estimated where the poses are (coarser levels constrain it as poorly)
     refine_offset = (options.refine_led_offset and problem.light.name == "led"
@@ -101,9 +112,9 @@ def _sweeps(problem: LevelProblem, est: Estimate, ev, options: RefineOptions, ti
         stats["cg_iterations"].append(cg_iterations)
         t = time.perf_counter()
         est.albedo = update_albedo(est, ev, problem.lam)
-        ev = problem.reevaluate(est, ev)
+        ev = problem.reevaluate(est, ev, overwrite=True)
         est.lights = update_lighting(est, ev, problem.lam)
-        ev = problem.reevaluate(est, ev)
+        ev = problem.reevaluate(est, ev, overwrite=True)
         if refine_offset:
             est.led_offset, ev = update_led_offset(problem, est, ev, min_decrease=0.1 * options.tolerance * ev.energy)
         timings["albedo_lighting"] += time.perf_counter() - t
@@ -259,15 +270,8 @@ def _solve(problem_input: SolverInput, options: RefineOptions) -> SolverOutput:
         problem = LevelProblem(level, tau, options.cauchy_lambda, light, mu)
         problem.update_visibility(est, occlusion_test=options.occlusion_test, rel_tol=options.occlusion_tolerance,
                                   sensor_depths=sensor_depths, depth_K=depth_K)
-        ev = problem.evaluate(est)
-        # fit the albedo to this level's images under the current lighting before the sweeps: the
-        # coarse (or, on the first level, the reference image's) albedo lacks the detail the pose
-        # and depth steps compare against. Fitting lighting first would explain the reference image
-        # by ambient light alone, since the initial albedo is that image.
-        est.albedo = update_albedo(est, ev, problem.lam)
-        ev = problem.reevaluate(est, ev)
         timings["setup"] += time.perf_counter() - t
-        history.extend(_sweeps(problem, est, ev, options, timings, stats))
+        history.extend(_sweeps(problem, est, options, timings, stats))
         return Carried(fill_nearest_valid(g.scatter(est.z), g.mask), fill_nearest_valid(g.scatter(est.albedo), g.mask),
                        est.lights, est.poses, est.led_offset)
 

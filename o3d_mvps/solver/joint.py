@@ -29,14 +29,15 @@ def update_pose_depth(problem: LevelProblem, est: Estimate, ev: Evaluation, *, r
     system = joint_system(problem, est, ev, project_albedo=project_albedo)
     S, rhs = system.schur_operator()
     dz, iterations = solve_spd(S, rhs, rtol, maxiter, sparse_part=system.matrix)
-    xi = system.twists(dz)
+    xi, frames = system.twists(dz), system.frames
+    del system, S, rhs  # the coupling (N, 6m) and M: not needed by the line search
 
     def moved(t: float):
         z = problem.level.prior.clip(est.z + t * dz)
         if not np.all(z > 0):
             return None
         poses = est.poses.copy()
-        for i, x in zip(system.frames, xi):
+        for i, x in zip(frames, xi):
             poses[i] = se3.exp(t * x) @ est.poses[i]
         return Estimate(z, est.albedo, est.lights, poses)
 

@@ -167,15 +167,15 @@ def project_twist_rows(rows, F, scaled, sqrt_inv_d):  # pragma: no cover - compi
 
 
 @numba.njit(parallel=True, cache=True)
-def add_sparse_product_rows(indptr, indices, data, X, out):  # pragma: no cover - compiled
-    """out (k, R) += (A X^T)^T, i.e. each row x of X (k, C) adds A x, for a CSR matrix A (R, C)
-    given by its arrays; in parallel over X's rows."""
+def scatter_sparse_transpose_rows(indptr, indices, data, X, out):  # pragma: no cover - compiled
+    """out (k, C) += (A^T X^T)^T, i.e. each row x (R,) of X (k, R) adds A^T x, for a CSR matrix
+    A (R, C) given by its arrays (a block of rows of a larger operator scatters into all its
+    columns); in parallel over X's rows, so threads never share an output row."""
     for j in numba.prange(X.shape[0]):
-        for row in range(out.shape[1]):
-            total = 0.0
+        for row in range(X.shape[1]):
+            x = X[j, row]
             for nz in range(indptr[row], indptr[row + 1]):
-                total += data[nz] * X[j, indices[nz]]
-            out[j, row] += total
+                out[j, indices[nz]] += data[nz] * x
 
 
 @numba.njit(parallel=True, cache=True)

@@ -25,7 +25,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from ..model.robust import cauchy_weights
-from .kernels import accumulate_frame, add_sparse_product_rows, chunk_count, project_twist_rows
+from .kernels import accumulate_frame, chunk_count, project_twist_rows, scatter_sparse_transpose_rows
 from .pose import pose_jacobian
 from .problem import Estimate, Evaluation, LevelProblem
 
@@ -94,7 +94,7 @@ def residual_jacobians(problem: LevelProblem, est: Estimate, ev: Evaluation, i: 
     if i == 0:
         if dshading is None:
             return use, None, np.zeros(points_ref.shape)
-        return use, None, _reference_parallax(est, dshading, ray, use)
+        return use, None, _reference_parallax(est.albedo, dshading, ray, use)
     J = pose_jacobian(problem.warped_gradients(i, pose, points_ref), problem.level.K)
     if dshading is not None:
         J -= est.albedo[:, :, None] * dshading[:, None, :]
@@ -104,9 +104,9 @@ def residual_jacobians(problem: LevelProblem, est: Estimate, ev: Evaluation, i: 
     return use, J, g
 
 
-def _reference_parallax(est: Estimate, dshading: np.ndarray, ray: np.ndarray, use: np.ndarray) -> np.ndarray:
-    """d(residual)/dz (N, 3) of the reference frame: only its LED shading moves with z."""
-    return -est.albedo * (_row_dot(dshading[:, :3], ray) * use)[:, None]
+def _reference_parallax(albedo: np.ndarray, dshading: np.ndarray, ray: np.ndarray, use: np.ndarray) -> np.ndarray:
+    """d(residual)/dz (N, 3) of the reference frame, albedo (N, 3): only its LED shading moves with z."""
+    return -albedo * (_row_dot(dshading[:, :3], ray) * use)[:, None]
 
 
 def _row_dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -117,87 +117,115 @@ def _row_dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 # empty stand-ins for the kernel's optional arrays
 _NONE3, _NONE6, _NONE_E = np.zeros((0, 3)), np.zeros((0, 6)), np.zeros((0, 1, 3))
 
+#: Reference pixels per block of the joint assembly. Every per-pixel array of the refined
+#: frames' twists ((3, m, 6, B) coupling rows, (m, 6, B, 3) projection rows) exists for one block
+#: at a time: at 2 megapixels and 20 frames the whole-image arrays took 5 GB.
+BLOCK_PIXELS = 65536
+
 
 def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parallax: bool = True,
-                 twists: bool = True, project_albedo: bool = True, min_pixels: int = 12) -> JointSystem:
+                 twists: bool = True, project_albedo: bool = True, min_pixels: int = 12,
+                 block_pixels: int = BLOCK_PIXELS) -> JointSystem:
     """Assemble the Gauss-Newton normal equations for the increments (dz, twists).
 
     parallax: include the warp's (and the LED position's) dependence on z in the depth rows
     (False: the paper's frozen-warp depth rows). twists: include frames 1..n-1's twists.
     project_albedo: eliminate the albedo (variable projection, see :class:`_AlbedoProjection`).
 
-    One pass over the frames; per frame, one compiled kernel (:func:`.kernels.accumulate_frame`)
-    adds its depth rows to per-pixel sums and writes its twist rows and w s J into
-    twist-component-major arrays, from which the coupling and the projection's dense parts are
-    formed after the pass without copies.
+    The reference pixels are taken in blocks of ``block_pixels`` (the result does not depend on
+    it: every sum over frames is per pixel, every sum over pixels is added up across blocks).
+    Per block, one pass over the frames; per frame, one compiled kernel
+    (:func:`.kernels.accumulate_frame`) adds its depth rows to per-pixel sums and writes its
+    twist rows and w s J; the block's albedo projection and its share of the coupling follow.
     """
-    grid, K = problem.level.grid, problem.level.K
+    grid = problem.level.grid
     N = grid.size
-    w = cauchy_weights(ev.residual, problem.lam)
-    w *= ev.usable[..., None]  # (n, N, 3)
-    q = est.albedo / ev.dA[:, None]  # (N, 3)
+    candidates = [i for i in range(1, problem.n_frames) if twists and ev.usable[i].sum() >= min_pixels]
+    m = len(candidates)
+    sums = np.empty((9, N))  # per pixel: Saa, Sbb, Sgg, Sab, Sag, Sbg, Ba, Bb, Bg
+    coupling_t = np.zeros((6 * m, N))  # U^T, frame j's twist in rows 6j..6j+5
+    grams, rhs_xi = np.zeros((m, 6, 6)), np.zeros(6 * m)  # per frame: upper triangle of w J^T J; -J^T w r
+    downdate = np.zeros((6 * m, 6 * m))  # the albedo projection's sum f f^T over pixels and channels
     points_ref = problem.points(est.z)
+    Du, Dv = grid.difference_operators()
+    for start in range(0, N, block_pixels):
+        block = slice(start, min(N, start + block_pixels))
+        _assemble_block(problem, est, ev, block, points_ref[block], candidates, parallax, project_albedo,
+                        sums[:, block], grams, rhs_xi, downdate, coupling_t, Du[block], Dv[block])
+    # frames whose own Gram is not safely invertible keep their depth rows but take no twist
+    hessians, frames, kept = [], [], []
+    for k, i in enumerate(candidates):
+        H = grams[k] + np.triu(grams[k], 1).T
+        if np.isfinite(H).all() and np.linalg.cond(H) <= 1e12:
+            hessians.append(H)
+            frames.append(i)
+            kept.extend(range(6 * k, 6 * k + 6))
+    hessian = scipy.linalg.block_diag(*hessians) - downdate[np.ix_(kept, kept)] if frames else np.zeros((0, 0))
+    prior_hessian, prior_rhs = problem.level.prior.normal_equations(est.z, problem.tau, problem.mu)
+    matrix = stencil_normal_matrix(grid, *sums[:6]) + prior_hessian
+    rhs_z = -stencil_transpose(grid, *sums[6:]) + prior_rhs
+    coupling = coupling_t[kept].T if len(kept) < 6 * m else coupling_t.T  # (N, 6m'): no copy when all are kept
+    return JointSystem(sp.csr_matrix(matrix), rhs_z, coupling, hessian, rhs_xi[kept], frames)
+
+
+def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, project_albedo, sums, grams,
+                    rhs_xi, downdate, coupling_t, Du_rows, Dv_rows) -> None:
+    """One block of :func:`joint_system`'s pass: the block's pixels' per-pixel sums (9, B)
+    written into ``sums``; its share of the frames' Grams (m, 6, 6), rhs_xi (6m,), the projection's
+    downdate (6m, 6m) and the transposed coupling (6m, N) added in place. Du_rows, Dv_rows: the
+    block's rows (B, N) of the difference operators."""
+    K = problem.level.K
+    B = points_ref.shape[0]
+    m = len(candidates)
+    residual, usable, albedo = ev.residual[:, block], ev.usable[:, block], est.albedo[block]
+    normals = ev.normals[block]
+    w = cauchy_weights(residual, problem.lam)
+    w *= usable[..., None]  # (n, B, 3)
+    q = albedo / ev.dA[block, None]  # (B, 3)
     ray = points_ref / points_ref[:, 2:3]  # d(point)/d(z), reference coordinates
     model = problem.light_model(est)
-    # per pixel: weighted products of the row coefficients (a, b, c) of Du z, Dv z and z, summed
-    # over frames and channels (Saa, Sbb, Sgg, Sab, Sag, Sbg), and the coefficients times the
-    # weighted residual (Ba, Bb, Bg)
-    sums = np.zeros((9, N))
-    projection = _AlbedoProjection(w, ev) if project_albedo else None
-    candidates = [i for i in range(1, problem.n_frames) if twists and ev.usable[i].sum() >= min_pixels]
+    block_sums = np.zeros((9, B))
+    projection = _AlbedoProjection(w, ev.shading[:, block], residual) if project_albedo else None
     slot = {i: k for k, i in enumerate(candidates)}
-    # twist-component-major, so the transposed coupling (6m, N) and the projection's rows
-    # (6m, 3N) are views
-    rows = np.empty((3, len(candidates), 6, N))
-    F = np.empty((len(candidates), 6, N, 3)) if projection is not None else np.empty((0, 6, 1, 3))
-    gram, rhs = np.empty((chunk_count(N), 6, 6)), np.empty((chunk_count(N), 6))
-    hessians, rhs_xi, frames = [], [], []
+    # twist-component-major, so the transposed coupling rows (6m, B) and the projection's rows
+    # (6m, 3B) are views
+    rows = np.empty((3, m, 6, B))
+    F = np.empty((m, 6, B, 3)) if projection is not None else np.empty((0, 6, 1, 3))
+    gram, rhs = np.empty((chunk_count(B), 6, 6)), np.empty((chunk_count(B), 6))
     for i in range(problem.n_frames):
-        pose, use = est.poses[i], ev.usable[i]
-        _, alpha, beta, gamma = shading_rows(problem, est, i, ev.normals, points_ref)
+        pose, use = est.poses[i], usable[i]
+        _, alpha, beta, gamma = shading_rows(problem, est, i, normals, points_ref, block)
         with_jacobian = i > 0 and (parallax or i in slot)
-        dshading = (model.shading_jacobian(est.lights[i], ev.normals, points_ref, pose)
+        dshading = (model.shading_jacobian(est.lights[i], normals, points_ref, pose)
                     if with_jacobian or (i == 0 and parallax) else None)
         extra_c = _NONE3
         if i == 0 and parallax and dshading is not None:
-            extra_c = _reference_parallax(est, dshading, ray, use)
+            extra_c = _reference_parallax(albedo, dshading, ray, use)
         points_i = grad_u = grad_v = ray_i = _NONE3
         if with_jacobian:
             sample = problem.warped_gradients(i, pose, points_ref)
             points_i, grad_u, grad_v = sample.points, sample.grad_u, sample.grad_v
             ray_i = ray @ pose[:3, :3].T  # d(frame-i point)/d(z)
-        k = len(frames) if i in slot else -1  # the frame's slot among those kept
-        accumulate_frame(w[i], ev.residual[i], q, _NONE3 if projection is None else projection.ws[i],
+        k = slot.get(i, -1)
+        accumulate_frame(w[i], residual[i], q, _NONE3 if projection is None else projection.ws[i],
                          alpha, beta, gamma, extra_c, use, grad_u, grad_v, points_i, ray_i,
-                         _NONE6 if dshading is None or not with_jacobian else dshading, est.albedo, K,
-                         with_jacobian, parallax, sums, _NONE_E if projection is None else projection.e,
+                         _NONE6 if dshading is None or not with_jacobian else dshading, albedo, K,
+                         with_jacobian, parallax, block_sums, _NONE_E if projection is None else projection.e,
                          rows, F, k, gram, rhs)
-        if k < 0:
-            continue
-        H = np.triu(gram.sum(axis=0))
-        H += np.triu(H, 1).T
-        if not np.isfinite(H).all() or np.linalg.cond(H) > 1e12:
-            continue
-        hessians.append(H)
-        rhs_xi.append(rhs.sum(axis=0))
-        frames.append(i)
-    m = len(frames)
-    rows = rows[:, :m]  # frames dropped as ill-conditioned left their slots unused at the end
-    hessian = scipy.linalg.block_diag(*hessians) if m else np.zeros((0, 0))
-    rhs_xi = np.concatenate(rhs_xi) if m else np.zeros(0)
-    Saa, Sbb, Sgg, Sab, Sag, Sbg, Ba, Bb, Bg = sums
+        if k >= 0:
+            grams[k] += gram.sum(axis=0)
+            rhs_xi[6 * k:6 * k + 6] += rhs.sum(axis=0)
     if projection is not None:
-        Saa, Sbb, Sgg, Sab, Sag, Sbg = (S - dS for S, dS in zip((Saa, Sbb, Sgg, Sab, Sag, Sbg), projection.local()))
-        Ba, Bb, Bg = (B - dB for B, dB in zip((Ba, Bb, Bg), projection.local_rhs()))
+        block_sums[:6] -= projection.local()
+        block_sums[6:] -= projection.local_rhs()
         if m:
-            projection.downdate_twists(F[:m], rows, hessian, rhs_xi)
-    # (N, 6m) with frame j's twist in columns 6j..6j+5: the transpose of a (6m, N) array
-    coupling = (stencil_transpose_rows(grid, *(np.ascontiguousarray(r).reshape(6 * m, N) for r in rows)).T
-                if m else np.zeros((N, 0)))
-    prior_hessian, prior_rhs = problem.level.prior.normal_equations(est.z, problem.tau, problem.mu)
-    matrix = stencil_normal_matrix(grid, Saa, Sbb, Sgg, Sab, Sag, Sbg) + prior_hessian
-    rhs_z = -stencil_transpose(grid, Ba, Bb, Bg) + prior_rhs
-    return JointSystem(sp.csr_matrix(matrix), rhs_z, coupling, hessian, rhs_xi, frames)
+            projection.downdate_twists(F, rows, downdate, rhs_xi)
+    sums[:] = block_sums
+    if m:
+        # U^T += the stencil transpose of the rows: Du^T rows_a + Dv^T rows_b + rows_c
+        for D, r in ((Du_rows, rows[0]), (Dv_rows, rows[1])):
+            scatter_sparse_transpose_rows(D.indptr, D.indices, D.data, r.reshape(6 * m, B), coupling_t)
+        coupling_t[:, block] += rows[2].reshape(6 * m, B)
 
 
 class _AlbedoProjection:
@@ -212,39 +240,40 @@ class _AlbedoProjection:
     and the frozen-dA error of the depth rows, ``s_i`` times a per-pixel factor, drops out
     (frozen dA is exact up to the albedo direction).
 
-    ``e`` (3, N, 3) holds e per (pixel, channel) for the depth rows (a, b, c), accumulated by
-    :func:`.kernels.accumulate_frame`; the twist rows' e are ``F`` (m, 6, N, 3), w s J of the
-    m refined frames, written by the same kernel. Arrays (N, 3) unless stated.
+    For one block of B pixels: weights w (n, B, 3), shading (n, B), residual (n, B, 3). ``e``
+    (3, B, 3) holds e per (pixel, channel) for the depth rows (a, b, c), accumulated by
+    :func:`.kernels.accumulate_frame`; the twist rows' e are ``F`` (m, 6, B, 3), w s J of the
+    m refined frames, written by the same kernel. Arrays (B, 3) unless stated.
     """
 
-    def __init__(self, w: np.ndarray, ev: Evaluation):
-        self.ws = w * ev.shading[..., None]  # (n, N, 3)
-        d = np.sum(self.ws * ev.shading[..., None], axis=0)
+    def __init__(self, w: np.ndarray, shading: np.ndarray, residual: np.ndarray):
+        self.ws = w * shading[..., None]  # (n, B, 3)
+        d = np.sum(self.ws * shading[..., None], axis=0)
         self.inv_d = np.where(d > 1e-12, 1.0 / np.where(d > 1e-12, d, 1.0), 0.0)
-        self.sWr = np.sum(self.ws * ev.residual, axis=0)
+        self.sWr = np.sum(self.ws * residual, axis=0)
         self.e = np.zeros((3,) + d.shape)  # e for the a, b, c rows
 
-    def local(self):
-        """Downdates (N,) of Saa, Sbb, Sgg, Sab, Sag, Sbg."""
+    def local(self) -> np.ndarray:
+        """Downdates (6, B) of Saa, Sbb, Sgg, Sab, Sag, Sbg."""
         a, b, c = self.e * self.inv_d
         ea, eb, ec = self.e
-        return (_row_dot(a, ea), _row_dot(b, eb), _row_dot(c, ec), _row_dot(a, eb),
-                _row_dot(a, ec), _row_dot(b, ec))
+        return np.stack([_row_dot(a, ea), _row_dot(b, eb), _row_dot(c, ec), _row_dot(a, eb),
+                         _row_dot(a, ec), _row_dot(b, ec)])
 
-    def local_rhs(self):
-        """Downdates (N,) of Ba, Bb, Bg."""
-        return tuple(_row_dot(e * self.inv_d, self.sWr) for e in self.e)
+    def local_rhs(self) -> np.ndarray:
+        """Downdates (3, B) of Ba, Bb, Bg."""
+        return np.stack([_row_dot(e * self.inv_d, self.sWr) for e in self.e])
 
-    def downdate_twists(self, F: np.ndarray, rows: np.ndarray, hessian: np.ndarray, rhs_xi: np.ndarray) -> None:
-        """Project the twist parts in place: the coupling rows (3, m, 6, N) lose
-        ``sum_c (e_k / d) f``, the Gram (6m, 6m) loses ``sum f f^T / d`` and the right-hand side
-        (6m,) gains ``sum f (s^T W r) / d`` over pixels and channels; F (m, 6, N, 3) = w s J of
-        the m refined frames is scaled in place."""
+    def downdate_twists(self, F: np.ndarray, rows: np.ndarray, downdate: np.ndarray, rhs_xi: np.ndarray) -> None:
+        """Project the block's twist parts: the coupling rows (3, m, 6, B) lose
+        ``sum_c (e_k / d) f`` in place, ``downdate`` (6m, 6m) gains ``sum f f^T / d`` (the Gram's
+        loss) and the right-hand side (6m,) gains ``sum f (s^T W r) / d`` over the block's pixels
+        and channels; F (m, 6, B, 3) = w s J of the m refined frames is scaled in place."""
         sqrt_inv_d = np.sqrt(self.inv_d)
         project_twist_rows(rows, F, self.e * self.inv_d, sqrt_inv_d)
-        f = np.ascontiguousarray(F).reshape(6 * len(F), -1)  # (6m, 3N): frame j in rows 6j..
+        f = F.reshape(6 * len(F), -1)  # (6m, 3B): frame j in rows 6j..
         rhs_xi += f @ (self.sWr * sqrt_inv_d).reshape(-1)
-        hessian -= _gram(f)
+        downdate += _gram(f)
 
 
 def _gram(A: np.ndarray) -> np.ndarray:
@@ -254,14 +283,17 @@ def _gram(A: np.ndarray) -> np.ndarray:
     return np.triu(upper) + np.triu(upper, 1).T
 
 
-def shading_rows(problem: LevelProblem, est: Estimate, i: int, normals: np.ndarray, points_ref: np.ndarray):
+def shading_rows(problem: LevelProblem, est: Estimate, i: int, normals: np.ndarray, points_ref: np.ndarray,
+                 pixels: slice = slice(None)):
     """(c, alpha, beta, gamma) of frame i, (N,) each (c may be a scalar), with the light field
-    frozen at the current surface: the shading is ``c + (alpha Du z + beta Dv z + gamma z) / dA``."""
+    frozen at the current surface: the shading is ``c + (alpha Du z + beta Dv z + gamma z) / dA``.
+    normals, points_ref (N, 3): those of the grid's ``pixels`` (default all)."""
     g, K = problem.level.grid, problem.level.K
+    u, v = g.u[pixels], g.v[pixels]
     c, L = problem.light_model(est).field(est.lights[i], normals, points_ref, est.poses[i])
-    L = np.broadcast_to(L, (g.size, 3))
-    alpha = K[0, 0] * L[:, 0] - (g.u - K[0, 2]) * L[:, 2]
-    beta = K[1, 1] * L[:, 1] - (g.v - K[1, 2]) * L[:, 2]
+    L = np.broadcast_to(L, (len(u), 3))
+    alpha = K[0, 0] * L[:, 0] - (u - K[0, 2]) * L[:, 2]
+    beta = K[1, 1] * L[:, 1] - (v - K[1, 2]) * L[:, 2]
     return c, alpha, beta, -L[:, 2]
 
 
@@ -278,12 +310,3 @@ def stencil_transpose(grid, Ba, Bb, Bg):
     """``Du^T Ba + Dv^T Bb + Bg``: R^T applied to per-pixel values (N,) each."""
     DuT, DvT = grid.transposed_difference_operators()
     return DuT @ Ba + DvT @ Bb + Bg
-
-
-def stencil_transpose_rows(grid, Ba, Bb, Bg):
-    """:func:`stencil_transpose` of each row of (k, N) arrays, accumulated into Bg (a
-    C-ordered float64 array the caller gives up) and returned: (k, N)."""
-    DuT, DvT = grid.transposed_difference_operators()
-    for D, B in ((DuT, Ba), (DvT, Bb)):
-        add_sparse_product_rows(D.indptr, D.indices, D.data, B, Bg)
-    return Bg

@@ -14,7 +14,7 @@ import numpy as np
 from ..model.camera import backproject
 from ..model.normals import unnormalised_normals
 from ..model.robust import cauchy_energy
-from ..model.warping import in_view, sample_bilinear, visible, warp
+from ..model.warping import in_view, sample_bilinear, sample_image_gradients, visible, warp
 from .kernels import shading_residuals
 from .lighting import SHLight
 from .pyramid import Level
@@ -35,7 +35,7 @@ class Estimate:
 
 @dataclass
 class FrameSample:
-    """Frame i seen from the reference pixels: colour (N, 3), frame-i points (N, 3), pixel
+    """Frame i seen from the reference pixels: colour (N, 3) float32, frame-i points (N, 3), pixel
     coordinates u, v (N,) and the usable mask (N,); gradients (N, 3) each when asked for."""
 
     color: np.ndarray
@@ -49,7 +49,7 @@ class FrameSample:
 
 @dataclass
 class Evaluation:
-    """Residuals r (n, N, 3), usable (n, N), warped colours (n, N, 3), shading (n, N),
+    """Residuals r (n, N, 3), usable (n, N), warped colours (n, N, 3) float32, shading (n, N),
     unit normals (N, 3), dA (N,), light bases (m, N, k) (m = 1 when all frames share one),
     and the energy split into data and prior terms."""
 
@@ -101,7 +101,7 @@ class LevelProblem:
         points, u, v, Z = warp(points_ref, pose, self.level.K)
         u, v = np.nan_to_num(u), np.nan_to_num(v)
         usable = self.visibility[i] & in_view(u, v, Z, self.level.size)
-        color = sample_bilinear(self.level.images[i], u, v).astype(np.float64)
+        color = sample_bilinear(self.level.images[i], u, v)  # float32, as the images
         return FrameSample(color, points, u, v, usable)
 
     def sample_gradients(self, i: int, sample: FrameSample, keep: np.ndarray | None = None) -> FrameSample:
@@ -110,7 +110,7 @@ class LevelProblem:
         if keep is not None:
             sample = FrameSample(sample.color[keep], sample.points[keep], sample.u[keep], sample.v[keep],
                                  sample.usable[keep])
-        gu, gv = (sample_bilinear(g, sample.u, sample.v).astype(np.float64) for g in self.level.gradients[i])
+        gu, gv = sample_image_gradients(self.level.images[i], sample.u, sample.v)
         return FrameSample(sample.color, sample.points, sample.u, sample.v, sample.usable, gu, gv)
 
     def warped_gradients(self, i: int, pose: np.ndarray, points_ref: np.ndarray) -> FrameSample:
@@ -118,7 +118,7 @@ class LevelProblem:
         what a Jacobian needs)."""
         points, u, v, _ = warp(points_ref, pose, self.level.K)
         u, v = np.nan_to_num(u), np.nan_to_num(v)
-        gu, gv = (sample_bilinear(g, u, v).astype(np.float64) for g in self.level.gradients[i])
+        gu, gv = sample_image_gradients(self.level.images[i], u, v)
         return FrameSample(None, points, u, v, None, gu, gv)
 
     def update_visibility(self, est: Estimate, *, occlusion_test: bool, rel_tol: float, sensor_depths=None,
@@ -161,7 +161,7 @@ class LevelProblem:
         """Residuals and energy of the estimate over all frames."""
         n, N = self.n_frames, self.level.grid.size
         P = self.points(est.z)
-        color = np.empty((n, N, 3))
+        color = np.empty((n, N, 3), dtype=np.float32)  # exact: sampled from float32 images
         usable = np.empty((n, N), dtype=bool)
         for i in range(n):
             s = self.sample(i, est.poses[i], P)
@@ -177,14 +177,17 @@ class LevelProblem:
         """
         return self._evaluation(est, color, usable, normals, dA, self.bases(est, normals))
 
-    def _evaluation(self, est, color, usable, normals, dA, basis) -> Evaluation:
+    def _evaluation(self, est, color, usable, normals, dA, basis, reuse: Evaluation | None = None) -> Evaluation:
         n, N = usable.shape
-        shading, residual = np.empty((n, N)), np.empty((n, N, 3))
+        shading, residual = (np.empty((n, N)), np.empty((n, N, 3))) if reuse is None else (reuse.shading, reuse.residual)
         shading_residuals(color, est.albedo, basis, np.ascontiguousarray(est.lights, dtype=np.float64), usable,
                           shading, residual)
         data = cauchy_energy(residual, self.lam)
         return Evaluation(residual, usable, color, shading, normals, dA, basis, data, self.prior_energy(est.z))
 
-    def reevaluate(self, est: Estimate, ev: Evaluation) -> Evaluation:
-        """Evaluation of ``est`` whose z, poses and light model are those ``ev`` was computed at."""
-        return self._evaluation(est, ev.color, ev.usable, ev.normals, ev.dA, ev.basis)
+    def reevaluate(self, est: Estimate, ev: Evaluation, *, overwrite: bool = False) -> Evaluation:
+        """Evaluation of ``est`` whose z, poses and light model are those ``ev`` was computed at.
+
+        overwrite: write the new shading and residuals into ``ev``'s arrays (for a caller that
+        gives ``ev`` up: no second frames x pixels x 3 array while the new one is computed)."""
+        return self._evaluation(est, ev.color, ev.usable, ev.normals, ev.dA, ev.basis, ev if overwrite else None)

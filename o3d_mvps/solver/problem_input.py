@@ -28,7 +28,8 @@ SAVE_HOW = "o3d-mvps refine CAPTURE OUT --save-problem FILE.npz"
 class SolverInput:
     """n frames of one object (frame 0 the reference) as the solver reads them.
 
-    colors: (n, H, W, 3) float32 linear RGB in [0, 1]. depths: (n, h, w) float32 metres at the
+    colors: (n, H, W, 3) float32 linear RGB in [0, 1], or a list of n (H, W, 3) frames (then
+    not copied where they are float32 and C-ordered: a capture's own frames). depths: (n, h, w) float32 metres at the
     depth sensor's resolution (h = H / scale_factor), 0 = no measurement. masks: n entries, each
     None or an (H, W) bool object mask. K, depth_K: (3, 3) float64 colour and depth intrinsics
     (pixels). scale_factor: integer H / h. initial_poses: (n, 4, 4) float64 reference -> frame i,
@@ -37,7 +38,7 @@ class SolverInput:
     options: the refinement options (``options.frames`` was applied when the frames were picked).
     """
 
-    colors: np.ndarray
+    colors: np.ndarray | list
     depths: np.ndarray
     masks: list
     K: np.ndarray
@@ -49,7 +50,10 @@ class SolverInput:
     options: RefineOptions
 
     def __post_init__(self):
-        self.colors = np.ascontiguousarray(self.colors, dtype=np.float32)
+        if isinstance(self.colors, np.ndarray):
+            self.colors = np.ascontiguousarray(self.colors, dtype=np.float32)
+        else:
+            self.colors = [np.ascontiguousarray(c, dtype=np.float32) for c in self.colors]
         self.depths = np.ascontiguousarray(self.depths, dtype=np.float32)
         self.K, self.depth_K = (np.asarray(a, dtype=np.float64) for a in (self.K, self.depth_K))
         self.initial_poses = np.asarray(self.initial_poses, dtype=np.float64)
@@ -57,12 +61,14 @@ class SolverInput:
         self.scale_factor, self.frames = int(self.scale_factor), [int(i) for i in self.frames]
         self.masks = [None if m is None else np.asarray(m, dtype=bool) for m in self.masks]
         n = len(self.colors)
-        H, W = self.colors.shape[1:3] if self.colors.ndim == 4 else (0, 0)
+        H, W = self.colors[0].shape[:2] if n and self.colors[0].ndim == 3 else (0, 0)
         sf = max(self.scale_factor, 1)
-        expected = {"colors": (n, H, W, 3), "depths": (n, H // sf, W // sf), "K": (3, 3), "depth_K": (3, 3),
-                    "initial_poses": (n, 4, 4), "led_offset": (3,)}
-        wrong = [f"{name} has shape {getattr(self, name).shape}, not {shape}" for name, shape in expected.items()
-                 if getattr(self, name).shape != shape]
+        expected = {"depths": (n, H // sf, W // sf), "K": (3, 3), "depth_K": (3, 3), "initial_poses": (n, 4, 4),
+                    "led_offset": (3,)}
+        wrong = [f"colors[{i}] has shape {c.shape}, not {(H, W, 3)}" for i, c in enumerate(self.colors)
+                 if c.shape != (H, W, 3)]
+        wrong += [f"{name} has shape {getattr(self, name).shape}, not {shape}" for name, shape in expected.items()
+                  if getattr(self, name).shape != shape]
         wrong += [f"masks[{i}] has shape {m.shape}, not {(H, W)}" for i, m in enumerate(self.masks)
                   if m is not None and m.shape != (H, W)]
         wrong += [f"{name} has {len(getattr(self, name))} entries for {n} frames" for name in ("masks", "frames")
@@ -82,7 +88,7 @@ class SolverInput:
     @property
     def color_size(self) -> tuple[int, int]:
         """(H, W) of the colour frames."""
-        return self.colors.shape[1:3]
+        return self.colors[0].shape[:2]
 
 
 #: SolverInput fields stored as one array each under their own name.

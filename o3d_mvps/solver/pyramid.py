@@ -19,7 +19,6 @@ import scipy.sparse as sp
 from ..model.camera import scale_intrinsics
 from ..model.normals import MaskedGrid, masked_grid
 from ..model.resampling import fill_nearest_valid, resample_valid, resize
-from ..model.warping import image_gradients
 
 
 def level_size(size: tuple[int, int], level: int) -> tuple[int, int]:
@@ -139,9 +138,8 @@ class Level:
     """Everything one pyramid level of the solver reads.
 
     grid: masked reference pixels. K: (3, 3) level intrinsics. size: (H, W).
-    images: per frame an (H, W, 3) float32 linear RGB image.
-    gradients: per frame a (2, H, W, 3) float32 array [dI/du, dI/dv] (each channel-contiguous,
-        so sampling goes through cv2.remap).
+    images: per frame an (H, W, 3) float32 linear RGB image (gradients are sampled from it:
+        :func:`~o3d_mvps.model.warping.sample_image_gradients`).
     frame_masks: per frame an (H, W) bool mask or None. prior: the depth prior.
     """
 
@@ -150,7 +148,6 @@ class Level:
     K: np.ndarray
     size: tuple[int, int]
     images: list
-    gradients: list
     frame_masks: list
     prior: DepthPrior
 
@@ -165,7 +162,6 @@ def build_level(index: int, colors: list, masks: list, ref_mask: np.ndarray, K: 
     # only read), coarser levels area-averaged copies
     images = [color if color.shape[:2] == tuple(size) and color.dtype == np.float32
               else resize(color, size).astype(np.float32) for color in colors]
-    gradients = [np.stack(image_gradients(img)) for img in images]
     frame_masks = [None if m is None else resize(m.astype(np.float32), size) > 0.5 for m in masks]
     mask = resize(ref_mask.astype(np.float32), size) > 0.5
     grid = masked_grid(mask, scheme)
@@ -173,4 +169,4 @@ def build_level(index: int, colors: list, masks: list, ref_mask: np.ndarray, K: 
     prior.S = second_differences(grid)
     if envelope_margin is not None:
         prior.lower, prior.upper = (grid.gather(b) for b in depth_envelope(z0, size, envelope_margin))
-    return Level(index, grid, K_level, size, images, gradients, frame_masks, prior)
+    return Level(index, grid, K_level, size, images, frame_masks, prior)
