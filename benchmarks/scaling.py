@@ -1,7 +1,8 @@
 """Scaling study: time, peak memory, sweeps and CG iterations against object pixels x frames.
 
-Each case renders the bunny so that it covers about the asked number of object pixels (the
-colour size grows with it, SF 4, LED light), writes the capture, and times odometry + refine in
+Each case renders the bunny at 0.25 m, where it fills about half of the frame (as an object a
+user scans does), at the colour size that gives about the asked number of object pixels (SF 4,
+LED light; the 2-megapixel frame 1708 x 1136 gives about 1M), writes the capture, and times odometry + refine in
 a fresh Python process (the speed benchmark's worker). With ``--baseline REV`` the same capture
 is also run by that commit of the package (a temporary git worktree), in the same run, so the
 speed-up is a ratio measured on one machine at one time. A case that runs past ``--timeout``
@@ -32,8 +33,10 @@ from .plots import line_plot
 from .speed import warm_up
 
 REPOSITORY = Path(__file__).resolve().parent.parent
-#: object pixels of the default bunny (0.2 m at 0.6 m) at 1280 x 720, measured
-D415_PIXELS, D415_SIZE = 89_619, (1280, 720)
+#: the bunny (0.2 m) at this distance (m) fills about half of the frame
+DISTANCE = 0.25
+#: its object pixels at a 2-megapixel colour size, measured
+REFERENCE_PIXELS, REFERENCE_SIZE = 958_221, (1708, 1136)
 
 
 def add_arguments(parser) -> None:
@@ -47,10 +50,11 @@ def add_arguments(parser) -> None:
 
 
 def colour_size(target_pixels: int, scale_factor: int = 4) -> tuple[int, int]:
-    """(W, H), a multiple of 8 x SF, at which the default bunny covers about ``target_pixels``."""
-    scale = math.sqrt(target_pixels / D415_PIXELS)
+    """(W, H), a multiple of 8 x SF, at which the bunny at :data:`DISTANCE` covers about
+    ``target_pixels``."""
+    scale = math.sqrt(target_pixels / REFERENCE_PIXELS)
     step = 8 * scale_factor
-    return tuple(max(step, int(round(side * scale / step)) * step) for side in D415_SIZE)
+    return tuple(max(step, int(round(side * scale / step)) * step) for side in REFERENCE_SIZE)
 
 
 @contextlib.contextmanager
@@ -109,7 +113,7 @@ def run(args) -> list[dict]:
         for target in pixels:
             size = colour_size(target)
             for n in frames:
-                capture = render_capture("bunny", frames=n, scale_factor=4, size=size, seed=0)
+                capture = render_capture("bunny", frames=n, scale_factor=4, size=size, seed=0, distance=DISTANCE)
                 object_pixels = int(np.count_nonzero(capture.mask_array(0)))
                 with tempfile.TemporaryDirectory(prefix="o3d_mvps_scaling_") as tmp:
                     folder = Path(tmp) / "capture"

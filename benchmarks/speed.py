@@ -5,8 +5,9 @@ written as a capture folder, then run in a fresh subprocess that
 reads it, runs ``refine`` (Open3D odometry included) and reports its own peak resident set
 size (``getrusage(RUSAGE_SELF).ru_maxrss``, which covers numpy, SciPy and Open3D allocations
 that tracemalloc misses). Rows of ``speed.json``: {"color": "WxH", "depth": "wxh", "frames",
-"seconds", "cpu_seconds", "peak_mb", "breakdown"} (breakdown: ``Refinement.timings``;
-cpu_seconds includes the worker's imports and capture reading).
+"distance", "object_pixels", "seconds", "cpu_seconds", "peak_mb", "breakdown", "sweeps",
+"finest_cg_iterations"} (breakdown: ``Refinement.timings``; cpu_seconds includes the worker's
+imports and capture reading).
 """
 
 from __future__ import annotations
@@ -21,19 +22,23 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 from o3d_mvps.fileio import json_text
 
 from .accuracy import QUICK_FRAMES, QUICK_OPTIONS, QUICK_SIZE, parse_size
 
-#: (colour size, scale factor): the 640 x 480 benchmark size and the D415's 1280 x 720 colour with
-#: 640 x 360 depth.
-CASES = (((640, 480), 4), ((1280, 720), 2))
+#: (colour size, scale factor, distance of the bunny in m): the 640 x 480 benchmark size, the
+#: D415's 1280 x 720 colour with 640 x 360 depth, and a 2-megapixel frame (a phone's or DSLR's,
+#: turned to fit the bunny) that the object fills by half: about 1M object pixels.
+CASES = (((640, 480), 4, 0.6), ((1280, 720), 2, 0.6), ((1708, 1136), 4, 0.25))
 
 
 def add_arguments(parser) -> None:
     """Options of the speed benchmark."""
-    parser.add_argument("--cases", nargs="+", default=[f"{w}x{h}:{sf}" for (w, h), sf in CASES],
-                        help="colour size and scale factor, e.g. 1280x720:2")
+    parser.add_argument("--cases", nargs="+", default=[f"{w}x{h}:{sf}:{d}" for (w, h), sf, d in CASES],
+                        help="colour size, scale factor and (optional) the object's distance in m, e.g. 1280x720:2 "
+                             "or 1708x1136:4:0.25")
     parser.add_argument("--frames", type=int, default=20)
     parser.add_argument("--mesh", default="bunny")
 
@@ -74,12 +79,14 @@ def warm_up(trees) -> None:
                            env={**os.environ, "PYTHONPATH": str(tree)})
 
 
-def run_case(mesh: str, size: tuple[int, int], sf: int, frames: int, options: dict) -> dict:
-    """Render one capture, then time the pipeline on it in a fresh Python process."""
+def run_case(mesh: str, size: tuple[int, int], sf: int, frames: int, options: dict, distance: float = 0.6) -> dict:
+    """Render one capture (the object ``distance`` m from the reference camera), then time the
+    pipeline on it in a fresh Python process."""
     from o3d_mvps.capture import write_capture
     from o3d_mvps.synthetic import render_capture
 
-    capture = render_capture(mesh, frames=frames, scale_factor=sf, size=size, seed=0)
+    capture = render_capture(mesh, frames=frames, scale_factor=sf, size=size, seed=0, distance=distance)
+    object_pixels = int(np.count_nonzero(capture.mask_array(0)))
     with tempfile.TemporaryDirectory(prefix="o3d_mvps_speed_") as tmp:
         folder = Path(tmp) / "capture"
         write_capture(capture, folder)
@@ -91,21 +98,30 @@ def run_case(mesh: str, size: tuple[int, int], sf: int, frames: int, options: di
         raise RuntimeError(f"speed worker failed ({done.returncode}):\n{done.stderr[-2000:]}")
     measured = json.loads(done.stdout.strip().splitlines()[-1])
     w, h = size
-    return {"mesh": mesh, "color": f"{w}x{h}", "depth": f"{w // sf}x{h // sf}", "frames": frames, **measured}
+    return {"mesh": mesh, "color": f"{w}x{h}", "depth": f"{w // sf}x{h // sf}", "frames": frames,
+            "distance": distance, "object_pixels": object_pixels, **measured}
+
+
+def parse_case(text: str) -> tuple[tuple[int, int], int, float]:
+    """'WxH:SF' or 'WxH:SF:DISTANCE' -> ((W, H), SF, distance in m; 0.6 when not given)."""
+    parts = text.split(":")
+    if len(parts) not in (2, 3):
+        raise ValueError(f"speed case {text!r}: give WxH:SF or WxH:SF:DISTANCE, e.g. 1280x720:2 or 1708x1136:4:0.25")
+    return parse_size(parts[0]), int(parts[1]), float(parts[2]) if len(parts) == 3 else 0.6
 
 
 def run(args) -> list[dict]:
     """Run every case one after the other; writes ``speed.json`` into ``args.out`` after each."""
-    cases = [(parse_size(c.split(":")[0]), int(c.split(":")[1])) for c in args.cases]
+    cases = [parse_case(c) for c in args.cases]
     frames, options = args.frames, {}
     if args.quick:
-        cases, frames, options = [(QUICK_SIZE, 4)], QUICK_FRAMES, QUICK_OPTIONS
+        cases, frames, options = [(QUICK_SIZE, 4, 0.6)], QUICK_FRAMES, QUICK_OPTIONS
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     rows = []
     warm_up([Path(__file__).resolve().parent.parent])
-    for size, sf in cases:
-        row = run_case(args.mesh, size, sf, frames, options)
+    for size, sf, distance in cases:
+        row = run_case(args.mesh, size, sf, frames, options, distance)
         rows.append(row)
         print(f"speed: {row['color']} / {row['depth']}, {frames} frames: {row['seconds']:.1f} s, "
               f"peak {row['peak_mb']:.0f} MB", flush=True)

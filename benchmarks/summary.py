@@ -24,12 +24,15 @@ def _study_table(rows: list[dict]) -> str:
 
 def _speed_table(rows: list[dict]) -> str:
     stages = sorted({k for r in rows for k in r["breakdown"] if k != "total"})
-    lines = ["| colour | depth | frames | seconds | CPU seconds | peak MB | " + " | ".join(stages) + " |",
-             "|---|---|---:|---:|---:|---:|" + "---:|" * len(stages)]
+    lines = ["| colour | depth | object pixels | frames | seconds | CPU seconds | peak MB | finest CG per step (max) | "
+             + " | ".join(stages) + " |",
+             "|---|---|---:|---:|---:|---:|---:|---:|" + "---:|" * len(stages)]
     for r in rows:
         parts = " | ".join(f"{r['breakdown'].get(k, 0.0):.1f}" for k in stages)
-        lines.append(f"| {r['color']} | {r['depth']} | {r['frames']} | {r['seconds']:.1f} | "
-                     f"{r['cpu_seconds']:.1f} | {r['peak_mb']:.0f} | {parts} |")
+        cg = [c for c in r.get("finest_cg_iterations") or [] if c is not None]
+        lines.append(f"| {r['color']} | {r['depth']} | {r.get('object_pixels', '')} | {r['frames']} | "
+                     f"{r['seconds']:.1f} | {r['cpu_seconds']:.1f} | {r['peak_mb']:.0f} | {max(cg, default='')} | "
+                     f"{parts} |")
     return "\n".join(lines)
 
 

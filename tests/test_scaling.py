@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from benchmarks.__main__ import main
-from benchmarks.scaling import D415_PIXELS, checkout, colour_size, fitted_exponent
+from benchmarks.scaling import REFERENCE_PIXELS, REFERENCE_SIZE, checkout, colour_size, fitted_exponent
 
 
 def test_fitted_exponent_recovers_a_power_law():
@@ -17,12 +17,13 @@ def test_fitted_exponent_recovers_a_power_law():
     assert fitted_exponent(rows[:1] + [{"timeout": 60.0}]) is None  # one finished case fits nothing
 
 
-def test_colour_size_scales_the_d415_frame_to_the_pixel_target():
-    assert colour_size(D415_PIXELS) == (1280, 704)  # 720 rounded to a multiple of 8 x SF 4
-    for target in (100_000, 1_000_000):
+def test_colour_size_scales_the_two_megapixel_frame_to_the_pixel_target():
+    assert colour_size(REFERENCE_PIXELS) == (1696, 1152)  # 1708 x 1136 rounded to multiples of 8 x SF 4
+    W, H = REFERENCE_SIZE
+    for target in (100_000, 2_000_000):
         w, h = colour_size(target)
         assert w % 32 == 0 and h % 32 == 0
-        assert w * h / (1280 * 720) == pytest.approx(target / D415_PIXELS, rel=0.1)
+        assert w * h / (W * H) == pytest.approx(target / REFERENCE_PIXELS, rel=0.1)
 
 
 def test_baseline_checkout_is_a_temporary_worktree_of_the_revision():
