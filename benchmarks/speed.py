@@ -3,8 +3,8 @@
 The solver's kernels are compiled once first (:func:`warm_up`). Each case is rendered and
 written as a capture folder, then run in a fresh subprocess that
 reads it, runs ``refine`` (Open3D odometry included) and reports its own peak resident set
-size (``getrusage(RUSAGE_SELF).ru_maxrss``, which covers numpy, SciPy and Open3D allocations
-that tracemalloc misses). Rows of ``speed.json``: {"color": "WxH", "depth": "wxh", "frames",
+size (:func:`peak_rss_mb`, which covers numpy, SciPy and Open3D allocations that tracemalloc
+misses). Rows of ``speed.json``: {"color": "WxH", "depth": "wxh", "frames",
 "distance", "object_pixels", "seconds", "cpu_seconds", "peak_mb", "breakdown", "sweeps",
 "finest_cg_iterations"} (breakdown: ``Refinement.timings``; cpu_seconds includes the worker's
 imports and capture reading).
@@ -43,6 +43,23 @@ def add_arguments(parser) -> None:
     parser.add_argument("--mesh", default="bunny")
 
 
+def peak_rss_mb() -> float:
+    """This process's peak resident set size in MiB: ``VmHWM`` of ``/proc/self/status``, the
+    high-water mark of this program's own memory. (Linux's ``getrusage`` ``ru_maxrss`` also
+    counts the parent's size at the fork that started this process: a worker started by a
+    benchmark that had rendered a 2-megapixel capture reported the parent's gigabytes.) Falls
+    back to ``ru_maxrss`` where /proc is missing (macOS: bytes there, not KiB)."""
+    try:
+        with open("/proc/self/status") as status:
+            for line in status:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / 2**20 if sys.platform == "darwin" else peak / 1024.0
+
+
 def measure(capture_folder: str, options: dict) -> dict:
     """Run the pipeline on a capture folder in this process: seconds, peak MB, timings."""
     from o3d_mvps import RefineOptions, refine
@@ -55,7 +72,7 @@ def measure(capture_folder: str, options: dict) -> dict:
     usage = resource.getrusage(resource.RUSAGE_SELF)
     # cpu_seconds (user + system, this process) is what the wall time would be without other load
     finest = [row for row in result.energy if row["level"] == 0 and row["iteration"] > 0]
-    return {"seconds": seconds, "cpu_seconds": usage.ru_utime + usage.ru_stime, "peak_mb": usage.ru_maxrss / 1024.0,
+    return {"seconds": seconds, "cpu_seconds": usage.ru_utime + usage.ru_stime, "peak_mb": peak_rss_mb(),
             "breakdown": result.timings,
             "sweeps": len([row for row in result.energy if row["iteration"] > 0]),
             "finest_cg_iterations": [row.get("cg_iterations") for row in finest]}

@@ -49,3 +49,16 @@ def test_banding_measure_flags_terraces_and_not_a_smooth_slope():
     assert min(phase[0, 5], 1 - phase[0, 5]) < 1e-6  # 0.5005 m: where the reading jumps, a line
     flat = np.where(np.isfinite(error), 2.0, np.nan)
     assert banding(flat, true)[2] == 1.0
+
+
+def test_peak_rss_counts_this_process_only():
+    """A worker's peak memory is its own high-water mark: in a fresh process it rises by what the
+    process touches (200 MiB here, with 25 % margin for the allocator) from well under that."""
+    import subprocess
+    import sys
+
+    code = ("import numpy as np; from benchmarks.speed import peak_rss_mb; before = peak_rss_mb(); "
+            "block = np.ones(200 * 2**20 // 8); print(before, peak_rss_mb() - before)")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    before, rise = map(float, done.stdout.split())
+    assert 150 < rise < 250 and before < 1000, (before, rise)

@@ -328,7 +328,7 @@ def test_schur_route_solves_the_full_system(problem, rng, project_albedo):
 
 @pytest.mark.parametrize("project_albedo", [False, True])
 def test_blocks_of_pixels_give_the_same_system(problem, project_albedo):
-    """Assembled in blocks of reference pixels (97 and 1000 here, 65536 on real images), every
+    """Assembled in blocks of reference pixels (97 and 1000 here, 32768 on real images), every
     part of the system is the one-block system to rounding: the sums over frames are per pixel,
     the sums over pixels (twist Grams, projection, coupling's stencil) add up across blocks."""
     est = kicked_estimate(problem)
@@ -383,15 +383,30 @@ def test_projecting_the_albedo_out_moves_it_with_the_step(problem):
     much (the ripple looks to it like shading to be explained by the depth)."""
     est = kicked_estimate(problem)
     est.albedo = est.albedo * (1 + 0.05 * np.cos(np.arange(est.z.size) / 7.0))[:, None]
-    ev = problem.evaluate(est)
+    energy = problem.evaluate(est).energy
     after = {}
-    for project in (False, True):
-        stepped, stepped_ev, _ = update_pose_depth(LevelProblem(problem.level, problem.tau, problem.lam), est, ev,
+    for project in (False, True):  # each step releases the evaluation it is given: one each
+        stepped, stepped_ev, _ = update_pose_depth(LevelProblem(problem.level, problem.tau, problem.lam), est,
+                                                   problem.evaluate(est),
                                                    rtol=OPTIONS.joint_cg_tolerance,
                                                    maxiter=OPTIONS.cg_max_iterations, project_albedo=project)
         after[project] = stepped_ev.energy
         assert (stepped.albedo is est.albedo) != project
-    assert after[True] < 0.01 * ev.energy and after[False] > 0.9 * ev.energy, (ev.energy, after)
+    assert after[True] < 0.01 * energy and after[False] > 0.9 * energy, (energy, after)
+
+
+def test_a_step_releases_its_evaluation_and_a_second_use_is_refused(problem):
+    """The step drops the per-pixel arrays of the evaluation it read (keeping its energy), so they
+    are not held through the solve; reading it again is a clear error, not a crash."""
+    est = kicked_estimate(problem)
+    ev = problem.evaluate(est)
+    energy = ev.energy
+    _, stepped_ev, _ = update_pose_depth(problem, est, ev, rtol=OPTIONS.joint_cg_tolerance,
+                                         maxiter=OPTIONS.cg_max_iterations)
+    assert ev.residual is None and ev.color is None and ev.energy == energy
+    assert stepped_ev.residual is not None and stepped_ev.energy < energy
+    with pytest.raises(ValueError, match="released"):
+        joint_system(problem, est, ev)
 
 
 def test_refine_options_validate_the_joint_step_settings():

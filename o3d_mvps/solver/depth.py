@@ -22,22 +22,28 @@ from .reflectance import update_albedo
 def update_depth(problem: LevelProblem, est: Estimate, ev: Evaluation, *, rtol: float, maxiter: int,
                  project_albedo: bool = True, max_halvings: int = 5) -> tuple[Estimate, Evaluation, int]:
     """One depth step (warp frozen; with ``project_albedo`` the albedo eliminated and refitted at
-    every trial): returns (estimate, its evaluation, CG iterations); never raises the energy."""
-    system = joint_system(problem, est, ev, parallax=False, twists=False, project_albedo=project_albedo)
+    every trial): returns (estimate, its evaluation, CG iterations); never raises the energy.
+    ``ev``, the evaluation of ``est``, is released once read (:meth:`.Evaluation.release`)."""
+    energy = ev.energy
+    # ev released once read: not held while the matrices are formed, nor through the solve and line search
+    system = joint_system(problem, est, ev, parallax=False, twists=False, project_albedo=project_albedo,
+                          release=True)
     step, iterations = solve_spd(system.matrix, system.rhs_z, rtol, maxiter)
+    del system
 
     def moved(t: float):
         z = problem.level.prior.clip(est.z + t * step)
         return Estimate(z, est.albedo, est.lights, est.poses) if np.all(z > 0) else None
 
-    return (*search_estimates(problem, est, ev, moved, max_halvings, refit_albedo=project_albedo), iterations)
+    return (*search_estimates(problem, est, energy, moved, max_halvings, refit_albedo=project_albedo), iterations)
 
 
-def search_estimates(problem: LevelProblem, est: Estimate, ev: Evaluation, moved: Callable[[float], Estimate | None],
+def search_estimates(problem: LevelProblem, est: Estimate, energy: float, moved: Callable[[float], Estimate | None],
                      max_halvings: int, *, refit_albedo: bool = False) -> tuple[Estimate, Evaluation]:
-    """Backtrack from ``est`` (evaluated as ``ev``) along ``moved(t)``, the estimate at step
+    """Backtrack from ``est`` (of energy ``energy``) along ``moved(t)``, the estimate at step
     length t (None where invalid), on the true energy; returns the accepted (estimate,
-    evaluation), or (est, ev) when no length lowers the energy.
+    evaluation), or ``est`` evaluated anew when no length lowers the energy (its evaluation
+    was released for the solve: see :meth:`.Evaluation.release`).
 
     refit_albedo: give each trial its closed-form albedo (:func:`update_albedo`) first.
     """
@@ -52,5 +58,5 @@ def search_estimates(problem: LevelProblem, est: Estimate, ev: Evaluation, moved
             candidate_ev = problem.reevaluate(candidate, candidate_ev, overwrite=True)
         return (candidate, candidate_ev), candidate_ev.energy
 
-    found = backtrack(trial, ev.energy, max_halvings)
-    return (est, ev) if found is None else found[1]
+    found = backtrack(trial, energy, max_halvings)
+    return (est, problem.evaluate(est)) if found is None else found[1]

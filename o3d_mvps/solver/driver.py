@@ -143,7 +143,8 @@ def _extrapolate(problem: LevelProblem, est: Estimate, ev, before: Estimate, fac
     each other (a rotation of a frame about the object moves the image by a fraction of a pixel);
     continuing the sweep's own direction shortens the creep. ``before`` is the snapshot taken at
     the start of the sweep, ``est`` (evaluated as ``ev``) where it ended; unknowns the sweep did
-    not move stay put.
+    not move stay put. Returns the evaluation of the result (``ev`` itself, or a new one, and then
+    ``ev`` is released).
     """
     best = None
     poses_moved = not np.array_equal(est.poses, before.poses)  # else kept exactly (no log/exp round trip)
@@ -159,6 +160,8 @@ def _extrapolate(problem: LevelProblem, est: Estimate, ev, before: Estimate, fac
                          if poses_moved else est.poses, offset)
         trial_ev = problem.evaluate(trial)
         if trial_ev.energy < (ev.energy if best is None else best[1].energy):
+            if best is None:
+                ev.release()  # superseded: not held while the next factor is evaluated
             best = (trial, trial_ev)
         else:
             break

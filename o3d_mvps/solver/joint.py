@@ -25,8 +25,11 @@ def update_pose_depth(problem: LevelProblem, est: Estimate, ev: Evaluation, *, r
                       project_albedo: bool = True, max_halvings: int = 5) -> tuple[Estimate, Evaluation, int]:
     """One joint step on z and the twists (and, with ``project_albedo``, the albedo refitted at
     every trial): returns (estimate, its evaluation, CG iterations); never raises the energy
-    (returns ``est`` unchanged when no step length lowers it)."""
-    system = joint_system(problem, est, ev, project_albedo=project_albedo)
+    (returns ``est`` unchanged when no step length lowers it). ``ev``, the evaluation of
+    ``est``, is released once read (:meth:`.Evaluation.release`)."""
+    energy = ev.energy
+    # ev released once read: not held while the matrices are formed, nor through the solve and line search
+    system = joint_system(problem, est, ev, project_albedo=project_albedo, release=True)
     S, rhs = system.schur_operator()
     dz, iterations = solve_spd(S, rhs, rtol, maxiter, sparse_part=system.matrix)
     xi, frames = system.twists(dz), system.frames
@@ -41,4 +44,4 @@ def update_pose_depth(problem: LevelProblem, est: Estimate, ev: Evaluation, *, r
             poses[i] = se3.exp(t * x) @ est.poses[i]
         return Estimate(z, est.albedo, est.lights, poses)
 
-    return (*search_estimates(problem, est, ev, moved, max_halvings, refit_albedo=project_albedo), iterations)
+    return (*search_estimates(problem, est, energy, moved, max_halvings, refit_albedo=project_albedo), iterations)

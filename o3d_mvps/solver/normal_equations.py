@@ -120,12 +120,12 @@ _NONE3, _NONE6, _NONE_E = np.zeros((0, 3)), np.zeros((0, 6)), np.zeros((0, 1, 3)
 #: Reference pixels per block of the joint assembly. Every per-pixel array of the refined
 #: frames' twists ((3, m, 6, B) coupling rows, (m, 6, B, 3) projection rows) exists for one block
 #: at a time: at 2 megapixels and 20 frames the whole-image arrays took 5 GB.
-BLOCK_PIXELS = 65536
+BLOCK_PIXELS = 32768
 
 
 def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parallax: bool = True,
                  twists: bool = True, project_albedo: bool = True, min_pixels: int = 12,
-                 block_pixels: int = BLOCK_PIXELS) -> JointSystem:
+                 block_pixels: int = BLOCK_PIXELS, release: bool = False) -> JointSystem:
     """Assemble the Gauss-Newton normal equations for the increments (dz, twists).
 
     parallax: include the warp's (and the LED position's) dependence on z in the depth rows
@@ -137,7 +137,12 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
     Per block, one pass over the frames; per frame, one compiled kernel
     (:func:`.kernels.accumulate_frame`) adds its depth rows to per-pixel sums and writes its
     twist rows and w s J; the block's albedo projection and its share of the coupling follow.
+    release: release ``ev`` (:meth:`.Evaluation.release`) once the pass has read it, before the
+    matrices are formed.
     """
+    if ev.residual is None:
+        raise ValueError("joint_system: the evaluation was released by an earlier step (Evaluation.release); "
+                         "evaluate the estimate again (LevelProblem.evaluate)")
     grid = problem.level.grid
     N = grid.size
     candidates = [i for i in range(1, problem.n_frames) if twists and ev.usable[i].sum() >= min_pixels]
@@ -152,6 +157,8 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
         block = slice(start, min(N, start + block_pixels))
         _assemble_block(problem, est, ev, block, points_ref[block], candidates, parallax, project_albedo,
                         sums[:, block], grams, rhs_xi, downdate, coupling_t, Du[block], Dv[block])
+    if release:
+        ev.release()
     # frames whose own Gram is not safely invertible keep their depth rows but take no twist
     hessians, frames, kept = [], [], []
     for k, i in enumerate(candidates):
