@@ -2,7 +2,8 @@
 
 accuracy: every method on rendered captures (bunny, armadillo; SF 2/4/8; 640x480, 20 frames).
 frames: error of ours against n in {5, ..., 30} (bunny, SF 4). tau: error against tau~.
-speed: wall time and peak RSS of odometry + refine at 640x480 / 160x120 and 1280x720 / 640x360.
+speed: wall time and peak memory of odometry + refine at 640x480 / 160x120, 1280x720 / 640x360 (D415)
+and 1708x1136 / 427x284 with 1M object pixels (about 2.5 min and 6 GB on two cores).
 object: reconstruct rendered 360-degree rings with raw and refined depth; Chamfer, normals, 1/2 workers.
 room: a room-lit scene (table, wall, automatic masks): error and banding along the 1 mm depth steps.
 scaling: time, memory, sweeps and CG iterations against object pixels x frames (--baseline REV

@@ -113,6 +113,14 @@ def test_problem_round_trip(capture, tmp_path):
         write_problem(problem, tmp_path / "p.npz")
     with pytest.raises(ValueError, match=r"depths has shape \(3, 5, 8\), not \(3, 6, 8\)"):
         replace(problem, depths=problem.depths[:, :5])
+    # colours as a list of frames (a capture's own): float32 frames kept, not copied; saved the same
+    frames = [np.ascontiguousarray(c, dtype=np.float32) for c in problem.colors]
+    listed = replace(problem, colors=frames)
+    assert all(a is b for a, b in zip(listed.colors, frames)) and listed.color_size == (H, W)
+    again = read_problem(write_problem(listed, tmp_path / "listed.npz"))
+    np.testing.assert_array_equal(again.colors, problem.colors)
+    with pytest.raises(ValueError, match=r"colors\[1\] has shape \(12, 15, 3\), not \(12, 16, 3\)"):
+        replace(problem, colors=[frames[0], frames[1][:, :15], frames[2]])
 
 
 def saved_problem(capture, path: Path) -> Path:
