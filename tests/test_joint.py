@@ -16,6 +16,7 @@ from functools import partial
 import numpy as np
 import pytest
 import scipy.linalg
+import scipy.sparse as sp
 
 # pytest puts tests/ (no __init__.py) on sys.path, so the model tests' helpers import directly
 from helpers import SIZE, K, bump_depth, make_problem
@@ -28,6 +29,7 @@ from o3d_mvps.model.camera import pixel_grid
 from o3d_mvps.model.normals import unnormalised_normals
 from o3d_mvps.model.robust import cauchy, cauchy_weights
 from o3d_mvps.solver.joint import update_pose_depth
+from o3d_mvps.solver.linear import DAMPING, levenberg_damped
 from o3d_mvps.solver.normal_equations import joint_system, residual_jacobians
 from o3d_mvps.solver.problem import Estimate, LevelProblem
 
@@ -418,3 +420,28 @@ def test_refine_options_validate_the_joint_step_settings():
     with pytest.raises(ValueError, match="depth_envelope"):
         RefineOptions(depth_envelope=-0.1)
     assert RefineOptions(joint_min_pixels=0, depth_envelope=None).joint_min_pixels == 0
+
+
+def test_damping_keeps_the_step_finite_where_only_the_reference_sees(problem):
+    """Pixels that no frame but the reference sees carry no data once the albedo is projected
+    out (one image cannot tell albedo from shading); with the LED's little smoothness switched off
+    and the prior averaging 2 x 2 blocks, M is singular there (3 free directions per block). An
+    LED scene on a 360-degree ring gave CG NaN from the AMG cycle's coarse solve. Damped, M is
+    positive definite, and the joint step is finite and lowers the energy."""
+    est = kicked_estimate(problem)
+    grid = problem.level.grid
+
+    def free_directions():
+        eigenvalues = np.linalg.eigvalsh(joint_system(problem, est, problem.evaluate(est)).matrix.toarray())
+        return int(np.sum(eigenvalues < 1e-9 * eigenvalues[-1]))
+
+    assert free_directions() == 0
+    hidden = (grid.u >= 24) & (grid.u < 40) & (grid.v >= 16) & (grid.v < 32)  # 16 x 16 px, 64 whole blocks
+    problem.visibility[1:, hidden] = False
+    assert free_directions() > 64  # 132: up to 3 per block, fewer at the edge, which its neighbours' stencils pin
+    ev = problem.evaluate(est)
+    M = joint_system(problem, est, ev).matrix.toarray()
+    damped = np.linalg.eigvalsh(levenberg_damped(sp.csr_matrix(M)).toarray())
+    assert damped[0] >= DAMPING * 0.01 * np.mean(np.diag(M)) * (1 - 1e-6)
+    stepped, stepped_ev, _ = update_pose_depth(problem, est, ev, rtol=1e-6, maxiter=300)
+    assert np.isfinite(stepped.z).all() and stepped_ev.energy < problem.evaluate(est).energy

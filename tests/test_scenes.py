@@ -83,7 +83,7 @@ def test_the_light_model_comes_from_capture_json(scene):
 
 def test_the_smoothness_follows_the_light_model_unless_given():
     assert RefineOptions(light_model="sh").model.smoothness_weight() == 30.0  # room light: the images pin little
-    assert RefineOptions(light_model="led").model.smoothness_weight() == 0.0
+    assert RefineOptions(light_model="led").model.smoothness_weight() == 0.3
     assert RefineOptions(light_model="led", smoothness=5).model.smoothness_weight() == 5.0
 
 

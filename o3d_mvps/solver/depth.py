@@ -2,7 +2,7 @@
 
 The Gauss-Newton normal equations of :func:`~.normal_equations.joint_system` without parallax
 or twists (frozen dA and light field, albedo projected out), ``M dz = b`` with M sparse SPD
-(7-point stencil plus 2 tau D^T D), solved by AMG-preconditioned CG
+(7-point stencil plus 2 tau D^T D, Levenberg-damped: :func:`.linear.levenberg_damped`), solved by AMG-preconditioned CG
 (:mod:`.linear`), then a backtracking line search on the true energy (:mod:`.line_search`).
 """
 
@@ -13,7 +13,7 @@ from typing import Callable
 import numpy as np
 
 from .line_search import backtrack
-from .linear import solve_spd
+from .linear import levenberg_damped, solve_spd
 from .normal_equations import joint_system
 from .problem import Estimate, Evaluation, LevelProblem
 from .reflectance import update_albedo
@@ -28,7 +28,7 @@ def update_depth(problem: LevelProblem, est: Estimate, ev: Evaluation, *, rtol: 
     # ev released once read: not held while the matrices are formed, nor through the solve and line search
     system = joint_system(problem, est, ev, parallax=False, twists=False, project_albedo=project_albedo,
                           release=True)
-    step, iterations = solve_spd(system.matrix, system.rhs_z, rtol, maxiter)
+    step, iterations = solve_spd(levenberg_damped(system.matrix), system.rhs_z, rtol, maxiter)
     del system
 
     def moved(t: float):

@@ -5,18 +5,21 @@ frame's rotation about the object against a bend of the surface): each update se
 unknowns frozen, so the poses converged at ~7 % per sweep on the finest level. This step
 linearises the robust energy in both at once (:func:`~.normal_equations.joint_system`, with the
 warp's parallax in the depth rows and the albedo projected out), solves the Schur complement
-``M - U H^-1 U^T`` by CG preconditioned with AMG on M, recovers the twists, and takes a
+``M - U H^-1 U^T`` (M Levenberg-damped: :func:`.linear.levenberg_damped`) by CG preconditioned
+with AMG on M, recovers the twists, and takes a
 backtracking line search on the true energy (:mod:`.line_search`), so every accepted step
 lowers it.
 """
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from ..model import se3
 from .depth import search_estimates
-from .linear import solve_spd
+from .linear import levenberg_damped, solve_spd
 from .normal_equations import joint_system
 from .problem import Estimate, Evaluation, LevelProblem
 
@@ -30,6 +33,7 @@ def update_pose_depth(problem: LevelProblem, est: Estimate, ev: Evaluation, *, r
     energy = ev.energy
     # ev released once read: not held while the matrices are formed, nor through the solve and line search
     system = joint_system(problem, est, ev, project_albedo=project_albedo, release=True)
+    system = dataclasses.replace(system, matrix=levenberg_damped(system.matrix))
     S, rhs = system.schur_operator()
     dz, iterations = solve_spd(S, rhs, rtol, maxiter, sparse_part=system.matrix)
     xi, frames = system.twists(dz), system.frames

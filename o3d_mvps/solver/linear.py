@@ -14,6 +14,22 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 
+#: Levenberg-Marquardt damping of the depth block M, relative to its diagonal. Pixels that only
+#: the reference frame sees carry no data once the albedo is projected out; where the prior's SF x SF
+#: block averages leave them free and the smoothness is off, M was singular: the AMG hierarchy's
+#: coarse solve returned 1e58 and CG NaN (an LED scene on a 360-degree ring), or CG ran to its cap
+#: and the free pixels wandered. Damping changes the steps, not the minimiser.
+DAMPING = 1e-4
+
+
+def levenberg_damped(matrix: sp.spmatrix) -> sp.csr_matrix:
+    """``M + DAMPING diag(max(M_pp, mean(M_pp) / 100))`` (N, N) sparse: positive definite for
+    any PSD M, also where a row of M is zero."""
+    d = matrix.diagonal()
+    floor = 0.01 * float(d.mean()) if d.size else 0.0
+    return sp.csr_matrix(matrix + sp.diags(DAMPING * np.maximum(d, max(floor, np.finfo(float).tiny))))
+
+
 def amg_preconditioner(matrix: sp.csr_matrix) -> spla.LinearOperator:
     """One smoothed-aggregation AMG V-cycle (pyamg hierarchy) as an SPD preconditioner.
 
