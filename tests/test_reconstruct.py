@@ -156,3 +156,18 @@ def test_two_dask_workers_give_the_same_mesh_as_one():
     # the fused grid's block order (hence the vertex order) is not fixed: compare nearest vertices
     assert meshes[0].shape == meshes[1].shape
     assert max(cKDTree(a).query(b)[0].max() for a, b in (meshes, meshes[::-1])) < 1e-6
+
+
+@pytest.mark.parametrize("light", ["led", "room", None])
+def test_a_view_job_keeps_the_capture_and_what_lit_it(ring, light):
+    """The arrays a Dask task carries give the capture back: images, intrinsics and its light
+    (without it a room-lit ring was refined with the LED model, with a warning per view)."""
+    from o3d_mvps.reconstruct.views import capture_arrays, capture_from_arrays
+
+    capture = ring[0].select(range(3))
+    capture.light = light
+    back = capture_from_arrays(capture_arrays(capture))
+    assert back.light == light and back.n_frames == 3
+    np.testing.assert_array_equal(back.color_array(2), capture.color_array(2))
+    np.testing.assert_array_equal(back.depth_array(1), capture.depth_array(1))
+    np.testing.assert_array_equal(back.color_K(), capture.color_K())

@@ -73,7 +73,7 @@ def capture_arrays(capture) -> dict:
             "depth": [capture.depth_array(i) for i in range(capture.n_frames)], "masks": masks,
             "color_K": capture.color_K(), "depth_K": capture.depth_K(),
             "fields": {name: getattr(capture, name) for name in ("depth_scale", "depth_trunc", "color_encoding",
-                                                                  "sensor", "metadata")}}
+                                                                  "sensor", "light", "metadata")}}
 
 
 def capture_from_arrays(arrays: dict):
