@@ -1,6 +1,7 @@
 """Whole-object reconstruction on rendered 360-degree rings: raw against refined fusion.
 
-For each shipped mesh: a ring of LED-lit frames (:func:`o3d_mvps.synthetic.render_ring`), reconstructed with
+For each shipped mesh and light (the LED, room light): a ring of frames
+(:func:`o3d_mvps.synthetic.render_ring`, the light model taken from the capture), reconstructed with
 the known poses from the sensor depth (bicubic, ``depth="raw"``) and from refined depth, each
 scored against the true mesh: accuracy (mean distance of mesh vertices to the true surface),
 completeness (mean distance of true surface points to the mesh), Chamfer = their mean (mm),
@@ -27,6 +28,7 @@ from o3d_mvps.reconstruct import ReconstructOptions, reconstruct
 from o3d_mvps.synthetic import render_ring
 
 MESHES = ("bunny", "armadillo")
+LIGHTS = ("led", "room")
 WORKERS = (1, 2, 4)
 FULL = {"frames": 16, "size": (320, 240), "references": 8, "voxel_mm": 2.0, "levels": 3, "iterations": 5}
 QUICK = {"frames": 12, "size": (160, 120), "references": 4, "voxel_mm": 3.0, "levels": 2, "iterations": 2}
@@ -34,6 +36,7 @@ QUICK = {"frames": 12, "size": (160, 120), "references": 4, "voxel_mm": 3.0, "le
 
 def add_arguments(parser) -> None:
     parser.add_argument("--meshes", nargs="+", default=list(MESHES), choices=MESHES)
+    parser.add_argument("--lights", nargs="+", default=list(LIGHTS), choices=LIGHTS)
 
 
 def scores(mesh: o3d.t.geometry.TriangleMesh, capture, scene, name: str, samples: int = 50000) -> dict:
@@ -79,11 +82,11 @@ def run(args) -> None:
     settings = QUICK if args.quick else FULL
     workers_run = [w for w in WORKERS if w <= (os.cpu_count() or 1)]
     rows = []
-    for name in args.meshes:
-        capture, scene = render_ring(name, frames=settings["frames"], size=settings["size"])
+    for name, light in [(name, light) for name in args.meshes for light in args.lights]:
+        capture, scene = render_ring(name, frames=settings["frames"], size=settings["size"], light=light)
         poses = capture.groundtruth.poses
         refine = RefineOptions(levels=settings["levels"], max_iterations=settings["iterations"], progress=False)
-        row = {"mesh": name, **{k: (list(v) if isinstance(v, tuple) else v) for k, v in settings.items()}}
+        row = {"mesh": name, "light": light, **{k: (list(v) if isinstance(v, tuple) else v) for k, v in settings.items()}}
         row["seconds_by_workers"] = {}
         for depth, workers in [("raw", 1)] + [("refined", w) for w in workers_run]:
             options = ReconstructOptions(references=settings["references"], voxel_mm=settings["voxel_mm"],
@@ -105,22 +108,22 @@ def run(args) -> None:
         row["chamfer_gain"] = 1 - row["refined"]["chamfer_mm"] / row["raw"]["chamfer_mm"]
         row["wall_time_ratio_to_1_worker"] = {w: s / row["refined"]["seconds"] for w, s in row["seconds_by_workers"].items()}
         rows.append(row)
-        print(f"{name}: Chamfer raw {row['raw']['chamfer_mm']:.3f} mm, refined {row['refined']['chamfer_mm']:.3f} mm "
+        print(f"{name}, {light}: Chamfer raw {row['raw']['chamfer_mm']:.3f} mm, refined {row['refined']['chamfer_mm']:.3f} mm "
               f"({100 * row['chamfer_gain']:.0f} % better), wall time to 1 worker {row['wall_time_ratio_to_1_worker']}")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "object.json").write_text(json_text(rows, "object benchmark"))
-    lines = ["| mesh | depth | accuracy (mm) | completeness (mm) | Chamfer (mm) | normal consistency | time (s) |",
-             "|---|---|---:|---:|---:|---:|---:|"]
+    lines = ["| mesh | light | depth | accuracy (mm) | completeness (mm) | Chamfer (mm) | normal consistency | time (s) |",
+             "|---|---|---|---:|---:|---:|---:|---:|"]
     for row in rows:
         for depth in ("raw", "refined"):
             r = row[depth]
-            lines.append(f"| {row['mesh']} | {depth} | {r['accuracy_mm']:.3f} | {r['completeness_mm']:.3f} | "
+            lines.append(f"| {row['mesh']} | {row['light']} | {depth} | {r['accuracy_mm']:.3f} | {r['completeness_mm']:.3f} | "
                          f"{r['chamfer_mm']:.3f} | {r['normal_consistency']:.4f} | {r['seconds']:.1f} |")
     ratios = " | ".join(f"{w}-worker / 1-worker wall time" for w in workers_run[1:])
-    lines += ["", f"| mesh | refined Chamfer gain | {ratios} | print solid is a volume |",
-              "|---|---:|" + "---:|" * len(workers_run[1:]) + "---|"]
-    lines += [f"| {r['mesh']} | {100 * r['chamfer_gain']:.0f} % | "
+    lines += ["", f"| mesh | light | refined Chamfer gain | {ratios} | print solid is a volume |",
+              "|---|---|---:|" + "---:|" * len(workers_run[1:]) + "---|"]
+    lines += [f"| {r['mesh']} | {r['light']} | {100 * r['chamfer_gain']:.0f} % | "
               + "".join(f"{r['wall_time_ratio_to_1_worker'][w]:.2f} | " for w in workers_run[1:])
               + f"{r['print_is_volume']} |" for r in rows]
     left_out = [w for w in WORKERS if w not in workers_run]
