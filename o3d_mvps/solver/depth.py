@@ -2,8 +2,9 @@
 
 The Gauss-Newton normal equations of :func:`~.normal_equations.joint_system` without parallax
 or twists (frozen dA and light field, albedo projected out), ``M dz = b`` with M sparse SPD
-(7-point stencil plus 2 tau D^T D, Levenberg-damped: :func:`.linear.levenberg_damped`), solved by AMG-preconditioned CG
-(:mod:`.linear`), then a backtracking line search on the true energy (:mod:`.line_search`).
+(7-point stencil plus 2 tau D^T D, Levenberg-damped: :func:`.linear.levenberg_damped`), solved
+by AMG-preconditioned CG (:mod:`.linear`), then a backtracking line search on the true energy
+(:mod:`.line_search`).
 """
 
 from __future__ import annotations

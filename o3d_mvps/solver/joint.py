@@ -6,9 +6,8 @@ unknowns frozen, so the poses converged at ~7 % per sweep on the finest level. T
 linearises the robust energy in both at once (:func:`~.normal_equations.joint_system`, with the
 warp's parallax in the depth rows and the albedo projected out), solves the Schur complement
 ``M - U H^-1 U^T`` (M Levenberg-damped: :func:`.linear.levenberg_damped`) by CG preconditioned
-with AMG on M, recovers the twists, and takes a
-backtracking line search on the true energy (:mod:`.line_search`), so every accepted step
-lowers it.
+with AMG on M, recovers the twists, and takes a backtracking line search on the true energy
+(:mod:`.line_search`), so every accepted step lowers it.
 """
 
 from __future__ import annotations
