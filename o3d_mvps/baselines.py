@@ -235,22 +235,25 @@ def guided(capture, radius: int = 1, eps: float = 0.3) -> Refinement:
     return Refinement.from_arrays(depth, mask & (depth > 0), capture.color_K(), method="guided", albedo=None)
 
 
-def smooth_fit(capture, smoothness: float = DEFAULT_SMOOTHNESS["sh"], tau: float = 10.0) -> Refinement:
+def smooth_fit(capture, smoothness: float = DEFAULT_SMOOTHNESS["room"], tau: float = 10.0) -> Refinement:
     """The smooth fit of the sensor depth: the refinement's prior alone, no photometric term.
 
     Minimises ``tau ||D z - z0||^2 + mu ||S z||^2`` over the reference mask at colour resolution,
-    with the solver's block average D, second differences S and weights normalised as the solver's
+    with the solver's block average D, slope-weighted second differences S
+    (:func:`o3d_mvps.solver.pyramid.smoothness_rows`) and weights normalised as the solver's
     (:func:`o3d_mvps.solver.driver.normalised_tau`, :func:`~o3d_mvps.solver.driver.normalised_smoothness`);
-    what the refinement falls back to where the images say nothing (room light). Starts from bicubic.
+    what the refinement falls back to where the images say nothing (room light: the defaults are
+    the room light model's). Starts from bicubic.
     """
     from .model.normals import masked_grid
     from .solver.driver import normalised_smoothness, normalised_tau
-    from .solver.pyramid import depth_prior, second_differences
+    from .solver.pyramid import depth_prior, smoothness_rows
 
     start, mask, sf = _reference(capture)
     grid = masked_grid(mask)
-    prior = depth_prior(grid, capture.depth_array(0).astype(np.float64), sf)
-    prior.S = second_differences(grid)
+    z0 = capture.depth_array(0).astype(np.float64)
+    prior = depth_prior(grid, z0, sf)
+    prior.S = smoothness_rows(grid, z0, capture.color_K(), sf)
     # the common factor n mean(I)^2 |C| / mean(z0)^2 of both weights drops out of the minimiser
     hessian, rhs = prior.normal_equations(grid.gather(start), normalised_tau(tau, 1, 1.0, grid.size, 1.0, prior.rows),
                                           normalised_smoothness(smoothness, 1, 1.0, 1.0, 0))

@@ -97,7 +97,7 @@ def problem_from_capture(capture: Capture, options: RefineOptions,
 
 
 #: The solver's light model for each capture.json "light".
-LIGHT_MODEL_OF_CAPTURE = {"led": "led", "room": "sh"}
+LIGHT_MODEL_OF_CAPTURE = {"led": "led", "room": "room"}
 
 
 def with_light_model(options: RefineOptions, capture: Capture) -> RefineOptions:
@@ -108,7 +108,7 @@ def with_light_model(options: RefineOptions, capture: Capture) -> RefineOptions:
     if capture.light is None:
         warnings.warn('the capture does not say what lit it (no "light" in capture.json): using the LED model. '
                       'Write "light": "led" (the LED on the camera) or "room" (room light) into capture.json, or '
-                      "pass --light-model led|sh (RefineOptions(light_model=...))", stacklevel=4)
+                      "pass --light-model led|room|sh (RefineOptions(light_model=...))", stacklevel=4)
         return replace(options, light_model="led")
     return replace(options, light_model=LIGHT_MODEL_OF_CAPTURE[capture.light])
 

@@ -173,7 +173,7 @@ def test_update_lighting_recovers_the_led_ambient_and_intensity(led_capture):
     ev = problem.evaluate(est)
     energies = [ev.energy]
     for _ in range(5):
-        est.lights = update_lighting(est, ev, problem.lam)
+        est.lights = update_lighting(est, ev, problem.lam, problem.light_model(est))
         ev = problem.reevaluate(est, ev)
         energies.append(ev.energy)
     assert np.all(np.diff(energies) <= 1e-9 * energies[0])
@@ -206,7 +206,7 @@ def test_update_led_offset_moves_a_wrong_offset_toward_the_truth(led_capture):
     energies = [ev.energy]
     moved = 0
     for _ in range(8):
-        est.lights = update_lighting(est, ev, problem.lam)
+        est.lights = update_lighting(est, ev, problem.lam, problem.light_model(est))
         ev = problem.reevaluate(est, ev)
         energies.append(ev.energy)
         before = problem.light_model(est).offset.copy()
@@ -266,3 +266,29 @@ def test_refine_with_the_led_model_reports_its_lights_and_offset_and_rejects_abs
     bad = dataclasses.replace(cap, metadata={**cap.metadata, "led_offset": [5.0, 0.0, 0.0]})
     with pytest.raises(CaptureError, match="led_offset"):
         refine(bad, options, initial_poses=cap.groundtruth.poses)
+
+
+def test_room_light_fit_recovers_one_light_and_the_frames_gains(rng):
+    """Normal equations of frames that all see one light l times a gain g_i (g_0 = 1) give back
+    l and g exactly; per-frame fitting (SH) would give each frame its own light, and the room
+    model's lights are rank one by construction. A frame without pixels keeps its gain."""
+    from o3d_mvps.solver.lighting import RoomLight, SHLight
+
+    light, gains = np.array([0.2, 0.3, -0.5, -0.8]), np.array([1.0, 1.3, 0.7, 1.1])
+    grams, rhs = [], []
+    for g in gains:
+        basis = np.column_stack([np.ones(500), rng.normal(size=(500, 3))])  # (N, 4) of this frame's pixels
+        weights = rng.uniform(0.5, 1.0, 500)
+        grams.append((basis * weights[:, None]).T @ basis)
+        rhs.append(grams[-1] @ (g * light))  # the frame's shading is exactly g l . B
+    grams, rhs = np.array(grams), np.array(rhs)
+    start = np.tile([0.5, 0, 0, -1.0], (4, 1))
+    fitted = RoomLight().fit(grams, rhs, start)
+    np.testing.assert_allclose(fitted, gains[:, None] * light, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(SHLight().fit(grams, rhs, start), gains[:, None] * light, rtol=1e-9)
+    noisy = rhs + rng.normal(scale=1.0, size=rhs.shape)  # what per-frame fits would each absorb
+    fitted = RoomLight().fit(grams, noisy, start)
+    assert np.linalg.matrix_rank(fitted, tol=1e-9 * np.abs(fitted).max()) == 1 and fitted[0] @ start[0] != 0
+    grams[2], noisy[2] = 0.0, 0.0  # frame 2 sees no pixel
+    kept = RoomLight().fit(grams, noisy, start * [[1.0], [1.0], [0.5], [1.0]])
+    np.testing.assert_allclose(kept[2], 0.5 * kept[0], rtol=1e-9)

@@ -307,3 +307,38 @@ def test_smoothness_prior_is_zero_on_planes_and_its_gradient_matches_finite_diff
     change = prior.energy(z + step, 3.0, 5.0) - prior.energy(z - step, 3.0, 5.0)
     assert change == pytest.approx(-2 * rhs @ step, rel=1e-6)  # rhs is minus the gradient
     np.testing.assert_allclose(hessian @ step, -(prior.normal_equations(z + step, 3.0, 5.0)[1] - rhs), rtol=1e-6, atol=1e-12)
+
+
+def test_slope_weights_follow_the_metric_slope_of_the_sensor_surface():
+    """On a plane the weights are (1 + tan^2 theta)^(-3/4) = cos^1.5 theta, theta the plane's tilt
+    from fronto-parallel: 1 facing the camera, 0.35 at 60 degrees (the sensor's 1 mm steps,
+    blurred away, do not count as slope)."""
+    from o3d_mvps.model.normals import masked_grid
+    from o3d_mvps.solver.pyramid import second_differences, slope_weights
+
+    K_level = np.array([[100.0, 0, 32], [0, 100.0, 24], [0, 0, 1]])
+    grid = masked_grid(np.ones((48, 64), bool))
+    S = second_differences(grid)
+    inner = (grid.u[np.asarray(abs(S).argmax(axis=1)).ravel()] - 32) ** 2 < 16**2  # away from the blur's edge
+    for tilt_deg in (0.0, 60.0):
+        # z(x) = 0.6 + tan(tilt) x on the ray through (u, v): z = 0.6 / (1 - tan(tilt) (u - cx) / f)
+        u = np.arange(16) * 4 + 1.5  # a 16 x 12 depth image, SF 4
+        z_row = 0.6 / (1 - np.tan(np.radians(tilt_deg)) * (u - 32) / 100)
+        z0 = np.round(np.tile(z_row, (12, 1)) * 1000) / 1000  # 1 mm steps
+        w = slope_weights(grid, S, z0, K_level, 4.0)
+        expected = np.cos(np.radians(tilt_deg)) ** 1.5
+        assert np.median(w[inner]) == pytest.approx(expected, rel=0.05), tilt_deg
+
+
+def test_robust_scale_is_the_standard_deviation_of_gaussian_residuals_despite_outliers():
+    from o3d_mvps.model.robust import MIN_SCALE, robust_scale
+
+    rng = np.random.default_rng(3)
+    residual = rng.normal(0.0, 0.01, (4, 50000, 3))
+    residual[:, :5000] = 0.5  # 10 % outliers (an albedo edge, a specularity)
+    usable = np.ones((4, 50000), bool)
+    usable[3] = False
+    assert robust_scale(residual, usable) == pytest.approx(0.01 * 1.13, rel=0.03)  # MAD of a 10 %-contaminated normal
+    assert robust_scale(residual, usable, max_samples=1000) == pytest.approx(0.0113, rel=0.1)
+    assert robust_scale(np.zeros((2, 10, 3)), np.ones((2, 10), bool)) == MIN_SCALE
+    assert robust_scale(residual, np.zeros((4, 50000), bool)) == MIN_SCALE

@@ -50,6 +50,7 @@ def test_fields_are_read_only():
 # One bad value per field, and the allowed range the message must state.
 BAD = [
     ("tau", 0.0, "(0, inf)"), ("tau", float("nan"), "(0, inf)"), ("cauchy_lambda", -0.1, "(0, inf)"),
+    ("cauchy_lambda", "automatic", "a number in (0, inf), 'auto' or None"),
     ("smoothness", -1.0, "[0, inf) or None"),
     ("depth_envelope", 1.0, "[0, 1) or None"), ("occlusion_tolerance", -0.01, "[0, 1)"),
     ("levels", 0, "an integer in [1, inf]"), ("levels", 2.5, "an integer"), ("max_iterations", 0, "[1, inf]"),
@@ -72,7 +73,7 @@ def test_each_field_rejects_a_bad_value_naming_field_value_and_range(name, value
 
 def test_every_numeric_field_is_covered_by_the_bad_values():
     numeric = {f.name for cls in (ModelOptions, ConvergenceCriteria, StepOptions) for f in dataclasses.fields(cls)
-               if f.type in ("int", "float", "float | None")}
+               if f.type in ("int", "float", "float | None", "float | str | None")}
     assert len(numeric) == 15 and numeric <= {name for name, _, _ in BAD}
 
 
@@ -81,10 +82,18 @@ def test_enums_take_plain_strings_and_reject_others_with_the_choices():
     assert options.light_model is LightModel.SH and options.light_model == "sh"
     assert options.difference_scheme is DifferenceScheme.FORWARD and f"{options.difference_scheme}" == "forward"
     assert RefineOptions().light_model is None and RefineOptions().difference_scheme == "central"  # None: the capture says
-    with pytest.raises(ValueError, match=r"light_model must be one of \['led', 'sh'\], got 'point'"):
+    with pytest.raises(ValueError, match=r"light_model must be one of \['led', 'sh', 'room'\], got 'point'"):
         RefineOptions(light_model="point")
     with pytest.raises(ValueError, match=r"difference_scheme must be one of \['central', 'forward'\], got 'backward'"):
         RefineOptions(difference_scheme="backward")
+
+
+def test_the_cauchy_scale_follows_the_light_model_unless_given():
+    assert RefineOptions(light_model="led").model.cauchy_scale() == 0.04
+    assert RefineOptions(light_model="room").model.cauchy_scale() == "auto"
+    assert RefineOptions(light_model="room", cauchy_lambda=0.02).model.cauchy_scale() == 0.02
+    assert RefineOptions(light_model="led", cauchy_lambda="auto").model.cauchy_scale() == "auto"
+    assert RefineOptions.from_dict(RefineOptions(cauchy_lambda="auto").to_dict()).cauchy_lambda == "auto"
 
 
 def test_an_unknown_keyword_is_a_type_error_listing_the_valid_ones():

@@ -11,7 +11,7 @@ from ..capture.reading import MASK_SOURCES, mask_source
 from ..report import accuracy_rows, markdown_table
 from ..solver.device import DEVICE_HELP, check_device
 from ..solver.lighting import LIGHT_MODELS
-from ..solver.options import RefineOptions
+from ..solver.options import AUTO, RefineOptions
 from ..solving import refine
 from ..views import ViewSelection
 from .outputs import add_overwrite_argument, check_files, check_folder, log_energy
@@ -36,14 +36,25 @@ EXAMPLES = """examples:
 """
 
 
+def _cauchy_lambda(text: str) -> float | str:
+    """--lambda: a number, or "auto"."""
+    if text == AUTO:
+        return AUTO
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number or {AUTO!r}, got {text!r}") from None
+
+
 def add_solver_arguments(parser: argparse.ArgumentParser) -> None:
     """Options shared by every subcommand that runs the solver."""
     d = RefineOptions()
     g = parser.add_argument_group("solver")
     g.add_argument("--frames", type=int, default=None, help="use the first N frames (default: all)")
     g.add_argument("--tau", type=float, default=d.tau, help=f"normalised depth-prior weight (default {d.tau:g})")
-    g.add_argument("--lambda", dest="cauchy_lambda", type=float, default=d.cauchy_lambda,
-                   help=f"Cauchy scale (default {d.cauchy_lambda:g})")
+    g.add_argument("--lambda", dest="cauchy_lambda", type=_cauchy_lambda, default=None, metavar="LAMBDA|auto",
+                   help="Cauchy scale in linear intensity, or auto: the residuals' robust standard deviation "
+                        "(default: 0.04 with the LED and SH models, auto with room light)")
     g.add_argument("--levels", type=int, default=d.levels, help=f"pyramid levels (default {d.levels})")
     g.add_argument("--iterations", type=int, default=d.max_iterations,
                    help=f"sweep cap per level (default {d.max_iterations})")
@@ -52,8 +63,9 @@ def add_solver_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--no-pose-refinement", action="store_true", help="keep the odometry poses (two-stage baseline)")
     g.add_argument("--no-occlusion-test", action="store_true", help="let hidden pixels enter the data term")
     g.add_argument("--light-model", choices=LIGHT_MODELS, default=None,
-                   help="near-field LED or the paper's first-order SH (default: capture.json's light, "
-                        "led -> led, room -> sh; led when it does not say)")
+                   help="near-field LED, one SH light fixed in the room (room) or the paper's first-order SH "
+                        "per frame (sh) (default: capture.json's light, led -> led, room -> room; led when it "
+                        "does not say)")
     g.add_argument("--led-offset", type=float, nargs=3, metavar=("X", "Y", "Z"), default=None,
                    help="LED position in metres from the colour lens (x right, y down, z forward); a ruler "
                         "measure within ~1 cm is enough, the solver refines it (default: capture.json's "

@@ -49,3 +49,20 @@ def _log1p_square_sum(x, scale):  # pragma: no cover - compiled
         y = np.float32(x[i] * scale)
         total += math.log(np.float32(1.0) + y * y)
     return total
+
+
+#: smallest scale :func:`robust_scale` returns (linear intensity): residuals of noiseless,
+#: exactly modelled data are all ~0, and lambda -> 0 would weight every pixel out
+MIN_SCALE = 1e-3
+
+
+def robust_scale(residual: np.ndarray, usable: np.ndarray, max_samples: int = 1_000_000) -> float:
+    """1.4826 x the median absolute deviation of the usable residuals: their standard deviation
+    where they are Gaussian, unmoved by outliers. residual (n, N, 3), usable (n, N); at most
+    ``max_samples`` evenly spaced pixels per frame are read (no copy of the whole array).
+    Not below :data:`MIN_SCALE`."""
+    stride = max(1, residual.shape[1] // max_samples)
+    r = residual[:, ::stride][usable[:, ::stride]].ravel()
+    if r.size == 0:
+        return MIN_SCALE
+    return max(MIN_SCALE, 1.4826 * float(np.median(np.abs(r - np.median(r)))))

@@ -21,13 +21,15 @@ from .reflectance import update_albedo
 
 
 def update_depth(problem: LevelProblem, est: Estimate, ev: Evaluation, *, rtol: float, maxiter: int,
-                 project_albedo: bool = True, max_halvings: int = 5) -> tuple[Estimate, Evaluation, int]:
-    """One depth step (warp frozen; with ``project_albedo`` the albedo eliminated and refitted at
-    every trial): returns (estimate, its evaluation, CG iterations); never raises the energy.
-    ``ev``, the evaluation of ``est``, is released once read (:meth:`.Evaluation.release`)."""
+                 project_albedo: bool = True, parallax: bool = False,
+                 max_halvings: int = 5) -> tuple[Estimate, Evaluation, int]:
+    """One depth step (warp frozen, or with ``parallax`` linearised in z like the joint step's
+    depth rows; with ``project_albedo`` the albedo eliminated and refitted at every trial):
+    returns (estimate, its evaluation, CG iterations); never raises the energy. ``ev``, the
+    evaluation of ``est``, is released once read (:meth:`.Evaluation.release`)."""
     energy = ev.energy
     # ev released once read: not held while the matrices are formed, nor through the solve and line search
-    system = joint_system(problem, est, ev, parallax=False, twists=False, project_albedo=project_albedo,
+    system = joint_system(problem, est, ev, parallax=parallax, twists=False, project_albedo=project_albedo,
                           release=True)
     step, iterations = solve_spd(levenberg_damped(system.matrix), system.rhs_z, rtol, maxiter)
     del system

@@ -23,12 +23,13 @@ from tqdm.auto import tqdm
 
 from ..errors import CaptureError
 from ..model import se3
+from ..model.robust import robust_scale
 from ..model.resampling import fill_nearest_valid, repeat_pixels, resize
 from .depth import update_depth
 from .device import check_device
 from .joint import update_pose_depth
 from .lighting import make_light_model, update_led_offset
-from .options import RefineOptions
+from .options import AUTO, DEFAULT_CAUCHY_LAMBDA, RefineOptions
 from .pose import update_poses
 from .problem import Estimate, LevelProblem
 from .problem_input import SolverInput
@@ -78,6 +79,10 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
     # by ambient light alone, since the initial albedo is that image.
     est.albedo = update_albedo(est, ev, problem.lam)
     ev = problem.reevaluate(est, ev, overwrite=True)
+    if options.model.cauchy_scale() == AUTO:  # the level's noise floor, once its albedo fits
+        problem.lam = robust_scale(ev.residual, ev.usable)
+        ev = problem.reevaluate(est, ev, overwrite=True)
+    stats["cauchy_lambda"].append(problem.lam)
     timings["setup"] += time.perf_counter() - t
     refine_poses = options.refine_poses and problem.n_frames > 1 and level.grid.size >= options.pose_min_pixels
     # the LED offset is estimated where the poses are (coarser levels constrain it as poorly)
@@ -85,13 +90,17 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
                      and level.grid.size >= options.pose_min_pixels)
     # one image cannot tell albedo from shading: projected out, the albedo would absorb all shading
     project_albedo = options.project_albedo and problem.n_frames > 1
+    # a light fixed in the world shades every frame alike: the depth learns from the parallax
+    # alone, so every depth step takes it, on every level (the joint step's size limit is for
+    # lights that also inform the normals)
+    parallax_only = problem.light.fixed_in_world
     rows = [{"level": level.index, "iteration": 0, "energy": ev.energy}]
     bar = tqdm(range(1, options.max_iterations + 1), desc=f"level {level.index} ({level.size[1]}x{level.size[0]})",
                disable=not options.progress, leave=False)
     for iteration in bar:
         previous = ev.energy
         start = _snapshot(est)
-        if refine_poses and options.joint_pose_depth and level.grid.size >= options.joint_min_pixels:
+        if refine_poses and options.joint_pose_depth and (parallax_only or level.grid.size >= options.joint_min_pixels):
             t = time.perf_counter()
             stepped, ev, cg_iterations = update_pose_depth(problem, est, ev, rtol=options.joint_cg_tolerance,
                                                            maxiter=options.cg_max_iterations,
@@ -106,14 +115,14 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
             t = time.perf_counter()
             stepped, ev, cg_iterations = update_depth(problem, est, ev, rtol=options.cg_tolerance,
                                                       maxiter=options.cg_max_iterations,
-                                                      project_albedo=project_albedo)
+                                                      project_albedo=project_albedo, parallax=parallax_only)
             est.z, est.albedo = stepped.z, stepped.albedo
             timings["depth"] += time.perf_counter() - t
         stats["cg_iterations"].append(cg_iterations)
         t = time.perf_counter()
         est.albedo = update_albedo(est, ev, problem.lam)
         ev = problem.reevaluate(est, ev, overwrite=True)
-        est.lights = update_lighting(est, ev, problem.lam)
+        est.lights = update_lighting(est, ev, problem.lam, problem.light_model(est))
         ev = problem.reevaluate(est, ev, overwrite=True)
         if refine_offset:
             est.led_offset, ev = update_led_offset(problem, est, ev, min_decrease=0.1 * options.tolerance * ev.energy)
@@ -246,7 +255,7 @@ def _solve(problem_input: SolverInput, options: RefineOptions) -> SolverOutput:
     light = make_light_model(options.light_model, initial_sh=options.initial_light,
                              led_offset=problem_input.led_offset)
     history = []
-    stats = {"cg_iterations": [], "levels": n_levels}
+    stats = {"cg_iterations": [], "cauchy_lambda": [], "levels": n_levels}
 
     def solve_level(level_index: int, carried: Carried | None) -> Carried | None:
         """One level: the level's problem, the unknowns gathered from ``carried`` (None on the
@@ -270,7 +279,8 @@ def _solve(problem_input: SolverInput, options: RefineOptions) -> SolverOutput:
                        g.gather(carried.albedo).astype(np.float64), carried.lights, carried.poses, carried.led_offset)
         tau = normalised_tau(options.tau, n_frames, mean_I, g.size, mean_z0, level.prior.rows)
         mu = normalised_smoothness(options.model.smoothness_weight(), n_frames, mean_I, mean_z0, level_index)
-        problem = LevelProblem(level, tau, options.cauchy_lambda, light, mu)
+        scale = options.model.cauchy_scale()  # AUTO: set from the residuals once the level's albedo fits
+        problem = LevelProblem(level, tau, DEFAULT_CAUCHY_LAMBDA["led"] if scale == AUTO else scale, light, mu)
         problem.update_visibility(est, occlusion_test=options.occlusion_test, rel_tol=options.occlusion_tolerance,
                                   sensor_depths=sensor_depths, depth_K=depth_K)
         timings["setup"] += time.perf_counter() - t

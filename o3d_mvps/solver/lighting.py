@@ -6,6 +6,12 @@ points (N, 3) in reference coordinates (metres), and frame i's pose (4, 4) refer
 
 - :class:`SHLight` (k = 4, the paper): ``B = [1, n]``; l_i = (ambient, 3 directional terms) in
   reference coordinates, so the shading does not depend on the pose.
+- :class:`RoomLight` (k = 4): the SH basis with one light fixed in the room for every frame,
+  ``l_i = g_i l`` (g_i: the frame's exposure gain, g_0 = 1). Room light does not move with the
+  camera, so every frame sees the same shading: once the albedo is free per pixel, the shading
+  says nothing about the normals and the depth learns only from the warp's parallax. Fitted per
+  frame (SH), the light's model error differs between frames and pulled the normals (a bunny on
+  a table, 640x480: 11.8 deg inside the silhouette with the warp frozen, 6.6 with one light).
 - :class:`LEDLight` (k = 2, the paper's future work): a point light at ``offset`` (3,) metres in
   the camera frame, moving with the camera, plus ambient light:
   ``B_i = [1, max(0, <n, v_i>)]``, ``v_i = (s_i - X) / |s_i - X|^3`` (1/m^2) with
@@ -34,6 +40,8 @@ class SHLight:
     initial: tuple = INITIAL_LIGHT
     name = "sh"
     size = 4
+    #: one light for every frame, fixed in the world: the shading is the same in every frame
+    fixed_in_world = False
 
     def initial_lights(self, n_frames: int, mean_depth: float) -> np.ndarray:
         """(n, 4) starting lights."""
@@ -55,9 +63,54 @@ class SHLight:
         """d(shading)/d(xi): zero, the SH light lives in reference coordinates."""
         return None
 
+    def fit(self, gram: np.ndarray, rhs: np.ndarray, lights: np.ndarray) -> np.ndarray:
+        """Lights (n, 4) minimising ``sum_i l_i^T gram_i l_i - 2 rhs_i . l_i``: each frame its own
+        (:func:`fit_per_frame`). gram (n, 4, 4), rhs (n, 4); ``lights`` (n, 4) are kept for
+        frames whose gram is zero or singular."""
+        return fit_per_frame(gram, rhs, lights)
+
     def describe(self) -> dict:
         return {"model": "sh", "formula": "shading = l . [1, n_x, n_y, n_z], n in reference coordinates",
                 "parameters": ["ambient", "l_x", "l_y", "l_z"]}
+
+
+@dataclass
+class RoomLight(SHLight):
+    """One first-order SH light fixed in the room, times a per-frame exposure gain: the lights
+    (n, 4) are ``g_i l`` with g_0 = 1 (rank one)."""
+
+    name = "room"
+    fixed_in_world = True
+
+    def fit(self, gram: np.ndarray, rhs: np.ndarray, lights: np.ndarray, rounds: int = 100,
+            rtol: float = 1e-12) -> np.ndarray:
+        """Lights ``g_i l`` (n, 4) minimising ``sum_i g_i^2 l^T gram_i l - 2 g_i rhs_i . l``:
+        alternations of l (one 4x4 solve over all frames) and the gains (one ratio per frame),
+        from the gains of ``lights`` (n, 4) (each frame's projection on frame 0's light), until
+        the gains change by less than ``rtol`` (at most ``rounds``; each is a few 4x4 products).
+        A frame without pixels keeps its gain; ``lights`` are returned unchanged when the frames
+        together do not determine the light."""
+        reference = lights[0]
+        gains = lights @ reference / max(float(reference @ reference), 1e-300)
+        gains[0] = 1.0
+        light = None
+        for _ in range(rounds):
+            solved = ridge_solve(np.einsum("i,ijk->jk", gains**2, gram), gains @ rhs, ridge=1e-12)
+            if solved is None:
+                break
+            light = solved
+            curvature = np.einsum("j,ijk,k->i", light, gram, light)
+            seen = curvature > 1e-12 * max(float(curvature.max()), 1e-300)
+            seen[0] = False  # frame 0's gain stays 1: the light's scale
+            previous, gains = gains, np.where(seen, rhs @ light / np.where(seen, curvature, 1.0), gains)
+            if np.max(np.abs(gains - previous)) <= rtol * np.max(np.abs(gains)):
+                break
+        return lights.copy() if light is None else gains[:, None] * light[None, :]
+
+    def describe(self) -> dict:
+        return {"model": "room", "formula": "shading = g_i l . [1, n_x, n_y, n_z], n in reference coordinates, "
+                "one light l for all frames, g_i the frame's exposure gain (g_0 = 1)",
+                "parameters": ["g_i l_ambient", "g_i l_x", "g_i l_y", "g_i l_z"]}
 
 
 @dataclass
@@ -67,6 +120,7 @@ class LEDLight:
     offset: np.ndarray = field(default_factory=lambda: np.zeros(3))
     name = "led"
     size = 2
+    fixed_in_world = False
 
     def __post_init__(self):
         self.offset = np.asarray(self.offset, dtype=np.float64).reshape(3)
@@ -135,19 +189,37 @@ class LEDLight:
         """d(shading)/d(offset) (N, 3)."""
         return -self._camera_gradient(light, normals, points, pose)
 
+    def fit(self, gram: np.ndarray, rhs: np.ndarray, lights: np.ndarray) -> np.ndarray:
+        """Per-frame lights (n, 2): :func:`fit_per_frame`."""
+        return fit_per_frame(gram, rhs, lights)
+
     def describe(self) -> dict:
         return {"model": "led",
                 "formula": "shading = ambient + intensity * max(0, n . (o - X)) / |o - X|^3, camera frame",
                 "parameters": ["ambient", "intensity"], "offset_m": self.offset.tolist()}
 
 
-LIGHT_MODELS = ("led", "sh")
+def fit_per_frame(gram: np.ndarray, rhs: np.ndarray, lights: np.ndarray) -> np.ndarray:
+    """Each frame's light (n, k) solving ``gram_i l_i = rhs_i``; gram (n, k, k), rhs (n, k);
+    ``lights`` (n, k) kept for a frame whose gram is zero or singular."""
+    out = lights.copy()
+    for i in range(len(out)):
+        if np.trace(gram[i]) > 0:
+            solution = ridge_solve(gram[i], rhs[i], ridge=1e-12)
+            if solution is not None:
+                out[i] = solution
+    return out
+
+
+LIGHT_MODELS = ("led", "sh", "room")
 
 
 def make_light_model(name: str, *, initial_sh=INITIAL_LIGHT, led_offset=None):
-    """The light model ``name`` ("led" or "sh")."""
+    """The light model ``name`` ("led", "sh" or "room")."""
     if name == "sh":
         return SHLight(tuple(initial_sh))
+    if name == "room":
+        return RoomLight(tuple(initial_sh))
     if name == "led":
         return LEDLight(np.zeros(3) if led_offset is None else led_offset)
     raise ValueError(f"light_model must be one of {LIGHT_MODELS}, got {name!r}")

@@ -38,28 +38,38 @@ class _Choice(str, Enum):
             raise ValueError(f"{name} must be one of {[m.value for m in cls]}, got {value!r}") from None
 
 
-#: smoothness (mu~) per light model when none is given: measured on a room-light scene (bunny on a
-#: table, 640x480, SF 4) mu~ 0 / 30 / 100 gave normals 44.6 / 19.4 / 16.2 deg MAE and depth 8.5 /
-#: 4.2 / 5.1 mm RMSE (bicubic 42.7 deg, 7.5 mm). With the LED, 0.3 keeps the pixels that only the
-#: reference frame sees (they carry no data once the albedo is projected out) near the smooth fit:
-#: an LED scene of the bunny on a table (640x480, SF 4, 360-degree ring) went from 5.2 to 1.6 mm
-#: RMSE, and the accuracy rows' MAE moved by -0.11 to +0.06 deg (with the damped depth step).
-DEFAULT_SMOOTHNESS = {"led": 0.3, "sh": 30.0}
+#: smoothness (mu~) per light model when none is given. With the LED, 0.3 keeps the pixels that
+#: only the reference frame sees (they carry no data once the albedo is projected out) near the
+#: smooth fit: an LED scene of the bunny on a table (640x480, SF 4, 360-degree ring) went from
+#: 5.2 to 1.6 mm RMSE, and the accuracy rows' MAE moved by -0.11 to +0.06 deg. Per-frame SH
+#: ("sh"): mu~ 0 / 30 / 100 gave a room-lit bunny's normals 44.6 / 19.4 / 16.2 deg MAE (bicubic
+#: 42.7). Room light ("room"): the depth learns from parallax alone, which is noisy pixel to pixel
+#: (README "Room light"); 240 with tau~ 10 (sweep in the README).
+DEFAULT_SMOOTHNESS = {"led": 0.3, "sh": 30.0, "room": 240.0}
+
+#: Cauchy scale lambda per light model when none is given: a number (linear intensity), or
+#: "auto", the residuals' robust standard deviation (1.4826 x their median absolute deviation) at
+#: each pyramid level's start (:func:`o3d_mvps.model.robust.robust_scale`). Under room light the
+#: noise floor differs between captures by 3x (noiseless renders 0.003, noisy 0.008) and 0.04
+#: let the aliased albedo edges pull the depth.
+DEFAULT_CAUCHY_LAMBDA = {"led": 0.04, "sh": 0.04, "room": "auto"}
+AUTO = "auto"
 
 LightModel = _Choice("LightModel", {v.upper(): v for v in LIGHT_MODELS})
 LightModel.__doc__ = ('Light model: LED ("led", a point light moving with the camera, paper section 6\'s '
-                      'future work) or SH ("sh", first-order spherical harmonics per frame, paper section 3.2).')
+                      'future work), SH ("sh", first-order spherical harmonics per frame, paper section 3.2) or '
+                      'ROOM ("room", one SH light fixed in the room, times a per-frame exposure gain).')
 DifferenceScheme = _Choice("DifferenceScheme", {v.upper(): v for v in SCHEMES})
 DifferenceScheme.__doc__ = 'Depth derivatives of the normals: CENTRAL ("central") or the paper\'s FORWARD ("forward").'
 
 
-def _number(name, value, low, high, *, integer=False, low_open=False, high_open=False, none_ok=False):
+def _number(name, value, low, high, *, integer=False, low_open=False, high_open=False, none_ok=False, auto_ok=False):
     """``value`` checked to lie in the range and converted to int/float; ValueError naming all three."""
     if value is None and none_ok:
         return None
     lo, hi = ("(" if low_open else "[") + f"{low:g}", f"{high:g}" + (")" if high_open else "]")
     kind = "an integer" if integer else "a number"
-    allowed = f"{kind} in {lo}, {hi}" + (" or None" if none_ok else "")
+    allowed = f"{kind} in {lo}, {hi}" + (" or None" if none_ok else "") + (f", {AUTO!r} or None" if auto_ok else "")
     ok = isinstance(value, numbers.Integral if integer else numbers.Real) and not isinstance(value, (bool, np.bool_))
     if ok:
         v = float(value)
@@ -98,16 +108,20 @@ class ModelOptions:
 
     tau: normalised depth-prior weight tau~ (paper default 10; the authors' code used ~100), > 0.
     smoothness: normalised weight mu~ >= 0 of the depth's squared second differences (not in the
-        paper); None: :data:`DEFAULT_SMOOTHNESS` of the light model. Under room light every frame
-        sees the same light, the albedo absorbs the shading and the photometric terms pin little:
-        the depth then becomes a smooth fit of the sensor's instead of keeping its 1 mm terraces.
-        The LED lights each frame differently and needs little (0.3: only the pixels no other frame
-        sees lean on it; 30 raised a bunny's RMSE 1.11 -> 1.25 mm).
-    cauchy_lambda: Cauchy scale lambda (intensity units, linear RGB in [0, 1]), > 0.
+        paper; weighted down on steep slopes: :func:`o3d_mvps.solver.pyramid.slope_weights`);
+        None: :data:`DEFAULT_SMOOTHNESS` of the light model. Under room light every frame sees
+        the same light, the albedo absorbs the shading and only the parallax informs the depth:
+        without smoothness it keeps the sensor's 1 mm terraces and the parallax's pixel-to-pixel
+        noise. The LED lights each frame differently and needs little (0.3: only the pixels no
+        other frame sees lean on it; 30 raised a bunny's RMSE 1.11 -> 1.25 mm).
+    cauchy_lambda: Cauchy scale lambda (intensity units, linear RGB in [0, 1]), > 0, or "auto"
+        (the residuals' robust standard deviation at each level's start); None:
+        :data:`DEFAULT_CAUCHY_LAMBDA` of the light model.
     light_model: :class:`LightModel` "led" (point light moving with the camera, 1/r^2 falloff,
-        plus ambient; o3d_mvps.solver.lighting) or "sh" (the paper's first-order SH per frame);
-        None takes it from the capture (capture.json's "light": "led" -> "led", "room" -> "sh";
-        "led", with a warning, when the capture does not say).
+        plus ambient; o3d_mvps.solver.lighting), "sh" (the paper's first-order SH per frame) or
+        "room" (one SH light fixed in the room, a gain per frame); None takes it from the capture
+        (capture.json's "light": "led" -> "led", "room" -> "room"; "led", with a warning, when
+        the capture does not say).
     led_offset: LED position (x, y, z) in metres in the colour camera's frame (x right, y down,
         z forward); None takes ``led_offset`` from the capture's metadata, else (0, 0, 0).
     initial_light: the 4 SH coefficients every frame starts from (light_model "sh"; section 4).
@@ -121,7 +135,7 @@ class ModelOptions:
 
     tau: float = 10.0
     smoothness: float | None = None
-    cauchy_lambda: float = 0.04
+    cauchy_lambda: float | str | None = None
     light_model: LightModel | None = None
     led_offset: tuple | None = None
     initial_light: tuple = INITIAL_LIGHT
@@ -134,11 +148,17 @@ class ModelOptions:
         """mu~: ``smoothness``, else the light model's default (the light model must be known)."""
         return DEFAULT_SMOOTHNESS[str(self.light_model)] if self.smoothness is None else self.smoothness
 
+    def cauchy_scale(self) -> float | str:
+        """lambda, or :data:`AUTO`: ``cauchy_lambda``, else the light model's default (the light
+        model must be known)."""
+        return DEFAULT_CAUCHY_LAMBDA[str(self.light_model)] if self.cauchy_lambda is None else self.cauchy_lambda
+
     def __post_init__(self):
         _set(self,
              tau=_number("tau", self.tau, 0, math.inf, low_open=True, high_open=True),
              smoothness=_number("smoothness", self.smoothness, 0, math.inf, high_open=True, none_ok=True),
-             cauchy_lambda=_number("cauchy_lambda", self.cauchy_lambda, 0, math.inf, low_open=True, high_open=True),
+             cauchy_lambda=self.cauchy_lambda if self.cauchy_lambda in (None, AUTO) else _number(
+                 "cauchy_lambda", self.cauchy_lambda, 0, math.inf, low_open=True, high_open=True, auto_ok=True),
              light_model=None if self.light_model is None else LightModel.parse("light_model", self.light_model),
              led_offset=_vector("led_offset", self.led_offset, 3, "(x, y, z) in metres", none_ok=True),
              initial_light=_vector("initial_light", self.initial_light, 4, "4 SH coefficients"),

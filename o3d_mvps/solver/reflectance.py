@@ -9,7 +9,6 @@ from __future__ import annotations
 import numpy as np
 
 from .kernels import weighted_albedo_sums, weighted_lighting_sums
-from .linear import ridge_solve
 from .problem import Estimate, Evaluation
 
 
@@ -22,17 +21,16 @@ def update_albedo(est: Estimate, ev: Evaluation, lam: float) -> np.ndarray:
     return np.where(ok, num / np.where(ok, den, 1.0), est.albedo)
 
 
-def update_lighting(est: Estimate, ev: Evaluation, lam: float) -> np.ndarray:
-    """l_i = argmin sum_{p,c} w (I~ - rho_c <l, B_i>)^2 per frame: (n, k), B_i the light basis."""
+def update_lighting(est: Estimate, ev: Evaluation, lam: float, light) -> np.ndarray:
+    """The lights (n, k) minimising sum_{i,p,c} w (I~ - rho_c <l_i, B_i>)^2 under the light
+    model ``light``'s constraint (:meth:`~.lighting.SHLight.fit`: per frame, or one light for
+    all), B_i the light basis; frames with fewer than 8 usable pixels keep their light."""
     wr2, wri = np.empty(ev.usable.shape), np.empty(ev.usable.shape)  # sum_c w rho^2, sum_c w rho I~: (n, N)
     weighted_lighting_sums(ev.residual, ev.usable, ev.color, np.ascontiguousarray(est.albedo), 1.0 / lam, wr2, wri)
-    lights = est.lights.copy()
-    for i in range(lights.shape[0]):
-        if ev.usable[i].sum() < 8:
-            continue
-        m = ev.frame_basis(i)  # (N, k)
-        A = (m * wr2[i][:, None]).T @ m
-        solution = ridge_solve(A, m.T @ wri[i], ridge=1e-12)
-        if solution is not None:
-            lights[i] = solution
-    return lights
+    n, k = est.lights.shape
+    gram, rhs = np.zeros((n, k, k)), np.zeros((n, k))
+    for i in range(n):
+        if ev.usable[i].sum() >= 8:
+            m = ev.frame_basis(i)  # (N, k)
+            gram[i], rhs[i] = (m * wr2[i][:, None]).T @ m, m.T @ wri[i]
+    return light.fit(gram, rhs, est.lights)
