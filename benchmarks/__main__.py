@@ -5,7 +5,8 @@ frames: error of ours against n in {5, ..., 30} (bunny, SF 4). tau: error agains
 speed: wall time and peak memory of odometry + refine at 640x480 / 160x120, 1280x720 / 640x360 (D415)
 and 1708x1136 / 427x284 with 1M object pixels (about 2.5 min and 6 GB on two cores).
 object: reconstruct rendered 360-degree rings with raw and refined depth; Chamfer, normals, 1/2 workers.
-room: a room-lit scene (table, wall, automatic masks): error and banding along the 1 mm depth steps.
+room: a table-and-wall scene (automatic masks), room-lit and LED-lit (--light): error and banding along
+the 1 mm depth steps.
 scaling: time, memory, sweeps and CG iterations against object pixels x frames (--baseline REV
 runs an earlier commit side by side; not part of 'all': hours at the default sizes).
 figures: README pictures (normals of every method, textured preview).
@@ -56,7 +57,7 @@ def main(argv=None) -> int:
     object_study.add_arguments(sub.add_parser("object", parents=[common],
                                               help="whole-object reconstruction on 360-degree rings, raw vs refined"))
     room.add_arguments(sub.add_parser("room", parents=[common],
-                                      help="room light and the 1 mm depth steps: error and banding"))
+                                      help="a scene under room light and the LED: error and banding along the 1 mm depth steps"))
     figures.add_arguments(sub.add_parser("figures", parents=[common], help="README pictures (normals, preview)"))
     sub.add_parser("all", parents=[common], help="every benchmark with its defaults")
     args = parser.parse_args(argv)

@@ -1,12 +1,12 @@
-"""Room light and the sensor's 1 mm depth steps: does the refined depth band along them?
+"""The sensor's 1 mm depth steps in a scene: does the refined depth band along them?
 
-A rendered room scene (:func:`o3d_mvps.synthetic.render_ring` with ``surroundings=True``: the
-object on a table in front of a wall, room light, automatic masks, 20 frames 18 degrees apart;
-no noise, so the depth's 1 mm quantisation steps are the iso-depth lines)
-is refined with the true poses, without the smoothness term (``smoothness=0``, the model before
-it) and with the room-light default; against bicubic upsampling and the smooth fit of the sensor
-depth (:func:`o3d_mvps.baselines.smooth_fit`, what the refinement falls back to where the
-photometric terms say nothing).
+A rendered scene (:func:`o3d_mvps.synthetic.render_ring` with ``surroundings=True``: the object
+on a table in front of a wall, automatic masks, 20 frames 18 degrees apart; no noise, so the
+depth's 1 mm quantisation steps are the iso-depth lines), lit by room light and by the LED
+(``--light room|led|both``, default both), is refined with the true poses, without the
+smoothness term (``smoothness=0``, the model before it) and with the light's default; against
+bicubic upsampling and the smooth fit of the sensor depth (:func:`o3d_mvps.baselines.smooth_fit`,
+what the refinement falls back to where the photometric terms say nothing).
 
 Banding is measured by the *quantisation phase* of each colour pixel: where its true depth lies
 between two of the sensor's levels, ``frac(z / step + 1/2)`` (0 and 1 on an iso-depth line, where
@@ -14,8 +14,9 @@ the sensor's reading jumps; 1/2 mid-terrace). Pixels within 1/8 of a step of an 
 are "on the lines", the rest "elsewhere"; a ratio of their mean normal errors above 1 means the
 steps show through. Every slope spreads its pixels evenly over the phase, so the ratio does not
 confuse steep parts (more steps, larger errors) with banding, as counting the pixels beside a
-sensor step did (that measure is kept as ``mae_beside_steps_deg``). Writes ``room.json``,
-``room.md`` and ``room_banding.png`` (normal error maps; error against phase).
+sensor step did (that measure is kept as ``mae_beside_steps_deg``). Writes ``room.json`` (one
+entry per light under ``"scenes"``), ``room.md`` (a section per light) and the normal error maps
+``room_banding.png`` (room light) and ``room_banding_led.png`` (LED).
 """
 
 from __future__ import annotations
@@ -42,10 +43,15 @@ QUICK = {"size": (160, 120), "scale_factor": 4, "frames": 12}
 ON_LINE = 0.125  # phase distance (steps) from an iso-depth line that counts as "on the line"
 PHASE_BINS = 8
 RIM_PX = 12  # colour pixels from the evaluated region's edge that count as the rim (silhouette errors)
+LIGHTS = ("room", "led")
+TITLES = {"room": "Room light", "led": "LED"}
+PICTURES = {"room": "room_banding.png", "led": "room_banding_led.png"}
 
 
 def add_arguments(parser) -> None:
     parser.add_argument("--mesh", default="bunny", choices=("bunny", "armadillo"))
+    parser.add_argument("--light", default="both", choices=(*LIGHTS, "both"),
+                        help="what lights the scene: room light, the LED, or both (default)")
 
 
 def step_pixels(depth_lr: np.ndarray, scale_factor: int) -> np.ndarray:
@@ -112,12 +118,10 @@ def row(name: str, refinement, capture, steps: np.ndarray, seconds: float | None
             "pixels": int(common.sum()), "seconds": seconds}, error
 
 
-def run(args) -> None:
-    case = QUICK if args.quick else FULL
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    capture, _ = render_ring(args.mesh, frames=case["frames"], size=case["size"], scale_factor=case["scale_factor"],
-                             light="room", surroundings=True, noise=False)
+def scene_rows(mesh: str, case: dict, light: str) -> tuple[list[dict], dict]:
+    """The rows of one light's scene and the methods' (H, W) error maps."""
+    capture, _ = render_ring(mesh, frames=case["frames"], size=case["size"], scale_factor=case["scale_factor"],
+                             light=light, surroundings=True, noise=False)
     with tempfile.TemporaryDirectory() as tmp:  # through the folder, so the automatic masks are used
         write_capture(capture, Path(tmp) / "capture")
         capture = read_capture(Path(tmp) / "capture")
@@ -135,28 +139,48 @@ def run(args) -> None:
                                 initial_poses=capture.groundtruth.poses)
         r, maps[name] = row(name, refinement, capture, steps, time.perf_counter() - t)
         rows.append(r)
-    result = {"mesh": args.mesh, **{k: list(v) if isinstance(v, tuple) else v for k, v in case.items()},
-              "light": "room", "poses": "true", "rows": rows}
-    (out / "room.json").write_text(json_text(result, "room study"))
-    lines = [f"# Room light, {args.mesh}, {case['size'][0]}x{case['size'][1]}, SF {case['scale_factor']}, "
-             f"{case['frames']} frames (table, wall, automatic masks, true poses)", "",
+    return rows, maps
+
+
+def _cell(value, digits=2) -> str:
+    return "" if value is None else f"{value:.{digits}f}"
+
+
+def markdown_section(light: str, rows: list[dict]) -> list[str]:
+    """One light's tables: the scores, and the error against the quantisation phase."""
+    lines = [f"## {TITLES[light]}", "",
              "| method | MAE deg | RMSE mm | MAE interior | MAE rim | MAE on iso-depth lines | MAE elsewhere | "
              "banding ratio | seconds |",
              "|---|---|---|---|---|---|---|---|---|"]
-    def cell(value, digits=2):
-        return "" if value is None else f"{value:.{digits}f}"
-
     for r in rows:
-        lines.append(f"| {r['method']} | {cell(r['mae_deg'])} | {cell(r['rmse_mm'])} | {cell(r['mae_interior_deg'])} | "
-                     f"{cell(r['mae_rim_deg'])} | {cell(r['mae_on_lines_deg'])} | "
-                     f"{cell(r['mae_elsewhere_deg'])} | {cell(r['banding_ratio'])} | {cell(r['seconds'], 1)} |")
+        lines.append(f"| {r['method']} | {_cell(r['mae_deg'])} | {_cell(r['rmse_mm'])} | "
+                     f"{_cell(r['mae_interior_deg'])} | {_cell(r['mae_rim_deg'])} | {_cell(r['mae_on_lines_deg'])} | "
+                     f"{_cell(r['mae_elsewhere_deg'])} | {_cell(r['banding_ratio'])} | {_cell(r['seconds'], 1)} |")
     centres = [f"{(i + 0.5) / PHASE_BINS:.2f}" for i in range(PHASE_BINS)]
     lines += ["", "Mean normal error (deg) against the quantisation phase of the true depth (0 and 1: on an "
               "iso-depth line; 0.5: mid-terrace):", "",
               "| method | " + " | ".join(centres) + " |", "|---|" + "---|" * PHASE_BINS]
-    lines += [f"| {r['method']} | " + " | ".join(cell(v) for v in r["mae_by_phase_deg"]) + " |" for r in rows]
-    (out / "room.md").write_text("\n".join(lines) + "\n")
-    _picture(maps, out / "room_banding.png")
+    lines += [f"| {r['method']} | " + " | ".join(_cell(v) for v in r["mae_by_phase_deg"]) + " |" for r in rows]
+    return lines + [""]
+
+
+def run(args) -> None:
+    case = QUICK if args.quick else FULL
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    lights = LIGHTS if args.light == "both" else (args.light,)
+    scenes = []
+    lines = [f"# Table-and-wall scene, {args.mesh}, {case['size'][0]}x{case['size'][1]}, SF {case['scale_factor']}, "
+             f"{case['frames']} frames (automatic masks, true poses, no noise)", ""]
+    for light in lights:
+        rows, maps = scene_rows(args.mesh, case, light)
+        scenes.append({"light": light, "rows": rows})
+        lines += markdown_section(light, rows)
+        _picture(maps, out / PICTURES[light])
+    result = {"mesh": args.mesh, **{k: list(v) if isinstance(v, tuple) else v for k, v in case.items()},
+              "poses": "true", "scenes": scenes}
+    (out / "room.json").write_text(json_text(result, "room study"))
+    (out / "room.md").write_text("\n".join(lines[:-1]) + "\n")
 
 
 def _picture(maps: dict, path: Path, vmax: float = 60.0) -> None:

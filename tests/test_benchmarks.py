@@ -17,9 +17,15 @@ def test_quick_benchmarks_write_results(tmp_path):
     (speed,) = json.loads((tmp_path / "speed.json").read_text())
     assert {"color", "depth", "frames", "seconds", "peak_mb", "breakdown"} <= speed.keys()
     assert speed["peak_mb"] > 0 and speed["breakdown"]["total"] > 0
+    room = json.loads((tmp_path / "room.json").read_text())  # the scene under each light, same rows
+    assert [scene["light"] for scene in room["scenes"]] == ["room", "led"]
+    assert all([r["method"] for r in scene["rows"]] == ["bicubic", "smooth fit", "ours, smoothness 0", "ours"]
+               for scene in room["scenes"])
+    assert "## Room light" in (tmp_path / "room.md").read_text() and "## LED" in (tmp_path / "room.md").read_text()
     summary = (tmp_path / "summary.md").read_text()
     assert "Speed" in summary and "tau~" in summary
-    for png in ("frames_mae.png", "frames_rmse.png", "tau_mae.png", "tau_rmse.png"):
+    for png in ("frames_mae.png", "frames_rmse.png", "tau_mae.png", "tau_rmse.png", "room_banding.png",
+                "room_banding_led.png"):
         assert (tmp_path / png).stat().st_size > 1000
 
 
