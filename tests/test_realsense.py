@@ -409,6 +409,31 @@ def test_convert_writes_a_readable_capture(recorded, tmp_path):
     assert read_capture(out).light == "room"
 
 
+@pytest.mark.parametrize("light, model", [("room", "room"), ("led", "led")])
+def test_convert_light_reaches_refines_light_model(recorded, tmp_path, light, model):
+    """End to end: convert --light writes capture.json's "light", read_capture returns it, and
+    refine's front end (problem_from_capture, which hands the solver its options) picks the light
+    model from it without the "does not say what lit it" warning (a dropped light gives "led" and warns)."""
+    import json
+    import warnings
+
+    from o3d_mvps import RefineOptions
+    from o3d_mvps.capture import read_capture
+    from o3d_mvps.solving import problem_from_capture
+
+    out = tmp_path / "capture"
+    assert cli_main(["--quiet", "convert", str(recorded[0]), str(out), "--frames", "3", "--light", light]) == 0
+    assert json.loads((out / "capture.json").read_text())["light"] == light
+    capture = read_capture(out)
+    assert capture.light == light
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        problem, _ = problem_from_capture(capture, RefineOptions(progress=False),
+                                          initial_poses=np.tile(np.eye(4), (capture.n_frames, 1, 1)))
+    assert problem.options.light_model == model
+    assert not [w for w in caught if "what lit it" in str(w.message)]
+
+
 def test_light_is_checked_before_reading(tmp_path):
     from o3d_mvps.errors import CaptureError
 
