@@ -242,8 +242,8 @@ def smooth_fit(capture, smoothness: float = DEFAULT_SMOOTHNESS["room"], tau: flo
     with the solver's block average D, slope-weighted second differences S
     (:func:`o3d_mvps.solver.pyramid.smoothness_rows`) and weights normalised as the solver's
     (:func:`o3d_mvps.solver.driver.normalised_tau`, :func:`~o3d_mvps.solver.driver.normalised_smoothness`);
-    what the refinement falls back to where the images say nothing (room light: the defaults are
-    the room light model's). Starts from bicubic.
+    what the refinement falls back to where the images say nothing (room light: the weights and
+    slope-weighted rows are the room light model's defaults). Starts from bicubic.
     """
     from .model.normals import masked_grid
     from .solver.driver import normalised_smoothness, normalised_tau

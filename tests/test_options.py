@@ -8,7 +8,7 @@ import pytest
 from o3d_mvps.solver.options import (ConvergenceCriteria, DifferenceScheme, LightModel, ModelOptions, RefineOptions,
                                      StepOptions)
 
-FLAT = dict(tau=100.0, smoothness=5.0, cauchy_lambda=0.1, light_model="sh", led_offset=(0.03, -0.02, 0.0), initial_light=(0.1, 0, 0, -1),
+FLAT = dict(tau=100.0, smoothness=5.0, slope_weights=True, cauchy_lambda=0.1, light_model="sh", led_offset=(0.03, -0.02, 0.0), initial_light=(0.1, 0, 0, -1),
             difference_scheme="forward", depth_envelope=None, occlusion_test=False, occlusion_tolerance=0.05,
             levels=3, max_iterations=4, tolerance=1e-4, pose_iterations=2, pose_tolerance=0.0, cg_tolerance=1e-3,
             cg_max_iterations=50, joint_cg_tolerance=0.1, refine_poses=False, pose_min_pixels=0,
@@ -58,7 +58,7 @@ BAD = [
     ("cg_tolerance", 0.0, "(0, 1)"), ("cg_max_iterations", 0, "[1, inf]"), ("joint_cg_tolerance", 1.0, "(0, 1)"),
     ("pose_min_pixels", -1, "[0, inf]"), ("joint_min_pixels", "10", "[0, inf]"),
     ("led_offset", (0.0, 0.0), "(x, y, z) in metres or None"), ("initial_light", (1.0, 0.0), "4 SH coefficients"),
-    ("refine_poses", 1, "True or False"), ("strict_registration", "yes", "True or False"),
+    ("refine_poses", 1, "True or False"), ("slope_weights", "yes", "True or False"), ("strict_registration", "yes", "True or False"),
     ("frames", 0, "[1, inf]"), ("frames", [0, 0], "distinct indices"), ("progress", None, "True or False"),
 ]
 
@@ -88,7 +88,10 @@ def test_enums_take_plain_strings_and_reject_others_with_the_choices():
         RefineOptions(difference_scheme="backward")
 
 
-def test_the_cauchy_scale_follows_the_light_model_unless_given():
+def test_the_cauchy_scale_and_slope_weights_follow_the_light_model_unless_given():
+    assert not RefineOptions(light_model="led").model.slope_weighted()
+    assert RefineOptions(light_model="room").model.slope_weighted()
+    assert not RefineOptions(light_model="room", slope_weights=False).model.slope_weighted()
     assert RefineOptions(light_model="led").model.cauchy_scale() == 0.04
     assert RefineOptions(light_model="room").model.cauchy_scale() == "auto"
     assert RefineOptions(light_model="room", cauchy_lambda=0.02).model.cauchy_scale() == 0.02

@@ -264,7 +264,7 @@ def _solve(problem_input: SolverInput, options: RefineOptions) -> SolverOutput:
         for a level too small to solve, which passes ``carried`` on)."""
         t = time.perf_counter()
         level = build_level(level_index, colors, masks, ref_mask, K, z0, sf, options.difference_scheme,
-                            options.depth_envelope)
+                            options.depth_envelope, options.model.slope_weighted())
         g = level.grid
         if g.size < 16:
             return None

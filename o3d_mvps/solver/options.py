@@ -53,6 +53,11 @@ DEFAULT_SMOOTHNESS = {"led": 0.3, "sh": 30.0, "room": 240.0}
 #: noise floor differs between captures by 3x (noiseless renders 0.003, noisy 0.008) and 0.04
 #: let the aliased albedo edges pull the depth.
 DEFAULT_CAUCHY_LAMBDA = {"led": 0.04, "sh": 0.04, "room": "auto"}
+
+#: whether the smoothness rows are weighted down on steep slopes, per light model when not given
+#: (:func:`o3d_mvps.solver.pyramid.slope_weights`; with the LED they freed the pixels only the
+#: reference sees at the rims)
+DEFAULT_SLOPE_WEIGHTS = {"led": False, "sh": False, "room": True}
 AUTO = "auto"
 
 LightModel = _Choice("LightModel", {v.upper(): v for v in LIGHT_MODELS})
@@ -108,12 +113,15 @@ class ModelOptions:
 
     tau: normalised depth-prior weight tau~ (paper default 10; the authors' code used ~100), > 0.
     smoothness: normalised weight mu~ >= 0 of the depth's squared second differences (not in the
-        paper; weighted down on steep slopes: :func:`o3d_mvps.solver.pyramid.slope_weights`);
-        None: :data:`DEFAULT_SMOOTHNESS` of the light model. Under room light every frame sees
-        the same light, the albedo absorbs the shading and only the parallax informs the depth:
-        without smoothness it keeps the sensor's 1 mm terraces and the parallax's pixel-to-pixel
-        noise. The LED lights each frame differently and needs little (0.3: only the pixels no
-        other frame sees lean on it; 30 raised a bunny's RMSE 1.11 -> 1.25 mm).
+        paper; see ``slope_weights``); None: :data:`DEFAULT_SMOOTHNESS` of the light model. Under
+        room light every frame sees the same light, the albedo absorbs the shading and only the
+        parallax informs the depth: without smoothness it keeps the sensor's 1 mm terraces and the
+        parallax's pixel-to-pixel noise. The LED lights each frame differently and needs little
+        (0.3: only the pixels no other frame sees lean on it; 30 raised a bunny's RMSE 1.11 ->
+        1.25 mm).
+    slope_weights: weight the smoothness rows down where the sensor's surface is steep
+        (:func:`o3d_mvps.solver.pyramid.slope_weights`); None: :data:`DEFAULT_SLOPE_WEIGHTS` of
+        the light model (room light only).
     cauchy_lambda: Cauchy scale lambda (intensity units, linear RGB in [0, 1]), > 0, or "auto"
         (the residuals' robust standard deviation at each level's start); None:
         :data:`DEFAULT_CAUCHY_LAMBDA` of the light model.
@@ -135,6 +143,7 @@ class ModelOptions:
 
     tau: float = 10.0
     smoothness: float | None = None
+    slope_weights: bool | None = None
     cauchy_lambda: float | str | None = None
     light_model: LightModel | None = None
     led_offset: tuple | None = None
@@ -148,6 +157,10 @@ class ModelOptions:
         """mu~: ``smoothness``, else the light model's default (the light model must be known)."""
         return DEFAULT_SMOOTHNESS[str(self.light_model)] if self.smoothness is None else self.smoothness
 
+    def slope_weighted(self) -> bool:
+        """``slope_weights``, else the light model's default (the light model must be known)."""
+        return DEFAULT_SLOPE_WEIGHTS[str(self.light_model)] if self.slope_weights is None else self.slope_weights
+
     def cauchy_scale(self) -> float | str:
         """lambda, or :data:`AUTO`: ``cauchy_lambda``, else the light model's default (the light
         model must be known)."""
@@ -157,6 +170,7 @@ class ModelOptions:
         _set(self,
              tau=_number("tau", self.tau, 0, math.inf, low_open=True, high_open=True),
              smoothness=_number("smoothness", self.smoothness, 0, math.inf, high_open=True, none_ok=True),
+             slope_weights=None if self.slope_weights is None else _flag("slope_weights", self.slope_weights),
              cauchy_lambda=self.cauchy_lambda if self.cauchy_lambda in (None, AUTO) else _number(
                  "cauchy_lambda", self.cauchy_lambda, 0, math.inf, low_open=True, high_open=True, auto_ok=True),
              light_model=None if self.light_model is None else LightModel.parse("light_model", self.light_model),

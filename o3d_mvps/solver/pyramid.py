@@ -4,8 +4,8 @@ Level 0 is the colour resolution; level l has the colour size divided by 2^l. Th
 prior compares D z with the low-resolution reference depth z0: where a level's grid is finer
 than the depth grid by an integer factor k >= 2, D averages k x k blocks (only blocks fully
 inside the mask with a valid z0); otherwise D is the identity on z0 resampled to the level.
-Its smoothness part S takes the depth's second differences along rows and columns, each row
-weighted down where the sensor's surface is steep (:func:`slope_weights`).
+Its smoothness part S takes the depth's second differences along rows and columns, under room
+light each row weighted down where the sensor's surface is steep (:func:`slope_weights`).
 """
 
 from __future__ import annotations
@@ -130,7 +130,9 @@ def slope_weights(grid: MaskedGrid, S: sp.csr_matrix, z0: np.ndarray, K: np.ndar
     Unweighted, ``||S z||^2`` penalises image-space second differences, which grow without bound
     toward a silhouette where the surface turns away (z changes by millimetres per pixel there
     on a smooth ball): it flattened the rim. On a room-lit bunny (640x480, SF 4) the smooth fit's
-    normal error at the rim fell 28.9 -> 23.4 deg with the weights (SLOPE_EXPONENT 1.5).
+    normal error at the rim fell 28.9 -> 23.4 deg with the weights (SLOPE_EXPONENT 1.5). With the
+    LED, whose small smoothness only holds the pixels no other frame sees, the weights freed them
+    at the rims: the LED table scene's RMSE rose 1.64 -> 4.11 mm, so the LED model goes without.
     """
     H, W = grid.shape
     filled = fill_nearest_valid(z0.astype(np.float64), z0 > 0)
@@ -188,9 +190,11 @@ class Level:
 
 
 def build_level(index: int, colors: list, masks: list, ref_mask: np.ndarray, K: np.ndarray, z0: np.ndarray,
-                scale_factor: int, scheme: str = "central", envelope_margin: float | None = None) -> Level:
+                scale_factor: int, scheme: str = "central", envelope_margin: float | None = None,
+                slope_weighted: bool = False) -> Level:
     """Level ``index`` from full-resolution colours (H, W, 3), masks, reference mask and z0;
-    ``envelope_margin`` None leaves the depth unbounded (see :func:`depth_envelope`)."""
+    ``envelope_margin`` None leaves the depth unbounded (see :func:`depth_envelope`);
+    ``slope_weighted``: the smoothness rows are :func:`smoothness_rows` (else plain second differences)."""
     size = level_size(ref_mask.shape, index)
     K_level = scale_intrinsics(K, size[1] / ref_mask.shape[1], size[0] / ref_mask.shape[0])
     # the finest level reads the full-resolution float32 colours themselves (no copy: they are
@@ -201,7 +205,8 @@ def build_level(index: int, colors: list, masks: list, ref_mask: np.ndarray, K: 
     mask = resize(ref_mask.astype(np.float32), size) > 0.5
     grid = masked_grid(mask, scheme)
     prior = depth_prior(grid, z0, scale_factor / 2**index)
-    prior.S = smoothness_rows(grid, z0, K_level, scale_factor / 2**index)
+    prior.S = (smoothness_rows(grid, z0, K_level, scale_factor / 2**index) if slope_weighted
+               else second_differences(grid))
     if envelope_margin is not None:
         prior.lower, prior.upper = (grid.gather(b) for b in depth_envelope(z0, size, envelope_margin))
     return Level(index, grid, K_level, size, images, frame_masks, prior)
