@@ -28,7 +28,7 @@ from scipy.sparse.linalg import spsolve
 from .errors import CaptureError
 from .model.resampling import block_average, fill_nearest_valid
 from .refinement import Refinement
-from .solver.options import DEFAULT_SMOOTHNESS
+from .solver.options import AUTO, DEFAULT_SMOOTHNESS
 
 #: Rec. 709 luminance weights of linear RGB, for the guided filter's grey guide.
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
@@ -235,7 +235,7 @@ def guided(capture, radius: int = 1, eps: float = 0.3) -> Refinement:
     return Refinement.from_arrays(depth, mask & (depth > 0), capture.color_K(), method="guided", albedo=None)
 
 
-def smooth_fit(capture, smoothness: float = DEFAULT_SMOOTHNESS["room"], tau: float = 10.0) -> Refinement:
+def smooth_fit(capture, smoothness: float | str = DEFAULT_SMOOTHNESS["room"], tau: float = 10.0) -> Refinement:
     """The smooth fit of the sensor depth: the refinement's prior alone, no photometric term.
 
     Minimises ``tau ||D z - z0||^2 + mu ||S z||^2`` over the reference mask at colour resolution,
@@ -243,17 +243,21 @@ def smooth_fit(capture, smoothness: float = DEFAULT_SMOOTHNESS["room"], tau: flo
     (:func:`o3d_mvps.solver.pyramid.smoothness_rows`) and weights normalised as the solver's
     (:func:`o3d_mvps.solver.driver.normalised_tau`, :func:`~o3d_mvps.solver.driver.normalised_smoothness`);
     what the refinement falls back to where the images say nothing (room light: the weights and
-    slope-weighted rows are the room light model's defaults). Starts from bicubic.
+    slope-weighted rows are the room light model's defaults; smoothness "auto":
+    :func:`o3d_mvps.solver.smoothness.auto_smoothness`). Starts from bicubic.
     """
     from .model.normals import masked_grid
     from .solver.driver import normalised_smoothness, normalised_tau
-    from .solver.pyramid import depth_prior, smoothness_rows
+    from .solver.pyramid import depth_prior
+    from .solver.smoothness import auto_smoothness, smoothness_rows
 
     start, mask, sf = _reference(capture)
     grid = masked_grid(mask)
     z0 = capture.depth_array(0).astype(np.float64)
     prior = depth_prior(grid, z0, sf)
     prior.S = smoothness_rows(grid, z0, capture.color_K(), sf)
+    if smoothness == AUTO:
+        smoothness = auto_smoothness(tau, z0, mask, sf, capture.color_K())
     # the common factor n mean(I)^2 |C| / mean(z0)^2 of both weights drops out of the minimiser
     hessian, rhs = prior.normal_equations(grid.gather(start), normalised_tau(tau, 1, 1.0, grid.size, 1.0, prior.rows),
                                           normalised_smoothness(smoothness, 1, 1.0, 1.0, 0))

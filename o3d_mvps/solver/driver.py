@@ -34,6 +34,7 @@ from .pose import update_poses
 from .problem import Estimate, LevelProblem
 from .problem_input import SolverInput
 from .pyramid import build_level, level_size
+from .smoothness import auto_smoothness
 from .reflectance import update_albedo, update_lighting
 from .solution import SolverOutput
 
@@ -254,8 +255,11 @@ def _solve(problem_input: SolverInput, options: RefineOptions) -> SolverOutput:
         n_levels -= 1
     light = make_light_model(options.light_model, initial_sh=options.initial_light,
                              led_offset=problem_input.led_offset)
+    smoothness = options.model.smoothness_weight()
+    if smoothness == AUTO:
+        smoothness = auto_smoothness(options.tau, z0, ref_mask, sf, K)
     history = []
-    stats = {"cg_iterations": [], "cauchy_lambda": [], "levels": n_levels}
+    stats = {"cg_iterations": [], "cauchy_lambda": [], "smoothness": smoothness, "levels": n_levels}
 
     def solve_level(level_index: int, carried: Carried | None) -> Carried | None:
         """One level: the level's problem, the unknowns gathered from ``carried`` (None on the
@@ -278,7 +282,7 @@ def _solve(problem_input: SolverInput, options: RefineOptions) -> SolverOutput:
         est = Estimate(level.prior.clip(g.gather(carried.z).astype(np.float64)),
                        g.gather(carried.albedo).astype(np.float64), carried.lights, carried.poses, carried.led_offset)
         tau = normalised_tau(options.tau, n_frames, mean_I, g.size, mean_z0, level.prior.rows)
-        mu = normalised_smoothness(options.model.smoothness_weight(), n_frames, mean_I, mean_z0, level_index)
+        mu = normalised_smoothness(smoothness, n_frames, mean_I, mean_z0, level_index)
         scale = options.model.cauchy_scale()  # AUTO: set from the residuals once the level's albedo fits
         problem = LevelProblem(level, tau, DEFAULT_CAUCHY_LAMBDA["led"] if scale == AUTO else scale, light, mu)
         problem.update_visibility(est, occlusion_test=options.occlusion_test, rel_tol=options.occlusion_tolerance,

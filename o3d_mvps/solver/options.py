@@ -43,9 +43,10 @@ class _Choice(str, Enum):
 #: smooth fit: an LED scene of the bunny on a table (640x480, SF 4, 360-degree ring) went from
 #: 5.2 to 1.6 mm RMSE, and the accuracy rows' MAE moved by -0.11 to +0.06 deg. Per-frame SH
 #: ("sh"): mu~ 0 / 30 / 100 gave a room-lit bunny's normals 44.6 / 19.4 / 16.2 deg MAE (bicubic
-#: 42.7). Room light ("room"): the depth learns from parallax alone, which is noisy pixel to pixel
-#: (README "Room light"); 240 with tau~ 10 (sweep in the README).
-DEFAULT_SMOOTHNESS = {"led": 0.3, "sh": 30.0, "room": 240.0}
+#: 42.7). Room light ("room"): the depth learns from parallax alone, which is noisy pixel to pixel,
+#: and the sensor depth's noise needs smoothing: "auto" sets mu~ from the sensor depth's roughness
+#: and the pixels' footprint (:func:`o3d_mvps.solver.smoothness.auto_smoothness`).
+DEFAULT_SMOOTHNESS = {"led": 0.3, "sh": 30.0, "room": "auto"}
 
 #: Cauchy scale lambda per light model when none is given: a number (linear intensity), or
 #: "auto", the residuals' robust standard deviation (1.4826 x their median absolute deviation) at
@@ -74,7 +75,7 @@ def _number(name, value, low, high, *, integer=False, low_open=False, high_open=
         return None
     lo, hi = ("(" if low_open else "[") + f"{low:g}", f"{high:g}" + (")" if high_open else "]")
     kind = "an integer" if integer else "a number"
-    allowed = f"{kind} in {lo}, {hi}" + (" or None" if none_ok else "") + (f", {AUTO!r} or None" if auto_ok else "")
+    allowed = f"{kind} in {lo}, {hi}" + (f", {AUTO!r} or None" if auto_ok else " or None" if none_ok else "")
     ok = isinstance(value, numbers.Integral if integer else numbers.Real) and not isinstance(value, (bool, np.bool_))
     if ok:
         v = float(value)
@@ -113,7 +114,9 @@ class ModelOptions:
 
     tau: normalised depth-prior weight tau~ (paper default 10; the authors' code used ~100), > 0.
     smoothness: normalised weight mu~ >= 0 of the depth's squared second differences (not in the
-        paper; see ``slope_weights``); None: :data:`DEFAULT_SMOOTHNESS` of the light model. Under
+        paper; see ``slope_weights``), or "auto" (from the sensor depth's roughness and the
+        pixels' footprint: :func:`o3d_mvps.solver.smoothness.auto_smoothness`); None:
+        :data:`DEFAULT_SMOOTHNESS` of the light model. Under
         room light every frame sees the same light, the albedo absorbs the shading and only the
         parallax informs the depth: without smoothness it keeps the sensor's 1 mm terraces and the
         parallax's pixel-to-pixel noise. The LED lights each frame differently and needs little
@@ -142,7 +145,7 @@ class ModelOptions:
     """
 
     tau: float = 10.0
-    smoothness: float | None = None
+    smoothness: float | str | None = None
     slope_weights: bool | None = None
     cauchy_lambda: float | str | None = None
     light_model: LightModel | None = None
@@ -153,8 +156,9 @@ class ModelOptions:
     occlusion_test: bool = True
     occlusion_tolerance: float = 0.02
 
-    def smoothness_weight(self) -> float:
-        """mu~: ``smoothness``, else the light model's default (the light model must be known)."""
+    def smoothness_weight(self) -> float | str:
+        """mu~, or :data:`AUTO`: ``smoothness``, else the light model's default (the light model
+        must be known)."""
         return DEFAULT_SMOOTHNESS[str(self.light_model)] if self.smoothness is None else self.smoothness
 
     def slope_weighted(self) -> bool:
@@ -169,7 +173,8 @@ class ModelOptions:
     def __post_init__(self):
         _set(self,
              tau=_number("tau", self.tau, 0, math.inf, low_open=True, high_open=True),
-             smoothness=_number("smoothness", self.smoothness, 0, math.inf, high_open=True, none_ok=True),
+             smoothness=self.smoothness if self.smoothness in (None, AUTO) else _number(
+                 "smoothness", self.smoothness, 0, math.inf, high_open=True, auto_ok=True),
              slope_weights=None if self.slope_weights is None else _flag("slope_weights", self.slope_weights),
              cauchy_lambda=self.cauchy_lambda if self.cauchy_lambda in (None, AUTO) else _number(
                  "cauchy_lambda", self.cauchy_lambda, 0, math.inf, low_open=True, high_open=True, auto_ok=True),

@@ -20,6 +20,7 @@ import scipy.sparse as sp
 from ..model.camera import scale_intrinsics
 from ..model.normals import MaskedGrid, masked_grid
 from ..model.resampling import fill_nearest_valid, resample_valid, resize
+from .smoothness import second_differences, smoothness_rows
 
 
 def level_size(size: tuple[int, int], level: int) -> tuple[int, int]:
@@ -97,58 +98,6 @@ def depth_prior(grid: MaskedGrid, z0: np.ndarray, level_factor: float) -> DepthP
     cols = np.nonzero(on)[0]
     D = sp.csr_matrix((np.ones(cols.size), (np.arange(cols.size), cols)), shape=(cols.size, grid.size))
     return DepthPrior(D, z0_level[grid.v[on], grid.u[on]])
-
-
-def second_differences(grid: MaskedGrid) -> sp.csr_matrix:
-    """S (K, N): the second differences z[p-1] - 2 z[p] + z[p+1] along rows and along columns, at
-    every masked pixel whose two neighbours in that direction are masked (metres for z in metres)."""
-    rows, cols, vals = [], [], []
-    count = 0
-    own = np.arange(grid.size)
-    for fwd, bwd, wf, wb in ((grid.fwd_u, grid.bwd_u, grid.wf_u, grid.wb_u), (grid.fwd_v, grid.bwd_v, grid.wf_v, grid.wb_v)):
-        both = own[(wf == 0.5) & (wb == 0.5)]
-        r = count + np.arange(both.size)
-        rows += [r, r, r]
-        cols += [bwd[both], both, fwd[both]]
-        vals += [np.ones(both.size), np.full(both.size, -2.0), np.ones(both.size)]
-        count += both.size
-    return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(count, grid.size))
-
-
-#: exponent of the smoothness rows' slope weights ``(1 + |grad z|^2)^(-SLOPE_EXPONENT / 2)``: with
-#: 3/2 the squared rows penalise the curvature of a graph surface, z'' / (1 + z'^2)^(3/2)
-SLOPE_EXPONENT = 1.5
-
-
-def slope_weights(grid: MaskedGrid, S: sp.csr_matrix, z0: np.ndarray, K: np.ndarray, level_factor: float) -> np.ndarray:
-    """Weights (K,) of the second-difference rows S (K, N): ``(1 + |grad z|^2)^(-3/4)`` at each
-    row's centre pixel, |grad z| the metric slope (depth change per metre across the image) of
-    the sensor depth z0 (h, w) metres, filled, upsampled to the level and blurred over
-    ``level_factor`` = SF / 2^level pixels (the sensor's steps are not slopes); K: (3, 3) level
-    intrinsics.
-
-    Unweighted, ``||S z||^2`` penalises image-space second differences, which grow without bound
-    toward a silhouette where the surface turns away (z changes by millimetres per pixel there
-    on a smooth ball): it flattened the rim. On a room-lit bunny (640x480, SF 4) the smooth fit's
-    normal error at the rim fell 28.9 -> 23.4 deg with the weights (SLOPE_EXPONENT 1.5). With the
-    LED, whose small smoothness only holds the pixels no other frame sees, the weights freed them
-    at the rims: the LED table scene's RMSE rose 1.64 -> 4.11 mm, so the LED model goes without.
-    """
-    H, W = grid.shape
-    filled = fill_nearest_valid(z0.astype(np.float64), z0 > 0)
-    surface = cv2.resize(filled, (W, H), interpolation=cv2.INTER_CUBIC)
-    surface = cv2.GaussianBlur(surface, (0, 0), max(1.0, level_factor))
-    dz_dv, dz_du = np.gradient(surface)
-    z = np.maximum(grid.gather(surface), 1e-6)
-    slope2 = (grid.gather(dz_du) * K[0, 0] / z) ** 2 + (grid.gather(dz_dv) * K[1, 1] / z) ** 2
-    centre = np.asarray(abs(S).argmax(axis=1)).ravel()  # the row's -2 entry
-    return (1.0 + slope2[centre]) ** (-SLOPE_EXPONENT / 2)
-
-
-def smoothness_rows(grid: MaskedGrid, z0: np.ndarray, K: np.ndarray, level_factor: float) -> sp.csr_matrix:
-    """The smoothness term's S (K, N): :func:`second_differences` weighted by :func:`slope_weights`."""
-    S = second_differences(grid)
-    return sp.csr_matrix(sp.diags(slope_weights(grid, S, z0, K, level_factor)) @ S)
 
 
 def depth_envelope(z0: np.ndarray, size: tuple[int, int], margin: float) -> tuple[np.ndarray, np.ndarray]:
