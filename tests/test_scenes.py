@@ -113,7 +113,7 @@ def test_a_bad_light_in_capture_json_is_named(scene, tmp_path):
 def test_refine_a_room_scene_beats_bicubic(scene, tmp_path, poses):
     """The must-show of real captures: no masks, room light, a ring 18 degrees apart; poses from
     each file format, or none (registration). Measured normal MAE / depth RMSE: given poses
-    17.0 deg / 3.6 mm, registered 16.8 deg / 3.5 mm; bicubic 34.3 deg / 10.8 mm (with per-frame
+    16.8 deg / 3.5 mm, registered 16.6 deg / 3.5 mm; bicubic 34.3 deg / 10.8 mm (with per-frame
     SH lights, the "sh" model, it was 28.6 / 5.8)."""
     folder, capture = scene
     args = ["--quiet", "refine", str(folder), str(tmp_path / "out")]
@@ -134,8 +134,8 @@ def test_refine_a_room_scene_beats_bicubic(scene, tmp_path, poses):
 def test_room_light_falls_back_toward_the_smooth_fit_never_below_it(scene):
     """Where the photometric terms cannot help (room light, away from the silhouette) the refined
     normals are no worse than the smooth fit of the sensor depth, and better over the object.
-    Measured (true poses; interior = 6 px inside the evaluated region): ours 17.0 deg MAE, 3.6 mm
-    RMSE, 12.0 deg inside; smooth fit 22.8 / 5.3 / 15.0. The room model's lights are one light
+    Measured (true poses; interior = 6 px inside the evaluated region): ours 16.8 deg MAE, 3.5 mm
+    RMSE, 11.8 deg inside; smooth fit 24.0 / 5.3 / 16.2. The room model's lights are one light
     times a gain per frame."""
     from benchmarks.room import angular_error
 
@@ -153,7 +153,7 @@ def test_room_light_falls_back_toward_the_smooth_fit_never_below_it(scene):
         rmse = np.sqrt(np.mean((result.depth_array()[evaluated] - truth[evaluated]) ** 2))
         scores[name] = (np.mean(error[evaluated]), 1000 * rmse, np.mean(error[interior]))
     (mae, rmse, inside), (fit_mae, fit_rmse, fit_inside) = scores["ours"], scores["smooth fit"]
-    assert inside < 0.9 * fit_inside and mae < 0.85 * fit_mae and rmse < 0.8 * fit_rmse, scores  # 0.80, 0.75, 0.68
+    assert inside < 0.85 * fit_inside and mae < 0.8 * fit_mae and rmse < 0.8 * fit_rmse, scores  # 0.73, 0.70, 0.66
     lights = ours.lighting.numpy()
     assert ours.info["light_model"]["model"] == "room"
     np.testing.assert_allclose(lights, np.outer(lights[:, 0] / lights[0, 0], lights[0]), rtol=1e-5)  # float32
