@@ -240,7 +240,7 @@ def smooth_fit(capture, smoothness: float | str = DEFAULT_SMOOTHNESS["room"], ta
 
     Minimises ``tau ||D z - z0||^2 + mu ||S z||^2`` over the reference mask at colour resolution,
     with the solver's block average D, slope-weighted second differences S
-    (:func:`o3d_mvps.solver.pyramid.smoothness_rows`) and weights normalised as the solver's
+    (:func:`o3d_mvps.solver.smoothness.smoothness_rows`) and weights normalised as the solver's
     (:func:`o3d_mvps.solver.driver.normalised_tau`, :func:`~o3d_mvps.solver.driver.normalised_smoothness`);
     what the refinement falls back to where the images say nothing (room light: the weights and
     slope-weighted rows are the room light model's defaults; smoothness "auto":

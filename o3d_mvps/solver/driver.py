@@ -23,8 +23,8 @@ from tqdm.auto import tqdm
 
 from ..errors import CaptureError
 from ..model import se3
-from ..model.robust import robust_scale
 from ..model.resampling import fill_nearest_valid, repeat_pixels, resize
+from ..model.robust import robust_scale
 from .depth import update_depth
 from .device import check_device
 from .joint import update_pose_depth
@@ -34,8 +34,8 @@ from .pose import update_poses
 from .problem import Estimate, LevelProblem
 from .problem_input import SolverInput
 from .pyramid import build_level, level_size
-from .smoothness import auto_smoothness
 from .reflectance import update_albedo, update_lighting
+from .smoothness import auto_smoothness
 from .solution import SolverOutput
 
 
@@ -283,7 +283,8 @@ def _solve(problem_input: SolverInput, options: RefineOptions) -> SolverOutput:
                        g.gather(carried.albedo).astype(np.float64), carried.lights, carried.poses, carried.led_offset)
         tau = normalised_tau(options.tau, n_frames, mean_I, g.size, mean_z0, level.prior.rows)
         mu = normalised_smoothness(smoothness, n_frames, mean_I, mean_z0, level_index)
-        scale = options.model.cauchy_scale()  # AUTO: set from the residuals once the level's albedo fits
+        # AUTO: the LED's scale for the level's first albedo fit, then the residuals' (_sweeps)
+        scale = options.model.cauchy_scale()
         problem = LevelProblem(level, tau, DEFAULT_CAUCHY_LAMBDA["led"] if scale == AUTO else scale, light, mu)
         problem.update_visibility(est, occlusion_test=options.occlusion_test, rel_tol=options.occlusion_tolerance,
                                   sensor_depths=sensor_depths, depth_K=depth_K)

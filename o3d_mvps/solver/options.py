@@ -56,7 +56,7 @@ DEFAULT_SMOOTHNESS = {"led": 0.3, "sh": 30.0, "room": "auto"}
 DEFAULT_CAUCHY_LAMBDA = {"led": 0.04, "sh": 0.04, "room": "auto"}
 
 #: whether the smoothness rows are weighted down on steep slopes, per light model when not given
-#: (:func:`o3d_mvps.solver.pyramid.slope_weights`; with the LED they freed the pixels only the
+#: (:func:`o3d_mvps.solver.smoothness.slope_weights`; with the LED they freed the pixels only the
 #: reference sees at the rims)
 DEFAULT_SLOPE_WEIGHTS = {"led": False, "sh": False, "room": True}
 AUTO = "auto"
@@ -123,7 +123,7 @@ class ModelOptions:
         (0.3: only the pixels no other frame sees lean on it; 30 raised a bunny's RMSE 1.11 ->
         1.25 mm).
     slope_weights: weight the smoothness rows down where the sensor's surface is steep
-        (:func:`o3d_mvps.solver.pyramid.slope_weights`); None: :data:`DEFAULT_SLOPE_WEIGHTS` of
+        (:func:`o3d_mvps.solver.smoothness.slope_weights`); None: :data:`DEFAULT_SLOPE_WEIGHTS` of
         the light model (room light only).
     cauchy_lambda: Cauchy scale lambda (intensity units, linear RGB in [0, 1]), > 0, or "auto"
         (the residuals' robust standard deviation at each level's start); None:

@@ -5,7 +5,7 @@ prior compares D z with the low-resolution reference depth z0: where a level's g
 than the depth grid by an integer factor k >= 2, D averages k x k blocks (only blocks fully
 inside the mask with a valid z0); otherwise D is the identity on z0 resampled to the level.
 Its smoothness part S takes the depth's second differences along rows and columns, under room
-light each row weighted down where the sensor's surface is steep (:func:`slope_weights`).
+light each row weighted down where the sensor's surface is steep (:mod:`.smoothness`).
 """
 
 from __future__ import annotations
