@@ -288,7 +288,7 @@ def test_room_light_fit_recovers_one_light_and_the_frames_gains(rng):
     np.testing.assert_allclose(SHLight().fit(grams, rhs, start), gains[:, None] * light, rtol=1e-9)
     noisy = rhs + rng.normal(scale=1.0, size=rhs.shape)  # what per-frame fits would each absorb
     fitted = RoomLight().fit(grams, noisy, start)
-    assert np.linalg.matrix_rank(fitted, tol=1e-9 * np.abs(fitted).max()) == 1 and fitted[0] @ start[0] != 0
+    assert np.linalg.matrix_rank(fitted, tol=1e-9 * np.abs(fitted).max()) == 1
     grams[2], noisy[2] = 0.0, 0.0  # frame 2 sees no pixel
     kept = RoomLight().fit(grams, noisy, start * [[1.0], [1.0], [0.5], [1.0]])
     np.testing.assert_allclose(kept[2], 0.5 * kept[0], rtol=1e-9)
