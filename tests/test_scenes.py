@@ -132,18 +132,21 @@ def test_refine_a_room_scene_beats_bicubic(scene, tmp_path, poses):
     assert ours["mae_deg"] < 0.6 * bicubic["mae_deg"] and ours["rmse_mm"] < 0.4 * bicubic["rmse_mm"]  # 0.50, 0.33
 
 
-def test_room_light_falls_back_toward_the_smooth_fit_never_below_it(scene):
+@pytest.mark.parametrize("refine_poses", [True, False])
+def test_room_light_falls_back_toward_the_smooth_fit_never_below_it(scene, refine_poses):
     """Where the photometric terms cannot help (room light, away from the silhouette) the refined
     normals are no worse than the smooth fit of the sensor depth, and better over the object.
     Measured (true poses; interior = 6 px inside the evaluated region): ours 16.8 deg MAE, 3.5 mm
-    RMSE, 11.8 deg inside; smooth fit 24.0 / 5.3 / 16.2. The room model's lights are one light
-    times a gain per frame."""
+    RMSE, 11.8 deg inside; smooth fit 24.0 / 5.3 / 16.2. With the poses held, the depth-only
+    step takes the parallax too (without it the result would be the smooth fit): 17.2 deg MAE,
+    3.4 mm. The room model's lights are one light times a gain per frame."""
     from benchmarks.room import angular_error
 
     capture = read_capture(scene[0])  # through the folder: the automatic mask
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the scene's frames 4..15 see little of the reference
-        ours = refine(capture, RefineOptions(progress=False), initial_poses=capture.groundtruth.poses)
+        ours = refine(capture, RefineOptions(progress=False, refine_poses=refine_poses),
+                      initial_poses=capture.groundtruth.poses)
     fit = smooth_fit(capture)
     truth = np.asarray(capture.groundtruth.depth, dtype=np.float64)
     scores = {}
@@ -154,7 +157,8 @@ def test_room_light_falls_back_toward_the_smooth_fit_never_below_it(scene):
         rmse = np.sqrt(np.mean((result.depth_array()[evaluated] - truth[evaluated]) ** 2))
         scores[name] = (np.mean(error[evaluated]), 1000 * rmse, np.mean(error[interior]))
     (mae, rmse, inside), (fit_mae, fit_rmse, fit_inside) = scores["ours"], scores["smooth fit"]
-    assert inside < 0.85 * fit_inside and mae < 0.8 * fit_mae and rmse < 0.8 * fit_rmse, scores  # 0.73, 0.70, 0.66
+    # measured 0.73, 0.70, 0.66 (poses held: 0.72, 0.72, 0.63)
+    assert inside < 0.85 * fit_inside and mae < 0.8 * fit_mae and rmse < 0.8 * fit_rmse, scores
     lights = ours.lighting.numpy()
     assert ours.info["light_model"]["model"] == "room"
     np.testing.assert_allclose(lights, np.outer(lights[:, 0] / lights[0, 0], lights[0]), rtol=1e-5)  # float32
