@@ -38,16 +38,23 @@ def cauchy_energy(r: np.ndarray, lam: float) -> float:
     residuals and took most of an evaluation's time.
     """
     flat = np.ascontiguousarray(r, dtype=np.float64).reshape(-1)
-    return 0.5 * lam * lam * _log1p_square_sum(flat, 1.0 / lam)
+    return 0.5 * lam * lam * log1p_square_sum(flat, 1.0 / lam)
+
+
+@numba.njit(inline="always")
+def log1p_square_term(x, scale):  # pragma: no cover - compiled
+    """log(1 + (scale x)^2) of one float64 x, in float32 (:func:`log1p_square_sum`'s term; the
+    CUDA twin in :mod:`o3d_mvps.solver.cuda_kernels` calls it too)."""
+    y = np.float32(x * scale)
+    return math.log(np.float32(1.0) + y * y)
 
 
 @numba.njit(parallel=True, cache=True, fastmath=True)
-def _log1p_square_sum(x, scale):  # pragma: no cover - compiled
-    """sum log(1 + (scale x)^2) over a 1-D array (float32 terms, float64 sum)."""
+def log1p_square_sum(x, scale):  # pragma: no cover - compiled
+    """sum log(1 + (scale x)^2) over a 1-D array x (float32 terms, float64 sum): a float."""
     total = 0.0
     for i in numba.prange(x.size):
-        y = np.float32(x[i] * scale)
-        total += math.log(np.float32(1.0) + y * y)
+        total += log1p_square_term(x[i], scale)
     return total
 
 

@@ -40,20 +40,30 @@ def led_irradiances(normals: np.ndarray, points: np.ndarray, light_positions: np
     """``<n, v>`` (m, N) of :func:`led_vectors` for m light positions (m, 3) at once, unclamped
     (negative where a point faces away): unit normals and points (N, 3), one frame, metres."""
     out = np.empty((len(light_positions), len(points)))
-    _led_irradiances(np.ascontiguousarray(normals, dtype=np.float64), np.ascontiguousarray(points, dtype=np.float64),
-                     np.ascontiguousarray(light_positions, dtype=np.float64), out)
+    led_irradiances_into(np.ascontiguousarray(normals, dtype=np.float64),
+                         np.ascontiguousarray(points, dtype=np.float64),
+                         np.ascontiguousarray(light_positions, dtype=np.float64), out)
     return out
 
 
+@numba.njit(inline="always")
+def led_irradiance(normals, points, positions, i, p):  # pragma: no cover - compiled
+    """<n, v> of point p under light position i: :func:`led_irradiances_into`'s element (the
+    CUDA twin in :mod:`o3d_mvps.solver.cuda_kernels` calls it too)."""
+    d0 = positions[i, 0] - points[p, 0]
+    d1 = positions[i, 1] - points[p, 1]
+    d2 = positions[i, 2] - points[p, 2]
+    r2 = d0 * d0 + d1 * d1 + d2 * d2
+    return (normals[p, 0] * d0 + normals[p, 1] * d1 + normals[p, 2] * d2) / (r2 * math.sqrt(r2))
+
+
 @numba.njit(parallel=True, cache=True)
-def _led_irradiances(normals, points, positions, out):  # pragma: no cover - compiled
+def led_irradiances_into(normals, points, positions, out):  # pragma: no cover - compiled
+    """:func:`led_irradiances` written into out (m, N): float64 normals, points (N, 3), light
+    positions (m, 3)."""
     for p in numba.prange(points.shape[0]):
         for i in range(positions.shape[0]):
-            d0 = positions[i, 0] - points[p, 0]
-            d1 = positions[i, 1] - points[p, 1]
-            d2 = positions[i, 2] - points[p, 2]
-            r2 = d0 * d0 + d1 * d1 + d2 * d2
-            out[i, p] = (normals[p, 0] * d0 + normals[p, 1] * d1 + normals[p, 2] * d2) / (r2 * math.sqrt(r2))
+            out[i, p] = led_irradiance(normals, points, positions, i, p)
 
 
 def led_vector_jacobian(points: np.ndarray, light_position: np.ndarray, normals: np.ndarray) -> np.ndarray:

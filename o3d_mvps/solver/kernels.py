@@ -6,12 +6,22 @@ channels (x 6) per step. The maths is documented where it is used (:mod:`.normal
 :mod:`.problem`, :mod:`.reflectance`); these are its loops. Reductions over pixels (the 6x6
 twist Gram) go to per-chunk partial sums added up afterwards, so threads never share an
 accumulator.
+
+Each kernel's work on one pixel (or one pixel of one frame) is a function of its own
+(``*_pixel``), which the CPU loops here and the CUDA kernels of :mod:`.cuda_kernels` both call:
+one copy of the maths for both devices. They allocate nothing (scratch arrays come from the
+caller) and live in this file because numba's on-disk cache of a kernel is invalidated only by
+changes to the kernel's own source file, and the CPU kernels inline them.
+:mod:`.cuda_kernels` has the same launchers with the same arguments; a caller picks a module.
 """
 
 from __future__ import annotations
 
 import numba
 import numpy as np
+
+from ..model.robust import log1p_square_sum  # noqa: F401 - re-exported: the same names as .cuda_kernels
+from ..model.shading import led_irradiances_into  # noqa: F401
 
 # OpenMP first: the TBB that Open3D's wheels may put on the path can be too old for numba,
 # which then warns on every first parallel call.
@@ -23,8 +33,111 @@ CHUNK = 16384
 
 
 def chunk_count(n_pixels: int) -> int:
-    """Number of pixel chunks of :data:`CHUNK` pixels covering ``n_pixels``."""
+    """Number of pixel chunks of :data:`CHUNK` pixels covering ``n_pixels``: the rows of
+    :func:`accumulate_frame`'s partial sums."""
     return max(1, -(-n_pixels // CHUNK))
+
+
+@numba.njit(inline="always")
+def accumulate_pixel(p, w, r, q, ws, alpha, beta, gamma, extra_c, use, grad_u, grad_v, points, ray, dshading, albedo,
+                     fx, fy, with_jacobian, parallax, sums, e, rows, F, slot, J, G, b, wqJ, wcJ):  # pragma: no cover
+    """:func:`accumulate_frame`'s work on pixel p: its sums, e, rows and F entries, and its
+    twist Gram and right-hand side added to G (6, 6) and b (6,). fx, fy: K's focal lengths
+    (pixels). Scratch: J (3, 6), wqJ (6,), wcJ (6,)."""
+    project = e.shape[0] > 0
+    with_extra = extra_c.shape[0] > 0
+    with_dshading = dshading.shape[0] > 0
+    with_F = F.shape[0] > 0
+    emit = with_jacobian and slot >= 0
+    al, be = alpha[p], beta[p]
+    W = 0.0
+    Wqc = 0.0
+    Wqr = 0.0
+    Sgg = 0.0
+    Bg = 0.0
+    jac = with_jacobian and use[p]
+    X = Y = Z = iz = 0.0
+    if jac:
+        X, Y, Z = points[p, 0], points[p, 1], points[p, 2]
+        iz = 1.0 / Z
+        for j in range(6):
+            wqJ[j] = 0.0
+            wcJ[j] = 0.0
+    for c in range(3):
+        wc_ = w[p, c]
+        qc = q[p, c]
+        cc = -qc * gamma[p]
+        if with_extra:
+            cc += extra_c[p, c]
+        if jac:
+            ja = grad_u[p, c] * fx * iz  # dI/dX'
+            jb = grad_v[p, c] * fy * iz  # dI/dY'
+            jc = -iz * (ja * X + jb * Y)  # dI/dZ'
+            J[c, 0] = ja
+            J[c, 1] = jb
+            J[c, 2] = jc
+            J[c, 3] = Y * jc - Z * jb  # rotation: P' x (a, b, c)
+            J[c, 4] = Z * ja - X * jc
+            J[c, 5] = X * jb - Y * ja
+            if with_dshading:
+                for j in range(6):
+                    J[c, j] -= albedo[p, c] * dshading[p, j]
+            if parallax:
+                cc += J[c, 0] * ray[p, 0] + J[c, 1] * ray[p, 1] + J[c, 2] * ray[p, 2]
+        wq = wc_ * qc
+        W += wq * qc
+        Wqc += wq * cc
+        Wqr += wq * r[p, c]
+        Sgg += wc_ * cc * cc
+        Bg += wc_ * cc * r[p, c]
+        if project:
+            wsq = ws[p, c] * qc
+            e[0, p, c] -= wsq * al
+            e[1, p, c] -= wsq * be
+            e[2, p, c] += ws[p, c] * cc
+        if emit:
+            if jac:
+                for j in range(6):
+                    Jj = J[c, j]
+                    wJj = wc_ * Jj
+                    wqJ[j] += wq * Jj
+                    wcJ[j] += wJj * cc
+                    b[j] -= wJj * r[p, c]
+                    for k in range(j, 6):
+                        G[j, k] += wJj * J[c, k]
+                    if with_F:
+                        F[slot, j, p, c] = ws[p, c] * Jj
+            elif with_F:
+                for j in range(6):
+                    F[slot, j, p, c] = 0.0
+    sums[0, p] += W * al * al
+    sums[1, p] += W * be * be
+    sums[2, p] += Sgg
+    sums[3, p] += W * al * be
+    sums[4, p] -= al * Wqc
+    sums[5, p] -= be * Wqc
+    sums[6, p] -= al * Wqr
+    sums[7, p] -= be * Wqr
+    sums[8, p] += Bg
+    if emit:
+        for j in range(6):
+            if jac:
+                rows[0, slot, j, p] = -al * wqJ[j]
+                rows[1, slot, j, p] = -be * wqJ[j]
+                rows[2, slot, j, p] = wcJ[j]
+            else:
+                rows[0, slot, j, p] = 0.0
+                rows[1, slot, j, p] = 0.0
+                rows[2, slot, j, p] = 0.0
+
+
+@numba.njit(inline="always")
+def store_partial_sums(G, b, gram, rhs, k):  # pragma: no cover - compiled
+    """Row k of the partial sums: gram[k] (6, 6) = G, rhs[k] (6,) = b."""
+    for j in range(6):
+        rhs[k, j] = b[j]
+        for i in range(6):
+            gram[k, j, i] = G[j, i]
 
 
 @numba.njit(parallel=True, cache=True)
@@ -48,107 +161,32 @@ def accumulate_frame(w, r, q, ws, alpha, beta, gamma, extra_c, use, grad_u, grad
     d(frame-i point)/dz. Then, in slot ``slot`` of rows (3, m, 6, N): ``sum_c w q J`` times
     -alpha and -beta, and ``sum_c w c J``; of F (m, 6, N, 3) (0-sized: none): ws J;
     and per pixel chunk: gram (chunks, 6, 6), the upper triangle of the frame's Gram sum w J^T J
-    (lower triangle 0), and rhs (chunks, 6) = -sum w r J. Twist-component-major arrays, so that
-    each pixel's writes stream. slot -1: J only for the parallax, no twist rows.
+    (lower triangle 0), and rhs (chunks, 6) = -sum w r J, chunks = :func:`chunk_count` (N).
+    Twist-component-major arrays, so that each pixel's writes stream. slot -1: J only for the
+    parallax, no twist rows.
     """
     n = w.shape[0]
-    n_chunks = rhs.shape[0]
     fx, fy = K[0, 0], K[1, 1]
-    project = e.shape[0] > 0
-    with_extra = extra_c.shape[0] > 0
-    with_dshading = dshading.shape[0] > 0
-    with_F = F.shape[0] > 0
-    emit = with_jacobian and slot >= 0
-    for chunk in numba.prange(n_chunks):
+    for chunk in numba.prange(rhs.shape[0]):
         J = np.zeros((3, 6))
         G = np.zeros((6, 6))
         b = np.zeros(6)
         wqJ = np.zeros(6)
         wcJ = np.zeros(6)
         for p in range(chunk * CHUNK, min(n, (chunk + 1) * CHUNK)):
-            al, be = alpha[p], beta[p]
-            W = 0.0
-            Wqc = 0.0
-            Wqr = 0.0
-            Sgg = 0.0
-            Bg = 0.0
-            jac = with_jacobian and use[p]
-            if jac:
-                X, Y, Z = points[p, 0], points[p, 1], points[p, 2]
-                iz = 1.0 / Z
-                for j in range(6):
-                    wqJ[j] = 0.0
-                    wcJ[j] = 0.0
-            for c in range(3):
-                wc_ = w[p, c]
-                qc = q[p, c]
-                cc = -qc * gamma[p]
-                if with_extra:
-                    cc += extra_c[p, c]
-                if jac:
-                    ja = grad_u[p, c] * fx * iz  # dI/dX'
-                    jb = grad_v[p, c] * fy * iz  # dI/dY'
-                    jc = -iz * (ja * X + jb * Y)  # dI/dZ'
-                    J[c, 0] = ja
-                    J[c, 1] = jb
-                    J[c, 2] = jc
-                    J[c, 3] = Y * jc - Z * jb  # rotation: P' x (a, b, c)
-                    J[c, 4] = Z * ja - X * jc
-                    J[c, 5] = X * jb - Y * ja
-                    if with_dshading:
-                        for j in range(6):
-                            J[c, j] -= albedo[p, c] * dshading[p, j]
-                    if parallax:
-                        cc += J[c, 0] * ray[p, 0] + J[c, 1] * ray[p, 1] + J[c, 2] * ray[p, 2]
-                wq = wc_ * qc
-                W += wq * qc
-                Wqc += wq * cc
-                Wqr += wq * r[p, c]
-                Sgg += wc_ * cc * cc
-                Bg += wc_ * cc * r[p, c]
-                if project:
-                    wsq = ws[p, c] * qc
-                    e[0, p, c] -= wsq * al
-                    e[1, p, c] -= wsq * be
-                    e[2, p, c] += ws[p, c] * cc
-                if emit:
-                    if jac:
-                        for j in range(6):
-                            Jj = J[c, j]
-                            wJj = wc_ * Jj
-                            wqJ[j] += wq * Jj
-                            wcJ[j] += wJj * cc
-                            b[j] -= wJj * r[p, c]
-                            for k in range(j, 6):
-                                G[j, k] += wJj * J[c, k]
-                            if with_F:
-                                F[slot, j, p, c] = ws[p, c] * Jj
-                    elif with_F:
-                        for j in range(6):
-                            F[slot, j, p, c] = 0.0
-            sums[0, p] += W * al * al
-            sums[1, p] += W * be * be
-            sums[2, p] += Sgg
-            sums[3, p] += W * al * be
-            sums[4, p] -= al * Wqc
-            sums[5, p] -= be * Wqc
-            sums[6, p] -= al * Wqr
-            sums[7, p] -= be * Wqr
-            sums[8, p] += Bg
-            if emit:
-                for j in range(6):
-                    if jac:
-                        rows[0, slot, j, p] = -al * wqJ[j]
-                        rows[1, slot, j, p] = -be * wqJ[j]
-                        rows[2, slot, j, p] = wcJ[j]
-                    else:
-                        rows[0, slot, j, p] = 0.0
-                        rows[1, slot, j, p] = 0.0
-                        rows[2, slot, j, p] = 0.0
-        for j in range(6):
-            rhs[chunk, j] = b[j]
-            for k in range(6):
-                gram[chunk, j, k] = G[j, k]
+            accumulate_pixel(p, w, r, q, ws, alpha, beta, gamma, extra_c, use, grad_u, grad_v, points, ray, dshading,
+                             albedo, fx, fy, with_jacobian, parallax, sums, e, rows, F, slot, J, G, b, wqJ, wcJ)
+        store_partial_sums(G, b, gram, rhs, chunk)
+
+
+@numba.njit(inline="always")
+def project_twist_pixel(rows, F, scaled, sqrt_inv_d, f, j, p):  # pragma: no cover - compiled
+    """:func:`project_twist_rows` on pixel p of twist component j of frame slot f."""
+    for k in range(3):
+        rows[k, f, j, p] -= (scaled[k, p, 0] * F[f, j, p, 0] + scaled[k, p, 1] * F[f, j, p, 1]
+                             + scaled[k, p, 2] * F[f, j, p, 2])
+    for c in range(3):
+        F[f, j, p, c] *= sqrt_inv_d[p, c]
 
 
 @numba.njit(parallel=True, cache=True)
@@ -159,11 +197,7 @@ def project_twist_rows(rows, F, scaled, sqrt_inv_d):  # pragma: no cover - compi
     for f in numba.prange(m):
         for j in range(6):
             for p in range(N):
-                for k in range(3):
-                    rows[k, f, j, p] -= (scaled[k, p, 0] * F[f, j, p, 0] + scaled[k, p, 1] * F[f, j, p, 1]
-                                         + scaled[k, p, 2] * F[f, j, p, 2])
-                for c in range(3):
-                    F[f, j, p, c] *= sqrt_inv_d[p, c]
+                project_twist_pixel(rows, F, scaled, sqrt_inv_d, f, j, p)
 
 
 @numba.njit(parallel=True, cache=True)
@@ -178,6 +212,22 @@ def scatter_sparse_transpose_rows(indptr, indices, data, X, out):  # pragma: no 
                 out[j, indices[nz]] += data[nz] * x
 
 
+@numba.njit(inline="always")
+def shading_residual_pixel(color, albedo, basis, lights, usable, shading, residual, i, p):  # pragma: no cover
+    """:func:`shading_residuals` on pixel p of frame i."""
+    b = 0 if basis.shape[0] == 1 else i
+    s = 0.0
+    for j in range(basis.shape[2]):
+        s += basis[b, p, j] * lights[i, j]
+    shading[i, p] = s
+    if usable[i, p]:
+        for c in range(3):
+            residual[i, p, c] = color[i, p, c] - albedo[p, c] * s
+    else:
+        for c in range(3):
+            residual[i, p, c] = 0.0
+
+
 @numba.njit(parallel=True, cache=True)
 def shading_residuals(color, albedo, basis, lights, usable, shading, residual):  # pragma: no cover - compiled
     """Per frame i, pixel p, channel c: the shading s = <basis, light_i> (n, N) and the
@@ -187,21 +237,25 @@ def shading_residuals(color, albedo, basis, lights, usable, shading, residual): 
     frames share it, lights (n, k), usable (n, N) bool.
     """
     n, N = usable.shape
-    shared = basis.shape[0] == 1
-    k = basis.shape[2]
     for p in numba.prange(N):
         for i in range(n):
-            b = 0 if shared else i
-            s = 0.0
-            for j in range(k):
-                s += basis[b, p, j] * lights[i, j]
-            shading[i, p] = s
+            shading_residual_pixel(color, albedo, basis, lights, usable, shading, residual, i, p)
+
+
+@numba.njit(inline="always")
+def weighted_albedo_pixel(residual, usable, color, shading, inv_lam, num, den, p):  # pragma: no cover - compiled
+    """:func:`weighted_albedo_sums` on pixel p (all frames and channels)."""
+    for c in range(3):
+        a = 0.0
+        b = 0.0
+        for i in range(usable.shape[0]):
             if usable[i, p]:
-                for c in range(3):
-                    residual[i, p, c] = color[i, p, c] - albedo[p, c] * s
-            else:
-                for c in range(3):
-                    residual[i, p, c] = 0.0
+                x = residual[i, p, c] * inv_lam
+                ws = shading[i, p] / (1.0 + x * x)
+                a += ws * color[i, p, c]
+                b += ws * shading[i, p]
+        num[p, c] = a
+        den[p, c] = b
 
 
 @numba.njit(parallel=True, cache=True)
@@ -209,19 +263,23 @@ def weighted_albedo_sums(residual, usable, color, shading, inv_lam, num, den):  
     """num (N, 3) = sum_i w I s and den (N, 3) = sum_i w s^2 over the frames, with the Cauchy
     IRLS weight w = usable / (1 + (r inv_lam)^2) of residual (n, N, 3); color (n, N, 3),
     shading (n, N), usable (n, N) bool."""
-    n, N = usable.shape
-    for p in numba.prange(N):
+    for p in numba.prange(usable.shape[1]):
+        weighted_albedo_pixel(residual, usable, color, shading, inv_lam, num, den, p)
+
+
+@numba.njit(inline="always")
+def weighted_lighting_pixel(residual, usable, color, albedo, inv_lam, wr2, wri, i, p):  # pragma: no cover
+    """:func:`weighted_lighting_sums` on pixel p of frame i."""
+    a = 0.0
+    b = 0.0
+    if usable[i, p]:
         for c in range(3):
-            a = 0.0
-            b = 0.0
-            for i in range(n):
-                if usable[i, p]:
-                    x = residual[i, p, c] * inv_lam
-                    ws = shading[i, p] / (1.0 + x * x)
-                    a += ws * color[i, p, c]
-                    b += ws * shading[i, p]
-            num[p, c] = a
-            den[p, c] = b
+            x = residual[i, p, c] * inv_lam
+            w = 1.0 / (1.0 + x * x)
+            a += w * albedo[p, c] * albedo[p, c]
+            b += w * albedo[p, c] * color[i, p, c]
+    wr2[i, p] = a
+    wri[i, p] = b
 
 
 @numba.njit(parallel=True, cache=True)
@@ -231,13 +289,4 @@ def weighted_lighting_sums(residual, usable, color, albedo, inv_lam, wr2, wri): 
     n, N = usable.shape
     for p in numba.prange(N):
         for i in range(n):
-            a = 0.0
-            b = 0.0
-            if usable[i, p]:
-                for c in range(3):
-                    x = residual[i, p, c] * inv_lam
-                    w = 1.0 / (1.0 + x * x)
-                    a += w * albedo[p, c] * albedo[p, c]
-                    b += w * albedo[p, c] * color[i, p, c]
-            wr2[i, p] = a
-            wri[i, p] = b
+            weighted_lighting_pixel(residual, usable, color, albedo, inv_lam, wr2, wri, i, p)
