@@ -1,0 +1,225 @@
+"""CUDA twins of :mod:`.kernels`: the same launchers, with the same arguments and results, run
+by numba's CUDA target.
+
+A caller picks a kernels module (this one or :mod:`.kernels`) and calls the same functions.
+Arrays are whatever numba's CUDA target takes: device arrays with ``__cuda_array_interface__``
+(CuPy's; outputs are written in place), or NumPy arrays (copied to the device and back on each
+launch: the tests, and numba's CUDA simulator). Each kernel calls the per-pixel function of its
+CPU twin, compiled for the device from the same Python source (:func:`_device`): one copy of the
+maths. Nothing is compiled at import (numba compiles a kernel at its first launch), so this
+module imports without CUDA.
+
+Threads take adjacent pixels (the fastest-varying index of the per-pixel arrays), so that
+neighbouring threads read neighbouring memory. Reductions over pixels go to per-thread
+(:func:`accumulate_frame`) or per-block (:func:`log1p_square_sum`) partial sums added up
+afterwards, never to one shared accumulator; float64 throughout, as on the CPU.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+from numba import cuda
+
+from ..model.robust import log1p_square_term
+from ..model.shading import led_irradiance
+from . import kernels
+
+#: Threads per block of every kernel.
+THREADS_PER_BLOCK = 128
+
+#: Pixels per thread of :func:`accumulate_frame`: each thread writes its own 6x6 Gram and
+#: right-hand side (42 values, about what one pixel reads and writes), so a few pixels a thread
+#: keep those partial sums a small part of the traffic.
+PIXELS_PER_THREAD = 4
+
+#: Terms per thread of :func:`log1p_square_sum` (one partial sum per block comes back to the host).
+TERMS_PER_THREAD = 16
+
+
+def _device(body):
+    """A ``numba.njit`` per-pixel function of :mod:`.kernels` for the CUDA kernels: the function
+    itself, which numba's CUDA target compiles for the device from its Python source where a
+    kernel calls it; under numba's CUDA simulator, which runs kernels as Python, its Python source
+    (a CPU function cannot take the simulator's arrays)."""
+    return body.py_func if cuda.config.ENABLE_CUDASIM else body
+
+
+_accumulate_pixel = _device(kernels.accumulate_pixel)
+_store_partial_sums = _device(kernels.store_partial_sums)
+_project_twist_pixel = _device(kernels.project_twist_pixel)
+_shading_residual_pixel = _device(kernels.shading_residual_pixel)
+_weighted_albedo_pixel = _device(kernels.weighted_albedo_pixel)
+_weighted_lighting_pixel = _device(kernels.weighted_lighting_pixel)
+_log1p_square_term = _device(log1p_square_term)
+_led_irradiance = _device(led_irradiance)
+
+
+def _blocks(n_threads: int) -> int:
+    """Blocks of :data:`THREADS_PER_BLOCK` threads covering ``n_threads`` (at least one)."""
+    return max(1, -(-n_threads // THREADS_PER_BLOCK))
+
+
+def chunk_count(n_pixels: int) -> int:
+    """Threads of :func:`accumulate_frame` for ``n_pixels``, a whole number of blocks: the rows of
+    its partial sums (thread t takes pixels t, t + T, t + 2T, ...)."""
+    return _blocks(-(-n_pixels // PIXELS_PER_THREAD)) * THREADS_PER_BLOCK
+
+
+@cuda.jit
+def _accumulate_frame(w, r, q, ws, alpha, beta, gamma, extra_c, use, grad_u, grad_v, points, ray, dshading, albedo,
+                      K, with_jacobian, parallax, sums, e, rows, F, slot, gram, rhs):  # pragma: no cover - device
+    t = cuda.grid(1)
+    n_threads = rhs.shape[0]
+    if t >= n_threads:
+        return
+    J = cuda.local.array((3, 6), numba.float64)
+    G = cuda.local.array((6, 6), numba.float64)
+    b = cuda.local.array(6, numba.float64)
+    wqJ = cuda.local.array(6, numba.float64)
+    wcJ = cuda.local.array(6, numba.float64)
+    for j in range(6):
+        b[j] = 0.0
+        for k in range(6):
+            G[j, k] = 0.0
+    fx, fy = K[0, 0], K[1, 1]
+    for p in range(t, w.shape[0], n_threads):
+        _accumulate_pixel(p, w, r, q, ws, alpha, beta, gamma, extra_c, use, grad_u, grad_v, points, ray, dshading,
+                          albedo, fx, fy, with_jacobian, parallax, sums, e, rows, F, slot, J, G, b, wqJ, wcJ)
+    _store_partial_sums(G, b, gram, rhs, t)
+
+
+def accumulate_frame(w, r, q, ws, alpha, beta, gamma, extra_c, use, grad_u, grad_v, points, ray, dshading, albedo,
+                     K, with_jacobian, parallax, sums, e, rows, F, slot, gram, rhs) -> None:
+    """:func:`.kernels.accumulate_frame` on the GPU, same arguments; gram (T, 6, 6) and rhs (T, 6)
+    get one row per thread, T = :func:`chunk_count` (N)."""
+    _accumulate_frame[_blocks(rhs.shape[0]), THREADS_PER_BLOCK](
+        w, r, q, ws, alpha, beta, gamma, extra_c, use, grad_u, grad_v, points, ray, dshading, albedo, K,
+        with_jacobian, parallax, sums, e, rows, F, slot, gram, rhs)
+
+
+@cuda.jit
+def _project_twist_rows(rows, F, scaled, sqrt_inv_d):  # pragma: no cover - device
+    index = cuda.grid(1)
+    N = F.shape[2]
+    if index < F.shape[0] * 6 * N:
+        fj, p = index // N, index % N
+        _project_twist_pixel(rows, F, scaled, sqrt_inv_d, fj // 6, fj % 6, p)
+
+
+def project_twist_rows(rows, F, scaled, sqrt_inv_d) -> None:
+    """:func:`.kernels.project_twist_rows` on the GPU (one thread per frame slot, twist
+    component and pixel)."""
+    _project_twist_rows[_blocks(F.shape[0] * 6 * F.shape[2]), THREADS_PER_BLOCK](rows, F, scaled, sqrt_inv_d)
+
+
+@cuda.jit
+def _scatter_sparse_transpose_rows(indptr, indices, data, X, out):  # pragma: no cover - device
+    index = cuda.grid(1)
+    R = X.shape[1]
+    if index < X.shape[0] * R:
+        j, row = index // R, index % R
+        x = X[j, row]
+        for nz in range(indptr[row], indptr[row + 1]):
+            cuda.atomic.add(out, (j, indices[nz]), data[nz] * x)
+
+
+def scatter_sparse_transpose_rows(indptr, indices, data, X, out) -> None:
+    """:func:`.kernels.scatter_sparse_transpose_rows` on the GPU: one thread per entry X[j, row],
+    adding ``data x`` to row j of ``out`` at the row's columns with atomic adds.
+
+    The CPU twin's threads own whole output rows; here one thread per X entry (tens of thousands
+    per output row) is what fills a GPU, and the rows of a difference operator overlap in their
+    columns, so two threads may add to one output: atomically. Each output gets only as many
+    additions as its column has entries (a stencil's width), so they rarely contend. A gather
+    (one thread per output) would need A's transpose, which the caller does not have. The order
+    of the additions, so the rounding, varies from run to run.
+    """
+    _scatter_sparse_transpose_rows[_blocks(X.shape[0] * X.shape[1]), THREADS_PER_BLOCK](indptr, indices, data, X, out)
+
+
+@cuda.jit
+def _shading_residuals(color, albedo, basis, lights, usable, shading, residual):  # pragma: no cover - device
+    index = cuda.grid(1)
+    n, N = usable.shape
+    if index < n * N:
+        _shading_residual_pixel(color, albedo, basis, lights, usable, shading, residual, index // N, index % N)
+
+
+def shading_residuals(color, albedo, basis, lights, usable, shading, residual) -> None:
+    """:func:`.kernels.shading_residuals` on the GPU (one thread per frame and pixel)."""
+    _shading_residuals[_blocks(usable.size), THREADS_PER_BLOCK](color, albedo, basis, lights, usable, shading,
+                                                                residual)
+
+
+@cuda.jit
+def _weighted_albedo_sums(residual, usable, color, shading, inv_lam, num, den):  # pragma: no cover - device
+    p = cuda.grid(1)
+    if p < usable.shape[1]:
+        _weighted_albedo_pixel(residual, usable, color, shading, inv_lam, num, den, p)
+
+
+def weighted_albedo_sums(residual, usable, color, shading, inv_lam, num, den) -> None:
+    """:func:`.kernels.weighted_albedo_sums` on the GPU (one thread per pixel)."""
+    _weighted_albedo_sums[_blocks(usable.shape[1]), THREADS_PER_BLOCK](residual, usable, color, shading, inv_lam,
+                                                                       num, den)
+
+
+@cuda.jit
+def _weighted_lighting_sums(residual, usable, color, albedo, inv_lam, wr2, wri):  # pragma: no cover - device
+    index = cuda.grid(1)
+    n, N = usable.shape
+    if index < n * N:
+        _weighted_lighting_pixel(residual, usable, color, albedo, inv_lam, wr2, wri, index // N, index % N)
+
+
+def weighted_lighting_sums(residual, usable, color, albedo, inv_lam, wr2, wri) -> None:
+    """:func:`.kernels.weighted_lighting_sums` on the GPU (one thread per frame and pixel)."""
+    _weighted_lighting_sums[_blocks(usable.size), THREADS_PER_BLOCK](residual, usable, color, albedo, inv_lam, wr2,
+                                                                     wri)
+
+
+@cuda.jit
+def _led_irradiances_into(normals, points, positions, out):  # pragma: no cover - device
+    index = cuda.grid(1)
+    N = points.shape[0]
+    if index < positions.shape[0] * N:
+        i, p = index // N, index % N
+        out[i, p] = _led_irradiance(normals, points, positions, i, p)
+
+
+def led_irradiances_into(normals, points, positions, out) -> None:
+    """:func:`o3d_mvps.model.shading.led_irradiances_into` on the GPU: out (m, N) = <n, v> of
+    float64 normals, points (N, 3) under light positions (m, 3); one thread per light and point."""
+    _led_irradiances_into[_blocks(out.size), THREADS_PER_BLOCK](normals, points, positions, out)
+
+
+@cuda.jit
+def _log1p_square_partials(x, scale, partial):  # pragma: no cover - device
+    """partial[block] = the block's share of sum log(1 + (scale x)^2): each thread sums a strided
+    share, then the block adds its threads' sums in shared memory (a tree, in a fixed order)."""
+    share = cuda.shared.array(THREADS_PER_BLOCK, numba.float64)
+    t = cuda.threadIdx.x
+    total = 0.0
+    for i in range(cuda.grid(1), x.size, cuda.gridsize(1)):
+        total += _log1p_square_term(x[i], scale)
+    share[t] = total
+    cuda.syncthreads()
+    step = THREADS_PER_BLOCK // 2
+    while step > 0:
+        if t < step:
+            share[t] += share[t + step]
+        cuda.syncthreads()
+        step //= 2
+    if t == 0:
+        partial[cuda.blockIdx.x] = share[0]
+
+
+def log1p_square_sum(x, scale: float) -> float:
+    """:func:`o3d_mvps.model.robust.log1p_square_sum` on the GPU: sum log(1 + (scale x)^2) over a
+    1-D float64 array x (float32 terms, float64 sums); the blocks' partial sums are added on the
+    host."""
+    blocks = _blocks(-(-x.size // TERMS_PER_THREAD))
+    partial = cuda.device_array(blocks, dtype=np.float64)
+    _log1p_square_partials[blocks, THREADS_PER_BLOCK](x, scale, partial)
+    return float(partial.copy_to_host().sum())

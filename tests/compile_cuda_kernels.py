@@ -1,0 +1,79 @@
+"""Compile every CUDA kernel of o3d_mvps.solver.cuda_kernels to PTX, without a GPU.
+
+``python tests/compile_cuda_kernels.py [CC]`` (CC e.g. 9.0, the default) in a process where
+numba.cuda is not the simulator (no NUMBA_ENABLE_CUDASIM=1): prints ``KERNEL PTX_CHARS`` per kernel
+and exits 0; exits :data:`NO_NVVM` when numba finds no NVVM (the CUDA toolkit's compiler, e.g.
+``pip install numba-cuda[cu12]``), 1 on a kernel without a signature here. ``--ptx-dir DIR``
+also writes each kernel's PTX there (for ``ptxas -v``). tests/test_cuda_kernels.py runs it.
+
+The argument types are those the solver passes (C-contiguous float64 arrays, float32 warped
+colours, bool masks, int32 CSR indices, Python int and bool scalars).
+"""
+
+from __future__ import annotations
+
+import sys
+
+from numba import types
+
+#: exit status when NVVM is not installed (the test then skips)
+NO_NVVM = 3
+
+#: the launchers of both kernel modules
+LAUNCHERS = ("chunk_count", "accumulate_frame", "project_twist_rows", "scatter_sparse_transpose_rows",
+             "shading_residuals", "weighted_albedo_sums", "weighted_lighting_sums", "log1p_square_sum",
+             "led_irradiances_into")
+
+
+def _array(ndim: int, dtype=types.float64):
+    return types.Array(dtype, ndim, "C")
+
+
+_F1, _F2, _F3, _F4 = (_array(d) for d in (1, 2, 3, 4))
+_COLOR = _array(3, types.float32)
+
+#: kernel name in cuda_kernels -> argument types
+SIGNATURES = {
+    "_accumulate_frame": (_F2, _F2, _F2, _F2, _F1, _F1, _F1, _F2, _array(1, types.boolean), _F2, _F2, _F2, _F2, _F2,
+                          _F2, _F2, types.boolean, types.boolean, _F2, _F3, _F4, _F4, types.int64, _F3, _F2),
+    "_project_twist_rows": (_F4, _F4, _F3, _F2),
+    "_scatter_sparse_transpose_rows": (_array(1, types.int32), _array(1, types.int32), _F1, _F2, _F2),
+    "_shading_residuals": (_COLOR, _F2, _F3, _F2, _array(2, types.boolean), _F2, _F3),
+    "_weighted_albedo_sums": (_F3, _array(2, types.boolean), _COLOR, _F2, types.float64, _F2, _F2),
+    "_weighted_lighting_sums": (_F3, _array(2, types.boolean), _COLOR, _F2, types.float64, _F2, _F2),
+    "_led_irradiances_into": (_F2, _F2, _F2, _F2),
+    "_log1p_square_partials": (_F1, types.float64, _F1),
+}
+
+
+def main(argv: list[str]) -> int:
+    from numba import cuda
+    from numba.cuda.cudadrv import nvvm
+
+    if cuda.config.ENABLE_CUDASIM:
+        print("numba.cuda is the simulator here: run without NUMBA_ENABLE_CUDASIM=1")
+        return 1
+    if not nvvm.is_available():
+        print("numba finds no NVVM (CUDA toolkit): install numba-cuda[cu12] to compile CUDA kernels")
+        return NO_NVVM
+    from o3d_mvps.solver import cuda_kernels
+
+    cc = tuple(int(v) for v in (argv[0] if argv and not argv[0].startswith("-") else "9.0").split("."))
+    ptx_dir = argv[argv.index("--ptx-dir") + 1] if "--ptx-dir" in argv else None
+    found = {name for name, obj in vars(cuda_kernels).items()
+             if isinstance(obj, cuda.dispatcher.CUDADispatcher) and not obj.targetoptions["device"]}
+    if found != set(SIGNATURES):
+        print(f"kernels without a signature here: {sorted(found - set(SIGNATURES))}; "
+              f"signatures of no kernel: {sorted(set(SIGNATURES) - found)}")
+        return 1
+    for name, argtypes in SIGNATURES.items():
+        ptx, _ = cuda.compile_ptx(getattr(cuda_kernels, name).py_func, argtypes, cc=cc)
+        if ptx_dir is not None:
+            with open(f"{ptx_dir}/{name}.ptx", "w") as file:
+                file.write(ptx)
+        print(name, len(ptx))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

@@ -1,0 +1,168 @@
+"""The CUDA kernels (o3d_mvps.solver.cuda_kernels) against their CPU twins (o3d_mvps.solver.kernels)
+on small random data: equal to float64 round-off (relative 1e-12), the log1p sum to the CPU's
+float32 logarithms (1e-6).
+
+On a GPU they run there; without one in numba's CUDA simulator (tests/conftest.py), which runs
+the kernels as Python, one thread at a time: sizes stay small. The simulator compiles nothing, so
+:func:`test_kernels_compile_to_ptx` compiles every kernel for the device (no GPU needed).
+"""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+import compile_cuda_kernels
+from o3d_mvps.solver import cuda_kernels, kernels
+
+RNG = np.random.default_rng(11)
+N_FRAMES, N_PIXELS, LAM = 3, 300, 0.1
+
+
+def assert_close(actual, expected, rtol=1e-12):
+    """Equal to ``rtol`` relative, entries that cancel to ~0 to ``rtol`` of the array's largest."""
+    expected = np.asarray(expected)
+    np.testing.assert_allclose(actual, expected, rtol=rtol, atol=rtol * np.abs(expected).max(initial=0.0))
+
+
+def run_both(kernel_name, *args):
+    """Call the CPU and the CUDA launcher ``kernel_name`` on copies of args: (CPU args, CUDA args)."""
+    cpu, gpu = [np.copy(a) for a in args], [np.copy(a) for a in args]
+    getattr(kernels, kernel_name)(*cpu)
+    getattr(cuda_kernels, kernel_name)(*gpu)
+    return cpu, gpu
+
+
+# (with_jacobian, parallax, slot, albedo projection, LED shading Jacobian, extra_c)
+ACCUMULATE_CASES = {
+    "joint step, projected, LED": (True, True, 1, True, True, False),
+    "depth rows only, reference parallax": (False, False, -1, False, False, True),
+    "parallax only (slot -1), projected": (True, True, -1, True, False, False),
+    "twist rows, frozen warp, no projection": (True, False, 0, False, True, False),
+}
+
+
+@pytest.mark.parametrize("case", ACCUMULATE_CASES)
+def test_accumulate_frame_matches_cpu(case):
+    with_jacobian, parallax, slot, project, led, extra = ACCUMULATE_CASES[case]
+    N, m = N_PIXELS, 2
+    f = lambda *shape: RNG.random(shape)  # noqa: E731
+    none3, none6 = np.zeros((0, 3)), np.zeros((0, 6))
+    K = np.array([[300.0, 0.0, 80.0], [0.0, 310.0, 60.0], [0.0, 0.0, 1.0]])
+    sums, e = f(9, N), f(3, N, 3) if project else np.zeros((0, 1, 3))
+    rows, F = f(3, m, 6, N), f(m, 6, N, 3) if project else np.zeros((0, 6, 1, 3))
+    gram_cpu, rhs_cpu = np.zeros((kernels.chunk_count(N), 6, 6)), np.zeros((kernels.chunk_count(N), 6))
+    gram_gpu, rhs_gpu = np.zeros((cuda_kernels.chunk_count(N), 6, 6)), np.zeros((cuda_kernels.chunk_count(N), 6))
+    for _ in range(N_FRAMES):  # the frames add to one set of sums
+        use = RNG.random(N) > 0.2
+        frame = [f(N, 3), f(N, 3) - 0.5, f(N, 3), f(N, 3) if project else none3, f(N) - 0.5, f(N) - 0.5, f(N),
+                 f(N, 3) - 0.5 if extra else none3, use]
+        if with_jacobian:
+            frame += [f(N, 3) - 0.5, f(N, 3) - 0.5, f(N, 3) + [0.0, 0.0, 1.0], f(N, 3), f(N, 6) if led else none6]
+        else:
+            frame += [none3, none3, none3, none3, none6]
+        frame += [f(N, 3), K, with_jacobian, parallax]
+        # the same frame on the GPU from the same sums, so that each frame's output is compared
+        sums_gpu, e_gpu, rows_gpu, F_gpu = (np.copy(a) for a in (sums, e, rows, F))
+        kernels.accumulate_frame(*frame, sums, e, rows, F, slot, gram_cpu, rhs_cpu)
+        cuda_kernels.accumulate_frame(*frame, sums_gpu, e_gpu, rows_gpu, F_gpu, slot, gram_gpu, rhs_gpu)
+        for cpu, gpu in ((sums, sums_gpu), (e, e_gpu), (rows, rows_gpu), (F, F_gpu)):
+            assert_close(gpu, cpu)
+        assert_close(gram_gpu.sum(axis=0), gram_cpu.sum(axis=0))
+        assert_close(rhs_gpu.sum(axis=0), rhs_cpu.sum(axis=0))
+    if slot >= 0 and with_jacobian:
+        assert np.abs(gram_cpu.sum(axis=0)).max() > 0.0  # the Gram was compared, not two zeros
+    else:
+        assert not gram_gpu.any() and not rhs_gpu.any()
+
+
+def test_project_twist_rows_matches_cpu():
+    m, N = 2, N_PIXELS
+    (rows, F, *_), (rows_gpu, F_gpu, *_) = run_both("project_twist_rows", RNG.random((3, m, 6, N)),
+                                                    RNG.random((m, 6, N, 3)), RNG.random((3, N, 3)),
+                                                    RNG.random((N, 3)))
+    assert_close(rows_gpu, rows)
+    assert_close(F_gpu, F)
+
+
+def test_sparse_transpose_scatter_matches_cpu():
+    """A forward difference's rows overlap in their columns: the GPU's atomic adds meet."""
+    R, C = N_PIXELS, N_PIXELS + 20
+    A = sp.csr_matrix(sp.diags([-np.ones(R), np.ones(R)], [0, 1], shape=(R, C)) + sp.random(R, C, density=0.01,
+                                                                                            random_state=2))
+    cpu, gpu = run_both("scatter_sparse_transpose_rows", A.indptr, A.indices, A.data, RNG.normal(size=(5, R)),
+                        RNG.normal(size=(5, C)))
+    assert_close(gpu[-1], cpu[-1])
+
+
+@pytest.fixture
+def frames():
+    residual = RNG.normal(size=(N_FRAMES, N_PIXELS, 3)) * 0.1
+    usable = RNG.random((N_FRAMES, N_PIXELS)) > 0.2
+    color = RNG.random((N_FRAMES, N_PIXELS, 3)).astype(np.float32)  # as the solver's warped colours
+    shading = RNG.random((N_FRAMES, N_PIXELS))
+    albedo = RNG.random((N_PIXELS, 3))
+    return residual, usable, color, shading, albedo
+
+
+@pytest.mark.parametrize("shared", [True, False])
+def test_shading_residuals_match_cpu(frames, shared):
+    _, usable, color, _, albedo = frames
+    basis = RNG.random((1 if shared else N_FRAMES, N_PIXELS, 4))
+    cpu, gpu = run_both("shading_residuals", color, albedo, basis, RNG.random((N_FRAMES, 4)), usable,
+                        np.full((N_FRAMES, N_PIXELS), np.nan), np.full((N_FRAMES, N_PIXELS, 3), np.nan))
+    assert_close(gpu[-2], cpu[-2])
+    assert_close(gpu[-1], cpu[-1])
+
+
+def test_weighted_sums_match_cpu(frames):
+    residual, usable, color, shading, albedo = frames
+    empty = lambda *shape: np.full(shape, np.nan)  # noqa: E731
+    cpu, gpu = run_both("weighted_albedo_sums", residual, usable, color, shading, np.float64(1.0 / LAM),
+                        empty(N_PIXELS, 3), empty(N_PIXELS, 3))
+    assert_close(gpu[-2], cpu[-2])
+    assert_close(gpu[-1], cpu[-1])
+    cpu, gpu = run_both("weighted_lighting_sums", residual, usable, color, albedo, np.float64(1.0 / LAM),
+                        empty(N_FRAMES, N_PIXELS), empty(N_FRAMES, N_PIXELS))
+    assert_close(gpu[-2], cpu[-2])
+    assert_close(gpu[-1], cpu[-1])
+
+
+def test_led_irradiances_match_cpu():
+    points = RNG.normal(size=(N_PIXELS, 3)) * 0.05 + [0.0, 0.0, 0.6]
+    normals = RNG.normal(size=(N_PIXELS, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    cpu, gpu = run_both("led_irradiances_into", normals, points, RNG.normal(size=(4, 3)) * 0.05,
+                        np.full((4, N_PIXELS), np.nan))
+    assert_close(gpu[-1], cpu[-1])
+
+
+@pytest.mark.parametrize("size", [1, 5000])
+def test_log1p_square_sum_matches_cpu(size):
+    """Float32 logarithms on both (the CPU's vectorised, the GPU's libdevice): 1e-6 relative."""
+    x = RNG.normal(size=size) * 0.1
+    expected = kernels.log1p_square_sum(x, 1.0 / LAM)
+    assert cuda_kernels.log1p_square_sum(x, 1.0 / LAM) == pytest.approx(expected, rel=1e-6)
+
+
+def test_both_modules_offer_the_same_launchers():
+    for name in compile_cuda_kernels.LAUNCHERS:
+        assert callable(getattr(kernels, name)) and callable(getattr(cuda_kernels, name))
+
+
+def test_kernels_compile_to_ptx():
+    """Every CUDA kernel compiles to PTX for sm_90 (numba's compiler and NVVM; no GPU needed): the
+    simulator runs Python, so only this finds code the device cannot run. In a process of its own
+    without NUMBA_ENABLE_CUDASIM (numba.cuda is the simulator in this one)."""
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_ENABLE_CUDASIM"}
+    script = Path(compile_cuda_kernels.__file__)
+    done = subprocess.run([sys.executable, str(script), "9.0"], env=env, capture_output=True, text=True, timeout=600)
+    if done.returncode == compile_cuda_kernels.NO_NVVM:
+        pytest.skip(done.stdout.strip())
+    assert done.returncode == 0, done.stdout + done.stderr
+    compiled = {line.split()[0] for line in done.stdout.splitlines()}
+    assert compiled == set(compile_cuda_kernels.SIGNATURES)
