@@ -1,0 +1,217 @@
+"""Tests of o3d_mvps.solver.krylov (PCG and preconditioners for NumPy or CuPy arrays), here on
+NumPy: on a depth system assembled by the solver's own code on a masked grid (7-point data
+stencil of random rows, SF-block prior, second differences, Levenberg damping), and on the
+systems the solver itself solves on a small rendered LED scene.
+"""
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from threadpoolctl import threadpool_limits
+
+from o3d_mvps.model.normals import masked_grid
+from o3d_mvps.solver import depth, driver, joint, krylov
+from o3d_mvps.solver.linear import levenberg_damped, solve_spd
+from o3d_mvps.solver.normal_equations import stencil_normal_matrix
+from o3d_mvps.solver.options import RefineOptions
+from o3d_mvps.solver.pyramid import depth_prior
+from o3d_mvps.solver.smoothness import second_differences
+from o3d_mvps.solving import problem_from_capture
+from o3d_mvps.synthetic import render_capture
+
+
+@pytest.fixture(autouse=True)
+def one_blas_thread():
+    """Dense checks on one BLAS thread: on a loaded 2-core machine OpenBLAS's threads made a
+    550 x 550 eigendecomposition take 5 s instead of 0.05 s."""
+    with threadpool_limits(1, user_api="blas"):
+        yield
+
+
+def grid_system(shape=(40, 56), seed=0, tau=50.0, mu=0.3):
+    """(M, b, grid): the damped depth matrix (N, N) of random data rows ``a Du + b Dv + c I`` (3
+    channels) on a disc mask of ``shape``, plus ``2 tau D^T D`` (2x2 blocks) and ``2 mu S^T S``;
+    a random right-hand side b (N,)."""
+    rng = np.random.default_rng(seed)
+    H, W = shape
+    v, u = np.mgrid[:H, :W]
+    grid = masked_grid((u - W / 2) ** 2 / (0.45 * W) ** 2 + (v - H / 2) ** 2 / (0.45 * H) ** 2 < 1)
+    a, b, c = rng.normal(size=(3, grid.size, 3)) * np.array([1.0, 1.0, 0.1])[:, None, None]
+    products = [(x * y).sum(axis=1) for x, y in ((a, a), (b, b), (c, c), (a, b), (a, c), (b, c))]
+    prior = depth_prior(grid, np.ones((H // 2, W // 2)), 2.0)
+    S = second_differences(grid)
+    M = stencil_normal_matrix(grid, *products) + 2 * tau * (prior.D.T @ prior.D) + 2 * mu * (S.T @ S)
+    return levenberg_damped(M), rng.normal(size=grid.size), grid
+
+
+def dense_operator(apply, n):
+    """The (n, n) matrix of a linear map given as a callable on (n,) vectors."""
+    return np.stack([apply(e) for e in np.eye(n)], axis=1)
+
+
+def test_array_module_is_numpy_for_numpy_arrays():
+    assert krylov.array_module(np.zeros(3)) is np
+    assert krylov.sparse_module(np) is sp
+
+
+@pytest.mark.parametrize("preconditioner", ["none", "jacobi", "multigrid"])
+def test_pcg_reaches_the_tolerance_and_agrees_with_a_direct_solve_and_scipy(preconditioner):
+    M, b, grid = grid_system()
+    P = {"none": None, "jacobi": krylov.jacobi_preconditioner(M),
+         "multigrid": krylov.multigrid_preconditioner(M, grid.u, grid.v)}[preconditioner]
+    exact = spla.spsolve(M.tocsc(), b)
+    for rtol in (1e-4, 1e-10):
+        x, iterations, converged = krylov.pcg(M, b, None, rtol, 5000, P)
+        assert converged and iterations > 1
+        assert np.linalg.norm(b - M @ x) <= 1.01 * rtol * np.linalg.norm(b)
+        # scipy's CG with the same preconditioner and stopping rule takes as many iterations
+        count = []
+        spla.cg(M, b, rtol=rtol, maxiter=5000, callback=count.append,
+                M=None if P is None else spla.LinearOperator(M.shape, P, dtype=float))
+        assert abs(len(count) - iterations) <= 1
+    # cond(M) < 1e5 here: a 1e-10 residual leaves at most 1e-5 relative error (1e-8 seen)
+    assert np.linalg.norm(x - exact) <= 1e-5 * np.linalg.norm(exact)
+    # from the solution itself: nothing to do; from a zero right-hand side: zero
+    assert krylov.pcg(M, b, exact, 1e-6, 10, P)[1:] == (0, True)
+    x, iterations, converged = krylov.pcg(M, np.zeros_like(b), b, 1e-6, 10, P)
+    assert (iterations, converged) == (0, True) and not x.any()
+
+
+def test_pcg_reports_a_run_out_of_iterations():
+    M, b, _ = grid_system()
+    x, iterations, converged = krylov.pcg(M, b, None, 1e-8, 5)
+    assert (iterations, converged) == (5, False)
+    assert np.linalg.norm(b - M @ x) > 1e-8 * np.linalg.norm(b)
+
+
+def test_pixel_aggregates_join_2x2_pixels_stride_apart():
+    u, v = (c.ravel() for c in np.mgrid[:4, :4][::-1])  # a full 4x4 grid, row-major
+    for stride, members in ((1, {(0, 0), (1, 0), (0, 1), (1, 1)}), (2, {(0, 0), (2, 0), (0, 2), (2, 2)})):
+        aggregate, cu, cv = krylov.pixel_aggregates(u, v, stride)
+        assert cu.size == 4 and np.bincount(aggregate).tolist() == [4, 4, 4, 4]
+        assert {(int(a), int(b)) for a, b in zip(u[aggregate == aggregate[0]], v[aggregate == aggregate[0]])} == members
+        # the coarse grid is again a 2x2 grid, each coarse pixel the aggregate's own
+        assert sorted(zip(cu.tolist(), cv.tolist())) == [(0, 0), (0, 1), (1, 0), (1, 1)]
+
+
+def test_spectral_bound_bounds_the_largest_eigenvalue_tightly():
+    M, _, _ = grid_system()
+    inv_diag = krylov.inverse_diagonal(M)
+    scaling = sp.diags(np.sqrt(inv_diag))
+    largest = spla.eigsh(scaling @ M @ scaling, k=1, which="LA", return_eigenvectors=False)[0]
+    bound = krylov.spectral_bound(M, inv_diag)
+    assert largest <= bound <= 1.5 * largest
+
+
+def test_chebyshev_attains_its_error_bound():
+    """From zero, k steps on [lambda_min, lambda_max] of D^-1 A reduce the A-norm error by at most
+    ``2 q^k / (1 + q^2k)``, q = (sqrt(kappa) - 1) / (sqrt(kappa) + 1), and by no less for some
+    right-hand side (the bound is sharp)."""
+    M, b, _ = grid_system(shape=(20, 28))
+    inv_diag = krylov.inverse_diagonal(M)
+    scale = np.sqrt(inv_diag)
+    eigenvalues, vectors = np.linalg.eigh(M.multiply(np.outer(scale, scale)).toarray())
+    low, high = eigenvalues[0], eigenvalues[-1]
+    q = (np.sqrt(high / low) - 1) / (np.sqrt(high / low) + 1)
+    for steps in (1, 2, 5):
+        chebyshev = krylov.ChebyshevSmoother(M, inv_diag, low, high, steps)
+        error = np.eye(M.shape[0]) - dense_operator(chebyshev, M.shape[0]) @ M.toarray()
+        # the error map's A-norm: its largest eigenvalue in magnitude (it is A-self-adjoint)
+        similar = np.diag(1 / scale) @ error @ np.diag(scale)
+        contraction = np.abs(np.linalg.eigvals(similar)).max()
+        assert contraction == pytest.approx(2 * q**steps / (1 + q ** (2 * steps)), rel=1e-6)
+
+
+@pytest.mark.parametrize("smoother, steps, smoothed, stride", [
+    ("jacobi", 1, True, 1), ("jacobi", 2, False, 2), ("chebyshev", 2, True, 2), ("chebyshev", 3, False, 1)])
+def test_multigrid_cycle_is_symmetric_positive_definite(smoother, steps, smoothed, stride):
+    M, _, grid = grid_system(shape=(24, 36))
+    cycle = krylov.multigrid_preconditioner(M, grid.u, grid.v, smoother=smoother, smoothing_steps=steps,
+                                            smoothed_prolongation=smoothed, stride=stride, max_coarse=20)
+    assert len(cycle.levels) >= 3
+    B = dense_operator(cycle, M.shape[0])
+    assert np.abs(B - B.T).max() <= 1e-12 * np.abs(B).max()
+    assert np.linalg.eigvalsh((B + B.T) / 2)[0] > 0
+    rng = np.random.default_rng(1)
+    for x, y in rng.normal(size=(10, 2, M.shape[0])):
+        assert x @ cycle(y) == pytest.approx(y @ cycle(x), rel=1e-12)
+        assert x @ cycle(x) > 0
+
+
+def test_chebyshev_and_jacobi_preconditioners_are_symmetric_positive_definite():
+    M, _, _ = grid_system(shape=(24, 36))
+    for P in (krylov.jacobi_preconditioner(M), krylov.chebyshev_preconditioner(M, 3, 0.03)):
+        B = dense_operator(P, M.shape[0])
+        assert np.abs(B - B.T).max() <= 1e-12 * np.abs(B).max()
+        assert np.linalg.eigvalsh((B + B.T) / 2)[0] > 0
+
+
+# ---------------------------------------------------------------------------------------------
+# the systems of a real solve
+
+
+BUILD_LEVEL = driver.build_level
+
+
+@pytest.fixture(scope="module")
+def solver_systems():
+    """The last depth-only and the last joint system of three sweeps on the finest level of a
+    320x240 LED bunny (3 frames, SF 4, true poses): dicts of the operator (matrix or Schur
+    operator), right-hand side, tolerance, the sparse M, and the grid."""
+    capture = render_capture("bunny", frames=3, scale_factor=4, size=(320, 240), light="led", seed=0)
+    systems = {}
+    with pytest.MonkeyPatch.context() as patch:
+        levels = []
+
+        def build_level(*args, **kwargs):
+            levels.append(BUILD_LEVEL(*args, **kwargs))
+            return levels[-1]
+
+        patch.setattr(driver, "build_level", build_level)
+        for module, kind in ((depth, "depth"), (joint, "joint")):
+            def keep(matrix, rhs, rtol, maxiter, sparse_part=None, solve=module.solve_spd, kind=kind):
+                systems[kind] = dict(A=matrix, b=rhs, rtol=rtol, M=matrix if sparse_part is None else sparse_part,
+                                     grid=levels[-1].grid)
+                return solve(matrix, rhs, rtol, maxiter, sparse_part)
+            patch.setattr(module, "solve_spd", keep)
+        for refine_poses in (False, True):
+            options = RefineOptions(levels=1, max_iterations=3, refine_poses=refine_poses, joint_min_pixels=0)
+            problem_input, _ = problem_from_capture(capture, options, capture.groundtruth.poses)
+            driver.solve(problem_input)
+    return systems
+
+
+def recommended_multigrid(system):
+    """The multigrid recommended for the GPU path (:func:`krylov.multigrid_preconditioner`'s defaults)."""
+    return krylov.multigrid_preconditioner(system["M"], system["grid"].u, system["grid"].v)
+
+
+def test_multigrid_needs_few_iterations_where_jacobi_needs_many(solver_systems):
+    """Depth-only system (5608 unknowns, rtol 1e-4): measured 9 iterations with the multigrid
+    (bound 12), 60 with Jacobi and 25 with a degree-3 Chebyshev polynomial."""
+    s = solver_systems["depth"]
+    assert s["rtol"] == RefineOptions().cg_tolerance and s["M"].shape[0] > 5000
+    counts = {name: krylov.pcg(s["A"], s["b"], None, s["rtol"], 1000, P)[1:] for name, P in (
+        ("multigrid", recommended_multigrid(s)), ("jacobi", krylov.jacobi_preconditioner(s["M"])),
+        ("chebyshev", krylov.chebyshev_preconditioner(s["M"], 3, 0.03)))}
+    assert all(converged for _, converged in counts.values())
+    assert counts["multigrid"][0] <= 12
+    assert counts["jacobi"][0] >= 50 and counts["chebyshev"][0] >= 20
+
+
+def test_schur_operator_with_the_multigrid_of_its_sparse_part(solver_systems):
+    """Joint system: S = M - U H^-1 U^T as an operator, the cycle built from M. To the joint
+    tolerance 1e-2: measured 6 iterations (bound 9), Jacobi 19; to 1e-8 the residual of S holds
+    and the solution agrees with the CPU path's (AMG-preconditioned scipy CG)."""
+    s = solver_systems["joint"]
+    assert isinstance(s["A"], spla.LinearOperator) and s["rtol"] == RefineOptions().joint_cg_tolerance
+    cycle = recommended_multigrid(s)
+    _, iterations, converged = krylov.pcg(s["A"], s["b"], None, s["rtol"], 1000, cycle)
+    assert converged and iterations <= 9
+    assert krylov.pcg(s["A"], s["b"], None, s["rtol"], 1000, krylov.jacobi_preconditioner(s["M"]))[1] >= 15
+    x, _, converged = krylov.pcg(s["A"], s["b"], None, 1e-8, 1000, cycle)
+    assert converged and np.linalg.norm(s["b"] - s["A"] @ x) <= 1.01e-8 * np.linalg.norm(s["b"])
+    reference, _ = solve_spd(s["A"], s["b"], 1e-10, 1000, sparse_part=s["M"])
+    assert np.linalg.norm(x - reference) <= 1e-5 * np.linalg.norm(reference)
