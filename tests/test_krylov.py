@@ -60,7 +60,7 @@ def test_array_module_is_numpy_for_numpy_arrays():
 def test_pcg_reaches_the_tolerance_and_agrees_with_a_direct_solve_and_scipy(preconditioner):
     M, b, grid = grid_system()
     P = {"none": None, "jacobi": krylov.jacobi_preconditioner(M),
-         "multigrid": krylov.multigrid_preconditioner(M, grid.u, grid.v)}[preconditioner]
+         "multigrid": krylov.multigrid_preconditioner(M, krylov.pixel_prolongations(grid.u, grid.v))}[preconditioner]
     exact = spla.spsolve(M.tocsc(), b)
     for rtol in (1e-4, 1e-10):
         x, iterations, converged = krylov.pcg(M, b, None, rtol, 5000, P)
@@ -128,8 +128,9 @@ def test_chebyshev_attains_its_error_bound():
     ("jacobi", 1, True, 1), ("jacobi", 2, False, 2), ("chebyshev", 2, True, 2), ("chebyshev", 3, False, 1)])
 def test_multigrid_cycle_is_symmetric_positive_definite(smoother, steps, smoothed, stride):
     M, _, grid = grid_system(shape=(24, 36))
-    cycle = krylov.multigrid_preconditioner(M, grid.u, grid.v, smoother=smoother, smoothing_steps=steps,
-                                            smoothed_prolongation=smoothed, stride=stride, max_coarse=20)
+    prolongations = krylov.pixel_prolongations(grid.u, grid.v, stride, max_coarse=20)
+    cycle = krylov.multigrid_preconditioner(M, prolongations, smoother=smoother, smoothing_steps=steps,
+                                            smoothed_prolongation=smoothed)
     assert len(cycle.levels) >= 3
     B = dense_operator(cycle, M.shape[0])
     assert np.abs(B - B.T).max() <= 1e-12 * np.abs(B).max()
@@ -185,7 +186,7 @@ def solver_systems():
 
 def recommended_multigrid(system):
     """The multigrid recommended for the GPU path (:func:`krylov.multigrid_preconditioner`'s defaults)."""
-    return krylov.multigrid_preconditioner(system["M"], system["grid"].u, system["grid"].v)
+    return krylov.multigrid_preconditioner(system["M"], krylov.pixel_prolongations(system["grid"].u, system["grid"].v))
 
 
 def test_multigrid_needs_few_iterations_where_jacobi_needs_many(solver_systems):

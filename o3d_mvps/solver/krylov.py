@@ -11,9 +11,9 @@ Preconditioners of an SPD matrix A (N, N) with diagonal D, each a callable r (N,
 - :func:`jacobi_preconditioner`: z = D^-1 r.
 - :func:`chebyshev_preconditioner`: a Chebyshev polynomial in D^-1 A, its interval's top a
   Gershgorin bound (:func:`spectral_bound`).
-- :func:`multigrid_preconditioner`: a geometric multigrid V-cycle on the pixel grid, 2x2-pixel
-  aggregates, Galerkin coarse operators, damped-Jacobi or Chebyshev smoothing, a dense solve on
-  the coarsest level.
+- :func:`multigrid_preconditioner`: a geometric multigrid V-cycle on the pixel grid
+  (:func:`pixel_prolongations`: 2x2-pixel aggregates, built once per grid), Galerkin coarse
+  operators, damped-Jacobi or Chebyshev smoothing, a dense solve on the coarsest level.
 
 All three are symmetric positive definite operators (when A is SPD), as CG requires.
 """
@@ -181,7 +181,8 @@ def jacobi_preconditioner(A) -> JacobiSmoother:
 #: preconditioner and the multigrid smoother alike. On four of the solver's systems, multigrid
 #: with 2-4 smoothing steps took, against 0.03: with 0.01 between 25 % fewer and 13 % more
 #: iterations (mostly within 5 %); with 0.1 and 0.3 (the usual smoother choices, leaving the lower
-#: spectrum to the coarse levels) 2-60 % and 20-125 % more.
+#: spectrum to the coarse levels) 2-63 % and 20-125 % more. The polynomial alone: 0.003-0.03
+#: within 7 %, 0.1 up to 22 % more.
 CHEBYSHEV_LOWER_FRACTION = 0.03
 
 
@@ -208,7 +209,7 @@ def make_smoother(A, inv_diag, upper: float, kind: str, steps: int):
     raise ValueError(f"unknown smoother {kind!r}; use one of {SMOOTHERS}")
 
 
-def pixel_aggregates(u, v, stride: int = 1):
+def pixel_aggregates(u, v, stride: int):
     """Aggregates of 2x2 pixels ``stride`` apart, of pixels at integer coordinates u, v (N,)
     each: (aggregate of each pixel (N,), the aggregates' coordinates (n,) each, n <= N).
 
@@ -269,33 +270,53 @@ class Multigrid:
         return sum(nnz) / nnz[0]
 
 
-def multigrid_preconditioner(A, u, v, *, smoother: str = "chebyshev", smoothing_steps: int = 3,
-                             smoothed_prolongation: bool = False, stride: int = 2,
-                             max_coarse: int = MAX_COARSE) -> Multigrid:
-    """A geometric multigrid V-cycle for A (N, N) sparse SPD on the masked pixels at integer
-    coordinates u, v (N,) each (:attr:`o3d_mvps.model.normals.MaskedGrid.u`, ``.v``).
+def pixel_prolongations(u, v, stride: int = 2, max_coarse: int = MAX_COARSE) -> list:
+    """The tentative prolongations of a pixel grid's aggregation hierarchy: (N_l, N_l+1) sparse
+    per level, from the pixels at integer coordinates u, v (N,) each
+    (:attr:`o3d_mvps.model.normals.MaskedGrid.u`, ``.v``) by 2x2-pixel aggregates ``stride``
+    apart (:func:`pixel_aggregates`), until at most ``max_coarse`` unknowns remain (or an
+    aggregation joins nothing). They depend on the grid alone: built once per pyramid level,
+    they serve every solve on it.
 
-    Each level aggregates 2x2 pixels ``stride`` apart (:func:`pixel_aggregates`); the
-    prolongation is piecewise constant, with ``smoothed_prolongation`` smoothed by one damped
-    Jacobi step ``P = (I - 4/(3 lambda) D^-1 A) P_tent`` (lambda: :func:`spectral_bound`; as in
-    smoothed aggregation); the coarse operator is ``P^T A P``. Levels are added until at most
-    ``max_coarse`` unknowns remain, which are solved by a dense inverse. ``smoother``: one of
-    :data:`SMOOTHERS`, ``smoothing_steps`` before and after the coarse correction.
-
-    The defaults are the measured best for the GPU. Stride 2: the central differences of the
-    data rows do not couple a pixel to its neighbours, so where the smoothness weight is small
-    (the LED's) the slowest modes alternate in sign between neighbours and are smooth on each
-    of the four parity classes, which neighbour aggregates cannot represent (LED depth systems:
-    26 against 88 iterations); under room light strides 1 and 2 did alike. Chebyshev 3:
-    fewer products to the tolerance than damped Jacobi or fewer steps. Smoothed prolongation
-    saved 0-20 % of the iterations for twice the coarse levels' non-zeros and ten times the setup.
+    Stride 2 (default): the central differences of the data rows do not couple a pixel to its
+    neighbours, so where the smoothness weight is small (LED light) the slowest modes alternate
+    in sign between neighbours and are smooth on each of the four parity classes, which
+    neighbour aggregates cannot represent: on 26 LED systems CG took 0.68 times pyamg's
+    iterations (geometric mean) with stride 2 and 1.11 times with stride 1 (958k-pixel depth
+    system: 11 against 58). Under room light (large smoothness weight) stride 1 did better:
+    1.12 against 1.25 times pyamg's (a 73k-pixel joint system: 20 against 33).
     """
-    xp = array_module(u)
+    prolongations = []
+    while u.size > max_coarse:
+        aggregate, cu, cv = pixel_aggregates(u, v, stride)
+        if cu.size == u.size:
+            break
+        prolongations.append(tentative_prolongation(aggregate, cu.size))
+        u, v = cu, cv
+    return prolongations
+
+
+def multigrid_preconditioner(A, prolongations: list, *, smoother: str = "chebyshev", smoothing_steps: int = 3,
+                             smoothed_prolongation: bool = False) -> Multigrid:
+    """A multigrid V-cycle for A (N, N) sparse SPD on the hierarchy of tentative
+    ``prolongations`` (:func:`pixel_prolongations`; the first has N rows).
+
+    The coarse operators are ``P^T A P``; with ``smoothed_prolongation`` each P is first
+    smoothed by one damped Jacobi step ``P = (I - 4/(3 lambda) D^-1 A) P_tent`` (lambda:
+    :func:`spectral_bound`; as in smoothed aggregation). The coarsest level is solved by a dense
+    inverse. ``smoother``: one of :data:`SMOOTHERS`, ``smoothing_steps`` before and after the
+    coarse correction.
+
+    The defaults are the measured best for the GPU: Chebyshev 3 took the fewest iterations of
+    the smoothers tried (1 or 2 damped Jacobi steps: 1.5-3 times as many); smoothed
+    prolongations saved 10-14 % of the iterations in all (-20 to +38 % per system) for 1.9-2.3
+    times the non-zeros read per iteration and 7-14 times the setup (on the CPU), and they depend
+    on A, so they cannot be built once per grid.
+    """
+    xp = array_module(A.diagonal())
     sparse = sparse_module(xp)
     levels = []
-    while A.shape[0] > max_coarse:
-        aggregate, u, v = pixel_aggregates(u, v, stride)
-        P = tentative_prolongation(aggregate, u.size)
+    for P in prolongations:
         inv_diag = inverse_diagonal(A)
         upper = spectral_bound(A, inv_diag)
         if smoothed_prolongation:
