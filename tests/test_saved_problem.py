@@ -196,14 +196,16 @@ def test_cpu_device_names():
 
 
 @pytest.mark.parametrize("cupy, device, message", [
-    (None, "cuda", r"needs CuPy, which is not installed: pip install o3d-mvps\[cuda\] \(CuPy for CUDA 12; for "
-                   r"CUDA 13 run pip install cupy-cuda13x instead\)"),
+    (None, "cuda", r"needs CuPy, which is not installed: pip install o3d-mvps\[cuda\] \(CuPy and numba-cuda for "
+                   r"CUDA 12; for CUDA 13 run pip install cupy-cuda13x numba-cuda\[cu13\] instead\)"),
     (fake_cupy(None), "CUDA:0", "CuPy sees no GPU; check the NVIDIA driver"),
     (fake_cupy(1), "cuda:1", r"CuPy sees 1 GPU\(s\), cuda:0 to cuda:0; .* or solve on the CPU instead"),
-    (fake_cupy(1), "cuda:0", r"no CUDA solver path yet; solve on the CPU instead \(device='cpu', --device cpu\)"),
+    (fake_cupy(1), "cuda:0", r"needs numba's CUDA target \(numba-cuda\), which is not installed: pip install "
+                             r"o3d-mvps\[cuda\] .*; or solve on the CPU instead \(device='cpu', --device cpu\)"),
 ])
 def test_cuda_device_says_what_is_missing(monkeypatch, cupy, device, message):
     monkeypatch.setitem(sys.modules, "cupy", cupy)
+    monkeypatch.setitem(sys.modules, "numba.cuda", None)  # where CuPy sees a GPU: numba-cuda missing
     with pytest.raises(DeviceError, match=message):
         check_device(device)
 

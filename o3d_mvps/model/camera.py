@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .arrays import like
+
 
 def as_intrinsic_matrix(intrinsic) -> np.ndarray:
     """Return a 3x3 float64 numpy matrix from an o3d Tensor, PinholeCameraIntrinsic or array."""
@@ -65,5 +67,5 @@ def project(points: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
 
 
 def transform(T: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Apply a 4x4 rigid transform to points (..., 3)."""
-    return points @ T[:3, :3].T + T[:3, 3]
+    """Apply a 4x4 rigid transform (host array) to points (..., 3) (host or device)."""
+    return points @ like(T[:3, :3].T, points) + like(T[:3, 3], points)

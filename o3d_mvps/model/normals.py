@@ -13,6 +13,7 @@ off the true poses. ``scheme="forward"`` keeps them for comparison.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -62,6 +63,18 @@ class MaskedGrid:
         out = np.full(self.mask.shape + values.shape[1:], fill, dtype=values.dtype)
         out[self.v, self.u] = values
         return out
+
+    def on_device(self, device) -> "MaskedGrid":
+        """This grid with its per-pixel arrays and difference operators on ``device`` (a
+        :class:`~o3d_mvps.solver.device.ArrayDevice`); ``mask`` and ``index`` stay on the host, so
+        :meth:`gather` and :meth:`scatter` take host arrays."""
+        moved = dataclasses.replace(self, **{f.name: device.asarray(getattr(self, f.name))
+                                             for f in dataclasses.fields(self) if f.name not in ("mask", "index")})
+        # cached_property writes the instance dict, also of a frozen dataclass
+        moved.__dict__["_difference_operators"] = tuple(map(device.sparse_matrix, self.difference_operators()))
+        moved.__dict__["_transposed_difference_operators"] = tuple(
+            map(device.sparse_matrix, self.transposed_difference_operators()))
+        return moved
 
     def _stencils(self):
         return ((self.fwd_u, self.bwd_u, self.wf_u, self.wb_u), (self.fwd_v, self.bwd_v, self.wf_v, self.wb_v))

@@ -12,6 +12,8 @@ import math
 import numba
 import numpy as np
 
+from .arrays import array_module
+
 
 def cauchy(r: np.ndarray, lam: float) -> np.ndarray:
     """phi(r), elementwise (computed in one temporary: the solver applies it to (n, N, 3) arrays)."""
@@ -22,14 +24,18 @@ def cauchy(r: np.ndarray, lam: float) -> np.ndarray:
 
 
 def cauchy_weights(r: np.ndarray, lam: float) -> np.ndarray:
-    """IRLS weights w(r) = 1 / (1 + r^2 / lam^2), elementwise, in (0, 1]."""
-    out = np.asarray(np.square(np.multiply(r, 1.0 / lam)))  # 0-d for a scalar r, so out= works
+    """IRLS weights w(r) = 1 / (1 + r^2 / lam^2), elementwise, in (0, 1] (NumPy or CuPy)."""
+    out = array_module(r).asarray(np.square(np.multiply(r, 1.0 / lam)))  # 0-d for a scalar r, so out= works
     out += 1.0
     return np.reciprocal(out, out=out)
 
 
-def cauchy_energy(r: np.ndarray, lam: float) -> float:
+def cauchy_energy(r: np.ndarray, lam: float, kernel=None) -> float:
     """sum phi(r) over all elements: the energy of a residual array (any shape).
+
+    kernel: the ``log1p_square_sum(x (M,), scale) -> sum log(1 + (scale x)^2)`` of the array's
+    device (default: :func:`log1p_square_sum`, the CPU's, for NumPy arrays; the solver's
+    ``kernels_for(r)`` gives it).
 
     One compiled parallel pass, logarithms in float32 (``log(1 + x)``, relative error ~1e-7 a
     term, where a term below 6e-8 lam^2 rounds to zero) summed in float64: vectorised, three
@@ -37,8 +43,8 @@ def cauchy_energy(r: np.ndarray, lam: float) -> float:
     different than that. NumPy's version made two temporaries of the solver's (n, N, 3)
     residuals and took most of an evaluation's time.
     """
-    flat = np.ascontiguousarray(r, dtype=np.float64).reshape(-1)
-    return 0.5 * lam * lam * log1p_square_sum(flat, 1.0 / lam)
+    flat = array_module(r).ascontiguousarray(r, dtype=np.float64).reshape(-1)
+    return 0.5 * lam * lam * (kernel or log1p_square_sum)(flat, 1.0 / lam)
 
 
 @numba.njit(inline="always")

@@ -10,13 +10,16 @@ import math
 import numba
 import numpy as np
 
+from .arrays import array_module, like
+
 #: Initial lighting of every frame: a little ambient plus frontal light (normals point to -z).
 INITIAL_LIGHT = (0.2, 0.0, 0.0, -1.0)
 
 
 def sh_basis(normals: np.ndarray) -> np.ndarray:
     """m(n): (..., 4) first-order SH basis of unit normals (..., 3)."""
-    return np.concatenate([np.ones(normals.shape[:-1] + (1,), dtype=normals.dtype), normals], axis=-1)
+    xp = array_module(normals)
+    return xp.concatenate([xp.ones(normals.shape[:-1] + (1,), dtype=normals.dtype), normals], axis=-1)
 
 
 def shading(normals: np.ndarray, light: np.ndarray) -> np.ndarray:
@@ -31,18 +34,23 @@ def led_vectors(points: np.ndarray, light_position: np.ndarray) -> np.ndarray:
     ``max(0, <n, v>)`` per unit intensity (inverse-square falloff, Lambertian). Points and the
     light share one frame, in metres.
     """
-    d = np.asarray(light_position, dtype=np.float64) - points
+    d = like(light_position, points, dtype=np.float64) - points
     r2 = np.einsum("ij,ij->i", d, d)
     return d / (r2 * np.sqrt(r2))[:, None]
 
 
-def led_irradiances(normals: np.ndarray, points: np.ndarray, light_positions: np.ndarray) -> np.ndarray:
-    """``<n, v>`` (m, N) of :func:`led_vectors` for m light positions (m, 3) at once, unclamped
-    (negative where a point faces away): unit normals and points (N, 3), one frame, metres."""
-    out = np.empty((len(light_positions), len(points)))
-    led_irradiances_into(np.ascontiguousarray(normals, dtype=np.float64),
-                         np.ascontiguousarray(points, dtype=np.float64),
-                         np.ascontiguousarray(light_positions, dtype=np.float64), out)
+def led_irradiances(normals: np.ndarray, points: np.ndarray, light_positions: np.ndarray,
+                    kernel=None) -> np.ndarray:
+    """``<n, v>`` (m, N) of :func:`led_vectors` for m light positions (m, 3, host) at once,
+    unclamped (negative where a point faces away): unit normals and points (N, 3), one frame,
+    metres. kernel: the ``led_irradiances_into(normals, points, positions, out)`` of the arrays'
+    device (default: :func:`led_irradiances_into`, the CPU's, for NumPy arrays; the solver's
+    ``kernels_for`` gives it)."""
+    xp = array_module(points)
+    out = xp.empty((len(light_positions), len(points)))
+    (kernel or led_irradiances_into)(xp.ascontiguousarray(normals, dtype=np.float64),
+                                     xp.ascontiguousarray(points, dtype=np.float64),
+                                     like(light_positions, points, dtype=np.float64), out)
     return out
 
 
@@ -71,7 +79,7 @@ def led_vector_jacobian(points: np.ndarray, light_position: np.ndarray, normals:
 
     The derivative with respect to the light position is its negative.
     """
-    d = np.asarray(light_position, dtype=np.float64) - points
+    d = like(light_position, points, dtype=np.float64) - points
     r2 = np.einsum("ij,ij->i", d, d)
     r3 = r2 * np.sqrt(r2)
     nd = np.einsum("ij,ij->i", normals, d)

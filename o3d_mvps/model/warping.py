@@ -21,13 +21,15 @@ def sample_bilinear(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarr
 
     Computed in the image's dtype. Coordinates are clamped to the image, so samples outside
     repeat the border; use :func:`in_view` to know which samples are genuine. float32
-    images with 1, 3 or 4 channels go through ``cv2.remap`` (about 10x faster; coordinates
-    rounded to float32, i.e. 1e-4 px at 1280 px), others through numpy.
+    host images with 1, 3 or 4 channels go through ``cv2.remap`` (about 10x faster;
+    coordinates rounded to float32, i.e. 1e-4 px at 1280 px), others (CuPy images too)
+    through the array module's gathers.
     """
     H, W = image.shape[:2]
     u = np.clip(u, 0.0, W - 1.0)
     v = np.clip(v, 0.0, H - 1.0)
-    if image.dtype == np.float32 and image.ndim == 3 and image.shape[2] in _REMAP_CHANNELS and max(H, W) < 32767:
+    if (isinstance(image, np.ndarray) and image.dtype == np.float32 and image.ndim == 3
+            and image.shape[2] in _REMAP_CHANNELS and max(H, W) < 32767):
         return _remap(image, u, v)
     flat = image.reshape(H * W, -1)
     u0 = np.minimum(u.astype(np.int64), max(W - 2, 0))

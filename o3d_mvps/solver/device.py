@@ -1,30 +1,110 @@
-"""Which device solves: ``"cpu"`` (NumPy/SciPy), or ``"cuda[:N]"`` once the CUDA path exists.
+"""Which device solves, and the array device the solver's code runs on there.
 
 Names follow Open3D's (``"CPU:0"``, ``"CUDA:0"``, or an ``o3d.core.Device``) and PyTorch's
 (``"cpu"``, ``"cuda"``, ``"cuda:1"``), case-insensitively. A CUDA device is checked before any
-work: CuPy importable, the GPU visible to it.
+work: CuPy importable, the GPU visible to it, numba's CUDA target present.
+
+The solver is one code for both. An :class:`ArrayDevice` says where the per-pixel arrays live
+(NumPy or CuPy, SciPy's or CuPy's sparse matrices); the code that runs on them follows from the
+arrays: the per-pixel kernels (numba on the CPU, :mod:`.cuda_kernels` on CUDA:
+:func:`kernels_for`) and the linear solver (pyamg's AMG on the CPU, the array-generic multigrid
+of :mod:`.krylov` on CUDA: :func:`on_gpu`). Small arrays (lights, poses, the 6x6 pose systems)
+stay NumPy arrays on the host.
 """
 
 from __future__ import annotations
 
 import re
+from contextlib import contextmanager
+from dataclasses import dataclass
+from types import ModuleType
+
+import numpy as np
+import scipy.sparse
 
 from ..errors import DeviceError
+from ..model.arrays import array_module
 
 ON_CPU = "solve on the CPU instead (device='cpu', --device cpu)"
-CUDA_INSTALL = ("pip install o3d-mvps[cuda] (CuPy for CUDA 12; for CUDA 13 run pip install cupy-cuda13x "
-                "instead)")
-DEVICE_HELP = ("where the solver runs: cpu (default); cuda[:N] needs CuPy (pip install o3d-mvps[cuda]) and a CUDA "
-               "solver path, which this version does not have yet")
+CUDA_INSTALL = ("pip install o3d-mvps[cuda] (CuPy and numba-cuda for CUDA 12; for CUDA 13 run pip install "
+                "cupy-cuda13x numba-cuda[cu13] instead)")
+DEVICE_HELP = "where the solver runs: cpu (default), or cuda[:N] (needs CuPy and numba-cuda: pip install o3d-mvps[cuda])"
 _NAME = re.compile(r"(cpu|cuda)(?::(\d+))?")
 
 
-def check_device(device) -> str:
-    """The device as ``"cpu"`` when the solver can run there.
+@dataclass(frozen=True)
+class ArrayDevice:
+    """Where the solver's per-pixel arrays live: name "cpu" or "cuda:N", xp numpy or cupy,
+    sparse scipy.sparse or cupyx.scipy.sparse. The code that runs on them follows from the
+    arrays themselves (:func:`kernels_for`)."""
 
-    ValueError for a name that is not cpu/cuda[:N]; DeviceError for a CUDA device: CuPy missing
-    (how to install it), CuPy seeing no such GPU, or (both present) no CUDA solver path in this
-    version.
+    name: str
+    xp: ModuleType
+    sparse: ModuleType
+
+    def asarray(self, a, dtype=None):
+        """``a`` (a NumPy array, or already one of this device's) as an array of this device."""
+        return self.xp.asarray(a, dtype=dtype)
+
+    def to_host(self, a) -> np.ndarray:
+        """``a`` as a NumPy array (a copy from the GPU; itself on the host)."""
+        return to_host(a)
+
+    def sparse_matrix(self, matrix):
+        """A SciPy sparse matrix as a CSR matrix of this device."""
+        return self.sparse.csr_matrix(matrix)
+
+
+CPU = ArrayDevice("cpu", np, scipy.sparse)
+
+_simulating = False
+
+
+@contextmanager
+def simulate_cuda():
+    """Within: NumPy arrays take the CUDA path's code (the CUDA kernels, run by numba's
+    simulator, and the GPU's linear solver), so that it is tested on a machine without a GPU.
+    numba's simulator must be on (``NUMBA_ENABLE_CUDASIM=1`` before numba is imported)."""
+    import numba
+
+    global _simulating
+    if not numba.config.ENABLE_CUDASIM:
+        raise DeviceError("simulate_cuda needs numba's CUDA simulator: set NUMBA_ENABLE_CUDASIM=1 before numba is "
+                          "imported")
+    previous, _simulating = _simulating, True
+    try:
+        yield
+    finally:
+        _simulating = previous
+
+
+def on_gpu(x) -> bool:
+    """Whether arrays like ``x`` take the CUDA path: CuPy arrays (or any, within :func:`simulate_cuda`)."""
+    return _simulating or array_module(x) is not np
+
+
+def kernels_for(x) -> ModuleType:
+    """The per-pixel kernels for arrays like ``x``: :mod:`.cuda_kernels` on the CUDA path
+    (:func:`on_gpu`), else the CPU's :mod:`.kernels` (the same functions)."""
+    if on_gpu(x):
+        from . import cuda_kernels
+
+        return cuda_kernels
+    from . import kernels
+
+    return kernels
+
+
+def to_host(a):
+    """``a`` as a NumPy array (copied from the GPU; itself on the host); None stays None."""
+    return a if a is None or isinstance(a, np.ndarray) else a.get()
+
+
+def check_device(device) -> str:
+    """The device's name, ``"cpu"`` or ``"cuda:N"``, when the solver can run there.
+
+    ValueError for a name that is not cpu/cuda[:N]; DeviceError for a CUDA device that cannot
+    run: CuPy or numba-cuda missing (how to install them), or CuPy seeing no such GPU.
     """
     name = str(device)
     match = _NAME.fullmatch(name.strip().lower())
@@ -45,5 +125,33 @@ def check_device(device) -> str:
         seen = "no GPU" if count == 0 else f"{count} GPU(s), cuda:0 to cuda:{count - 1}"
         raise DeviceError(f"device {name!r}: CuPy sees {seen}; check the NVIDIA driver (nvidia-smi) and that the "
                           f"CuPy package matches its CUDA version, pick a listed GPU, or {ON_CPU}")
-    raise DeviceError(f"device {name!r}: CuPy and the GPU are there, but this version of o3d_mvps has no CUDA "
-                      f"solver path yet; {ON_CPU}")
+    try:
+        import numba.cuda
+    except ImportError:
+        raise DeviceError(f"device {name!r} needs numba's CUDA target (numba-cuda), which is not installed: "
+                          f"{CUDA_INSTALL}; or {ON_CPU}") from None
+    if numba.config.ENABLE_CUDASIM:
+        raise DeviceError(f"device {name!r}: numba's CUDA simulator is on (NUMBA_ENABLE_CUDASIM=1), which runs "
+                          f"kernels on the CPU; unset it to solve on the GPU, or {ON_CPU}")
+    if not numba.cuda.is_available():
+        raise DeviceError(f"device {name!r}: CuPy sees the GPU but numba's CUDA target does not (numba-cuda needs "
+                          f"the CUDA toolkit's NVVM: {CUDA_INSTALL}); or {ON_CPU}")
+    return f"cuda:{index}"
+
+
+def array_device(device) -> ArrayDevice:
+    """The :class:`ArrayDevice` of a device name (:func:`check_device`).
+
+    On CUDA, the GPU is made the current device of CuPy and of numba's CUDA target.
+    """
+    name = check_device(device)
+    if name == "cpu":
+        return CPU
+    import cupy
+    import cupyx.scipy.sparse
+    from numba import cuda
+
+    index = int(name.split(":")[1])
+    cupy.cuda.Device(index).use()
+    cuda.select_device(index)
+    return ArrayDevice(name, cupy, cupyx.scipy.sparse)

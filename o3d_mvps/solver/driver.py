@@ -26,7 +26,7 @@ from ..model import se3
 from ..model.resampling import fill_nearest_valid, repeat_pixels, resize
 from ..model.robust import robust_scale
 from .depth import update_depth
-from .device import check_device
+from .device import ArrayDevice, array_device, to_host
 from .joint import update_pose_depth
 from .lighting import make_light_model, update_led_offset
 from .options import AUTO, DEFAULT_CAUCHY_LAMBDA, RefineOptions
@@ -216,12 +216,13 @@ def coarse_to_fine(n_levels: int, solve_level: Callable[[int, "Carried | None"],
 def solve(problem_input: SolverInput, options: RefineOptions | None = None, device="cpu") -> SolverOutput:
     """Jointly estimate depth (colour resolution), albedo, lighting and poses of ``problem_input``.
 
-    options: None solves with ``problem_input.options``. device: "cpu" ("CPU:0"); a CUDA device
-    raises :class:`~o3d_mvps.errors.DeviceError` saying what is missing
+    options: None solves with ``problem_input.options``. device: "cpu" ("CPU:0") or "cuda[:N]"
+    (the per-pixel arrays on the GPU, with CuPy and numba's CUDA target); a CUDA device that
+    cannot run raises :class:`~o3d_mvps.errors.DeviceError` saying what is missing
     (:func:`.device.check_device`).
     """
     options = problem_input.options if options is None else options
-    check_device(device)
+    device = array_device(device)
     if options.light_model is None:
         raise ValueError("options.light_model is None: the solver needs 'led' or 'sh' (o3d_mvps.refine takes it "
                          "from the capture's light)")
@@ -229,10 +230,10 @@ def solve(problem_input: SolverInput, options: RefineOptions | None = None, devi
     # 2-core machine OpenBLAS's threads made each 60k-vector norm take ~5 ms instead of 30 us
     # (~20 % of a 640x480 refinement); one thread loses nothing on an idle machine.
     with threadpool_limits(1, user_api="blas"):
-        return _solve(problem_input, options)
+        return _solve(problem_input, options, device)
 
 
-def _solve(problem_input: SolverInput, options: RefineOptions) -> SolverOutput:
+def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevice) -> SolverOutput:
     timings = defaultdict(float)
     t0 = time.perf_counter()
     K = problem_input.K
@@ -279,19 +280,21 @@ def _solve(problem_input: SolverInput, options: RefineOptions) -> SolverOutput:
                               light.offset.copy() if light.name == "led" else None)  # an unknown, like the rest
         else:
             carried = carried.resized(level.size)
-        est = Estimate(level.prior.clip(g.gather(carried.z).astype(np.float64)),
-                       g.gather(carried.albedo).astype(np.float64), carried.lights, carried.poses, carried.led_offset)
+        est = Estimate(device.asarray(level.prior.clip(g.gather(carried.z).astype(np.float64))),
+                       device.asarray(g.gather(carried.albedo).astype(np.float64)), carried.lights, carried.poses,
+                       carried.led_offset)
         tau = normalised_tau(options.tau, n_frames, mean_I, g.size, mean_z0, level.prior.rows)
         mu = normalised_smoothness(smoothness, n_frames, mean_I, mean_z0, level_index)
         # AUTO: the LED's scale for the level's first albedo fit, then the residuals' (_sweeps)
         scale = options.model.cauchy_scale()
-        problem = LevelProblem(level, tau, DEFAULT_CAUCHY_LAMBDA["led"] if scale == AUTO else scale, light, mu)
+        problem = LevelProblem(level.on_device(device), tau, DEFAULT_CAUCHY_LAMBDA["led"] if scale == AUTO else scale,
+                               light, mu)
         problem.update_visibility(est, occlusion_test=options.occlusion_test, rel_tol=options.occlusion_tolerance,
                                   sensor_depths=sensor_depths, depth_K=depth_K)
         timings["setup"] += time.perf_counter() - t
         history.extend(_sweeps(problem, est, options, timings, stats))
-        return Carried(fill_nearest_valid(g.scatter(est.z), g.mask), fill_nearest_valid(g.scatter(est.albedo), g.mask),
-                       est.lights, est.poses, est.led_offset)
+        return Carried(fill_nearest_valid(g.scatter(to_host(est.z)), g.mask),
+                       fill_nearest_valid(g.scatter(to_host(est.albedo)), g.mask), est.lights, est.poses, est.led_offset)
 
     result = coarse_to_fine(n_levels, solve_level)
     z_full, albedo_full, lights, poses, led_offset = (result.z, result.albedo, result.lights, result.poses,
@@ -301,7 +304,7 @@ def _solve(problem_input: SolverInput, options: RefineOptions) -> SolverOutput:
     timings["total"] = time.perf_counter() - t0
     return SolverOutput(
         depth, ref_mask, albedo, K, lighting=lights, poses=poses, energy=history, timings=dict(timings),
-        info={"frames": problem_input.frames, "options": options.to_dict(),
+        info={"frames": problem_input.frames, "options": options.to_dict(), "device": device.name,
               "light_model": (light if led_offset is None else light.at(led_offset)).describe(), **stats},
     )
 

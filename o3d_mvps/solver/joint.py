@@ -34,7 +34,7 @@ def update_pose_depth(problem: LevelProblem, est: Estimate, ev: Evaluation, *, r
     system = joint_system(problem, est, ev, project_albedo=project_albedo, release=True)
     system = dataclasses.replace(system, matrix=levenberg_damped(system.matrix))
     S, rhs = system.schur_operator()
-    dz, iterations = solve_spd(S, rhs, rtol, maxiter, sparse_part=system.matrix)
+    dz, iterations = solve_spd(S, rhs, rtol, maxiter, sparse_part=system.matrix, pixel_prolongations=problem.pixel_prolongations)
     xi, frames = system.twists(dz), system.frames
     del system, S, rhs  # the coupling (N, 6m) and M: not needed by the line search
 

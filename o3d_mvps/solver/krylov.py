@@ -25,29 +25,11 @@ from typing import Callable
 
 import numpy as np
 
+from ..model.arrays import array_module, sparse_module
+
 #: Multigrid: the hierarchy ends at a level of at most this many unknowns (as pyamg's
 #: ``max_coarse`` in :func:`.linear.amg_preconditioner`), solved there by a dense inverse.
 MAX_COARSE = 300
-
-
-def array_module(x):
-    """``numpy``, or ``cupy`` where ``x`` (an array or sparse matrix) is CuPy's; CuPy need not be installed."""
-    try:
-        import cupy
-    except ImportError:
-        return np
-    return cupy.get_array_module(x)
-
-
-def sparse_module(xp):
-    """The sparse-matrix module going with array module ``xp``: scipy.sparse or cupyx.scipy.sparse."""
-    if xp is np:
-        import scipy.sparse
-
-        return scipy.sparse
-    import cupyx.scipy.sparse
-
-    return cupyx.scipy.sparse
 
 
 def pcg(A, b, x0, rtol: float, maxiter: int, preconditioner: Callable | None = None):
@@ -229,7 +211,7 @@ def tentative_prolongation(aggregate, n_coarse: int):
     """Piecewise-constant prolongation (N, n) sparse: 1 where pixel p lies in aggregate j."""
     xp = array_module(aggregate)
     n = aggregate.size
-    return sparse_module(xp).csr_matrix((xp.ones(n), (xp.arange(n), aggregate)), shape=(n, n_coarse))
+    return sparse_module(aggregate).csr_matrix((xp.ones(n), (xp.arange(n), aggregate)), shape=(n, n_coarse))
 
 
 @dataclass
@@ -314,7 +296,7 @@ def multigrid_preconditioner(A, prolongations: list, *, smoother: str = "chebysh
     on A, so they cannot be built once per grid.
     """
     xp = array_module(A.diagonal())
-    sparse = sparse_module(xp)
+    sparse = sparse_module(A)
     levels = []
     for P in prolongations:
         inv_diag = inverse_diagonal(A)

@@ -27,8 +27,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..model.arrays import array_module, like
 from ..model.robust import cauchy_weights
 from ..model.shading import INITIAL_LIGHT, led_irradiances, led_vector_jacobian, led_vectors, sh_basis
+from .device import kernels_for, to_host
 from .line_search import backtrack
 from .linear import ridge_solve
 
@@ -147,7 +149,7 @@ class LEDLight:
 
     def irradiances(self, normals: np.ndarray, points: np.ndarray, poses: np.ndarray) -> np.ndarray:
         """:meth:`irradiance` (m, N) for the frames with ``poses`` (m, 4, 4), computed together."""
-        return led_irradiances(normals, points, self.positions(poses))
+        return led_irradiances(normals, points, self.positions(poses), kernels_for(points).led_irradiances_into)
 
     def basis(self, normals: np.ndarray, points: np.ndarray, pose: np.ndarray) -> np.ndarray:
         """(N, 2) ``[1, max(0, <n, v_i>)]``."""
@@ -156,7 +158,7 @@ class LEDLight:
     def bases(self, normals: np.ndarray, points: np.ndarray, poses: np.ndarray) -> np.ndarray:
         """(m, N, 2) :meth:`basis` of the frames with ``poses`` (m, 4, 4)."""
         g = self.irradiances(normals, points, poses)
-        out = np.ones(g.shape + (2,))
+        out = array_module(g).ones(g.shape + (2,))
         np.maximum(g, 0.0, out=out[..., 1])
         return out
 
@@ -171,8 +173,8 @@ class LEDLight:
         """d(shading)/d(point) (N, 3) in frame i's camera coordinates, zero where unlit."""
         s = self.position(pose)
         J = led_vector_jacobian(points, s, normals)
-        lit = light[1] * (np.einsum("ij,ij->i", normals, s - points) > 0)
-        return (J * lit[:, None]) @ pose[:3, :3].T
+        lit = light[1] * (np.einsum("ij,ij->i", normals, like(s, points) - points) > 0)
+        return (J * lit[:, None]) @ like(pose[:3, :3].T, points)
 
     def shading_jacobian(self, light: np.ndarray, normals: np.ndarray, points: np.ndarray,
                          pose: np.ndarray) -> np.ndarray:
@@ -182,7 +184,7 @@ class LEDLight:
         with respect to the point in camera coordinates, ``d/dv = G`` and ``d/dw = o x G``.
         """
         G = self._camera_gradient(light, normals, points, pose)
-        return np.concatenate([G, np.cross(self.offset, G)], axis=1)
+        return np.concatenate([G, np.cross(like(self.offset, G), G)], axis=1)
 
     def offset_jacobian(self, light: np.ndarray, normals: np.ndarray, points: np.ndarray,
                         pose: np.ndarray) -> np.ndarray:
@@ -239,7 +241,7 @@ def update_led_offset(problem, est, ev, *, max_halvings: int = 3, max_pixels: in
     H = np.zeros((3, 3))
     g = np.zeros(3)
     stride = max(1, ev.usable.shape[1] // max_pixels)
-    spread = np.zeros(ev.usable.shape[1], dtype=bool)
+    spread = array_module(ev.usable).zeros(ev.usable.shape[1], dtype=bool)
     spread[::stride] = True
     for i in range(problem.n_frames):
         use = ev.usable[i] & spread
@@ -248,9 +250,9 @@ def update_led_offset(problem, est, ev, *, max_halvings: int = 3, max_pixels: in
         ds = light.offset_jacobian(est.lights[i], ev.normals[use], points_ref[use], est.poses[i])  # (M, 3)
         w = cauchy_weights(ev.residual[i, use], problem.lam)  # (M, 3)
         rho_w = est.albedo[use] ** 2 * w
-        H += (ds * rho_w.sum(axis=1)[:, None]).T @ ds
+        H += to_host((ds * rho_w.sum(axis=1)[:, None]).T @ ds)
         # residual r = I - rho s: dr/do = -rho ds
-        g -= ds.T @ np.sum(w * est.albedo[use] * ev.residual[i, use], axis=1)
+        g -= to_host(ds.T @ np.sum(w * est.albedo[use] * ev.residual[i, use], axis=1))
     start = light.offset
     step = ridge_solve(H, -g) if np.trace(H) > 0 else None
     # the IRLS model's decrease -g.step / 2 on the spread pixels, scaled to all of them

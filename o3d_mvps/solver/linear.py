@@ -8,10 +8,16 @@ smoothed-aggregation V-cycle (pyamg); the joint step solves the Schur complement
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import pyamg
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+
+from ..model.arrays import sparse_module
+from . import krylov
+from .device import on_gpu
 
 
 #: Levenberg-Marquardt damping of the depth block M, relative to its diagonal. Pixels that only
@@ -27,7 +33,8 @@ def levenberg_damped(matrix: sp.spmatrix) -> sp.csr_matrix:
     any PSD M, also where a row of M is zero."""
     d = matrix.diagonal()
     floor = 0.01 * float(d.mean()) if d.size else 0.0
-    return sp.csr_matrix(matrix + sp.diags(DAMPING * np.maximum(d, max(floor, np.finfo(float).tiny))))
+    sparse = sparse_module(matrix)
+    return sparse.csr_matrix(matrix + sparse.diags(DAMPING * np.maximum(d, max(floor, np.finfo(float).tiny))))
 
 
 def amg_preconditioner(matrix: sp.csr_matrix) -> spla.LinearOperator:
@@ -75,18 +82,30 @@ def pcg(matrix, rhs: np.ndarray, x0: np.ndarray, rtol: float, maxiter: int,
     return x, count[0], info == 0
 
 
-def solve_spd(matrix, rhs: np.ndarray, rtol: float, maxiter: int, sparse_part=None) -> tuple[np.ndarray, int]:
+def solve_spd(matrix, rhs: np.ndarray, rtol: float, maxiter: int, sparse_part=None,
+              pixel_prolongations: Callable[[], list] | None = None) -> tuple[np.ndarray, int]:
     """PCG from zero on ``matrix`` ((N, N) sparse SPD, or an operator whose sparse part
     ``sparse_part`` the AMG hierarchy is built from), preconditioned by a hierarchy built for
     this system; returns (x, iterations).
+
+    On the CUDA path (:func:`.device.on_gpu`), where pyamg cannot run, the hierarchy is the
+    geometric multigrid of :mod:`.krylov` (3 Chebyshev steps before and after, the measured
+    best there) on the aggregation of the system's pixels that ``pixel_prolongations()`` returns
+    (:meth:`.problem.LevelProblem.pixel_prolongations`, then required), and CG that module's.
 
     A hierarchy is not reused across sweeps: the IRLS weights, albedo and lighting move the
     system between sweeps, and with 3 frames a one-sweep-old hierarchy let CG run to its
     300-iteration cap where a fresh one needed 20-40 (8 frames: 4-23 against 4-6 on the finest
     level). Its setup costs about as much as five CG iterations (0.3 s at 90k unknowns).
     """
-    x, iterations, _ = pcg(matrix, rhs, np.zeros_like(rhs), rtol, maxiter,
-                           amg_preconditioner(matrix if sparse_part is None else sparse_part))
+    sparse = matrix if sparse_part is None else sparse_part
+    if on_gpu(rhs):
+        if pixel_prolongations is None:
+            raise ValueError("solve_spd on the CUDA path needs the pixels' aggregation (pixel_prolongations=)")
+        x, iterations, _ = krylov.pcg(matrix, rhs, None, rtol, maxiter,
+                                      krylov.multigrid_preconditioner(sparse, pixel_prolongations()))
+        return x, iterations
+    x, iterations, _ = pcg(matrix, rhs, np.zeros_like(rhs), rtol, maxiter, amg_preconditioner(sparse))
     return x, iterations
 
 

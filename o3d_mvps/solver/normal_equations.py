@@ -22,10 +22,10 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
+from ..model.arrays import array_module, like, linear_operator, sparse_module
 from ..model.robust import cauchy_weights
-from .kernels import accumulate_frame, chunk_count, project_twist_rows, scatter_sparse_transpose_rows
+from .device import kernels_for, to_host
 from .pose import pose_jacobian
 from .problem import Estimate, Evaluation, LevelProblem
 
@@ -46,27 +46,31 @@ class JointSystem:
     rhs_xi: np.ndarray
     frames: list
 
-    def schur_operator(self) -> tuple[spla.LinearOperator, np.ndarray]:
-        """(S, rhs): ``S = M - U H^-1 U^T`` as an operator and its right-hand side
-        ``b_z - U H^-1 b_xi``. S is applied as M x - U (H^-1 (U^T x)): two passes over U per
-        product, where forming U H^-1 (N, 6m) once cost as much as twenty products."""
-        if not self.frames:
-            return spla.aslinearoperator(self.matrix), self.rhs_z
-        factor = _cholesky(self.hessian)
+    def schur_operator(self):
+        """(S, rhs): ``S = M - U H^-1 U^T`` as an operator (SciPy's, or CuPy's on the GPU) and
+        its right-hand side ``b_z - U H^-1 b_xi``. S is applied as M x - U (H^-1 (U^T x)): two
+        passes over U per product, where forming U H^-1 (N, 6m) once cost as much as twenty
+        products. The small solve with H (6m, 6m) runs on the host (on the GPU path, 6m numbers
+        go there and back per product)."""
         M, U = self.matrix, self.coupling
+        if not self.frames:
+            return linear_operator(M.shape, lambda x: M @ x.ravel(), self.rhs_z), self.rhs_z
+        factor = _cholesky(self.hessian)
+
+        def solve_h(y):
+            return like(scipy.linalg.cho_solve(factor, to_host(y)), U)
 
         def matvec(x):
-            x = np.ravel(x)
-            return M @ x - U @ scipy.linalg.cho_solve(factor, U.T @ x)
+            x = x.ravel()
+            return M @ x - U @ solve_h(U.T @ x)
 
-        S = spla.LinearOperator(M.shape, matvec=matvec, dtype=np.float64)
-        return S, self.rhs_z - U @ scipy.linalg.cho_solve(factor, self.rhs_xi)
+        return linear_operator(M.shape, matvec, U), self.rhs_z - U @ solve_h(self.rhs_xi)
 
     def twists(self, dz: np.ndarray) -> np.ndarray:
         """The twists (m, 6) that go with the depth increment dz (N,)."""
         if not self.frames:
             return np.zeros((0, 6))
-        return scipy.linalg.cho_solve(_cholesky(self.hessian), self.rhs_xi - self.coupling.T @ dz).reshape(-1, 6)
+        return scipy.linalg.cho_solve(_cholesky(self.hessian), self.rhs_xi - to_host(self.coupling.T @ dz)).reshape(-1, 6)
 
 
 def _cholesky(H: np.ndarray):
@@ -99,7 +103,7 @@ def residual_jacobians(problem: LevelProblem, est: Estimate, ev: Evaluation, i: 
     if dshading is not None:
         J -= est.albedo[:, :, None] * dshading[:, None, :]
     J[~use] = 0.0  # also clears what pixels behind the camera gave
-    ray_i = ray @ pose[:3, :3].T  # d(frame-i point)/d(z)
+    ray_i = ray @ like(pose[:3, :3].T, ray)  # d(frame-i point)/d(z)
     g = np.matmul(J[..., :3], ray_i[:, :, None])[..., 0]  # d/dX' (camera frame) . R ray, (N, 3)
     return use, J, g
 
@@ -113,9 +117,6 @@ def _row_dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """sum_j a[:, j] b[:, j] of two (N, 3) arrays: (N,)."""
     return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
 
-
-# empty stand-ins for the kernel's optional arrays
-_NONE3, _NONE6, _NONE_E = np.zeros((0, 3)), np.zeros((0, 6)), np.zeros((0, 1, 3))
 
 #: Reference pixels per block of the joint assembly. Every per-pixel array of the refined
 #: frames' twists ((3, m, 6, B) coupling rows, (m, 6, B, 3) projection rows) exists for one block
@@ -145,10 +146,12 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
                          "evaluate the estimate again (LevelProblem.evaluate)")
     grid = problem.level.grid
     N = grid.size
-    candidates = [i for i in range(1, problem.n_frames) if twists and ev.usable[i].sum() >= min_pixels]
+    xp = array_module(ev.residual)
+    counts = to_host(ev.usable.sum(axis=1))
+    candidates = [i for i in range(1, problem.n_frames) if twists and counts[i] >= min_pixels]
     m = len(candidates)
-    sums = np.empty((9, N))  # per pixel: Saa, Sbb, Sgg, Sab, Sag, Sbg, Ba, Bb, Bg
-    coupling_t = np.zeros((6 * m, N))  # U^T, frame j's twist in rows 6j..6j+5
+    sums = xp.empty((9, N))  # per pixel: Saa, Sbb, Sgg, Sab, Sag, Sbg, Ba, Bb, Bg
+    coupling_t = xp.zeros((6 * m, N))  # U^T, frame j's twist in rows 6j..6j+5
     grams, rhs_xi = np.zeros((m, 6, 6)), np.zeros(6 * m)  # per frame: upper triangle of w J^T J; -J^T w r
     downdate = np.zeros((6 * m, 6 * m))  # the albedo projection's sum f f^T over pixels and channels
     points_ref = problem.points(est.z)
@@ -172,7 +175,7 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
     matrix = stencil_normal_matrix(grid, *sums[:6]) + prior_hessian
     rhs_z = -stencil_transpose(grid, *sums[6:]) + prior_rhs
     coupling = coupling_t[kept].T if len(kept) < 6 * m else coupling_t.T  # (N, 6m'): no copy when all are kept
-    return JointSystem(sp.csr_matrix(matrix), rhs_z, coupling, hessian, rhs_xi[kept], frames)
+    return JointSystem(sparse_module(matrix).csr_matrix(matrix), rhs_z, coupling, hessian, rhs_xi[kept], frames)
 
 
 def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, project_albedo, sums, grams,
@@ -181,9 +184,11 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
     written into ``sums``; its share of the frames' Grams (m, 6, 6), rhs_xi (6m,), the projection's
     downdate (6m, 6m) and the transposed coupling (6m, N) added in place. Du_rows, Dv_rows: the
     block's rows (B, N) of the difference operators."""
-    K = problem.level.K
+    xp, kernels = array_module(points_ref), kernels_for(points_ref)
+    K = like(problem.level.K, points_ref)
     B = points_ref.shape[0]
     m = len(candidates)
+    none3, none6, none_e = xp.zeros((0, 3)), xp.zeros((0, 6)), xp.zeros((0, 1, 3))  # the kernel's optional arrays
     residual, usable, albedo = ev.residual[:, block], ev.usable[:, block], est.albedo[block]
     normals = ev.normals[block]
     w = cauchy_weights(residual, problem.lam)
@@ -191,37 +196,38 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
     q = albedo / ev.dA[block, None]  # (B, 3)
     ray = points_ref / points_ref[:, 2:3]  # d(point)/d(z), reference coordinates
     model = problem.light_model(est)
-    block_sums = np.zeros((9, B))
+    block_sums = xp.zeros((9, B))
     projection = _AlbedoProjection(w, ev.shading[:, block], residual) if project_albedo else None
     slot = {i: k for k, i in enumerate(candidates)}
     # twist-component-major, so the transposed coupling rows (6m, B) and the projection's rows
     # (6m, 3B) are views
-    rows = np.empty((3, m, 6, B))
-    F = np.empty((m, 6, B, 3)) if projection is not None else np.empty((0, 6, 1, 3))
-    gram, rhs = np.empty((chunk_count(B), 6, 6)), np.empty((chunk_count(B), 6))
+    rows = xp.empty((3, m, 6, B))
+    F = xp.empty((m, 6, B, 3)) if projection is not None else xp.empty((0, 6, 1, 3))
+    chunks = kernels.chunk_count(B)
+    gram, rhs = xp.empty((chunks, 6, 6)), xp.empty((chunks, 6))
     for i in range(problem.n_frames):
         pose, use = est.poses[i], usable[i]
         _, alpha, beta, gamma = shading_rows(problem, est, i, normals, points_ref, block)
         with_jacobian = i > 0 and (parallax or i in slot)
         dshading = (model.shading_jacobian(est.lights[i], normals, points_ref, pose)
                     if with_jacobian or (i == 0 and parallax) else None)
-        extra_c = _NONE3
+        extra_c = none3
         if i == 0 and parallax and dshading is not None:
             extra_c = _reference_parallax(albedo, dshading, ray, use)
-        points_i = grad_u = grad_v = ray_i = _NONE3
+        points_i = grad_u = grad_v = ray_i = none3
         if with_jacobian:
             sample = problem.warped_gradients(i, pose, points_ref)
             points_i, grad_u, grad_v = sample.points, sample.grad_u, sample.grad_v
-            ray_i = ray @ pose[:3, :3].T  # d(frame-i point)/d(z)
+            ray_i = ray @ like(pose[:3, :3].T, ray)  # d(frame-i point)/d(z)
         k = slot.get(i, -1)
-        accumulate_frame(w[i], residual[i], q, _NONE3 if projection is None else projection.ws[i],
-                         alpha, beta, gamma, extra_c, use, grad_u, grad_v, points_i, ray_i,
-                         _NONE6 if dshading is None or not with_jacobian else dshading, albedo, K,
-                         with_jacobian, parallax, block_sums, _NONE_E if projection is None else projection.e,
-                         rows, F, k, gram, rhs)
+        kernels.accumulate_frame(w[i], residual[i], q, none3 if projection is None else projection.ws[i],
+                                 alpha, beta, gamma, extra_c, use, grad_u, grad_v, points_i, ray_i,
+                                 none6 if dshading is None or not with_jacobian else dshading, albedo, K,
+                                 with_jacobian, parallax, block_sums, none_e if projection is None else projection.e,
+                                 rows, F, k, gram, rhs)
         if k >= 0:
-            grams[k] += gram.sum(axis=0)
-            rhs_xi[6 * k:6 * k + 6] += rhs.sum(axis=0)
+            grams[k] += to_host(gram.sum(axis=0))
+            rhs_xi[6 * k:6 * k + 6] += to_host(rhs.sum(axis=0))
     if projection is not None:
         block_sums[:6] -= projection.local()
         block_sums[6:] -= projection.local_rhs()
@@ -231,7 +237,7 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
     if m:
         # U^T += the stencil transpose of the rows: Du^T rows_a + Dv^T rows_b + rows_c
         for D, r in ((Du_rows, rows[0]), (Dv_rows, rows[1])):
-            scatter_sparse_transpose_rows(D.indptr, D.indices, D.data, r.reshape(6 * m, B), coupling_t)
+            kernels.scatter_sparse_transpose_rows(D.indptr, D.indices, D.data, r.reshape(6 * m, B), coupling_t)
         coupling_t[:, block] += rows[2].reshape(6 * m, B)
 
 
@@ -258,7 +264,7 @@ class _AlbedoProjection:
         d = np.sum(self.ws * shading[..., None], axis=0)
         self.inv_d = np.where(d > 1e-12, 1.0 / np.where(d > 1e-12, d, 1.0), 0.0)
         self.sWr = np.sum(self.ws * residual, axis=0)
-        self.e = np.zeros((3,) + d.shape)  # e for the a, b, c rows
+        self.e = array_module(d).zeros((3,) + d.shape)  # e for the a, b, c rows
 
     def local(self) -> np.ndarray:
         """Downdates (6, B) of Saa, Sbb, Sgg, Sab, Sag, Sbg."""
@@ -277,15 +283,17 @@ class _AlbedoProjection:
         loss) and the right-hand side (6m,) gains ``sum f (s^T W r) / d`` over the block's pixels
         and channels; F (m, 6, B, 3) = w s J of the m refined frames is scaled in place."""
         sqrt_inv_d = np.sqrt(self.inv_d)
-        project_twist_rows(rows, F, self.e * self.inv_d, sqrt_inv_d)
+        kernels_for(F).project_twist_rows(rows, F, self.e * self.inv_d, sqrt_inv_d)
         f = F.reshape(6 * len(F), -1)  # (6m, 3B): frame j in rows 6j..
-        rhs_xi += f @ (self.sWr * sqrt_inv_d).reshape(-1)
+        rhs_xi += to_host(f @ (self.sWr * sqrt_inv_d).reshape(-1))
         downdate += _gram(f)
 
 
 def _gram(A: np.ndarray) -> np.ndarray:
-    """A A^T (k, k) of a wide C-ordered (k, R) array by BLAS's symmetric rank-k update (half a
-    product)."""
+    """A A^T (k, k, host) of a wide C-ordered (k, R) array: on the host by BLAS's symmetric
+    rank-k update (half a product), on the GPU by one product."""
+    if not isinstance(A, np.ndarray):
+        return to_host(A @ A.T)
     upper = scipy.linalg.blas.dsyrk(1.0, A.T, trans=1)  # A.T is Fortran-ordered: no copy
     return np.triu(upper) + np.triu(upper, 1).T
 
@@ -298,7 +306,7 @@ def shading_rows(problem: LevelProblem, est: Estimate, i: int, normals: np.ndarr
     g, K = problem.level.grid, problem.level.K
     u, v = g.u[pixels], g.v[pixels]
     c, L = problem.light_model(est).field(est.lights[i], normals, points_ref, est.poses[i])
-    L = np.broadcast_to(L, (len(u), 3))
+    L = array_module(normals).broadcast_to(like(L, normals), (len(u), 3))
     alpha = K[0, 0] * L[:, 0] - (u - K[0, 2]) * L[:, 2]
     beta = K[1, 1] * L[:, 1] - (v - K[1, 2]) * L[:, 2]
     return c, alpha, beta, -L[:, 2]
@@ -308,9 +316,10 @@ def stencil_normal_matrix(grid, Saa, Sbb, Sgg, Sab, Sag, Sbg) -> sp.csr_matrix:
     """sum over rows of R^T W R for rows ``R = a Du + b Dv + c I``, from the per-pixel weighted
     products (N,) each (``Saa = sum w a a``, ...): an (N, N) sparse 7-point-stencil matrix."""
     Du, Dv = grid.difference_operators()
-    diag = sp.diags
+    sparse = sparse_module(Du)
+    diag = sparse.diags
     cross = Du.T @ diag(Sab) @ Dv + Du.T @ diag(Sag) + Dv.T @ diag(Sbg)
-    return sp.csr_matrix(Du.T @ diag(Saa) @ Du + Dv.T @ diag(Sbb) @ Dv + diag(Sgg) + cross + cross.T)
+    return sparse.csr_matrix(Du.T @ diag(Saa) @ Du + Dv.T @ diag(Sbb) @ Dv + diag(Sgg) + cross + cross.T)
 
 
 def stencil_transpose(grid, Ba, Bb, Bg):

@@ -5,7 +5,9 @@ from __future__ import annotations
 import numpy as np
 
 from ..model import se3
+from ..model.arrays import array_module, like
 from ..model.robust import cauchy_weights
+from .device import to_host
 from .line_search import backtrack
 from .linear import ridge_solve
 from .problem import Estimate, Evaluation, FrameSample, LevelProblem
@@ -15,7 +17,7 @@ def pose_jacobian(sample: FrameSample, K: np.ndarray) -> np.ndarray:
     """d(warped colour)/d(xi) for a left update exp(xi) T: (N, 3, 6), xi = (v, w)."""
     X, Y, Z = (c[:, None] for c in sample.points.T)  # (N, 1) each
     iz = 1.0 / Z
-    J = np.empty(sample.grad_u.shape + (6,))
+    J = array_module(sample.grad_u).empty(sample.grad_u.shape + (6,))
     a = np.multiply(sample.grad_u, K[0, 0] * iz, out=J[..., 0])  # (N, 3): dI/dX'
     b = np.multiply(sample.grad_v, K[1, 1] * iz, out=J[..., 1])  # dI/dY'
     c = np.multiply(-iz, a * X + b * Y, out=J[..., 2])  # dI/dZ'
@@ -46,7 +48,7 @@ def refine_pose(problem: LevelProblem, est: Estimate, i: int, points_ref: np.nda
     model, light, albedo = problem.light_model(est), est.lights[i], est.albedo
 
     def energy_of(sample: FrameSample, pose: np.ndarray) -> float:
-        return problem.frame_data_energy(sample, albedo, model.basis(normals, points_ref, pose) @ light)
+        return problem.frame_data_energy(sample, albedo, model.basis(normals, points_ref, pose) @ like(light, points_ref))
 
     pose = est.poses[i]
     sample = problem.sample(i, pose, points_ref)
@@ -56,7 +58,7 @@ def refine_pose(problem: LevelProblem, est: Estimate, i: int, points_ref: np.nda
         if use.sum() < 12:
             break
         points = points_ref[use]
-        shading = model.basis(normals[use], points, pose) @ light
+        shading = model.basis(normals[use], points, pose) @ like(light, points)
         r = sample.color[use] - albedo[use] * shading[:, None]
         w = cauchy_weights(r, problem.lam)
         J = pose_jacobian(problem.sample_gradients(i, sample, use), K)
@@ -65,8 +67,8 @@ def refine_pose(problem: LevelProblem, est: Estimate, i: int, points_ref: np.nda
             J -= albedo[use][:, :, None] * dshading[:, None, :]
         J = J.reshape(-1, 6)
         wJ = J * w.reshape(-1, 1)
-        H = wJ.T @ J
-        g = wJ.T @ r.reshape(-1)
+        H = to_host(wJ.T @ J)
+        g = to_host(wJ.T @ r.reshape(-1))
         step = ridge_solve(H, -g)
         if step is None:
             break

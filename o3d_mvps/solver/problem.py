@@ -11,11 +11,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..model.arrays import array_module, like
 from ..model.camera import backproject
 from ..model.normals import unnormalised_normals
 from ..model.robust import cauchy_energy
 from ..model.warping import in_view, sample_bilinear, sample_image_gradients, visible, warp
-from .kernels import shading_residuals
+from .device import kernels_for, to_host
+from .krylov import pixel_prolongations
 from .lighting import SHLight
 from .pyramid import Level
 
@@ -79,7 +81,11 @@ class Evaluation:
 
 
 class LevelProblem:
-    """Evaluates the level energy; holds the per-level visibility, tau and mu (the smoothness weight)."""
+    """Evaluates the level energy; holds the per-level visibility, tau and mu (the smoothness weight).
+
+    The level's arrays may live on a GPU (:meth:`.pyramid.Level.on_device`): the per-pixel
+    arrays of the estimates and evaluations then live there too.
+    """
 
     def __init__(self, level: Level, tau: float, cauchy_lambda: float, light=None, smoothness: float = 0.0):
         self.level = level
@@ -88,7 +94,17 @@ class LevelProblem:
         self.mu = float(smoothness)
         self.lam = float(cauchy_lambda)
         self.n_frames = len(level.images)
-        self.visibility = np.ones((self.n_frames, level.grid.size), dtype=bool)
+        self._prolongations = None
+        self.visibility = like(np.ones((self.n_frames, level.grid.size), dtype=bool), level.grid.u)
+
+    def pixel_prolongations(self) -> list:
+        """The level's pixel aggregation for the GPU path's multigrid (:func:`.krylov.pixel_prolongations`),
+        built at the first call: aggregates of pixels 2 apart, or neighbours under a light fixed
+        in the world (whose large smoothness weight suits them: the measured best of each)."""
+        if self._prolongations is None:
+            g = self.level.grid
+            self._prolongations = pixel_prolongations(g.u, g.v, stride=1 if self.light.fixed_in_world else 2)
+        return self._prolongations
 
     # geometry ----------------------------------------------------------------------------
     def points(self, z: np.ndarray) -> np.ndarray:
@@ -130,11 +146,11 @@ class LevelProblem:
     def update_visibility(self, est: Estimate, *, occlusion_test: bool, rel_tol: float, sensor_depths=None,
                           depth_K=None) -> None:
         """Recompute which reference pixels each frame sees (held fixed while a level runs)."""
-        P = self.points(est.z)
+        P = to_host(self.points(est.z))  # the z-buffer's scatter-min runs on the host
         for i in range(self.n_frames):
             points, u, v, Z = warp(P, est.poses[i], self.level.K)
             if i == 0 or not occlusion_test:
-                self.visibility[i] = in_view(u, v, Z, self.level.size) if i else True
+                self.visibility[i] = like(in_view(u, v, Z, self.level.size), self.visibility) if i else True
                 continue
             sensor = None if sensor_depths is None else sensor_depths[i]
             sensor_uv = None
@@ -142,8 +158,9 @@ class LevelProblem:
                 su = depth_K[0, 0] * points[:, 0] / Z + depth_K[0, 2]
                 sv = depth_K[1, 1] * points[:, 1] / Z + depth_K[1, 2]
                 sensor_uv = (su, sv)
-            self.visibility[i] = visible(u, v, Z, self.level.size, rel_tol=rel_tol, sensor_depth=sensor,
-                                         sensor_uv=sensor_uv, frame_mask=self.level.frame_masks[i])
+            self.visibility[i] = like(visible(u, v, Z, self.level.size, rel_tol=rel_tol, sensor_depth=sensor,
+                                              sensor_uv=sensor_uv, frame_mask=self.level.frame_masks[i]),
+                                      self.visibility)
 
     # energy ------------------------------------------------------------------------------
     def prior_energy(self, z: np.ndarray) -> float:
@@ -161,14 +178,15 @@ class LevelProblem:
     def frame_data_energy(self, sample: FrameSample, albedo: np.ndarray, shading: np.ndarray) -> float:
         """Robust data energy of one frame for given shading (N,)."""
         r = sample.color - albedo * shading[:, None]
-        return cauchy_energy(r[sample.usable], self.lam)
+        return cauchy_energy(r[sample.usable], self.lam, kernels_for(r).log1p_square_sum)
 
     def evaluate(self, est: Estimate) -> Evaluation:
         """Residuals and energy of the estimate over all frames."""
         n, N = self.n_frames, self.level.grid.size
         P = self.points(est.z)
-        color = np.empty((n, N, 3), dtype=np.float32)  # exact: sampled from float32 images
-        usable = np.empty((n, N), dtype=bool)
+        xp = array_module(est.z)
+        color = xp.empty((n, N, 3), dtype=np.float32)  # exact: sampled from float32 images
+        usable = xp.empty((n, N), dtype=bool)
         for i in range(n):
             s = self.sample(i, est.poses[i], P)
             color[i], usable[i] = s.color, s.usable
@@ -185,10 +203,11 @@ class LevelProblem:
 
     def _evaluation(self, est, color, usable, normals, dA, basis, reuse: Evaluation | None = None) -> Evaluation:
         n, N = usable.shape
-        shading, residual = (np.empty((n, N)), np.empty((n, N, 3))) if reuse is None else (reuse.shading, reuse.residual)
-        shading_residuals(color, est.albedo, basis, np.ascontiguousarray(est.lights, dtype=np.float64), usable,
-                          shading, residual)
-        data = cauchy_energy(residual, self.lam)
+        xp, kernels = array_module(color), kernels_for(color)
+        shading, residual = (xp.empty((n, N)), xp.empty((n, N, 3))) if reuse is None else (reuse.shading, reuse.residual)
+        kernels.shading_residuals(color, est.albedo, basis, like(est.lights, color, dtype=np.float64), usable,
+                                  shading, residual)
+        data = cauchy_energy(residual, self.lam, kernels.log1p_square_sum)
         return Evaluation(residual, usable, color, shading, normals, dA, basis, data, self.prior_energy(est.z))
 
     def reevaluate(self, est: Estimate, ev: Evaluation, *, overwrite: bool = False) -> Evaluation:

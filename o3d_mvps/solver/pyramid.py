@@ -10,7 +10,7 @@ light each row weighted down where the sensor's surface is steep (:mod:`.smoothn
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 
 import cv2
@@ -68,6 +68,17 @@ class DepthPrior:
             hessian = hessian + 2.0 * mu * self.StS
             rhs = rhs - 2.0 * mu * (self.StS @ z)
         return hessian, rhs
+
+    def on_device(self, device) -> "DepthPrior":
+        """This prior with its arrays and operators on ``device`` (an
+        :class:`~.device.ArrayDevice`)."""
+        moved = DepthPrior(device.sparse_matrix(self.D), device.asarray(self.z0),
+                           *(None if a is None else device.asarray(a) for a in (self.lower, self.upper)),
+                           None if self.S is None else device.sparse_matrix(self.S))
+        moved.__dict__["DtD"] = device.sparse_matrix(self.DtD)
+        if self.S is not None:
+            moved.__dict__["StS"] = device.sparse_matrix(self.StS)
+        return moved
 
     def clip(self, z: np.ndarray) -> np.ndarray:
         """z (N,) clipped into the envelope."""
@@ -136,6 +147,15 @@ class Level:
     images: list
     frame_masks: list
     prior: DepthPrior
+
+    def on_device(self, device) -> "Level":
+        """This level with its grid, images and prior on ``device`` (an
+        :class:`~.device.ArrayDevice`; the host's is this level itself). Frame masks stay on the
+        host (the visibility test runs there)."""
+        if device.xp is np:
+            return self
+        return replace(self, grid=self.grid.on_device(device), images=[device.asarray(i) for i in self.images],
+                       prior=self.prior.on_device(device))
 
 
 def build_level(index: int, colors: list, masks: list, ref_mask: np.ndarray, K: np.ndarray, z0: np.ndarray,

@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .kernels import weighted_albedo_sums, weighted_lighting_sums
+from ..model.arrays import array_module
+from .device import kernels_for, to_host
 from .problem import Estimate, Evaluation
 
 
@@ -16,7 +17,7 @@ def update_albedo(est: Estimate, ev: Evaluation, lam: float) -> np.ndarray:
     """rho_c(p) = sum_i w I~ s / sum_i w s^2, per pixel and channel: (N, 3), w the Cauchy
     IRLS weights of the current residuals."""
     num, den = np.empty_like(est.albedo), np.empty_like(est.albedo)
-    weighted_albedo_sums(ev.residual, ev.usable, ev.color, ev.shading, 1.0 / lam, num, den)
+    kernels_for(num).weighted_albedo_sums(ev.residual, ev.usable, ev.color, ev.shading, 1.0 / lam, num, den)
     ok = den > 1e-8
     return np.where(ok, num / np.where(ok, den, 1.0), est.albedo)
 
@@ -25,12 +26,15 @@ def update_lighting(est: Estimate, ev: Evaluation, lam: float, light) -> np.ndar
     """The lights (n, k) minimising sum_{i,p,c} w (I~ - rho_c <l_i, B_i>)^2 under the light
     model ``light``'s constraint (:meth:`~.lighting.SHLight.fit`: per frame, or one light for
     all), B_i the light basis; frames with fewer than 8 usable pixels keep their light."""
-    wr2, wri = np.empty(ev.usable.shape), np.empty(ev.usable.shape)  # sum_c w rho^2, sum_c w rho I~: (n, N)
-    weighted_lighting_sums(ev.residual, ev.usable, ev.color, np.ascontiguousarray(est.albedo), 1.0 / lam, wr2, wri)
+    xp = array_module(ev.residual)
+    wr2, wri = xp.empty(ev.usable.shape), xp.empty(ev.usable.shape)  # sum_c w rho^2, sum_c w rho I~: (n, N)
+    kernels_for(wr2).weighted_lighting_sums(ev.residual, ev.usable, ev.color, xp.ascontiguousarray(est.albedo),
+                                            1.0 / lam, wr2, wri)
     n, k = est.lights.shape
     gram, rhs = np.zeros((n, k, k)), np.zeros((n, k))
+    counts = to_host(ev.usable.sum(axis=1))
     for i in range(n):
-        if ev.usable[i].sum() >= 8:
+        if counts[i] >= 8:
             m = ev.frame_basis(i)  # (N, k)
-            gram[i], rhs[i] = (m * wr2[i][:, None]).T @ m, m.T @ wri[i]
+            gram[i], rhs[i] = to_host((m * wr2[i][:, None]).T @ m), to_host(m.T @ wri[i])
     return light.fit(gram, rhs, est.lights)
