@@ -9,6 +9,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from .arrays import array_module
 from .camera import project, transform
 
 #: Channel counts OpenCV's remap interpolates in float (others use 1/32-pixel fixed point).
@@ -28,7 +29,7 @@ def sample_bilinear(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarr
     H, W = image.shape[:2]
     u = np.clip(u, 0.0, W - 1.0)
     v = np.clip(v, 0.0, H - 1.0)
-    if (isinstance(image, np.ndarray) and image.dtype == np.float32 and image.ndim == 3
+    if (array_module(image) is np and image.dtype == np.float32 and image.ndim == 3
             and image.shape[2] in _REMAP_CHANNELS and max(H, W) < 32767):
         return _remap(image, u, v)
     flat = image.reshape(H * W, -1)

@@ -97,7 +97,7 @@ def kernels_for(x) -> ModuleType:
 
 def to_host(a):
     """``a`` as a NumPy array (copied from the GPU; itself on the host); None stays None."""
-    return a if a is None or isinstance(a, np.ndarray) else a.get()
+    return a if a is None or array_module(a) is np else a.get()
 
 
 def check_device(device) -> str:
@@ -140,10 +140,13 @@ def check_device(device) -> str:
 
 
 def array_device(device) -> ArrayDevice:
-    """The :class:`ArrayDevice` of a device name (:func:`check_device`).
+    """The :class:`ArrayDevice` of a device name (:func:`check_device`), or ``device`` itself
+    when it is one.
 
     On CUDA, the GPU is made the current device of CuPy and of numba's CUDA target.
     """
+    if isinstance(device, ArrayDevice):
+        return device
     name = check_device(device)
     if name == "cpu":
         return CPU

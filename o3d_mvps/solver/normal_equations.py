@@ -292,7 +292,7 @@ class _AlbedoProjection:
 def _gram(A: np.ndarray) -> np.ndarray:
     """A A^T (k, k, host) of a wide C-ordered (k, R) array: on the host by BLAS's symmetric
     rank-k update (half a product), on the GPU by one product."""
-    if not isinstance(A, np.ndarray):
+    if array_module(A) is not np:
         return to_host(A @ A.T)
     upper = scipy.linalg.blas.dsyrk(1.0, A.T, trans=1)  # A.T is Fortran-ordered: no copy
     return np.triu(upper) + np.triu(upper, 1).T

@@ -1,0 +1,149 @@
+"""The solver's CUDA path against its CPU path on the same saved problems, in the same run.
+
+Two steps, for a GPU machine without Open3D (the problems travel as files):
+
+- ``python -m benchmarks.gpu make DIR`` (here, with Open3D): renders the bunny under the LED,
+  20 frames, at 640x480 / 160x120 and at the D415's 1280x720 / 640x360, and writes each solver
+  input as a saved problem (``DIR/gpu_WxH.npz``, true poses; 14 and 43 MB with the renders'
+  sensor noise, so a machine reached through 64 MB transfers takes one at a time).
+- ``python -m benchmarks.gpu run DIR [--out benchmarks/results]`` (on the GPU machine): solves
+  each on the CPU once and on ``cuda:0`` twice (the first run compiles the CUDA kernels) and
+  writes ``gpu.json``: rows {color, depth, frames, object_pixels, device (the GPU's name),
+  seconds (solve, after warm-up), seconds_first (with compilation), cpu_seconds (the CPU solve,
+  same machine, same run), peak_gpu_mb, max_depth_diff_mm, mae_diff_deg, energy_rel_diff (the
+  largest over every sweep's energy)}.
+
+``run --simulate`` runs the CUDA path in numba's CUDA simulator instead (``NUMBA_ENABLE_CUDASIM=1``:
+no GPU, times meaningless): the script's own test.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+#: (colour size (W, H), scale factor) of the cases: the speed benchmark's 640x480 and D415 sizes.
+CASES = (((640, 480), 4), ((1280, 720), 2))
+FRAMES = 20
+
+
+def make(folder, cases=CASES, frames: int = FRAMES, options: dict | None = None) -> list[Path]:
+    """Render each case and write its solver input (true poses) to ``folder``/gpu_WxH.npz."""
+    from o3d_mvps import RefineOptions
+    from o3d_mvps.solver.problem_input import write_problem
+    from o3d_mvps.solving import problem_from_capture
+    from o3d_mvps.synthetic import render_capture
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for (w, h), sf in cases:
+        capture = render_capture("bunny", frames=frames, scale_factor=sf, size=(w, h), seed=0, progress=False)
+        problem, _ = problem_from_capture(capture, RefineOptions(progress=False, **(options or {})),
+                                          capture.groundtruth.poses)
+        paths.append(write_problem(problem, folder / f"gpu_{w}x{h}.npz", overwrite=True))
+    return paths
+
+
+def _cuda_solver(simulate: bool):
+    """(solve on the CUDA path, the device's name, its peak memory in MB so far): on cuda:0, or
+    in numba's simulator (``simulate``; peak memory 0)."""
+    from o3d_mvps.solver.driver import solve
+
+    if simulate:
+        from o3d_mvps.solver.device import simulate_cuda
+
+        def solve_simulated(problem):
+            with simulate_cuda():
+                return solve(problem, device="cpu")
+
+        return solve_simulated, "numba CUDA simulator", lambda: 0.0
+    import cupy
+
+    pool = cupy.get_default_memory_pool()
+    name = cupy.cuda.runtime.getDeviceProperties(0)["name"]
+    # the pool frees nothing while a solve runs (blocks go back to it, not to CUDA): what it holds
+    # afterwards is the solve's high-water mark, plus the little numba allocates itself
+    return (lambda problem: solve(problem, device="cuda:0")), name.decode() if isinstance(name, bytes) else name, \
+        lambda: pool.total_bytes() / 2**20
+
+
+def compare(cpu, cuda) -> dict:
+    """max_depth_diff_mm, mae_diff_deg (normals of the two depths) and energy_rel_diff of two
+    solver outputs of one problem."""
+    from o3d_mvps.metrics import normal_mae_deg
+    from o3d_mvps.model.normals import perspective_normals
+
+    mask = cpu.mask
+    n_cpu, _ = perspective_normals(cpu.depth, cpu.K, mask)
+    n_cuda, _ = perspective_normals(cuda.depth, cuda.K, mask)
+    e_cpu = np.array([r["energy"] for r in cpu.energy])
+    e_cuda = np.array([r["energy"] for r in cuda.energy])
+    same_rows = len(e_cpu) == len(e_cuda)
+    return {"max_depth_diff_mm": 1e3 * float(np.abs(cuda.depth - cpu.depth)[mask].max()),
+            "mae_diff_deg": normal_mae_deg(n_cuda, n_cpu, mask),
+            "energy_rel_diff": float(np.abs(e_cuda / e_cpu - 1).max()) if same_rows else None,
+            "sweeps_cpu": len(e_cpu), "sweeps_cuda": len(e_cuda)}
+
+
+def run(folder, out="benchmarks/results", simulate: bool = False) -> list[dict]:
+    """Solve every saved problem of ``folder`` on the CPU and on the CUDA path; writes
+    ``out``/gpu.json after each and returns its rows."""
+    from o3d_mvps.solver.driver import solve
+    from o3d_mvps.solver.problem_input import read_problem
+
+    paths = sorted(Path(folder).glob("gpu_*.npz"))
+    if not paths:
+        raise SystemExit(f"no gpu_*.npz saved problems in {folder}: make them with python -m benchmarks.gpu make")
+    solve_cuda, device, peak_mb = _cuda_solver(simulate)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for path in paths:
+        problem = read_problem(path)
+        t = time.perf_counter()
+        cpu = solve(problem)
+        cpu_seconds = time.perf_counter() - t
+        t = time.perf_counter()
+        solve_cuda(problem)  # compiles the kernels (numba caches nothing for CUDA across processes)
+        seconds_first = time.perf_counter() - t
+        t = time.perf_counter()
+        cuda = solve_cuda(problem)
+        seconds = time.perf_counter() - t
+        (h, w), depth = problem.color_size, problem.depths[0].shape
+        rows.append({"color": f"{w}x{h}", "depth": f"{depth[1]}x{depth[0]}", "frames": problem.n_frames,
+                     "object_pixels": int(cpu.mask.sum()), "device": device, "seconds": seconds,
+                     "seconds_first": seconds_first, "cpu_seconds": cpu_seconds, "peak_gpu_mb": peak_mb(),
+                     **compare(cpu, cuda)})
+        (out / "gpu.json").write_text(json.dumps(rows, indent=1))
+        print(json.dumps(rows[-1]), flush=True)
+    return rows
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.gpu", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="command", required=True)
+    sub.add_parser("make", help="render the cases and write saved problems (needs Open3D)").add_argument("folder")
+    runner = sub.add_parser("run", help="solve the saved problems on the CPU and on cuda:0; write gpu.json")
+    runner.add_argument("folder")
+    runner.add_argument("--out", default="benchmarks/results")
+    runner.add_argument("--simulate", action="store_true",
+                        help="the CUDA path in numba's CUDA simulator (no GPU; times meaningless)")
+    args = parser.parse_args(argv)
+    if args.command == "make":
+        for path in make(args.folder):
+            print(f"wrote {path} ({os.path.getsize(path) / 2**20:.1f} MB)")
+    else:
+        run(args.folder, args.out, args.simulate)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
