@@ -46,10 +46,6 @@ class ArrayDevice:
         """``a`` (a NumPy array, or already one of this device's) as an array of this device."""
         return self.xp.asarray(a, dtype=dtype)
 
-    def to_host(self, a) -> np.ndarray:
-        """``a`` as a NumPy array (a copy from the GPU; itself on the host)."""
-        return to_host(a)
-
     def sparse_matrix(self, matrix):
         """A SciPy sparse matrix as a CSR matrix of this device."""
         return self.sparse.csr_matrix(matrix)

@@ -216,10 +216,10 @@ def coarse_to_fine(n_levels: int, solve_level: Callable[[int, "Carried | None"],
 def solve(problem_input: SolverInput, options: RefineOptions | None = None, device="cpu") -> SolverOutput:
     """Jointly estimate depth (colour resolution), albedo, lighting and poses of ``problem_input``.
 
-    options: None solves with ``problem_input.options``. device: "cpu" ("CPU:0") or "cuda[:N]"
-    (the per-pixel arrays on the GPU, with CuPy and numba's CUDA target); a CUDA device that
-    cannot run raises :class:`~o3d_mvps.errors.DeviceError` saying what is missing
-    (:func:`.device.check_device`).
+    options: None solves with ``problem_input.options``. device: "cpu" ("CPU:0"), "cuda[:N]"
+    (the per-pixel arrays on the GPU, with CuPy and numba's CUDA target) or an
+    :class:`~.device.ArrayDevice`; a CUDA device that cannot run raises
+    :class:`~o3d_mvps.errors.DeviceError` saying what is missing (:func:`.device.check_device`).
     """
     options = problem_input.options if options is None else options
     device = array_device(device)
