@@ -8,6 +8,8 @@ kernels in numba's CUDA simulator (tests/conftest.py turns it on where no GPU is
 of the path's Python runs as on a GPU, only CuPy itself is not exercised.
 """
 
+from pathlib import Path
+
 import cupy_emulation
 import numba
 import numpy as np
@@ -17,23 +19,14 @@ from o3d_mvps.metrics import normal_mae_deg
 from o3d_mvps.model.normals import perspective_normals
 from o3d_mvps.solver.device import ArrayDevice
 from o3d_mvps.solver.driver import solve
-from o3d_mvps.solver.options import RefineOptions
-from o3d_mvps.solving import problem_from_capture
-from o3d_mvps.synthetic import render_capture
+from o3d_mvps.solver.problem_input import read_problem
 
-#: Small captures (the simulator runs every CUDA thread in Python): the bunny at 64x48 colour
-#: (226 object pixels), SF 2, three frames, from the true poses. Under the LED two levels of one
-#: sweep, the poses and depth in the joint step; under room light one level of two sweeps, the
-#: paper's alternation (pose steps, then the depth step with the parallax) and the room model's
-#: light fit. The
-#: linear solves run to 1e-10: the paths' preconditioners differ (pyamg's AMG, the multigrid of
-#: o3d_mvps.solver.krylov), and at the default tolerances their CG iterates differ by up to the
-#: tolerance (1 % energies on a 32x24 relief). An isolated object: where the surface fills the
-#: frame, a pixel that lands on another frame's border within round-off is in view on one path
-#: and not on the other (one such pixel moved a 768-pixel relief's energy by 0.9 %).
-OPTIONS = dict(progress=False, joint_min_pixels=0, pose_min_pixels=0, cg_tolerance=1e-10, joint_cg_tolerance=1e-10)
-CASES = {"led, joint step": ("led", dict(levels=2, max_iterations=1)),
-         "room light, alternation": ("room", dict(levels=1, max_iterations=2, joint_pose_depth=False))}
+#: Saved problems (tests/data/make_cuda_path_problems.py says how they were made and why so):
+#: the bunny at 64x48, three frames; under the LED two levels, the joint step; under room light
+#: one level, the paper's alternation and the room model's light fit. Saved, so that the test
+#: runs where Open3D does not (a GPU machine).
+DATA = Path(__file__).parent / "data"
+CASES = ("led", "room")
 
 #: (energy rtol, depth m, normals MAE deg, poses, lighting rtol). On a GPU: the issue's (the
 #: GPU's fused multiply-adds and summation orders differ from the CPU's). On the stand-in the
@@ -52,12 +45,10 @@ def solve_on_cuda_path(problem_input, options):
     return solve(problem_input, options, "cuda:0")
 
 
-@pytest.fixture(scope="module", params=list(CASES))
+@pytest.fixture(scope="module", params=CASES)
 def solutions(request):
-    light, options = CASES[request.param]
-    capture = render_capture("bunny", frames=3, scale_factor=2, size=(64, 48), light=light, seed=1, progress=False)
-    problem_input, _ = problem_from_capture(capture, RefineOptions(**OPTIONS, **options), capture.groundtruth.poses)
-    assert problem_input.options.light_model == light
+    problem_input = read_problem(DATA / f"cuda_path_{request.param}.npz")
+    assert problem_input.options.light_model == request.param
     return solve(problem_input), solve_on_cuda_path(problem_input, problem_input.options)
 
 
