@@ -52,8 +52,8 @@ def make(folder, cases=CASES, frames: int = FRAMES, options: dict | None = None)
 
 
 def _cuda_solver(simulate: bool):
-    """(solve on the CUDA path, the device's name, its peak memory in MB so far): on cuda:0, or
-    in numba's simulator (``simulate``; peak memory 0)."""
+    """(solve on the CUDA path, the device's name, release the memory pool, the MB it holds): on
+    cuda:0, or in numba's simulator (``simulate``; no memory counted)."""
     from o3d_mvps.solver.driver import solve
 
     if simulate:
@@ -63,15 +63,13 @@ def _cuda_solver(simulate: bool):
             with simulate_cuda():
                 return solve(problem, device="cpu")
 
-        return solve_simulated, "numba CUDA simulator", lambda: 0.0
+        return solve_simulated, "numba CUDA simulator", lambda: None, lambda: 0.0
     import cupy
 
     pool = cupy.get_default_memory_pool()
     name = cupy.cuda.runtime.getDeviceProperties(0)["name"]
-    # the pool frees nothing while a solve runs (blocks go back to it, not to CUDA): what it holds
-    # afterwards is the solve's high-water mark, plus the little numba allocates itself
-    return (lambda problem: solve(problem, device="cuda:0")), name.decode() if isinstance(name, bytes) else name, \
-        lambda: pool.total_bytes() / 2**20
+    return ((lambda problem: solve(problem, device="cuda:0")), name.decode() if isinstance(name, bytes) else name,
+            pool.free_all_blocks, lambda: pool.total_bytes() / 2**20)
 
 
 def compare(cpu, cuda) -> dict:
@@ -101,7 +99,7 @@ def run(folder, out="benchmarks/results", simulate: bool = False) -> list[dict]:
     paths = sorted(Path(folder).glob("gpu_*.npz"))
     if not paths:
         raise SystemExit(f"no gpu_*.npz saved problems in {folder}: make them with python -m benchmarks.gpu make")
-    solve_cuda, device, peak_mb = _cuda_solver(simulate)
+    solve_cuda, device, release_memory, held_mb = _cuda_solver(simulate)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     rows = []
@@ -110,16 +108,20 @@ def run(folder, out="benchmarks/results", simulate: bool = False) -> list[dict]:
         t = time.perf_counter()
         cpu = solve(problem)
         cpu_seconds = time.perf_counter() - t
+        release_memory()
         t = time.perf_counter()
-        solve_cuda(problem)  # compiles the kernels (numba caches nothing for CUDA across processes)
+        solve_cuda(problem)  # compiles the CUDA kernels (they are not cached on disk)
         seconds_first = time.perf_counter() - t
+        # CuPy's pool gives nothing back during a solve (freed blocks return to the pool): what it
+        # holds after one from empty is the solve's high-water mark (numba's few partial sums aside)
+        peak_gpu_mb = held_mb()
         t = time.perf_counter()
         cuda = solve_cuda(problem)
         seconds = time.perf_counter() - t
         (h, w), depth = problem.color_size, problem.depths[0].shape
         rows.append({"color": f"{w}x{h}", "depth": f"{depth[1]}x{depth[0]}", "frames": problem.n_frames,
                      "object_pixels": int(cpu.mask.sum()), "device": device, "seconds": seconds,
-                     "seconds_first": seconds_first, "cpu_seconds": cpu_seconds, "peak_gpu_mb": peak_mb(),
+                     "seconds_first": seconds_first, "cpu_seconds": cpu_seconds, "peak_gpu_mb": peak_gpu_mb,
                      **compare(cpu, cuda)})
         (out / "gpu.json").write_text(json.dumps(rows, indent=1))
         print(json.dumps(rows[-1]), flush=True)
