@@ -22,7 +22,7 @@ NO_NVVM = 3
 #: the launchers of both kernel modules
 LAUNCHERS = ("chunk_count", "accumulate_frame", "project_twist_rows", "scatter_sparse_transpose_rows",
              "shading_residuals", "weighted_albedo_sums", "weighted_lighting_sums", "log1p_square_sum",
-             "led_irradiances_into")
+             "led_irradiances_into", "warp_sample")
 
 
 def _array(ndim: int, dtype=types.float64):
@@ -43,6 +43,8 @@ SIGNATURES = {
     "_weighted_lighting_sums": (_F3, _array(2, types.boolean), _COLOR, _F2, types.float64, _F2, _F2),
     "_led_irradiances_into": (_F2, _F2, _F2, _F2),
     "_log1p_square_partials": (_F1, types.float64, _F1),
+    "_warp_sample": (_F2, _F2, _F1, _F2, _COLOR, _array(1, types.boolean), _array(2, types.float32),
+                     _array(1, types.boolean)),
 }
 
 

@@ -166,3 +166,19 @@ def test_kernels_compile_to_ptx():
     assert done.returncode == 0, done.stdout + done.stderr
     compiled = {line.split()[0] for line in done.stdout.splitlines()}
     assert compiled == set(compile_cuda_kernels.SIGNATURES)
+
+
+def test_warp_sample_matches_cpu():
+    H, W = 30, 40
+    K = np.array([[50.0, 0.0, 19.5], [0.0, 50.0, 14.5], [0.0, 0.0, 1.0]])
+    points = RNG.normal(size=(N_PIXELS, 3)) * [0.3, 0.2, 0.3] + [0.0, 0.0, 0.6]
+    points[:10, 2] = -0.1
+    R = np.array([[0.999, -0.03, 0.02], [0.03, 0.999, -0.01], [-0.02, 0.01, 0.999]])
+    cpu, gpu = run_both("warp_sample", points, R, np.array([0.02, -0.01, 0.03]), K,
+                        RNG.random((H, W, 3)).astype(np.float32), RNG.random(N_PIXELS) > 0.1,
+                        np.zeros((N_PIXELS, 3), np.float32), np.zeros(N_PIXELS, bool))
+    np.testing.assert_array_equal(gpu[-1], cpu[-1])
+    assert 0 < cpu[-1].sum() < N_PIXELS
+    # float64 weights on float32 samples, stored in float32: to a float32 rounding (the simulator's
+    # NumPy scalars keep float32 where numba widens to float64)
+    np.testing.assert_allclose(gpu[-2], cpu[-2], rtol=0, atol=2e-7)

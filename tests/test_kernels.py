@@ -74,3 +74,29 @@ def test_led_irradiances_match_led_vectors():
     positions = RNG.normal(size=(5, 3)) * 0.05
     expected = np.stack([np.einsum("ij,ij->i", normals, led_vectors(points, s)) for s in positions])
     np.testing.assert_allclose(led_irradiances(normals, points, positions), expected, rtol=1e-12, atol=1e-12)
+
+
+def test_warp_sample_is_warp_in_view_and_bilinear_sampling():
+    """The fused kernel against its NumPy definition: the warped points' in-view test and
+    bilinear samples of a float32 image (NumPy's gathers, float64 weights), points in view,
+    behind the camera and outside the image among them: usable identical, colours to float32
+    round-off (1e-6 of values up to 1)."""
+    from o3d_mvps.model.se3 import exp
+    from o3d_mvps.model.warping import in_view, sample_bilinear, warp
+    from o3d_mvps.solver.kernels import warp_sample
+
+    H, W = 30, 40
+    K = np.array([[50.0, 0.0, 19.5], [0.0, 50.0, 14.5], [0.0, 0.0, 1.0]])
+    image = RNG.random((H, W, 3)).astype(np.float32)
+    points = RNG.normal(size=(N_PIXELS, 3)) * [0.3, 0.2, 0.3] + [0.0, 0.0, 0.6]
+    points[:20, 2] = -0.1  # behind the camera
+    pose = exp(np.array([0.02, -0.01, 0.03, 0.05, -0.04, 0.02]))
+    visible = RNG.random(N_PIXELS) > 0.1
+    color, usable = np.full((N_PIXELS, 3), np.nan, np.float32), np.zeros(N_PIXELS, bool)
+    warp_sample(points, pose[:3, :3].copy(), pose[:3, 3].copy(), K, image, visible, color, usable)
+    _, u, v, Z = warp(points, pose, K)
+    expected_usable = visible & in_view(u, v, Z, (H, W))
+    np.testing.assert_array_equal(usable, expected_usable)
+    assert 0.3 * N_PIXELS < usable.sum() < 0.95 * N_PIXELS  # both kinds of pixel are there
+    expected = sample_bilinear(image.astype(np.float64), np.nan_to_num(u), np.nan_to_num(v))
+    np.testing.assert_allclose(color[Z > 1e-6], expected[Z > 1e-6], rtol=0, atol=1e-6)

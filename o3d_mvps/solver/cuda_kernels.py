@@ -53,6 +53,7 @@ _weighted_albedo_pixel = _device(kernels.weighted_albedo_pixel)
 _weighted_lighting_pixel = _device(kernels.weighted_lighting_pixel)
 _log1p_square_term = _device(log1p_square_term)
 _led_irradiance = _device(led_irradiance)
+_warp_sample_pixel = _device(kernels.warp_sample_pixel)
 
 
 def _blocks(n_threads: int) -> int:
@@ -192,6 +193,18 @@ def led_irradiances_into(normals, points, positions, out) -> None:
     """:func:`o3d_mvps.model.shading.led_irradiances_into` on the GPU: out (m, N) = <n, v> of
     float64 normals, points (N, 3) under light positions (m, 3); one thread per light and point."""
     _led_irradiances_into[_blocks(out.size), THREADS_PER_BLOCK](normals, points, positions, out)
+
+
+@cuda.jit
+def _warp_sample(points_ref, R, t, K, image, visible, color, usable):  # pragma: no cover - device
+    p = cuda.grid(1)
+    if p < points_ref.shape[0]:
+        _warp_sample_pixel(points_ref, R, t, K, image, visible, color, usable, p)
+
+
+def warp_sample(points_ref, R, t, K, image, visible, color, usable) -> None:
+    """:func:`.kernels.warp_sample` on the GPU (one thread per pixel)."""
+    _warp_sample[_blocks(points_ref.shape[0]), THREADS_PER_BLOCK](points_ref, R, t, K, image, visible, color, usable)
 
 
 @cuda.jit

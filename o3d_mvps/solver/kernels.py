@@ -17,6 +17,8 @@ changes to the kernel's own source file, and the CPU kernels inline them.
 
 from __future__ import annotations
 
+import math
+
 import numba
 import numpy as np
 
@@ -290,3 +292,52 @@ def weighted_lighting_sums(residual, usable, color, albedo, inv_lam, wr2, wri): 
     for p in numba.prange(N):
         for i in range(n):
             weighted_lighting_pixel(residual, usable, color, albedo, inv_lam, wr2, wri, i, p)
+
+
+@numba.njit(inline="always")
+def warp_sample_pixel(points_ref, R, t, K, image, visible, color, usable, p):  # pragma: no cover - compiled
+    """:func:`warp_sample` on pixel p: the point's projection in the frame, whether the frame
+    sees it there, and the image's bilinear sample at it (at the clamped position; 0 where the
+    point is behind the camera)."""
+    x, y, z = points_ref[p, 0], points_ref[p, 1], points_ref[p, 2]
+    X = R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]
+    Y = R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]
+    Z = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]
+    H, W = image.shape[0], image.shape[1]
+    u = 0.0
+    v = 0.0
+    if Z != 0.0:
+        u = K[0, 0] * X / Z + K[0, 2]
+        v = K[1, 1] * Y / Z + K[1, 2]
+    if not (math.isfinite(u) and math.isfinite(v)):
+        u = 0.0
+        v = 0.0
+    usable[p] = visible[p] and Z > 1e-6 and u >= 0.0 and u <= W - 1.0 and v >= 0.0 and v <= H - 1.0
+    # clamped to the image, the border repeating (no min, max or int(): numba 0.68's own CUDA
+    # target needs a driver to type those, numba-cuda does not)
+    u = 0.0 if u < 0.0 else (W - 1.0 if u > W - 1.0 else u)
+    v = 0.0 if v < 0.0 else (H - 1.0 if v > H - 1.0 else v)
+    u0 = np.int64(u)
+    v0 = np.int64(v)
+    if u0 > W - 2:
+        u0 = W - 2
+    if v0 > H - 2:
+        v0 = H - 2
+    a = u - u0
+    b = v - v0
+    for c in range(3):
+        top = image[v0, u0, c] + a * (image[v0, u0 + 1, c] - image[v0, u0, c])
+        bottom = image[v0 + 1, u0, c] + a * (image[v0 + 1, u0 + 1, c] - image[v0 + 1, u0, c])
+        color[p, c] = top + b * (bottom - top)
+
+
+@numba.njit(parallel=True, cache=True)
+def warp_sample(points_ref, R, t, K, image, visible, color, usable):  # pragma: no cover - compiled
+    """Frame i's view of the reference points: per pixel p of points_ref (N, 3) metres, its
+    projection ``K (R P + t)`` (R (3, 3), t (3,): the frame's pose, K (3, 3)), ``usable[p]`` =
+    ``visible[p]`` (N,) bool and in front of the camera and inside the (H, W, 3) ``image``, and
+    ``color[p]`` (N, 3) its bilinear sample there (pixel centres at integers; the border
+    repeats): :func:`o3d_mvps.model.warping.warp`, ``in_view`` and ``sample_bilinear`` in one
+    pass. H, W >= 2."""
+    for p in numba.prange(points_ref.shape[0]):
+        warp_sample_pixel(points_ref, R, t, K, image, visible, color, usable, p)

@@ -181,15 +181,18 @@ class LevelProblem:
         return cauchy_energy(r[sample.usable], self.lam, kernels_for(r).log1p_square_sum)
 
     def evaluate(self, est: Estimate) -> Evaluation:
-        """Residuals and energy of the estimate over all frames."""
+        """Residuals and energy of the estimate over all frames (each frame warped and sampled in
+        one pass: :func:`.kernels.warp_sample`)."""
         n, N = self.n_frames, self.level.grid.size
         P = self.points(est.z)
-        xp = array_module(est.z)
-        color = xp.empty((n, N, 3), dtype=np.float32)  # exact: sampled from float32 images
+        xp, kernels = array_module(P), kernels_for(P)
+        K = like(self.level.K, P)
+        color = xp.empty((n, N, 3), dtype=np.float32)  # sampled from float32 images
         usable = xp.empty((n, N), dtype=bool)
         for i in range(n):
-            s = self.sample(i, est.poses[i], P)
-            color[i], usable[i] = s.color, s.usable
+            pose = est.poses[i]
+            kernels.warp_sample(P, like(pose[:3, :3], P), like(pose[:3, 3], P), K, self.level.images[i],
+                                self.visibility[i], color[i], usable[i])
         return self.evaluate_samples(est, color, usable, *self.normals(est.z))
 
     def evaluate_samples(self, est: Estimate, color: np.ndarray, usable: np.ndarray, normals: np.ndarray,
