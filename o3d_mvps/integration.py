@@ -20,6 +20,7 @@ from .errors import CaptureError
 from .model.camera import as_intrinsic_matrix
 from .model.resampling import resample_valid
 from .model.sensor import check_depth_unit, choose_scale_factor
+from .solver.device import check_device
 from .solver.options import RefineOptions
 from .solving import refine
 
@@ -34,6 +35,7 @@ def refine_rgbd(
     depth_scale: float = 1000.0,
     initial_poses=None,
     light: str = "led",
+    device="CPU:0",
 ) -> tuple[list, np.ndarray]:
     """Refine the first of a list of RGB-D frames: super-resolved depth at colour resolution.
 
@@ -85,6 +87,10 @@ def refine_rgbd(
     light : {"led", "room"}
         What lit the frames (a capture folder's ``capture.json`` "light"): the LED on the camera
         (default) or room light; picks the light model unless ``options.light_model`` is set.
+    device : str or o3d.core.Device
+        Where the solver runs: "CPU:0" (default) or "CUDA:0" (:func:`o3d_mvps.refine`'s), whatever
+        device the frames are on. The frames are read on the host either way (the image pyramid
+        is built there).
 
     Returns
     -------
@@ -113,10 +119,11 @@ def refine_rgbd(
     >>> vbg.integrate(coords, refined[0].depth, color, K, extrinsic, 1.0, 3.0)  # doctest: +SKIP
     """
     check_light(light)
+    check_device(device)
     capture = capture_from_rgbd(rgbd_images, intrinsic, scale_factor=scale_factor, masks=masks,
                                 depth_scale=depth_scale)
     capture.light = light
-    refinement = refine(capture, options, initial_poses=initial_poses)
+    refinement = refine(capture, options, device, initial_poses=initial_poses)
     reference = refinement.info["frames"][0]
     depth = np.ascontiguousarray(refinement.depth_array()[..., None], dtype=np.float32)
     color = rgbd_images[reference].color

@@ -33,7 +33,7 @@ def refine(capture: Capture, options: RefineOptions | None = None, device="CPU:0
     capture: frame 0 is the reference; ``initial_poses`` (n, 4, 4) reference -> frame i, an array
     or an o3d.core.Tensor on any device (default: the registration chain of
     :func:`o3d_mvps.odometry.register_frames`, which drops a frame it cannot place, with a warning,
-    unless ``options.strict_registration``). device: "CPU:0" (see
+    unless ``options.strict_registration``). device: "CPU:0" or "CUDA:0" (see
     :func:`o3d_mvps.solver.device.check_device`). save_problem: also write the solver's input to
     this .npz once the frames are registered (``python -m o3d_mvps.solver`` solves it; refuses an
     existing file unless ``overwrite``). Of more than three frames, those that see too little of

@@ -129,4 +129,6 @@ def test_errors(capture):
         refine_rgbd(good, K, masks=[None])
     with pytest.raises(CaptureError, match=r"light must be one of 'led', 'room'.*got 'flash'"):
         refine_rgbd(good, K, light="flash")
+    with pytest.raises(ValueError, match="device 'GPU' is not a device name"):
+        refine_rgbd(good, K, device="GPU")
     assert o3d_mvps.refine_rgbd is refine_rgbd
