@@ -47,7 +47,7 @@ class JointSystem:
     frames: list
 
     def schur_operator(self):
-        """(S, rhs): ``S = M - U H^-1 U^T`` as an operator (SciPy's, or CuPy's on the GPU) and
+        """(S, rhs): ``S = M - U H^-1 U^T`` as an operator (:func:`~o3d_mvps.model.arrays.linear_operator`) and
         its right-hand side ``b_z - U H^-1 b_xi``. S is applied as M x - U (H^-1 (U^T x)): two
         passes over U per product, where forming U H^-1 (N, 6m) once cost as much as twenty
         products. The small solve with H (6m, 6m) runs on the host (on the GPU path, 6m numbers
