@@ -13,8 +13,8 @@ Two steps, for a GPU machine without Open3D (the problems travel as files):
   same machine, same run), peak_gpu_mb, max_depth_diff_mm, mae_diff_deg, energy_rel_diff (the
   largest over every sweep's energy)}.
 
-``run --simulate`` runs the CUDA path in numba's CUDA simulator instead (``NUMBA_ENABLE_CUDASIM=1``:
-no GPU, times meaningless): the script's own test.
+``run(..., device=ArrayDevice)`` takes another array device instead of cuda:0 (its test: the CuPy
+stand-in of tests/cupy_emulation.py; no memory counted, times meaningless).
 """
 
 from __future__ import annotations
@@ -51,25 +51,23 @@ def make(folder, cases=CASES, frames: int = FRAMES, options: dict | None = None)
     return paths
 
 
-def _cuda_solver(simulate: bool):
-    """(solve on the CUDA path, the device's name, release the memory pool, the MB it holds): on
-    cuda:0, or in numba's simulator (``simulate``; no memory counted)."""
+def _cuda_solver(device):
+    """(solve on ``device``, its name, release the memory pool, the MB it holds): for "cuda:0",
+    the GPU's name and CuPy's pool; for an ArrayDevice (a stand-in), its name and no memory."""
+    from o3d_mvps.solver.device import ArrayDevice
     from o3d_mvps.solver.driver import solve
 
-    if simulate:
-        from o3d_mvps.solver.device import simulate_cuda
+    def solve_on_device(problem):
+        return solve(problem, device=device)
 
-        def solve_simulated(problem):
-            with simulate_cuda():
-                return solve(problem, device="cpu")
-
-        return solve_simulated, "numba CUDA simulator", lambda: None, lambda: 0.0
+    if isinstance(device, ArrayDevice):
+        return solve_on_device, device.name, lambda: None, lambda: 0.0
     import cupy
 
     pool = cupy.get_default_memory_pool()
     name = cupy.cuda.runtime.getDeviceProperties(0)["name"]
-    return ((lambda problem: solve(problem, device="cuda:0")), name.decode() if isinstance(name, bytes) else name,
-            pool.free_all_blocks, lambda: pool.total_bytes() / 2**20)
+    return (solve_on_device, name.decode() if isinstance(name, bytes) else name, pool.free_all_blocks,
+            lambda: pool.total_bytes() / 2**20)
 
 
 def compare(cpu, cuda) -> dict:
@@ -90,16 +88,16 @@ def compare(cpu, cuda) -> dict:
             "sweeps_cpu": len(e_cpu), "sweeps_cuda": len(e_cuda)}
 
 
-def run(folder, out="benchmarks/results", simulate: bool = False) -> list[dict]:
-    """Solve every saved problem of ``folder`` on the CPU and on the CUDA path; writes
-    ``out``/gpu.json after each and returns its rows."""
+def run(folder, out="benchmarks/results", device="cuda:0") -> list[dict]:
+    """Solve every saved problem of ``folder`` on the CPU and on ``device`` (the CUDA path);
+    writes ``out``/gpu.json after each and returns its rows."""
     from o3d_mvps.solver.driver import solve
     from o3d_mvps.solver.problem_input import read_problem
 
     paths = sorted(Path(folder).glob("gpu_*.npz"))
     if not paths:
         raise SystemExit(f"no gpu_*.npz saved problems in {folder}: make them with python -m benchmarks.gpu make")
-    solve_cuda, device, release_memory, held_mb = _cuda_solver(simulate)
+    solve_cuda, device_name, release_memory, held_mb = _cuda_solver(device)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     rows = []
@@ -120,7 +118,7 @@ def run(folder, out="benchmarks/results", simulate: bool = False) -> list[dict]:
         seconds = time.perf_counter() - t
         (h, w), depth = problem.color_size, problem.depths[0].shape
         rows.append({"color": f"{w}x{h}", "depth": f"{depth[1]}x{depth[0]}", "frames": problem.n_frames,
-                     "object_pixels": int(cpu.mask.sum()), "device": device, "seconds": seconds,
+                     "object_pixels": int(cpu.mask.sum()), "device": device_name, "seconds": seconds,
                      "seconds_first": seconds_first, "cpu_seconds": cpu_seconds, "peak_gpu_mb": peak_gpu_mb,
                      **compare(cpu, cuda)})
         (out / "gpu.json").write_text(json.dumps(rows, indent=1))
@@ -136,14 +134,12 @@ def main(argv=None) -> int:
     runner = sub.add_parser("run", help="solve the saved problems on the CPU and on cuda:0; write gpu.json")
     runner.add_argument("folder")
     runner.add_argument("--out", default="benchmarks/results")
-    runner.add_argument("--simulate", action="store_true",
-                        help="the CUDA path in numba's CUDA simulator (no GPU; times meaningless)")
     args = parser.parse_args(argv)
     if args.command == "make":
         for path in make(args.folder):
             print(f"wrote {path} ({os.path.getsize(path) / 2**20:.1f} MB)")
     else:
-        run(args.folder, args.out, args.simulate)
+        run(args.folder, args.out)
     return 0
 
 

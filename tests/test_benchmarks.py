@@ -71,18 +71,26 @@ def test_peak_rss_counts_this_process_only():
 
 
 def test_gpu_benchmark_compares_the_cuda_path_with_the_cpu_path(tmp_path):
-    """benchmarks.gpu on a tiny problem, its CUDA path on the GPU or, where none is listed, in
-    numba's simulator (tests/conftest.py): the row's fields, and the two paths agreeing to the
-    GPU issue's tolerances (the paths' CG preconditioners differ; both stop at 1e-4)."""
+    """benchmarks.gpu on a tiny problem, its CUDA path on the GPU or, where none is listed (numba's
+    CUDA simulator on: tests/conftest.py), on the CuPy stand-in of tests/cupy_emulation.py: the
+    row's fields, and the two paths agreeing to the GPU issue's tolerances (the paths' CG
+    preconditioners differ; both stop at 1e-4)."""
+    import cupy_emulation
     import numba
 
     from benchmarks import gpu
+    from o3d_mvps.solver.device import ArrayDevice
 
-    simulate = numba.config.ENABLE_CUDASIM
     gpu.make(tmp_path, cases=(((64, 48), 2),), frames=3, options={"levels": 1, "max_iterations": 1})
-    (row,) = gpu.run(tmp_path, tmp_path / "results", simulate=simulate)
+    if numba.config.ENABLE_CUDASIM:
+        with cupy_emulation.installed():
+            (row,) = gpu.run(tmp_path, tmp_path / "results",
+                             ArrayDevice("cuda-emulated", cupy_emulation, cupy_emulation.sparse))
+        assert row["device"] == "cuda-emulated" and row["peak_gpu_mb"] == 0.0
+    else:
+        (row,) = gpu.run(tmp_path, tmp_path / "results")
+        assert row["peak_gpu_mb"] > 0
     assert json.loads((tmp_path / "results" / "gpu.json").read_text()) == [row]
     assert (row["color"], row["depth"], row["frames"]) == ("64x48", "32x24", 3)
-    assert (row["device"] == "numba CUDA simulator") == simulate
     assert row["object_pixels"] > 200 and row["sweeps_cpu"] == row["sweeps_cuda"] == 2
     assert row["max_depth_diff_mm"] < 0.1 and row["mae_diff_deg"] < 0.1 and row["energy_rel_diff"] < 1e-3

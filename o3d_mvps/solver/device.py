@@ -15,7 +15,6 @@ stay NumPy arrays on the host.
 from __future__ import annotations
 
 import re
-from contextlib import contextmanager
 from dataclasses import dataclass
 from types import ModuleType
 
@@ -53,30 +52,10 @@ class ArrayDevice:
 
 CPU = ArrayDevice("cpu", np, scipy.sparse)
 
-_simulating = False
-
-
-@contextmanager
-def simulate_cuda():
-    """Within: NumPy arrays take the CUDA path's code (the CUDA kernels, run by numba's
-    simulator, and the GPU's linear solver), so that it is tested on a machine without a GPU.
-    numba's simulator must be on (``NUMBA_ENABLE_CUDASIM=1`` before numba is imported)."""
-    import numba
-
-    global _simulating
-    if not numba.config.ENABLE_CUDASIM:
-        raise DeviceError("simulate_cuda needs numba's CUDA simulator: set NUMBA_ENABLE_CUDASIM=1 before numba is "
-                          "imported")
-    previous, _simulating = _simulating, True
-    try:
-        yield
-    finally:
-        _simulating = previous
-
-
 def on_gpu(x) -> bool:
-    """Whether arrays like ``x`` take the CUDA path: CuPy arrays (or any, within :func:`simulate_cuda`)."""
-    return _simulating or array_module(x) is not np
+    """Whether arrays like ``x`` take the CUDA path: CuPy arrays (or a stand-in's: its module's
+    name starts with "cupy", see :func:`o3d_mvps.model.arrays.array_module`)."""
+    return array_module(x) is not np
 
 
 def kernels_for(x) -> ModuleType:
