@@ -22,7 +22,7 @@ NO_NVVM = 3
 #: the launchers of both kernel modules
 LAUNCHERS = ("chunk_count", "accumulate_frame", "project_twist_rows", "scatter_sparse_transpose_rows",
              "shading_residuals", "weighted_albedo_sums", "weighted_lighting_sums", "log1p_square_sum",
-             "led_irradiances_into", "warp_sample")
+             "led_irradiances_into", "warp_sample", "warp_gradients")
 
 
 def _array(ndim: int, dtype=types.float64):
@@ -34,8 +34,9 @@ _COLOR = _array(3, types.float32)
 
 #: kernel name in cuda_kernels -> argument types
 SIGNATURES = {
-    "_accumulate_frame": (_F2, _F2, _F2, _F2, _F1, _F1, _F1, _F2, _array(1, types.boolean), _F2, _F2, _F2, _F2, _F2,
-                          _F2, _F2, types.boolean, types.boolean, _F2, _F3, _F4, _F4, types.int64, _F3, _F2),
+    "_accumulate_frame": (_F2, _F1, _array(1, types.boolean), types.float64, _F2, _F1, _F1, _F1, _F2, _F2, _F2, _F1,
+                          _F2, _COLOR, _F2, _F2, types.boolean, types.boolean, _F2, _F3, _F4, _F4, types.int64, _F3,
+                          _F2),
     "_project_twist_rows": (_F4, _F4, _F3, _F2),
     "_scatter_sparse_transpose_rows": (_array(1, types.int32), _array(1, types.int32), _F1, _F2, _F2),
     "_shading_residuals": (_COLOR, _F2, _F3, _F2, _array(2, types.boolean), _F2, _F3),
@@ -45,6 +46,7 @@ SIGNATURES = {
     "_log1p_square_partials": (_F1, types.float64, _F1),
     "_warp_sample": (_F2, _F2, _F1, _F2, _COLOR, _array(1, types.boolean), _array(2, types.float32),
                      _array(1, types.boolean)),
+    "_warp_gradients": (_F2, _F2, _F1, _F2, _COLOR, _F2, _F2, _F2),
 }
 
 

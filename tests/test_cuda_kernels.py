@@ -57,15 +57,14 @@ def test_accumulate_frame_matches_cpu(case):
     rows, F = f(3, m, 6, N), f(m, 6, N, 3) if project else np.zeros((0, 6, 1, 3))
     gram_cpu, rhs_cpu = np.zeros((kernels.chunk_count(N), 6, 6)), np.zeros((kernels.chunk_count(N), 6))
     gram_gpu, rhs_gpu = np.zeros((cuda_kernels.chunk_count(N), 6, 6)), np.zeros((cuda_kernels.chunk_count(N), 6))
+    R = np.array([[0.999, -0.03, 0.02], [0.03, 0.999, -0.01], [-0.02, 0.01, 0.999]])
+    image = RNG.random((120, 160, 3)).astype(np.float32)  # as the solver's frames
     for _ in range(N_FRAMES):  # the frames add to one set of sums
         use = RNG.random(N) > 0.2
-        frame = [f(N, 3), f(N, 3) - 0.5, f(N, 3), f(N, 3) if project else none3, f(N) - 0.5, f(N) - 0.5, f(N),
-                 f(N, 3) - 0.5 if extra else none3, use]
-        if with_jacobian:
-            frame += [f(N, 3) - 0.5, f(N, 3) - 0.5, f(N, 3) + [0.0, 0.0, 1.0], f(N, 3), f(N, 6) if led else none6]
-        else:
-            frame += [none3, none3, none3, none3, none6]
-        frame += [f(N, 3), K, with_jacobian, parallax]
+        frame = [f(N, 3) - 0.5, f(N), use, 1.0 / LAM, f(N, 3), f(N) - 0.5, f(N) - 0.5, f(N),
+                 f(N, 3) - 0.5 if extra else none3, (f(N, 3) - 0.5) * [0.6, 0.4, 0.2] + [0.0, 0.0, 1.0], R,
+                 np.array([0.02, -0.01, 0.03]), K, image, f(N, 6) if led and with_jacobian else none6, f(N, 3),
+                 with_jacobian, parallax]
         # the same frame on the GPU from the same sums, so that each frame's output is compared
         sums_gpu, e_gpu, rows_gpu, F_gpu = (np.copy(a) for a in (sums, e, rows, F))
         kernels.accumulate_frame(*frame, sums, e, rows, F, slot, gram_cpu, rhs_cpu)
@@ -168,6 +167,18 @@ def test_kernels_compile_to_ptx():
     assert compiled == set(compile_cuda_kernels.SIGNATURES)
 
 
+def test_warp_gradients_match_cpu():
+    H, W = 30, 40
+    K = np.array([[50.0, 0.0, 19.5], [0.0, 50.0, 14.5], [0.0, 0.0, 1.0]])
+    points = RNG.normal(size=(N_PIXELS, 3)) * [0.3, 0.2, 0.3] + [0.0, 0.0, 0.6]
+    R = np.array([[0.999, -0.03, 0.02], [0.03, 0.999, -0.01], [-0.02, 0.01, 0.999]])
+    cpu, gpu = run_both("warp_gradients", points, R, np.array([0.02, -0.01, 0.03]), K,
+                        RNG.random((H, W, 3)).astype(np.float32), *(np.full((N_PIXELS, 3), np.nan) for _ in range(3)))
+    for result_gpu, result_cpu in zip(gpu[-3:], cpu[-3:]):  # frame points, gradients
+        assert_close(result_gpu, result_cpu)
+    assert np.abs(cpu[-1]).max() > 0.1
+
+
 def test_warp_sample_matches_cpu():
     H, W = 30, 40
     K = np.array([[50.0, 0.0, 19.5], [0.0, 50.0, 14.5], [0.0, 0.0, 1.0]])
@@ -179,6 +190,4 @@ def test_warp_sample_matches_cpu():
                         np.zeros((N_PIXELS, 3), np.float32), np.zeros(N_PIXELS, bool))
     np.testing.assert_array_equal(gpu[-1], cpu[-1])
     assert 0 < cpu[-1].sum() < N_PIXELS
-    # float64 weights on float32 samples, stored in float32: to a float32 rounding (the simulator's
-    # NumPy scalars keep float32 where numba widens to float64)
-    np.testing.assert_allclose(gpu[-2], cpu[-2], rtol=0, atol=2e-7)
+    np.testing.assert_array_equal(gpu[-2], cpu[-2])  # float64 interpolation, both rounded to float32

@@ -100,3 +100,32 @@ def test_warp_sample_is_warp_in_view_and_bilinear_sampling():
     assert 0.3 * N_PIXELS < usable.sum() < 0.95 * N_PIXELS  # both kinds of pixel are there
     expected = sample_bilinear(image.astype(np.float64), np.nan_to_num(u), np.nan_to_num(v))
     np.testing.assert_allclose(color[Z > 1e-6], expected[Z > 1e-6], rtol=0, atol=1e-6)
+
+
+def test_warp_gradients_are_warp_and_central_differences_of_the_bilinear_image():
+    """The assembly's per-pixel warp and colour gradients against their NumPy definition (warp,
+    then half the difference of the bilinear samples (NumPy's float64 gathers) one pixel either
+    side of the clamped position), points inside the image, near its border and outside it
+    (clamped) among them: points to round-off, gradients to 1e-12."""
+    from o3d_mvps.model.se3 import exp
+    from o3d_mvps.model.warping import in_view, sample_bilinear, warp
+    from o3d_mvps.solver.kernels import warp_gradients
+
+    H, W = 30, 40
+    K = np.array([[50.0, 0.0, 19.5], [0.0, 50.0, 14.5], [0.0, 0.0, 1.0]])
+    image = RNG.random((H, W, 3)).astype(np.float32)
+    points = RNG.normal(size=(N_PIXELS, 3)) * [0.3, 0.2, 0.3] + [0.0, 0.0, 0.6]
+    points = points[points[:, 2] > 0.05]
+    pose = exp(np.array([0.02, -0.01, 0.03, 0.05, -0.04, 0.02]))
+    frame_points, grad_u, grad_v = (np.full(points.shape, np.nan) for _ in range(3))
+    warp_gradients(points, pose[:3, :3].copy(), pose[:3, 3].copy(), K, image, frame_points, grad_u, grad_v)
+    expected_points, u, v, Z = warp(points, pose, K)
+    assert 0.3 < in_view(u, v, Z, (H, W)).mean() < 0.95  # inside and outside
+    np.testing.assert_allclose(frame_points, expected_points, rtol=1e-14, atol=1e-15)
+    u, v = np.clip(u, 0, W - 1), np.clip(v, 0, H - 1)
+    image64 = image.astype(np.float64)
+    expected_u = 0.5 * (sample_bilinear(image64, u + 1, v) - sample_bilinear(image64, u - 1, v))
+    expected_v = 0.5 * (sample_bilinear(image64, u, v + 1) - sample_bilinear(image64, u, v - 1))
+    np.testing.assert_allclose(grad_u, expected_u, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(grad_v, expected_v, rtol=0, atol=1e-12)
+    assert np.abs(grad_u).max() > 0.3 and np.abs(grad_v).max() > 0.3

@@ -13,7 +13,7 @@ from o3d_mvps.model.normals import (
 )
 from o3d_mvps.model.robust import cauchy, cauchy_weights
 from o3d_mvps.model.shading import sh_basis, shading
-from o3d_mvps.model.warping import sample_bilinear, sample_image_gradients, visible, warp
+from o3d_mvps.model.warping import sample_bilinear, visible, warp
 from o3d_mvps.solver.normal_equations import joint_system
 from o3d_mvps.solver.pose import pose_jacobian
 
@@ -115,9 +115,11 @@ def test_bilinear_sampling_is_exact_on_linear_images():
 
 
 def test_image_gradients_are_the_samples_of_central_difference_images(rng):
-    """Away from the border the sampled gradients are the bilinear samples of the image's
-    central-difference gradient images (interpolation commutes with whole-pixel shifts), to
-    rounding for a float64 image and to float32's for one sampled through cv2.remap."""
+    """Away from the border the sampled gradients (the solver's kernel) are the bilinear samples of
+    the image's central-difference gradient images (interpolation commutes with whole-pixel
+    shifts), to rounding for a float64 image and to float32's for a float32 one."""
+    from o3d_mvps.solver.kernels import warp_gradients
+
     H, W = SIZE
     u, v = pixel_grid(*SIZE)
     image = np.stack([np.sin(u / 5.0) * np.cos(v / 7.0), np.cos((u + 2 * v) / 9.0), 0.01 * u * v], -1)
@@ -125,13 +127,20 @@ def test_image_gradients_are_the_samples_of_central_difference_images(rng):
     grad_u[:, 1:-1] = 0.5 * (image[:, 2:] - image[:, :-2])
     grad_v[1:-1] = 0.5 * (image[2:] - image[:-2])
     su, sv = rng.uniform(1.0, W - 2.0, 500), rng.uniform(1.0, H - 2.0, 500)
-    gu, gv = sample_image_gradients(image, su, sv)
+    points = backproject(np.ones(500), K, su, sv)  # seen at (su, sv) by the reference camera
+
+    def gradients(image):
+        points_i, gu, gv = (np.empty((500, 3)) for _ in range(3))
+        warp_gradients(points, np.eye(3), np.zeros(3), K, image, points_i, gu, gv)
+        return gu, gv
+
+    gu, gv = gradients(image)
     np.testing.assert_allclose(gu, sample_bilinear(grad_u, su, sv), rtol=0, atol=1e-12)
     np.testing.assert_allclose(gv, sample_bilinear(grad_v, su, sv), rtol=0, atol=1e-12)
-    gu32, gv32 = sample_image_gradients(image.astype(np.float32), su, sv)
-    assert gu32.dtype == np.float64
-    np.testing.assert_allclose(gu32, gu, rtol=0, atol=1e-3 * np.abs(gu).max())
-    np.testing.assert_allclose(gv32, gv, rtol=0, atol=1e-3 * np.abs(gv).max())
+    gu32, gv32 = gradients(image.astype(np.float32))
+    rounding = np.finfo(np.float32).eps * np.abs(image).max()  # of the image's values
+    np.testing.assert_allclose(gu32, gu, rtol=0, atol=rounding)
+    np.testing.assert_allclose(gv32, gv, rtol=0, atol=rounding)
 
 
 def test_warp_with_identity_and_occlusion_test():
@@ -166,10 +175,8 @@ def test_warp_with_identity_and_occlusion_test():
 def test_pose_jacobian_matches_finite_differences():
     problem, est = make_problem()
     P = problem.points(est.z)
-    s = problem.sample(1, est.poses[1], P)
-    s = problem.sample_gradients(1, s, np.ones(s.usable.shape, bool))
-    J = pose_jacobian(s, K)
-    keep = s.usable
+    keep = problem.sample(1, est.poses[1], P).usable
+    J = pose_jacobian(problem.warped_gradients(1, est.poses[1], P), K)
     h = 1e-6
     for k in range(6):
         d = np.zeros(6)

@@ -61,24 +61,6 @@ def _remap(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return out.reshape(rows * width, image.shape[2])[:n]
 
 
-def sample_image_gradients(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Gradients (d/du, d/dv) of an (H, W, C) image at real pixel coordinates u, v (N,), (N, C)
-    float64 each: central differences over one pixel of the bilinear interpolant.
-
-    Bilinear interpolation commutes with whole-pixel shifts, so these are the bilinear samples
-    of the image's central-difference gradient images, without computing and storing those
-    (two float32 copies of every frame): exactly so from one pixel inside the border on (the
-    border repeats, as in :func:`sample_bilinear`). The four samples go through one call.
-    """
-    H, W = image.shape[:2]
-    u = np.clip(u, 0.0, W - 1.0)
-    v = np.clip(v, 0.0, H - 1.0)
-    n = u.size
-    samples = sample_bilinear(image, np.concatenate([u + 1.0, u - 1.0, u, u]), np.concatenate([v, v, v + 1.0, v - 1.0]))
-    right, left, below, above = (samples[k * n:(k + 1) * n] for k in range(4))
-    return 0.5 * np.subtract(right, left, dtype=np.float64), 0.5 * np.subtract(below, above, dtype=np.float64)
-
-
 def warp(points_ref: np.ndarray, T: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Reference points (N, 3) seen by a camera with pose T (4x4, reference -> frame).
 

@@ -17,6 +17,8 @@ afterwards, never to one shared accumulator; float64 throughout, as on the CPU.
 
 from __future__ import annotations
 
+import types
+
 import numba
 import numpy as np
 from numba import cuda
@@ -40,9 +42,21 @@ TERMS_PER_THREAD = 16
 def _device(body):
     """A ``numba.njit`` per-pixel function of :mod:`.kernels` for the CUDA kernels: the function
     itself, which numba's CUDA target compiles for the device from its Python source where a
-    kernel calls it; under numba's CUDA simulator, which runs kernels as Python, its Python source
-    (a CPU function cannot take the simulator's arrays)."""
-    return body.py_func if cuda.config.ENABLE_CUDASIM else body
+    kernel calls it (with the njit functions it calls); under numba's CUDA simulator, which runs
+    kernels as Python, its Python source calling the Python source of those (a CPU function
+    cannot take the simulator's arrays)."""
+    return _python(body) if cuda.config.ENABLE_CUDASIM else body
+
+
+def _python(function):
+    """The Python function behind a ``numba.njit`` function, its calls to other njit functions
+    going to their Python functions too."""
+    py = function.py_func
+    calls = {name: _python(callee) for name in py.__code__.co_names
+             if isinstance(callee := py.__globals__.get(name), numba.core.registry.CPUDispatcher)}
+    if not calls:
+        return py
+    return types.FunctionType(py.__code__, {**py.__globals__, **calls}, py.__name__, py.__defaults__, py.__closure__)
 
 
 _accumulate_pixel = _device(kernels.accumulate_pixel)
@@ -54,6 +68,7 @@ _weighted_lighting_pixel = _device(kernels.weighted_lighting_pixel)
 _log1p_square_term = _device(log1p_square_term)
 _led_irradiance = _device(led_irradiance)
 _warp_sample_pixel = _device(kernels.warp_sample_pixel)
+_warp_gradients_pixel = _device(kernels.warp_gradients_pixel)
 
 
 def _blocks(n_threads: int) -> int:
@@ -68,11 +83,11 @@ def chunk_count(n_pixels: int) -> int:
 
 
 @cuda.jit
-def _accumulate_frame(w, r, q, ws, alpha, beta, gamma, extra_c, use, grad_u, grad_v, points, ray, dshading, albedo,
-                      K, with_jacobian, parallax, sums, e, rows, F, slot, gram, rhs):  # pragma: no cover - device
-    t = cuda.grid(1)
+def _accumulate_frame(r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, R, t, K, image, dshading,
+                      albedo, with_jacobian, parallax, sums, e, rows, F, slot, gram, rhs):  # pragma: no cover - device
+    t_ = cuda.grid(1)
     n_threads = rhs.shape[0]
-    if t >= n_threads:
+    if t_ >= n_threads:
         return
     J = cuda.local.array((3, 6), numba.float64)
     G = cuda.local.array((6, 6), numba.float64)
@@ -83,19 +98,18 @@ def _accumulate_frame(w, r, q, ws, alpha, beta, gamma, extra_c, use, grad_u, gra
         b[j] = 0.0
         for k in range(6):
             G[j, k] = 0.0
-    fx, fy = K[0, 0], K[1, 1]
-    for p in range(t, w.shape[0], n_threads):
-        _accumulate_pixel(p, w, r, q, ws, alpha, beta, gamma, extra_c, use, grad_u, grad_v, points, ray, dshading,
-                          albedo, fx, fy, with_jacobian, parallax, sums, e, rows, F, slot, J, G, b, wqJ, wcJ)
-    _store_partial_sums(G, b, gram, rhs, t)
+    for p in range(t_, r.shape[0], n_threads):
+        _accumulate_pixel(p, r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, R, t, K, image,
+                          dshading, albedo, with_jacobian, parallax, sums, e, rows, F, slot, J, G, b, wqJ, wcJ)
+    _store_partial_sums(G, b, gram, rhs, t_)
 
 
-def accumulate_frame(w, r, q, ws, alpha, beta, gamma, extra_c, use, grad_u, grad_v, points, ray, dshading, albedo,
-                     K, with_jacobian, parallax, sums, e, rows, F, slot, gram, rhs) -> None:
+def accumulate_frame(r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, R, t, K, image, dshading,
+                     albedo, with_jacobian, parallax, sums, e, rows, F, slot, gram, rhs) -> None:
     """:func:`.kernels.accumulate_frame` on the GPU, same arguments; gram (T, 6, 6) and rhs (T, 6)
     get one row per thread, T = :func:`chunk_count` (N)."""
     _accumulate_frame[_blocks(rhs.shape[0]), THREADS_PER_BLOCK](
-        w, r, q, ws, alpha, beta, gamma, extra_c, use, grad_u, grad_v, points, ray, dshading, albedo, K,
+        r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, R, t, K, image, dshading, albedo,
         with_jacobian, parallax, sums, e, rows, F, slot, gram, rhs)
 
 
@@ -154,15 +168,15 @@ def shading_residuals(color, albedo, basis, lights, usable, shading, residual) -
 
 
 @cuda.jit
-def _weighted_albedo_sums(residual, usable, color, shading, inv_lam, num, den):  # pragma: no cover - device
+def _weighted_albedo_sums(residual, usable, values, shading, inv_lam, num, den):  # pragma: no cover - device
     p = cuda.grid(1)
     if p < usable.shape[1]:
-        _weighted_albedo_pixel(residual, usable, color, shading, inv_lam, num, den, p)
+        _weighted_albedo_pixel(residual, usable, values, shading, inv_lam, num, den, p)
 
 
-def weighted_albedo_sums(residual, usable, color, shading, inv_lam, num, den) -> None:
+def weighted_albedo_sums(residual, usable, values, shading, inv_lam, num, den) -> None:
     """:func:`.kernels.weighted_albedo_sums` on the GPU (one thread per pixel)."""
-    _weighted_albedo_sums[_blocks(usable.shape[1]), THREADS_PER_BLOCK](residual, usable, color, shading, inv_lam,
+    _weighted_albedo_sums[_blocks(usable.shape[1]), THREADS_PER_BLOCK](residual, usable, values, shading, inv_lam,
                                                                        num, den)
 
 
@@ -205,6 +219,19 @@ def _warp_sample(points_ref, R, t, K, image, visible, color, usable):  # pragma:
 def warp_sample(points_ref, R, t, K, image, visible, color, usable) -> None:
     """:func:`.kernels.warp_sample` on the GPU (one thread per pixel)."""
     _warp_sample[_blocks(points_ref.shape[0]), THREADS_PER_BLOCK](points_ref, R, t, K, image, visible, color, usable)
+
+
+@cuda.jit
+def _warp_gradients(points_ref, R, t, K, image, points, grad_u, grad_v):  # pragma: no cover - device
+    p = cuda.grid(1)
+    if p < points_ref.shape[0]:
+        _warp_gradients_pixel(points_ref, R, t, K, image, points, grad_u, grad_v, p)
+
+
+def warp_gradients(points_ref, R, t, K, image, points, grad_u, grad_v) -> None:
+    """:func:`.kernels.warp_gradients` on the GPU (one thread per pixel)."""
+    _warp_gradients[_blocks(points_ref.shape[0]), THREADS_PER_BLOCK](points_ref, R, t, K, image, points, grad_u,
+                                                                     grad_v)
 
 
 @cuda.jit

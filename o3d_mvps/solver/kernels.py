@@ -41,16 +41,17 @@ def chunk_count(n_pixels: int) -> int:
 
 
 @numba.njit(inline="always")
-def accumulate_pixel(p, w, r, q, ws, alpha, beta, gamma, extra_c, use, grad_u, grad_v, points, ray, dshading, albedo,
-                     fx, fy, with_jacobian, parallax, sums, e, rows, F, slot, J, G, b, wqJ, wcJ):  # pragma: no cover
+def accumulate_pixel(p, r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, R, t, K, image,
+                     dshading, albedo, with_jacobian, parallax, sums, e, rows, F, slot, J, G, b, wqJ, wcJ):  # pragma: no cover
     """:func:`accumulate_frame`'s work on pixel p: its sums, e, rows and F entries, and its
-    twist Gram and right-hand side added to G (6, 6) and b (6,). fx, fy: K's focal lengths
-    (pixels). Scratch: J (3, 6), wqJ (6,), wcJ (6,)."""
+    twist Gram and right-hand side added to G (6, 6) and b (6,). Scratch: J (3, 6), wqJ (6,),
+    wcJ (6,)."""
     project = e.shape[0] > 0
     with_extra = extra_c.shape[0] > 0
     with_dshading = dshading.shape[0] > 0
     with_F = F.shape[0] > 0
     emit = with_jacobian and slot >= 0
+    fx, fy = K[0, 0], K[1, 1]
     al, be = alpha[p], beta[p]
     W = 0.0
     Wqc = 0.0
@@ -58,22 +59,31 @@ def accumulate_pixel(p, w, r, q, ws, alpha, beta, gamma, extra_c, use, grad_u, g
     Sgg = 0.0
     Bg = 0.0
     jac = with_jacobian and use[p]
-    X = Y = Z = iz = 0.0
+    X = Y = Z = iz = u = v = ray_x = ray_y = ray_z = 0.0
     if jac:
-        X, Y, Z = points[p, 0], points[p, 1], points[p, 2]
+        x, y, z = points_ref[p, 0], points_ref[p, 1], points_ref[p, 2]
+        X, Y, Z, u, v = project_point(R, t, K, x, y, z)
         iz = 1.0 / Z
+        rx, ry = x / z, y / z  # d(point)/d(z) = (rx, ry, 1) in the reference frame, R times that in frame i's
+        ray_x = R[0, 0] * rx + R[0, 1] * ry + R[0, 2]
+        ray_y = R[1, 0] * rx + R[1, 1] * ry + R[1, 2]
+        ray_z = R[2, 0] * rx + R[2, 1] * ry + R[2, 2]
         for j in range(6):
             wqJ[j] = 0.0
             wcJ[j] = 0.0
     for c in range(3):
-        wc_ = w[p, c]
+        wc_ = 0.0
+        if use[p]:
+            x_ = r[p, c] * inv_lam
+            wc_ = 1.0 / (1.0 + x_ * x_)  # the Cauchy IRLS weight
         qc = q[p, c]
         cc = -qc * gamma[p]
         if with_extra:
             cc += extra_c[p, c]
         if jac:
-            ja = grad_u[p, c] * fx * iz  # dI/dX'
-            jb = grad_v[p, c] * fy * iz  # dI/dY'
+            gu, gv = image_gradients_at(image, u, v, c)
+            ja = gu * fx * iz  # dI/dX'
+            jb = gv * fy * iz  # dI/dY'
             jc = -iz * (ja * X + jb * Y)  # dI/dZ'
             J[c, 0] = ja
             J[c, 1] = jb
@@ -85,18 +95,19 @@ def accumulate_pixel(p, w, r, q, ws, alpha, beta, gamma, extra_c, use, grad_u, g
                 for j in range(6):
                     J[c, j] -= albedo[p, c] * dshading[p, j]
             if parallax:
-                cc += J[c, 0] * ray[p, 0] + J[c, 1] * ray[p, 1] + J[c, 2] * ray[p, 2]
+                cc += J[c, 0] * ray_x + J[c, 1] * ray_y + J[c, 2] * ray_z
         wq = wc_ * qc
         W += wq * qc
         Wqc += wq * cc
         Wqr += wq * r[p, c]
         Sgg += wc_ * cc * cc
         Bg += wc_ * cc * r[p, c]
+        ws = wc_ * shading[p]
         if project:
-            wsq = ws[p, c] * qc
+            wsq = ws * qc
             e[0, p, c] -= wsq * al
             e[1, p, c] -= wsq * be
-            e[2, p, c] += ws[p, c] * cc
+            e[2, p, c] += ws * cc
         if emit:
             if jac:
                 for j in range(6):
@@ -108,7 +119,7 @@ def accumulate_pixel(p, w, r, q, ws, alpha, beta, gamma, extra_c, use, grad_u, g
                     for k in range(j, 6):
                         G[j, k] += wJj * J[c, k]
                     if with_F:
-                        F[slot, j, p, c] = ws[p, c] * Jj
+                        F[slot, j, p, c] = ws * Jj
             elif with_F:
                 for j in range(6):
                     F[slot, j, p, c] = 0.0
@@ -143,32 +154,34 @@ def store_partial_sums(G, b, gram, rhs, k):  # pragma: no cover - compiled
 
 
 @numba.njit(parallel=True, cache=True)
-def accumulate_frame(w, r, q, ws, alpha, beta, gamma, extra_c, use, grad_u, grad_v, points, ray, dshading, albedo,
-                     K, with_jacobian, parallax, sums, e, rows, F, slot, gram, rhs):  # pragma: no cover - compiled
+def accumulate_frame(r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, R, t, K, image, dshading,
+                     albedo, with_jacobian, parallax, sums, e, rows, F, slot, gram, rhs):  # pragma: no cover - compiled
     """Add frame i's depth rows to the per-pixel sums and, with its pose Jacobian, write its
-    twist rows.
+    twist rows: the whole per-pixel sweep of the Gauss-Newton assembly in one pass.
 
-    Per pixel p and channel c, with weight w (N, 3), residual r (N, 3), q = albedo / dA (N, 3)
-    and the frozen light field's row coefficients alpha, beta, gamma (N,): the residual's row in
-    dz is ``a Du + b Dv + c I`` with ``a = -q alpha``, ``b = -q beta``,
-    ``c = -q gamma + extra_c + g`` (g: the parallax d(residual)/dz through the warp, when
-    ``parallax``; extra_c (N, 3) or (0, 3) for none).
+    Per pixel p and channel c, with residual r (N, 3), the Cauchy IRLS weight
+    ``w = use / (1 + (r inv_lam)^2)`` (use (N,) bool), q = albedo / dA (N, 3) and the frozen
+    light field's row coefficients alpha, beta, gamma (N,): the residual's row in dz is
+    ``a Du + b Dv + c I`` with ``a = -q alpha``, ``b = -q beta``, ``c = -q gamma + extra_c + g``
+    (g: the parallax d(residual)/dz through the warp, when ``parallax``; extra_c (N, 3) or
+    (0, 3) for none).
 
     sums (9, N) += Saa, Sbb, Sgg, Sab, Sag, Sbg, Ba, Bb, Bg (w-weighted products of a, b, c and
-    r summed over channels); e (3, N, 3) (0-sized: no albedo projection) += ws a, ws b, ws c.
+    r summed over channels); e (3, N, 3) (0-sized: no albedo projection) += ws a, ws b, ws c
+    with ws = w shading (N,), the frame's shading.
 
-    with_jacobian: the pose Jacobian J (3, 6) per pixel from the warped colour gradients
-    grad_u, grad_v (N, 3), frame-i points (N, 3), intrinsics K (3, 3), minus albedo (N, 3) x
-    dshading (N, 6) (or (0, 6)), zero where ``use`` (N,) is False; ray (N, 3) is
-    d(frame-i point)/dz. Then, in slot ``slot`` of rows (3, m, 6, N): ``sum_c w q J`` times
-    -alpha and -beta, and ``sum_c w c J``; of F (m, 6, N, 3) (0-sized: none): ws J;
+    with_jacobian: the pose Jacobian J (3, 6) per usable pixel (zero elsewhere): the frame's
+    colour gradients at the reference points points_ref (N, 3) metres warped by the frame's pose
+    (R (3, 3), t (3,)) and projected by K (3, 3) into its (H, W, 3) image
+    (:func:`warp_gradients_pixel`'s), chained with the projection, minus albedo (N, 3) x
+    dshading (N, 6) (or (0, 6)). Then, in slot ``slot`` of rows (3, m, 6, N): ``sum_c w q J``
+    times -alpha and -beta, and ``sum_c w c J``; of F (m, 6, N, 3) (0-sized: none): ws J;
     and per pixel chunk: gram (chunks, 6, 6), the upper triangle of the frame's Gram sum w J^T J
     (lower triangle 0), and rhs (chunks, 6) = -sum w r J, chunks = :func:`chunk_count` (N).
     Twist-component-major arrays, so that each pixel's writes stream. slot -1: J only for the
     parallax, no twist rows.
     """
-    n = w.shape[0]
-    fx, fy = K[0, 0], K[1, 1]
+    n = r.shape[0]
     for chunk in numba.prange(rhs.shape[0]):
         J = np.zeros((3, 6))
         G = np.zeros((6, 6))
@@ -176,8 +189,8 @@ def accumulate_frame(w, r, q, ws, alpha, beta, gamma, extra_c, use, grad_u, grad
         wqJ = np.zeros(6)
         wcJ = np.zeros(6)
         for p in range(chunk * CHUNK, min(n, (chunk + 1) * CHUNK)):
-            accumulate_pixel(p, w, r, q, ws, alpha, beta, gamma, extra_c, use, grad_u, grad_v, points, ray, dshading,
-                             albedo, fx, fy, with_jacobian, parallax, sums, e, rows, F, slot, J, G, b, wqJ, wcJ)
+            accumulate_pixel(p, r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, R, t, K, image,
+                             dshading, albedo, with_jacobian, parallax, sums, e, rows, F, slot, J, G, b, wqJ, wcJ)
         store_partial_sums(G, b, gram, rhs, chunk)
 
 
@@ -245,7 +258,7 @@ def shading_residuals(color, albedo, basis, lights, usable, shading, residual): 
 
 
 @numba.njit(inline="always")
-def weighted_albedo_pixel(residual, usable, color, shading, inv_lam, num, den, p):  # pragma: no cover - compiled
+def weighted_albedo_pixel(residual, usable, values, shading, inv_lam, num, den, p):  # pragma: no cover - compiled
     """:func:`weighted_albedo_sums` on pixel p (all frames and channels)."""
     for c in range(3):
         a = 0.0
@@ -254,19 +267,20 @@ def weighted_albedo_pixel(residual, usable, color, shading, inv_lam, num, den, p
             if usable[i, p]:
                 x = residual[i, p, c] * inv_lam
                 ws = shading[i, p] / (1.0 + x * x)
-                a += ws * color[i, p, c]
+                a += ws * values[i, p, c]
                 b += ws * shading[i, p]
         num[p, c] = a
         den[p, c] = b
 
 
 @numba.njit(parallel=True, cache=True)
-def weighted_albedo_sums(residual, usable, color, shading, inv_lam, num, den):  # pragma: no cover - compiled
-    """num (N, 3) = sum_i w I s and den (N, 3) = sum_i w s^2 over the frames, with the Cauchy
-    IRLS weight w = usable / (1 + (r inv_lam)^2) of residual (n, N, 3); color (n, N, 3),
-    shading (n, N), usable (n, N) bool."""
+def weighted_albedo_sums(residual, usable, values, shading, inv_lam, num, den):  # pragma: no cover - compiled
+    """num (N, 3) = sum_i w s x and den (N, 3) = sum_i w s^2 over the frames, with the Cauchy
+    IRLS weight w = usable / (1 + (r inv_lam)^2) of residual (n, N, 3), shading s (n, N) and
+    values x (n, N, 3): the warped colours for the albedo's weighted least squares, the
+    residuals for its variable projection; usable (n, N) bool."""
     for p in numba.prange(usable.shape[1]):
-        weighted_albedo_pixel(residual, usable, color, shading, inv_lam, num, den, p)
+        weighted_albedo_pixel(residual, usable, values, shading, inv_lam, num, den, p)
 
 
 @numba.njit(inline="always")
@@ -295,15 +309,12 @@ def weighted_lighting_sums(residual, usable, color, albedo, inv_lam, wr2, wri): 
 
 
 @numba.njit(inline="always")
-def warp_sample_pixel(points_ref, R, t, K, image, visible, color, usable, p):  # pragma: no cover - compiled
-    """:func:`warp_sample` on pixel p: the point's projection in the frame, whether the frame
-    sees it there, and the image's bilinear sample at it (at the clamped position; 0 where the
-    point is behind the camera)."""
-    x, y, z = points_ref[p, 0], points_ref[p, 1], points_ref[p, 2]
+def project_point(R, t, K, x, y, z):  # pragma: no cover - compiled
+    """The reference point (x, y, z) in a frame with pose R (3, 3), t (3,) and its pixel there:
+    (X, Y, Z, u, v); u = v = 0 where the projection is not finite."""
     X = R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]
     Y = R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]
     Z = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]
-    H, W = image.shape[0], image.shape[1]
     u = 0.0
     v = 0.0
     if Z != 0.0:
@@ -312,9 +323,16 @@ def warp_sample_pixel(points_ref, R, t, K, image, visible, color, usable, p):  #
     if not (math.isfinite(u) and math.isfinite(v)):
         u = 0.0
         v = 0.0
-    usable[p] = visible[p] and Z > 1e-6 and u >= 0.0 and u <= W - 1.0 and v >= 0.0 and v <= H - 1.0
-    # clamped to the image, the border repeating (no min, max or int(): numba 0.68's own CUDA
-    # target needs a driver to type those, numba-cuda does not)
+    return X, Y, Z, u, v
+
+
+@numba.njit(inline="always")
+def bilinear_at(image, u, v, c):  # pragma: no cover - compiled
+    """Channel c of the (H, W, C) image's bilinear sample at pixel (u, v), clamped to the image
+    (the border repeats; pixel centres at integers), in float64. H, W >= 2."""
+    H, W = image.shape[0], image.shape[1]
+    # no min, max or int(): numba 0.68's own CUDA target needs a driver to type those,
+    # numba-cuda does not
     u = 0.0 if u < 0.0 else (W - 1.0 if u > W - 1.0 else u)
     v = 0.0 if v < 0.0 else (H - 1.0 if v > H - 1.0 else v)
     u0 = np.int64(u)
@@ -325,10 +343,38 @@ def warp_sample_pixel(points_ref, R, t, K, image, visible, color, usable, p):  #
         v0 = H - 2
     a = u - u0
     b = v - v0
+    i00, i01 = np.float64(image[v0, u0, c]), np.float64(image[v0, u0 + 1, c])  # float64 differences
+    i10, i11 = np.float64(image[v0 + 1, u0, c]), np.float64(image[v0 + 1, u0 + 1, c])
+    top = i00 + a * (i01 - i00)
+    bottom = i10 + a * (i11 - i10)
+    return top + b * (bottom - top)
+
+
+@numba.njit(inline="always")
+def image_gradients_at(image, u, v, c):  # pragma: no cover - compiled
+    """(d/du, d/dv) of channel c of the image at pixel (u, v) clamped to it: central differences
+    over one pixel of the bilinear interpolant (the border repeats, as in :func:`bilinear_at`).
+
+    Bilinear interpolation commutes with whole-pixel shifts, so these are the bilinear samples
+    of the image's central-difference gradient images, without computing and storing those
+    (two float32 copies of every frame): exactly so from one pixel inside the border on."""
+    H, W = image.shape[0], image.shape[1]
+    u = 0.0 if u < 0.0 else (W - 1.0 if u > W - 1.0 else u)
+    v = 0.0 if v < 0.0 else (H - 1.0 if v > H - 1.0 else v)
+    return (0.5 * (bilinear_at(image, u + 1.0, v, c) - bilinear_at(image, u - 1.0, v, c)),
+            0.5 * (bilinear_at(image, u, v + 1.0, c) - bilinear_at(image, u, v - 1.0, c)))
+
+
+@numba.njit(inline="always")
+def warp_sample_pixel(points_ref, R, t, K, image, visible, color, usable, p):  # pragma: no cover - compiled
+    """:func:`warp_sample` on pixel p: the point's projection in the frame, whether the frame
+    sees it there, and the image's bilinear sample at it (at the clamped position; 0 where the
+    point is behind the camera)."""
+    _, _, Z, u, v = project_point(R, t, K, points_ref[p, 0], points_ref[p, 1], points_ref[p, 2])
+    H, W = image.shape[0], image.shape[1]
+    usable[p] = visible[p] and Z > 1e-6 and u >= 0.0 and u <= W - 1.0 and v >= 0.0 and v <= H - 1.0
     for c in range(3):
-        top = image[v0, u0, c] + a * (image[v0, u0 + 1, c] - image[v0, u0, c])
-        bottom = image[v0 + 1, u0, c] + a * (image[v0 + 1, u0 + 1, c] - image[v0 + 1, u0, c])
-        color[p, c] = top + b * (bottom - top)
+        color[p, c] = bilinear_at(image, u, v, c)
 
 
 @numba.njit(parallel=True, cache=True)
@@ -341,3 +387,24 @@ def warp_sample(points_ref, R, t, K, image, visible, color, usable):  # pragma: 
     pass. H, W >= 2."""
     for p in numba.prange(points_ref.shape[0]):
         warp_sample_pixel(points_ref, R, t, K, image, visible, color, usable, p)
+
+
+@numba.njit(inline="always")
+def warp_gradients_pixel(points_ref, R, t, K, image, points, grad_u, grad_v, p):  # pragma: no cover - compiled
+    """:func:`warp_gradients` on pixel p."""
+    X, Y, Z, u, v = project_point(R, t, K, points_ref[p, 0], points_ref[p, 1], points_ref[p, 2])
+    points[p, 0] = X
+    points[p, 1] = Y
+    points[p, 2] = Z
+    for c in range(3):
+        grad_u[p, c], grad_v[p, c] = image_gradients_at(image, u, v, c)
+
+
+@numba.njit(parallel=True, cache=True)
+def warp_gradients(points_ref, R, t, K, image, points, grad_u, grad_v):  # pragma: no cover - compiled
+    """What a pose Jacobian reads of frame i at the reference points points_ref (N, 3) metres:
+    the frame-i points ``R P + t`` (N, 3) and the (H, W, 3) image's colour gradients grad_u,
+    grad_v (N, 3) at their projections (:func:`image_gradients_at`; where the projection is not
+    finite, at pixel (0, 0)). The same per-pixel function as :func:`accumulate_frame`'s."""
+    for p in numba.prange(points_ref.shape[0]):
+        warp_gradients_pixel(points_ref, R, t, K, image, points, grad_u, grad_v, p)

@@ -24,7 +24,6 @@ import scipy.linalg
 import scipy.sparse as sp
 
 from ..model.arrays import array_module, like, linear_operator, sparse_module
-from ..model.robust import cauchy_weights
 from .device import kernels_for, to_host
 from .pose import pose_jacobian
 from .problem import Estimate, Evaluation, LevelProblem
@@ -189,15 +188,12 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
     B = points_ref.shape[0]
     m = len(candidates)
     none3, none6, none_e = xp.zeros((0, 3)), xp.zeros((0, 6)), xp.zeros((0, 1, 3))  # the kernel's optional arrays
-    residual, usable, albedo = ev.residual[:, block], ev.usable[:, block], est.albedo[block]
+    residual, usable, albedo, shading = ev.residual[:, block], ev.usable[:, block], est.albedo[block], ev.shading[:, block]
     normals = ev.normals[block]
-    w = cauchy_weights(residual, problem.lam)
-    w *= usable[..., None]  # (n, B, 3)
     q = albedo / ev.dA[block, None]  # (B, 3)
-    ray = points_ref / points_ref[:, 2:3]  # d(point)/d(z), reference coordinates
     model = problem.light_model(est)
     block_sums = xp.zeros((9, B))
-    projection = _AlbedoProjection(w, ev.shading[:, block], residual) if project_albedo else None
+    projection = _AlbedoProjection(residual, usable, shading, problem.lam) if project_albedo else None
     slot = {i: k for k, i in enumerate(candidates)}
     # twist-component-major, so the transposed coupling rows (6m, B) and the projection's rows
     # (6m, 3B) are views
@@ -213,18 +209,13 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
                     if with_jacobian or (i == 0 and parallax) else None)
         extra_c = none3
         if i == 0 and parallax and dshading is not None:
-            extra_c = _reference_parallax(albedo, dshading, ray, use)
-        points_i = grad_u = grad_v = ray_i = none3
-        if with_jacobian:
-            sample = problem.warped_gradients(i, pose, points_ref)
-            points_i, grad_u, grad_v = sample.points, sample.grad_u, sample.grad_v
-            ray_i = ray @ like(pose[:3, :3].T, ray)  # d(frame-i point)/d(z)
+            extra_c = _reference_parallax(albedo, dshading, points_ref / points_ref[:, 2:3], use)
         k = slot.get(i, -1)
-        kernels.accumulate_frame(w[i], residual[i], q, none3 if projection is None else projection.ws[i],
-                                 alpha, beta, gamma, extra_c, use, grad_u, grad_v, points_i, ray_i,
-                                 none6 if dshading is None or not with_jacobian else dshading, albedo, K,
-                                 with_jacobian, parallax, block_sums, none_e if projection is None else projection.e,
-                                 rows, F, k, gram, rhs)
+        kernels.accumulate_frame(residual[i], shading[i], use, 1.0 / problem.lam, q, alpha, beta, gamma, extra_c,
+                                 points_ref, like(pose[:3, :3], points_ref), like(pose[:3, 3], points_ref), K,
+                                 problem.level.images[i], none6 if dshading is None or not with_jacobian else dshading,
+                                 albedo, with_jacobian, parallax, block_sums,
+                                 none_e if projection is None else projection.e, rows, F, k, gram, rhs)
         if k >= 0:
             grams[k] += to_host(gram.sum(axis=0))
             rhs_xi[6 * k:6 * k + 6] += to_host(rhs.sum(axis=0))
@@ -253,18 +244,20 @@ class _AlbedoProjection:
     and the frozen-dA error of the depth rows, ``s_i`` times a per-pixel factor, drops out
     (frozen dA is exact up to the albedo direction).
 
-    For one block of B pixels: weights w (n, B, 3), shading (n, B), residual (n, B, 3). ``e``
+    For one block of B pixels: residual (n, B, 3), usable (n, B), shading (n, B) and the Cauchy
+    loss's lam, whose IRLS weights are W. ``e``
     (3, B, 3) holds e per (pixel, channel) for the depth rows (a, b, c), accumulated by
     :func:`.kernels.accumulate_frame`; the twist rows' e are ``F`` (m, 6, B, 3), w s J of the
     m refined frames, written by the same kernel. Arrays (B, 3) unless stated.
     """
 
-    def __init__(self, w: np.ndarray, shading: np.ndarray, residual: np.ndarray):
-        self.ws = w * shading[..., None]  # (n, B, 3)
-        d = np.sum(self.ws * shading[..., None], axis=0)
+    def __init__(self, residual: np.ndarray, usable: np.ndarray, shading: np.ndarray, lam: float):
+        xp = array_module(residual)
+        B = residual.shape[1]
+        d, self.sWr = xp.empty((B, 3)), xp.empty((B, 3))  # s^T W s, s^T W r
+        kernels_for(residual).weighted_albedo_sums(residual, usable, residual, shading, 1.0 / lam, self.sWr, d)
         self.inv_d = np.where(d > 1e-12, 1.0 / np.where(d > 1e-12, d, 1.0), 0.0)
-        self.sWr = np.sum(self.ws * residual, axis=0)
-        self.e = array_module(d).zeros((3,) + d.shape)  # e for the a, b, c rows
+        self.e = xp.zeros((3, B, 3))  # e for the a, b, c rows
 
     def local(self) -> np.ndarray:
         """Downdates (6, B) of Saa, Sbb, Sgg, Sab, Sag, Sbg."""

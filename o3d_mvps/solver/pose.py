@@ -10,16 +10,16 @@ from ..model.robust import cauchy_weights
 from .device import to_host
 from .line_search import backtrack
 from .linear import ridge_solve
-from .problem import Estimate, Evaluation, FrameSample, LevelProblem
+from .problem import Estimate, Evaluation, FrameGradients, FrameSample, LevelProblem
 
 
-def pose_jacobian(sample: FrameSample, K: np.ndarray) -> np.ndarray:
+def pose_jacobian(gradients: FrameGradients, K: np.ndarray) -> np.ndarray:
     """d(warped colour)/d(xi) for a left update exp(xi) T: (N, 3, 6), xi = (v, w)."""
-    X, Y, Z = (c[:, None] for c in sample.points.T)  # (N, 1) each
+    X, Y, Z = (c[:, None] for c in gradients.points.T)  # (N, 1) each
     iz = 1.0 / Z
-    J = array_module(sample.grad_u).empty(sample.grad_u.shape + (6,))
-    a = np.multiply(sample.grad_u, K[0, 0] * iz, out=J[..., 0])  # (N, 3): dI/dX'
-    b = np.multiply(sample.grad_v, K[1, 1] * iz, out=J[..., 1])  # dI/dY'
+    J = array_module(gradients.grad_u).empty(gradients.grad_u.shape + (6,))
+    a = np.multiply(gradients.grad_u, K[0, 0] * iz, out=J[..., 0])  # (N, 3): dI/dX'
+    b = np.multiply(gradients.grad_v, K[1, 1] * iz, out=J[..., 1])  # dI/dY'
     c = np.multiply(-iz, a * X + b * Y, out=J[..., 2])  # dI/dZ'
     J[..., 3] = Y * c - Z * b  # rotation part: P' x (a, b, c)
     J[..., 4] = Z * a - X * c
@@ -61,7 +61,7 @@ def refine_pose(problem: LevelProblem, est: Estimate, i: int, points_ref: np.nda
         shading = model.basis(normals[use], points, pose) @ like(light, points)
         r = sample.color[use] - albedo[use] * shading[:, None]
         w = cauchy_weights(r, problem.lam)
-        J = pose_jacobian(problem.sample_gradients(i, sample, use), K)
+        J = pose_jacobian(problem.warped_gradients(i, pose, points), K)
         dshading = model.shading_jacobian(light, normals[use], points, pose)
         if dshading is not None:
             J -= albedo[use][:, :, None] * dshading[:, None, :]

@@ -15,7 +15,7 @@ from ..model.arrays import array_module, like
 from ..model.camera import backproject
 from ..model.normals import unnormalised_normals
 from ..model.robust import cauchy_energy
-from ..model.warping import in_view, sample_bilinear, sample_image_gradients, visible, warp
+from ..model.warping import in_view, visible, warp
 from .device import kernels_for, to_host
 from .krylov import pixel_prolongations
 from .lighting import SHLight
@@ -37,16 +37,20 @@ class Estimate:
 
 @dataclass
 class FrameSample:
-    """Frame i seen from the reference pixels: colour (N, 3) float32, frame-i points (N, 3), pixel
-    coordinates u, v (N,) and the usable mask (N,); gradients (N, 3) each when asked for."""
+    """Frame i seen from the reference pixels: colour (N, 3) float32 and the usable mask (N,)."""
 
     color: np.ndarray
-    points: np.ndarray
-    u: np.ndarray
-    v: np.ndarray
     usable: np.ndarray
-    grad_u: np.ndarray | None = None
-    grad_v: np.ndarray | None = None
+
+
+@dataclass
+class FrameGradients:
+    """What a pose Jacobian reads of frame i at the reference pixels: the frame-i points (N, 3)
+    metres and the frame's colour gradients grad_u, grad_v (N, 3) per pixel at their projections."""
+
+    points: np.ndarray
+    grad_u: np.ndarray
+    grad_v: np.ndarray
 
 
 @dataclass
@@ -119,29 +123,29 @@ class LevelProblem:
         return n_tilde / dA[:, None], dA
 
     def sample(self, i: int, pose: np.ndarray, points_ref: np.ndarray) -> FrameSample:
-        """Warp reference points into frame i under ``pose`` and sample its colour."""
-        points, u, v, Z = warp(points_ref, pose, self.level.K)
-        u, v = np.nan_to_num(u), np.nan_to_num(v)
-        usable = self.visibility[i] & in_view(u, v, Z, self.level.size)
-        color = sample_bilinear(self.level.images[i], u, v)  # float32, as the images
-        return FrameSample(color, points, u, v, usable)
+        """Frame i under ``pose`` seen from the reference points (N, 3): its colour and usable mask."""
+        xp = array_module(points_ref)
+        sample = FrameSample(xp.empty(points_ref.shape, dtype=np.float32), xp.empty(len(points_ref), dtype=bool))
+        self._warp_sample(i, pose, points_ref, sample.color, sample.usable)
+        return sample
 
-    def sample_gradients(self, i: int, sample: FrameSample, keep: np.ndarray | None = None) -> FrameSample:
-        """The ``keep`` subset (N,) bool of a sample (None: all of it), with frame i's colour
-        gradients added."""
-        if keep is not None:
-            sample = FrameSample(sample.color[keep], sample.points[keep], sample.u[keep], sample.v[keep],
-                                 sample.usable[keep])
-        gu, gv = sample_image_gradients(self.level.images[i], sample.u, sample.v)
-        return FrameSample(sample.color, sample.points, sample.u, sample.v, sample.usable, gu, gv)
+    def _warp_sample(self, i: int, pose: np.ndarray, points_ref: np.ndarray, color: np.ndarray,
+                     usable: np.ndarray) -> None:
+        """:meth:`sample` written into color (N, 3) float32 and usable (N,) bool
+        (:func:`.kernels.warp_sample`: warp, in-view test and bilinear samples in one pass)."""
+        kernels_for(points_ref).warp_sample(points_ref, like(pose[:3, :3], points_ref), like(pose[:3, 3], points_ref),
+                                            like(self.level.K, points_ref), self.level.images[i], self.visibility[i],
+                                            color, usable)
 
-    def warped_gradients(self, i: int, pose: np.ndarray, points_ref: np.ndarray) -> FrameSample:
-        """Frame i's colour gradients at the warped reference points (no colour, no usable mask:
-        what a Jacobian needs)."""
-        points, u, v, _ = warp(points_ref, pose, self.level.K)
-        u, v = np.nan_to_num(u), np.nan_to_num(v)
-        gu, gv = sample_image_gradients(self.level.images[i], u, v)
-        return FrameSample(None, points, u, v, None, gu, gv)
+    def warped_gradients(self, i: int, pose: np.ndarray, points_ref: np.ndarray) -> FrameGradients:
+        """Frame i's colour gradients at the reference points (N, 3) warped by ``pose``, by the
+        per-pixel function of the assembly's kernel (:func:`.kernels.warp_gradients`)."""
+        xp = array_module(points_ref)
+        gradients = FrameGradients(*(xp.empty(points_ref.shape) for _ in range(3)))
+        kernels_for(points_ref).warp_gradients(points_ref, like(pose[:3, :3], points_ref), like(pose[:3, 3], points_ref),
+                                               like(self.level.K, points_ref), self.level.images[i], gradients.points,
+                                               gradients.grad_u, gradients.grad_v)
+        return gradients
 
     def update_visibility(self, est: Estimate, *, occlusion_test: bool, rel_tol: float, sensor_depths=None,
                           depth_K=None) -> None:
@@ -185,14 +189,11 @@ class LevelProblem:
         one pass: :func:`.kernels.warp_sample`)."""
         n, N = self.n_frames, self.level.grid.size
         P = self.points(est.z)
-        xp, kernels = array_module(P), kernels_for(P)
-        K = like(self.level.K, P)
+        xp = array_module(P)
         color = xp.empty((n, N, 3), dtype=np.float32)  # sampled from float32 images
         usable = xp.empty((n, N), dtype=bool)
         for i in range(n):
-            pose = est.poses[i]
-            kernels.warp_sample(P, like(pose[:3, :3], P), like(pose[:3, 3], P), K, self.level.images[i],
-                                self.visibility[i], color[i], usable[i])
+            self._warp_sample(i, est.poses[i], P, color[i], usable[i])
         return self.evaluate_samples(est, color, usable, *self.normals(est.z))
 
     def evaluate_samples(self, est: Estimate, color: np.ndarray, usable: np.ndarray, normals: np.ndarray,

@@ -135,8 +135,8 @@ class Level:
     """Everything one pyramid level of the solver reads.
 
     grid: masked reference pixels. K: (3, 3) level intrinsics. size: (H, W).
-    images: per frame an (H, W, 3) float32 linear RGB image (gradients are sampled from it:
-        :func:`~o3d_mvps.model.warping.sample_image_gradients`).
+    images: per frame an (H, W, 3) float32 linear RGB image (its gradients are sampled from it:
+        :func:`.kernels.image_gradients_at`).
     frame_masks: per frame an (H, W) bool mask or None. prior: the depth prior.
     """
 
