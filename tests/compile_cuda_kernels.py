@@ -31,19 +31,22 @@ def _array(ndim: int, dtype=types.float64):
 
 _F1, _F2, _F3, _F4 = (_array(d) for d in (1, 2, 3, 4))
 _COLOR = _array(3, types.float32)
+#: the residuals (n, N, 3) or (N, 3) and the shading (n, N) or (N,): float32 on the GPU
+#: (o3d_mvps.solver.device.ArrayDevice.residual_dtype)
+_R1, _R2, _R3 = (_array(d, types.float32) for d in (1, 2, 3))
 
 #: kernel name in cuda_kernels -> argument types
 SIGNATURES = {
-    "_accumulate_frame": (_F2, _F1, _array(1, types.boolean), types.float64, _F2, _F1, _F1, _F1, _F2, _F2, _F2, _F1,
+    "_accumulate_frame": (_R2, _R1, _array(1, types.boolean), types.float64, _F2, _F1, _F1, _F1, _F2, _F2, _F2, _F1,
                           _F2, _COLOR, _F2, _F2, types.boolean, types.boolean, _F2, _F3, _F4, _F4, types.int64, _F3,
                           _F2),
     "_project_twist_rows": (_F4, _F4, _F3, _F2),
     "_scatter_sparse_transpose_rows": (_array(1, types.int32), _array(1, types.int32), _F1, _F2, _F2),
-    "_shading_residuals": (_COLOR, _F2, _F3, _F2, _array(2, types.boolean), _F2, _F3),
-    "_weighted_albedo_sums": (_F3, _array(2, types.boolean), _COLOR, _F2, types.float64, _F2, _F2),
-    "_weighted_lighting_sums": (_F3, _array(2, types.boolean), _COLOR, _F2, types.float64, _F2, _F2),
+    "_shading_residuals": (_COLOR, _F2, _F3, _F2, _array(2, types.boolean), _R2, _R3),
+    "_weighted_albedo_sums": (_R3, _array(2, types.boolean), _COLOR, _R2, types.float64, _F2, _F2),
+    "_weighted_lighting_sums": (_R3, _array(2, types.boolean), _COLOR, _F2, types.float64, _F2, _F2),
     "_led_irradiances_into": (_F2, _F2, _F2, _F2),
-    "_log1p_square_partials": (_F1, types.float64, _F1),
+    "_log1p_square_partials": (_R1, types.float64, _F1),
     "_warp_sample": (_F2, _F2, _F1, _F2, _COLOR, _array(1, types.boolean), _array(2, types.float32),
                      _array(1, types.boolean)),
     "_warp_gradients": (_F2, _F2, _F1, _F2, _COLOR, _F2, _F2, _F2),

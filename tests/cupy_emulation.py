@@ -208,6 +208,14 @@ sparse = types.ModuleType("cupy_emulation.sparse")
 sparse.csr_matrix, sparse.diags = csr_matrix, diags
 
 
+def array_device():
+    """The solver's array device on this stand-in: that of ``cuda:N``
+    (:func:`o3d_mvps.solver.device.array_device`) with this module for CuPy."""
+    from o3d_mvps.solver.device import CUDA_RESIDUAL_DTYPE, ArrayDevice
+
+    return ArrayDevice("cuda-emulated", sys.modules[__name__], sparse, CUDA_RESIDUAL_DTYPE)
+
+
 @contextmanager
 def installed():
     """Within: ``import cupy`` / ``cupyx.scipy.sparse`` give this module and :data:`sparse`."""

@@ -79,13 +79,11 @@ def test_gpu_benchmark_compares_the_cuda_path_with_the_cpu_path(tmp_path):
     import numba
 
     from benchmarks import gpu
-    from o3d_mvps.solver.device import ArrayDevice
 
     gpu.make(tmp_path, cases=(((64, 48), 2),), frames=3, options={"levels": 1, "max_iterations": 1})
     if numba.config.ENABLE_CUDASIM:
         with cupy_emulation.installed():
-            (row,) = gpu.run(tmp_path, tmp_path / "results",
-                             ArrayDevice("cuda-emulated", cupy_emulation, cupy_emulation.sparse))
+            (row,) = gpu.run(tmp_path, tmp_path / "results", cupy_emulation.array_device())
         assert row["device"] == "cuda-emulated" and row["peak_gpu_mb"] == 0.0
     else:
         (row,) = gpu.run(tmp_path, tmp_path / "results")

@@ -31,7 +31,8 @@ def cauchy_weights(r: np.ndarray, lam: float) -> np.ndarray:
 
 
 def cauchy_energy(r: np.ndarray, lam: float, kernel=None) -> float:
-    """sum phi(r) over all elements: the energy of a residual array (any shape).
+    """sum phi(r) over all elements: the energy of a residual array (any shape; float32 or float64,
+    others are converted).
 
     kernel: the ``log1p_square_sum(x (M,), scale) -> sum log(1 + (scale x)^2)`` of the array's
     device (default: :func:`log1p_square_sum`, the CPU's, for NumPy arrays; the solver's
@@ -43,7 +44,8 @@ def cauchy_energy(r: np.ndarray, lam: float, kernel=None) -> float:
     different than that. NumPy's version made two temporaries of the solver's (n, N, 3)
     residuals and took most of an evaluation's time.
     """
-    flat = array_module(r).ascontiguousarray(r, dtype=np.float64).reshape(-1)
+    r = array_module(r).ascontiguousarray(r)
+    flat = (r if r.dtype in (np.float32, np.float64) else r.astype(np.float64)).reshape(-1)
     return 0.5 * lam * lam * (kernel or log1p_square_sum)(flat, 1.0 / lam)
 
 

@@ -30,16 +30,25 @@ CUDA_INSTALL = ("pip install o3d-mvps[cuda] (CuPy and numba-cuda for CUDA 12; fo
 DEVICE_HELP = "where the solver runs: cpu (default), or cuda[:N] (needs CuPy and numba-cuda: pip install o3d-mvps[cuda])"
 _NAME = re.compile(r"(cpu|cuda)(?::(\d+))?")
 
+#: :attr:`ArrayDevice.residual_dtype` on CUDA
+CUDA_RESIDUAL_DTYPE = np.float32
+
 
 @dataclass(frozen=True)
 class ArrayDevice:
     """Where the solver's per-pixel arrays live: name "cpu" or "cuda:N", xp numpy or cupy,
     sparse scipy.sparse or cupyx.scipy.sparse. The code that runs on them follows from the
-    arrays themselves (:func:`kernels_for`)."""
+    arrays themselves (:func:`kernels_for`).
+
+    residual_dtype: of the largest arrays, the per-frame residuals (n, N, 3) and shading (n, N)
+    of an evaluation. float32 on CUDA, where the sweeps that read them are bound by memory
+    traffic (every sum over them is float64, in the kernels' registers); float64 on the CPU.
+    """
 
     name: str
     xp: ModuleType
     sparse: ModuleType
+    residual_dtype: type = np.float64
 
     def asarray(self, a, dtype=None):
         """``a`` (a NumPy array, or already one of this device's) as an array of this device."""
@@ -132,4 +141,4 @@ def array_device(device) -> ArrayDevice:
     index = int(name.split(":")[1])
     cupy.cuda.Device(index).use()
     cuda.select_device(index)
-    return ArrayDevice(name, cupy, cupyx.scipy.sparse)
+    return ArrayDevice(name, cupy, cupyx.scipy.sparse, CUDA_RESIDUAL_DTYPE)

@@ -288,7 +288,7 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
         # AUTO: the LED's scale for the level's first albedo fit, then the residuals' (_sweeps)
         scale = options.model.cauchy_scale()
         problem = LevelProblem(level.on_device(device), tau, DEFAULT_CAUCHY_LAMBDA["led"] if scale == AUTO else scale,
-                               light, mu)
+                               light, mu, residual_dtype=device.residual_dtype)
         problem.update_visibility(est, occlusion_test=options.occlusion_test, rel_tol=options.occlusion_tolerance,
                                   sensor_depths=sensor_depths, depth_K=depth_K)
         timings["setup"] += time.perf_counter() - t

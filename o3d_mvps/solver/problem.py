@@ -55,7 +55,8 @@ class FrameGradients:
 
 @dataclass
 class Evaluation:
-    """Residuals r (n, N, 3), usable (n, N), warped colours (n, N, 3) float32, shading (n, N),
+    """Residuals r (n, N, 3), usable (n, N), warped colours (n, N, 3) float32, shading (n, N) (r
+    and shading in the problem's residual_dtype),
     unit normals (N, 3), dA (N,), light bases (m, N, k) (m = 1 when all frames share one),
     and the energy split into data and prior terms."""
 
@@ -88,11 +89,14 @@ class LevelProblem:
     """Evaluates the level energy; holds the per-level visibility, tau and mu (the smoothness weight).
 
     The level's arrays may live on a GPU (:meth:`.pyramid.Level.on_device`): the per-pixel
-    arrays of the estimates and evaluations then live there too.
+    arrays of the estimates and evaluations then live there too. residual_dtype: the
+    evaluations' residuals and shading (:attr:`.device.ArrayDevice.residual_dtype`).
     """
 
-    def __init__(self, level: Level, tau: float, cauchy_lambda: float, light=None, smoothness: float = 0.0):
+    def __init__(self, level: Level, tau: float, cauchy_lambda: float, light=None, smoothness: float = 0.0, *,
+                 residual_dtype=np.float64):
         self.level = level
+        self.residual_dtype = residual_dtype
         self.light = SHLight() if light is None else light
         self.tau = float(tau)
         self.mu = float(smoothness)
@@ -208,7 +212,10 @@ class LevelProblem:
     def _evaluation(self, est, color, usable, normals, dA, basis, reuse: Evaluation | None = None) -> Evaluation:
         n, N = usable.shape
         xp, kernels = array_module(color), kernels_for(color)
-        shading, residual = (xp.empty((n, N)), xp.empty((n, N, 3))) if reuse is None else (reuse.shading, reuse.residual)
+        if reuse is None:
+            shading, residual = xp.empty((n, N), self.residual_dtype), xp.empty((n, N, 3), self.residual_dtype)
+        else:
+            shading, residual = reuse.shading, reuse.residual
         kernels.shading_residuals(color, est.albedo, basis, like(est.lights, color, dtype=np.float64), usable,
                                   shading, residual)
         data = cauchy_energy(residual, self.lam, kernels.log1p_square_sum)
