@@ -11,7 +11,8 @@ Two steps, for a GPU machine without Open3D (the problems travel as files):
   writes ``gpu.json``: rows {color, depth, frames, object_pixels, device (the GPU's name),
   seconds (solve, after warm-up), seconds_first (with compilation), cpu_seconds (the CPU solve,
   same machine, same run), peak_gpu_mb, max_depth_diff_mm, mae_diff_deg, energy_rel_diff (the
-  largest over every sweep's energy)}.
+  largest over every sweep's energy), level_devices (where each level ran, coarsest first: levels
+  below o3d_mvps.solver.device.CUDA_MIN_LEVEL_PIXELS run on the CPU)}.
 
 ``run(..., device=ArrayDevice)`` takes another array device instead of cuda:0 (its test: the CuPy
 stand-in of tests/cupy_emulation.py; no memory counted, times meaningless).
@@ -120,7 +121,7 @@ def run(folder, out="benchmarks/results", device="cuda:0") -> list[dict]:
         rows.append({"color": f"{w}x{h}", "depth": f"{depth[1]}x{depth[0]}", "frames": problem.n_frames,
                      "object_pixels": int(cpu.mask.sum()), "device": device_name, "seconds": seconds,
                      "seconds_first": seconds_first, "cpu_seconds": cpu_seconds, "peak_gpu_mb": peak_gpu_mb,
-                     **compare(cpu, cuda)})
+                     **compare(cpu, cuda), "level_devices": cuda.info["level_devices"]})
         (out / "gpu.json").write_text(json.dumps(rows, indent=1))
         print(json.dumps(rows[-1]), flush=True)
     return rows

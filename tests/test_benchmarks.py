@@ -85,6 +85,7 @@ def test_gpu_benchmark_compares_the_cuda_path_with_the_cpu_path(tmp_path):
         with cupy_emulation.installed():
             (row,) = gpu.run(tmp_path, tmp_path / "results", cupy_emulation.array_device())
         assert row["device"] == "cuda-emulated" and row["peak_gpu_mb"] == 0.0
+        assert row["level_devices"] == ["cuda-emulated"]
     else:
         (row,) = gpu.run(tmp_path, tmp_path / "results")
         assert row["peak_gpu_mb"] > 0

@@ -8,6 +8,7 @@ kernels in numba's CUDA simulator (tests/conftest.py turns it on where no GPU is
 of the path's Python runs as on a GPU, only CuPy itself is not exercised.
 """
 
+from dataclasses import replace
 from pathlib import Path
 
 import cupy_emulation
@@ -17,6 +18,7 @@ import pytest
 
 from o3d_mvps.metrics import normal_mae_deg
 from o3d_mvps.model.normals import perspective_normals
+from o3d_mvps.solver.device import array_device
 from o3d_mvps.solver.driver import solve
 from o3d_mvps.solver.problem_input import read_problem
 
@@ -35,25 +37,36 @@ CASES = ("led", "room")
 TOLERANCES = (5e-7, 5e-8, 5e-5, 1e-7, 1e-4) if numba.config.ENABLE_CUDASIM else (1e-3, 1e-4, 0.1, 1e-6, 1e-3)
 
 
-def solve_on_cuda_path(problem_input, options):
+#: The smallest level the CUDA path solves on the device, per case: the LED problem's levels have
+#: 52 and 226 object pixels, so its coarse level goes to the CPU, as the product's levels below
+#: o3d_mvps.solver.device.CUDA_MIN_LEVEL_PIXELS do; the room problem's one level to the device.
+MIN_LEVEL_PIXELS = {"led": 100, "room": 0}
+
+
+def solve_on_cuda_path(problem_input, options, min_level_pixels: int):
     """The solve on the GPU, or, where numba's CUDA simulator is on, on the CuPy stand-in."""
     if numba.config.ENABLE_CUDASIM:
         with cupy_emulation.installed():
-            return solve(problem_input, options, cupy_emulation.array_device())
-    return solve(problem_input, options, "cuda:0")
+            return solve(problem_input, options,
+                         replace(cupy_emulation.array_device(), min_level_pixels=min_level_pixels))
+    return solve(problem_input, options, replace(array_device("cuda:0"), min_level_pixels=min_level_pixels))
 
 
 @pytest.fixture(scope="module", params=CASES)
 def solutions(request):
     problem_input = read_problem(DATA / f"cuda_path_{request.param}.npz")
     assert problem_input.options.light_model == request.param
-    return solve(problem_input), solve_on_cuda_path(problem_input, problem_input.options)
+    cuda = solve_on_cuda_path(problem_input, problem_input.options, MIN_LEVEL_PIXELS[request.param])
+    return request.param, solve(problem_input), cuda
 
 
 def test_cuda_path_matches_the_cpu_path(solutions):
-    cpu, cuda = solutions
+    case, cpu, cuda = solutions
     energy_rtol, depth_m, normals_deg, poses_atol, lighting_rtol = TOLERANCES
-    assert cuda.info["device"] == ("cuda-emulated" if numba.config.ENABLE_CUDASIM else "cuda:0")
+    device = "cuda-emulated" if numba.config.ENABLE_CUDASIM else "cuda:0"
+    assert cuda.info["device"] == device
+    assert cuda.info["level_devices"] == {"led": ["cpu", device], "room": [device]}[case]
+    assert cpu.info["level_devices"] == ["cpu"] * cpu.info["levels"]
     assert [(r["level"], r["iteration"]) for r in cuda.energy] == [(r["level"], r["iteration"]) for r in cpu.energy]
     energies = np.array([[r["energy"] for r in cpu.energy], [r["energy"] for r in cuda.energy]])
     np.testing.assert_allclose(energies[1], energies[0], rtol=energy_rtol)

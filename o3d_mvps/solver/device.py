@@ -33,6 +33,15 @@ _NAME = re.compile(r"(cpu|cuda)(?::(\d+))?")
 #: :attr:`ArrayDevice.residual_dtype` on CUDA
 CUDA_RESIDUAL_DTYPE = np.float32
 
+#: :attr:`ArrayDevice.min_level_pixels` on CUDA. A GPU's cost per array operation (a kernel
+#: launch or a small copy, 5-20 us from Python) does not shrink with the level, and a sweep makes
+#: thousands: counted on the 20-frame 640x480 LED problem (CuPy stand-in), 3750 per joint sweep,
+#: 7000 per sweep of the coarser levels' separate pose and depth steps, i.e. 40-140 ms. This
+#: machine's 2 cores take 0.4 s for a joint sweep of 22400 pixels x 20 frames, so a GPU
+#: machine's 16 about 50 ms: below some 20000 pixels the CPU is as fast. An estimate from
+#: counts and CPU times, not a GPU measurement.
+CUDA_MIN_LEVEL_PIXELS = 20000
+
 
 @dataclass(frozen=True)
 class ArrayDevice:
@@ -43,12 +52,15 @@ class ArrayDevice:
     residual_dtype: of the largest arrays, the per-frame residuals (n, N, 3) and shading (n, N)
     of an evaluation. float32 on CUDA, where the sweeps that read them are bound by memory
     traffic (every sum over them is float64, in the kernels' registers); float64 on the CPU.
+
+    min_level_pixels: pyramid levels with fewer object pixels are solved on the CPU (:data:`CPU`).
     """
 
     name: str
     xp: ModuleType
     sparse: ModuleType
     residual_dtype: type = np.float64
+    min_level_pixels: int = 0
 
     def asarray(self, a, dtype=None):
         """``a`` (a NumPy array, or already one of this device's) as an array of this device."""
@@ -141,4 +153,4 @@ def array_device(device) -> ArrayDevice:
     index = int(name.split(":")[1])
     cupy.cuda.Device(index).use()
     cuda.select_device(index)
-    return ArrayDevice(name, cupy, cupyx.scipy.sparse, CUDA_RESIDUAL_DTYPE)
+    return ArrayDevice(name, cupy, cupyx.scipy.sparse, CUDA_RESIDUAL_DTYPE, CUDA_MIN_LEVEL_PIXELS)

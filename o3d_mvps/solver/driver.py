@@ -26,7 +26,7 @@ from ..model import se3
 from ..model.resampling import fill_nearest_valid, repeat_pixels, resize
 from ..model.robust import robust_scale
 from .depth import update_depth
-from .device import ArrayDevice, array_device, to_host
+from .device import CPU, ArrayDevice, array_device, to_host
 from .joint import update_pose_depth
 from .lighting import make_light_model, update_led_offset
 from .options import AUTO, DEFAULT_CAUCHY_LAMBDA, RefineOptions
@@ -217,9 +217,11 @@ def solve(problem_input: SolverInput, options: RefineOptions | None = None, devi
     """Jointly estimate depth (colour resolution), albedo, lighting and poses of ``problem_input``.
 
     options: None solves with ``problem_input.options``. device: "cpu" ("CPU:0"), "cuda[:N]"
-    (the per-pixel arrays on the GPU, with CuPy and numba's CUDA target) or an
+    (the per-pixel arrays on the GPU, with CuPy and numba's CUDA target; pyramid levels of fewer
+    than :data:`.device.CUDA_MIN_LEVEL_PIXELS` object pixels on the CPU) or an
     :class:`~.device.ArrayDevice`; a CUDA device that cannot run raises
     :class:`~o3d_mvps.errors.DeviceError` saying what is missing (:func:`.device.check_device`).
+    ``info["level_devices"]`` of the result says where each level ran, coarsest first.
     """
     options = problem_input.options if options is None else options
     device = array_device(device)
@@ -260,7 +262,8 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
     if smoothness == AUTO:
         smoothness = auto_smoothness(options.tau, z0, ref_mask, sf, K)
     history = []
-    stats = {"cg_iterations": [], "cauchy_lambda": [], "smoothness": smoothness, "levels": n_levels}
+    stats = {"cg_iterations": [], "cauchy_lambda": [], "smoothness": smoothness, "levels": n_levels,
+             "level_devices": []}
 
     def solve_level(level_index: int, carried: Carried | None) -> Carried | None:
         """One level: the level's problem, the unknowns gathered from ``carried`` (None on the
@@ -280,15 +283,18 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
                               light.offset.copy() if light.name == "led" else None)  # an unknown, like the rest
         else:
             carried = carried.resized(level.size)
-        est = Estimate(device.asarray(level.prior.clip(g.gather(carried.z).astype(np.float64))),
-                       device.asarray(g.gather(carried.albedo).astype(np.float64)), carried.lights, carried.poses,
-                       carried.led_offset)
+        level_device = device if g.size >= device.min_level_pixels else CPU
+        stats["level_devices"].append(level_device.name)
+        est = Estimate(level_device.asarray(level.prior.clip(g.gather(carried.z).astype(np.float64))),
+                       level_device.asarray(g.gather(carried.albedo).astype(np.float64)), carried.lights,
+                       carried.poses, carried.led_offset)
         tau = normalised_tau(options.tau, n_frames, mean_I, g.size, mean_z0, level.prior.rows)
         mu = normalised_smoothness(smoothness, n_frames, mean_I, mean_z0, level_index)
         # AUTO: the LED's scale for the level's first albedo fit, then the residuals' (_sweeps)
         scale = options.model.cauchy_scale()
-        problem = LevelProblem(level.on_device(device), tau, DEFAULT_CAUCHY_LAMBDA["led"] if scale == AUTO else scale,
-                               light, mu, residual_dtype=device.residual_dtype)
+        problem = LevelProblem(level.on_device(level_device), tau,
+                               DEFAULT_CAUCHY_LAMBDA["led"] if scale == AUTO else scale, light, mu,
+                               residual_dtype=level_device.residual_dtype)
         problem.update_visibility(est, occlusion_test=options.occlusion_test, rel_tol=options.occlusion_tolerance,
                                   sensor_depths=sensor_depths, depth_K=depth_K)
         timings["setup"] += time.perf_counter() - t

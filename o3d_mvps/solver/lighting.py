@@ -231,28 +231,29 @@ def update_led_offset(problem, est, ev, *, max_halvings: int = 3, max_pixels: in
     """One IRLS Gauss-Newton step on the LED offset (all frames): returns (offset (3,), evaluation).
 
     The step is computed from at most ``max_pixels`` evenly spread pixels per frame (three
-    unknowns need few), the line search on the full energy; the offset is ``est``'s (or the
+    unknowns need few), on the host (on the GPU path a few hundred small operations would each
+    cost a kernel launch), the line search on the full energy; the offset is ``est``'s (or the
     light model's) unchanged, with ``ev``, when no step lowers the energy, or when the
     Gauss-Newton model predicts a decrease below ``min_decrease`` (energy units; each line
     search trial costs a full evaluation, and near convergence they nearly all fail).
     """
     light = problem.light_model(est)
-    points_ref = problem.points(est.z)
     H = np.zeros((3, 3))
     g = np.zeros(3)
     stride = max(1, ev.usable.shape[1] // max_pixels)
-    spread = array_module(ev.usable).zeros(ev.usable.shape[1], dtype=bool)
-    spread[::stride] = True
+    spread = slice(None, None, stride)
+    usable, residual = to_host(ev.usable[:, spread]), to_host(ev.residual[:, spread])
+    normals, points, albedo = (to_host(a[spread]) for a in (ev.normals, problem.points(est.z), est.albedo))
     for i in range(problem.n_frames):
-        use = ev.usable[i] & spread
+        use = usable[i]
         if not use.any():
             continue
-        ds = light.offset_jacobian(est.lights[i], ev.normals[use], points_ref[use], est.poses[i])  # (M, 3)
-        w = cauchy_weights(ev.residual[i, use], problem.lam)  # (M, 3)
-        rho_w = est.albedo[use] ** 2 * w
-        H += to_host((ds * rho_w.sum(axis=1)[:, None]).T @ ds)
+        ds = light.offset_jacobian(est.lights[i], normals[use], points[use], est.poses[i])  # (M, 3)
+        w = cauchy_weights(residual[i, use], problem.lam)  # (M, 3)
+        rho_w = albedo[use] ** 2 * w
+        H += (ds * rho_w.sum(axis=1)[:, None]).T @ ds
         # residual r = I - rho s: dr/do = -rho ds
-        g -= to_host(ds.T @ np.sum(w * est.albedo[use] * ev.residual[i, use], axis=1))
+        g -= ds.T @ np.sum(w * albedo[use] * residual[i, use], axis=1)
     start = light.offset
     step = ridge_solve(H, -g) if np.trace(H) > 0 else None
     # the IRLS model's decrease -g.step / 2 on the spread pixels, scaled to all of them
