@@ -10,8 +10,9 @@ the 1 mm depth steps.
 scaling: time, memory, sweeps and CG iterations against object pixels x frames (--baseline REV
 runs an earlier commit side by side; not part of 'all': hours at the default sizes).
 figures: README pictures (normals of every method, textured preview).
-gpu (python -m benchmarks.gpu make|run, not part of 'all'): the solver's CUDA path against the CPU
-on saved problems, for a GPU machine without Open3D (see benchmarks/gpu.py).
+gpu (python -m benchmarks.gpu make|run|count, not part of 'all'): the solver's CUDA path against the
+CPU on saved problems, for a GPU machine without Open3D, and its device operations counted without a
+GPU (see benchmarks/gpu.py).
 all: everything, one after the other. --quick runs a tiny case of each (CI, under a minute).
 Results go to DIR (default benchmarks/results) as JSON, summary.md and PNG plots.
 """

@@ -16,6 +16,12 @@ Two steps, for a GPU machine without Open3D (the problems travel as files):
 
 ``run(..., device=ArrayDevice)`` takes another array device instead of cuda:0 (its test: the CuPy
 stand-in of tests/cupy_emulation.py; no memory counted, times meaningless).
+
+- ``python -m benchmarks.gpu count DIR [--out benchmarks/results]`` (anywhere, no GPU): counts the
+  CUDA path's device operations (kernel launches and copies, each costing 5-20 us from Python on
+  a GPU however small the level) per pyramid level and sweep, on that stand-in, with the CPU's
+  kernels standing in for the CUDA ones (one launch per call) and the CUDA path's levels (those
+  below CUDA_MIN_LEVEL_PIXELS on the CPU); writes ``gpu_operations.json``.
 """
 
 from __future__ import annotations
@@ -25,6 +31,8 @@ import json
 import os
 import sys
 import time
+import types
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -53,18 +61,20 @@ def make(folder, cases=CASES, frames: int = FRAMES, options: dict | None = None)
 
 
 def _cuda_solver(device):
-    """(solve on ``device``, its name, release the memory pool, the MB it holds): for "cuda:0",
-    the GPU's name and CuPy's pool; for an ArrayDevice (a stand-in), its name and no memory."""
-    from o3d_mvps.solver.device import ArrayDevice
+    """(solve on ``device``, its name, release the memory pool, the MB it holds): on a GPU
+    ("cuda:0", or its ArrayDevice), the GPU's name and CuPy's pool; on a stand-in's
+    ArrayDevice, its name and no memory."""
+    from o3d_mvps.solver.device import array_device
     from o3d_mvps.solver.driver import solve
+
+    device = array_device(device)
 
     def solve_on_device(problem):
         return solve(problem, device=device)
 
-    if isinstance(device, ArrayDevice):
+    if not hasattr(device.xp, "get_default_memory_pool"):  # not CuPy
         return solve_on_device, device.name, lambda: None, lambda: 0.0
-    import cupy
-
+    cupy = device.xp
     pool = cupy.get_default_memory_pool()
     name = cupy.cuda.runtime.getDeviceProperties(0)["name"]
     return (solve_on_device, name.decode() if isinstance(name, bytes) else name, pool.free_all_blocks,
@@ -127,6 +137,89 @@ def run(folder, out="benchmarks/results", device="cuda:0") -> list[dict]:
     return rows
 
 
+def count(folder, out="benchmarks/results", min_level_pixels: int | None = None) -> list[dict]:
+    """Count the CUDA path's device operations on every saved problem of ``folder`` (see the
+    module's docstring); writes ``out``/gpu_operations.json and returns its rows: problem,
+    object_pixels, operations (total) and by_kind, and per level (coarsest first) its pixels,
+    device, sweeps and the operations of its sweeps (the levels' set-up and the copies between
+    levels count in the total only). min_level_pixels: the CUDA path's smallest level on the
+    device (None: the product's, CUDA_MIN_LEVEL_PIXELS)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+    import cupy_emulation
+
+    from o3d_mvps.solver import driver
+    from o3d_mvps.solver.device import CUDA_MIN_LEVEL_PIXELS
+    from o3d_mvps.solver.problem_input import read_problem
+
+    paths = sorted(Path(folder).glob("*.npz"))
+    if not paths:
+        raise SystemExit(f"no saved problems (*.npz) in {folder}")
+    levels = []
+    solve_level_sweeps = driver._sweeps
+
+    def counted_sweeps(problem, *args, **kwargs):
+        before = sum(cupy_emulation.operations.values())
+        rows = solve_level_sweeps(problem, *args, **kwargs)
+        levels.append({"level": problem.level.index, "pixels": problem.level.grid.size, "sweeps": len(rows) - 1,
+                       "operations": sum(cupy_emulation.operations.values()) - before})
+        return rows
+
+    results = []
+    driver._sweeps = counted_sweeps
+    try:
+        with cupy_emulation.installed(), _cpu_kernels_as_cuda_kernels(cupy_emulation):
+            for path in paths:
+                levels.clear()
+                cupy_emulation.operations.clear()
+                device = cupy_emulation.array_device(CUDA_MIN_LEVEL_PIXELS if min_level_pixels is None
+                                                     else min_level_pixels)
+                solution = driver.solve(read_problem(path), device=device)
+                for level, device in zip(levels, solution.info["level_devices"]):
+                    level["device"] = device
+                results.append({"problem": path.name, "object_pixels": int(solution.mask.sum()),
+                                "operations": sum(cupy_emulation.operations.values()),
+                                "by_kind": dict(cupy_emulation.operations.most_common()), "levels": list(levels)})
+                print(json.dumps(results[-1]), flush=True)
+    finally:
+        driver._sweeps = solve_level_sweeps
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "gpu_operations.json").write_text(json.dumps(results, indent=1))
+    return results
+
+
+@contextmanager
+def _cpu_kernels_as_cuda_kernels(stand_in):
+    """Within: ``o3d_mvps.solver.cuda_kernels`` is a module of the CPU kernels taking the
+    stand-in's arrays, each call counted in ``stand_in.operations`` as a launch (numba's CUDA
+    simulator would take hours at these sizes)."""
+    import o3d_mvps.solver
+    from o3d_mvps.solver import cuda_kernels, kernels
+
+    def launcher(kernel):
+        def launch(*args):
+            stand_in.operations["kernel"] += 1
+            return kernel(*(a.view(np.ndarray) if isinstance(a, stand_in.ndarray) else a for a in args))
+        return launch
+
+    module = types.ModuleType("o3d_mvps.solver.cuda_kernels")
+    module.__dict__.update({name: launcher(getattr(kernels, name)) for name in cuda_kernels.__all__})
+    module.chunk_count = kernels.chunk_count  # not a launch
+    saved = sys.modules.get(module.__name__), getattr(o3d_mvps.solver, "cuda_kernels", None)
+    sys.modules[module.__name__] = o3d_mvps.solver.cuda_kernels = module
+    try:
+        yield
+    finally:
+        if saved[0] is None:
+            sys.modules.pop(module.__name__, None)
+        else:
+            sys.modules[module.__name__] = saved[0]
+        if saved[1] is None:
+            del o3d_mvps.solver.cuda_kernels
+        else:
+            o3d_mvps.solver.cuda_kernels = saved[1]
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.gpu", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -135,12 +228,17 @@ def main(argv=None) -> int:
     runner = sub.add_parser("run", help="solve the saved problems on the CPU and on cuda:0; write gpu.json")
     runner.add_argument("folder")
     runner.add_argument("--out", default="benchmarks/results")
+    counter = sub.add_parser("count", help="count the CUDA path's device operations on the CuPy stand-in (no GPU)")
+    counter.add_argument("folder")
+    counter.add_argument("--out", default="benchmarks/results")
     args = parser.parse_args(argv)
     if args.command == "make":
         for path in make(args.folder):
             print(f"wrote {path} ({os.path.getsize(path) / 2**20:.1f} MB)")
-    else:
+    elif args.command == "run":
         run(args.folder, args.out)
+    else:
+        count(args.folder, args.out)
     return 0
 
 

@@ -19,11 +19,6 @@ from numba import types
 #: exit status when NVVM is not installed (the test then skips)
 NO_NVVM = 3
 
-#: the launchers of both kernel modules
-LAUNCHERS = ("chunk_count", "accumulate_frame", "project_twist_rows", "scatter_sparse_transpose_rows",
-             "shading_residuals", "weighted_albedo_sums", "weighted_lighting_sums", "log1p_square_sum",
-             "led_irradiances_into", "warp_sample", "warp_gradients")
-
 
 def _array(ndim: int, dtype=types.float64):
     return types.Array(dtype, ndim, "C")

@@ -10,16 +10,26 @@ NumPy's and SciPy's, and numba's CUDA simulator runs the CUDA kernels on these a
 solve on them runs the CUDA path's Python as on a GPU, and fails where it would mix host and
 device arrays there. (Not caught: ``np.asarray`` of a device array, which CuPy refuses and NumPy
 cannot be made to; CuPy functions NumPy has and CuPy lacks.)
+
+:data:`operations` counts what would each be a kernel launch or a transfer on a GPU, by kind
+(``benchmarks/gpu.py count`` reads it): elementwise operations and reductions, other NumPy
+functions, sparse products, gathers by index arrays, writes into arrays, copies to the device
+and to the host.
 """
 
 from __future__ import annotations
 
 import sys
 import types
+from collections import Counter
 from contextlib import contextmanager
 
 import numpy as np
 import scipy.sparse as _sp
+
+
+#: operations on the stand-in's arrays so far, by kind (see the module's docstring)
+operations = Counter()
 
 
 class DeviceMixError(TypeError):
@@ -64,6 +74,7 @@ class ndarray(np.ndarray):  # noqa: N801 - CuPy's name
     """A "device" array: a NumPy array that refuses host arrays in operations."""
 
     def __array_ufunc__(self, ufunc, method, *inputs, **kwargs):
+        operations["elementwise" if method == "__call__" else "reduction"] += 1
         _check(inputs)
         out = kwargs.get("out")
         if out is not None:
@@ -75,17 +86,35 @@ class ndarray(np.ndarray):  # noqa: N801 - CuPy's name
         return _device(result)
 
     def __array_function__(self, func, types, args, kwargs):
+        operations["function"] += 1
         _check(args)
         _check(list(kwargs.values()))
         return _device(func(*_host(args), **_host(kwargs)))
 
     def get(self) -> np.ndarray:
         """A host copy."""
+        operations["to_host"] += 1
         return np.array(self.view(np.ndarray))
+
+    def __getitem__(self, index):
+        if not _basic_index(index):
+            operations["gather"] += 1
+        return super().__getitem__(index)
+
+    def __setitem__(self, index, value):
+        operations["write"] += 1
+        super().__setitem__(index, value)
+
+
+def _basic_index(index) -> bool:
+    """Whether an index is made of integers and slices only (a view, no kernel)."""
+    parts = index if isinstance(index, tuple) else (index,)
+    return all(isinstance(part, (int, np.integer, slice, type(None), type(Ellipsis))) for part in parts)
 
 
 def _function(f):
     def wrapped(*args, **kwargs):
+        operations["function"] += 1
         _check(args)
         _check(list(kwargs.values()))
         return _device(f(*_host(args), **_host(kwargs)))
@@ -96,11 +125,19 @@ def _function(f):
 
 def asarray(a, dtype=None):
     """Host or device data as a device array (CuPy copies host arrays to the device)."""
+    _count_copy(a)
     return np.asarray(_host(a), dtype=dtype).view(ndarray)
 
 
 def ascontiguousarray(a, dtype=None):
+    _count_copy(a)
     return np.ascontiguousarray(_host(a), dtype=dtype).view(ndarray)
+
+
+def _count_copy(a) -> None:
+    """Count a copy of host data to the device."""
+    if not isinstance(a, ndarray):
+        operations["to_device"] += 1
 
 
 def get_array_module(*arrays):
@@ -171,7 +208,9 @@ class csr_matrix:  # noqa: N801 - cupyx's name
 
     def __matmul__(self, other):
         if isinstance(other, csr_matrix):
+            operations["sparse_product"] += 1
             return csr_matrix(self._m @ other._m)
+        operations["sparse_matvec"] += 1
         return _device(self._m @ _device_only(other))
 
     def __add__(self, other):
@@ -208,12 +247,13 @@ sparse = types.ModuleType("cupy_emulation.sparse")
 sparse.csr_matrix, sparse.diags = csr_matrix, diags
 
 
-def array_device():
+def array_device(min_level_pixels: int = 0):
     """The solver's array device on this stand-in: that of ``cuda:N``
-    (:func:`o3d_mvps.solver.device.array_device`) with this module for CuPy."""
+    (:func:`o3d_mvps.solver.device.array_device`) with this module for CuPy, but solving levels
+    of every size there unless ``min_level_pixels`` says otherwise."""
     from o3d_mvps.solver.device import CUDA_RESIDUAL_DTYPE, ArrayDevice
 
-    return ArrayDevice("cuda-emulated", sys.modules[__name__], sparse, CUDA_RESIDUAL_DTYPE)
+    return ArrayDevice("cuda-emulated", sys.modules[__name__], sparse, CUDA_RESIDUAL_DTYPE, min_level_pixels)
 
 
 @contextmanager

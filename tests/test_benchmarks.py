@@ -1,6 +1,7 @@
 """The benchmark entry point's --quick mode writes every result file with the documented keys."""
 
 import json
+from dataclasses import replace
 
 from benchmarks.__main__ import main
 
@@ -74,11 +75,16 @@ def test_gpu_benchmark_compares_the_cuda_path_with_the_cpu_path(tmp_path):
     """benchmarks.gpu on a tiny problem, its CUDA path on the GPU or, where none is listed (numba's
     CUDA simulator on: tests/conftest.py), on the CuPy stand-in of tests/cupy_emulation.py: the
     row's fields, and the two paths agreeing to the GPU issue's tolerances (the paths' CG
-    preconditioners differ; both stop at 1e-4)."""
+    preconditioners differ; both stop at 1e-4). The tiny level runs on the device (the product
+    would solve it on the CPU: o3d_mvps.solver.device.CUDA_MIN_LEVEL_PIXELS).
+
+    Then ``count`` on the same problem: its level's device operations, none where the level is
+    below the product's threshold."""
     import cupy_emulation
     import numba
 
     from benchmarks import gpu
+    from o3d_mvps.solver.device import array_device
 
     gpu.make(tmp_path, cases=(((64, 48), 2),), frames=3, options={"levels": 1, "max_iterations": 1})
     if numba.config.ENABLE_CUDASIM:
@@ -87,9 +93,19 @@ def test_gpu_benchmark_compares_the_cuda_path_with_the_cpu_path(tmp_path):
         assert row["device"] == "cuda-emulated" and row["peak_gpu_mb"] == 0.0
         assert row["level_devices"] == ["cuda-emulated"]
     else:
-        (row,) = gpu.run(tmp_path, tmp_path / "results")
-        assert row["peak_gpu_mb"] > 0
+        (row,) = gpu.run(tmp_path, tmp_path / "results", replace(array_device("cuda:0"), min_level_pixels=0))
+        assert row["peak_gpu_mb"] > 0 and row["level_devices"] == ["cuda:0"]
     assert json.loads((tmp_path / "results" / "gpu.json").read_text()) == [row]
     assert (row["color"], row["depth"], row["frames"]) == ("64x48", "32x24", 3)
     assert row["object_pixels"] > 200 and row["sweeps_cpu"] == row["sweeps_cuda"] == 2
     assert row["max_depth_diff_mm"] < 0.1 and row["mae_diff_deg"] < 0.1 and row["energy_rel_diff"] < 1e-3
+
+    (counted,) = gpu.count(tmp_path, tmp_path / "results", min_level_pixels=0)
+    (level,) = counted["levels"]
+    assert level["device"] == "cuda-emulated" and level["sweeps"] == 1
+    # a sweep's kernels, sparse products and copies: hundreds (measured: 493 of 527 in all)
+    assert 300 < level["operations"] < counted["operations"]
+    assert counted["by_kind"]["kernel"] > 0 and counted["by_kind"]["sparse_matvec"] > 0
+    assert json.loads((tmp_path / "results" / "gpu_operations.json").read_text()) == [counted]
+    (on_cpu,) = gpu.count(tmp_path, tmp_path / "results")
+    assert on_cpu["levels"][0]["device"] == "cpu" and on_cpu["levels"][0]["operations"] == 0

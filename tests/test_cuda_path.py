@@ -47,8 +47,7 @@ def solve_on_cuda_path(problem_input, options, min_level_pixels: int):
     """The solve on the GPU, or, where numba's CUDA simulator is on, on the CuPy stand-in."""
     if numba.config.ENABLE_CUDASIM:
         with cupy_emulation.installed():
-            return solve(problem_input, options,
-                         replace(cupy_emulation.array_device(), min_level_pixels=min_level_pixels))
+            return solve(problem_input, options, cupy_emulation.array_device(min_level_pixels))
     return solve(problem_input, options, replace(array_device("cuda:0"), min_level_pixels=min_level_pixels))
 
 

@@ -27,6 +27,11 @@ from ..model.robust import log1p_square_term
 from ..model.shading import led_irradiance
 from . import kernels
 
+#: the launchers, the same in :mod:`.kernels` (chunk_count is the size of accumulate_frame's partial sums)
+__all__ = ["chunk_count", "accumulate_frame", "project_twist_rows", "scatter_sparse_transpose_rows",
+           "shading_residuals", "weighted_albedo_sums", "weighted_lighting_sums", "log1p_square_sum",
+           "led_irradiances_into", "warp_sample", "warp_gradients"]
+
 #: Threads per block of every kernel.
 THREADS_PER_BLOCK = 128
 
