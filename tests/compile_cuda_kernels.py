@@ -32,7 +32,7 @@ _R1, _R2, _R3 = (_array(d, types.float32) for d in (1, 2, 3))
 
 #: kernel name in cuda_kernels -> argument types
 SIGNATURES = {
-    "_accumulate_frame": (_R2, _R1, _array(1, types.boolean), types.float64, _F2, _F1, _F1, _F1, _F2, _F2, _F2, _F1,
+    "_accumulate_frame": (_R2, _R1, _array(1, types.boolean), types.float64, _F2, _F1, _F1, _F1, _F2, _F2, _F2,
                           _F2, _COLOR, _F2, _F2, types.boolean, types.boolean, _F2, _F3, _F4, _F4, types.int64, _F3,
                           _F2),
     "_project_twist_rows": (_F4, _F4, _F3, _F2),
@@ -42,9 +42,9 @@ SIGNATURES = {
     "_weighted_lighting_sums": (_R3, _array(2, types.boolean), _COLOR, _F2, types.float64, _F2, _F2),
     "_led_irradiances_into": (_F2, _F2, _F2, _F2),
     "_log1p_square_partials": (_R1, types.float64, _F1),
-    "_warp_sample": (_F2, _F2, _F1, _F2, _COLOR, _array(1, types.boolean), _array(2, types.float32),
+    "_warp_sample": (_F2, _F2, _F2, _COLOR, _array(1, types.boolean), _array(2, types.float32),
                      _array(1, types.boolean)),
-    "_warp_gradients": (_F2, _F2, _F1, _F2, _COLOR, _F2, _F2, _F2),
+    "_warp_gradients": (_F2, _F2, _F2, _COLOR, _F2, _F2, _F2),
 }
 
 

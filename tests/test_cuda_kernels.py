@@ -21,6 +21,9 @@ from o3d_mvps.solver import cuda_kernels, kernels
 
 RNG = np.random.default_rng(11)
 N_FRAMES, N_PIXELS, LAM = 3, 300, 0.1
+#: a frame's pose (4, 4): a small rotation and translation
+POSE = np.array([[0.999, -0.03, 0.02, 0.02], [0.03, 0.999, -0.01, -0.01], [-0.02, 0.01, 0.999, 0.03],
+                 [0.0, 0.0, 0.0, 1.0]])
 
 
 def assert_close(actual, expected, rtol=1e-12):
@@ -57,13 +60,12 @@ def test_accumulate_frame_matches_cpu(case):
     rows, F = f(3, m, 6, N), f(m, 6, N, 3) if project else np.zeros((0, 6, 1, 3))
     gram_cpu, rhs_cpu = np.zeros((kernels.chunk_count(N), 6, 6)), np.zeros((kernels.chunk_count(N), 6))
     gram_gpu, rhs_gpu = np.zeros((cuda_kernels.chunk_count(N), 6, 6)), np.zeros((cuda_kernels.chunk_count(N), 6))
-    R = np.array([[0.999, -0.03, 0.02], [0.03, 0.999, -0.01], [-0.02, 0.01, 0.999]])
     image = RNG.random((120, 160, 3)).astype(np.float32)  # as the solver's frames
     for _ in range(N_FRAMES):  # the frames add to one set of sums
         use = RNG.random(N) > 0.2
         frame = [f(N, 3) - 0.5, f(N), use, 1.0 / LAM, f(N, 3), f(N) - 0.5, f(N) - 0.5, f(N),
-                 f(N, 3) - 0.5 if extra else none3, (f(N, 3) - 0.5) * [0.6, 0.4, 0.2] + [0.0, 0.0, 1.0], R,
-                 np.array([0.02, -0.01, 0.03]), K, image, f(N, 6) if led and with_jacobian else none6, f(N, 3),
+                 f(N, 3) - 0.5 if extra else none3, (f(N, 3) - 0.5) * [0.6, 0.4, 0.2] + [0.0, 0.0, 1.0], POSE,
+                 K, image, f(N, 6) if led and with_jacobian else none6, f(N, 3),
                  with_jacobian, parallax]
         # the same frame on the GPU from the same sums, so that each frame's output is compared
         sums_gpu, e_gpu, rows_gpu, F_gpu = (np.copy(a) for a in (sums, e, rows, F))
@@ -171,8 +173,7 @@ def test_warp_gradients_match_cpu():
     H, W = 30, 40
     K = np.array([[50.0, 0.0, 19.5], [0.0, 50.0, 14.5], [0.0, 0.0, 1.0]])
     points = RNG.normal(size=(N_PIXELS, 3)) * [0.3, 0.2, 0.3] + [0.0, 0.0, 0.6]
-    R = np.array([[0.999, -0.03, 0.02], [0.03, 0.999, -0.01], [-0.02, 0.01, 0.999]])
-    cpu, gpu = run_both("warp_gradients", points, R, np.array([0.02, -0.01, 0.03]), K,
+    cpu, gpu = run_both("warp_gradients", points, POSE, K,
                         RNG.random((H, W, 3)).astype(np.float32), *(np.full((N_PIXELS, 3), np.nan) for _ in range(3)))
     for result_gpu, result_cpu in zip(gpu[-3:], cpu[-3:]):  # frame points, gradients
         assert_close(result_gpu, result_cpu)
@@ -184,8 +185,7 @@ def test_warp_sample_matches_cpu():
     K = np.array([[50.0, 0.0, 19.5], [0.0, 50.0, 14.5], [0.0, 0.0, 1.0]])
     points = RNG.normal(size=(N_PIXELS, 3)) * [0.3, 0.2, 0.3] + [0.0, 0.0, 0.6]
     points[:10, 2] = -0.1
-    R = np.array([[0.999, -0.03, 0.02], [0.03, 0.999, -0.01], [-0.02, 0.01, 0.999]])
-    cpu, gpu = run_both("warp_sample", points, R, np.array([0.02, -0.01, 0.03]), K,
+    cpu, gpu = run_both("warp_sample", points, POSE, K,
                         RNG.random((H, W, 3)).astype(np.float32), RNG.random(N_PIXELS) > 0.1,
                         np.zeros((N_PIXELS, 3), np.float32), np.zeros(N_PIXELS, bool))
     np.testing.assert_array_equal(gpu[-1], cpu[-1])

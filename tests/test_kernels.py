@@ -93,7 +93,7 @@ def test_warp_sample_is_warp_in_view_and_bilinear_sampling():
     pose = exp(np.array([0.02, -0.01, 0.03, 0.05, -0.04, 0.02]))
     visible = RNG.random(N_PIXELS) > 0.1
     color, usable = np.full((N_PIXELS, 3), np.nan, np.float32), np.zeros(N_PIXELS, bool)
-    warp_sample(points, pose[:3, :3].copy(), pose[:3, 3].copy(), K, image, visible, color, usable)
+    warp_sample(points, pose, K, image, visible, color, usable)
     _, u, v, Z = warp(points, pose, K)
     expected_usable = visible & in_view(u, v, Z, (H, W))
     np.testing.assert_array_equal(usable, expected_usable)
@@ -118,7 +118,7 @@ def test_warp_gradients_are_warp_and_central_differences_of_the_bilinear_image()
     points = points[points[:, 2] > 0.05]
     pose = exp(np.array([0.02, -0.01, 0.03, 0.05, -0.04, 0.02]))
     frame_points, grad_u, grad_v = (np.full(points.shape, np.nan) for _ in range(3))
-    warp_gradients(points, pose[:3, :3].copy(), pose[:3, 3].copy(), K, image, frame_points, grad_u, grad_v)
+    warp_gradients(points, pose, K, image, frame_points, grad_u, grad_v)
     expected_points, u, v, Z = warp(points, pose, K)
     assert 0.3 < in_view(u, v, Z, (H, W)).mean() < 0.95  # inside and outside
     np.testing.assert_allclose(frame_points, expected_points, rtol=1e-14, atol=1e-15)

@@ -131,7 +131,7 @@ def test_image_gradients_are_the_samples_of_central_difference_images(rng):
 
     def gradients(image):
         points_i, gu, gv = (np.empty((500, 3)) for _ in range(3))
-        warp_gradients(points, np.eye(3), np.zeros(3), K, image, points_i, gu, gv)
+        warp_gradients(points, np.eye(4), K, image, points_i, gu, gv)
         return gu, gv
 
     gu, gv = gradients(image)

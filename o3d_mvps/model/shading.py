@@ -28,15 +28,16 @@ def shading(normals: np.ndarray, light: np.ndarray) -> np.ndarray:
 
 
 def led_vectors(points: np.ndarray, light_position: np.ndarray) -> np.ndarray:
-    """Irradiance vectors (N, 3) of a unit point light at ``light_position`` (3,) on points (N, 3).
+    """Irradiance vectors (N, 3) of a unit point light at ``light_position`` (3,) on points (N, 3);
+    (m, N, 3) for m positions (m, 3).
 
     ``v = (s - X) / |s - X|^3`` (1/m^2): the light's shading of a unit normal n at X is
     ``max(0, <n, v>)`` per unit intensity (inverse-square falloff, Lambertian). Points and the
     light share one frame, in metres.
     """
-    d = like(light_position, points, dtype=np.float64) - points
-    r2 = np.einsum("ij,ij->i", d, d)
-    return d / (r2 * np.sqrt(r2))[:, None]
+    d = like(light_position, points, dtype=np.float64)[..., None, :] - points
+    r2 = np.einsum("...j,...j->...", d, d)
+    return d / (r2 * np.sqrt(r2))[..., None]
 
 
 def led_irradiances(normals: np.ndarray, points: np.ndarray, light_positions: np.ndarray,
@@ -75,12 +76,13 @@ def led_irradiances_into(normals, points, positions, out):  # pragma: no cover -
 
 
 def led_vector_jacobian(points: np.ndarray, light_position: np.ndarray, normals: np.ndarray) -> np.ndarray:
-    """d<n, v>/dX (N, 3) of :func:`led_vectors`: ``-n / r^3 + 3 <n, d> d / r^5``, d = s - X.
+    """d<n, v>/dX (N, 3) of :func:`led_vectors`: ``-n / r^3 + 3 <n, d> d / r^5``, d = s - X;
+    (m, N, 3) for m positions (m, 3).
 
     The derivative with respect to the light position is its negative.
     """
-    d = like(light_position, points, dtype=np.float64) - points
-    r2 = np.einsum("ij,ij->i", d, d)
+    d = like(light_position, points, dtype=np.float64)[..., None, :] - points
+    r2 = np.einsum("...j,...j->...", d, d)
     r3 = r2 * np.sqrt(r2)
-    nd = np.einsum("ij,ij->i", normals, d)
-    return -normals / r3[:, None] + (3.0 * nd / (r3 * r2))[:, None] * d
+    nd = np.einsum("...j,...j->...", normals, d)
+    return -normals / r3[..., None] + (3.0 * nd / (r3 * r2))[..., None] * d

@@ -88,7 +88,7 @@ def chunk_count(n_pixels: int) -> int:
 
 
 @cuda.jit
-def _accumulate_frame(r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, R, t, K, image, dshading,
+def _accumulate_frame(r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, pose, K, image, dshading,
                       albedo, with_jacobian, parallax, sums, e, rows, F, slot, gram, rhs):  # pragma: no cover - device
     t_ = cuda.grid(1)
     n_threads = rhs.shape[0]
@@ -104,17 +104,17 @@ def _accumulate_frame(r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, 
         for k in range(6):
             G[j, k] = 0.0
     for p in range(t_, r.shape[0], n_threads):
-        _accumulate_pixel(p, r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, R, t, K, image,
+        _accumulate_pixel(p, r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, pose, K, image,
                           dshading, albedo, with_jacobian, parallax, sums, e, rows, F, slot, J, G, b, wqJ, wcJ)
     _store_partial_sums(G, b, gram, rhs, t_)
 
 
-def accumulate_frame(r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, R, t, K, image, dshading,
+def accumulate_frame(r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, pose, K, image, dshading,
                      albedo, with_jacobian, parallax, sums, e, rows, F, slot, gram, rhs) -> None:
     """:func:`.kernels.accumulate_frame` on the GPU, same arguments; gram (T, 6, 6) and rhs (T, 6)
     get one row per thread, T = :func:`chunk_count` (N)."""
     _accumulate_frame[_blocks(rhs.shape[0]), THREADS_PER_BLOCK](
-        r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, R, t, K, image, dshading, albedo,
+        r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, pose, K, image, dshading, albedo,
         with_jacobian, parallax, sums, e, rows, F, slot, gram, rhs)
 
 
@@ -215,27 +215,27 @@ def led_irradiances_into(normals, points, positions, out) -> None:
 
 
 @cuda.jit
-def _warp_sample(points_ref, R, t, K, image, visible, color, usable):  # pragma: no cover - device
+def _warp_sample(points_ref, pose, K, image, visible, color, usable):  # pragma: no cover - device
     p = cuda.grid(1)
     if p < points_ref.shape[0]:
-        _warp_sample_pixel(points_ref, R, t, K, image, visible, color, usable, p)
+        _warp_sample_pixel(points_ref, pose, K, image, visible, color, usable, p)
 
 
-def warp_sample(points_ref, R, t, K, image, visible, color, usable) -> None:
+def warp_sample(points_ref, pose, K, image, visible, color, usable) -> None:
     """:func:`.kernels.warp_sample` on the GPU (one thread per pixel)."""
-    _warp_sample[_blocks(points_ref.shape[0]), THREADS_PER_BLOCK](points_ref, R, t, K, image, visible, color, usable)
+    _warp_sample[_blocks(points_ref.shape[0]), THREADS_PER_BLOCK](points_ref, pose, K, image, visible, color, usable)
 
 
 @cuda.jit
-def _warp_gradients(points_ref, R, t, K, image, points, grad_u, grad_v):  # pragma: no cover - device
+def _warp_gradients(points_ref, pose, K, image, points, grad_u, grad_v):  # pragma: no cover - device
     p = cuda.grid(1)
     if p < points_ref.shape[0]:
-        _warp_gradients_pixel(points_ref, R, t, K, image, points, grad_u, grad_v, p)
+        _warp_gradients_pixel(points_ref, pose, K, image, points, grad_u, grad_v, p)
 
 
-def warp_gradients(points_ref, R, t, K, image, points, grad_u, grad_v) -> None:
+def warp_gradients(points_ref, pose, K, image, points, grad_u, grad_v) -> None:
     """:func:`.kernels.warp_gradients` on the GPU (one thread per pixel)."""
-    _warp_gradients[_blocks(points_ref.shape[0]), THREADS_PER_BLOCK](points_ref, R, t, K, image, points, grad_u,
+    _warp_gradients[_blocks(points_ref.shape[0]), THREADS_PER_BLOCK](points_ref, pose, K, image, points, grad_u,
                                                                      grad_v)
 
 

@@ -41,7 +41,7 @@ def chunk_count(n_pixels: int) -> int:
 
 
 @numba.njit(inline="always")
-def accumulate_pixel(p, r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, R, t, K, image,
+def accumulate_pixel(p, r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, pose, K, image,
                      dshading, albedo, with_jacobian, parallax, sums, e, rows, F, slot, J, G, b, wqJ, wcJ):  # pragma: no cover
     """:func:`accumulate_frame`'s work on pixel p: its sums, e, rows and F entries, and its
     twist Gram and right-hand side added to G (6, 6) and b (6,). Scratch: J (3, 6), wqJ (6,),
@@ -62,12 +62,12 @@ def accumulate_pixel(p, r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c
     X = Y = Z = iz = u = v = ray_x = ray_y = ray_z = 0.0
     if jac:
         x, y, z = points_ref[p, 0], points_ref[p, 1], points_ref[p, 2]
-        X, Y, Z, u, v = project_point(R, t, K, x, y, z)
+        X, Y, Z, u, v = project_point(pose, K, x, y, z)
         iz = 1.0 / Z
-        rx, ry = x / z, y / z  # d(point)/d(z) = (rx, ry, 1) in the reference frame, R times that in frame i's
-        ray_x = R[0, 0] * rx + R[0, 1] * ry + R[0, 2]
-        ray_y = R[1, 0] * rx + R[1, 1] * ry + R[1, 2]
-        ray_z = R[2, 0] * rx + R[2, 1] * ry + R[2, 2]
+        rx, ry = x / z, y / z  # d(point)/d(z) = (rx, ry, 1) in the reference frame, the pose's rotation times that in frame i's
+        ray_x = pose[0, 0] * rx + pose[0, 1] * ry + pose[0, 2]
+        ray_y = pose[1, 0] * rx + pose[1, 1] * ry + pose[1, 2]
+        ray_z = pose[2, 0] * rx + pose[2, 1] * ry + pose[2, 2]
         for j in range(6):
             wqJ[j] = 0.0
             wcJ[j] = 0.0
@@ -154,7 +154,7 @@ def store_partial_sums(G, b, gram, rhs, k):  # pragma: no cover - compiled
 
 
 @numba.njit(parallel=True, cache=True)
-def accumulate_frame(r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, R, t, K, image, dshading,
+def accumulate_frame(r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, pose, K, image, dshading,
                      albedo, with_jacobian, parallax, sums, e, rows, F, slot, gram, rhs):  # pragma: no cover - compiled
     """Add frame i's depth rows to the per-pixel sums and, with its pose Jacobian, write its
     twist rows: the whole per-pixel sweep of the Gauss-Newton assembly in one pass.
@@ -172,7 +172,7 @@ def accumulate_frame(r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, p
 
     with_jacobian: the pose Jacobian J (3, 6) per usable pixel (zero elsewhere): the frame's
     colour gradients at the reference points points_ref (N, 3) metres warped by the frame's pose
-    (R (3, 3), t (3,)) and projected by K (3, 3) into its (H, W, 3) image
+    (4, 4) and projected by K (3, 3) into its (H, W, 3) image
     (:func:`warp_gradients_pixel`'s), chained with the projection, minus albedo (N, 3) x
     dshading (N, 6) (or (0, 6)). Then, in slot ``slot`` of rows (3, m, 6, N): ``sum_c w q J``
     times -alpha and -beta, and ``sum_c w c J``; of F (m, 6, N, 3) (0-sized: none): ws J;
@@ -189,7 +189,7 @@ def accumulate_frame(r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, p
         wqJ = np.zeros(6)
         wcJ = np.zeros(6)
         for p in range(chunk * CHUNK, min(n, (chunk + 1) * CHUNK)):
-            accumulate_pixel(p, r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, R, t, K, image,
+            accumulate_pixel(p, r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, pose, K, image,
                              dshading, albedo, with_jacobian, parallax, sums, e, rows, F, slot, J, G, b, wqJ, wcJ)
         store_partial_sums(G, b, gram, rhs, chunk)
 
@@ -309,12 +309,12 @@ def weighted_lighting_sums(residual, usable, color, albedo, inv_lam, wr2, wri): 
 
 
 @numba.njit(inline="always")
-def project_point(R, t, K, x, y, z):  # pragma: no cover - compiled
-    """The reference point (x, y, z) in a frame with pose R (3, 3), t (3,) and its pixel there:
-    (X, Y, Z, u, v); u = v = 0 where the projection is not finite."""
-    X = R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]
-    Y = R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]
-    Z = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]
+def project_point(pose, K, x, y, z):  # pragma: no cover - compiled
+    """The reference point (x, y, z) in a frame with pose (4, 4) (reference -> frame) and its
+    pixel there: (X, Y, Z, u, v); u = v = 0 where the projection is not finite."""
+    X = pose[0, 0] * x + pose[0, 1] * y + pose[0, 2] * z + pose[0, 3]
+    Y = pose[1, 0] * x + pose[1, 1] * y + pose[1, 2] * z + pose[1, 3]
+    Z = pose[2, 0] * x + pose[2, 1] * y + pose[2, 2] * z + pose[2, 3]
     u = 0.0
     v = 0.0
     if Z != 0.0:
@@ -366,11 +366,11 @@ def image_gradients_at(image, u, v, c):  # pragma: no cover - compiled
 
 
 @numba.njit(inline="always")
-def warp_sample_pixel(points_ref, R, t, K, image, visible, color, usable, p):  # pragma: no cover - compiled
+def warp_sample_pixel(points_ref, pose, K, image, visible, color, usable, p):  # pragma: no cover - compiled
     """:func:`warp_sample` on pixel p: the point's projection in the frame, whether the frame
     sees it there, and the image's bilinear sample at it (at the clamped position; 0 where the
     point is behind the camera)."""
-    _, _, Z, u, v = project_point(R, t, K, points_ref[p, 0], points_ref[p, 1], points_ref[p, 2])
+    _, _, Z, u, v = project_point(pose, K, points_ref[p, 0], points_ref[p, 1], points_ref[p, 2])
     H, W = image.shape[0], image.shape[1]
     usable[p] = visible[p] and Z > 1e-6 and u >= 0.0 and u <= W - 1.0 and v >= 0.0 and v <= H - 1.0
     for c in range(3):
@@ -378,21 +378,21 @@ def warp_sample_pixel(points_ref, R, t, K, image, visible, color, usable, p):  #
 
 
 @numba.njit(parallel=True, cache=True)
-def warp_sample(points_ref, R, t, K, image, visible, color, usable):  # pragma: no cover - compiled
+def warp_sample(points_ref, pose, K, image, visible, color, usable):  # pragma: no cover - compiled
     """Frame i's view of the reference points: per pixel p of points_ref (N, 3) metres, its
-    projection ``K (R P + t)`` (R (3, 3), t (3,): the frame's pose, K (3, 3)), ``usable[p]`` =
+    projection ``K (R P + t)`` (pose (4, 4) = [R t], K (3, 3)), ``usable[p]`` =
     ``visible[p]`` (N,) bool and in front of the camera and inside the (H, W, 3) ``image``, and
     ``color[p]`` (N, 3) its bilinear sample there (pixel centres at integers; the border
     repeats): :func:`o3d_mvps.model.warping.warp`, ``in_view`` and ``sample_bilinear`` in one
     pass. H, W >= 2."""
     for p in numba.prange(points_ref.shape[0]):
-        warp_sample_pixel(points_ref, R, t, K, image, visible, color, usable, p)
+        warp_sample_pixel(points_ref, pose, K, image, visible, color, usable, p)
 
 
 @numba.njit(inline="always")
-def warp_gradients_pixel(points_ref, R, t, K, image, points, grad_u, grad_v, p):  # pragma: no cover - compiled
+def warp_gradients_pixel(points_ref, pose, K, image, points, grad_u, grad_v, p):  # pragma: no cover - compiled
     """:func:`warp_gradients` on pixel p."""
-    X, Y, Z, u, v = project_point(R, t, K, points_ref[p, 0], points_ref[p, 1], points_ref[p, 2])
+    X, Y, Z, u, v = project_point(pose, K, points_ref[p, 0], points_ref[p, 1], points_ref[p, 2])
     points[p, 0] = X
     points[p, 1] = Y
     points[p, 2] = Z
@@ -401,10 +401,10 @@ def warp_gradients_pixel(points_ref, R, t, K, image, points, grad_u, grad_v, p):
 
 
 @numba.njit(parallel=True, cache=True)
-def warp_gradients(points_ref, R, t, K, image, points, grad_u, grad_v):  # pragma: no cover - compiled
+def warp_gradients(points_ref, pose, K, image, points, grad_u, grad_v):  # pragma: no cover - compiled
     """What a pose Jacobian reads of frame i at the reference points points_ref (N, 3) metres:
-    the frame-i points ``R P + t`` (N, 3) and the (H, W, 3) image's colour gradients grad_u,
-    grad_v (N, 3) at their projections (:func:`image_gradients_at`; where the projection is not
-    finite, at pixel (0, 0)). The same per-pixel function as :func:`accumulate_frame`'s."""
+    the frame-i points ``R P + t`` (N, 3) (pose (4, 4) = [R t]) and the (H, W, 3) image's colour
+    gradients grad_u, grad_v (N, 3) at their projections (:func:`image_gradients_at`; where the
+    projection is not finite, at pixel (0, 0)). The same per-pixel function as :func:`accumulate_frame`'s."""
     for p in numba.prange(points_ref.shape[0]):
-        warp_gradients_pixel(points_ref, R, t, K, image, points, grad_u, grad_v, p)
+        warp_gradients_pixel(points_ref, pose, K, image, points, grad_u, grad_v, p)

@@ -35,8 +35,23 @@ from .line_search import backtrack
 from .linear import ridge_solve
 
 
+class FrameFields:
+    """One frame's light field and shading Jacobian, from the light model's batched ``fields``
+    and ``shading_jacobians`` of m frames (lights (m, k), poses (m, 4, 4))."""
+
+    def field(self, light: np.ndarray, normals: np.ndarray, points: np.ndarray, pose: np.ndarray):
+        """(c, L): frame's shading ``c + <L, n>`` for light (k,) and pose (4, 4) (:meth:`fields`)."""
+        c, L = self.fields(light[None], normals, points, pose[None])
+        return c[0], L[0]
+
+    def shading_jacobian(self, light: np.ndarray, normals: np.ndarray, points: np.ndarray, pose: np.ndarray):
+        """d(shading)/d(xi) (N, 6) of one frame, or None (:meth:`shading_jacobians`)."""
+        J = self.shading_jacobians(light[None], normals, points, pose[None])
+        return None if J is None else J[0]
+
+
 @dataclass
-class SHLight:
+class SHLight(FrameFields):
     """First-order spherical harmonics per frame (paper section 3); ``initial`` (4,)."""
 
     initial: tuple = INITIAL_LIGHT
@@ -57,11 +72,12 @@ class SHLight:
         """(1, N, 4): the one basis every frame shares."""
         return sh_basis(normals)[None]
 
-    def field(self, light: np.ndarray, normals: np.ndarray, points: np.ndarray, pose: np.ndarray):
-        """(c, L): shading ``c + <L, n>`` with n in reference coordinates; here (scalar, (3,))."""
-        return light[0], light[1:]
+    def fields(self, lights: np.ndarray, normals: np.ndarray, points: np.ndarray, poses: np.ndarray):
+        """(c, L): frame i's shading is ``c_i + <L_i, n>`` with n in reference coordinates; here
+        c (m,) and L (m, 3) of lights (m, 4), the same for every pixel."""
+        return lights[:, 0], lights[:, 1:]
 
-    def shading_jacobian(self, light, normals, points, pose) -> None:
+    def shading_jacobians(self, lights, normals, points, poses) -> None:
         """d(shading)/d(xi): zero, the SH light lives in reference coordinates."""
         return None
 
@@ -116,7 +132,7 @@ class RoomLight(SHLight):
 
 
 @dataclass
-class LEDLight:
+class LEDLight(FrameFields):
     """Near-field point light at ``offset`` (3,) metres in the camera frame, plus ambient."""
 
     offset: np.ndarray = field(default_factory=lambda: np.zeros(3))
@@ -162,34 +178,35 @@ class LEDLight:
         np.maximum(g, 0.0, out=out[..., 1])
         return out
 
-    def field(self, light: np.ndarray, normals: np.ndarray, points: np.ndarray, pose: np.ndarray):
-        """(c, L): shading ``c + <L, n>``; L (N, 3) is the intensity times v_i, zero where the
-        point faces away."""
-        v = led_vectors(points, self.position(pose))
-        lit = light[1] * (np.einsum("ij,ij->i", normals, v) > 0)
-        return light[0], v * lit[:, None]
+    def fields(self, lights: np.ndarray, normals: np.ndarray, points: np.ndarray, poses: np.ndarray):
+        """(c, L): frame i's shading is ``c_i + <L_i, n>``; c (m,) the ambients of lights (m, 2),
+        L (m, N, 3) the intensity times v_i, zero where the point faces away."""
+        v = led_vectors(points, self.positions(poses))  # (m, N, 3)
+        lit = like(lights[:, 1:], points) * (np.einsum("...j,...j->...", normals, v) > 0)
+        return lights[:, 0], v * lit[..., None]
 
-    def _camera_gradient(self, light, normals, points, pose):
-        """d(shading)/d(point) (N, 3) in frame i's camera coordinates, zero where unlit."""
-        s = self.position(pose)
+    def _camera_gradients(self, lights, normals, points, poses):
+        """d(shading)/d(point) (m, N, 3) in each frame's camera coordinates, zero where unlit."""
+        s = self.positions(poses)
         J = led_vector_jacobian(points, s, normals)
-        lit = light[1] * (np.einsum("ij,ij->i", normals, like(s, points) - points) > 0)
-        return (J * lit[:, None]) @ like(pose[:3, :3].T, points)
+        lit = like(lights[:, 1:], points) * (np.einsum("...j,...j->...", normals,
+                                                       like(s, points)[:, None, :] - points) > 0)
+        return np.matmul(J * lit[..., None], like(poses[:, :3, :3].transpose(0, 2, 1), points))
 
-    def shading_jacobian(self, light: np.ndarray, normals: np.ndarray, points: np.ndarray,
-                         pose: np.ndarray) -> np.ndarray:
-        """d(shading)/d(xi) (N, 6) for a left update exp(xi) T, xi = (v, w).
+    def shading_jacobians(self, lights: np.ndarray, normals: np.ndarray, points: np.ndarray,
+                          poses: np.ndarray) -> np.ndarray:
+        """d(shading)/d(xi) (m, N, 6) for a left update exp(xi) T of each frame, xi = (v, w).
 
         Moving the camera moves the LED with it: s_i = T^-1 o, so with G the shading's gradient
         with respect to the point in camera coordinates, ``d/dv = G`` and ``d/dw = o x G``.
         """
-        G = self._camera_gradient(light, normals, points, pose)
-        return np.concatenate([G, np.cross(like(self.offset, G), G)], axis=1)
+        G = self._camera_gradients(lights, normals, points, poses)
+        return np.concatenate([G, np.cross(like(self.offset, G), G)], axis=-1)
 
     def offset_jacobian(self, light: np.ndarray, normals: np.ndarray, points: np.ndarray,
                         pose: np.ndarray) -> np.ndarray:
-        """d(shading)/d(offset) (N, 3)."""
-        return -self._camera_gradient(light, normals, points, pose)
+        """d(shading)/d(offset) (N, 3) of one frame."""
+        return -self._camera_gradients(light[None], normals, points, pose[None])[0]
 
     def fit(self, gram: np.ndarray, rhs: np.ndarray, lights: np.ndarray) -> np.ndarray:
         """Per-frame lights (n, 2): :func:`fit_per_frame`."""

@@ -184,7 +184,6 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
     downdate (6m, 6m) and the transposed coupling (6m, N) added in place. Du_rows, Dv_rows: the
     block's rows (B, N) of the difference operators."""
     xp, kernels = array_module(points_ref), kernels_for(points_ref)
-    K = like(problem.level.K, points_ref)
     B = points_ref.shape[0]
     m = len(candidates)
     none3, none6, none_e = xp.zeros((0, 3)), xp.zeros((0, 6)), xp.zeros((0, 1, 3))  # the kernel's optional arrays
@@ -200,25 +199,29 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
     rows = xp.empty((3, m, 6, B))
     F = xp.empty((m, 6, B, 3)) if projection is not None else xp.empty((0, 6, 1, 3))
     chunks = kernels.chunk_count(B)
-    gram, rhs = xp.empty((chunks, 6, 6)), xp.empty((chunks, 6))
+    # per refined frame its partial sums of the twist Gram and right-hand side, and one more for
+    # the other frames (whose kernel writes them too)
+    gram, rhs = xp.empty((m + 1, chunks, 6, 6)), xp.empty((m + 1, chunks, 6))
+    # every frame's frozen light field and LED shading Jacobian at once: a few dozen array
+    # operations per block rather than per frame
+    _, alpha, beta, gamma = shading_rows(problem, est, normals, points_ref, block)  # (n, B) each
+    dshading = model.shading_jacobians(est.lights, normals, points_ref, est.poses) if parallax or m else None
+    poses = like(est.poses, points_ref)  # one copy to the GPU for all the frames' kernels
     for i in range(problem.n_frames):
-        pose, use = est.poses[i], usable[i]
-        _, alpha, beta, gamma = shading_rows(problem, est, i, normals, points_ref, block)
+        use = usable[i]
         with_jacobian = i > 0 and (parallax or i in slot)
-        dshading = (model.shading_jacobian(est.lights[i], normals, points_ref, pose)
-                    if with_jacobian or (i == 0 and parallax) else None)
         extra_c = none3
         if i == 0 and parallax and dshading is not None:
-            extra_c = _reference_parallax(albedo, dshading, points_ref / points_ref[:, 2:3], use)
+            extra_c = _reference_parallax(albedo, dshading[0], points_ref / points_ref[:, 2:3], use)
         k = slot.get(i, -1)
-        kernels.accumulate_frame(residual[i], shading[i], use, 1.0 / problem.lam, q, alpha, beta, gamma, extra_c,
-                                 points_ref, like(pose[:3, :3], points_ref), like(pose[:3, 3], points_ref), K,
-                                 problem.level.images[i], none6 if dshading is None or not with_jacobian else dshading,
-                                 albedo, with_jacobian, parallax, block_sums,
-                                 none_e if projection is None else projection.e, rows, F, k, gram, rhs)
-        if k >= 0:
-            grams[k] += to_host(gram.sum(axis=0))
-            rhs_xi[6 * k:6 * k + 6] += to_host(rhs.sum(axis=0))
+        kernels.accumulate_frame(residual[i], shading[i], use, 1.0 / problem.lam, q, alpha[i], beta[i], gamma[i],
+                                 extra_c, points_ref, poses[i], problem.device_K, problem.level.images[i],
+                                 dshading[i] if dshading is not None and with_jacobian else none6, albedo,
+                                 with_jacobian, parallax, block_sums, none_e if projection is None else projection.e,
+                                 rows, F, k, gram[k], rhs[k])
+    if m:
+        grams += to_host(gram[:m].sum(axis=1))
+        rhs_xi += to_host(rhs[:m].sum(axis=1)).reshape(-1)
     if projection is not None:
         block_sums[:6] -= projection.local()
         block_sums[6:] -= projection.local_rhs()
@@ -291,18 +294,20 @@ def _gram(A: np.ndarray) -> np.ndarray:
     return np.triu(upper) + np.triu(upper, 1).T
 
 
-def shading_rows(problem: LevelProblem, est: Estimate, i: int, normals: np.ndarray, points_ref: np.ndarray,
+def shading_rows(problem: LevelProblem, est: Estimate, normals: np.ndarray, points_ref: np.ndarray,
                  pixels: slice = slice(None)):
-    """(c, alpha, beta, gamma) of frame i, (N,) each (c may be a scalar), with the light field
-    frozen at the current surface: the shading is ``c + (alpha Du z + beta Dv z + gamma z) / dA``.
-    normals, points_ref (N, 3): those of the grid's ``pixels`` (default all)."""
+    """(c, alpha, beta, gamma) of every frame: c (n,) and (n, N) each, with the light field
+    frozen at the current surface: frame i's shading is
+    ``c_i + (alpha_i Du z + beta_i Dv z + gamma_i z) / dA``. normals, points_ref (N, 3): those
+    of the grid's ``pixels`` (default all)."""
     g, K = problem.level.grid, problem.level.K
     u, v = g.u[pixels], g.v[pixels]
-    c, L = problem.light_model(est).field(est.lights[i], normals, points_ref, est.poses[i])
-    L = array_module(normals).broadcast_to(like(L, normals), (len(u), 3))
-    alpha = K[0, 0] * L[:, 0] - (u - K[0, 2]) * L[:, 2]
-    beta = K[1, 1] * L[:, 1] - (v - K[1, 2]) * L[:, 2]
-    return c, alpha, beta, -L[:, 2]
+    c, L = problem.light_model(est).fields(est.lights, normals, points_ref, est.poses)
+    n = len(est.lights)
+    L = array_module(normals).broadcast_to(like(L, normals).reshape(n, -1, 3), (n, len(u), 3))  # (n, N, 3)
+    alpha = K[0, 0] * L[..., 0] - (u - K[0, 2]) * L[..., 2]
+    beta = K[1, 1] * L[..., 1] - (v - K[1, 2]) * L[..., 2]
+    return c, alpha, beta, -L[..., 2]
 
 
 def stencil_normal_matrix(grid, Saa, Sbb, Sgg, Sab, Sag, Sbg) -> sp.csr_matrix:

@@ -104,6 +104,8 @@ class LevelProblem:
         self.n_frames = len(level.images)
         self._prolongations = None
         self.visibility = like(np.ones((self.n_frames, level.grid.size), dtype=bool), level.grid.u)
+        #: the level's intrinsics (3, 3) where its arrays live, for the kernels
+        self.device_K = like(level.K, level.grid.u)
 
     def pixel_prolongations(self) -> list:
         """The level's pixel aggregation for the GPU path's multigrid (:func:`.krylov.pixel_prolongations`),
@@ -136,19 +138,19 @@ class LevelProblem:
     def _warp_sample(self, i: int, pose: np.ndarray, points_ref: np.ndarray, color: np.ndarray,
                      usable: np.ndarray) -> None:
         """:meth:`sample` written into color (N, 3) float32 and usable (N,) bool
-        (:func:`.kernels.warp_sample`: warp, in-view test and bilinear samples in one pass)."""
-        kernels_for(points_ref).warp_sample(points_ref, like(pose[:3, :3], points_ref), like(pose[:3, 3], points_ref),
-                                            like(self.level.K, points_ref), self.level.images[i], self.visibility[i],
-                                            color, usable)
+        (:func:`.kernels.warp_sample`: warp, in-view test and bilinear samples in one pass);
+        pose (4, 4) on the host or already where the points are."""
+        kernels_for(points_ref).warp_sample(points_ref, like(pose, points_ref), self.device_K, self.level.images[i],
+                                            self.visibility[i], color, usable)
 
     def warped_gradients(self, i: int, pose: np.ndarray, points_ref: np.ndarray) -> FrameGradients:
         """Frame i's colour gradients at the reference points (N, 3) warped by ``pose``, by the
         per-pixel function of the assembly's kernel (:func:`.kernels.warp_gradients`)."""
         xp = array_module(points_ref)
         gradients = FrameGradients(*(xp.empty(points_ref.shape) for _ in range(3)))
-        kernels_for(points_ref).warp_gradients(points_ref, like(pose[:3, :3], points_ref), like(pose[:3, 3], points_ref),
-                                               like(self.level.K, points_ref), self.level.images[i], gradients.points,
-                                               gradients.grad_u, gradients.grad_v)
+        kernels_for(points_ref).warp_gradients(points_ref, like(pose, points_ref), self.device_K,
+                                               self.level.images[i], gradients.points, gradients.grad_u,
+                                               gradients.grad_v)
         return gradients
 
     def update_visibility(self, est: Estimate, *, occlusion_test: bool, rel_tol: float, sensor_depths=None,
@@ -196,8 +198,9 @@ class LevelProblem:
         xp = array_module(P)
         color = xp.empty((n, N, 3), dtype=np.float32)  # sampled from float32 images
         usable = xp.empty((n, N), dtype=bool)
+        poses = like(est.poses, P)  # one copy to the GPU for all the frames
         for i in range(n):
-            self._warp_sample(i, est.poses[i], P, color[i], usable[i])
+            self._warp_sample(i, poses[i], P, color[i], usable[i])
         return self.evaluate_samples(est, color, usable, *self.normals(est.z))
 
     def evaluate_samples(self, est: Estimate, color: np.ndarray, usable: np.ndarray, normals: np.ndarray,
