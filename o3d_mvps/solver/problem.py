@@ -55,10 +55,9 @@ class FrameGradients:
 
 @dataclass
 class Evaluation:
-    """Residuals r (n, N, 3), usable (n, N), warped colours (n, N, 3) float32, shading (n, N) (r
-    and shading in the problem's residual_dtype),
-    unit normals (N, 3), dA (N,), light bases (m, N, k) (m = 1 when all frames share one),
-    and the energy split into data and prior terms."""
+    """Residuals r (n, N, 3), usable (n, N), warped colours (n, N, 3) float32, shading (n, N)
+    (r and shading in the problem's residual_dtype), unit normals (N, 3), dA (N,), light bases
+    (m, N, k) (m = 1 when all frames share one), and the energy split into data and prior terms."""
 
     residual: np.ndarray
     usable: np.ndarray
