@@ -144,7 +144,9 @@ def count(folder, out="benchmarks/results", min_level_pixels: int | None = None)
     device, sweeps and the operations of its sweeps (the levels' set-up and the copies between
     levels count in the total only). min_level_pixels: the CUDA path's smallest level on the
     device (None: the product's, CUDA_MIN_LEVEL_PIXELS)."""
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+    tests = str(Path(__file__).resolve().parents[1] / "tests")
+    if tests not in sys.path:
+        sys.path.insert(0, tests)
     import cupy_emulation
 
     from o3d_mvps.solver import driver
@@ -174,8 +176,8 @@ def count(folder, out="benchmarks/results", min_level_pixels: int | None = None)
                 device = cupy_emulation.array_device(CUDA_MIN_LEVEL_PIXELS if min_level_pixels is None
                                                      else min_level_pixels)
                 solution = driver.solve(read_problem(path), device=device)
-                for level, device in zip(levels, solution.info["level_devices"]):
-                    level["device"] = device
+                for level, where in zip(levels, solution.info["level_devices"]):
+                    level["device"] = where
                 results.append({"problem": path.name, "object_pixels": int(solution.mask.sum()),
                                 "operations": sum(cupy_emulation.operations.values()),
                                 "by_kind": dict(cupy_emulation.operations.most_common()), "levels": list(levels)})
@@ -202,22 +204,14 @@ def _cpu_kernels_as_cuda_kernels(stand_in):
             return kernel(*(a.view(np.ndarray) if isinstance(a, stand_in.ndarray) else a for a in args))
         return launch
 
-    module = types.ModuleType("o3d_mvps.solver.cuda_kernels")
+    module = types.ModuleType(cuda_kernels.__name__)
     module.__dict__.update({name: launcher(getattr(kernels, name)) for name in cuda_kernels.__all__})
     module.chunk_count = kernels.chunk_count  # not a launch
-    saved = sys.modules.get(module.__name__), getattr(o3d_mvps.solver, "cuda_kernels", None)
     sys.modules[module.__name__] = o3d_mvps.solver.cuda_kernels = module
     try:
         yield
     finally:
-        if saved[0] is None:
-            sys.modules.pop(module.__name__, None)
-        else:
-            sys.modules[module.__name__] = saved[0]
-        if saved[1] is None:
-            del o3d_mvps.solver.cuda_kernels
-        else:
-            o3d_mvps.solver.cuda_kernels = saved[1]
+        sys.modules[module.__name__] = o3d_mvps.solver.cuda_kernels = cuda_kernels
 
 
 def main(argv=None) -> int:
