@@ -73,6 +73,27 @@ def test_led_shading_and_offset_jacobians_match_finite_differences(rng):
         np.testing.assert_allclose(Jo, fd_o, rtol=1e-6, atol=1e-6 * np.abs(fd_o).max())
 
 
+def test_led_fields_and_jacobians_of_several_frames_are_each_frames_own(rng):
+    """The batched fields and shading Jacobians (what the joint assembly reads for all frames at
+    once) equal, frame by frame, those of each frame alone (whose Jacobian is checked against
+    finite differences above): to round-off."""
+    points, normals = surface(rng)
+    light = LEDLight(OFFSET)
+    poses = np.stack([a_pose(rng) for _ in range(3)])
+    lights = np.array([[0.1, 0.35], [0.05, 0.3], [0.2, 0.4]])
+    c, L = light.fields(lights, normals, points, poses)
+    J = light.shading_jacobians(lights, normals, points, poses)
+    assert L.shape == (3, len(points), 3) and J.shape == (3, len(points), 6)
+    for i in range(3):
+        single = LEDLight(OFFSET)
+        c_i, L_i = single.fields(lights[i:i + 1], normals, points, poses[i:i + 1])
+        assert c[i] == c_i[0]
+        np.testing.assert_allclose(L[i], L_i[0], rtol=1e-14, atol=0)
+        np.testing.assert_allclose(J[i], single.shading_jacobians(lights[i:i + 1], normals, points, poses[i:i + 1])[0],
+                                   rtol=1e-12, atol=1e-12 * np.abs(J[i]).max())
+        assert np.abs(J[i] - J[(i + 1) % 3]).max() > 1e-3 * np.abs(J[i]).max()  # the frames differ
+
+
 def test_led_field_reproduces_the_basis_and_is_zero_facing_away(rng):
     points, normals = surface(rng, 30)
     normals[::3] *= -1  # every third point faces away from the LED

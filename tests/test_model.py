@@ -379,3 +379,18 @@ def test_auto_smoothness_grows_with_the_sensor_noise_and_with_finer_pixels():
     assert auto_smoothness(10.0, doubled, mask, 4, K_colour) == pytest.approx(4 * mu, rel=0.1)
     assert auto_smoothness(10.0, noisy, mask, 4, K_colour * [[2], [2], [1]]) == pytest.approx(16 * mu, rel=1e-9)
     assert auto_smoothness(10.0, np.full(plane.shape, 0.6), mask, 4, K_colour) == 240.0  # the stereo's floor
+
+
+def test_a_float32_residual_problem_keeps_its_residuals_in_float32():
+    """residual_dtype (float32 on the CUDA path) is what an evaluation stores its residuals and
+    shading in, and the energy moves only by float32 rounding of the residuals (relative 1e-6;
+    the energy's logarithms are float32 either way)."""
+    from o3d_mvps.solver.problem import LevelProblem
+
+    problem, est = make_problem()
+    single = LevelProblem(problem.level, problem.tau, problem.lam, residual_dtype=np.float32)
+    ev64, ev32 = problem.evaluate(est), single.evaluate(est)
+    assert ev64.residual.dtype == np.float64 and ev32.residual.dtype == ev32.shading.dtype == np.float32
+    np.testing.assert_allclose(ev32.residual, ev64.residual, rtol=0, atol=1e-6 * np.abs(ev64.residual).max())
+    assert ev32.energy == pytest.approx(ev64.energy, rel=1e-6)
+    assert single.reevaluate(est, ev32, overwrite=True).residual.dtype == np.float32
