@@ -14,7 +14,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from .capture import Capture, to_host
+from .capture import Capture, CameraSetting, camera_setting, to_host
 from .errors import CaptureError
 from .fileio import check_output_files
 from .model import se3
@@ -38,6 +38,9 @@ def refine(capture: Capture, options: RefineOptions | None = None, device="CPU:0
     this .npz once the frames are registered (``python -m o3d_mvps.solver`` solves it; refuses an
     existing file unless ``overwrite``). Of more than three frames, those that see too little of
     the reference's surface are left out (:func:`o3d_mvps.views.frames_seeing_reference`).
+    A static-camera capture (:func:`o3d_mvps.capture.camera_setting`: declared in capture.json or
+    detected from the depth) is not registered: its poses are the identity (or ``initial_poses``),
+    not refined, and every frame is used; ``info["camera"]`` says how it was decided.
     Returns a :class:`~o3d_mvps.Refinement`; ``info["frames"]`` lists the capture's frames it
     used, ``info["views"]`` each frame's covisibility and why a frame was left out.
     """
@@ -46,24 +49,31 @@ def refine(capture: Capture, options: RefineOptions | None = None, device="CPU:0
     if save_problem is not None:
         check_output_files([save_problem], overwrite)
     t0 = time.perf_counter()
-    problem_input, views = problem_from_capture(capture, options, initial_poses)
+    camera = camera_setting(capture)
+    problem_input, views = problem_from_capture(capture, options, initial_poses, camera=camera)
     odometry = time.perf_counter() - t0
     if save_problem is not None:
         write_problem(problem_input, save_problem, overwrite=overwrite)
     output = solve(problem_input, problem_input.options, device)
     return Refinement.from_arrays(
         output.depth, output.mask, output.K, albedo=output.albedo, poses=output.poses, lighting=output.lighting,
-        method="ours", energy=output.energy, info={**output.info, **({"views": views.to_dict()} if views else {})},
+        method="ours", energy=output.energy, info={**output.info, **({"views": views.to_dict()} if views else {}), "camera": camera.to_dict()},
         timings={"odometry": odometry, **output.timings, "total": time.perf_counter() - t0},
     )
 
 
-def problem_from_capture(capture: Capture, options: RefineOptions,
-                         initial_poses=None) -> tuple[SolverInput, ViewSelection | None]:
+def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses=None, *,
+                         camera: CameraSetting | None = None) -> tuple[SolverInput, ViewSelection | None]:
     """The solver's input from a capture: the frames ``options.frames`` picks, minus those the
     registration drops when no ``initial_poses`` are given and those that do not see the
     reference (see :func:`refine`); and that view selection (None with three frames or fewer).
-    The input's options name the light model (:func:`with_light_model`)."""
+    The input's options name the light model (:func:`with_light_model`). A static-camera capture
+    (``camera``, default :func:`~o3d_mvps.capture.camera_setting` of the capture) keeps every
+    frame, identity poses (unless given) and no pose refinement."""
+    camera = camera_setting(capture) if camera is None else camera
+    if camera.static:
+        capture = replace(capture, camera="static")
+        options = replace(options, refine_poses=False)
     options = with_light_model(options, capture)
     frames = options.frame_indices(capture.n_frames)
     if initial_poses is not None:
@@ -72,6 +82,8 @@ def problem_from_capture(capture: Capture, options: RefineOptions,
             raise ValueError(f"initial_poses must be ({capture.n_frames}, 4, 4), got {initial_poses.shape}")
         initial_poses = se3.relative_to_reference(initial_poses[frames])  # onto the first frame used
     capture = capture.select(frames)
+    if initial_poses is None and camera.static:
+        initial_poses = np.tile(np.eye(4), (capture.n_frames, 1, 1))
     if initial_poses is None:
         if capture.n_frames > 1:
             from .odometry import register_frames
@@ -82,7 +94,7 @@ def problem_from_capture(capture: Capture, options: RefineOptions,
         else:
             initial_poses = np.eye(4)[None]
     views = None
-    if capture.n_frames > MIN_OTHER_FRAMES + 1:  # e.g. a ring: keep the frames that see the reference's surface
+    if capture.n_frames > MIN_OTHER_FRAMES + 1 and not camera.static:  # e.g. a ring: keep the frames that see the reference's surface
         views = frames_seeing_reference(capture, initial_poses, frame_ids=frames)
         keep = [frames.index(i) for i in views.frames]
         capture, initial_poses, frames = capture.select(keep), initial_poses[keep], views.frames
@@ -102,9 +114,12 @@ LIGHT_MODEL_OF_CAPTURE = {"led": "led", "room": "room"}
 
 def with_light_model(options: RefineOptions, capture: Capture) -> RefineOptions:
     """``options`` with a light model: the one given, else the capture's (:data:`LIGHT_MODEL_OF_CAPTURE`),
+    else per-frame SH for a static camera (a light moved by hand: ``capture.camera == "static"``),
     else the LED model with a warning saying how to choose."""
     if options.light_model is not None:
         return options
+    if capture.light is None and capture.camera == "static":
+        return replace(options, light_model="sh")
     if capture.light is None:
         warnings.warn('the capture does not say what lit it (no "light" in capture.json): using the LED model. '
                       'Write "light": "led" (the LED on the camera) or "room" (room light) into capture.json, or '

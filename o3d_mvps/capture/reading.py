@@ -27,7 +27,7 @@ from .layout import (
 )
 from .masks import auto_masks
 from .types import Capture, GroundTruth, default_depth_intrinsic, image_from_array
-from .validation import check_light, check_settings, groundtruth_problem, intrinsic_matrix, size_text, validate_capture
+from .validation import check_camera, check_light, check_settings, groundtruth_problem, intrinsic_matrix, size_text, validate_capture
 
 #: EXIF tag of the image orientation (1 = stored as displayed).
 EXIF_ORIENTATION = 0x0112
@@ -103,6 +103,7 @@ def read_capture(path, mask: str | None = None, depth_range=None) -> Capture:
         sensor=settings["sensor"],
         metadata={**settings["metadata"], "color_bit_depth": bit_depths.pop()},
         light=settings["light"],
+        camera=settings["camera"],
     )
     validate_capture(capture, names)
     _check_intrinsic_size(root / INTRINSIC_JSON, color_K_size, capture.color_size, COLOR_DIR)
@@ -314,7 +315,7 @@ def _read_masks(folder: Path, names: list[str]) -> list | None:
 
 def _read_settings(path: Path) -> dict:
     """capture.json with defaults filled in; 'frames' is None when absent."""
-    settings = {**DEFAULT_SETTINGS, "frames": None, "metadata": {}, "light": None}
+    settings = {**DEFAULT_SETTINGS, "frames": None, "metadata": {}, "light": None, "camera": None}
     if not path.exists():
         return settings
     data = load_json(path)
@@ -332,6 +333,7 @@ def _read_settings(path: Path) -> dict:
         raise CaptureError(f"{path}: metadata must be a JSON object")
     settings["sensor"] = str(settings["sensor"])
     check_light(settings["light"], f"{path}: ")
+    check_camera(settings["camera"], f"{path}: ")
     return settings
 
 

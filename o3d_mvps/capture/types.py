@@ -43,6 +43,8 @@ class Capture:
     color_encoding: how colour PNGs are encoded on disk ("srgb" or "linear").
     light: what lit the frames (capture.json's "light"): "led" (the LED on the camera) or "room"
     (room light); None when the capture does not say.
+    camera: capture.json's "camera": "static" (a fixed camera, a light moved between frames:
+    :mod:`o3d_mvps.capture.static`), "moving", or None when the capture does not say.
     """
 
     color: list
@@ -57,6 +59,7 @@ class Capture:
     groundtruth: GroundTruth | None = None
     metadata: dict = field(default_factory=dict)
     light: str | None = None
+    camera: str | None = None
 
     # --- sizes -------------------------------------------------------------------------
     @property

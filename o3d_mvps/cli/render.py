@@ -15,6 +15,8 @@ examples:
   o3d-mvps render armadillo captures/arma --frames 30 --scale-factor 8 --size 1280x720
   o3d-mvps render my_scan.ply captures/scan --trajectory orbit-translate --light directional --seed 3
   o3d-mvps render bunny captures/room --scene --light room --frames 20   # table, wall, 360-degree ring
+  o3d-mvps render bunny captures/real --sensor d415            # terraces, flying pixels, holes, gain drift
+  o3d-mvps render bunny captures/static --static-camera --size 1280x960 --scale-factor 2 --sensor d415
 
 The folder holds color/, depth/, mask/, intrinsic.json, depth_intrinsic.json, capture.json and
 groundtruth/ (reference depth, normals, albedo, poses, light, mesh_to_reference); read it with
@@ -25,7 +27,7 @@ finds the object with its automatic masks, as in a user's capture.
 
 def register(subparsers) -> None:
     """Add the ``render`` subcommand."""
-    from ..synthetic import LIGHTS, TRAJECTORIES
+    from ..synthetic import LIGHTS, SENSORS, TRAJECTORIES
 
     p = subparsers.add_parser(
         "render",
@@ -54,9 +56,19 @@ def register(subparsers) -> None:
                    help="scene mode: the object on a table in front of a wall, frames on a 360-degree ring "
                    "(360/FRAMES degrees apart, 20 degrees above the table), no mask/ folder; --trajectory is "
                    "ignored")
+    p.add_argument("--static-camera", action="store_true",
+                   help="static camera, moving light (Peng et al. 2017): the camera stays at the reference pose "
+                   "and a point light is moved by hand around it, 0.3-0.5 m from the optical axis, one position "
+                   "per frame; capture.json says \"camera\": \"static\"; --trajectory and --light are ignored")
+    p.add_argument("--sensor", choices=SENSORS, default="gaussian",
+                   help="sensor profile: gaussian (the paper's: depth noise 1e-5 z^2 mm, 1 mm steps, colour noise "
+                   "0.005), d415 (RealSense-D415-like: disparity terraces of 1.1 mm at 1 m, noise growing with "
+                   "z^2 plus a smooth error of a few mm, flying pixels at edges, 3%% speckle holes; colour with "
+                   "exposure and white-balance drift, shot and read noise) or none (quantisation only) "
+                   "(default gaussian)")
     p.add_argument("--seed", type=int, default=0, help="seed of the albedo texture and noise (default 0)")
     p.add_argument("--no-noise", dest="noise", action="store_false",
-                   help="no colour or depth noise (quantisation stays)")
+                   help="no colour or depth noise (quantisation stays): --sensor none")
     add_overwrite_argument(p, "capture folder")
     p.set_defaults(handler=run)
 
@@ -64,16 +76,24 @@ def register(subparsers) -> None:
 def run(args) -> int:
     """Render and write the capture; returns the exit code."""
     from ..capture import write_capture
-    from ..synthetic import render_capture, render_ring
+    from ..synthetic import render_capture, render_ring, render_static_capture
 
+    if args.scene and args.static_camera:
+        raise ValueError("--scene and --static-camera exclude each other (a scene is rendered from a ring of "
+                         "camera positions); pick one")
+    if not args.noise and args.sensor not in ("gaussian", "none"):
+        raise ValueError(f"--no-noise contradicts --sensor {args.sensor}; drop one of them")
+    sensor = args.sensor if args.noise else "none"
     out = check_folder(args.out, args.overwrite, "capture folder")
     start = time.perf_counter()
-    common = dict(frames=args.frames, scale_factor=args.scale_factor, size=args.size, light=args.light, seed=args.seed,
-                  noise=args.noise, progress=not args.quiet)
-    if args.scene:
-        capture, _ = render_ring(args.mesh, surroundings=True, **common)
+    common = dict(frames=args.frames, scale_factor=args.scale_factor, size=args.size, seed=args.seed, sensor=sensor,
+                  progress=not args.quiet)
+    if args.static_camera:
+        capture = render_static_capture(args.mesh, **common)
+    elif args.scene:
+        capture, _ = render_ring(args.mesh, surroundings=True, light=args.light, **common)
     else:
-        capture = render_capture(args.mesh, trajectory=args.trajectory, **common)
+        capture = render_capture(args.mesh, trajectory=args.trajectory, light=args.light, **common)
     write_capture(capture, out, overwrite=args.overwrite)
     (H, W), (h, w) = capture.color_size, capture.depth_size
     print(f"wrote {capture.n_frames} frames ({W}x{H} colour, {w}x{h} depth) to {out} "
