@@ -49,7 +49,7 @@ def refine(capture: Capture, options: RefineOptions | None = None, device="CPU:0
     if save_problem is not None:
         check_output_files([save_problem], overwrite)
     t0 = time.perf_counter()
-    camera = camera_setting(capture)
+    camera = camera_setting(capture, None if initial_poses is None else to_host(initial_poses))
     problem_input, views = problem_from_capture(capture, options, initial_poses, camera=camera)
     odometry = time.perf_counter() - t0
     if save_problem is not None:
@@ -70,7 +70,8 @@ def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses
     The input's options name the light model (:func:`with_light_model`). A static-camera capture
     (``camera``, default :func:`~o3d_mvps.capture.camera_setting` of the capture) keeps every
     frame, identity poses (unless given) and no pose refinement."""
-    camera = camera_setting(capture) if camera is None else camera
+    camera = camera_setting(capture, None if initial_poses is None else to_host(initial_poses)) \
+        if camera is None else camera
     if camera.static:
         capture = replace(capture, camera="static")
         options = replace(options, refine_poses=False)

@@ -66,7 +66,7 @@ def test_a_moving_capture_is_not_static(moving):
         warnings.simplefilter("error")
         setting = camera_setting(moving)
     assert not setting.static and setting.detected is False
-    assert setting.agreement < 0.5 and "the camera moved" in setting.detail
+    assert setting.agreement < 0.5 and "not static" in setting.detail
 
 
 def test_declared_camera_wins_and_a_contradiction_is_said(static, moving):
@@ -139,3 +139,12 @@ def test_render_cli_static_camera(tmp_path, capsys):
     assert json.loads((out / "capture.json").read_text())["camera"] == "static"
     assert main(["render", "bunny", str(tmp_path / "x"), "--static-camera", "--scene", "--quiet"]) == 1
     assert "--scene and --static-camera exclude each other" in capsys.readouterr().err
+
+
+def test_given_moving_poses_settle_it(static, moving):
+    """Given poses that move the camera make an undeclared capture moving without a depth check;
+    identity poses leave the decision to the depth."""
+    setting = camera_setting(moving, moving.groundtruth.poses)
+    assert not setting.static and setting.detail == "the given poses move the camera"
+    with pytest.warns(UserWarning, match="no camera motion"):
+        assert camera_setting(static, np.tile(np.eye(4), (12, 1, 1))).static

@@ -28,6 +28,20 @@ STATIC_TOLERANCE_REL = 0.01
 #: silhouette change a static D415-like capture's by 5-10 %; rendered 320x240 bunny, SF 2).
 MIN_AGREEMENT = 0.8
 MIN_OVERLAP = 0.75
+#: Fewer coarse pixels valid in both frames than this: too little depth to call a camera static.
+MIN_COARSE_PIXELS = 50
+
+
+#: Given poses that move a frame by more than this (m, or radians) are a moving camera.
+MOVED_M = 1e-3
+MOVED_RAD = np.radians(0.1)
+
+
+def _poses_move(poses: np.ndarray) -> bool:
+    """Whether any pose (n, 4, 4; frame 0 -> frame i) translates by more than MOVED_M or turns by more than MOVED_RAD."""
+    relative = poses @ np.linalg.inv(poses[0])
+    cos = np.clip((np.trace(relative[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1.0, 1.0)
+    return bool(np.any(np.linalg.norm(relative[:, :3, 3], axis=1) > MOVED_M) or np.any(np.arccos(cos) > MOVED_RAD))
 
 
 @dataclass(frozen=True)
@@ -53,13 +67,14 @@ class CameraSetting:
         return asdict(self)
 
 
-def static_depth_agreement(depths: np.ndarray, coarse_width: int = COARSE_WIDTH) -> list[tuple[float, float]]:
-    """(agreement, overlap) of every frame i >= 1 with frame 0, on a coarse grid.
+def static_depth_agreement(depths: np.ndarray, coarse_width: int = COARSE_WIDTH) -> list[tuple[float, float, int]]:
+    """(agreement, overlap, pixels) of every frame i >= 1 with frame 0, on a coarse grid.
 
     depths (n, h, w) metres, 0 = none. Each frame is area-averaged to about ``coarse_width``
     pixels across. agreement: the fraction of the coarse pixels fully valid in both frames (no
     hole, no silhouette) whose depths differ by at most ``max(5 mm, 1 % z)``; overlap: the
-    coarse pixels at least half valid in both over those in either (1 when none is valid anywhere).
+    coarse pixels at least half valid in both over those in either (1 when none is valid anywhere);
+    pixels: how many coarse pixels the agreement counts.
     """
     depths = np.asarray(depths, dtype=np.float64)
     n, h, w = depths.shape
@@ -74,27 +89,33 @@ def static_depth_agreement(depths: np.ndarray, coarse_width: int = COARSE_WIDTH)
         tolerance = np.maximum(STATIC_TOLERANCE_M, STATIC_TOLERANCE_REL * z0)
         agree = float(np.mean(np.abs(z - z0)[both] <= tolerance[both])) if both.any() else 0.0
         either = h | half[0]
-        out.append((agree, float((h & half[0]).sum() / either.sum()) if either.any() else 1.0))
+        out.append((agree, float((h & half[0]).sum() / either.sum()) if either.any() else 1.0, int(both.sum())))
     return out
 
 
-def camera_setting(capture: Capture, warn: bool = True) -> CameraSetting:
+def camera_setting(capture: Capture, poses=None, warn: bool = True) -> CameraSetting:
     """Whether ``capture`` is a static-camera capture: declared in capture.json, or detected from
     the depth (:func:`static_depth_agreement`; every frame must agree). Warns (when ``warn``) if
     the depth finds a static camera the capture does not declare, or contradicts a declared one;
-    a declared "camera" always wins."""
+    a declared "camera" always wins. Given ``poses`` (n, 4, 4) that move a frame by more than
+    :data:`MOVED_M` or :data:`MOVED_RAD` settle an undeclared capture as moving (no check)."""
     declared = capture.camera
     if declared == "moving" or capture.n_frames < 2:
         return CameraSetting(static=declared == "static", declared=declared, detected=None,
                              detail="declared moving in capture.json" if declared == "moving" else "a single frame")
+    poses = None if poses is None else np.asarray(poses, dtype=np.float64)
+    if declared is None and poses is not None and poses.shape == (capture.n_frames, 4, 4) and _poses_move(poses):
+        return CameraSetting(static=False, declared=None, detected=None, detail="the given poses move the camera")
     depths = np.stack([capture.depth_array(i) for i in range(capture.n_frames)])
     figures = static_depth_agreement(depths)
-    scores = [min(a / MIN_AGREEMENT, o / MIN_OVERLAP) for a, o in figures]
+    scores = [min(a / MIN_AGREEMENT, o / MIN_OVERLAP, p / MIN_COARSE_PIXELS) for a, o, p in figures]
     worst = int(np.argmin(scores))
-    agreement, overlap = figures[worst]
-    detected = all(a >= MIN_AGREEMENT and o >= MIN_OVERLAP for a, o in figures)
+    agreement, overlap, _ = figures[worst]
+    detected = all(a >= MIN_AGREEMENT and o >= MIN_OVERLAP and p >= MIN_COARSE_PIXELS for a, o, p in figures)
+    pixels = figures[worst][2]
     figures_text = (f"the depth of frame {worst + 1} agrees with the reference's on {agreement:.0%} of the pixels "
-                    f"both see, which overlap {overlap:.0%}")
+                    f"both see, which overlap {overlap:.0%}" + (f" (only {pixels} coarse pixels: too little depth "
+                                                                f"to tell)" if pixels < MIN_COARSE_PIXELS else ""))
     static = declared == "static" or detected
     if declared == "static":
         detail = "declared static in capture.json" + ("" if detected else f", although {figures_text}")
@@ -110,6 +131,6 @@ def camera_setting(capture: Capture, warn: bool = True) -> CameraSetting:
                           "Write \"camera\": \"static\" into capture.json to say so, or \"camera\": \"moving\" if "
                           "the camera did move", stacklevel=3)
     else:
-        detail = f"the camera moved: {figures_text}"
+        detail = f"not static: {figures_text}"
     return CameraSetting(static=static, declared=declared, detected=detected, agreement=agreement, overlap=overlap,
                          worst_frame=worst + 1, detail=detail)
