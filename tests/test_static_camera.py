@@ -148,3 +148,23 @@ def test_given_moving_poses_settle_it(static, moving):
     assert not setting.static and setting.detail == "the given poses move the camera"
     with pytest.warns(UserWarning, match="no camera motion"):
         assert camera_setting(static, np.tile(np.eye(4), (12, 1, 1))).static
+
+
+def test_lowpass_difference_sees_a_bowl_not_detail():
+    """The low-pass shape difference: a uniform 1.2 mm offset at 0.6 m is 2 per mille; fine detail
+    (a +-1 mm checkerboard of 2 px cells) is below 0.05 per mille; a bowl is its own p95."""
+    from o3d_mvps.metrics import lowpass_difference_permille
+
+    H, W = 240, 320
+    reference = np.full((H, W), 0.6)
+    mask = np.zeros((H, W), bool)
+    mask[40:200, 60:260] = True
+    assert lowpass_difference_permille(reference + 0.0012, reference, mask) == pytest.approx(2.0, rel=1e-6)
+    v, u = np.mgrid[0:H, 0:W]
+    detail = 0.001 * np.where(((u // 2) + (v // 2)) % 2 == 0, 1.0, -1.0)
+    assert lowpass_difference_permille(reference + detail, reference, mask) < 0.05
+    bowl = 0.004 * (((u - 160) / 100.0) ** 2 + ((v - 120) / 80.0) ** 2)
+    value = lowpass_difference_permille(reference + bowl, reference, mask)
+    assert 0.5 * np.percentile(bowl[mask], 95) / 0.6 * 1000 < value < np.percentile(bowl[mask], 95) / 0.6 * 1000
+    with pytest.raises(ValueError, match="mask has shape"):
+        lowpass_difference_permille(reference, reference, mask[1:])
