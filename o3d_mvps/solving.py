@@ -57,7 +57,8 @@ def refine(capture: Capture, options: RefineOptions | None = None, device="CPU:0
     output = solve(problem_input, problem_input.options, device)
     return Refinement.from_arrays(
         output.depth, output.mask, output.K, albedo=output.albedo, poses=output.poses, lighting=output.lighting,
-        method="ours", energy=output.energy, info={**output.info, **({"views": views.to_dict()} if views else {}), "camera": camera.to_dict()},
+        method="ours", energy=output.energy, info={**output.info, **({"views": views.to_dict()} if views else {}),
+                                                    "camera": camera.to_dict()},
         timings={"odometry": odometry, **output.timings, "total": time.perf_counter() - t0},
     )
 
@@ -95,7 +96,8 @@ def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses
         else:
             initial_poses = np.eye(4)[None]
     views = None
-    if capture.n_frames > MIN_OTHER_FRAMES + 1 and not camera.static:  # e.g. a ring: keep the frames that see the reference's surface
+    # e.g. a ring: keep the frames that see the reference's surface (a static camera's all see it)
+    if capture.n_frames > MIN_OTHER_FRAMES + 1 and not camera.static:
         views = frames_seeing_reference(capture, initial_poses, frame_ids=frames)
         keep = [frames.index(i) for i in views.frames]
         capture, initial_poses, frames = capture.select(keep), initial_poses[keep], views.frames

@@ -27,7 +27,8 @@ from .layout import (
 )
 from .masks import auto_masks
 from .types import Capture, GroundTruth, default_depth_intrinsic, image_from_array
-from .validation import check_camera, check_light, check_settings, groundtruth_problem, intrinsic_matrix, size_text, validate_capture
+from .validation import (check_camera, check_light, check_settings, groundtruth_problem, intrinsic_matrix, size_text,
+                         validate_capture)
 
 #: EXIF tag of the image orientation (1 = stored as displayed).
 EXIF_ORIENTATION = 0x0112

@@ -38,7 +38,7 @@ MOVED_RAD = np.radians(0.1)
 
 
 def _poses_move(poses: np.ndarray) -> bool:
-    """Whether any pose (n, 4, 4; frame 0 -> frame i) translates by more than MOVED_M or turns by more than MOVED_RAD."""
+    """Whether any pose (n, 4, 4; frame 0 -> frame i) moves by more than MOVED_M or turns by more than MOVED_RAD."""
     relative = poses @ np.linalg.inv(poses[0])
     cos = np.clip((np.trace(relative[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1.0, 1.0)
     return bool(np.any(np.linalg.norm(relative[:, :3, 3], axis=1) > MOVED_M) or np.any(np.arccos(cos) > MOVED_RAD))

@@ -103,7 +103,7 @@ def check_light(light, where: str = "") -> None:
 
 
 def check_camera(camera, where: str = "") -> None:
-    """Check a capture's ``camera`` (None, or one of :data:`.layout.CAPTURE_CAMERAS`); ``where`` prefixes the message."""
+    """Check a capture's ``camera`` (None, or one of :data:`.layout.CAPTURE_CAMERAS`); ``where`` prefixes messages."""
     if camera is not None and camera not in CAPTURE_CAMERAS:
         raise CaptureError(f"{where}camera must be one of {', '.join(map(repr, CAPTURE_CAMERAS))} (a camera fixed "
                            f"while a light moves, or a camera moved around the object), got {camera!r}; or leave it "

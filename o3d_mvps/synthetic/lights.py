@@ -201,7 +201,8 @@ def handheld_lights(frames: int, distance: float = 0.6, radius=HANDHELD_RADIUS) 
     surface at the object centre the LED's irradiance from the middle radius."""
     middle = 0.5 * (radius[0] + radius[1])
     intensity = LED_FRONTAL_IRRADIANCE * (distance**2 + middle**2)
-    return [PointLight(offset=tuple(float(v) for v in p), intensity=intensity) for p in handheld_offsets(frames, radius)]
+    offsets = handheld_offsets(frames, radius)
+    return [PointLight(offset=tuple(float(v) for v in p), intensity=intensity) for p in offsets]
 
 
 def handheld_parameters(lights: list) -> dict:

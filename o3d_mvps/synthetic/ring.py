@@ -25,7 +25,8 @@ from .sensor import DEPTH_SCALE
 
 def render_ring(mesh="bunny", *, frames: int = 12, size=(160, 120), scale_factor: int = 4, arc_deg: float = 360.0,
                 elevation_deg: float = 20.0, light: str = "led", surroundings: bool = False, seed: int = 0,
-                noise: bool = True, sensor: str | None = None, object_size: float = 0.2, distance: float = 0.6, progress: bool = False):
+                noise: bool = True, sensor: str | None = None, object_size: float = 0.2, distance: float = 0.6,
+                progress: bool = False):
     """(Capture, scene): a ring capture of ``mesh`` and its :class:`~o3d_mvps.synthetic.SyntheticScene`.
 
     ``light``: "led", "directional" or "room" (:func:`~o3d_mvps.synthetic.make_light`; the
