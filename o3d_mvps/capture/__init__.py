@@ -15,9 +15,9 @@ Folder layout (the same names as Open3D's reconstruction system; README "Capture
       groundtruth/             synthetic captures only: depth.npy, normals.npy, albedo.npy,
                                poses.npy, mesh_to_reference.npy, light.json
 
-Modules: :mod:`.types` (Capture, GroundTruth), :mod:`.reading` (``read_capture``),
-:mod:`.writing` (``write_capture``), :mod:`.validation` (``validate_capture`` and the
-scale-factor rule ``integer_scale_factor``), :mod:`.poses` (pose files of other tools).
+Modules: :mod:`.types` (Capture, GroundTruth and the scale-factor rule
+``integer_scale_factor``), :mod:`.reading` (``read_capture``), :mod:`.writing` (``write_capture``),
+:mod:`.validation` (``validate_capture``), :mod:`.poses` (pose files of other tools).
 """
 
 from .layout import (
@@ -32,8 +32,8 @@ from .layout import (
 )
 from .poses import read_capture_poses, read_poses, relative_to_reference
 from .reading import load_json, read_capture, read_intrinsic_json
-from .types import Capture, GroundTruth, default_depth_intrinsic, image_from_array, to_host
-from .validation import integer_scale_factor, validate_capture
+from .types import Capture, GroundTruth, default_depth_intrinsic, image_from_array, integer_scale_factor, to_host
+from .validation import validate_capture
 from .writing import write_capture
 
 __all__ = [
