@@ -1,6 +1,6 @@
 """Captures: n RGB-D frames of one object (frame 0 the reference) and the capture folder format.
 
-Folder layout (the same names as Open3D's reconstruction system; README "Capture guide")::
+Folder layout (the same names as Open3D's reconstruction system; docs/capture-guide.md)::
 
     capture/
       color/000000.png ...     colour frames (8- or 16-bit PNG, or JPEG), high resolution H x W
