@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -13,6 +14,8 @@ from mkdocs.structure.files import File
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
+#: a Sphinx role before inline code in a rendered docstring (``:func:`x``` becomes ``:func:<code>x</code>``)
+SPHINX_ROLE = re.compile(r":(?:func|class|mod|meth|data|attr|exc):<code>~?([\w.]*?)([\w]+)</code>")
 
 
 def cli_markdown() -> str:
@@ -37,3 +40,10 @@ def on_files(files, config):
     for png in sorted(RESULTS.glob("*.png")):
         files.append(File.generated(config, f"results/{png.name}", abs_src_path=str(png)))
     return files
+
+
+def on_page_content(html, page, config, files):
+    """Docstrings use Sphinx roles (``:func:`~o3d_mvps.refine```); show them as plain code
+    (the last name for ``~``-prefixed targets, as Sphinx does)."""
+    return SPHINX_ROLE.sub(lambda m: f"<code>{m.group(2) if '~' in m.group(0) else m.group(1) + m.group(2)}</code>",
+                           html)
