@@ -1,10 +1,10 @@
-# o3d_mvps — `make demo` and `make test` set everything up on a fresh machine.
+# o3d_mvps — `make demo`, `make test` and `make docs` set everything up on a fresh machine.
 PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup system-libs demo test bench clean
+.PHONY: setup system-libs demo test docs bench clean
 
 setup: system-libs $(STAMP)
 
@@ -41,11 +41,17 @@ $(STAMP): pyproject.toml
 demo: setup
 	$(VENV)/bin/o3d-mvps demo --out out/demo --overwrite
 
+# The suite includes tests/test_docs.py, which builds the docs site (--strict, network refused).
 test: setup
 	$(PY) -m pytest -q
+
+# The documentation site (mkdocs-material + mkdocstrings) into site/; warnings are errors.
+docs: setup
+	NO_MKDOCS_2_WARNING=1 $(PY) -m mkdocs build --strict --quiet
+	@echo "wrote site/ (open site/index.html)"
 
 bench: setup
 	$(PY) -m benchmarks all
 
 clean:
-	rm -rf $(VENV) out .pytest_cache
+	rm -rf $(VENV) out site .pytest_cache

@@ -11,10 +11,11 @@ room: a table-and-wall scene (automatic masks), room-lit and LED-lit (--light): 
 the 1 mm depth steps.
 scaling: time, memory, sweeps and CG iterations against object pixels x frames (--baseline REV
 runs an earlier commit side by side; not part of 'all': hours at the default sizes).
-figures: README pictures (normals of every method, textured preview).
+figures: README and docs pictures (normals of every method, textured preview).
 gpu (python -m benchmarks.gpu make|run|count, not part of 'all'): the solver's CUDA path against the
 CPU on saved problems, for a GPU machine without Open3D, and its device operations counted without a
 GPU (see benchmarks/gpu.py).
+summary: no run; rebuild summary.md and every plot from the result files already in --out.
 all: everything, one after the other. --quick runs a tiny case of each (CI, under a minute).
 Results go to DIR (default benchmarks/results) as JSON, summary.md and PNG plots.
 """
@@ -67,13 +68,14 @@ def main(argv=None) -> int:
                                       help="a scene under room light and the LED: error and banding along the 1 mm depth steps"))
     static.add_arguments(sub.add_parser("static", parents=[common],
                                         help="static camera, moving light, D415-like sensor: ours vs bicubic"))
-    figures.add_arguments(sub.add_parser("figures", parents=[common], help="README pictures (normals, preview)"))
+    figures.add_arguments(sub.add_parser("figures", parents=[common], help="README and docs pictures (normals, preview)"))
     sub.add_parser("all", parents=[common], help="every benchmark with its defaults")
+    sub.add_parser("summary", parents=[common], help="no run: rebuild summary.md and the plots from the results in --out")
     args = parser.parse_args(argv)
     if args.command == "all":
         for name in STUDIES:
             _run(name, parser.parse_args([name, *(["--quick"] if args.quick else []), "--out", args.out]))
-    else:
+    elif args.command != "summary":
         _run(args.command, args)
     print(f"wrote {write_summary(args.out)}")
     return 0

@@ -1,5 +1,5 @@
 """Accuracy metrics of a refinement against synthetic ground truth (the paper's MAE and RMSE,
-its section 5.1; README "Results").
+its section 5.1; docs/benchmarks.md).
 
 - MAE: mean angle in degrees between estimated and true unit normals.
 - RMSE: root-mean-square depth error in millimetres (depths are given in metres).

@@ -103,7 +103,7 @@ def test_ctrl_c_is_one_line_and_exit_130(monkeypatch, capture_dir, tmp_path, cap
     monkeypatch.setattr(refine_cli, "refine", interrupted)
     assert main(["refine", str(capture_dir), str(tmp_path / "out")]) == 130
     assert capsys.readouterr().err == "o3d-mvps refine: interrupted\n"
-    assert "130 (interrupted" in (REPO / "README.md").read_text()
+    assert "130 (interrupted" in (REPO / "docs" / "cli_intro.md").read_text()  # the CLI reference page
 
 
 def test_ctrl_c_on_a_running_command(tmp_path):

@@ -1,6 +1,6 @@
 """Captures: n RGB-D frames of one object (frame 0 the reference) and the capture folder format.
 
-Folder layout (the same names as Open3D's reconstruction system; README "Capture guide")::
+Folder layout (the same names as Open3D's reconstruction system; docs/capture-guide.md)::
 
     capture/
       color/000000.png ...     colour frames (8- or 16-bit PNG, or JPEG), high resolution H x W
@@ -16,9 +16,9 @@ Folder layout (the same names as Open3D's reconstruction system; README "Capture
       groundtruth/             synthetic captures only: depth.npy, normals.npy, albedo.npy,
                                poses.npy, mesh_to_reference.npy, light.json
 
-Modules: :mod:`.types` (Capture, GroundTruth), :mod:`.reading` (``read_capture``),
-:mod:`.writing` (``write_capture``), :mod:`.validation` (``validate_capture`` and the
-scale-factor rule ``integer_scale_factor``), :mod:`.poses` (pose files of other tools),
+Modules: :mod:`.types` (Capture, GroundTruth and the scale-factor rule
+``integer_scale_factor``), :mod:`.reading` (``read_capture``), :mod:`.writing` (``write_capture``),
+:mod:`.validation` (``validate_capture``), :mod:`.poses` (pose files of other tools),
 :mod:`.static` (``camera_setting``: static-camera captures, declared or detected).
 """
 
@@ -35,8 +35,8 @@ from .layout import (
 from .poses import read_capture_poses, read_poses, relative_to_reference
 from .reading import load_json, read_capture, read_intrinsic_json
 from .static import CameraSetting, camera_setting
-from .types import Capture, GroundTruth, default_depth_intrinsic, image_from_array, to_host
-from .validation import integer_scale_factor, validate_capture
+from .types import Capture, GroundTruth, default_depth_intrinsic, image_from_array, integer_scale_factor, to_host
+from .validation import validate_capture
 from .writing import write_capture
 
 __all__ = [

@@ -8,8 +8,9 @@ import numpy as np
 
 from ..errors import CaptureError
 from ..model.camera import as_intrinsic_matrix
-from ..model.sensor import check_depth_unit, choose_scale_factor
+from ..model.sensor import check_depth_unit
 from .layout import CAPTURE_CAMERAS, CAPTURE_LIGHTS, COLOR_ENCODINGS
+from .types import integer_scale_factor
 
 if TYPE_CHECKING:
     from .types import Capture, GroundTruth
@@ -56,13 +57,6 @@ def validate_capture(capture: Capture, frame_names: list[str] | None = None) -> 
         problem = groundtruth_problem(capture.groundtruth, n, color_size)
         if problem:
             raise CaptureError(f"{problem}; regenerate the ground truth")
-
-
-def integer_scale_factor(color_size, depth_size) -> int:
-    """The capture's scale-factor rule: SF = H / h = W / w, an integer >= 1 (color_size (H, W),
-    depth_size (h, w) in pixels); :func:`o3d_mvps.model.sensor.choose_scale_factor` with exact
-    grids, whose CaptureError names the mismatch and the fix."""
-    return choose_scale_factor(color_size, depth_size, exact=True)
 
 
 def pixels(image) -> np.ndarray:

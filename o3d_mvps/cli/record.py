@@ -1,6 +1,6 @@
 """``o3d-mvps record`` (live, from a RealSense camera) and ``o3d-mvps convert`` (a recording).
 
-Both write a capture folder (layout in README's "Capture guide" and ``o3d_mvps.capture``) with
+Both write a capture folder (layout in docs/capture-guide.md and ``o3d_mvps.capture``) with
 depth registered to the colour camera at the sensor's native resolution (colour / SF), ready
 for ``o3d-mvps refine``.
 """

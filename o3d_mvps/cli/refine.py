@@ -88,8 +88,8 @@ def register(subparsers) -> None:
     p.add_argument("out", help="output folder for the refinement")
     add_overwrite_argument(p, "output folder (or --save-problem file)")
     p.add_argument("--poses", default=None, metavar="FILE",
-                   help="initial poses: Open3D trajectory .json or .log, TUM .txt, or (n, 4, 4) .npy (README "
-                        "'Poses from other tools'; default: the capture folder's poses.* if any, else registration)")
+                   help="initial poses: Open3D trajectory .json or .log, TUM .txt, or (n, 4, 4) .npy (docs/capture-guide.md, "
+                        "'Poses'; default: the capture folder's poses.* if any, else registration)")
     p.add_argument("--strict", action="store_true",
                    help="stop when a frame cannot be registered, instead of dropping it with a warning")
     p.add_argument("--mask", choices=MASK_SOURCES, default=None,

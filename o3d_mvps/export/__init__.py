@@ -1,6 +1,6 @@
 """Meshes from a Refinement: a textured surface for viewers and a watertight solid for printing.
 
-Two products (README "Python"):
+Two products (docs/api.md):
 
 - :func:`refinement_to_mesh` -- the refined depth back-projected into the reference camera
   frame (metres) and triangulated on the pixel grid, with vertex normals, per-vertex sRGB

@@ -314,12 +314,3 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
               "light_model": (light if led_offset is None else light.at(led_offset)).describe(), **stats},
     )
 
-
-def __getattr__(name: str):
-    """``from o3d_mvps.solver.driver import refine`` (its home before the Open3D side moved out)
-    still works, importing Open3D only then."""
-    if name == "refine":
-        from ..solving import refine
-
-        return refine
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

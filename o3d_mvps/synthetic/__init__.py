@@ -1,7 +1,7 @@
 """Synthetic captures: a mesh rendered by ray casting under an LED that moves with the camera,
 alone or (scene mode, :func:`render_ring` with ``surroundings=True``) on a table in front of a wall.
 
-The benchmark protocol of the paper's synthetic experiments (Sec. 5.1; README "Results").
+The benchmark protocol of the paper's synthetic experiments (Sec. 5.1; docs/benchmarks.md).
 Conventions (all lengths in metres):
 
 - Reference camera (frame 0) at the origin, looking along +z, x right, y down (OpenCV /
