@@ -29,8 +29,7 @@ def like(a, reference, dtype=None):
     Host data reaches a GPU through ``cupy.asarray`` only: CuPy's other functions
     (``ascontiguousarray`` among them) refuse NumPy arrays with a TypeError.
     """
-    xp = array_module(reference)
-    return xp.ascontiguousarray(xp.asarray(a, dtype=dtype))
+    return array_module(reference).asarray(a, dtype=dtype, order="C")
 
 
 def sparse_module(x) -> ModuleType:

@@ -174,6 +174,41 @@ def resolve_device(device) -> tuple[str, str]:
     return name, f"device: {name}"
 
 
+#: seconds the kernels' first compile takes, roughly (numba's CPU kernels: 11 s of CPU time on
+#: this project's 2-core machine; the CUDA kernels: 16-30 s on an H100 machine, issue 33)
+COMPILE_SECONDS = {"cpu": 15, "cuda": 30}
+
+
+def compile_notice(device: ArrayDevice) -> str | None:
+    """A line to print before a solve on ``device`` that will compile kernels (their on-disk
+    cache holds nothing for this source: a first run, or the code changed), else None. Cheap:
+    reads the caches' indexes; None too where that cannot be told."""
+    from . import kernels
+
+    modules = [kernels]
+    if device.name.startswith("cuda"):
+        from . import cuda_kernels
+
+        modules.append(cuda_kernels)
+    cached = [_in_cache(kernel) for module in modules for kernel in vars(module).values()]
+    if False not in cached:
+        return None
+    seconds = COMPILE_SECONDS["cuda" if len(modules) > 1 else "cpu"]
+    return f"compiling the solver's kernels (first run only, ~{seconds} s) ..."
+
+
+def _in_cache(kernel) -> bool | None:
+    """Whether numba's on-disk cache of a ``cache=True`` kernel holds compiled code for its
+    current source; None for anything else (not a cached kernel, numba's internals changed)."""
+    cache_file = getattr(getattr(kernel, "_cache", None), "_cache_file", None)
+    if cache_file is None:
+        return None
+    try:
+        return bool(cache_file._load_index())  # {} when the index is missing or of older source
+    except Exception:  # noqa: BLE001 - a private API of numba: no notice rather than a failure
+        return None
+
+
 def package_versions() -> str:
     """The installed versions of the CUDA path's packages, e.g. "numpy 2.4.6, numba 0.68.1,
     numba-cuda 0.30.4, cupy-cuda12x 14.2.0" (those installed)."""
