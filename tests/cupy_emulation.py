@@ -90,6 +90,13 @@ def _device(value):
     return value
 
 
+#: array methods that make a view (no kernel on a GPU: not counted)
+_VIEWS = frozenset({"reshape", "view", "transpose", "squeeze", "swapaxes", "ravel"})
+#: the kinds of the other counted array methods (default: "function")
+_METHOD_KINDS = {"item": "to_host", "tolist": "to_host", **{name: "reduction" for name in (
+    "sum", "mean", "max", "min", "prod", "any", "all", "argmax", "argmin", "std", "var", "cumsum")}}
+
+
 class ndarray(NDArrayOperatorsMixin):  # noqa: N801 - CuPy's name
     """A "device" array: a wrapper of a NumPy array (its data, :attr:`_a`) that refuses host
     arrays in operations and refuses NumPy its data (``__array__`` raises, as CuPy's)."""
@@ -129,7 +136,8 @@ class ndarray(NDArrayOperatorsMixin):  # noqa: N801 - CuPy's name
             return _device(value)
 
         def method(*args, **kwargs):
-            operations["to_host" if name in ("item", "tolist") else "function"] += 1
+            if name not in _VIEWS:
+                operations[_METHOD_KINDS.get(name, "function")] += 1
             _check(args)
             _check(list(kwargs.values()))
             return _device(value(*_host(args), **_host(kwargs)))

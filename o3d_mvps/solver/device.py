@@ -169,7 +169,7 @@ def resolve_device(device) -> tuple[str, str]:
     """(:func:`check_device`'s name, a line for a run's output saying where it solves and, for
     ``"auto"``, why), e.g. ``("cpu", "device: cpu (auto: device 'cuda:0' needs CuPy, ...)")``."""
     name = check_device(device)
-    if str(device).strip().lower() == "auto":
+    if check_device_name(device) == "auto":
         return name, f"device: {name} (auto: {auto_device()[1]})"
     return name, f"device: {name}"
 
