@@ -111,3 +111,19 @@ def test_like_copies_host_data_with_asarray(device):
         assert like(HOST, HOST) is HOST  # the host: no copy
         with pytest.raises(TypeError, match="host NumPy array"):
             array_module(device).ascontiguousarray(HOST)
+
+
+def test_model_functions_take_device_arrays(device):
+    """The model's elementwise maths on device arrays (host lights copied over), as on the host."""
+    from o3d_mvps.model.robust import cauchy, cauchy_weights
+    from o3d_mvps.model.shading import shading
+
+    normals = np.array([[0.0, 0.6, -0.8], [0.0, 0.0, -1.0]])
+    light = np.array([0.2, 0.1, -0.3, -1.0])
+    with cp.installed():
+        for f, args, device_args in ((cauchy, (HOST, 0.5), (device, 0.5)),
+                                     (cauchy_weights, (HOST, 0.5), (device, 0.5)),
+                                     (shading, (normals, light), (cp.asarray(normals), light))):
+            result = f(*device_args)
+            assert isinstance(result, cp.ndarray)
+            np.testing.assert_allclose(result.get(), f(*args), rtol=1e-15)
