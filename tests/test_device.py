@@ -115,3 +115,16 @@ def test_reconstruct_options_check_the_device_name():
     with pytest.raises(ValueError, match="device 'gpu' is not a device name; pass 'auto', 'cpu'"):
         ReconstructOptions(device="gpu")
     assert device.check_device_name("CUDA") == "cuda:0" and device.check_device_name("Auto") == "auto"
+
+
+def test_compile_notice_when_the_kernel_cache_is_empty(monkeypatch):
+    """The notice reads numba's cache index of each cached kernel (a private API: if numba
+    changes it, _in_cache gives None and this test fails rather than the notice going quiet)."""
+    from o3d_mvps.solver import kernels
+
+    assert isinstance(device._in_cache(kernels.accumulate_frame), bool)
+    assert device._in_cache(kernels.accumulate_pixel) is None  # inlined, not cached of its own
+    monkeypatch.setattr(device, "_in_cache", lambda kernel: False)
+    assert device.compile_notice(device.CPU) == "compiling the solver's kernels (first run only, ~15 s) ..."
+    monkeypatch.setattr(device, "_in_cache", lambda kernel: True)
+    assert device.compile_notice(device.CPU) is None
