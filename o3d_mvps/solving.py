@@ -26,15 +26,16 @@ from .solver.problem_input import SolverInput, write_problem
 from .views import MIN_OTHER_FRAMES, ViewSelection, frames_seeing_reference
 
 
-def refine(capture: Capture, options: RefineOptions | None = None, device="CPU:0", initial_poses=None, *,
+def refine(capture: Capture, options: RefineOptions | None = None, device="auto", initial_poses=None, *,
            save_problem=None, overwrite: bool = False) -> Refinement:
     """Jointly estimate depth (colour resolution), albedo, lighting and poses from a capture.
 
     capture: frame 0 is the reference; ``initial_poses`` (n, 4, 4) reference -> frame i, an array
     or an o3d.core.Tensor on any device (default: the registration chain of
     :func:`o3d_mvps.odometry.register_frames`, which drops a frame it cannot place, with a warning,
-    unless ``options.strict_registration``). device: "CPU:0" or "CUDA:0" (see
-    :func:`o3d_mvps.solver.device.check_device`). save_problem: also write the solver's input to
+    unless ``options.strict_registration``). device: "auto" (the GPU when it can solve, else the
+    CPU), "CPU:0" or "CUDA:0" (see :func:`o3d_mvps.solver.device.check_device`); ``info["device"]``
+    says where it solved. save_problem: also write the solver's input to
     this .npz once the frames are registered (``python -m o3d_mvps.solver`` solves it; refuses an
     existing file unless ``overwrite``). Of more than three frames, those that see too little of
     the reference's surface are left out (:func:`o3d_mvps.views.frames_seeing_reference`).
@@ -45,7 +46,7 @@ def refine(capture: Capture, options: RefineOptions | None = None, device="CPU:0
     used, ``info["views"]`` each frame's covisibility and why a frame was left out.
     """
     options = options or RefineOptions()
-    check_device(device)
+    device = check_device(device)
     if save_problem is not None:
         check_output_files([save_problem], overwrite)
     t0 = time.perf_counter()

@@ -106,7 +106,11 @@ def test_gpu_benchmark_compares_the_cuda_path_with_the_cpu_path(tmp_path):
     # a sweep's kernels, sparse products and copies: hundreds (measured: 493 of 527 in all)
     assert 300 < level["operations"] < counted["operations"]
     assert counted["by_kind"]["kernel"] > 0 and counted["by_kind"]["sparse_matvec"] > 0
-    assert json.loads((tmp_path / "results" / "gpu_operations.json").read_text()) == [counted]
+    kinds = counted["by_kind"]
+    assert counted["transfers"] == kinds["to_host"] + kinds["to_device"] > 0
+    assert counted["launches"] + counted["transfers"] == counted["operations"]
+    assert level["launches"] + level["transfers"] == level["operations"] == level["operations_per_sweep"]
+    assert json.loads((tmp_path / "results" / "gpu_counts.json").read_text()) == [counted]
     (on_cpu,) = gpu.count(tmp_path, tmp_path / "results")
     assert on_cpu["levels"][0]["device"] == "cpu" and on_cpu["levels"][0]["operations"] == 0
 

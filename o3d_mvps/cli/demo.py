@@ -10,6 +10,7 @@ from ..datasets import DATA_DIR, MESHES
 from ..export import printable_solid, write_mesh, write_stl
 from ..fileio import atomic_folder
 from ..report import accuracy_rows, markdown_table
+from ..solver.device import DEVICE_HELP, resolve_device
 from ..solver.options import RefineOptions
 from ..solving import refine
 from ..synthetic import render_capture
@@ -43,18 +44,20 @@ def register(subparsers) -> None:
     p.add_argument("--seed", type=int, default=0,
                    help="seed of the rendered albedo texture and sensor noise; the same seed gives the same "
                         "capture, bit for bit, and the same printed accuracy (default 0)")
+    p.add_argument("--device", default="auto", help=DEVICE_HELP)
     p.set_defaults(handler=run)
 
 
 def run(args) -> int:
     out = check_folder(args.out, args.overwrite, "demo folder")
+    device, device_line = resolve_device(args.device)
     say = (lambda *a: None) if args.quiet else print
     t0 = time.perf_counter()
     say(f"rendering {args.frames} LED-lit frames of the {args.mesh} (see {DATA_DIR / 'PROVENANCE.md'}) ...")
     capture = render_capture(args.mesh, frames=args.frames, scale_factor=args.scale_factor,
                              size=args.size, seed=args.seed, progress=not args.quiet)
-    say("refining ...")
-    refinement = refine(capture, RefineOptions(progress=not args.quiet))
+    say(f"refining ... ({device_line})")
+    refinement = refine(capture, RefineOptions(progress=not args.quiet), device)
     log_energy(refinement, args.quiet)
     rows = accuracy_rows(capture, refinement)
     table = markdown_table(rows)

@@ -12,6 +12,7 @@ from ..capture.reading import MASK_SOURCES
 from ..export import write_mesh, write_stl
 from ..fileio import atomic_folder
 from ..reconstruct import ReconstructOptions, reconstruct
+from ..solver.device import DEVICE_HELP, resolve_device
 from .outputs import add_overwrite_argument, check_folder
 from .refine import add_solver_arguments, options_from_args
 
@@ -58,17 +59,21 @@ def register(subparsers) -> None:
     p.add_argument("--workers", type=int, default=None, help="local worker processes (default: CPU count)")
     p.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
                    help="run the refinements on this Dask scheduler instead of a local cluster")
+    p.add_argument("--device", default="auto", help=DEVICE_HELP)
     add_solver_arguments(p)
     p.set_defaults(handler=run)
 
 
 def run(args) -> int:
     out = check_folder(args.out, args.overwrite, "output folder")
+    device, device_line = resolve_device(args.device)
+    if not args.quiet:
+        print(device_line)
     capture = read_capture(args.capture, mask=args.mask)
     given = read_capture_poses(args.capture, args.poses)
     options = ReconstructOptions(references=args.references, frames_per_reference=args.frames_per_reference,
                                  depth=args.depth, voxel_mm=args.voxel_mm, texture_px=args.texture_px,
-                                 workers=args.workers,
+                                 workers=args.workers, device=device,
                                  refine=replace(options_from_args(args), progress=False), progress=not args.quiet)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")

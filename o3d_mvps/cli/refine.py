@@ -9,7 +9,7 @@ from dataclasses import replace
 from ..capture import read_capture, read_capture_poses
 from ..capture.reading import MASK_SOURCES, mask_source
 from ..report import accuracy_rows, markdown_table
-from ..solver.device import DEVICE_HELP, check_device
+from ..solver.device import DEVICE_HELP, resolve_device
 from ..solver.lighting import LIGHT_MODELS
 from ..solver.options import AUTO, RefineOptions
 from ..solving import refine
@@ -96,7 +96,7 @@ def register(subparsers) -> None:
                    help="object masks: the capture's mask/ folder, automatic from depth (the connected region "
                         "nearest the image centre, table and wall planes cut), or none (default: mask/ when "
                         "present, else auto)")
-    p.add_argument("--device", default="cpu", help=DEVICE_HELP)
+    p.add_argument("--device", default="auto", help=DEVICE_HELP)
     p.add_argument("--save-problem", default=None, metavar="FILE.npz",
                    help="also write the solver's input (frames, depth, masks, intrinsics, registered poses, "
                         "options) to this file once the capture is read, masked and registered; `python -m "
@@ -110,17 +110,18 @@ def register(subparsers) -> None:
 
 def run(args) -> int:
     out = check_folder(args.out, args.overwrite, "refinement folder")
-    check_device(args.device)
+    device, device_line = resolve_device(args.device)
     if args.save_problem is not None:
         check_files([args.save_problem], args.overwrite)
     capture = read_capture(args.capture, mask=args.mask, depth_range=args.depth_range)
     if not args.quiet:
+        print(device_line)
         print(f"masks: {mask_source(args.capture, args.mask, args.depth_range)}")
     given = read_capture_poses(args.capture, args.poses)
     options = replace(options_from_args(args), strict_registration=args.strict)
     if given is not None and not args.quiet:
         print(f"poses: from {given[1]}")
-    refinement = refine(capture, options, args.device, initial_poses=None if given is None else given[0],
+    refinement = refine(capture, options, device, initial_poses=None if given is None else given[0],
                         save_problem=args.save_problem, overwrite=args.overwrite)
     log_energy(refinement, args.quiet)
     views = refinement.info.get("views")

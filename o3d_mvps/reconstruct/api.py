@@ -20,6 +20,7 @@ import numpy as np
 import open3d as o3d
 
 from ..errors import MVPSError
+from ..solver.device import check_device_name
 from ..solver.options import RefineOptions
 from ..views import MIN_COVISIBILITY
 from .fusion import GRAZING_EXPONENT, TSDFVolume, pixel_weights
@@ -43,6 +44,8 @@ class ReconstructOptions:
     fused surface voxel. hole_mm: largest hole closed in the mesh. texture_px: edge of the
     square albedo texture (0: vertex colours only). refine: the solver's
     options. workers: local Dask worker processes (default: the CPU count). progress: bars.
+    device: where each view is refined, "auto" (the GPU when it can solve, else the CPU), "cpu"
+    or "cuda:N" (:func:`o3d_mvps.solver.device.check_device`).
     """
 
     references: int = 8
@@ -57,8 +60,10 @@ class ReconstructOptions:
     refine: RefineOptions = field(default_factory=lambda: RefineOptions(progress=False))
     workers: int | None = None
     progress: bool = True
+    device: str = "auto"
 
     def __post_init__(self):
+        check_device_name(self.device)
         if self.depth not in DEPTH_SOURCES:
             raise ValueError(f"depth={self.depth!r}; choose one of {', '.join(DEPTH_SOURCES)}")
         for name in ("voxel_mm", "edge_px", "weight_threshold", "hole_mm"):
@@ -146,7 +151,7 @@ def reconstruct(capture, options: ReconstructOptions | None = None, *, poses=Non
         from .parallel import dask_client, run_views
 
         with dask_client(client, scheduler, options.workers or min(len(jobs), _cpu_count())) as dask:
-            views, failed = run_views(jobs, refine_options, "refined", dask, options.progress)
+            views, failed = run_views(jobs, refine_options, "refined", dask, options.progress, options.device)
     else:
         views, failed = [run_view(job, refine_options, "raw") for job in jobs], {}
     for reference, error in failed.items():

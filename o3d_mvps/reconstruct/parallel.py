@@ -40,11 +40,12 @@ def dask_client(client=None, scheduler: str | None = None, workers: int | None =
         yield local
 
 
-def run_views(jobs: list, options, depth_source: str, client, progress: bool = True) -> tuple[list, dict]:
+def run_views(jobs: list, options, depth_source: str, client, progress: bool = True,
+              device="auto") -> tuple[list, dict]:
     """Run the jobs on ``client``; returns (results in job order, {reference: error message} of failures)."""
     from dask.distributed import as_completed
 
-    futures = {client.submit(run_view, job, options, depth_source, pure=False): job.reference for job in jobs}
+    futures = {client.submit(run_view, job, options, depth_source, device, pure=False): job.reference for job in jobs}
     results, failed = {}, {}
     bar = tqdm(total=len(jobs), desc=f"{depth_source} views", unit="view", disable=not progress)
     for future in as_completed(futures):

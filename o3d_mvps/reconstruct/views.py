@@ -95,14 +95,15 @@ def capture_from_arrays(arrays: dict):
                    **arrays["fields"])
 
 
-def run_view(job: ViewJob, options, depth_source: str = "refined") -> ViewResult:
-    """Refine (or, for ``depth_source="raw"``, bicubic-upsample) a job's reference depth."""
+def run_view(job: ViewJob, options, depth_source: str = "refined", device="auto") -> ViewResult:
+    """Refine (or, for ``depth_source="raw"``, bicubic-upsample) a job's reference depth, on
+    ``device`` (:func:`o3d_mvps.solver.device.check_device`)."""
     t0 = time.perf_counter()
     capture = capture_from_arrays(job.arrays)
     if depth_source == "refined":
         from ..solving import refine
 
-        result = refine(capture, options, initial_poses=job.poses)
+        result = refine(capture, options, device, initial_poses=job.poses)
         albedo = result.albedo_array()
     else:
         from ..baselines import bicubic

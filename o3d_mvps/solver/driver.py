@@ -26,7 +26,7 @@ from ..model import se3
 from ..model.resampling import fill_nearest_valid, repeat_pixels, resize
 from ..model.robust import robust_scale
 from .depth import update_depth
-from .device import CPU, ArrayDevice, array_device, to_host
+from .device import CPU, ArrayDevice, array_device, compile_notice, to_host
 from .joint import update_pose_depth
 from .lighting import make_light_model, update_led_offset
 from .options import AUTO, DEFAULT_CAUCHY_LAMBDA, RefineOptions
@@ -228,6 +228,8 @@ def solve(problem_input: SolverInput, options: RefineOptions | None = None, devi
     if options.light_model is None:
         raise ValueError("options.light_model is None: the solver needs 'led' or 'sh' (o3d_mvps.refine takes it "
                          "from the capture's light)")
+    if options.progress and (notice := compile_notice(device)):
+        print(notice, flush=True)
     # The solver's BLAS calls are vector dots/norms (CG, AMG) and thin products: on a loaded
     # 2-core machine OpenBLAS's threads made each 60k-vector norm take ~5 ms instead of 30 us
     # (~20 % of a 640x480 refinement); one thread loses nothing on an idle machine.
