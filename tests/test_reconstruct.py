@@ -44,6 +44,31 @@ def test_references_spread_round_the_ring_and_the_span(ring):
     assert azimuth_span_deg(arc.groundtruth.poses) == pytest.approx(30, abs=0.5)
 
 
+
+@pytest.mark.parametrize("arc_deg, elevation_deg", [(60, 20), (180, 60), (360, 60)])
+def test_span_of_arcs_across_the_azimuth_wrap(arc_deg, elevation_deg):
+    # A ring's arc centred on azimuth 0 (frames on both sides of the +-180 degree seam of the
+    # arctan2, for every choice of frame 0) and seen from above: the span is the arc, not 360.
+    from o3d_mvps.model.se3 import relative_to_reference
+    from o3d_mvps.synthetic.camera import ring_trajectory
+
+    world = ring_trajectory(12, 0.6, elevation_deg, arc_deg)
+    expected = arc_deg if arc_deg < 360 else 330
+    for first in (0, 5, 11):  # frame 0 at one end, the middle, the other end
+        poses = relative_to_reference(np.roll(world, -first, axis=0))
+        assert azimuth_span_deg(poses) == pytest.approx(expected, abs=0.5)
+
+
+@pytest.mark.parametrize("max_angle_deg", [5, 15, 30])
+def test_an_orbit_in_front_of_the_object_does_not_go_around(max_angle_deg):
+    # The +-15 degree spiral orbit of the refine captures once read as 323 degrees (its viewing
+    # directions' cone axis, the mean viewing direction, was taken as 'up'). Its span is the
+    # yaw range: at most 2 * max_angle_deg, with a 20 % margin for the spiral's sampling.
+    from o3d_mvps.synthetic.camera import orbit_trajectory
+
+    span = azimuth_span_deg(orbit_trajectory(20, 0.6, "orbit", max_angle_deg))
+    assert 1.0 * max_angle_deg < span <= 2.0 * max_angle_deg * 1.2
+
 def test_pixel_weights_ramp_from_the_silhouette():
     depth = np.full((48, 64), 0.5)
     mask = np.zeros((48, 64), bool)
