@@ -497,30 +497,6 @@ def _mesh_section(mesh, view: str) -> str:
             f'<iframe class="viewer" title="3D view" srcdoc="{html.escape(viewer, quote=True)}"></iframe>')
 
 
-def _page_mesh(mesh, max_triangles: int):
-    """(positions (n, 3), triangles (T, 3), colours (n, 3) or None, triangles before) of ``mesh``,
-    quadric-decimated to ``max_triangles`` (colours from the nearest original vertex)."""
-    import open3d as o3d
-
-    from .export import mesh_arrays
-
-    positions, tri, _, colours, _, _ = mesh_arrays(mesh)
-    total = len(tri)
-    if total > max_triangles:
-        legacy = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(positions.astype(np.float64)),
-                                           o3d.utility.Vector3iVector(tri.astype(np.int32)))
-        simple = legacy.simplify_quadric_decimation(target_number_of_triangles=int(max_triangles))
-        simple.remove_unreferenced_vertices()
-        new_positions = np.asarray(simple.vertices)
-        if colours is not None:
-            from scipy.spatial import cKDTree
-
-            _, nearest = cKDTree(positions).query(new_positions)
-            colours = colours[nearest]
-        positions, tri = new_positions, np.asarray(simple.triangles, dtype=np.int64)
-    return positions, tri, colours, total
-
-
 def mesh_viewer_html(mesh, *, view: str = "camera", max_triangles: int = MAX_PAGE_TRIANGLES,
                      size: tuple[int, int] = (900, 560)) -> tuple[str, int, int]:
     """A standalone HTML page (vtk.js offline viewer, inline) showing ``mesh``, turnable with the mouse.
@@ -535,9 +511,11 @@ def mesh_viewer_html(mesh, *, view: str = "camera", max_triangles: int = MAX_PAG
                                                    initialize_serializers, reference_id, serialize)
     from trame_vtk.tools.vtksz2html import write_html
 
+    from .export import mesh_arrays, simplify_mesh
     from .viz import _place_camera, _vtk_faces
 
-    positions, tri, colours, total = _page_mesh(mesh, max_triangles)
+    total = len(mesh_arrays(mesh)[1])
+    positions, tri, _, colours, _, _ = mesh_arrays(simplify_mesh(mesh, max_triangles))
     if len(tri) == 0:
         raise ValueError("the mesh has no triangles")
     poly = pv.PolyData(positions.astype(np.float32), _vtk_faces(tri))

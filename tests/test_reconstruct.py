@@ -170,6 +170,26 @@ def test_an_arc_warns_that_the_back_is_missing_and_prints_flat(tmp_path, capsys)
     report = json.loads((tmp_path / "out" / "report.json").read_text())
     assert report["goes_around"] is False and report["azimuth_span_deg"] == pytest.approx(30, abs=0.5)
     assert (tmp_path / "out" / "mesh.glb").is_file() and (tmp_path / "out" / "mesh.obj").is_file()
+    assert (tmp_path / "out" / "report.html").is_file()
+    # export takes the folder: the mesh simplified, and its print.stl rescaled
+    assert main(["export", str(tmp_path / "out"), str(tmp_path / "small.ply"), "--max-triangles", "400"]) == 0
+    small = trimesh.load(tmp_path / "small.ply")
+    assert 300 <= len(small.faces) <= 400 and small.visual.vertex_colors.shape[0] == len(small.vertices)
+    assert main(["export", str(tmp_path / "out"), str(tmp_path / "p.stl"), "--size-mm", "80"]) == 0
+    rescaled = trimesh.load(tmp_path / "p.stl")
+    assert rescaled.is_volume and rescaled.extents.max() == pytest.approx(80.0, rel=1e-5)
+    assert np.allclose(rescaled.extents / rescaled.extents.max(), solid.extents / solid.extents.max(), atol=1e-5)
+
+
+def test_export_of_an_open_reconstruction_points_at_reconstruct_print(raw_result, tmp_path, capsys):
+    folder = tmp_path / "object"
+    folder.mkdir()
+    write_mesh(raw_result.mesh, folder / "mesh.ply")
+    (folder / "report.json").write_text(json.dumps(raw_result.info))
+    assert main(["export", str(folder), str(tmp_path / "x.stl")]) == 1
+    err = capsys.readouterr().err
+    assert f"the mesh in {folder} is not closed" in err and f"reconstruct CAPTURE {folder} --overwrite --print" in err
+    assert not (tmp_path / "x.stl").exists()
 
 
 def test_two_dask_workers_give_the_same_mesh_as_one():
