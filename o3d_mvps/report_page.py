@@ -26,8 +26,9 @@ import numpy as np
 
 from .fileio import atomic_files
 
-__all__ = ["write_report_page", "report_page_html", "mesh_viewer_html", "reference_residual", "REPORT_HTML",
-           "MAX_PAGE_TRIANGLES"]
+__all__ = ["write_report_page", "report_page_html", "mesh_viewer_html", "reference_residual", "normals_figure",
+           "albedo_depth_figure", "lighting_figure", "residual_figure", "frame_residuals_figure", "energy_figure",
+           "pose_figure", "pose_errors", "REPORT_HTML", "MAX_PAGE_TRIANGLES"]
 
 REPORT_HTML = "report.html"
 #: The page's mesh is decimated to at most this many triangles (about 1.5 MB of vertex data).
@@ -259,7 +260,7 @@ def _timings_table(report: dict) -> str | None:
     return _table(["stage", "seconds"], [[k, float(v)] for k, v in timings.items() if isinstance(v, (int, float))])
 
 
-# -- figures -------------------------------------------------------------------------------------
+# -- figures (public: the notebooks show the same ones) -------------------------------------------
 def _image_axes(ax, title: str) -> None:
     ax.set_title(title, fontsize=10)
     ax.set_xlabel("u (px)")
@@ -282,61 +283,66 @@ def _normal_rgb(normals: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return np.where(mask[..., None], np.clip((normals + 1.0) / 2.0, 0, 1), 1.0)
 
 
-def _image_figures(refinement, capture) -> str:
-    from .colour import linear_to_srgb
+def _frames_of(refinement, n: int) -> list:
+    """The capture frame numbers of a refinement's n per-frame rows (``info["frames"]``, else 0..n-1)."""
+    frames = refinement.info.get("frames")
+    return list(frames) if isinstance(frames, list) and len(frames) == n else list(range(n))
 
+
+def normals_figure(refinement, input_normals: np.ndarray | None = None, truth: np.ndarray | None = None):
+    """Input (e.g. the sensor's depth upsampled), refined and true normals (H, W, 3) side by side
+    as RGB = (n + 1) / 2, and the angle (deg) between the refined normals and the input's (or the
+    truth's, when given) with its colour bar; cropped to the mask, axes in pixels."""
     mask = refinement.mask_array()
     normals = refinement.normals_array()
-    out = []
-    input_normals = None
-    if capture is not None:
-        from .baselines import bicubic
-
-        try:
-            input_normals = bicubic(capture).normals_array()
-        except Exception:  # noqa: BLE001 - the input view is an extra; the page must not fail for it
-            input_normals = None
-    panels = ([("input normals (sensor depth, bicubic)", _normal_rgb(input_normals, mask))] if input_normals is not None
-              else []) + [("refined normals", _normal_rgb(normals, mask))]
-    fig, axes = _subplots(1, len(panels) + (input_normals is not None), (4.2 * (len(panels) + 1), 3.6))
+    panels = ([("input normals", input_normals)] if input_normals is not None else []) + \
+        [("refined normals", normals)] + ([("true normals", truth)] if truth is not None else [])
+    against, name = (truth, "truth") if truth is not None else (input_normals, "input")
+    fig, axes = _subplots(1, len(panels) + (against is not None), (4.0 * (len(panels) + 1), 3.6))
     box, extent = _crop(mask)
-    for ax, (name, image) in zip(axes[0], panels):
-        ax.imshow(image[box], extent=extent)
-        _image_axes(ax, name)
-    if input_normals is not None:
-        cosine = np.clip(np.sum(input_normals * normals, axis=-1), -1, 1)
+    for ax, (title, image) in zip(axes[0], panels):
+        ax.imshow(_normal_rgb(image, mask)[box], extent=extent)
+        _image_axes(ax, title)
+    if against is not None:
+        cosine = np.clip(np.sum(against * normals, axis=-1), -1, 1)
         angle = np.where(mask, np.degrees(np.arccos(cosine)), np.nan)
         ax = axes[0, -1]
         im = ax.imshow(angle[box], extent=extent, cmap="magma", vmin=0,
                        vmax=max(5.0, float(np.nanpercentile(angle, 99))))
-        _image_axes(ax, "refined vs input normals")
+        _image_axes(ax, f"refined vs {name}: mean {np.nanmean(angle):.1f} deg")
         fig.colorbar(im, ax=ax, label="angle (deg)", shrink=0.8)
     fig.suptitle("normal colours: RGB = (n + 1) / 2 (x right, y down, z toward the camera)", fontsize=9)
-    out.append(_png(fig, "input and refined normals"))
+    return fig
 
+
+def albedo_depth_figure(refinement):
+    """The refined albedo (sRGB) and depth (mm, colour bar), cropped to the mask, axes in pixels."""
+    from .colour import linear_to_srgb
+
+    mask = refinement.mask_array()
     albedo = refinement.albedo_array()
-    depth = refinement.depth_array()
+    box, extent = _crop(mask)
     fig, axes = _subplots(1, 2 if albedo is not None else 1, (9, 3.6))
     k = 0
     if albedo is not None:
         axes[0, 0].imshow(np.where(mask[..., None], np.clip(linear_to_srgb(albedo), 0, 1), 1.0)[box], extent=extent)
         _image_axes(axes[0, 0], "albedo (sRGB)")
         k = 1
-    z = np.where(mask, depth * 1000.0, np.nan)
+    z = np.where(mask, refinement.depth_array() * 1000.0, np.nan)
     im = axes[0, k].imshow(z[box], extent=extent, cmap="viridis")
     _image_axes(axes[0, k], "refined depth")
     fig.colorbar(im, ax=axes[0, k], label="depth (mm)", shrink=0.8)
-    out.append(_png(fig, "albedo and refined depth"))
-    return "".join(out)
+    return fig
 
 
-def _lighting_figure(refinement, info: dict) -> str | None:
+def lighting_figure(refinement):
+    """Each light parameter per capture frame (LED: ambient and intensity; SH: four coefficients); None
+    without lighting."""
     if refinement.lighting is None:
         return None
     lights = np.asarray(refinement.lighting.numpy(), dtype=np.float64)
-    frames = info.get("frames") if isinstance(info.get("frames"), list) and len(info["frames"]) == len(lights) \
-        else list(range(len(lights)))
-    model = (info.get("light_model") or {}).get("model", "sh" if lights.shape[1] == 4 else "led")
+    frames = _frames_of(refinement, len(lights))
+    model = (refinement.info.get("light_model") or {}).get("model", "sh" if lights.shape[1] == 4 else "led")
     if lights.shape[1] == 2:
         names = [("ambient", "ambient (linear intensity)"), ("intensity", "LED intensity (irradiance x m$^2$)")]
     else:
@@ -349,7 +355,7 @@ def _lighting_figure(refinement, info: dict) -> str | None:
         ax.set_title(name, fontsize=10)
         ax.grid(alpha=0.3)
     fig.suptitle(f"light model: {model}", fontsize=10)
-    return _png(fig, "lighting per frame")
+    return fig
 
 
 def reference_residual(refinement, capture) -> np.ndarray | None:
@@ -370,7 +376,7 @@ def reference_residual(refinement, capture) -> np.ndarray | None:
     offset = described.get("offset_m")
     model = make_light_model(name, led_offset=None if offset is None else np.asarray(offset, dtype=np.float64))
     mask = refinement.mask_array()
-    if not mask.any() or capture.color_size != mask.shape:
+    if not mask.any() or tuple(capture.color_size) != mask.shape:
         return None
     v, u = np.nonzero(mask)
     depth = refinement.depth_array().astype(np.float64)
@@ -383,41 +389,31 @@ def reference_residual(refinement, capture) -> np.ndarray | None:
     return out
 
 
-def _residual_figures(refinement, capture, report: dict, info: dict) -> str | None:
-    parts = []
-    residual = None
-    if capture is not None:
-        try:
-            residual = reference_residual(refinement, capture)
-        except Exception:  # noqa: BLE001 - an extra view; the page must not fail for it
-            residual = None
-    if residual is not None:
-        fig, ax = _subplots(1, 1, (5.2, 3.8))
-        ax = ax[0, 0]
-        bound = max(float(np.nanpercentile(np.abs(residual), 99)), 1e-6)
-        box, extent = _crop(np.isfinite(residual))
-        im = ax.imshow(residual[box], extent=extent, cmap="coolwarm", vmin=-bound, vmax=bound)
-        _image_axes(ax, "reference frame: image - albedo x shading")
-        fig.colorbar(im, ax=ax, label="residual (linear intensity, mean RGB)", shrink=0.8)
-        parts.append(_png(fig, "reference frame residual map"))
-        rms = float(np.sqrt(np.nanmean(residual**2)))
-        parts.append(f"<p>reference frame RMS residual: {rms:.4f} (linear intensity)</p>")
-    rows = info.get("residuals") or report.get("residuals")
-    if isinstance(rows, list) and rows and isinstance(rows[0], dict) and "rms" in rows[0]:
-        fig, ax = _subplots(1, 1, (6.5, 3.0))
-        ax = ax[0, 0]
-        ax.bar([str(r.get("frame")) for r in rows], [float(r["rms"]) for r in rows])
-        ax.set_xlabel("capture frame")
-        ax.set_ylabel("RMS residual (linear intensity)")
-        ax.set_title("per-frame residual after refinement", fontsize=10)
-        parts.append(_png(fig, "per-frame RMS residual"))
-    return "".join(parts) or None
+def residual_figure(residual: np.ndarray):
+    """A residual map (H, W) (:func:`reference_residual`) with a symmetric colour bar."""
+    fig, ax = _subplots(1, 1, (5.2, 3.8))
+    ax = ax[0, 0]
+    bound = max(float(np.nanpercentile(np.abs(residual), 99)), 1e-6)
+    box, extent = _crop(np.isfinite(residual))
+    im = ax.imshow(residual[box], extent=extent, cmap="coolwarm", vmin=-bound, vmax=bound)
+    _image_axes(ax, f"reference frame: image - albedo x shading, RMS {np.sqrt(np.nanmean(residual ** 2)):.4f}")
+    fig.colorbar(im, ax=ax, label="residual (linear intensity, mean RGB)", shrink=0.8)
+    return fig
 
 
-def _energy_figure(report: dict) -> str | None:
-    energy = report.get("energy")
-    if not isinstance(energy, list) or not energy or not isinstance(energy[0], dict):
-        return None
+def frame_residuals_figure(rows: list):
+    """Bars of the per-frame RMS residual, rows [{"frame", "rms"}] (report.json's ``residuals``)."""
+    fig, ax = _subplots(1, 1, (6.5, 3.0))
+    ax = ax[0, 0]
+    ax.bar([str(r.get("frame")) for r in rows], [float(r["rms"]) for r in rows])
+    ax.set_xlabel("capture frame")
+    ax.set_ylabel("RMS residual (linear intensity)")
+    ax.set_title("per-frame residual after refinement", fontsize=10)
+    return fig
+
+
+def energy_figure(energy: list):
+    """The energy per sweep of each pyramid level, rows [{"level", "iteration", "energy"}], log scale."""
     fig, ax = _subplots(1, 1, (6.5, 3.0))
     ax = ax[0, 0]
     levels = sorted({int(r.get("level", 0)) for r in energy}, reverse=True)
@@ -431,53 +427,117 @@ def _energy_figure(report: dict) -> str | None:
     ax.legend(fontsize=8, ncol=min(len(levels), 5))
     ax.grid(alpha=0.3)
     ax.set_title("energy per sweep, each pyramid level (0 = full resolution)", fontsize=10)
-    return _png(fig, "energy per sweep")
+    return fig
 
 
-def _pose_figures(refinement, capture, info: dict) -> str | None:
-    if refinement.poses is None:
+def pose_errors(poses: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """(n, 2) rotation (deg) and translation (mm) errors of poses (n, 4, 4) against truth (n, 4, 4)."""
+    from .model.se3 import pose_error
+
+    errors = np.array([pose_error(p, t) for p, t in zip(poses, truth)], dtype=np.float64).reshape(-1, 2)
+    errors[:, 1] *= 1000.0
+    return errors
+
+
+def pose_figure(refinement, truth: np.ndarray | None = None, initial: np.ndarray | None = None,
+                updates: list | None = None):
+    """The refined camera motion from the reference per frame; with ``truth`` (poses of the
+    refinement's frames, (n, 4, 4)) the refined pose errors, and the ``initial`` (e.g. odometry)
+    poses' errors beside them; with ``updates`` (report.json's ``pose_updates``) how far the
+    refinement moved each pose. None without poses."""
+    if refinement.poses is None or len(refinement.poses) < 2:
         return None
-    from .model.se3 import pose_error, rotation_angle_deg
+    from .model.se3 import rotation_angle_deg
 
     poses = np.asarray(refinement.poses.numpy(), dtype=np.float64)
-    if len(poses) < 2:
-        return None
-    frames = info.get("frames") if isinstance(info.get("frames"), list) and len(info["frames"]) == len(poses) \
-        else list(range(len(poses)))
-    parts = []
-    truth = getattr(getattr(capture, "groundtruth", None), "poses", None)
-    updates = info.get("pose_updates")
-    n_panels = 1 + (truth is not None and len(truth) > max(frames)) + bool(updates)
-    fig, axes = _subplots(1, n_panels, (4.4 * n_panels, 3.2))
+    frames = _frames_of(refinement, len(poses))
+    n_panels = 1 + 2 * (truth is not None) + bool(updates)
+    fig, axes = _subplots(1, n_panels, (4.2 * n_panels, 3.2))
     ax = axes[0, 0]
     ax.plot(frames, [rotation_angle_deg(T[:3, :3]) for T in poses], "o-", ms=3, label="rotation (deg)")
-    ax.plot(frames, [1000 * np.linalg.norm(T[:3, 3]) / 10 for T in poses], "s--", ms=3, label="translation (cm)")
+    ax.plot(frames, [100 * np.linalg.norm(T[:3, 3]) for T in poses], "s--", ms=3, label="translation (cm)")
     ax.set_xlabel("capture frame")
     ax.set_ylabel("deg / cm")
     ax.set_title("refined camera motion from the reference", fontsize=10)
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
     k = 1
-    if truth is not None and len(truth) > max(frames):
-        truth = np.asarray(truth, dtype=np.float64)
-        errors = np.array([pose_error(poses[j], truth[f]) for j, f in enumerate(frames)])
-        ax = axes[0, k]
-        ax.plot(frames, errors[:, 0], "o-", ms=3, label="rotation (deg)")
-        ax.plot(frames, errors[:, 1] * 1000, "s--", ms=3, label="translation (mm)")
-        ax.set_xlabel("capture frame")
-        ax.set_ylabel("error (deg / mm)")
-        ax.set_title("refined pose error against the ground truth", fontsize=10)
-        ax.legend(fontsize=8)
-        ax.grid(alpha=0.3)
-        k += 1
+    if truth is not None:
+        refined = pose_errors(poses, truth)
+        before = pose_errors(initial, truth) if initial is not None else None
+        for j, (unit, label) in enumerate((("deg", "rotation error"), ("mm", "translation error"))):
+            ax = axes[0, k + j]
+            if before is not None:
+                ax.plot(frames, before[:, j], "s--", ms=3, color="grey", label="initial (odometry)")
+            ax.plot(frames, refined[:, j], "o-", ms=3, label="refined")
+            ax.set_xlabel("capture frame")
+            ax.set_ylabel(f"{label} ({unit})")
+            ax.set_title(f"{label} against the ground truth", fontsize=10)
+            ax.legend(fontsize=8)
+            ax.grid(alpha=0.3)
+        k += 2
     if updates:
         ax = axes[0, k]
-        names = [str(u.get("frame")) for u in updates]
-        ax.bar(names, [float(u.get("moved_mm") or 0) for u in updates])
+        ax.bar([str(u.get("frame")) for u in updates], [float(u.get("moved_mm") or 0) for u in updates])
         ax.set_xlabel("capture frame")
         ax.set_ylabel("moved by the refinement (mm)")
         ax.set_title("pose updates", fontsize=10)
-    parts.append(_png(fig, "camera poses"))
+    return fig
+
+
+# -- page sections built from the figures ---------------------------------------------------------------
+def _image_figures(refinement, capture) -> str:
+    input_normals = None
+    if capture is not None:
+        from .baselines import bicubic
+
+        try:
+            input_normals = bicubic(capture).normals_array()
+        except Exception:  # noqa: BLE001 - the input view is an extra; the page must not fail for it
+            input_normals = None
+    return (_png(normals_figure(refinement, input_normals), "input and refined normals")
+            + _png(albedo_depth_figure(refinement), "albedo and refined depth"))
+
+
+def _lighting_figure(refinement, info: dict) -> str | None:
+    fig = lighting_figure(refinement)
+    return None if fig is None else _png(fig, "lighting per frame")
+
+
+def _residual_figures(refinement, capture, report: dict, info: dict) -> str | None:
+    parts = []
+    residual = None
+    if capture is not None:
+        try:
+            residual = reference_residual(refinement, capture)
+        except Exception:  # noqa: BLE001 - an extra view; the page must not fail for it
+            residual = None
+    if residual is not None:
+        parts.append(_png(residual_figure(residual), "reference frame residual map"))
+    rows = info.get("residuals") or report.get("residuals")
+    if isinstance(rows, list) and rows and isinstance(rows[0], dict) and "rms" in rows[0]:
+        parts.append(_png(frame_residuals_figure(rows), "per-frame RMS residual"))
+    return "".join(parts) or None
+
+
+def _energy_figure(report: dict) -> str | None:
+    energy = report.get("energy")
+    if not isinstance(energy, list) or not energy or not isinstance(energy[0], dict):
+        return None
+    return _png(energy_figure(energy), "energy per sweep")
+
+
+def _pose_figures(refinement, capture, info: dict) -> str | None:
+    if refinement.poses is None:
+        return None
+    frames = _frames_of(refinement, len(refinement.poses))
+    truth = getattr(getattr(capture, "groundtruth", None), "poses", None)
+    truth = None if truth is None or len(truth) <= max(frames) else np.asarray(truth, dtype=np.float64)[frames]
+    updates = info.get("pose_updates")
+    fig = pose_figure(refinement, truth=truth, updates=updates)
+    if fig is None:
+        return None
+    parts = [_png(fig, "camera poses")]
     if updates:
         parts.append(_table(["frame", "moved (mm)", "moved (deg)", "rejected updates", "note"],
                             [[u.get("frame"), u.get("moved_mm"), u.get("moved_deg"), u.get("rejected_updates"),
