@@ -59,9 +59,10 @@ bench: setup
 notebooks: setup
 	$(VENV)/bin/jupyter lab notebooks/
 
-# Run every notebook top to bottom and save it with its outputs (commit the result).
+# Run every notebook top to bottom and save it with its outputs (commit the result); CI=1 saves
+# the 3D views as static images (an interactive viewer is ~2 MB of output).
 notebooks-run: setup
-	$(VENV)/bin/jupyter nbconvert --to notebook --execute --inplace --ExecutePreprocessor.timeout=300 notebooks/*.ipynb
+	CI=1 $(VENV)/bin/jupyter nbconvert --to notebook --execute --inplace --ExecutePreprocessor.timeout=300 notebooks/*.ipynb
 
 clean:
 	rm -rf $(VENV) out .pytest_cache

@@ -28,7 +28,7 @@ from .fileio import atomic_files
 
 __all__ = ["write_report_page", "report_page_html", "mesh_viewer_html", "reference_residual", "normals_figure",
            "albedo_depth_figure", "lighting_figure", "residual_figure", "frame_residuals_figure", "energy_figure",
-           "pose_figure", "pose_errors", "REPORT_HTML", "MAX_PAGE_TRIANGLES"]
+           "pose_figure", "pose_errors", "show_mesh", "REPORT_HTML", "MAX_PAGE_TRIANGLES"]
 
 REPORT_HTML = "report.html"
 #: The page's mesh is decimated to at most this many triangles (about 1.5 MB of vertex data).
@@ -109,7 +109,7 @@ def report_page_html(report: dict, *, refinement=None, capture=None, mesh=None, 
     if mesh is None and refinement is not None:
         mesh = refinement.to_mesh()
     if mesh is not None:
-        parts.append(_section("3D view", _mesh_section(mesh, "camera" if refinement is not None else "iso")))
+        parts.append(_section("3D view", _mesh_section(mesh, "camera")))
     parts.append(f'<p class="note">Built in {time.perf_counter() - t0:.1f} s by o3d_mvps; self-contained '
                  "(no network). Mouse: left drag turns, right drag or wheel zooms, shift + drag pans.</p>")
     body = "\n".join(p for p in parts if p)
@@ -143,7 +143,7 @@ def _subplots(nrows: int, ncols: int, figsize: tuple[float, float]):
     kept open: a notebook's inline backend is left alone)."""
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=figsize, layout="constrained")
+    fig = Figure(figsize=figsize, dpi=DPI, layout="constrained")
     return fig, fig.subplots(nrows, ncols, squeeze=False)
 
 
@@ -610,6 +610,30 @@ def mesh_viewer_html(mesh, *, view: str = "camera", max_triangles: int = MAX_PAG
     text = io.StringIO()
     write_html(archive.getvalue(), text)
     return _offline(text.getvalue()), total, len(tri)
+
+
+def show_mesh(mesh, *, interactive: bool | None = None, view: str = "camera", size: tuple[int, int] = (720, 480)):
+    """A Jupyter display object of ``mesh``: the turnable 3D view (vtk.js, inline, as in report.html)
+    when ``interactive``, else a static PNG rendered off-screen (:func:`o3d_mvps.viz.render_preview`).
+
+    ``interactive`` None: static where no browser will look at it (the environment variable CI is
+    set, as when the notebooks are executed by the tests), interactive otherwise.
+    """
+    from IPython.display import HTML, Image
+
+    if interactive is None:
+        interactive = not os.environ.get("CI")
+    if interactive:
+        viewer, _, _ = mesh_viewer_html(mesh, view=view, size=size)
+        return HTML(f'<iframe title="3D view" style="width: {size[0]}px; height: {size[1]}px; border: 1px solid #ccc" '
+                    f'srcdoc="{html.escape(viewer, quote=True)}"></iframe>')
+    import tempfile
+
+    from .viz import render_preview
+
+    with tempfile.TemporaryDirectory() as folder:
+        path = render_preview(mesh, Path(folder) / "mesh.png", size=size, view=view)
+        return Image(data=path.read_bytes(), format="png")
 
 
 #: vtk.js adds favicon links to kitware.github.io to the page's head: point them at an inline icon.
