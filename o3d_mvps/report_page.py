@@ -51,7 +51,8 @@ iframe.viewer { width: 100%; height: 560px; border: 1px solid #ccc; }
 
 
 # -- the page ------------------------------------------------------------------------------------
-def write_report_page(folder, *, refinement=None, capture=None, mesh=None, title: str | None = None) -> Path:
+def write_report_page(folder, *, refinement=None, capture=None, mesh=None, title: str | None = None,
+                      warnings: list | None = None) -> Path:
     """Write ``folder/report.html`` for a run whose results (and report.json) are in ``folder``.
 
     Parameters
@@ -68,6 +69,8 @@ def write_report_page(folder, *, refinement=None, capture=None, mesh=None, title
         Shown in the 3D view (default: ``refinement.to_mesh()``); decimated to
         :data:`MAX_PAGE_TRIANGLES`.
     title : str, optional
+    warnings : list of str, optional
+        Shown with report.json's ``warnings`` (e.g. the Python warnings a command caught).
 
     Returns
     -------
@@ -77,6 +80,8 @@ def write_report_page(folder, *, refinement=None, capture=None, mesh=None, title
     folder = Path(folder)
     report_path = folder / "report.json"
     report = json.loads(report_path.read_text()) if report_path.is_file() else {}
+    if warnings:
+        report = {**report, "warnings": list(report.get("warnings") or []) + [str(w) for w in warnings]}
     if refinement is None and (folder / "depth.npy").is_file():
         from .refinement import read_refinement
 

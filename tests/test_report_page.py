@@ -114,6 +114,7 @@ def test_reconstruct_page_loads_offline_with_a_3d_view(browser, reconstruct_page
     check_page(browser, reconstruct_page, min_images=0)
     text = reconstruct_page.read_text()
     assert "Reference views" in text and "the back of the mesh is missing" in text  # a 120-degree arc
+    assert "degrees around the object: the mesh holds what they saw" in text  # reconstruct's warning, caught
 
 
 def test_page_is_self_contained(refine_page):

@@ -88,7 +88,7 @@ def run(args) -> int:
         if solid is not None:
             write_stl(solid, tmp / "print.stl")
         (tmp / "report.json").write_text(json.dumps(result.info, indent=2))
-    write_report_page(out, mesh=result.mesh)
+    write_report_page(out, mesh=result.mesh, warnings=[w.message for w in caught])
     if not args.quiet:
         for view in result.info["views"]:
             print(f"reference {view['reference']}: frames {view['frames'][1:]}, {view['seconds']:.1f} s")

@@ -211,6 +211,9 @@ def read_reconstruction(folder) -> tuple[o3d.t.geometry.TriangleMesh, dict]:
 
     root = Path(folder)
     path = root / RECONSTRUCTION_MESH
+    if not path.is_file():
+        raise MVPSError(f"{root} is not a reconstruct folder ({RECONSTRUCTION_MESH} missing); give the folder that "
+                        "'o3d-mvps reconstruct' wrote")
     mesh = o3d.t.io.read_triangle_mesh(str(path))
     if "indices" not in mesh.triangle or len(mesh.triangle.indices) == 0:
         raise MVPSError(f"{path} holds no triangles; reconstruct again ('o3d-mvps reconstruct CAPTURE {root}')")
