@@ -630,8 +630,8 @@ def show_mesh(mesh, *, interactive: bool | None = None, view: str = "camera", si
         interactive = not os.environ.get("CI")
     if interactive:
         viewer, _, _ = mesh_viewer_html(mesh, view=view, size=size)
-        return HTML(f'<iframe title="3D view" style="width: {size[0]}px; height: {size[1]}px; border: 1px solid #ccc" '
-                    f'srcdoc="{html.escape(viewer, quote=True)}"></iframe>')
+        return HTML(f'<div><iframe title="3D view" style="width: {size[0]}px; height: {size[1]}px; border: 1px solid '
+                    f'#ccc" srcdoc="{html.escape(viewer, quote=True)}"></iframe></div>')  # a div: IPython frowns on bare iframes
     import tempfile
 
     from .viz import render_preview

@@ -149,3 +149,16 @@ def test_contract_sections_appear_when_present(refine_page):
         assert expected in text, expected
     bare = report_page_html({"method": "ours"}, refinement=refinement)
     assert "Input checks" not in bare and "per-frame RMS residual" not in bare and "Warnings" in bare
+
+
+def test_show_mesh_is_the_viewer_or_a_static_image(refine_page, monkeypatch):
+    from o3d_mvps.refinement import read_refinement
+    from o3d_mvps.report_page import show_mesh
+
+    mesh = read_refinement(refine_page.parent).to_mesh()
+    viewer = show_mesh(mesh, interactive=True)
+    assert "<iframe" in viewer.data and "OfflineLocalView" in viewer.data and "kitware.github.io/vtk-js/icon" not in viewer.data
+    monkeypatch.setenv("CI", "1")  # where no browser looks: a PNG
+    image = show_mesh(mesh, size=(160, 120))
+    pixels = np.asarray(Image.open(io.BytesIO(image.data)).convert("RGB"))
+    assert pixels.shape == (120, 160, 3) and pixels.std() > 5.0
