@@ -630,8 +630,9 @@ def show_mesh(mesh, *, interactive: bool | None = None, view: str = "camera", si
         interactive = not os.environ.get("CI")
     if interactive:
         viewer, _, _ = mesh_viewer_html(mesh, view=view, size=size)
+        # in a div: IPython warns about HTML that is a bare iframe
         return HTML(f'<div><iframe title="3D view" style="width: {size[0]}px; height: {size[1]}px; border: 1px solid '
-                    f'#ccc" srcdoc="{html.escape(viewer, quote=True)}"></iframe></div>')  # a div: IPython frowns on bare iframes
+                    f'#ccc" srcdoc="{html.escape(viewer, quote=True)}"></iframe></div>')
     import tempfile
 
     from .viz import render_preview
@@ -643,7 +644,8 @@ def show_mesh(mesh, *, interactive: bool | None = None, view: str = "camera", si
 
 #: vtk.js adds favicon links to kitware.github.io to the page's head: point them at an inline icon.
 _FAVICON_URL = re.compile(r"https://kitware\.github\.io/vtk-js/icon/favicon-\$\{\w+\}x\$\{\w+\}\.png")
-_BLANK_PNG = ("data:image/png;base64,iVBORw0KGgoAAAANSUhEUgAAAAEAAAABCAQAAAC1HAwCAAAAC0lEQVR42mNkYAAAAAYAAjCB0C8AAAAASUVORK5CYII=")
+_BLANK_PNG = ("data:image/png;base64,"
+              "iVBORw0KGgoAAAANSUhEUgAAAAEAAAABCAQAAAC1HAwCAAAAC0lEQVR42mNkYAAAAAYAAjCB0C8AAAAASUVORK5CYII=")
 
 
 def _offline(viewer: str) -> str:

@@ -21,8 +21,8 @@ from .outputs import add_overwrite_argument, check_folder, log_energy
 DESCRIPTION = """\
 Render a synthetic LED-lit capture of a shipped mesh, refine it and report the accuracy
 against the baselines. Writes into OUT: capture/ (the rendered capture), refined/ (the
-refinement, with report.html: plots and a 3D view for a browser), report.md (accuracy table), mesh.obj (+ .mtl + albedo texture), mesh.glb,
-print.stl (print-ready solid) and preview.png.
+refinement, with report.html: plots and a 3D view for a browser), report.md (accuracy table),
+mesh.obj (+ .mtl + albedo texture), mesh.glb, print.stl (print-ready solid) and preview.png.
 """
 
 EXAMPLES = """\
