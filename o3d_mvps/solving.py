@@ -143,6 +143,13 @@ def _led_offset(options: RefineOptions, capture: Capture) -> np.ndarray:
         return np.zeros(3)
     offset = np.asarray(offset, dtype=np.float64)
     if offset.shape != (3,) or not np.isfinite(offset).all() or np.abs(offset).max() > 1.0:
-        raise CaptureError(f"led_offset {offset.tolist()} must be (x, y, z) in metres within 1 m of the camera; "
-                           "fix 'led_offset' in capture.json's metadata or pass RefineOptions(led_offset=...)")
+        values = " ".join(f"{v:g}" for v in np.ravel(offset))
+        hint = (f" (in millimetres? that is {' '.join(f'{v / 1000:g}' for v in offset)} m)"
+                if offset.shape == (3,) and np.isfinite(offset).all() and np.abs(offset).max() <= 1000.0 else "")
+        if options.led_offset is not None:  # the caller's value: --led-offset or RefineOptions(led_offset=...)
+            raise CaptureError(f"--led-offset {values} (RefineOptions(led_offset=...)) must be the LED's x y z in "
+                               f"metres, within 1 m of the colour lens{hint}")
+        raise CaptureError(f"led_offset [{values}] in the capture's capture.json (metadata.led_offset) must be the "
+                           f"LED's x y z in metres, within 1 m of the colour lens{hint}; fix it there or pass "
+                           "--led-offset X Y Z (RefineOptions(led_offset=...)), which takes precedence")
     return offset

@@ -10,6 +10,7 @@ from ..datasets import DATA_DIR, MESHES
 from ..export import printable_solid, write_mesh, write_stl
 from ..fileio import atomic_folder
 from ..report import accuracy_rows, markdown_table
+from ..report_page import write_report_page
 from ..solver.device import DEVICE_HELP, resolve_device
 from ..solver.options import RefineOptions
 from ..solving import refine
@@ -21,8 +22,8 @@ from .outputs import add_overwrite_argument, check_folder, log_energy
 DESCRIPTION = """\
 Render a synthetic LED-lit capture of a shipped mesh, refine it and report the accuracy
 against the baselines. Writes into OUT: capture/ (the rendered capture), refined/ (the
-refinement), report.md (accuracy table), mesh.obj (+ .mtl + albedo texture), mesh.glb,
-print.stl (print-ready solid) and preview.png.
+refinement, with report.html: plots and a 3D view for a browser), report.md (accuracy table),
+mesh.obj (+ .mtl + albedo texture), mesh.glb, print.stl (print-ready solid) and preview.png.
 """
 
 EXAMPLES = """\
@@ -74,6 +75,7 @@ def run(args) -> int:
         write_mesh(mesh, tmp / "mesh.glb")
         write_stl(printable_solid(refinement), tmp / "print.stl")
         render_preview(mesh, tmp / "preview.png")
+    write_report_page(out / "refined", refinement=refinement, capture=capture)
     say(table)
     print(f"wrote {out}")
     return 0

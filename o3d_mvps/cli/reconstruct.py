@@ -12,6 +12,7 @@ from ..capture.reading import MASK_SOURCES
 from ..export import write_mesh, write_stl
 from ..fileio import atomic_folder
 from ..reconstruct import ReconstructOptions, reconstruct
+from ..report_page import write_report_page
 from ..solver.device import DEVICE_HELP, resolve_device
 from .outputs import add_overwrite_argument, check_folder
 from .refine import add_solver_arguments, options_from_args
@@ -21,7 +22,8 @@ Reconstruct a whole object from a capture that goes around it: K reference views
 the ring are each refined with the frames that see them (in parallel, as Dask tasks), their
 refined depths fused into one mesh, cleaned and textured from the refined albedos (one UV
 atlas). Writes OUT/mesh.obj (+ mesh.mtl, mesh_albedo.png), mesh.glb (texture embedded),
-mesh.ply (vertex colours) and report.json; --print MM adds print.stl, a
+mesh.ply (vertex colours), report.json and report.html (plots and a 3D view, for a
+browser); --print MM adds print.stl, a
 closed solid MM millimetres across. A capture that does not go all round gives a mesh of what
 was seen (with a warning), and --print closes its back flat.
 """
@@ -91,6 +93,7 @@ def run(args) -> int:
         if solid is not None:
             write_stl(solid, tmp / "print.stl")
         (tmp / "report.json").write_text(json.dumps(result.info, indent=2))
+    write_report_page(out, mesh=result.mesh, warnings=[w.message for w in caught])
     if not args.quiet:
         for view in result.info["views"]:
             print(f"reference {view['reference']}: frames {view['frames'][1:]}, {view['seconds']:.1f} s")

@@ -9,6 +9,7 @@ from dataclasses import replace
 from ..capture import read_capture, read_capture_poses
 from ..capture.reading import MASK_SOURCES, mask_source
 from ..report import accuracy_rows, markdown_table
+from ..report_page import write_report_page
 from ..solver.device import DEVICE_HELP, resolve_device
 from ..solver.lighting import LIGHT_MODELS
 from ..solver.options import AUTO, RefineOptions
@@ -19,7 +20,8 @@ from .outputs import add_overwrite_argument, check_files, check_folder, log_ener
 DESCRIPTION = """\
 Refine a capture folder: depth at colour resolution, RGB albedo, per-frame lighting and
 refined camera poses of the reference view (the first frame), written to the folder OUT
-(depth.npy, depth_mm.png, normals, albedo, poses.npy, lighting.json, report.json). For a
+(depth.npy, depth_mm.png, normals, albedo, poses.npy, lighting.json, report.json, and
+report.html: a page with the plots and a 3D view, to open in a browser). For a
 synthetic capture (with groundtruth/) the accuracy against the baselines is printed too.
 """
 
@@ -134,5 +136,6 @@ def run(args) -> int:
         if not args.quiet:
             print(markdown_table(rows))
     refinement.save(out, overwrite=args.overwrite, extra_report=extra)
+    write_report_page(out, refinement=refinement, capture=capture)
     print(f"wrote {out}")
     return 0

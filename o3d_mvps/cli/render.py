@@ -6,6 +6,7 @@ import argparse
 import time
 from pathlib import Path
 
+from ..errors import MVPSError
 from .argtypes import image_size, positive_int
 from .outputs import add_overwrite_argument, check_folder
 
@@ -17,6 +18,12 @@ examples:
   o3d-mvps render bunny captures/room --scene --light room --frames 20   # table, wall, 360-degree ring
   o3d-mvps render bunny captures/real --sensor d415            # terraces, flying pixels, holes, gain drift
   o3d-mvps render bunny captures/static --static-camera --size 1280x960 --scale-factor 2 --sensor d415
+
+ring captures, for `o3d-mvps reconstruct` (the whole object):
+  o3d-mvps render bunny captures/ring --trajectory ring --frames 24 --size 320x240 --scale-factor 2
+  o3d-mvps reconstruct captures/ring object/ --print 80       # object/mesh.obj, report.html, print.stl
+  o3d-mvps render bunny captures/arc --trajectory ring --arc-deg 90 --frames 7   # part of a ring
+  o3d-mvps render bunny captures/scene --scene --frames 24   # a ring round the object on a table
 
 The folder holds color/, depth/, mask/, intrinsic.json, depth_intrinsic.json, capture.json and
 groundtruth/ (reference depth, normals, albedo, poses, light, mesh_to_reference); read it with
@@ -46,16 +53,20 @@ def register(subparsers) -> None:
     p.add_argument("--scale-factor", type=positive_int, default=4, metavar="SF",
                    help="depth grid = colour size / SF; must divide the size (default 4)")
     p.add_argument("--size", type=image_size, default=(640, 480), metavar="WxH", help="colour size (default 640x480)")
-    p.add_argument("--trajectory", choices=TRAJECTORIES, default="orbit",
+    p.add_argument("--trajectory", choices=(*TRAJECTORIES, "ring"), default="orbit",
                    help="orbit: yaw/pitch up to 15 deg around the object; orbit-translate: plus a few cm of "
-                   "translation and distance change (default orbit)")
+                   "translation and distance change; ring: frames evenly all round the object (360/FRAMES "
+                   "degrees apart, 20 degrees above it; --arc-deg for part of a ring), the capture `o3d-mvps "
+                   "reconstruct` makes a whole object of (default orbit)")
+    p.add_argument("--arc-deg", type=float, default=360.0, metavar="DEG",
+                   help="with --trajectory ring or --scene: degrees of the ring the frames cover, both ends "
+                   "included below 360 (default 360: all round)")
     p.add_argument("--light", choices=LIGHTS, default="led",
                    help="led: point light near the camera, 1/r^2, shadows; directional: first-order SH, exact; "
                    "room: ambient plus three distant lights fixed in the room, shadows (default led)")
     p.add_argument("--scene", action="store_true",
-                   help="scene mode: the object on a table in front of a wall, frames on a 360-degree ring "
-                   "(360/FRAMES degrees apart, 20 degrees above the table), no mask/ folder; --trajectory is "
-                   "ignored")
+                   help="scene mode: the object on a table in front of a wall, frames on a ring (as --trajectory "
+                   "ring, 20 degrees above the table), no mask/ folder; --trajectory is ignored")
     p.add_argument("--static-camera", action="store_true",
                    help="static camera, moving light (Peng et al. 2017): the camera stays at the reference pose "
                    "and a point light is moved by hand around it, 0.3-0.5 m from the optical axis, one position "
@@ -78,6 +89,8 @@ def run(args) -> int:
     from ..capture import write_capture
     from ..synthetic import render_capture, render_ring, render_static_capture
 
+    if not 0.0 < args.arc_deg <= 360.0:
+        raise MVPSError(f"--arc-deg {args.arc_deg:g}: give the degrees of the ring the frames cover, in (0, 360]")
     if args.scene and args.static_camera:
         raise ValueError("--scene and --static-camera exclude each other (a scene is rendered from a ring of "
                          "camera positions); pick one")
@@ -90,8 +103,8 @@ def run(args) -> int:
                   progress=not args.quiet)
     if args.static_camera:
         capture = render_static_capture(args.mesh, **common)
-    elif args.scene:
-        capture, _ = render_ring(args.mesh, surroundings=True, light=args.light, **common)
+    elif args.scene or args.trajectory == "ring":
+        capture, _ = render_ring(args.mesh, surroundings=args.scene, arc_deg=args.arc_deg, light=args.light, **common)
     else:
         capture = render_capture(args.mesh, trajectory=args.trajectory, light=args.light, **common)
     write_capture(capture, out, overwrite=args.overwrite)

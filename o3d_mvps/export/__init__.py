@@ -22,7 +22,7 @@ origin at the bottom-left of the image. Colours (``vertex.colors`` and the textu
 sRGB-encoded, ready for display; the albedo itself is linear RGB.
 """
 
-from .relief import DEFAULT_MAX_DEPTH_JUMP, refinement_to_mesh
+from .relief import DEFAULT_MAX_DEPTH_JUMP, refinement_to_mesh, simplify_mesh
 from .solid import PIECES, check_solid, printable_solid, solid_volume
 from .topology import mesh_arrays
 from .writers import MESH_SUFFIXES, write_mesh, write_stl
@@ -32,6 +32,7 @@ __all__ = [
     "MESH_SUFFIXES",
     "PIECES",
     "refinement_to_mesh",
+    "simplify_mesh",
     "printable_solid",
     "check_solid",
     "solid_volume",

@@ -178,7 +178,8 @@ def reconstruct(capture, options: ReconstructOptions | None = None, *, poses=Non
     info = {"references": references, "failed": {str(k): e for k, e in failed.items()},
             "views": [{"reference": v.reference, "seconds": round(v.seconds, 3), **v.selection} for v in views],
             "azimuth_span_deg": round(span, 1), "goes_around": goes_around, "depth": options.depth,
-            "voxel_mm": options.voxel_mm, "vertices": len(positions), "triangles": int(len(mesh.triangle.indices)), "textured": bool(textured),
+            "voxel_mm": options.voxel_mm, "up": up_direction(poses).tolist(), "vertices": len(positions),
+            "triangles": int(len(mesh.triangle.indices)), "textured": bool(textured),
             "timings": {"plan": t_plan - t0, "views": t_views - t_plan, "fusion": t_fusion - t_views,
                         "texture": time.perf_counter() - t_fusion}}
     return Reconstruction(mesh, views, failed, goes_around, span, up_direction(poses), options.voxel_mm / 1000, info)
@@ -188,3 +189,41 @@ def _cpu_count() -> int:
     import os
 
     return os.cpu_count() or 1
+
+
+#: The whole-object mesh of a folder written by ``o3d-mvps reconstruct`` (vertex colours, normals).
+RECONSTRUCTION_MESH = "mesh.ply"
+
+
+def is_reconstruction_folder(folder) -> bool:
+    """Whether ``folder`` was written by ``o3d-mvps reconstruct`` (mesh.ply and report.json, no depth.npy)."""
+    from pathlib import Path
+
+    root = Path(folder)
+    return (root / RECONSTRUCTION_MESH).is_file() and (root / "report.json").is_file() and \
+        not (root / "depth.npy").is_file()
+
+
+def read_reconstruction(folder) -> tuple[o3d.t.geometry.TriangleMesh, dict]:
+    """(mesh, report) of a folder written by ``o3d-mvps reconstruct``: mesh.ply (metres, frame-0
+    camera, vertex colours and normals; the folder's mesh.obj/.glb hold the albedo texture) and
+    report.json.
+
+    Raises MVPSError naming the file when either cannot be read.
+    """
+    import json
+    from pathlib import Path
+
+    root = Path(folder)
+    path = root / RECONSTRUCTION_MESH
+    if not path.is_file():
+        raise MVPSError(f"{root} is not a reconstruct folder ({RECONSTRUCTION_MESH} missing); give the folder that "
+                        "'o3d-mvps reconstruct' wrote")
+    mesh = o3d.t.io.read_triangle_mesh(str(path))
+    if "indices" not in mesh.triangle or len(mesh.triangle.indices) == 0:
+        raise MVPSError(f"{path} holds no triangles; reconstruct again ('o3d-mvps reconstruct CAPTURE {root}')")
+    try:
+        report = json.loads((root / "report.json").read_text())
+    except (OSError, ValueError) as e:
+        raise MVPSError(f"cannot read {root / 'report.json'} ({e}); reconstruct again") from None
+    return mesh, report
