@@ -14,7 +14,7 @@ from ..solver.options import RefineOptions
 from ..solving import refine
 from ..synthetic import render_capture
 from ..viz import render_preview
-from .argtypes import image_size, positive_int
+from .argtypes import image_size, nonnegative_int, positive_int
 from .outputs import add_overwrite_argument, check_folder, log_energy
 
 DESCRIPTION = """\
@@ -40,7 +40,7 @@ def register(subparsers) -> None:
     p.add_argument("--frames", type=positive_int, default=20, help="frames to render (default 20)")
     p.add_argument("--scale-factor", type=positive_int, default=4, help="depth super-resolution factor (default 4)")
     p.add_argument("--size", type=image_size, default=(640, 480), metavar="WxH", help="colour resolution (default 640x480)")
-    p.add_argument("--seed", type=int, default=0,
+    p.add_argument("--seed", type=nonnegative_int, default=0,
                    help="seed of the rendered albedo texture and sensor noise; the same seed gives the same "
                         "capture, bit for bit, and the same printed accuracy (default 0)")
     p.set_defaults(handler=run)

@@ -14,14 +14,17 @@ def add_overwrite_argument(parser, what: str) -> None:
                         help=f"write into an existing {what}, replacing only what this command writes there")
 
 
-def check_folder(path, overwrite: bool, what: str):
-    """Absolute path of the output folder; OutputExistsError (naming --overwrite) if it would replace files."""
-    return check_output_folder(path, overwrite, what=what, flag=OVERWRITE_FLAG)
+def check_folder(path, overwrite: bool, what: str, inputs=()):
+    """Absolute path of the output folder; OutputExistsError (naming --overwrite) if it would replace
+    files, OutputPathError if it cannot be written or is (inside) one of ``inputs``
+    (:func:`o3d_mvps.fileio.check_output_folder`)."""
+    return check_output_folder(path, overwrite, what=what, flag=OVERWRITE_FLAG, inputs=inputs)
 
 
-def check_files(paths, overwrite: bool) -> list:
-    """The output paths; OutputExistsError (naming --overwrite) if one exists and not ``overwrite``."""
-    return check_output_files(paths, overwrite, flag=OVERWRITE_FLAG)
+def check_files(paths, overwrite: bool, inputs=()) -> list:
+    """The output paths; OutputExistsError (naming --overwrite) if one exists and not ``overwrite``,
+    OutputPathError if one is a folder, cannot be written or is one of ``inputs``."""
+    return check_output_files(paths, overwrite, flag=OVERWRITE_FLAG, inputs=inputs)
 
 
 def log_energy(refinement, quiet: bool) -> None:

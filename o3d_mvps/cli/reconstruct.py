@@ -12,6 +12,7 @@ from ..capture.reading import MASK_SOURCES
 from ..export import write_mesh, write_stl
 from ..fileio import atomic_folder
 from ..reconstruct import ReconstructOptions, reconstruct
+from .argtypes import frame_count_fits, integer_at_least, nonnegative_int, positive_float, positive_int
 from .outputs import add_overwrite_argument, check_folder
 from .refine import add_solver_arguments, options_from_args
 
@@ -44,18 +45,18 @@ def register(subparsers) -> None:
                    help="initial poses (Open3D .json/.log, TUM .txt, .npy; default: the capture's poses.* if any, "
                         "else registration)")
     p.add_argument("--mask", choices=MASK_SOURCES, default=None, help="object masks (as for refine)")
-    p.add_argument("--references", type=int, default=d.references,
+    p.add_argument("--references", type=positive_int, default=d.references,
                    help=f"reference views refined and fused (default {d.references})")
-    p.add_argument("--frames-per-reference", type=int, default=d.frames_per_reference,
+    p.add_argument("--frames-per-reference", type=integer_at_least(2), default=d.frames_per_reference,
                    help=f"most frames refined with each reference (default {d.frames_per_reference})")
     p.add_argument("--depth", choices=("refined", "raw"), default="refined",
                    help="fuse refined depth, or the sensor's depth bicubic-upsampled (for comparison)")
-    p.add_argument("--voxel-mm", type=float, default=d.voxel_mm, help=f"fusion voxel (default {d.voxel_mm} mm)")
-    p.add_argument("--texture-px", type=int, default=d.texture_px,
+    p.add_argument("--voxel-mm", type=positive_float, default=d.voxel_mm, help=f"fusion voxel (default {d.voxel_mm} mm)")
+    p.add_argument("--texture-px", type=nonnegative_int, default=d.texture_px,
                    help=f"edge of the square albedo texture, 0 for vertex colours only (default {d.texture_px})")
-    p.add_argument("--print", dest="print_mm", type=float, default=None, metavar="MM",
+    p.add_argument("--print", dest="print_mm", type=positive_float, default=None, metavar="MM",
                    help="also write print.stl, a closed solid MM millimetres across")
-    p.add_argument("--workers", type=int, default=None, help="local worker processes (default: CPU count)")
+    p.add_argument("--workers", type=positive_int, default=None, help="local worker processes (default: CPU count)")
     p.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
                    help="run the refinements on this Dask scheduler instead of a local cluster")
     add_solver_arguments(p)
@@ -63,9 +64,13 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    out = check_folder(args.out, args.overwrite, "output folder")
+    out = check_folder(args.out, args.overwrite, "output folder", inputs=[args.capture])
     capture = read_capture(args.capture, mask=args.mask)
+    frame_count_fits("--frames", args.frames, capture.n_frames, f"the capture {args.capture}")
     given = read_capture_poses(args.capture, args.poses)
+    if args.frames is not None:  # the first N frames, as for refine
+        capture = capture.select(list(range(args.frames)))
+        given = None if given is None else (given[0][: args.frames], given[1])
     options = ReconstructOptions(references=args.references, frames_per_reference=args.frames_per_reference,
                                  depth=args.depth, voxel_mm=args.voxel_mm, texture_px=args.texture_px,
                                  workers=args.workers,

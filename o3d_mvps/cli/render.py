@@ -6,7 +6,7 @@ import argparse
 import time
 from pathlib import Path
 
-from .argtypes import image_size, positive_int
+from .argtypes import image_size, nonnegative_int, positive_int
 from .outputs import add_overwrite_argument, check_folder
 
 EXAMPLES = """\
@@ -54,7 +54,7 @@ def register(subparsers) -> None:
                    help="scene mode: the object on a table in front of a wall, frames on a 360-degree ring "
                    "(360/FRAMES degrees apart, 20 degrees above the table), no mask/ folder; --trajectory is "
                    "ignored")
-    p.add_argument("--seed", type=int, default=0, help="seed of the albedo texture and noise (default 0)")
+    p.add_argument("--seed", type=nonnegative_int, default=0, help="seed of the albedo texture and noise (default 0)")
     p.add_argument("--no-noise", dest="noise", action="store_false",
                    help="no colour or depth noise (quantisation stays)")
     add_overwrite_argument(p, "capture folder")

@@ -34,7 +34,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def run(args) -> int:
-    (out,) = check_files([args.out], args.overwrite)
+    (out,) = check_files([args.out], args.overwrite, inputs=[args.problem])
     check_device(args.device)
     problem_input = read_problem(args.problem)
     output = solve(problem_input, replace(problem_input.options, progress=not args.quiet), args.device)
