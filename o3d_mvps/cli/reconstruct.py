@@ -12,6 +12,7 @@ from ..capture.reading import MASK_SOURCES
 from ..export import write_mesh, write_stl
 from ..fileio import atomic_folder
 from ..reconstruct import ReconstructOptions, reconstruct
+from ..reconstruct.parallel import check_scheduler_address
 from .argtypes import frame_count_fits, integer_at_least, nonnegative_int, positive_float, positive_int
 from .outputs import add_overwrite_argument, check_folder
 from .refine import add_solver_arguments, options_from_args
@@ -59,12 +60,17 @@ def register(subparsers) -> None:
     p.add_argument("--workers", type=positive_int, default=None, help="local worker processes (default: CPU count)")
     p.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
                    help="run the refinements on this Dask scheduler instead of a local cluster")
+    p.add_argument("--scheduler-timeout", type=positive_float, default=d.scheduler_timeout, metavar="S",
+                   help="seconds to wait for the scheduler to answer, or for a worker while it has none; then "
+                        f"stop, naming the address (default {d.scheduler_timeout:g})")
     add_solver_arguments(p)
     p.set_defaults(handler=run)
 
 
 def run(args) -> int:
     out = check_folder(args.out, args.overwrite, "output folder", inputs=[args.capture])
+    if args.scheduler is not None:
+        check_scheduler_address(args.scheduler)
     capture = read_capture(args.capture, mask=args.mask)
     frame_count_fits("--frames", args.frames, capture.n_frames, f"the capture {args.capture}")
     given = read_capture_poses(args.capture, args.poses)
@@ -73,7 +79,7 @@ def run(args) -> int:
         given = None if given is None else (given[0][: args.frames], given[1])
     options = ReconstructOptions(references=args.references, frames_per_reference=args.frames_per_reference,
                                  depth=args.depth, voxel_mm=args.voxel_mm, texture_px=args.texture_px,
-                                 workers=args.workers,
+                                 workers=args.workers, scheduler_timeout=args.scheduler_timeout,
                                  refine=replace(options_from_args(args), progress=False), progress=not args.quiet)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
