@@ -6,7 +6,7 @@ import argparse
 import sys
 from dataclasses import replace
 
-from ..cli import run_handler
+from ..cli import restore_signals, run_handler, stop_on_signals
 from ..cli.outputs import add_overwrite_argument, check_files, log_energy
 from .device import DEVICE_HELP, check_device
 from .driver import solve
@@ -45,7 +45,11 @@ def run(args) -> int:
 
 
 def main(argv=None) -> int:
-    return run_handler(PROG, run, build_parser().parse_args(argv))
+    previous = stop_on_signals(PROG)
+    try:
+        return run_handler(PROG, run, build_parser().parse_args(argv))
+    finally:
+        restore_signals(previous)
 
 
 if __name__ == "__main__":
