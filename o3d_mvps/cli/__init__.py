@@ -218,7 +218,10 @@ def main(argv=None) -> int:
                 _say_interrupted(prog)
                 return INTERRUPTED
             raise
-        return run_handler(f"o3d-mvps {args.command}", args.handler, args)
+        from .outputs import quiet_output
+
+        with quiet_output(getattr(args, "quiet", False)):
+            return run_handler(f"o3d-mvps {args.command}", args.handler, args)
     finally:
         restore_signals(previous)
 

@@ -3,18 +3,18 @@
 from __future__ import annotations
 
 import argparse
-import json
 import warnings
 from dataclasses import replace
 
 from ..capture import read_capture, read_capture_poses
 from ..capture.reading import MASK_SOURCES
 from ..export import write_mesh, write_stl
-from ..fileio import atomic_folder
+from ..fileio import atomic_folder, json_text
+from ..run_report import reconstruction_report, recorded_warnings
 from ..reconstruct import ReconstructOptions, reconstruct
 from ..reconstruct.parallel import check_scheduler_address
 from .argtypes import frame_count_fits, integer_at_least, nonnegative_int, positive_float, positive_int
-from .outputs import add_overwrite_argument, check_folder
+from .outputs import add_overwrite_argument, check_folder, frame_files, print_summary
 from .refine import add_solver_arguments, options_from_args
 
 DESCRIPTION = """\
@@ -81,11 +81,15 @@ def run(args) -> int:
                                  depth=args.depth, voxel_mm=args.voxel_mm, texture_px=args.texture_px,
                                  workers=args.workers, scheduler_timeout=args.scheduler_timeout,
                                  refine=replace(options_from_args(args), progress=False), progress=not args.quiet)
+    said = []
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        result = reconstruct(capture, options, poses=None if given is None else given[0], scheduler=args.scheduler)
-    for w in caught:
-        print(f"warning: {w.message}")
+        with recorded_warnings(said):
+            result = reconstruct(capture, options, poses=None if given is None else given[0],
+                                 scheduler=args.scheduler)
+    if not args.quiet:
+        for w in caught:
+            print(f"warning: {w.message}")
     solid = None
     if args.print_mm is not None:
         if not result.goes_around and not args.quiet:
@@ -96,9 +100,12 @@ def run(args) -> int:
             write_mesh(result.mesh, tmp / name)
         if solid is not None:
             write_stl(solid, tmp / "print.stl")
-        (tmp / "report.json").write_text(json.dumps(result.info, indent=2))
+        report = reconstruction_report(result.info, said, frame_files(args.capture))
+        report["summary"]["outputs"] = str(out)
+        (tmp / "report.json").write_text(json_text(report, "the reconstruction report"))
     if not args.quiet:
         for view in result.info["views"]:
             print(f"reference {view['reference']}: frames {view['frames'][1:]}, {view['seconds']:.1f} s")
+    print_summary(report["summary"], args.quiet)
     print(f"wrote {out}")
     return 0

@@ -15,7 +15,7 @@ from ..solver.options import AUTO, RefineOptions
 from ..solving import refine
 from ..views import ViewSelection
 from .argtypes import frame_count_fits, metres_offset, positive_float, positive_int, unit_interval
-from .outputs import add_overwrite_argument, check_files, check_folder, log_energy
+from .outputs import add_overwrite_argument, check_files, check_folder, frame_files, log_energy, print_summary
 
 DESCRIPTION = """\
 Refine a capture folder: depth at colour resolution, RGB albedo, per-frame lighting and
@@ -134,6 +134,8 @@ def run(args) -> int:
         extra["accuracy"] = rows
         if not args.quiet:
             print(markdown_table(rows))
-    refinement.save(out, overwrite=args.overwrite, extra_report=extra)
+    refinement.info["frame_files"] = frame_files(args.capture)
+    report = refinement.save(out, overwrite=args.overwrite, extra_report=extra)
+    print_summary(report["summary"], args.quiet)
     print(f"wrote {out}")
     return 0

@@ -21,6 +21,7 @@ import numpy as np
 import open3d as o3d
 
 from ..errors import MVPSError
+from ..run_report import peak_memory_mb, workers_peak_memory_mb
 from ..solver.options import RefineOptions
 from ..views import MIN_COVISIBILITY
 from .fusion import GRAZING_EXPONENT, TSDFVolume, pixel_weights
@@ -144,10 +145,12 @@ def _reconstruct(capture, options: ReconstructOptions, poses, client, scheduler,
     dask = None
     if options.depth == "refined" and (client is not None or scheduler is not None):
         dask = dask_session.enter_context(dask_client(client, scheduler, **dask_args))
+    n_given, kept, dropped = capture.n_frames, list(range(capture.n_frames)), {}
     if poses is None:
         from ..odometry import register_frames
 
         registration = register_frames(capture, progress=options.progress)
+        kept, dropped = list(registration.frames), registration.dropped
         capture, poses = capture.select(registration.frames), registration.poses
     poses = np.asarray(poses, dtype=np.float64)
     if poses.shape != (capture.n_frames, 4, 4):
@@ -162,6 +165,7 @@ def _reconstruct(capture, options: ReconstructOptions, poses, client, scheduler,
                       max_frames=options.frames_per_reference) for k in references]
     refine_options = replace(options.refine, frames=None, progress=False)
     t_plan = time.perf_counter()
+    memory = {"plan": peak_memory_mb()}
     retried = {}
     if options.depth == "refined":
         if dask is None:
@@ -186,6 +190,7 @@ def _reconstruct(capture, options: ReconstructOptions, poses, client, scheduler,
     if not views:
         raise MVPSError("every reference view failed: " + "; ".join(f"{k}: {e}" for k, e in failed.items()))
     t_views = time.perf_counter()
+    memory["views"] = peak_memory_mb()
 
     volume = TSDFVolume(options.voxel_mm / 1000)
     for view in views:
@@ -201,14 +206,19 @@ def _reconstruct(capture, options: ReconstructOptions, poses, client, scheduler,
     colouring = ViewColours(views, options.edge_px, positions, normals)
     mesh.vertex.colors = o3d.core.Tensor(colouring.vertex_colours(positions, normals).astype(np.float32))
     t_fusion = time.perf_counter()
+    memory["fusion"] = peak_memory_mb()
     textured = options.texture_px > 0 and texture_mesh(mesh, colouring, options.texture_px)
+    memory["texture"] = peak_memory_mb()
     info = {"references": references, "failed": {str(k): e for k, e in failed.items()},
             "retried": {str(k): e for k, e in retried.items()},
             "views": [{"reference": v.reference, "seconds": round(v.seconds, 3), **v.selection} for v in views],
             "azimuth_span_deg": round(span, 1), "goes_around": goes_around, "depth": options.depth,
             "voxel_mm": options.voxel_mm, "vertices": len(positions), "triangles": int(len(mesh.triangle.indices)), "textured": bool(textured),
             "timings": {"plan": t_plan - t0, "views": t_views - t_plan, "fusion": t_fusion - t_views,
-                        "texture": time.perf_counter() - t_fusion}}
+                        "texture": time.perf_counter() - t_fusion, "total": time.perf_counter() - t0},
+            "capture_frames": n_given, "registered_frames": kept,
+            "dropped_frames": {str(i): why for i, why in dropped.items()},
+            "stage_peak_memory_mb": memory, "workers_peak_memory_mb": workers_peak_memory_mb()}
     return Reconstruction(mesh, views, failed, goes_around, span, up_direction(poses), options.voxel_mm / 1000, info)
 
 
