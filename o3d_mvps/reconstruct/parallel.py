@@ -31,8 +31,8 @@ SINGLE_THREAD_ENV = {name: "1" for name in (
     "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")}
 #: Seconds to wait for a scheduler to answer, or for a worker to run the views on (--scheduler-timeout).
 SCHEDULER_TIMEOUT = 60.0
-#: ``[tcp|tls]://HOST:PORT`` (HOST a name, IPv4 or [IPv6]); Dask's own parser accepts anything.
-_ADDRESS = re.compile(r"^(?:(tcp|tls)://)?(\[[0-9a-fA-F:]+\]|[A-Za-z0-9._-]+):(\d{1,5})$")
+#: ``[tcp|tls|ws|wss|ucx]://HOST:PORT`` (HOST a name, IPv4 or [IPv6]); Dask's own parser accepts anything.
+_ADDRESS = re.compile(r"^(?:(tcp|tls|ws|wss|ucx)://)?(\[[0-9a-fA-F:]+\]|[A-Za-z0-9._-]+):(\d{1,5})$")
 #: Seconds between the checks of a wait for results.
 _POLL = 0.2
 
@@ -44,6 +44,8 @@ class SchedulerError(MVPSError, RuntimeError):
 def check_scheduler_address(address: str) -> str:
     """``address`` if it reads ``tcp://HOST:PORT`` (or ``tls://``, or ``HOST:PORT``); else
     SchedulerError naming it and the expected form (Dask would fail later with an ``int()`` error)."""
+    if address.startswith("inproc://"):  # a scheduler in this process (LocalCluster(processes=False))
+        return address
     match = _ADDRESS.match(address.strip())
     if match is None or not 0 < int(match.group(3)) < 65536:
         raise SchedulerError(f"scheduler address {address!r} is not of the form tcp://HOST:PORT (e.g. "
@@ -90,7 +92,9 @@ def dask_client(client=None, scheduler: str | None = None, workers: int | None =
             yield connected
         return
     n = workers if workers is not None else os.cpu_count() or 1
-    with LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
+    # the scheduler serves HTTP even without a dashboard, on port 8787 unless told: a free local
+    # port instead (no "Port 8787 is already in use" warning when another cluster runs)
+    with LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address="127.0.0.1:0",
                       env=SINGLE_THREAD_ENV, silence_logs=logging.ERROR if quiet else logging.WARNING) as cluster, \
             Client(cluster) as local:
         yield local
