@@ -15,7 +15,7 @@ from ..solving import refine
 from ..synthetic import render_capture
 from ..viz import render_preview
 from .argtypes import image_size, nonnegative_int, positive_int
-from .outputs import add_overwrite_argument, check_folder, log_energy
+from .outputs import add_overwrite_argument, check_folder, log_energy, print_summary
 
 DESCRIPTION = """\
 Render a synthetic LED-lit capture of a shipped mesh, refine it and report the accuracy
@@ -60,7 +60,7 @@ def run(args) -> int:
     table = markdown_table(rows)
     with atomic_folder(out, overwrite=args.overwrite, what="demo folder") as tmp:
         write_capture(capture, tmp / "capture")
-        refinement.save(tmp / "refined", extra_report={"accuracy": rows})
+        report = refinement.save(tmp / "refined", extra_report={"accuracy": rows})
         report = [f"# o3d_mvps demo: {args.mesh}, {args.size[0]}x{args.size[1]}, SF {args.scale_factor}, {args.frames} frames", "",
                   table, "", f"total time {time.perf_counter() - t0:.1f} s "
                   f"(refinement {refinement.timings.get('total', 0):.1f} s)", ""]
@@ -72,5 +72,7 @@ def run(args) -> int:
         write_stl(printable_solid(refinement), tmp / "print.stl")
         render_preview(mesh, tmp / "preview.png")
     say(table)
+    report["summary"]["outputs"] = str(out / "refined")
+    print_summary(report["summary"], args.quiet)
     print(f"wrote {out}")
     return 0

@@ -7,7 +7,8 @@ import sys
 from dataclasses import replace
 
 from ..cli import restore_signals, run_handler, stop_on_signals
-from ..cli.outputs import add_overwrite_argument, check_files, log_energy
+from ..cli.outputs import add_overwrite_argument, check_files, log_energy, print_summary
+from ..run_report import peak_memory_mb, summarise
 from .device import DEVICE_HELP, check_device
 from .driver import solve
 from .problem_input import SAVE_HOW, read_problem
@@ -40,6 +41,9 @@ def run(args) -> int:
     output = solve(problem_input, replace(problem_input.options, progress=not args.quiet), args.device)
     log_energy(output, args.quiet)
     write_solution(output, out, overwrite=args.overwrite)
+    frames = [{"used": True} for _ in output.info.get("frames", [])]
+    print_summary(summarise({"energy": output.energy, "timings": output.timings, "frames": frames,
+                             "peak_memory_mb": peak_memory_mb(), "warnings": []}), args.quiet)
     print(f"wrote {out}")
     return 0
 
