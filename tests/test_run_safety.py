@@ -380,3 +380,36 @@ def test_the_python_api_returns_the_report(capture_dir):
     assert list(report) == list(REPORT_KEYS)
     assert any("no LED offset" in w for w in report["warnings"]) and report["summary"]["warnings"] >= 1
     json.dumps(report, allow_nan=False)  # JSON-ready
+
+
+def test_a_lost_worker_s_view_is_run_again_and_reported():
+    from dask.distributed import Client, LocalCluster
+
+    import o3d_mvps
+    from o3d_mvps.reconstruct import ReconstructOptions, reconstruct
+    from o3d_mvps.synthetic import render_ring
+
+    capture, _ = render_ring("bunny", frames=6, size=(96, 72))
+    options = ReconstructOptions(references=2, frames_per_reference=3, voxel_mm=4, texture_px=0, progress=False,
+                                 refine=o3d_mvps.RefineOptions(levels=1, max_iterations=2, progress=False))
+    with LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address="127.0.0.1:0") as cluster, \
+            Client(cluster) as client:
+        pids = client.run(os.getpid)
+        killed = []
+
+        def kill_a_busy_worker():
+            deadline = time.monotonic() + 60
+            while not killed and time.monotonic() < deadline:
+                busy = [address for address, keys in client.processing().items() if keys]
+                if busy:
+                    os.kill(pids[busy[0]], signal.SIGKILL)
+                    killed.append(busy[0])
+                time.sleep(0.05)
+
+        import threading
+
+        threading.Thread(target=kill_a_busy_worker, daemon=True).start()
+        with pytest.warns(UserWarning, match="left the scheduler while views ran"):
+            result = reconstruct(capture, options, poses=capture.groundtruth.poses, client=client)
+    assert killed and len(result.views) == 2 and not result.failed
+    assert killed[0] in result.info["retried"]["lost workers"]

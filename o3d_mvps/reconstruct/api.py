@@ -177,7 +177,8 @@ def _reconstruct(capture, options: ReconstructOptions, poses, client, scheduler,
     else:
         views, failed = [run_view(job, refine_options, "raw") for job in jobs], {}
     for reference, why in retried.items():
-        warnings.warn(f"reference view {reference} was run again: {why}", stacklevel=3)
+        warnings.warn(why if isinstance(reference, str) else f"reference view {reference} was run again: {why}",
+                      stacklevel=3)
     said = {}
     for view in views:  # the workers' warnings, each message once with the views that raised it
         for message in view.warnings:

@@ -120,11 +120,14 @@ def run_views(jobs: list, options, depth_source: str, client, progress: bool = T
               timeout: float = SCHEDULER_TIMEOUT) -> tuple[list, dict, dict]:
     """Run the jobs on ``client``.
 
-    Returns (results in job order, {reference: error message} of failures, {reference: why} of
-    views retried because their worker died). Views wait at most ``timeout`` seconds while the
+    Returns (results in job order, {reference: error message} of failures, {reference or
+    "lost workers": why} of views run again because their worker died: Dask reschedules a lost
+    worker's task by itself, and the lost workers are listed; a view that failed for it is
+    submitted once more). Views wait at most ``timeout`` seconds while the
     scheduler has no worker (none started, or all lost): then SchedulerError names the address.
     """
     from dask.distributed import wait
+    from distributed.client import FuturesCancelledError
     from distributed.scheduler import KilledWorker
 
     try:
@@ -143,18 +146,20 @@ def run_views(jobs: list, options, depth_source: str, client, progress: bool = T
     futures = {submit(job): job.reference for job in jobs}
     results, failed, retried = {}, {}, {}
     bar = tqdm(total=len(jobs), desc=f"{depth_source} views", unit="view", disable=not progress)
-    pending, idle_since = set(futures), None
+    pending, idle_since, seen, lost = set(futures), None, set(), []
     while pending:
         try:
-            done, pending = wait(pending, timeout=_POLL, return_when="FIRST_COMPLETED")
-        except TimeoutError:  # nothing finished within the poll
-            done = set()
+            wait(pending, timeout=_POLL, return_when="FIRST_COMPLETED")
+        except (TimeoutError, FuturesCancelledError):  # nothing finished within the poll; a view cancelled
+            pass
+        done = {future for future in pending if future.done()}
+        pending -= done
         for future in done:
             reference = futures.pop(future)
             if future.status in ("error", "cancelled", "lost"):
                 error = future.exception() if future.status == "error" else None
-                lost = error is None or isinstance(error, KilledWorker)
-                if lost and reference not in retried:  # its worker died: once more, with its frames sent again
+                worker_died = error is None or isinstance(error, KilledWorker)
+                if worker_died and reference not in retried:  # its worker died: once more, with its frames sent again
                     retried[reference] = f"its worker was lost ({error or future.status})"
                     again = submit(by_reference[reference])
                     futures[again] = reference
@@ -164,8 +169,11 @@ def run_views(jobs: list, options, depth_source: str, client, progress: bool = T
             else:
                 results[reference] = future.result()
             bar.update(1)
+        workers = set(client.scheduler_info().get("workers", {}))
+        lost += sorted(seen - workers - set(lost))
+        seen |= workers
         if pending and not done:
-            if client.scheduler_info().get("workers"):
+            if workers:
                 idle_since = None
             elif idle_since is None:
                 idle_since = time.monotonic()
@@ -178,4 +186,7 @@ def run_views(jobs: list, options, depth_source: str, client, progress: bool = T
                     f"{len(pending)} of {len(jobs)} views left; start workers (`dask worker {_address(client)}`), "
                     "raise --scheduler-timeout, or leave out --scheduler for a local cluster")
     bar.close()
+    if lost:
+        retried["lost workers"] = (f"{', '.join(lost)} left the scheduler while views ran; Dask ran their views "
+                                   "again on the other workers")
     return [results[job.reference] for job in jobs if job.reference in results], failed, retried
