@@ -8,7 +8,8 @@ import time
 from ..capture import write_capture
 from ..datasets import DATA_DIR, MESHES
 from ..export import printable_solid, write_mesh, write_stl
-from ..fileio import atomic_folder
+from ..fileio import atomic_folder, json_text
+from ..refinement import REPORT_JSON
 from ..report import accuracy_rows, markdown_table
 from ..solver.options import RefineOptions
 from ..solving import refine
@@ -60,7 +61,9 @@ def run(args) -> int:
     table = markdown_table(rows)
     with atomic_folder(out, overwrite=args.overwrite, what="demo folder") as tmp:
         write_capture(capture, tmp / "capture")
-        report = refinement.save(tmp / "refined", extra_report={"accuracy": rows})
+        saved = refinement.save(tmp / "refined", extra_report={"accuracy": rows})
+        saved["summary"]["outputs"] = str(out / "refined")  # where it will be, not the staging folder
+        (tmp / "refined" / REPORT_JSON).write_text(json_text(saved, "the refinement report"))
         report = [f"# o3d_mvps demo: {args.mesh}, {args.size[0]}x{args.size[1]}, SF {args.scale_factor}, {args.frames} frames", "",
                   table, "", f"total time {time.perf_counter() - t0:.1f} s "
                   f"(refinement {refinement.timings.get('total', 0):.1f} s)", ""]
@@ -72,7 +75,6 @@ def run(args) -> int:
         write_stl(printable_solid(refinement), tmp / "print.stl")
         render_preview(mesh, tmp / "preview.png")
     say(table)
-    report["summary"]["outputs"] = str(out / "refined")
-    print_summary(report["summary"], args.quiet)
+    print_summary(saved["summary"], args.quiet)
     print(f"wrote {out}")
     return 0

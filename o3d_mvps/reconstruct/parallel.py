@@ -137,6 +137,7 @@ def run_views(jobs: list, options, depth_source: str, client, progress: bool = T
                              f"workers (`dask worker {_address(client)}`), raise --scheduler-timeout, or leave out "
                              "--scheduler for a local cluster") from None
     by_reference = {job.reference: job for job in jobs}
+    seen, lost = set(client.scheduler_info().get("workers", {})), []
 
     def submit(job):
         [arrays] = client.scatter([job.arrays], hash=False)  # the frames travel apart from the graph
@@ -146,7 +147,7 @@ def run_views(jobs: list, options, depth_source: str, client, progress: bool = T
     futures = {submit(job): job.reference for job in jobs}
     results, failed, retried = {}, {}, {}
     bar = tqdm(total=len(jobs), desc=f"{depth_source} views", unit="view", disable=not progress)
-    pending, idle_since, seen, lost = set(futures), None, set(), []
+    pending, idle_since = set(futures), None
     while pending:
         try:
             wait(pending, timeout=_POLL, return_when="FIRST_COMPLETED")
