@@ -164,7 +164,9 @@ def supervise(module: str, argv: list[str], prog: str) -> int:
     import time
 
     said_r, said_w = os.pipe()
-    env = {**os.environ, SAID_FD: str(said_w)}
+    package_root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    env = {**os.environ, SAID_FD: str(said_w),  # the child imports this same o3d_mvps
+           "PYTHONPATH": os.pathsep.join(p for p in (package_root, os.environ.get("PYTHONPATH")) if p)}
     child = subprocess.Popen([sys.executable, "-m", module, *argv], env=env, pass_fds=(said_w,))
     os.close(said_w)
     received = []
@@ -204,7 +206,7 @@ def _command_name(argv: list[str]) -> str:
 def main(argv=None) -> int:
     """The ``o3d-mvps`` command line. Called without ``argv`` (the console script, ``python -m
     o3d_mvps``), the command runs in a child process under :func:`supervise`."""
-    if argv is None and not os.environ.get(SAID_FD):
+    if argv is None and not os.environ.get(SAID_FD) and os.name == "posix":
         return supervise("o3d_mvps", sys.argv[1:], _command_name(sys.argv[1:]))
     prog = _command_name(sys.argv[1:] if argv is None else argv)
     previous = stop_on_signals(prog)
