@@ -122,7 +122,8 @@ def check_output_files(paths: Iterable, overwrite: bool, *, flag: str = PYTHON_O
     paths = [Path(p) for p in paths]
     for p in paths:
         if p.is_dir():
-            raise OutputPathError(f"{p} is a folder; name the file to write, e.g. {p / ('output' + (p.suffix or '.npz'))}")
+            example = p / ("output" + (p.suffix or ".npz"))
+            raise OutputPathError(f"{p} is a folder; name the file to write, e.g. {example}")
         check_outside_inputs(_absolute(p), inputs, "output file")
     existing = [str(p) for p in paths if p.exists()]
     if existing and not overwrite:

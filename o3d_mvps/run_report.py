@@ -4,8 +4,9 @@ A refinement's report (:meth:`o3d_mvps.Refinement.report`) gathers, from ``Refin
 the inputs and the conventions found (``info["inputs"]``), every frame used or dropped with the
 reason (``info["frames_report"]``, else built here from the frames used, the frames the
 registration dropped and those the view selection left out), how far each pose moved from its
-start (``info["pose_updates"]``, else computed here), the per-frame residual (RMS of the data term at the finest level), the energy per level, time and peak memory per stage, the device and the warnings raised. ``summary`` holds
-what :func:`summary_lines` prints.
+start (``info["pose_updates"]``, else computed here), the per-frame residual (RMS of the data
+term at the finest level), the energy per level, time and peak memory per stage, the device and
+the warnings raised. ``summary`` holds what :func:`summary_lines` prints.
 
 Peak memory is the process's high-water mark (``ru_maxrss``, resident set) read after each stage:
 cheap, and it includes NumPy's and Open3D's buffers (tracemalloc would slow the run down).
@@ -24,8 +25,12 @@ import numpy as np
 from .model.se3 import rotation_angle_deg
 
 #: Top-level keys of a refinement's report.json, in order.
-REPORT_KEYS = ("method", "energy", "energy_per_level", "timings", "info", "inputs", "frames", "poses", "light", "residuals", "device",
-               "peak_memory_mb", "warnings", "summary")
+REPORT_KEYS = ("method", "energy", "energy_per_level", "timings", "info", "inputs", "frames", "poses", "light",
+               "residuals", "device", "peak_memory_mb", "warnings", "summary")
+
+
+#: Why a frame of the capture beyond the ``frames`` option's count was not used.
+NOT_PICKED = "not picked (the frames option: --frames or RefineOptions.frames)"
 
 
 def peak_memory_mb() -> float:
@@ -87,7 +92,7 @@ def frames_report(info: dict, files: list | None = None) -> list[dict]:
     files = files if files is not None else info.get("frame_files")
     rows = []
     for i in range(n):
-        reason = None if i in used else reasons.get(i, "not picked (the frames option: --frames or RefineOptions.frames)")
+        reason = None if i in used else reasons.get(i, NOT_PICKED)
         rows.append({"index": i, "file": files[i] if files is not None and i < len(files) else None,
                      "used": i in used, "reason": reason})
     return rows

@@ -52,7 +52,8 @@ def register(subparsers) -> None:
                    help=f"most frames refined with each reference (default {d.frames_per_reference})")
     p.add_argument("--depth", choices=("refined", "raw"), default="refined",
                    help="fuse refined depth, or the sensor's depth bicubic-upsampled (for comparison)")
-    p.add_argument("--voxel-mm", type=positive_float, default=d.voxel_mm, help=f"fusion voxel (default {d.voxel_mm} mm)")
+    p.add_argument("--voxel-mm", type=positive_float, default=d.voxel_mm,
+                   help=f"fusion voxel (default {d.voxel_mm} mm)")
     p.add_argument("--texture-px", type=nonnegative_int, default=d.texture_px,
                    help=f"edge of the square albedo texture, 0 for vertex colours only (default {d.texture_px})")
     p.add_argument("--print", dest="print_mm", type=positive_float, default=None, metavar="MM",

@@ -42,10 +42,12 @@ def add_recording_arguments(group, frames_flag: str = "--frames") -> None:
                        help="depth size (default 640x360)")
     group.add_argument("--fps", type=positive_int, default=30, help="stream rate (default 30)")
     when = group.add_mutually_exclusive_group()
-    when.add_argument("--interval", type=positive_float, default=1.0, metavar="S", help="seconds between frames (default 1)")
+    when.add_argument("--interval", type=positive_float, default=1.0, metavar="S",
+                      help="seconds between frames (default 1)")
     when.add_argument("--on-key", action="store_true", help="take a frame at each Enter (q + Enter stops)")
     group.add_argument("--emitter", choices=["on", "off"], default="on", help="IR dot projector (default on)")
-    group.add_argument("--exposure", type=positive_float, metavar="US", help="fixed colour exposure in microseconds (default auto)")
+    group.add_argument("--exposure", type=positive_float, metavar="US",
+                       help="fixed colour exposure in microseconds (default auto)")
     group.add_argument("--serial", help="serial number of the camera when several are connected")
     group.add_argument("--light", choices=CAPTURE_LIGHTS, default="led",
                        help="what lights the object, written to capture.json for refine's light model: the LED on "

@@ -52,7 +52,8 @@ def add_solver_arguments(parser: argparse.ArgumentParser) -> None:
     d = RefineOptions()
     g = parser.add_argument_group("solver")
     g.add_argument("--frames", type=positive_int, default=None, help="use the first N frames (default: all)")
-    g.add_argument("--tau", type=positive_float, default=d.tau, help=f"normalised depth-prior weight (default {d.tau:g})")
+    g.add_argument("--tau", type=positive_float, default=d.tau,
+                   help=f"normalised depth-prior weight (default {d.tau:g})")
     g.add_argument("--lambda", dest="cauchy_lambda", type=_cauchy_lambda, default=None, metavar="LAMBDA|auto",
                    help="Cauchy scale in linear intensity, or auto: the residuals' robust standard deviation "
                         "(default: 0.04 with the LED and SH models, auto with room light)")
