@@ -413,3 +413,29 @@ def test_a_lost_worker_s_view_is_run_again_and_reported():
             result = reconstruct(capture, options, poses=capture.groundtruth.poses, client=client)
     assert killed and len(result.views) == 2 and not result.failed
     assert killed[0] in result.info["retried"]["lost workers"]
+
+
+def test_frames_reach_the_workers_by_scatter_not_in_the_graph():
+    """Dask warns "Sending large graph" when a task carries its data (8 warnings on a ring under
+    --quiet); a view's frames are scattered instead. Control: the same data in the graph warns."""
+    import warnings
+
+    from dask.distributed import Client, LocalCluster
+
+    from o3d_mvps.reconstruct.parallel import run_views
+    from o3d_mvps.reconstruct.views import ViewJob
+    from o3d_mvps.views import ViewSelection
+
+    big = {"color": [np.zeros((1200, 1600, 3), np.float32)] * 2}  # 46 MB, as two 1600 x 1200 frames
+    jobs = [ViewJob(k, [k], big, np.eye(4)[None], np.eye(4), ViewSelection([k], {}, {})) for k in range(2)]
+    with LocalCluster(n_workers=1, processes=False, dashboard_address="127.0.0.1:0") as cluster, \
+            Client(cluster) as client:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            results, failed, _ = run_views(jobs, None, "refined", client, progress=False, timeout=5)
+        assert set(failed) == {0, 1} and not results  # the stand-in frames are no capture: each view fails
+        assert not [w for w in caught if "large graph" in str(w.message)]
+        with warnings.catch_warnings(record=True) as control:
+            warnings.simplefilter("always")
+            client.submit(len, big, pure=False).result()
+        assert [w for w in control if "large graph" in str(w.message)]

@@ -18,7 +18,8 @@ import threading
 from ..errors import MVPSError
 
 SUBCOMMANDS = ["demo", "render", "refine", "reconstruct", "export", "record"]
-QUIET_HELP = "no progress bars or intermediate logs (the final 'wrote ...' lines are still printed)"
+QUIET_HELP = ("no progress bars, intermediate logs, warnings (still listed in report.json) or Open3D and Dask "
+              "messages; the final 'wrote ...' lines are still printed")
 INTERRUPTED = 130  # 128 + SIGINT, the shell's code for a command stopped by Ctrl-C
 #: Seconds an interrupted command has to clean up (remove its staging folders, close its Dask
 #: cluster) before it is ended anyway, with the same line and exit code.
