@@ -109,20 +109,25 @@ def energy_per_level(energy: list) -> list[dict]:
 
 def summarise(report: dict, outputs: str | None = None) -> dict:
     """The summary of a report: frames used / dropped, the finest level's energy first -> last,
-    seconds, peak memory, warnings, the outputs."""
+    seconds, peak memory, warnings, the input checks by status (None without checks), the outputs."""
     frames = report.get("frames") or []
+    checks = (report.get("inputs") or {}).get("checks") or []
+    statuses = {}
+    for check in checks:
+        statuses[check.get("status")] = statuses.get(check.get("status"), 0) + 1
     levels = energy_per_level(report.get("energy") or [])
     finest = levels[-1] if levels else {}
     return {"frames_used": sum(r["used"] for r in frames), "frames_dropped": sum(not r["used"] for r in frames),
             "energy_first": finest.get("first"), "energy_last": finest.get("last"),
             "seconds": round(float(report.get("timings", {}).get("total", 0.0)), 2),
             "peak_memory_mb": report.get("peak_memory_mb"), "warnings": len(report.get("warnings") or []),
-            "outputs": outputs}
+            "input_checks": statuses or None, "outputs": outputs}
 
 
 def summary_lines(summary: dict, *, one_line: bool = False) -> list[str]:
     """The lines printed at the end of a run: a few, or one."""
-    frames = f"{summary['frames_used']} frames used, {summary['frames_dropped']} dropped"
+    used = summary["frames_used"]
+    frames = f"{used} frame{'s' if used != 1 else ''} used, {summary['frames_dropped']} dropped"
     energy = ""
     if summary.get("energy_first") is not None:
         first, last = summary["energy_first"], summary["energy_last"]
@@ -136,6 +141,10 @@ def summary_lines(summary: dict, *, one_line: bool = False) -> list[str]:
                 + (f"; wrote {where}" if where else "")]
     lines = [f"summary: {frames}" + (f"; {energy} at the finest level" if energy else ""),
              f"         {time_memory}; {said}" + (" (listed in report.json)" if summary["warnings"] else "")]
+    if summary.get("input_checks"):
+        counts = ", ".join(f"{n} {status}{'s' if n != 1 and status != 'ok' else ''}"
+                           for status, n in summary["input_checks"].items())
+        lines.insert(1, f"         input checks: {counts}")
     if where:
         lines.append(f"         report: {where}/report.json")
     return lines

@@ -439,3 +439,21 @@ def test_frames_reach_the_workers_by_scatter_not_in_the_graph():
             warnings.simplefilter("always")
             client.submit(len, big, pure=False).result()
         assert [w for w in control if "large graph" in str(w.message)]
+
+
+def test_the_summary_shows_the_input_checks_and_the_drops():
+    from o3d_mvps.run_report import summarise, summary_lines
+
+    report = {"inputs": {"checks": [{"name": "poses", "status": "ok", "detail": ""},
+                                    {"name": "intrinsics", "status": "ok", "detail": ""},
+                                    {"name": "depth scale", "status": "warning", "detail": "far"}]},
+              "frames": [{"index": 0, "used": True}, {"index": 1, "used": False}],
+              "energy": [{"level": 0, "iteration": 0, "energy": 2.0}, {"level": 0, "iteration": 3, "energy": 1.5}],
+              "timings": {"total": 12.34}, "peak_memory_mb": 820.4, "warnings": ["a", "b"]}
+    assert summary_lines(summarise(report, "out")) == [
+        "summary: 1 frame used, 1 dropped; energy 2 -> 1.5 (-25.0 %) at the finest level",
+        "         input checks: 2 ok, 1 warning",
+        "         12.3 s, peak memory 820 MB; 2 warnings (listed in report.json)",
+        "         report: out/report.json"]
+    assert summary_lines(summarise(report), one_line=True) == [
+        "summary: 1 frame used, 1 dropped; energy 2 -> 1.5 (-25.0 %); 12.3 s, peak memory 820 MB; 2 warnings"]
