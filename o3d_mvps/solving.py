@@ -19,6 +19,7 @@ from .errors import CaptureError
 from .fileio import check_output_files
 from .model import se3
 from .refinement import Refinement
+from .run_report import peak_memory_mb, recorded_warnings
 from .solver.device import check_device
 from .solver.driver import solve
 from .solver.options import RefineOptions
@@ -43,35 +44,46 @@ def refine(capture: Capture, options: RefineOptions | None = None, device="auto"
     detected from the depth) is not registered: its poses are the identity (or ``initial_poses``),
     not refined, and every frame is used; ``info["camera"]`` says how it was decided.
     Returns a :class:`~o3d_mvps.Refinement`; ``info["frames"]`` lists the capture's frames it
-    used, ``info["views"]`` each frame's covisibility and why a frame was left out.
+    used, ``info["views"]`` each frame's covisibility and why a frame was left out,
+    ``info["dropped_frames"]`` the frames the registration could not place, ``info["warnings"]``
+    the warnings raised, ``info["stage_peak_memory_mb"]`` the process's peak memory after each
+    stage; :meth:`~o3d_mvps.Refinement.report` gathers them.
     """
     options = options or RefineOptions()
     device = check_device(device)
     if save_problem is not None:
         check_output_files([save_problem], overwrite)
     t0 = time.perf_counter()
-    camera = camera_setting(capture, None if initial_poses is None else to_host(initial_poses))
-    problem_input, views = problem_from_capture(capture, options, initial_poses, camera=camera)
-    odometry = time.perf_counter() - t0
-    if save_problem is not None:
-        write_problem(problem_input, save_problem, overwrite=overwrite)
-    output = solve(problem_input, problem_input.options, device)
+    said, dropped, memory = [], {}, {}
+    with recorded_warnings(said):
+        camera = camera_setting(capture, None if initial_poses is None else to_host(initial_poses))
+        problem_input, views = problem_from_capture(capture, options, initial_poses, camera=camera, dropped=dropped)
+        odometry = time.perf_counter() - t0
+        memory["odometry"] = peak_memory_mb()
+        if save_problem is not None:
+            write_problem(problem_input, save_problem, overwrite=overwrite)
+        output = solve(problem_input, problem_input.options, device)
+        memory["solve"] = peak_memory_mb()
+    info = {**output.info, **({"views": views.to_dict()} if views else {}), "camera": camera.to_dict(),
+            "capture_frames": capture.n_frames, "dropped_frames": {str(i): why for i, why in dropped.items()},
+            "stage_peak_memory_mb": memory, "warnings": said}
     return Refinement.from_arrays(
         output.depth, output.mask, output.K, albedo=output.albedo, poses=output.poses, lighting=output.lighting,
-        method="ours", energy=output.energy, info={**output.info, **({"views": views.to_dict()} if views else {}),
-                                                    "camera": camera.to_dict()},
+        method="ours", energy=output.energy, info=info,
         timings={"odometry": odometry, **output.timings, "total": time.perf_counter() - t0},
     )
 
 
 def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses=None, *,
-                         camera: CameraSetting | None = None) -> tuple[SolverInput, ViewSelection | None]:
+                         camera: CameraSetting | None = None,
+                         dropped: dict | None = None) -> tuple[SolverInput, ViewSelection | None]:
     """The solver's input from a capture: the frames ``options.frames`` picks, minus those the
     registration drops when no ``initial_poses`` are given and those that do not see the
     reference (see :func:`refine`); and that view selection (None with three frames or fewer).
     The input's options name the light model (:func:`with_light_model`). A static-camera capture
     (``camera``, default :func:`~o3d_mvps.capture.camera_setting` of the capture) keeps every
-    frame, identity poses (unless given) and no pose refinement."""
+    frame, identity poses (unless given) and no pose refinement. ``dropped``: a dict given here
+    gets {capture frame index: why} of the frames the registration dropped."""
     camera = camera_setting(capture, None if initial_poses is None else to_host(initial_poses)) \
         if camera is None else camera
     if camera.static:
@@ -92,6 +104,8 @@ def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses
             from .odometry import register_frames
 
             registration = register_frames(capture, strict=options.strict_registration, progress=options.progress)
+            if dropped is not None:
+                dropped.update({frames[k]: why for k, why in registration.dropped.items()})
             capture, initial_poses = capture.select(registration.frames), registration.poses
             frames = [frames[k] for k in registration.frames]
         else:

@@ -326,9 +326,13 @@ def _read_settings(path: Path) -> dict:
     try:
         settings["depth_scale"] = float(settings["depth_scale"])
         settings["depth_trunc"] = float(settings["depth_trunc"])
-        settings["frames"] = None if settings["frames"] is None else int(settings["frames"])
+        frames = settings["frames"]
+        settings["frames"] = None if frames is None else int(frames)
     except (TypeError, ValueError):
         raise CaptureError(f"{path}: depth_scale, depth_trunc and frames must be numbers; fix the file") from None
+    if frames is not None and (isinstance(frames, bool) or settings["frames"] != frames or settings["frames"] < 1):
+        raise CaptureError(f"{path}: \"frames\": {frames!r} must be a whole number of frames >= 1 (the count of "
+                           "color/ images); fix the file or remove the key")
     check_settings(settings["depth_scale"], settings["depth_trunc"], settings["color_encoding"], 8, f"{path}: ")
     if not isinstance(settings["metadata"], dict):
         raise CaptureError(f"{path}: metadata must be a JSON object")

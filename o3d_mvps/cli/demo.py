@@ -8,7 +8,8 @@ import time
 from ..capture import write_capture
 from ..datasets import DATA_DIR, MESHES
 from ..export import printable_solid, write_mesh, write_stl
-from ..fileio import atomic_folder
+from ..fileio import atomic_folder, json_text
+from ..refinement import REPORT_JSON
 from ..report import accuracy_rows, markdown_table
 from ..report_page import write_report_page
 from ..solver.device import DEVICE_HELP, resolve_device
@@ -16,8 +17,8 @@ from ..solver.options import RefineOptions
 from ..solving import refine
 from ..synthetic import render_capture
 from ..viz import render_preview
-from .argtypes import image_size, positive_int
-from .outputs import add_overwrite_argument, check_folder, log_energy
+from .argtypes import image_size, nonnegative_int, positive_int
+from .outputs import add_overwrite_argument, check_folder, log_energy, print_summary
 
 DESCRIPTION = """\
 Render a synthetic LED-lit capture of a shipped mesh, refine it and report the accuracy
@@ -42,7 +43,7 @@ def register(subparsers) -> None:
     p.add_argument("--frames", type=positive_int, default=20, help="frames to render (default 20)")
     p.add_argument("--scale-factor", type=positive_int, default=4, help="depth super-resolution factor (default 4)")
     p.add_argument("--size", type=image_size, default=(640, 480), metavar="WxH", help="colour resolution (default 640x480)")
-    p.add_argument("--seed", type=int, default=0,
+    p.add_argument("--seed", type=nonnegative_int, default=0,
                    help="seed of the rendered albedo texture and sensor noise; the same seed gives the same "
                         "capture, bit for bit, and the same printed accuracy (default 0)")
     p.add_argument("--device", default="auto", help=DEVICE_HELP)
@@ -64,7 +65,9 @@ def run(args) -> int:
     table = markdown_table(rows)
     with atomic_folder(out, overwrite=args.overwrite, what="demo folder") as tmp:
         write_capture(capture, tmp / "capture")
-        refinement.save(tmp / "refined", extra_report={"accuracy": rows})
+        saved = refinement.save(tmp / "refined", extra_report={"accuracy": rows})
+        saved["summary"]["outputs"] = str(out / "refined")  # where it will be, not the staging folder
+        (tmp / "refined" / REPORT_JSON).write_text(json_text(saved, "the refinement report"))
         report = [f"# o3d_mvps demo: {args.mesh}, {args.size[0]}x{args.size[1]}, SF {args.scale_factor}, {args.frames} frames", "",
                   table, "", f"total time {time.perf_counter() - t0:.1f} s "
                   f"(refinement {refinement.timings.get('total', 0):.1f} s)", ""]
@@ -77,5 +80,6 @@ def run(args) -> int:
         render_preview(mesh, tmp / "preview.png")
     write_report_page(out / "refined", refinement=refinement, capture=capture)
     say(table)
+    print_summary(saved["summary"], args.quiet)
     print(f"wrote {out}")
     return 0

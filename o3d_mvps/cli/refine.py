@@ -15,7 +15,8 @@ from ..solver.lighting import LIGHT_MODELS
 from ..solver.options import AUTO, RefineOptions
 from ..solving import refine
 from ..views import ViewSelection
-from .outputs import add_overwrite_argument, check_files, check_folder, log_energy
+from .argtypes import frame_count_fits, metres_offset, positive_float, positive_int, unit_interval
+from .outputs import add_overwrite_argument, check_files, check_folder, frame_files, log_energy, print_summary
 
 DESCRIPTION = """\
 Refine a capture folder: depth at colour resolution, RGB albedo, per-frame lighting and
@@ -43,24 +44,25 @@ def _cauchy_lambda(text: str) -> float | str:
     if text == AUTO:
         return AUTO
     try:
-        return float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number or {AUTO!r}, got {text!r}") from None
+        return positive_float(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"expected a positive number or {AUTO!r}, got {text!r}") from None
 
 
 def add_solver_arguments(parser: argparse.ArgumentParser) -> None:
     """Options shared by every subcommand that runs the solver."""
     d = RefineOptions()
     g = parser.add_argument_group("solver")
-    g.add_argument("--frames", type=int, default=None, help="use the first N frames (default: all)")
-    g.add_argument("--tau", type=float, default=d.tau, help=f"normalised depth-prior weight (default {d.tau:g})")
+    g.add_argument("--frames", type=positive_int, default=None, help="use the first N frames (default: all)")
+    g.add_argument("--tau", type=positive_float, default=d.tau,
+                   help=f"normalised depth-prior weight (default {d.tau:g})")
     g.add_argument("--lambda", dest="cauchy_lambda", type=_cauchy_lambda, default=None, metavar="LAMBDA|auto",
                    help="Cauchy scale in linear intensity, or auto: the residuals' robust standard deviation "
                         "(default: 0.04 with the LED and SH models, auto with room light)")
-    g.add_argument("--levels", type=int, default=d.levels, help=f"pyramid levels (default {d.levels})")
-    g.add_argument("--iterations", type=int, default=d.max_iterations,
+    g.add_argument("--levels", type=positive_int, default=d.levels, help=f"pyramid levels (default {d.levels})")
+    g.add_argument("--iterations", type=positive_int, default=d.max_iterations,
                    help=f"sweep cap per level (default {d.max_iterations})")
-    g.add_argument("--tolerance", type=float, default=d.tolerance,
+    g.add_argument("--tolerance", type=unit_interval, default=d.tolerance,
                    help=f"relative energy change that ends a level (default {d.tolerance:g})")
     g.add_argument("--no-pose-refinement", action="store_true", help="keep the odometry poses (two-stage baseline)")
     g.add_argument("--no-occlusion-test", action="store_true", help="let hidden pixels enter the data term")
@@ -68,7 +70,7 @@ def add_solver_arguments(parser: argparse.ArgumentParser) -> None:
                    help="near-field LED, one SH light fixed in the room (room) or the paper's first-order SH "
                         "per frame (sh) (default: capture.json's light, led -> led, room -> room; led when it "
                         "does not say)")
-    g.add_argument("--led-offset", type=float, nargs=3, metavar=("X", "Y", "Z"), default=None,
+    g.add_argument("--led-offset", type=metres_offset, nargs=3, metavar=("X", "Y", "Z"), default=None,
                    help="LED position in metres from the colour lens (x right, y down, z forward); a ruler "
                         "measure within ~1 cm is enough, the solver refines it (default: capture.json's "
                         "metadata.led_offset, else 0 0 0)")
@@ -103,7 +105,7 @@ def register(subparsers) -> None:
                    help="also write the solver's input (frames, depth, masks, intrinsics, registered poses, "
                         "options) to this file once the capture is read, masked and registered; `python -m "
                         "o3d_mvps.solver FILE.npz OUT.npz` solves it, without Open3D (bug reports, a GPU box)")
-    p.add_argument("--depth-range", type=float, nargs=2, metavar=("NEAR", "FAR"), default=None,
+    p.add_argument("--depth-range", type=positive_float, nargs=2, metavar=("NEAR", "FAR"), default=None,
                    help="metres; the automatic mask keeps only depths in this range (default: around the "
                         "depth at the image centre)")
     add_solver_arguments(p)
@@ -111,11 +113,12 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    out = check_folder(args.out, args.overwrite, "refinement folder")
+    out = check_folder(args.out, args.overwrite, "refinement folder", inputs=[args.capture])
     device, device_line = resolve_device(args.device)
     if args.save_problem is not None:
-        check_files([args.save_problem], args.overwrite)
+        check_files([args.save_problem], args.overwrite, inputs=[args.capture])
     capture = read_capture(args.capture, mask=args.mask, depth_range=args.depth_range)
+    frame_count_fits("--frames", args.frames, capture.n_frames, f"the capture {args.capture}")
     if not args.quiet:
         print(device_line)
         print(f"masks: {mask_source(args.capture, args.mask, args.depth_range)}")
@@ -135,7 +138,9 @@ def run(args) -> int:
         extra["accuracy"] = rows
         if not args.quiet:
             print(markdown_table(rows))
-    refinement.save(out, overwrite=args.overwrite, extra_report=extra)
+    refinement.info["frame_files"] = frame_files(args.capture)
+    report = refinement.save(out, overwrite=args.overwrite, extra_report=extra)
     write_report_page(out, refinement=refinement, capture=capture)
+    print_summary(report["summary"], args.quiet)
     print(f"wrote {out}")
     return 0

@@ -7,7 +7,7 @@ import time
 from pathlib import Path
 
 from ..errors import MVPSError
-from .argtypes import image_size, positive_int
+from .argtypes import image_size, nonnegative_int, positive_int
 from .outputs import add_overwrite_argument, check_folder
 
 EXAMPLES = """\
@@ -77,7 +77,7 @@ def register(subparsers) -> None:
                    "z^2 plus a smooth error of a few mm, flying pixels at edges, 3%% speckle holes; colour with "
                    "exposure and white-balance drift, shot and read noise) or none (quantisation only) "
                    "(default gaussian)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the albedo texture and noise (default 0)")
+    p.add_argument("--seed", type=nonnegative_int, default=0, help="seed of the albedo texture and noise (default 0)")
     p.add_argument("--no-noise", dest="noise", action="store_false",
                    help="no colour or depth noise (quantisation stays): --sensor none")
     add_overwrite_argument(p, "capture folder")

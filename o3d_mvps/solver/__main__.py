@@ -6,8 +6,9 @@ import argparse
 import sys
 from dataclasses import replace
 
-from ..cli import run_handler
-from ..cli.outputs import add_overwrite_argument, check_files, log_energy
+from ..cli import restore_signals, run_handler, stop_on_signals
+from ..cli.outputs import add_overwrite_argument, check_files, log_energy, print_summary
+from ..run_report import peak_memory_mb, summarise
 from .device import DEVICE_HELP, resolve_device
 from .driver import solve
 from .problem_input import SAVE_HOW, read_problem
@@ -34,7 +35,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def run(args) -> int:
-    (out,) = check_files([args.out], args.overwrite)
+    (out,) = check_files([args.out], args.overwrite, inputs=[args.problem])
     device, device_line = resolve_device(args.device)
     problem_input = read_problem(args.problem)
     if not args.quiet:
@@ -42,12 +43,19 @@ def run(args) -> int:
     output = solve(problem_input, replace(problem_input.options, progress=not args.quiet), device)
     log_energy(output, args.quiet)
     write_solution(output, out, overwrite=args.overwrite)
+    frames = [{"used": True} for _ in output.info.get("frames", [])]
+    print_summary(summarise({"energy": output.energy, "timings": output.timings, "frames": frames,
+                             "peak_memory_mb": peak_memory_mb(), "warnings": []}), args.quiet)
     print(f"wrote {out}")
     return 0
 
 
 def main(argv=None) -> int:
-    return run_handler(PROG, run, build_parser().parse_args(argv))
+    previous = stop_on_signals(PROG)
+    try:
+        return run_handler(PROG, run, build_parser().parse_args(argv))
+    finally:
+        restore_signals(previous)
 
 
 if __name__ == "__main__":

@@ -137,6 +137,7 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
         if abs(previous - ev.energy) <= options.tolerance * abs(previous):
             break
     bar.close()
+    stats["frame_rms"] = ev.frame_rms()  # the finest level's stays: the report's per-frame residual
     return rows
 
 
@@ -310,6 +311,10 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
     depth = np.where(ref_mask, z_full, 0.0)
     albedo = np.clip(np.where(ref_mask[..., None], albedo_full, 0.0), 0.0, None)
     timings["total"] = time.perf_counter() - t0
+    frame_rms = stats.pop("frame_rms", [])
+    stats["residuals"] = [{"frame": int(f), "rms": None if np.isnan(v) else v}
+                          for f, v in zip(problem_input.frames, frame_rms)]
+    stats["initial_poses"] = np.asarray(problem_input.initial_poses, dtype=np.float64).tolist()
     return SolverOutput(
         depth, ref_mask, albedo, K, lighting=lights, poses=poses, energy=history, timings=dict(timings),
         info={"frames": problem_input.frames, "options": options.to_dict(), "device": device.name,
