@@ -42,7 +42,8 @@ class Capture:
     depth_scale: depth PNG units per metre (1000 = mm). depth_trunc: metres.
     color_encoding: how colour PNGs are encoded on disk ("srgb" or "linear").
     light: what lit the frames (capture.json's "light"): "led" (the LED on the camera) or "room"
-    (room light); None when the capture does not say.
+    (room light); None when the capture does not say. frame_names: the colour file of each frame
+    (read from a folder), or None; used in messages and reports.
     """
 
     color: list
@@ -57,6 +58,7 @@ class Capture:
     groundtruth: GroundTruth | None = None
     metadata: dict = field(default_factory=dict)
     light: str | None = None
+    frame_names: list | None = None
 
     # --- sizes -------------------------------------------------------------------------
     @property
@@ -111,7 +113,12 @@ class Capture:
         gt = self.groundtruth
         if gt is not None:
             gt = replace(gt, poses=gt.poses[frames]) if frames[0] == 0 else None
-        return replace(self, color=pick(self.color), depth=pick(self.depth), masks=pick(self.masks), groundtruth=gt)
+        return replace(self, color=pick(self.color), depth=pick(self.depth), masks=pick(self.masks), groundtruth=gt,
+                       frame_names=pick(self.frame_names))
+
+    def frame_label(self, i: int) -> str:
+        """'frame i' or 'frame i (file)' for messages."""
+        return f"frame {i}" if self.frame_names is None else f"frame {i} ({self.frame_names[i]})"
 
 
 def to_host(value):
