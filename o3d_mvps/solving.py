@@ -15,6 +15,8 @@ from dataclasses import replace
 import numpy as np
 
 from .capture import Capture, to_host
+from .capture.checks import check_inputs
+from .capture.poses import GivenPoses
 from .errors import CaptureError
 from .fileio import check_output_files
 from .model import se3
@@ -27,57 +29,78 @@ from .views import MIN_OTHER_FRAMES, ViewSelection, frames_seeing_reference
 
 
 def refine(capture: Capture, options: RefineOptions | None = None, device="CPU:0", initial_poses=None, *,
-           save_problem=None, overwrite: bool = False) -> Refinement:
+           save_problem=None, overwrite: bool = False, checks: bool = True) -> Refinement:
     """Jointly estimate depth (colour resolution), albedo, lighting and poses from a capture.
 
     capture: frame 0 is the reference; ``initial_poses`` (n, 4, 4) reference -> frame i, an array
-    or an o3d.core.Tensor on any device (default: the registration chain of
+    or an o3d.core.Tensor on any device, or a :class:`~o3d_mvps.capture.poses.GivenPoses` (a pose
+    file read by :func:`~o3d_mvps.capture.poses.given_poses`) (default: the registration chain of
     :func:`o3d_mvps.odometry.register_frames`, which drops a frame it cannot place, with a warning,
     unless ``options.strict_registration``). device: "CPU:0" or "CUDA:0" (see
     :func:`o3d_mvps.solver.device.check_device`). save_problem: also write the solver's input to
     this .npz once the frames are registered (``python -m o3d_mvps.solver`` solves it; refuses an
     existing file unless ``overwrite``). Of more than three frames, those that see too little of
     the reference's surface are left out (:func:`o3d_mvps.views.frames_seeing_reference`).
+    Before the solve, ``checks`` runs :func:`o3d_mvps.capture.checks.check_inputs` (intrinsics,
+    depth scale, frame quality, poses against depth; about 1 % of a solve), which raises
+    CaptureError naming a mix-up and its fix and drops bad frames with a warning.
     Returns a :class:`~o3d_mvps.Refinement`; ``info["frames"]`` lists the capture's frames it
-    used, ``info["views"]`` each frame's covisibility and why a frame was left out.
+    used, ``info["views"]`` each frame's covisibility and why a frame was left out,
+    ``info["inputs"]`` the checks and ``info["frames_report"]`` every frame, used or why not.
     """
     options = options or RefineOptions()
     check_device(device)
     if save_problem is not None:
         check_output_files([save_problem], overwrite)
     t0 = time.perf_counter()
-    problem_input, views = problem_from_capture(capture, options, initial_poses)
+    problem_input, views = problem_from_capture(capture, options, initial_poses, checks=checks)
     odometry = time.perf_counter() - t0
     if save_problem is not None:
         write_problem(problem_input, save_problem, overwrite=overwrite)
     output = solve(problem_input, problem_input.options, device)
     return Refinement.from_arrays(
         output.depth, output.mask, output.K, albedo=output.albedo, poses=output.poses, lighting=output.lighting,
-        method="ours", energy=output.energy, info={**output.info, **({"views": views.to_dict()} if views else {})},
+        method="ours", energy=output.energy,
+        info={**output.info, **({"views": views.to_dict()} if views else {}), **problem_input.report},
         timings={"odometry": odometry, **output.timings, "total": time.perf_counter() - t0},
     )
 
 
-def problem_from_capture(capture: Capture, options: RefineOptions,
-                         initial_poses=None) -> tuple[SolverInput, ViewSelection | None]:
+def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses=None, *,
+                         checks: bool = True) -> tuple[SolverInput, ViewSelection | None]:
     """The solver's input from a capture: the frames ``options.frames`` picks, minus those the
-    registration drops when no ``initial_poses`` are given and those that do not see the
-    reference (see :func:`refine`); and that view selection (None with three frames or fewer).
-    The input's options name the light model (:func:`with_light_model`)."""
+    input checks drop (``checks``), those the registration drops when no ``initial_poses`` are
+    given and those that do not see the reference (see :func:`refine`); and that view selection
+    (None with three frames or fewer). The input's options name the light model
+    (:func:`with_light_model`); its ``report`` holds ``inputs`` and ``frames_report``."""
     options = with_light_model(options, capture)
+    all_frames = capture.frame_names or [None] * capture.n_frames
     frames = options.frame_indices(capture.n_frames)
+    given = None
     if initial_poses is not None:
-        initial_poses = np.asarray(to_host(initial_poses), dtype=np.float64)
-        if initial_poses.shape != (capture.n_frames, 4, 4):
-            raise ValueError(f"initial_poses must be ({capture.n_frames}, 4, 4), got {initial_poses.shape}")
-        initial_poses = se3.relative_to_reference(initial_poses[frames])  # onto the first frame used
+        given = initial_poses if isinstance(initial_poses, GivenPoses) else GivenPoses.from_array(
+            np.asarray(to_host(initial_poses), dtype=np.float64))
+        if given.world_to_camera.shape != (capture.n_frames, 4, 4):
+            raise ValueError(f"initial_poses must be ({capture.n_frames}, 4, 4), got {given.world_to_camera.shape}")
     capture = capture.select(frames)
+    why = {i: "not among the frames asked for (frames option)" for i in range(len(all_frames)) if i not in frames}
+    report = {}
+    if checks:
+        t0 = time.perf_counter()
+        found = check_inputs(capture, given, frames=frames, frames_asked=options.frames is not None)
+        why.update({row["index"]: row["reason"] for row in found.frames if not row["used"]})
+        capture, frames = capture.select(found.usable), [frames[k] for k in found.usable]
+        report["inputs"] = {**found.to_dict(), "seconds": round(time.perf_counter() - t0, 4)}
+    if given is not None:
+        initial_poses = se3.relative_to_reference(given.world_to_camera[frames])  # onto the first frame used
     if initial_poses is None:
         if capture.n_frames > 1:
             from .odometry import register_frames
 
             registration = register_frames(capture, strict=options.strict_registration, progress=options.progress)
             capture, initial_poses = capture.select(registration.frames), registration.poses
+            why.update({i: "registration could not place it" for i in frames
+                        if i not in [frames[k] for k in registration.frames]})
             frames = [frames[k] for k in registration.frames]
         else:
             initial_poses = np.eye(4)[None]
@@ -86,6 +109,9 @@ def problem_from_capture(capture: Capture, options: RefineOptions,
         views = frames_seeing_reference(capture, initial_poses, frame_ids=frames)
         keep = [frames.index(i) for i in views.frames]
         capture, initial_poses, frames = capture.select(keep), initial_poses[keep], views.frames
+        why.update({int(i): reason for i, reason in views.left_out.items()})
+    report["frames_report"] = [{"index": i, "file": name, "used": i in frames, "reason": why.get(i)}
+                               for i, name in enumerate(all_frames)]
     n = capture.n_frames
     return SolverInput(
         colors=[capture.color_array(i) for i in range(n)],  # the capture's frames, not a copy
@@ -93,6 +119,7 @@ def problem_from_capture(capture: Capture, options: RefineOptions,
         masks=[capture.mask_array(i) for i in range(n)],
         K=capture.color_K(), depth_K=capture.depth_K(), scale_factor=capture.scale_factor,
         initial_poses=initial_poses, led_offset=_led_offset(options, capture), frames=frames, options=options,
+        report=report,
     ), views
 
 

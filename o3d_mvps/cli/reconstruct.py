@@ -7,13 +7,14 @@ import json
 import warnings
 from dataclasses import replace
 
-from ..capture import read_capture, read_capture_poses
+from ..capture import read_capture
+from ..capture.checks import check_given_poses
 from ..capture.reading import MASK_SOURCES
 from ..export import write_mesh, write_stl
 from ..fileio import atomic_folder
 from ..reconstruct import ReconstructOptions, reconstruct
 from .outputs import add_overwrite_argument, check_folder
-from .refine import add_solver_arguments, options_from_args
+from .refine import add_pose_file_arguments, add_solver_arguments, options_from_args, read_given_poses
 
 DESCRIPTION = """\
 Reconstruct a whole object from a capture that goes around it: K reference views spread round
@@ -43,6 +44,7 @@ def register(subparsers) -> None:
     p.add_argument("--poses", default=None, metavar="FILE",
                    help="initial poses (Open3D .json/.log, TUM .txt, .npy; default: the capture's poses.* if any, "
                         "else registration)")
+    add_pose_file_arguments(p)
     p.add_argument("--mask", choices=MASK_SOURCES, default=None, help="object masks (as for refine)")
     p.add_argument("--references", type=int, default=d.references,
                    help=f"reference views refined and fused (default {d.references})")
@@ -65,14 +67,16 @@ def register(subparsers) -> None:
 def run(args) -> int:
     out = check_folder(args.out, args.overwrite, "output folder")
     capture = read_capture(args.capture, mask=args.mask)
-    given = read_capture_poses(args.capture, args.poses)
+    given = read_given_poses(args)
+    if given is not None:
+        check_given_poses(capture, given)  # a convention mix-up is named before the long work
     options = ReconstructOptions(references=args.references, frames_per_reference=args.frames_per_reference,
                                  depth=args.depth, voxel_mm=args.voxel_mm, texture_px=args.texture_px,
                                  workers=args.workers,
                                  refine=replace(options_from_args(args), progress=False), progress=not args.quiet)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        result = reconstruct(capture, options, poses=None if given is None else given[0], scheduler=args.scheduler)
+        result = reconstruct(capture, options, poses=None if given is None else given.poses, scheduler=args.scheduler)
     for w in caught:
         print(f"warning: {w.message}")
     solid = None

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import json
 import zipfile
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +36,9 @@ class SolverInput:
     initial_poses[0] the identity. led_offset: (3,) float64 metres, the LED position in the colour
     camera's frame to start from. frames: the capture's indices of the n frames (reported back).
     options: the refinement options (``options.frames`` was applied when the frames were picked).
+    report: JSON-ready notes on how the input was made (``inputs``: the input checks,
+    ``frames_report``: every capture frame, used or why not); passed on to the refinement's info,
+    not saved.
     """
 
     colors: np.ndarray | list
@@ -48,6 +51,7 @@ class SolverInput:
     led_offset: np.ndarray
     frames: list
     options: RefineOptions
+    report: dict = field(default_factory=dict)
 
     def __post_init__(self):
         if isinstance(self.colors, np.ndarray):
