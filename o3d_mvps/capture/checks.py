@@ -44,7 +44,7 @@ SENSOR_RANGE_M = (0.1, 10.0)
 COMMON_DEPTH_SCALES = (1.0, 10.0, 100.0, 1000.0, 4000.0, 5000.0, 10000.0, 100000.0)
 #: Plausible horizontal field of view of a colour camera (degrees); and a D415's colour camera's.
 FOV_RANGE_DEG = (20.0, 110.0)
-D415_FOV_DEG = (60.0, 78.0)
+D415_FOV_DEG = (58.0, 80.0)
 #: Largest accepted fx / fy deviation from 1 (RGB-D cameras have square pixels).
 ASPECT_TOLERANCE = 0.2
 #: A principal point farther than this share of the size from the centre is suspicious.
@@ -98,7 +98,7 @@ def check_inputs(capture, given_poses=None, *, frames: list | None = None, frame
         The user asked for this many frames (``RefineOptions.frames``): fewer than
         :data:`MIN_FRAMES` is then allowed (the single-frame baseline).
     where : str or None
-        The capture folder, for messages.
+        The capture folder, for messages (default: ``capture.folder``).
 
     Returns
     -------
@@ -115,9 +115,12 @@ def check_inputs(capture, given_poses=None, *, frames: list | None = None, frame
     labels = [f"frame {frames[k]}" + (f" ({names[k]})" if names[k] else "") for k in range(n)]
     report = InputReport(frames=[{"index": frames[k], "file": names[k], "used": True, "reason": None}
                                  for k in range(n)])
-    folder = f"{where}: " if where else ""
-    check_intrinsics(capture.color_K(), capture.color_size, f"{folder}intrinsic.json (colour)", capture.sensor)
-    check_intrinsics(capture.depth_K(), capture.depth_size, f"{folder}depth intrinsics", None, fov=False)
+    where = where or capture.folder
+    folder = f"{where}/" if where else ""
+    check_intrinsics(capture.color_K(), capture.color_size, f"{folder}intrinsic.json (colour intrinsics)",
+                     capture.sensor)
+    check_intrinsics(capture.depth_K(), capture.depth_size, f"{folder}depth_intrinsic.json (or the colour "
+                                                            "intrinsics scaled to depth)", None, fov=False)
     report.add("intrinsics", "ok", "K upright, principal point near the centre, square pixels, plausible field of "
                                    f"view ({field_of_view_deg(capture.color_K(), capture.color_size):.0f} degrees)")
     median = check_depth_scale(capture, folder)
@@ -125,7 +128,7 @@ def check_inputs(capture, given_poses=None, *, frames: list | None = None, frame
     usable = check_frame_quality(capture, labels, report)
     if len(usable) < MIN_FRAMES and not frames_asked:
         raise CaptureError(
-            f"{folder}only {len(usable)} usable frame(s) ({', '.join(labels[k] for k in usable)}); uncalibrated "
+            f"{where + ': ' if where else ''}only {len(usable)} usable frame(s) ({', '.join(labels[k] for k in usable)}); uncalibrated "
             f"photometric stereo needs at least {MIN_FRAMES} (the reference and {MIN_FRAMES - 1} more, from "
             "different viewpoints): capture more frames. To refine fewer on purpose (the single-frame baseline), "
             "ask for them: --frames 1 (RefineOptions(frames=1))")
@@ -196,8 +199,8 @@ def check_depth_scale(capture, folder: str = "") -> float:
     fix = (f"depth_scale {capture.depth_scale:g} in {folder or ''}capture.json is probably wrong: with depth_scale "
            f"{fits:g} the median would be {raw / fits:.3g} m" if lo <= raw / fits <= hi else
            f"check depth_scale ({capture.depth_scale:g}) in capture.json and the depth files' unit")
-    raise CaptureError(f"{folder}median depth of the reference is {median:.3g} m, implausible for an RGB-D camera "
-                       f"({lo:g}-{hi:g} m): {fix}")
+    raise CaptureError(f"{folder}depth: the median depth of the reference is {median:.3g} m, implausible for an "
+                       f"RGB-D camera ({lo:g}-{hi:g} m): {fix}")
 
 
 def frame_statistics(color: np.ndarray) -> tuple[float, float, float]:

@@ -42,6 +42,10 @@ STATIC_OVERLAP = 0.9
 #: ... and its depth at those pixels differs by at most this much (median, relative); else the
 #: camera moved (a 15-degree orbit of a 0.6 m object: 1-2 %, 0.88 overlap; sensor noise: 0.4 %).
 STATIC_DEPTH_CHANGE = 0.015
+#: A reading agrees "best" with a frame at this share of the best reading's agreement, and one
+#: that does so for more frames than the given reading, with a median agreement higher by
+#: CLEAR_MARGIN, is named as the mix-up (frames in text order agree loosely, 0.8 against 0.95).
+CLOSE_RATIO, CLEAR_MARGIN = 0.9, 0.03
 #: Most points taken from one frame.
 MAX_POINTS = 4000
 
@@ -191,8 +195,8 @@ def check_poses(depths: list, depth_K: np.ndarray, given, frames: list, labels: 
     labels : list of str
         Each frame's name in messages (``frame 3 (frame_3.png)``).
     """
-    reference = CoarseDepth.of(depths[0], depth_K)
-    points = [None] + [CoarseDepth.of(d, depth_K).points() for d in depths[1:]]
+    coarse = [CoarseDepth.of(d, depth_K) for d in depths]
+    reference, points = coarse[0], [None] + [c.points() for c in coarse[1:]]
     conventions = {"source": given.where, **{k: v for k, v in given.options.items() if v is not None}}
     if len(frames) < 2:
         return PoseCheck("ok", "one frame: nothing to compare", [1.0], conventions)
@@ -206,6 +210,12 @@ def check_poses(depths: list, depth_K: np.ndarray, given, frames: list, labels: 
     informative = best >= MIN_AGREEMENT
     fits = (scores >= np.maximum(MIN_AGREEMENT, FIT_RATIO * best)) & informative
     count = fits.sum(axis=1)
+    close = (scores >= np.maximum(MIN_AGREEMENT, CLOSE_RATIO * best)) & informative  # the near-best readings
+    close_count = close.sum(axis=1)
+    k = int(np.argmax(close_count[1:])) + 1
+    if close_count[k] > close_count[0] and close_count[k] >= 0.5 * informative.sum() and \
+            np.median(scores[k][informative]) > np.median(scores[0][informative]) + CLEAR_MARGIN:
+        count[0] = 0  # another reading fits clearly better: the given one is wrong even where it fits loosely
     conventions["agreement"] = {c.name: round(float(np.median(s)), 3) for c, s in zip(candidates, scores)}
     others = labels[1:]
     if not informative.any():
@@ -216,20 +226,31 @@ def check_poses(depths: list, depth_K: np.ndarray, given, frames: list, labels: 
             "file and the frame order), or the frames do not overlap; without the pose file, registration "
             "estimates the poses")
     if count[0] == informative.sum():
-        unchecked = [others[k] for k in np.flatnonzero(~informative)]
+        conventions["fits"] = "as given"
         detail = (f"every frame's depth agrees with the reference under the poses of {given.where} (median "
                   f"{np.median(scores[0]):.0%} of its pixels)")
-        if unchecked:
-            detail += f"; {', '.join(unchecked)} overlap the reference too little to be checked"
-        conventions["fits"] = "as given"
+        far = [j + 1 for j in np.flatnonzero(~informative)]  # frames apart from the reference: their neighbours
+        lost = [i for i in far if max(_neighbour_agreement(coarse, points, poses, i)) < MIN_AGREEMENT]
+        if lost:
+            raise CaptureError(
+                f"the poses in {given.where} do not place {', '.join(labels[i] for i in lost)}: moved by its pose, "
+                f"its depth meets neither {labels[0]}'s nor its neighbours' (at most "
+                f"{max(max(_neighbour_agreement(coarse, points, poses, i)) for i in lost):.0%} agrees), while the other "
+                f"frames agree (median {np.median(scores[0][informative]):.0%}), and no usual mix-up "
+                f"({', '.join(c.name for c in candidates[1:])}) fits it. Fix or remove that pose (and frame), or "
+                "drop the pose file so registration estimates the poses")
+        if far:
+            detail += (f"; {', '.join(labels[i] for i in far)} overlap the reference too little to be checked "
+                       "against it, but agree with their neighbours")
         return PoseCheck("ok", detail, [1.0] + scores[0].round(3).tolist(), conventions)
-    k = int(np.argmax(count[1:])) + 1
+    k = int(np.argmax(close_count[1:])) + 1
     table = "; ".join(f"{c.name}: {np.median(s):.0%}" for c, s in zip(candidates, scores))
-    if count[k] > count[0] and count[k] >= 0.5 * informative.sum():
+    if close_count[k] > close_count[0] and close_count[k] >= 0.5 * informative.sum():
         conventions["fits"] = candidates[k].name
         raise CaptureError(
             f"the poses in {given.where} do not fit the depth as read, but they fit as {candidates[k].name}: "
-            f"{count[k]} of {informative.sum()} frames agree that way, {count[0]} as read (median share of each "
+            f"{close_count[k]} of {informative.sum()} frames agree best that way, {close_count[0]} as read (median "
+            "share of each "
             f"frame's depth on the reference's: {table}). Fix: {candidates[k].fix}")
     bad = [others[j] for j in np.flatnonzero(informative & ~fits[0])]
     raise CaptureError(
@@ -238,6 +259,13 @@ def check_poses(depths: list, depth_K: np.ndarray, given, frames: list, labels: 
         f"; best under a mix-up {', '.join(f'{best[j]:.0%}' for j in np.flatnonzero(informative & ~fits[0]))}), "
         f"and no usual mix-up ({', '.join(c.name for c in candidates[1:])}) fits them all. Fix or remove those "
         "poses and frames, or drop the pose file so registration estimates the poses")
+
+
+def _neighbour_agreement(coarse: list, points: list, poses: np.ndarray, i: int) -> list:
+    """Agreement of frame i's points with its neighbours' depth (frames i - 1 and i + 1) under
+    the relative poses T_i T_j^-1 (frame j -> frame i)."""
+    return [coarse[j].agreement(points[i], poses[i] @ np.linalg.inv(poses[j]))
+            for j in (i - 1, i + 1) if 0 <= j < len(poses)]
 
 
 def _check_identity(reference, depths, depth_K, given, labels, conventions) -> PoseCheck:

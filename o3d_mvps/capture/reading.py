@@ -107,6 +107,7 @@ def read_capture(path, mask: str | None = None, depth_range=None) -> Capture:
         metadata={**settings["metadata"], "color_bit_depth": bit_depths.pop()},
         light=settings["light"],
         frame_names=[p.name for p in color_files.values()],
+        folder=str(root),
     )
     validate_capture(capture, names)
     _check_intrinsic_size(root / INTRINSIC_JSON, color_K_size, capture.color_size, COLOR_DIR)

@@ -43,7 +43,8 @@ class Capture:
     color_encoding: how colour PNGs are encoded on disk ("srgb" or "linear").
     light: what lit the frames (capture.json's "light"): "led" (the LED on the camera) or "room"
     (room light); None when the capture does not say. frame_names: the colour file of each frame
-    (read from a folder), or None; used in messages and reports.
+    (read from a folder), or None; folder: the capture folder it was read from, or None; both
+    used in messages and reports.
     """
 
     color: list
@@ -59,6 +60,7 @@ class Capture:
     metadata: dict = field(default_factory=dict)
     light: str | None = None
     frame_names: list | None = None
+    folder: str | None = None
 
     # --- sizes -------------------------------------------------------------------------
     @property
