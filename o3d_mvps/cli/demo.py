@@ -54,7 +54,7 @@ def run(args) -> int:
     capture = render_capture(args.mesh, frames=args.frames, scale_factor=args.scale_factor,
                              size=args.size, seed=args.seed, progress=not args.quiet)
     say("refining ...")
-    refinement = refine(capture, RefineOptions(progress=not args.quiet))
+    refinement = refine(capture, RefineOptions(frames=args.frames, progress=not args.quiet))  # as many as asked for
     log_energy(refinement, args.quiet)
     rows = accuracy_rows(capture, refinement)
     table = markdown_table(rows)
