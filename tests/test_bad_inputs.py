@@ -110,6 +110,19 @@ def test_correct_pose_file_refines_and_reports_the_checks(folder, tmp_path, caps
         (i, f"{i:06d}.png", True) for i in range(N)]
 
 
+def test_a_ring_with_its_poses_passes_and_inverted_poses_are_named():
+    """A 360-degree ring (frames 30 degrees apart; most see little of the reference): the true
+    poses pass, every frame placed on the reference or on its neighbours; their inverses are named."""
+    from o3d_mvps.capture.checks import check_given_poses
+    from o3d_mvps.synthetic import render_ring
+
+    ring, _ = render_ring("bunny", frames=12, size=(160, 120), light="room", surroundings=True)
+    E = world_to_camera(ring.groundtruth.poses)
+    assert check_given_poses(ring, GivenPoses.from_array(E))["fits"] == "as given"
+    with pytest.raises(CaptureError, match=r"fit as inverse .*Fix: pass the inverse matrices \(np.linalg.inv"):
+        check_given_poses(ring, GivenPoses.from_array(np.linalg.inv(E)))
+
+
 def test_a_static_camera_with_identity_poses_passes(led):
     """The reference frame repeated (fresh sensor-like noise) with identity poses: a static camera."""
     import dataclasses

@@ -209,9 +209,11 @@ def frame_statistics(color: np.ndarray) -> tuple[float, float, float]:
     at most :data:`STATS_WIDTH` wide."""
     H, W = color.shape[:2]
     if W > STATS_WIDTH:
-        color = resize(color, (H * STATS_WIDTH // W, STATS_WIDTH))
-    grey = color.mean(axis=2).astype(np.float32)
-    return float(grey.mean()), float((color.max(axis=2) >= 0.99).mean()), blur_effect(grey)
+        color = cv2.resize(color, (STATS_WIDTH, H * STATS_WIDTH // W), interpolation=cv2.INTER_AREA)
+    r, g, b = cv2.split(np.asarray(color, dtype=np.float32))
+    grey = (r + g + b) / 3
+    brightest = cv2.max(cv2.max(r, g), b)
+    return float(grey.mean()), float(np.count_nonzero(brightest >= 0.99)) / brightest.size, blur_effect(grey)
 
 
 def blur_effect(grey: np.ndarray, size: int = 9) -> float:
