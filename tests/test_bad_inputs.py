@@ -274,7 +274,8 @@ def test_intrinsics_checked_against_the_sensor_named_in_capture_json(folder, tmp
 def test_depth_scale_ten_times_too_large_names_the_value_that_fits(folder, tmp_path, capsys):
     edit_json(folder / "capture.json", depth_scale=10000)
     refuse(capsys, [folder, tmp_path / "out"], "depth: the median depth of the reference is 0.0545 m",
-           f"depth_scale 10000 in {folder / 'capture.json'} is probably wrong", "with depth_scale 1000 the median would be 0.545 m",
+           f"depth_scale 10000 in {folder / 'capture.json'} is probably wrong",
+           "with depth_scale 1000 the median would be 0.545 m",
            inputs=[folder])
 
 
@@ -357,7 +358,8 @@ def test_colour_depth_offset_warns(led):
 def problem_file(tmp_path):
     n, H, W = 3, 8, 8
     problem = SolverInput(colors=np.full((n, H, W, 3), 0.5), depths=np.full((n, 4, 4), 0.6), masks=[None] * n,
-                          K=[[10.0, 0, 3.5], [0, 10.0, 3.5], [0, 0, 1]], depth_K=[[5.0, 0, 1.5], [0, 5.0, 1.5], [0, 0, 1]],
+                          K=[[10.0, 0, 3.5], [0, 10.0, 3.5], [0, 0, 1]],
+                          depth_K=[[5.0, 0, 1.5], [0, 5.0, 1.5], [0, 0, 1]],
                           scale_factor=2, initial_poses=np.tile(np.eye(4), (n, 1, 1)), led_offset=np.zeros(3),
                           frames=[0, 1, 2], options=RefineOptions())
     return write_problem(problem, tmp_path / "good.npz")

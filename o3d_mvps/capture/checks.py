@@ -129,7 +129,8 @@ def check_inputs(capture, given_poses=None, *, frames: list | None = None, frame
     usable = check_frame_quality(capture, labels, report)
     if len(usable) < MIN_FRAMES and not frames_asked:
         raise CaptureError(
-            f"{where + ': ' if where else ''}only {len(usable)} usable frame(s) ({', '.join(labels[k] for k in usable)}); uncalibrated "
+            f"{where + ': ' if where else ''}only {len(usable)} usable frame(s) "
+            f"({', '.join(labels[k] for k in usable)}); uncalibrated "
             f"photometric stereo needs at least {MIN_FRAMES} (the reference and {MIN_FRAMES - 1} more, from "
             "different viewpoints): capture more frames. To refine fewer on purpose (the single-frame baseline), "
             "ask for them: --frames 1 (RefineOptions(frames=1))")
@@ -179,12 +180,14 @@ def check_intrinsics(K: np.ndarray, size, what: str, sensor: str | None = None, 
     if not fov:
         return
     angle = field_of_view_deg(K, size)
-    low, high = D415_FOV_DEG if sensor and "d415" in sensor.lower() else FOV_RANGE_DEG
+    d415 = bool(sensor) and "d415" in sensor.lower()
+    low, high = D415_FOV_DEG if d415 else FOV_RANGE_DEG
     if not low <= angle <= high:
+        sensor_note = " (a D415 colour camera: 69)" if d415 else ""
         raise CaptureError(f"{what}: fx={fx:g} gives a horizontal field of view of {angle:.0f} degrees on {W}-pixel-"
-                           f"wide frames, outside {low:g}-{high:g} degrees{' (a D415 colour camera: 69)' if high == D415_FOV_DEG[1] else ''}; "
-                           f"the focal length is wrong (scaled for another resolution?): fx near "
-                           f"{W / (2 * np.tan(np.radians(69 / 2))):.0f} px gives 69 degrees")
+                           f"wide frames, outside {low:g}-{high:g} degrees{sensor_note}; the focal length is wrong "
+                           f"(scaled for another resolution?): fx near {W / (2 * np.tan(np.radians(69 / 2))):.0f} px "
+                           "gives 69 degrees")
 
 
 def check_depth_scale(capture, folder: str = "") -> float:

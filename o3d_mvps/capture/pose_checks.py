@@ -230,12 +230,13 @@ def check_poses(depths: list, depth_K: np.ndarray, given, frames: list, labels: 
         detail = (f"every frame's depth agrees with the reference under the poses of {given.where} (median "
                   f"{np.median(scores[0]):.0%} of its pixels)")
         far = [j + 1 for j in np.flatnonzero(~informative)]  # frames apart from the reference: their neighbours
-        lost = [i for i in far if max(_neighbour_agreement(coarse, points, poses, i)) < MIN_AGREEMENT]
+        near = {i: max(_neighbour_agreement(coarse, points, poses, i)) for i in far}
+        lost = [i for i in far if near[i] < MIN_AGREEMENT]
         if lost:
             raise CaptureError(
                 f"the poses in {given.where} do not place {', '.join(labels[i] for i in lost)}: moved by its pose, "
                 f"its depth meets neither {labels[0]}'s nor its neighbours' (at most "
-                f"{max(max(_neighbour_agreement(coarse, points, poses, i)) for i in lost):.0%} agrees), while the other "
+                f"{max(near[i] for i in lost):.0%} agrees), while the other "
                 f"frames agree (median {np.median(scores[0][informative]):.0%}), and no usual mix-up "
                 f"({', '.join(c.name for c in candidates[1:])}) fits it. Fix or remove that pose (and frame), or "
                 "drop the pose file so registration estimates the poses")
@@ -252,11 +253,11 @@ def check_poses(depths: list, depth_K: np.ndarray, given, frames: list, labels: 
             f"{close_count[k]} of {informative.sum()} frames agree best that way, {close_count[0]} as read (median "
             "share of each "
             f"frame's depth on the reference's: {table}). Fix: {candidates[k].fix}")
-    bad = [others[j] for j in np.flatnonzero(informative & ~fits[0])]
+    wrong = np.flatnonzero(informative & ~fits[0])
     raise CaptureError(
-        f"the poses in {given.where} do not fit {', '.join(bad)}: their depth, moved by the pose, disagrees "
-        f"with {labels[0]}'s (agreement {', '.join(f'{scores[0][j]:.0%}' for j in np.flatnonzero(informative & ~fits[0]))}"
-        f"; best under a mix-up {', '.join(f'{best[j]:.0%}' for j in np.flatnonzero(informative & ~fits[0]))}), "
+        f"the poses in {given.where} do not fit {', '.join(others[j] for j in wrong)}: their depth, moved by the "
+        f"pose, disagrees with {labels[0]}'s (agreement {', '.join(f'{scores[0][j]:.0%}' for j in wrong)}"
+        f"; best under a mix-up {', '.join(f'{best[j]:.0%}' for j in wrong)}), "
         f"and no usual mix-up ({', '.join(c.name for c in candidates[1:])}) fits them all. Fix or remove those "
         "poses and frames, or drop the pose file so registration estimates the poses")
 

@@ -140,8 +140,8 @@ def read_problem(path) -> SolverInput:
         raise MVPSError(f"{path} is a saved problem of format version {version}, newer than this o3d_mvps reads "
                         f"({PROBLEM_VERSION}); upgrade o3d_mvps (pip install -U o3d-mvps) where you solve it")
     if version < 1:
-        raise MVPSError(f"{path}: format_version {version} is not a version o3d_mvps ever wrote (1..{PROBLEM_VERSION}); "
-                        f"{remake}")
+        raise MVPSError(f"{path}: format_version {version} is not a version o3d_mvps ever wrote "
+                        f"(1..{PROBLEM_VERSION}); {remake}")
     problem = _check_values(path, data)
     if problem:
         raise MVPSError(f"{path}: {problem}; {remake}")
