@@ -265,8 +265,18 @@ def test_intrinsics_checked_against_the_sensor_named_in_capture_json(folder, tmp
     data["intrinsic_matrix"][0] *= 1.6  # fx, fy 1.6 times: 40 degrees
     data["intrinsic_matrix"][4] *= 1.6
     (folder / "intrinsic.json").write_text(json.dumps(data))
-    refuse(capsys, [folder, tmp_path / "out"], "field of view of 40 degrees", "outside 58-80 degrees (a D415",
+    refuse(capsys, [folder, tmp_path / "out"], "field of view of 40 degrees", "outside 50-80 degrees (a D415",
            inputs=[folder])
+
+
+def test_depth_intrinsics_of_an_unregistered_depth_camera_warn(led_folder, tmp_path):
+    folder = Path(shutil.copytree(led_folder, tmp_path / "capture"))
+    K = np.asarray(json.loads((folder / "intrinsic.json").read_text())["intrinsic_matrix"]).reshape(3, 3).T
+    depth_K = np.array([[K[0, 0] * 0.6, 0, 40.0], [0, K[1, 1] * 0.6, 30.0], [0, 0, 1]])  # not K / 2
+    (folder / "depth_intrinsic.json").write_text(json.dumps(k_json(depth_K, (80, 60))))
+    with pytest.warns(UserWarning, match=r"depth_intrinsic.json differs from the colour intrinsics scaled by 1/2"):
+        report = check_inputs(read_capture(folder))
+    assert {c["name"]: c["status"] for c in report.checks}["depth intrinsics"] == "warning"
 
 
 # --- depth scale -----------------------------------------------------------------------------

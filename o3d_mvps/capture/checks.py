@@ -37,6 +37,7 @@ import numpy as np
 from ..errors import CaptureError
 from ..model.resampling import resize
 from .pose_checks import check_poses
+from .types import default_depth_intrinsic
 
 #: Plausible median scene depth in metres for an RGB-D camera (a D415 measures 0.16-10 m).
 SENSOR_RANGE_M = (0.1, 10.0)
@@ -44,7 +45,7 @@ SENSOR_RANGE_M = (0.1, 10.0)
 COMMON_DEPTH_SCALES = (1.0, 10.0, 100.0, 1000.0, 4000.0, 5000.0, 10000.0, 100000.0)
 #: Plausible horizontal field of view of a colour camera (degrees); and a D415's colour camera's.
 FOV_RANGE_DEG = (20.0, 110.0)
-D415_FOV_DEG = (58.0, 80.0)
+D415_FOV_DEG = (50.0, 80.0)  # 69 at 1280x720, 55 in the 640x480 mode
 #: Largest accepted fx / fy deviation from 1 (RGB-D cameras have square pixels).
 ASPECT_TOLERANCE = 0.2
 #: A principal point farther than this share of the size from the centre is suspicious.
@@ -124,6 +125,15 @@ def check_inputs(capture, given_poses=None, *, frames: list | None = None, frame
                                                             "intrinsics scaled to depth)", None, fov=False)
     report.add("intrinsics", "ok", "K upright, principal point near the centre, square pixels, plausible field of "
                                    f"view ({field_of_view_deg(capture.color_K(), capture.color_size):.0f} degrees)")
+    registered = default_depth_intrinsic(capture.color_K(), capture.scale_factor)
+    off = np.abs(capture.depth_K()[:2] - registered[:2]).max()
+    if off > 0.02 * capture.depth_size[1]:
+        report.add("depth intrinsics", "warning",
+                   f"{folder}depth_intrinsic.json differs from the colour intrinsics scaled by 1/{capture.scale_factor} "
+                   f"by up to {off:.3g} px ({np.round(capture.depth_K(), 2).tolist()} against "
+                   f"{np.round(registered, 2).tolist()}): depth registered to the colour camera shares its "
+                   "intrinsics; remove depth_intrinsic.json, or register the depth first "
+                   "(o3d_mvps.registration.register_depth)")
     median = check_depth_scale(capture, folder)
     report.add("depth scale", "ok", f"median depth {median:.3g} m")
     usable = check_frame_quality(capture, labels, report)
