@@ -198,10 +198,11 @@ def test_identity_poses_for_a_moving_camera_are_refused(folder, tmp_path, capsys
            inputs=[folder, tmp_path / "poses.npy"])
 
 
-def test_a_frame_whose_pose_fits_no_convention_is_named(folder, tmp_path, capsys):
+@pytest.mark.parametrize("degrees", [5, 34])
+def test_a_frame_whose_pose_fits_no_convention_is_named(degrees, folder, tmp_path, capsys):
     E = world_to_camera(np.load(folder / "groundtruth" / "poses.npy"))
     kick = np.eye(4)
-    kick[:3, :3] = Rotation.from_rotvec([0.0, 0.6, 0.0]).as_matrix()  # 34 degrees off
+    kick[:3, :3] = Rotation.from_rotvec([0.0, np.radians(degrees), 0.0]).as_matrix()  # turned about its centre
     E[4] = kick @ E[4]
     np.save(tmp_path / "poses.npy", E)
     err = refuse(capsys, [folder, tmp_path / "out", "--poses", tmp_path / "poses.npy"],
