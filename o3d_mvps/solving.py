@@ -42,7 +42,7 @@ def refine(capture: Capture, options: RefineOptions | None = None, device="CPU:0
     existing file unless ``overwrite``). Of more than three frames, those that see too little of
     the reference's surface are left out (:func:`o3d_mvps.views.frames_seeing_reference`).
     Before the solve, ``checks`` runs :func:`o3d_mvps.capture.checks.check_inputs` (intrinsics,
-    depth scale, frame quality, poses against depth; about 1 % of a solve), which raises
+    depth scale, frame quality, poses against depth; well under 1 % of a solve), which raises
     CaptureError naming a mix-up and its fix and drops bad frames with a warning.
     Returns a :class:`~o3d_mvps.Refinement`; ``info["frames"]`` lists the capture's frames it
     used, ``info["views"]`` each frame's covisibility and why a frame was left out,

@@ -105,7 +105,9 @@ def test_correct_pose_file_refines_and_reports_the_checks(folder, tmp_path, caps
     info = json.loads((out / "report.json").read_text())["info"]
     assert {c["name"]: c["status"] for c in info["inputs"]["checks"]} == {
         "intrinsics": "ok", "depth scale": "ok", "frame quality": "ok", "colour/depth alignment": "ok", "poses": "ok"}
-    assert info["inputs"]["conventions"]["poses"]["source"] == str(tmp_path / "trajectory.log")
+    poses = info["inputs"]["conventions"]["poses"]
+    assert poses["source"] == str(tmp_path / "trajectory.log") and poses["fits"] == "as given"
+    assert min(poses["frame_agreement"].values()) > 0.8  # measured 0.93-0.98
     assert [(r["index"], r["file"], r["used"]) for r in info["frames_report"]] == [
         (i, f"{i:06d}.png", True) for i in range(N)]
 

@@ -150,7 +150,8 @@ def check_inputs(capture, given_poses=None, *, frames: list | None = None, frame
         pose = check_poses([capture.depth_array(k) for k in usable], capture.depth_K(), given_poses, picked,
                            [labels[k] for k in usable])
         report.add("poses", pose.status, pose.detail)
-        report.conventions["poses"] = pose.conventions
+        report.conventions["poses"] = {**pose.conventions,
+                                       "frame_agreement": {str(i): a for i, a in zip(picked, pose.agreement)}}
     report.usable = usable
     return report
 
