@@ -15,6 +15,8 @@ from dataclasses import replace
 import numpy as np
 
 from .capture import Capture, CameraSetting, camera_setting, to_host
+from .capture.checks import check_inputs
+from .capture.poses import GivenPoses
 from .errors import CaptureError
 from .fileio import check_output_files
 from .model import se3
@@ -28,11 +30,12 @@ from .views import MIN_OTHER_FRAMES, ViewSelection, frames_seeing_reference
 
 
 def refine(capture: Capture, options: RefineOptions | None = None, device="auto", initial_poses=None, *,
-           save_problem=None, overwrite: bool = False) -> Refinement:
+           save_problem=None, overwrite: bool = False, checks: bool = True) -> Refinement:
     """Jointly estimate depth (colour resolution), albedo, lighting and poses from a capture.
 
     capture: frame 0 is the reference; ``initial_poses`` (n, 4, 4) reference -> frame i, an array
-    or an o3d.core.Tensor on any device (default: the registration chain of
+    or an o3d.core.Tensor on any device, or a :class:`~o3d_mvps.capture.poses.GivenPoses` (a pose
+    file read by :func:`~o3d_mvps.capture.poses.given_poses`) (default: the registration chain of
     :func:`o3d_mvps.odometry.register_frames`, which drops a frame it cannot place, with a warning,
     unless ``options.strict_registration``). device: "auto" (the GPU when it can solve, else the
     CPU), "CPU:0" or "CUDA:0" (see :func:`o3d_mvps.solver.device.check_device`); ``info["device"]``
@@ -43,8 +46,12 @@ def refine(capture: Capture, options: RefineOptions | None = None, device="auto"
     A static-camera capture (:func:`o3d_mvps.capture.camera_setting`: declared in capture.json or
     detected from the depth) is not registered: its poses are the identity (or ``initial_poses``),
     not refined, and every frame is used; ``info["camera"]`` says how it was decided.
+    Before the solve, ``checks`` runs :func:`o3d_mvps.capture.checks.check_inputs` (intrinsics,
+    depth scale, frame quality, poses against depth; well under 1 % of a solve), which raises
+    CaptureError naming a mix-up and its fix and drops bad frames with a warning.
     Returns a :class:`~o3d_mvps.Refinement`; ``info["frames"]`` lists the capture's frames it
     used, ``info["views"]`` each frame's covisibility and why a frame was left out,
+    ``info["inputs"]`` the checks, ``info["frames_report"]`` every frame, used or why not,
     ``info["dropped_frames"]`` the frames the registration could not place, ``info["warnings"]``
     the warnings raised, ``info["stage_peak_memory_mb"]`` the process's peak memory after each
     stage; :meth:`~o3d_mvps.Refinement.report` gathers them.
@@ -56,17 +63,19 @@ def refine(capture: Capture, options: RefineOptions | None = None, device="auto"
     t0 = time.perf_counter()
     said, dropped, memory = [], {}, {}
     with recorded_warnings(said):
-        camera = camera_setting(capture, None if initial_poses is None else to_host(initial_poses))
-        problem_input, views = problem_from_capture(capture, options, initial_poses, camera=camera, dropped=dropped)
+        camera = camera_setting(capture, _host_poses(initial_poses))
+        problem_input, views = problem_from_capture(capture, options, initial_poses, camera=camera, dropped=dropped,
+                                                    checks=checks)
         odometry = time.perf_counter() - t0
         memory["odometry"] = peak_memory_mb()
         if save_problem is not None:
             write_problem(problem_input, save_problem, overwrite=overwrite)
         output = solve(problem_input, problem_input.options, device)
         memory["solve"] = peak_memory_mb()
-    info = {**output.info, **({"views": views.to_dict()} if views else {}), "camera": camera.to_dict(),
-            "capture_frames": capture.n_frames, "dropped_frames": {str(i): why for i, why in dropped.items()},
-            "stage_peak_memory_mb": memory, "warnings": said}
+    info = {**output.info, **({"views": views.to_dict()} if views else {}), **problem_input.report,
+            "camera": camera.to_dict(), "capture_frames": capture.n_frames,
+            "dropped_frames": {str(i): why for i, why in dropped.items()}, "stage_peak_memory_mb": memory,
+            "warnings": said}
     return Refinement.from_arrays(
         output.depth, output.mask, output.K, albedo=output.albedo, poses=output.poses, lighting=output.lighting,
         method="ours", energy=output.energy, info=info,
@@ -74,38 +83,60 @@ def refine(capture: Capture, options: RefineOptions | None = None, device="auto"
     )
 
 
+def _host_poses(initial_poses) -> np.ndarray | None:
+    """(n, 4, 4) reference -> frame i on the host, from any form ``refine`` takes, or None."""
+    if initial_poses is None:
+        return None
+    return initial_poses.poses if isinstance(initial_poses, GivenPoses) else to_host(initial_poses)
+
+
 def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses=None, *,
-                         camera: CameraSetting | None = None,
-                         dropped: dict | None = None) -> tuple[SolverInput, ViewSelection | None]:
+                         camera: CameraSetting | None = None, dropped: dict | None = None,
+                         checks: bool = True) -> tuple[SolverInput, ViewSelection | None]:
     """The solver's input from a capture: the frames ``options.frames`` picks, minus those the
-    registration drops when no ``initial_poses`` are given and those that do not see the
-    reference (see :func:`refine`); and that view selection (None with three frames or fewer).
-    The input's options name the light model (:func:`with_light_model`). A static-camera capture
-    (``camera``, default :func:`~o3d_mvps.capture.camera_setting` of the capture) keeps every
-    frame, identity poses (unless given) and no pose refinement. ``dropped``: a dict given here
-    gets {capture frame index: why} of the frames the registration dropped."""
-    camera = camera_setting(capture, None if initial_poses is None else to_host(initial_poses)) \
-        if camera is None else camera
+    input checks drop (``checks``), those the registration drops when no ``initial_poses`` are
+    given and those that do not see the reference (see :func:`refine`); and that view selection
+    (None with three frames or fewer). The input's options name the light model
+    (:func:`with_light_model`); its ``report`` holds ``inputs`` and ``frames_report``. A
+    static-camera capture (``camera``, default :func:`~o3d_mvps.capture.camera_setting` of the
+    capture) keeps every frame, identity poses (unless given) and no pose refinement.
+    ``dropped``: a dict given here gets {capture frame index: why} of the frames the registration
+    dropped."""
+    camera = camera_setting(capture, _host_poses(initial_poses)) if camera is None else camera
     if camera.static:
         capture = replace(capture, camera="static")
         options = replace(options, refine_poses=False)
     options = with_light_model(options, capture)
+    all_frames = capture.frame_names or [None] * capture.n_frames
     frames = options.frame_indices(capture.n_frames)
+    given = None
     if initial_poses is not None:
-        initial_poses = np.asarray(to_host(initial_poses), dtype=np.float64)
-        if initial_poses.shape != (capture.n_frames, 4, 4):
-            raise ValueError(f"initial_poses must be ({capture.n_frames}, 4, 4), got {initial_poses.shape}")
-        initial_poses = se3.relative_to_reference(initial_poses[frames])  # onto the first frame used
+        given = initial_poses if isinstance(initial_poses, GivenPoses) else GivenPoses.from_array(
+            np.asarray(to_host(initial_poses), dtype=np.float64))
+        if given.world_to_camera.shape != (capture.n_frames, 4, 4):
+            raise ValueError(f"initial_poses must be ({capture.n_frames}, 4, 4), got {given.world_to_camera.shape}")
     capture = capture.select(frames)
-    if initial_poses is None and camera.static:
+    why = {i: "not among the frames asked for (frames option)" for i in range(len(all_frames)) if i not in frames}
+    report = {}
+    if checks:
+        t0 = time.perf_counter()
+        found = check_inputs(capture, given, frames=frames, frames_asked=options.frames is not None)
+        why.update({row["index"]: row["reason"] for row in found.frames if not row["used"]})
+        capture, frames = capture.select(found.usable), [frames[k] for k in found.usable]
+        report["inputs"] = {**found.to_dict(), "seconds": round(time.perf_counter() - t0, 4)}
+    if given is not None:
+        initial_poses = se3.relative_to_reference(given.world_to_camera[frames])  # onto the first frame used
+    elif camera.static:
         initial_poses = np.tile(np.eye(4), (capture.n_frames, 1, 1))
     if initial_poses is None:
         if capture.n_frames > 1:
             from .odometry import register_frames
 
             registration = register_frames(capture, strict=options.strict_registration, progress=options.progress)
+            lost = {frames[k]: reason for k, reason in registration.dropped.items()}
             if dropped is not None:
-                dropped.update({frames[k]: why for k, why in registration.dropped.items()})
+                dropped.update(lost)
+            why.update(lost)
             capture, initial_poses = capture.select(registration.frames), registration.poses
             frames = [frames[k] for k in registration.frames]
         else:
@@ -116,6 +147,9 @@ def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses
         views = frames_seeing_reference(capture, initial_poses, frame_ids=frames)
         keep = [frames.index(i) for i in views.frames]
         capture, initial_poses, frames = capture.select(keep), initial_poses[keep], views.frames
+        why.update({int(i): reason for i, reason in views.left_out.items()})
+    report["frames_report"] = [{"index": i, "file": name, "used": i in frames, "reason": why.get(i)}
+                               for i, name in enumerate(all_frames)]
     n = capture.n_frames
     return SolverInput(
         colors=[capture.color_array(i) for i in range(n)],  # the capture's frames, not a copy
@@ -123,6 +157,7 @@ def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses
         masks=[capture.mask_array(i) for i in range(n)],
         K=capture.color_K(), depth_K=capture.depth_K(), scale_factor=capture.scale_factor,
         initial_poses=initial_poses, led_offset=_led_offset(options, capture), frames=frames, options=options,
+        report=report,
     ), views
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import warnings
 from pathlib import Path
 
@@ -44,7 +45,9 @@ def read_capture(path, mask: str | None = None, depth_range=None) -> Capture:
     Colour PNGs (8- or 16-bit; .jpg also read) become float32 linear RGB in [0, 1] (sRGB ones
     are linearised); their bit depth goes to ``metadata["color_bit_depth"]``. Depth PNGs
     (uint16) become float32 metres (value / depth_scale; 0 = missing). Frames are paired by
-    file name in sorted order. A missing ``capture.json`` means the defaults (depth_scale 1000,
+    file name in natural order (:func:`natural_key`: ``frame_2`` before ``frame_10``); files that
+    are not frames (``._*``, hidden files, folders, broken links, other suffixes) are skipped with
+    a warning naming them. A missing ``capture.json`` means the defaults (depth_scale 1000,
     depth_trunc 3 m, sRGB colour); a missing ``depth_intrinsic.json`` means
     ``default_depth_intrinsic``. Depth beyond depth_trunc is kept (depth_trunc is passed on
     for fusion). Masks (``mask``): ``"folder"`` reads mask/ (CaptureError when missing),
@@ -105,6 +108,8 @@ def read_capture(path, mask: str | None = None, depth_range=None) -> Capture:
         metadata={**settings["metadata"], "color_bit_depth": bit_depths.pop()},
         light=settings["light"],
         camera=settings["camera"],
+        frame_names=[p.name for p in color_files.values()],
+        folder=str(root),
     )
     validate_capture(capture, names)
     _check_intrinsic_size(root / INTRINSIC_JSON, color_K_size, capture.color_size, COLOR_DIR)
@@ -191,16 +196,15 @@ def paired_frame_files(root: Path, expected: int | None) -> tuple[dict[str, Path
     """Colour and depth frame files by name; CaptureError unless they pair up (and number ``expected``)."""
     color_files = _frame_files(root / COLOR_DIR, COLOR_SUFFIXES)
     depth_files = _frame_files(root / DEPTH_DIR, (".png",))
-    if len(color_files) != len(depth_files):
-        raise CaptureError(
-            f"{root}: {COLOR_DIR}/ has {len(color_files)} frames but {DEPTH_DIR}/ has {len(depth_files)}; "
-            "every colour frame needs a depth frame with the same file name"
-        )
     if list(color_files) != list(depth_files):
-        only = sorted(set(color_files) ^ set(depth_files))[0]
+        only_color = [color_files[k] for k in color_files if k not in depth_files]
+        only_depth = [depth_files[k] for k in depth_files if k not in color_files]
+        missing = [f"{root / DEPTH_DIR / (p.stem + '.png')} (for {p})" for p in only_color]
+        missing += [f"{root / COLOR_DIR / (p.stem + '.png')} (for {p})" for p in only_depth]
         raise CaptureError(
-            f"{root}: frame {only!r} is in only one of {COLOR_DIR}/ and {DEPTH_DIR}/; "
-            "colour and depth frames are paired by file name, rename or remove it"
+            f"{root}: {COLOR_DIR}/ has {len(color_files)} frames and {DEPTH_DIR}/ has {len(depth_files)}; missing: "
+            f"{', '.join(missing[:5])}{' ...' if len(missing) > 5 else ''}. Colour and depth frames are paired by "
+            "file name: add the missing file, or remove or rename its partner"
         )
     if expected is not None and expected != len(color_files):
         raise CaptureError(
@@ -210,13 +214,35 @@ def paired_frame_files(root: Path, expected: int | None) -> tuple[dict[str, Path
     return color_files, depth_files
 
 
+def natural_key(name: str) -> tuple:
+    """Sort key ordering digit runs by value: ``frame_2`` before ``frame_10`` (then by the text)."""
+    parts = re.split(r"(\d+)", name)
+    return tuple((0, int(p), p) if p.isdigit() else (1, 0, p.lower()) for p in parts), name
+
+
 def _frame_files(folder: Path, suffixes) -> dict[str, Path]:
-    """Frame files of a folder by stem, in sorted name order; CaptureError if none."""
+    """Frame files of a folder by stem, in natural name order (:func:`natural_key`); CaptureError
+    if none. Entries that are not frames are skipped with one warning naming them."""
     if not folder.is_dir():
         raise CaptureError(
             f"{folder} is missing; a capture folder needs {COLOR_DIR}/ and {DEPTH_DIR}/ with one PNG per frame"
         )
-    files = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in suffixes)
+    files, skipped = [], []
+    for p in folder.iterdir():
+        if p.name.startswith("."):  # ._* (macOS), .DS_Store, editors' files
+            skipped.append(f"{p.name} (hidden file)")
+        elif p.is_symlink() and not p.exists():
+            skipped.append(f"{p.name} (broken link)")
+        elif p.is_dir():
+            skipped.append(f"{p.name}/ (folder)")
+        elif p.suffix.lower() not in suffixes:
+            skipped.append(f"{p.name} (not {'/'.join(suffixes)})")
+        else:
+            files.append(p)
+    files.sort(key=lambda p: natural_key(p.name))
+    if skipped:
+        warnings.warn(f"{folder}: skipping {len(skipped)} entries that are not frames: "
+                      f"{', '.join(sorted(skipped)[:8])}{' ...' if len(skipped) > 8 else ''}", stacklevel=4)
     if not files:
         raise CaptureError(f"{folder} holds no frames; add {'/'.join(suffixes)} images named like 000000.png")
     by_stem = {p.stem: p for p in files}

@@ -52,6 +52,8 @@ class Capture:
     (room light); None when the capture does not say.
     camera: capture.json's "camera": "static" (a fixed camera, a light moved between frames:
     :mod:`o3d_mvps.capture.static`), "moving", or None when the capture does not say.
+    frame_names: the colour file of each frame (read from a folder), or None; folder: the
+    capture folder it was read from, or None; both used in messages and reports.
     """
 
     color: list
@@ -67,6 +69,8 @@ class Capture:
     metadata: dict = field(default_factory=dict)
     light: str | None = None
     camera: str | None = None
+    frame_names: list | None = None
+    folder: str | None = None
 
     # --- sizes -------------------------------------------------------------------------
     @property
@@ -121,7 +125,12 @@ class Capture:
         gt = self.groundtruth
         if gt is not None:
             gt = replace(gt, poses=gt.poses[frames]) if frames[0] == 0 else None
-        return replace(self, color=pick(self.color), depth=pick(self.depth), masks=pick(self.masks), groundtruth=gt)
+        return replace(self, color=pick(self.color), depth=pick(self.depth), masks=pick(self.masks), groundtruth=gt,
+                       frame_names=pick(self.frame_names))
+
+    def frame_label(self, i: int) -> str:
+        """'frame i' or 'frame i (file)' for messages."""
+        return f"frame {i}" if self.frame_names is None else f"frame {i} ({self.frame_names[i]})"
 
 
 def to_host(value):

@@ -59,7 +59,7 @@ def run(args) -> int:
     capture = render_capture(args.mesh, frames=args.frames, scale_factor=args.scale_factor,
                              size=args.size, seed=args.seed, progress=not args.quiet)
     say(f"refining ... ({device_line})")
-    refinement = refine(capture, RefineOptions(progress=not args.quiet), device)
+    refinement = refine(capture, RefineOptions(frames=args.frames, progress=not args.quiet), device)  # as many as asked for
     log_energy(refinement, args.quiet)
     rows = accuracy_rows(capture, refinement)
     table = markdown_table(rows)

@@ -6,7 +6,8 @@ import argparse
 import warnings
 from dataclasses import replace
 
-from ..capture import read_capture, read_capture_poses
+from ..capture import read_capture
+from ..capture.checks import check_given_poses
 from ..capture.reading import MASK_SOURCES
 from ..export import write_mesh, write_stl
 from ..fileio import atomic_folder, json_text
@@ -17,7 +18,7 @@ from ..report_page import write_report_page
 from ..solver.device import DEVICE_HELP, resolve_device
 from .argtypes import frame_count_fits, integer_at_least, nonnegative_int, positive_float, positive_int
 from .outputs import add_overwrite_argument, check_folder, frame_files, print_summary
-from .refine import add_solver_arguments, options_from_args
+from .refine import add_pose_file_arguments, add_solver_arguments, options_from_args, read_given_poses
 
 DESCRIPTION = """\
 Reconstruct a whole object from a capture that goes around it: K reference views spread round
@@ -48,6 +49,7 @@ def register(subparsers) -> None:
     p.add_argument("--poses", default=None, metavar="FILE",
                    help="initial poses (Open3D .json/.log, TUM .txt, .npy; default: the capture's poses.* if any, "
                         "else registration)")
+    add_pose_file_arguments(p)
     p.add_argument("--mask", choices=MASK_SOURCES, default=None, help="object masks (as for refine)")
     p.add_argument("--references", type=positive_int, default=d.references,
                    help=f"reference views refined and fused (default {d.references})")
@@ -81,10 +83,13 @@ def run(args) -> int:
         print(device_line)
     capture = read_capture(args.capture, mask=args.mask)
     frame_count_fits("--frames", args.frames, capture.n_frames, f"the capture {args.capture}")
-    given = read_capture_poses(args.capture, args.poses)
+    given = read_given_poses(args)
+    if given is not None:
+        check_given_poses(capture, given)  # a convention mix-up is named before the long work
+    poses = None if given is None else given.poses
     if args.frames is not None:  # the first N frames, as for refine
         capture = capture.select(list(range(args.frames)))
-        given = None if given is None else (given[0][: args.frames], given[1])
+        poses = None if poses is None else poses[: args.frames]
     options = ReconstructOptions(references=args.references, frames_per_reference=args.frames_per_reference,
                                  depth=args.depth, voxel_mm=args.voxel_mm, texture_px=args.texture_px,
                                  workers=args.workers, device=device, scheduler_timeout=args.scheduler_timeout,
@@ -93,8 +98,7 @@ def run(args) -> int:
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         with recorded_warnings(said):
-            result = reconstruct(capture, options, poses=None if given is None else given[0],
-                                 scheduler=args.scheduler)
+            result = reconstruct(capture, options, poses=poses, scheduler=args.scheduler)
     if not args.quiet:
         for w in caught:
             print(f"warning: {w.message}")

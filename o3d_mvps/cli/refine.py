@@ -6,7 +6,8 @@ import argparse
 
 from dataclasses import replace
 
-from ..capture import read_capture, read_capture_poses
+from ..capture import read_capture
+from ..capture.poses import POSE_CONVENTIONS, POSE_UNITS, QUATERNION_ORDERS, given_poses
 from ..capture.reading import MASK_SOURCES, mask_source
 from ..report import accuracy_rows, markdown_table
 from ..report_page import write_report_page
@@ -33,6 +34,7 @@ EXAMPLES = """examples:
   o3d-mvps refine capture/ refined/ --led-offset 0.03 -0.02 0  # LED 3 cm right of, 2 cm above the lens
   o3d-mvps refine capture/ paper/ --light-model sh            # the paper's SH lighting
   o3d-mvps refine capture/ refined/ --poses trajectory.log     # poses from Open3D's reconstruction system
+  o3d-mvps refine capture/ refined/ --poses cams.npy --poses-convention camera-to-world
   o3d-mvps refine capture/ refined/ --mask auto --depth-range 0.3 1.2  # object mask from depth
   o3d-mvps refine capture/ refined/ --save-problem problem.npz  # also keep the solver's input
   python -m o3d_mvps.solver problem.npz solution.npz           # solve it again (no Open3D needed)
@@ -76,6 +78,24 @@ def add_solver_arguments(parser: argparse.ArgumentParser) -> None:
                         "metadata.led_offset, else 0 0 0)")
 
 
+def add_pose_file_arguments(parser: argparse.ArgumentParser) -> None:
+    """--poses-convention, --quaternion-order, --poses-unit: how to read a pose file (--poses or poses.*)."""
+    parser.add_argument("--poses-convention", choices=POSE_CONVENTIONS, default=None,
+                        help="what the pose file's matrices map (default: the format's own: world-to-camera for "
+                             ".json and .npy, camera-to-world for .log and TUM)")
+    parser.add_argument("--quaternion-order", choices=QUATERNION_ORDERS, default=None,
+                        help="TUM quaternion order (default xyzw: 'id tx ty tz qx qy qz qw')")
+    parser.add_argument("--poses-unit", choices=tuple(POSE_UNITS), default="m",
+                        help="unit of the pose file's translations (default m)")
+
+
+def read_given_poses(args):
+    """The capture's initial poses (:class:`~o3d_mvps.capture.poses.GivenPoses`) from --poses or
+    its poses.*, read as the pose-file options say; None without a pose file."""
+    return given_poses(args.capture, args.poses, convention=args.poses_convention,
+                       quaternion_order=args.quaternion_order, unit=args.poses_unit)
+
+
 def options_from_args(args) -> RefineOptions:
     return RefineOptions(frames=args.frames, tau=args.tau, cauchy_lambda=args.cauchy_lambda, levels=args.levels,
                          max_iterations=args.iterations, tolerance=args.tolerance,
@@ -94,6 +114,10 @@ def register(subparsers) -> None:
     p.add_argument("--poses", default=None, metavar="FILE",
                    help="initial poses: Open3D trajectory .json or .log, TUM .txt, or (n, 4, 4) .npy (docs/capture-guide.md, "
                         "'Poses'; default: the capture folder's poses.* if any, else registration)")
+    add_pose_file_arguments(p)
+    p.add_argument("--no-input-checks", action="store_true",
+                   help="skip the cross-checks of intrinsics, depth scale, frame quality and poses against depth "
+                        "before the solve (docs/input-checks.md; they take about 1 %% of a refinement)")
     p.add_argument("--strict", action="store_true",
                    help="stop when a frame cannot be registered, instead of dropping it with a warning")
     p.add_argument("--mask", choices=MASK_SOURCES, default=None,
@@ -122,12 +146,12 @@ def run(args) -> int:
     if not args.quiet:
         print(device_line)
         print(f"masks: {mask_source(args.capture, args.mask, args.depth_range)}")
-    given = read_capture_poses(args.capture, args.poses)
+    given = read_given_poses(args)
     options = replace(options_from_args(args), strict_registration=args.strict)
     if given is not None and not args.quiet:
-        print(f"poses: from {given[1]}")
-    refinement = refine(capture, options, device, initial_poses=None if given is None else given[0],
-                        save_problem=args.save_problem, overwrite=args.overwrite)
+        print(f"poses: from {given.path}")
+    refinement = refine(capture, options, device, initial_poses=given, save_problem=args.save_problem,
+                        overwrite=args.overwrite, checks=not args.no_input_checks)
     log_energy(refinement, args.quiet)
     views = refinement.info.get("views")
     if views and views["left_out"] and not args.quiet:

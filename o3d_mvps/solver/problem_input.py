@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import json
 import zipfile
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +36,9 @@ class SolverInput:
     initial_poses[0] the identity. led_offset: (3,) float64 metres, the LED position in the colour
     camera's frame to start from. frames: the capture's indices of the n frames (reported back).
     options: the refinement options (``options.frames`` was applied when the frames were picked).
+    report: JSON-ready notes on how the input was made (``inputs``: the input checks,
+    ``frames_report``: every capture frame, used or why not); passed on to the refinement's info,
+    not saved.
     """
 
     colors: np.ndarray | list
@@ -48,6 +51,7 @@ class SolverInput:
     led_offset: np.ndarray
     frames: list
     options: RefineOptions
+    report: dict = field(default_factory=dict)
 
     def __post_init__(self):
         if isinstance(self.colors, np.ndarray):
@@ -135,6 +139,12 @@ def read_problem(path) -> SolverInput:
     if version > PROBLEM_VERSION:
         raise MVPSError(f"{path} is a saved problem of format version {version}, newer than this o3d_mvps reads "
                         f"({PROBLEM_VERSION}); upgrade o3d_mvps (pip install -U o3d-mvps) where you solve it")
+    if version < 1:
+        raise MVPSError(f"{path}: format_version {version} is not a version o3d_mvps ever wrote "
+                        f"(1..{PROBLEM_VERSION}); {remake}")
+    problem = _check_values(path, data)
+    if problem:
+        raise MVPSError(f"{path}: {problem}; {remake}")
     try:
         masks = [m if has else None for m, has in zip(data["masks"], data["has_mask"])]
         options = RefineOptions.from_dict(json.loads(str(data["options"])))
@@ -144,3 +154,38 @@ def read_problem(path) -> SolverInput:
     except (TypeError, ValueError) as e:
         raise MVPSError(f"{path}: {e}; {remake}") from None
 
+
+
+#: Largest deviation of a saved pose's rotation from orthonormality (R^T R - I, max abs).
+ROTATION_TOLERANCE = 1e-6
+
+
+def _check_values(path: Path, data: dict) -> str | None:
+    """What is wrong with a saved problem's values (naming the key), or None: finite intrinsics with
+    positive focal lengths and the last row 0 0 1, finite rigid poses (orthonormal rotations,
+    last row 0 0 0 1), a finite LED offset, finite non-negative frames."""
+    for key in ("K", "depth_K"):
+        K = np.asarray(data.get(key, np.eye(3)), dtype=np.float64)
+        if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0 \
+                or not np.allclose(K[2], [0, 0, 1]):
+            return f"key '{key}' is not finite intrinsics with positive focal lengths ([[fx, 0, cx], [0, fy, cy], " \
+                   f"[0, 0, 1]], got {np.round(K, 4).tolist()})"
+    poses = np.asarray(data.get("initial_poses", np.eye(4)[None]), dtype=np.float64)
+    if poses.ndim == 3 and poses.shape[1:] == (4, 4):
+        for i, T in enumerate(poses):
+            R = T[:3, :3]
+            if not np.all(np.isfinite(T)):
+                return f"key 'initial_poses': pose {i} is not finite"
+            if np.abs(R.T @ R - np.eye(3)).max() > ROTATION_TOLERANCE or np.linalg.det(R) <= 0 \
+                    or not np.allclose(T[3], [0, 0, 0, 1]):
+                return f"key 'initial_poses': pose {i} is not a rigid transform (orthonormal rotation, last row " \
+                       f"0 0 0 1; got {np.round(T, 4).tolist()})"
+    offset = np.asarray(data.get("led_offset", np.zeros(3)), dtype=np.float64)
+    if not np.all(np.isfinite(offset)):
+        return f"key 'led_offset' {offset.tolist()} is not finite"
+    for key in ("colors", "depths"):
+        if key in data and np.asarray(data[key]).dtype.kind == "f" and not np.all(np.isfinite(data[key])):
+            return f"key '{key}' holds NaN or infinite values"
+    if "depths" in data and np.any(np.asarray(data["depths"]) < 0):
+        return "key 'depths' holds negative depths (0 = no measurement)"
+    return None
