@@ -83,7 +83,8 @@ def metres_offset(text: str) -> float:
     30 is millimetres, and refused saying so)."""
     value = _real(text, -math.inf, low_open=True)
     if abs(value) > 1.0:
-        raise argparse.ArgumentTypeError(f"{text!r} is more than 1 m; give metres (3 cm is 0.03), not millimetres")
+        raise argparse.ArgumentTypeError(f"{text!r} is more than 1 m; give metres, not millimetres ({text} mm is "
+                                         f"{value / 1000:g} m)")
     return value
 
 
