@@ -22,18 +22,23 @@ from .refinement import Refinement
 from .solver.device import check_device
 from .solver.driver import solve
 from .solver.options import RefineOptions
+from .solver.pose_trust import DEFAULT_POSE_TRUST
 from .solver.problem_input import SolverInput, write_problem
 from .views import MIN_OTHER_FRAMES, ViewSelection, frames_seeing_reference
 
 
 def refine(capture: Capture, options: RefineOptions | None = None, device="CPU:0", initial_poses=None, *,
-           save_problem=None, overwrite: bool = False) -> Refinement:
+           pose_trust=None, save_problem=None, overwrite: bool = False) -> Refinement:
     """Jointly estimate depth (colour resolution), albedo, lighting and poses from a capture.
 
     capture: frame 0 is the reference; ``initial_poses`` (n, 4, 4) reference -> frame i, an array
     or an o3d.core.Tensor on any device (default: the registration chain of
     :func:`o3d_mvps.odometry.register_frames`, which drops a frame it cannot place, with a warning,
-    unless ``options.strict_registration``). device: "CPU:0" or "CUDA:0" (see
+    unless ``options.strict_registration``). pose_trust: how far given ``initial_poses`` are
+    trusted, (millimetres, degrees) (default :data:`o3d_mvps.solver.pose_trust.DEFAULT_POSE_TRUST`,
+    2 mm and 0.2 deg): the refinement keeps them unless the images and every frame's own depth
+    agree on a better one (``info["pose_updates"]`` says how far each moved and how many
+    updates were rejected). device: "CPU:0" or "CUDA:0" (see
     :func:`o3d_mvps.solver.device.check_device`). save_problem: also write the solver's input to
     this .npz once the frames are registered (``python -m o3d_mvps.solver`` solves it; refuses an
     existing file unless ``overwrite``). Of more than three frames, those that see too little of
@@ -46,7 +51,7 @@ def refine(capture: Capture, options: RefineOptions | None = None, device="CPU:0
     if save_problem is not None:
         check_output_files([save_problem], overwrite)
     t0 = time.perf_counter()
-    problem_input, views = problem_from_capture(capture, options, initial_poses)
+    problem_input, views = problem_from_capture(capture, options, initial_poses, pose_trust)
     odometry = time.perf_counter() - t0
     if save_problem is not None:
         write_problem(problem_input, save_problem, overwrite=overwrite)
@@ -58,12 +63,13 @@ def refine(capture: Capture, options: RefineOptions | None = None, device="CPU:0
     )
 
 
-def problem_from_capture(capture: Capture, options: RefineOptions,
-                         initial_poses=None) -> tuple[SolverInput, ViewSelection | None]:
+def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses=None,
+                         pose_trust=None) -> tuple[SolverInput, ViewSelection | None]:
     """The solver's input from a capture: the frames ``options.frames`` picks, minus those the
     registration drops when no ``initial_poses`` are given and those that do not see the
     reference (see :func:`refine`); and that view selection (None with three frames or fewer).
-    The input's options name the light model (:func:`with_light_model`)."""
+    The input's options name the light model (:func:`with_light_model`); its pose trust is
+    ``pose_trust`` (mm, degrees) or the default where poses are given, None where registered."""
     options = with_light_model(options, capture)
     frames = options.frame_indices(capture.n_frames)
     if initial_poses is not None:
@@ -71,6 +77,9 @@ def problem_from_capture(capture: Capture, options: RefineOptions,
         if initial_poses.shape != (capture.n_frames, 4, 4):
             raise ValueError(f"initial_poses must be ({capture.n_frames}, 4, 4), got {initial_poses.shape}")
         initial_poses = se3.relative_to_reference(initial_poses[frames])  # onto the first frame used
+        trust = DEFAULT_POSE_TRUST if pose_trust is None else (pose_trust[0] * 1e-3, np.radians(pose_trust[1]))
+    else:
+        trust = None
     capture = capture.select(frames)
     if initial_poses is None:
         if capture.n_frames > 1:
@@ -93,6 +102,7 @@ def problem_from_capture(capture: Capture, options: RefineOptions,
         masks=[capture.mask_array(i) for i in range(n)],
         K=capture.color_K(), depth_K=capture.depth_K(), scale_factor=capture.scale_factor,
         initial_poses=initial_poses, led_offset=_led_offset(options, capture), frames=frames, options=options,
+        pose_trust=trust,
     ), views
 
 
