@@ -111,15 +111,12 @@ LIGHT_MODEL_OF_CAPTURE = {"led": "led", "room": "room"}
 
 
 def with_light_model(options: RefineOptions, capture: Capture) -> RefineOptions:
-    """``options`` with a light model: the one given, else the capture's (:data:`LIGHT_MODEL_OF_CAPTURE`),
-    else the LED model with a warning saying how to choose."""
-    if options.light_model is not None:
+    """``options`` with the declared light model: the one given, else the capture's
+    (:data:`LIGHT_MODEL_OF_CAPTURE`), else None: the solver then chooses it from the images
+    (:func:`o3d_mvps.solver.light_selection.select_light_model`, reported in
+    ``info["light_selection"]``)."""
+    if options.light_model is not None or capture.light is None:
         return options
-    if capture.light is None:
-        warnings.warn('the capture does not say what lit it (no "light" in capture.json): using the LED model. '
-                      'Write "light": "led" (the LED on the camera) or "room" (room light) into capture.json, or '
-                      "pass --light-model led|room|sh (RefineOptions(light_model=...))", stacklevel=4)
-        return replace(options, light_model="led")
     return replace(options, light_model=LIGHT_MODEL_OF_CAPTURE[capture.light])
 
 

@@ -28,6 +28,7 @@ from ..model.robust import robust_scale
 from .depth import update_depth
 from .device import CPU, ArrayDevice, array_device, to_host
 from .joint import update_pose_depth
+from .light_selection import select_light_model
 from .lighting import make_light_model, update_led_offset
 from .options import AUTO, DEFAULT_CAUCHY_LAMBDA, RefineOptions
 from .pose import keep_agreeing_poses, update_poses
@@ -248,12 +249,15 @@ def solve(problem_input: SolverInput, options: RefineOptions | None = None, devi
     :class:`~.device.ArrayDevice`; a CUDA device that cannot run raises
     :class:`~o3d_mvps.errors.DeviceError` saying what is missing (:func:`.device.check_device`).
     ``info["level_devices"]`` of the result says where each level ran, coarsest first.
+
+    The light model is ``options.light_model``, or where that is None the one that explains the
+    images best on a coarse level (:func:`.light_selection.select_light_model`; a declared model
+    that fits clearly worse than another is kept with a warning): ``info["light_selection"]``.
+    ``info["pose_updates"]`` says how far each frame's pose moved and how many of its updates
+    were rejected (:mod:`.pose_trust`).
     """
     options = problem_input.options if options is None else options
     device = array_device(device)
-    if options.light_model is None:
-        raise ValueError("options.light_model is None: the solver needs 'led' or 'sh' (o3d_mvps.refine takes it "
-                         "from the capture's light)")
     # The solver's BLAS calls are vector dots/norms (CG, AMG) and thin products: on a loaded
     # 2-core machine OpenBLAS's threads made each 60k-vector norm take ~5 ms instead of 30 us
     # (~20 % of a 640x480 refinement); one thread loses nothing on an idle machine.
@@ -269,6 +273,13 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
     colors = problem_input.colors
     masks = problem_input.masks
     ref_mask = _reference_mask(problem_input)
+    declared = None if options.light_model is None else str(options.light_model)
+    selection = select_light_model(problem_input, ref_mask, declared, occlusion_test=options.occlusion_test,
+                                   occlusion_tolerance=options.occlusion_tolerance)
+    options = replace(options, light_model=selection["chosen"])
+    timings["light_selection"] = time.perf_counter() - t0
+    if options.progress:
+        print(f"light model: {selection['chosen']} ({selection['why']})")
     z0 = problem_input.depths[0].astype(np.float64)
     if not (z0 > 0).any():
         raise CaptureError("the reference depth has no valid pixel; check the depth image of frame 0")
@@ -342,6 +353,7 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
         depth, ref_mask, albedo, K, lighting=lights, poses=poses, energy=history, timings=dict(timings),
         info={"frames": problem_input.frames, "options": options.to_dict(), "device": device.name,
               "light_model": (light if led_offset is None else light.at(led_offset)).describe(),
+              "light_selection": selection,
               "pose_updates": pose_log.report(problem_input.initial_poses, poses, given, problem_input.frames),
               **stats},
     )
