@@ -9,7 +9,7 @@ exact given poses the pose step moved frames 1-4 mm / 0.1-0.45 deg away from the
 round:
 
 - the frame's **own sensor depth**: the reference surface moved into frame i must agree with
-  the depth frame i measured there, ``d(p) = Z_i(p) - D_i(pi(X_i(p)))`` (metres, nearest
+  the depth frame i measured there, ``d(p) = Z_i(p) - D_i(pi(X_i(p)))`` (metres, bilinear
   sample of the (h, w) sensor depth), robust Cauchy with scale ``depth_scale``;
 - a **prior towards given poses** with the trust the user states (``trust`` (metres, radians):
   ``E = prior_weight / 2 (|dt|^2 / s_t^2 + |dw|^2 / s_r^2)`` with ``(dt, dw)`` the twist from the
@@ -30,6 +30,7 @@ import numpy as np
 
 from ..model import se3
 from ..model.robust import cauchy, robust_scale
+from ..model.warping import sample_bilinear
 from .device import to_host
 
 #: how far given poses are trusted by default (metres, radians): a registration of the same
@@ -55,20 +56,26 @@ class PoseAnchors:
     depth_weight: float = 0.0
     prior_weight: float = 0.0
 
+    def __post_init__(self):
+        self.sensor_depths = np.asarray(self.sensor_depths, dtype=np.float32)
+        self._measured = (self.sensor_depths > 0).astype(np.float32)
+
     def depth_residuals(self, i: int, pose: np.ndarray, points_ref: np.ndarray, usable: np.ndarray) -> np.ndarray:
         """d (M,) metres at the usable reference points (N, 3) moved by ``pose`` into frame i,
-        where frame i measured a depth (0 elsewhere is left out)."""
+        where frame i measured a depth (bilinear samples whose four neighbours all measured)."""
         P = to_host(points_ref)[to_host(usable)]
         X = P @ pose[:3, :3].T + pose[:3, 3]
         Z = X[:, 2]
         K, depth = self.depth_K, self.sensor_depths[i]
         h, w = depth.shape
         with np.errstate(divide="ignore", invalid="ignore"):
-            su = np.rint(K[0, 0] * X[:, 0] / Z + K[0, 2])
-            sv = np.rint(K[1, 1] * X[:, 1] / Z + K[1, 2])
+            su = K[0, 0] * X[:, 0] / Z + K[0, 2]
+            sv = K[1, 1] * X[:, 1] / Z + K[1, 2]
         inside = (Z > 0) & (su >= 0) & (su <= w - 1) & (sv >= 0) & (sv <= h - 1)
-        d = depth[sv[inside].astype(np.int64), su[inside].astype(np.int64)]
-        return (Z[inside] - d)[d > 0]
+        su, sv = su[inside], sv[inside]
+        d = sample_bilinear(depth[..., None], su, sv)[:, 0]
+        measured = sample_bilinear(self._measured[i][..., None], su, sv)[:, 0] > 0.999
+        return (Z[inside] - d)[measured]
 
     def depth_energy(self, i: int, pose: np.ndarray, points_ref: np.ndarray, usable: np.ndarray) -> float:
         """The frame's geometric energy: ``depth_weight`` x the Cauchy energy of its depth residuals."""
