@@ -77,7 +77,7 @@ def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses
         if initial_poses.shape != (capture.n_frames, 4, 4):
             raise ValueError(f"initial_poses must be ({capture.n_frames}, 4, 4), got {initial_poses.shape}")
         initial_poses = se3.relative_to_reference(initial_poses[frames])  # onto the first frame used
-        trust = DEFAULT_POSE_TRUST if pose_trust is None else (pose_trust[0] * 1e-3, np.radians(pose_trust[1]))
+        trust = DEFAULT_POSE_TRUST if pose_trust is None else _pose_trust(pose_trust)
     else:
         trust = None
     capture = capture.select(frames)
@@ -104,6 +104,15 @@ def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses
         initial_poses=initial_poses, led_offset=_led_offset(options, capture), frames=frames, options=options,
         pose_trust=trust,
     ), views
+
+
+def _pose_trust(pose_trust) -> tuple[float, float]:
+    """(metres, radians) of a pose trust given as (millimetres, degrees); ValueError naming it otherwise."""
+    trust = np.asarray(pose_trust, dtype=np.float64).reshape(-1)
+    if trust.shape != (2,) or not np.all(np.isfinite(trust)) or not np.all(trust > 0):
+        raise ValueError(f"pose_trust (--pose-trust MM DEG) must be two positive numbers, millimetres and degrees "
+                         f"(e.g. 2 0.2), got {pose_trust!r}")
+    return float(trust[0]) * 1e-3, float(np.radians(trust[1]))
 
 
 #: The solver's light model for each capture.json "light".

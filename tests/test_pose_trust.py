@@ -7,9 +7,11 @@ its own sensor depth, or a prior towards its given pose, is rejected and counted
 refine the bunny from exact and from perturbed given poses, under the LED and under room light.
 """
 
+import dataclasses
+
 import numpy as np
 import pytest
-from helpers import SIZE, K, kicked_poses
+from helpers import SIZE, K, kicked_poses, make_problem, relief_capture
 from test_joint import KICKS, LIGHTS, POSES, render, surface_depth, true_estimate
 
 from o3d_mvps import RefineOptions, refine
@@ -19,11 +21,8 @@ from o3d_mvps.model.camera import backproject, pixel_grid
 from o3d_mvps.solver.pose import keep_agreeing_poses, refine_pose
 from o3d_mvps.solver.pose_trust import PoseAnchors, PoseLog
 from o3d_mvps.solver.problem import LevelProblem
+from o3d_mvps.solving import problem_from_capture
 from o3d_mvps.synthetic import render_capture
-
-import dataclasses
-
-from helpers import make_problem
 
 
 def render_depth(pose):
@@ -157,3 +156,13 @@ def test_given_poses_are_not_made_worse(rendered, perturbed):
         degrees, metres = se3.pose_error(refined[i], given[i])
         assert row["moved_mm"] == pytest.approx(1e3 * metres, abs=1e-3)
         assert row["moved_deg"] == pytest.approx(degrees, abs=1e-4)
+
+
+def test_a_bad_pose_trust_is_refused_before_the_solve():
+    capture = relief_capture(frames=3)
+    with pytest.raises(ValueError, match=r"--pose-trust MM DEG.*two positive numbers.*got \(-1, 0.2\)"):
+        problem_from_capture(capture, RefineOptions(progress=False), capture.groundtruth.poses, pose_trust=(-1, 0.2))
+    problem, _ = problem_from_capture(capture, RefineOptions(progress=False), capture.groundtruth.poses,
+                                      pose_trust=(1.0, 0.1))
+    assert problem.pose_trust == pytest.approx((0.001, np.radians(0.1)))
+    assert problem_from_capture(capture, RefineOptions(progress=False))[0].pose_trust is None  # registered

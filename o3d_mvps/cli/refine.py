@@ -90,6 +90,10 @@ def register(subparsers) -> None:
     p.add_argument("--poses", default=None, metavar="FILE",
                    help="initial poses: Open3D trajectory .json or .log, TUM .txt, or (n, 4, 4) .npy (README "
                         "'Poses from other tools'; default: the capture folder's poses.* if any, else registration)")
+    p.add_argument("--pose-trust", type=float, nargs=2, metavar=("MM", "DEG"), default=None,
+                   help="how far the --poses (or the folder's poses.*) are trusted: the refinement keeps each "
+                        "pose unless the images and the frame's own depth agree on a better one, with a prior of "
+                        "this width towards it (default 2 mm 0.2 deg; docs/poses-and-light.md)")
     p.add_argument("--strict", action="store_true",
                    help="stop when a frame cannot be registered, instead of dropping it with a warning")
     p.add_argument("--mask", choices=MASK_SOURCES, default=None,
@@ -121,7 +125,7 @@ def run(args) -> int:
     if given is not None and not args.quiet:
         print(f"poses: from {given[1]}")
     refinement = refine(capture, options, args.device, initial_poses=None if given is None else given[0],
-                        save_problem=args.save_problem, overwrite=args.overwrite)
+                        pose_trust=args.pose_trust, save_problem=args.save_problem, overwrite=args.overwrite)
     log_energy(refinement, args.quiet)
     views = refinement.info.get("views")
     if views and views["left_out"] and not args.quiet:

@@ -304,7 +304,8 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
     # frames, LED) the depth check held them 3.4 mm from the truth (mean) where the images alone
     # take them to 0.64 mm
     given = problem_input.pose_trust is not None
-    anchors = PoseAnchors(sensor_depths, depth_K, problem_input.initial_poses, problem_input.pose_trust) if given else None
+    anchors = (PoseAnchors(sensor_depths, depth_K, problem_input.initial_poses, problem_input.pose_trust)
+               if given else None)
     pose_log = PoseLog()
     stats = {"cg_iterations": [], "cauchy_lambda": [], "smoothness": smoothness, "levels": n_levels,
              "level_devices": []}

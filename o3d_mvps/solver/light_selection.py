@@ -68,8 +68,11 @@ def select_light_model(problem_input: SolverInput, ref_mask: np.ndarray, declare
     level = _selection_level(problem_input, ref_mask)
     g = level.grid
     held_out = to_host((g.u + g.v) % 2 == 1)
-    scores = {name: _held_out_score(problem_input, level, name, held_out, occlusion_test, occlusion_tolerance)
-              for name in LIGHT_MODELS}
+    visibility = None  # the same depth and poses for every model: the occlusion test once
+    scores = {}
+    for name in LIGHT_MODELS:
+        scores[name], visibility = _held_out_score(problem_input, level, name, held_out, visibility,
+                                                   occlusion_test, occlusion_tolerance)
     parameters = {name: light_parameters(name, n) for name in LIGHT_MODELS}
     best = min(scores.values())
     near = [name for name in LIGHT_MODELS if scores[name] <= best * (1 + TIE_MARGIN)]
@@ -107,10 +110,11 @@ def _selection_level(problem_input: SolverInput, ref_mask: np.ndarray):
         index -= 1
 
 
-def _held_out_score(problem_input: SolverInput, level, name: str, held_out: np.ndarray, occlusion_test: bool,
-                    occlusion_tolerance: float) -> float:
+def _held_out_score(problem_input: SolverInput, level, name: str, held_out: np.ndarray, visibility,
+                    occlusion_test: bool, occlusion_tolerance: float) -> tuple[float, np.ndarray]:
     """Model ``name`` fitted on the level's pixels but ``held_out`` (N,) bool; the robust RMS
-    residual of the held-out pixels with their albedo fitted under those lights."""
+    residual of the held-out pixels with their albedo fitted under those lights, and the
+    level's visibility (n, N) bool (computed here where ``visibility`` is None)."""
     z0 = problem_input.depths[0].astype(np.float64)
     mean_z0 = float(z0[z0 > 0].mean())
     light = make_light_model(name, initial_sh=problem_input.options.initial_light, led_offset=problem_input.led_offset)
@@ -120,9 +124,12 @@ def _held_out_score(problem_input: SolverInput, level, name: str, held_out: np.n
                    light.initial_lights(problem_input.n_frames, mean_z0), problem_input.initial_poses.copy(),
                    light.offset.copy() if name == "led" else None)
     problem = LevelProblem(level, 0.0, SCORE_CAUCHY_LAMBDA, light)
-    problem.update_visibility(est, occlusion_test=occlusion_test, rel_tol=occlusion_tolerance,
-                              sensor_depths=problem_input.depths, depth_K=problem_input.depth_K)
-    visibility = problem.visibility.copy()
+    if visibility is None:
+        problem.update_visibility(est, occlusion_test=occlusion_test, rel_tol=occlusion_tolerance,
+                                  sensor_depths=problem_input.depths, depth_K=problem_input.depth_K)
+        visibility = problem.visibility.copy()
+    else:
+        problem.visibility = visibility.copy()
     problem.visibility[:, held_out] = False  # fit on the other half
     ev = problem.evaluate(est)
     for _ in range(SWEEPS):
@@ -139,4 +146,4 @@ def _held_out_score(problem_input: SolverInput, level, name: str, held_out: np.n
         ev = problem.reevaluate(est, ev, overwrite=True)
     use = to_host(ev.usable) & held_out[None, :]
     r = to_host(ev.residual)[use]
-    return float(np.sqrt(2.0 * cauchy(r, SCORE_CAUCHY_LAMBDA).mean())) if r.size else float("inf")
+    return (float(np.sqrt(2.0 * cauchy(r, SCORE_CAUCHY_LAMBDA).mean())) if r.size else float("inf")), visibility
