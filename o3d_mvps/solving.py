@@ -38,7 +38,8 @@ def refine(capture: Capture, options: RefineOptions | None = None, device="CPU:0
     trusted, (millimetres, degrees) (default :data:`o3d_mvps.solver.pose_trust.DEFAULT_POSE_TRUST`,
     2 mm and 0.2 deg): the refinement keeps them unless the images and every frame's own depth
     agree on a better one (``info["pose_updates"]`` says how far each moved and how many
-    updates were rejected). device: "CPU:0" or "CUDA:0" (see
+    updates were rejected); False: refine them freely, like registered poses (for poses from
+    :func:`o3d_mvps.odometry.initial_poses`). device: "CPU:0" or "CUDA:0" (see
     :func:`o3d_mvps.solver.device.check_device`). save_problem: also write the solver's input to
     this .npz once the frames are registered (``python -m o3d_mvps.solver`` solves it; refuses an
     existing file unless ``overwrite``). Of more than three frames, those that see too little of
@@ -69,7 +70,8 @@ def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses
     registration drops when no ``initial_poses`` are given and those that do not see the
     reference (see :func:`refine`); and that view selection (None with three frames or fewer).
     The input's options name the light model (:func:`with_light_model`); its pose trust is
-    ``pose_trust`` (mm, degrees) or the default where poses are given, None where registered."""
+    ``pose_trust`` (mm, degrees) or the default where poses are given, None where registered
+    (or ``pose_trust`` is False)."""
     options = with_light_model(options, capture)
     frames = options.frame_indices(capture.n_frames)
     if initial_poses is not None:
@@ -77,7 +79,7 @@ def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses
         if initial_poses.shape != (capture.n_frames, 4, 4):
             raise ValueError(f"initial_poses must be ({capture.n_frames}, 4, 4), got {initial_poses.shape}")
         initial_poses = se3.relative_to_reference(initial_poses[frames])  # onto the first frame used
-        trust = DEFAULT_POSE_TRUST if pose_trust is None else _pose_trust(pose_trust)
+        trust = DEFAULT_POSE_TRUST if pose_trust is None else None if pose_trust is False else _pose_trust(pose_trust)
     else:
         trust = None
     capture = capture.select(frames)

@@ -124,6 +124,7 @@ def reconstruct(capture, options: ReconstructOptions | None = None, *, poses=Non
     """
     options = options or ReconstructOptions()
     t0 = time.perf_counter()
+    poses_given = poses is not None
     if poses is None:
         from ..odometry import register_frames
 
@@ -139,7 +140,7 @@ def reconstruct(capture, options: ReconstructOptions | None = None, *, poses=Non
                       "back is missing (walk all round the object for a closed mesh)", stacklevel=2)
     references = choose_references(poses, min(options.references, capture.n_frames))
     jobs = [plan_view(capture, poses, k, min_covisibility=options.min_covisibility,
-                      max_frames=options.frames_per_reference) for k in references]
+                      max_frames=options.frames_per_reference, poses_given=poses_given) for k in references]
     refine_options = replace(options.refine, frames=None, progress=False)
     t_plan = time.perf_counter()
     if options.depth == "refined":

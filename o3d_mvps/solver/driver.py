@@ -92,7 +92,8 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
     refine_poses = options.refine_poses and problem.n_frames > 1 and level.grid.size >= options.pose_min_pixels
     if refine_poses and anchors is not None:
         t = time.perf_counter()
-        anchors.calibrate(problem.lam, est.poses, problem.points(est.z), ev.usable)
+        anchors.calibrate(problem.lam, est.poses, problem.points(est.z), ev.usable,
+                          footprint=(anchors.scale_factor / 2**level.index) ** 2)
         timings["pose_anchors"] += time.perf_counter() - t
     else:
         anchors = None
@@ -304,8 +305,8 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
     # frames, LED) the depth check held them 3.4 mm from the truth (mean) where the images alone
     # take them to 0.64 mm
     given = problem_input.pose_trust is not None
-    anchors = (PoseAnchors(sensor_depths, depth_K, problem_input.initial_poses, problem_input.pose_trust)
-               if given else None)
+    anchors = (PoseAnchors(sensor_depths, depth_K, problem_input.initial_poses, problem_input.pose_trust,
+                           scale_factor=sf) if given else None)
     pose_log = PoseLog()
     stats = {"cg_iterations": [], "cauchy_lambda": [], "smoothness": smoothness, "levels": n_levels,
              "level_devices": []}
