@@ -170,3 +170,14 @@ def test_a_bad_pose_trust_is_refused_before_the_solve():
     assert problem_from_capture(capture, RefineOptions(progress=False), capture.groundtruth.poses,
                                 pose_trust=False)[0].pose_trust is None  # refined freely, like registered poses
     assert problem_from_capture(capture, RefineOptions(progress=False))[0].pose_trust is None  # registered
+
+
+def test_a_saved_problem_keeps_its_pose_trust(tmp_path):
+    from o3d_mvps.solver.problem_input import read_problem, write_problem
+
+    capture = relief_capture(frames=2)
+    for trust in ((1.0, 0.1), False):
+        problem, _ = problem_from_capture(capture, RefineOptions(light_model="led", progress=False),
+                                          capture.groundtruth.poses, pose_trust=trust)
+        path = write_problem(problem, tmp_path / "problem.npz", overwrite=True)
+        assert read_problem(path).pose_trust == problem.pose_trust
