@@ -68,11 +68,11 @@ def select_light_model(problem_input: SolverInput, ref_mask: np.ndarray, declare
     level = _selection_level(problem_input, ref_mask)
     g = level.grid
     held_out = to_host((g.u + g.v) % 2 == 1)
-    visibility = None  # the same depth and poses for every model: the occlusion test once
+    samples = None  # the same depth and poses for every model: the frames warped once
     scores = {}
     for name in LIGHT_MODELS:
-        scores[name], visibility = _held_out_score(problem_input, level, name, held_out, visibility,
-                                                   occlusion_test, occlusion_tolerance)
+        scores[name], samples = _held_out_score(problem_input, level, name, held_out, samples, occlusion_test,
+                                                occlusion_tolerance)
     parameters = {name: light_parameters(name, n) for name in LIGHT_MODELS}
     best = min(scores.values())
     near = [name for name in LIGHT_MODELS if scores[name] <= best * (1 + TIE_MARGIN)]
@@ -110,11 +110,12 @@ def _selection_level(problem_input: SolverInput, ref_mask: np.ndarray):
         index -= 1
 
 
-def _held_out_score(problem_input: SolverInput, level, name: str, held_out: np.ndarray, visibility,
-                    occlusion_test: bool, occlusion_tolerance: float) -> tuple[float, np.ndarray]:
+def _held_out_score(problem_input: SolverInput, level, name: str, held_out: np.ndarray, samples,
+                    occlusion_test: bool, occlusion_tolerance: float) -> tuple[float, tuple]:
     """Model ``name`` fitted on the level's pixels but ``held_out`` (N,) bool; the robust RMS
     residual of the held-out pixels with their albedo fitted under those lights, and the
-    level's visibility (n, N) bool (computed here where ``visibility`` is None)."""
+    frames' samples (warped colours (n, N, 3), usable (n, N), normals (N, 3), dA (N,)) at the
+    initial depth and poses (warped here, after the occlusion test, where ``samples`` is None)."""
     z0 = problem_input.depths[0].astype(np.float64)
     mean_z0 = float(z0[z0 > 0].mean())
     light = make_light_model(name, initial_sh=problem_input.options.initial_light, led_offset=problem_input.led_offset)
@@ -124,14 +125,13 @@ def _held_out_score(problem_input: SolverInput, level, name: str, held_out: np.n
                    light.initial_lights(problem_input.n_frames, mean_z0), problem_input.initial_poses.copy(),
                    light.offset.copy() if name == "led" else None)
     problem = LevelProblem(level, 0.0, SCORE_CAUCHY_LAMBDA, light)
-    if visibility is None:
+    if samples is None:
         problem.update_visibility(est, occlusion_test=occlusion_test, rel_tol=occlusion_tolerance,
                                   sensor_depths=problem_input.depths, depth_K=problem_input.depth_K)
-        visibility = problem.visibility.copy()
-    else:
-        problem.visibility = visibility.copy()
-    problem.visibility[:, held_out] = False  # fit on the other half
-    ev = problem.evaluate(est)
+        ev = problem.evaluate(est)
+        samples = (ev.color, ev.usable, ev.normals, ev.dA)
+    color, usable, normals, dA = samples
+    ev = problem.evaluate_samples(est, color, usable & ~held_out[None, :], normals, dA)  # fit on the other half
     for _ in range(SWEEPS):
         est.albedo = update_albedo(est, ev, problem.lam)
         ev = problem.reevaluate(est, ev, overwrite=True)
@@ -139,11 +139,10 @@ def _held_out_score(problem_input: SolverInput, level, name: str, held_out: np.n
         ev = problem.reevaluate(est, ev, overwrite=True)
         if name == "led":
             est.led_offset, ev = update_led_offset(problem, est, ev)
-    problem.visibility = visibility  # the held-out pixels: their albedo under the fitted lights
-    ev = problem.evaluate(est)
+    ev = problem.evaluate_samples(est, color, usable, normals, dA)  # the held-out pixels' albedo under these lights
     for _ in range(2):  # the albedo's IRLS weights settle
         est.albedo = update_albedo(est, ev, problem.lam)
         ev = problem.reevaluate(est, ev, overwrite=True)
     use = to_host(ev.usable) & held_out[None, :]
     r = to_host(ev.residual)[use]
-    return (float(np.sqrt(2.0 * cauchy(r, SCORE_CAUCHY_LAMBDA).mean())) if r.size else float("inf")), visibility
+    return (float(np.sqrt(2.0 * cauchy(r, SCORE_CAUCHY_LAMBDA).mean())) if r.size else float("inf")), samples
