@@ -114,10 +114,12 @@ def test_the_report_says_how_far_each_pose_moved_and_why():
     log = PoseLog()
     log.reject(2, "pose step: depth or prior disagree")
     log.reject(2, "pose step: depth or prior disagree")
-    rows = log.report(start, final, True, [0, 5, 7])
-    assert rows[0] == {"frame": 5, "moved_mm": 0.0, "moved_deg": 0.0, "rejected_updates": 0, "note": "given pose"}
+    rows = log.report(start, final, (0.002, np.radians(0.2)), [0, 5, 7])
+    assert rows[0] == {"frame": 5, "moved_mm": 0.0, "moved_deg": 0.0, "rejected_updates": 0,
+                       "note": "given pose, trusted to 2 mm and 0.2 deg"}
     assert rows[1]["frame"] == 7 and rows[1]["moved_deg"] == pytest.approx(0.5, abs=1e-4)
     assert rows[1]["rejected_updates"] == 2 and "2 x pose step: depth or prior disagree" in rows[1]["note"]
+    assert log.report(start, final, None, [0, 5, 7])[0]["note"] == "registered pose, refined freely"
 
 
 # ---------------------------------------------------------------------------------------------

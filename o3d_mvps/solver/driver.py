@@ -359,7 +359,8 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
         info={"frames": problem_input.frames, "options": options.to_dict(), "device": device.name,
               "light_model": (light if led_offset is None else light.at(led_offset)).describe(),
               "light_selection": selection,
-              "pose_updates": pose_log.report(problem_input.initial_poses, poses, given, problem_input.frames),
+              "pose_updates": pose_log.report(problem_input.initial_poses, poses, problem_input.pose_trust,
+                                             problem_input.frames),
               **stats},
     )
 
