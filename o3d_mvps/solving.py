@@ -25,19 +25,25 @@ from .run_report import peak_memory_mb, recorded_warnings
 from .solver.device import check_device
 from .solver.driver import solve
 from .solver.options import RefineOptions
+from .solver.pose_trust import DEFAULT_POSE_TRUST
 from .solver.problem_input import SolverInput, write_problem
 from .views import MIN_OTHER_FRAMES, ViewSelection, frames_seeing_reference
 
 
 def refine(capture: Capture, options: RefineOptions | None = None, device="auto", initial_poses=None, *,
-           save_problem=None, overwrite: bool = False, checks: bool = True) -> Refinement:
+           pose_trust=None, save_problem=None, overwrite: bool = False, checks: bool = True) -> Refinement:
     """Jointly estimate depth (colour resolution), albedo, lighting and poses from a capture.
 
     capture: frame 0 is the reference; ``initial_poses`` (n, 4, 4) reference -> frame i, an array
     or an o3d.core.Tensor on any device, or a :class:`~o3d_mvps.capture.poses.GivenPoses` (a pose
     file read by :func:`~o3d_mvps.capture.poses.given_poses`) (default: the registration chain of
     :func:`o3d_mvps.odometry.register_frames`, which drops a frame it cannot place, with a warning,
-    unless ``options.strict_registration``). device: "auto" (the GPU when it can solve, else the
+    unless ``options.strict_registration``). pose_trust: how far given ``initial_poses`` are
+    trusted, (millimetres, degrees) (default :data:`o3d_mvps.solver.pose_trust.DEFAULT_POSE_TRUST`,
+    2 mm and 0.2 deg): the refinement keeps them unless the images and every frame's own depth
+    agree on a better one (``info["pose_updates"]`` says how far each moved and how many
+    updates were rejected); False: refine them freely, like registered poses (for poses from
+    :func:`o3d_mvps.odometry.initial_poses`). device: "auto" (the GPU when it can solve, else the
     CPU), "CPU:0" or "CUDA:0" (see :func:`o3d_mvps.solver.device.check_device`); ``info["device"]``
     says where it solved. save_problem: also write the solver's input to
     this .npz once the frames are registered (``python -m o3d_mvps.solver`` solves it; refuses an
@@ -65,7 +71,7 @@ def refine(capture: Capture, options: RefineOptions | None = None, device="auto"
     with recorded_warnings(said):
         camera = camera_setting(capture, _host_poses(initial_poses))
         problem_input, views = problem_from_capture(capture, options, initial_poses, camera=camera, dropped=dropped,
-                                                    checks=checks)
+                                                    checks=checks, pose_trust=pose_trust)
         odometry = time.perf_counter() - t0
         memory["odometry"] = peak_memory_mb()
         if save_problem is not None:
@@ -92,16 +98,17 @@ def _host_poses(initial_poses) -> np.ndarray | None:
 
 def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses=None, *,
                          camera: CameraSetting | None = None, dropped: dict | None = None,
-                         checks: bool = True) -> tuple[SolverInput, ViewSelection | None]:
+                         checks: bool = True, pose_trust=None) -> tuple[SolverInput, ViewSelection | None]:
     """The solver's input from a capture: the frames ``options.frames`` picks, minus those the
     input checks drop (``checks``), those the registration drops when no ``initial_poses`` are
     given and those that do not see the reference (see :func:`refine`); and that view selection
     (None with three frames or fewer). The input's options name the light model
-    (:func:`with_light_model`); its ``report`` holds ``inputs`` and ``frames_report``. A
-    static-camera capture (``camera``, default :func:`~o3d_mvps.capture.camera_setting` of the
-    capture) keeps every frame, identity poses (unless given) and no pose refinement.
-    ``dropped``: a dict given here gets {capture frame index: why} of the frames the registration
-    dropped."""
+    (:func:`with_light_model`); its ``report`` holds ``inputs`` and ``frames_report``; its pose
+    trust is ``pose_trust`` (mm, degrees) or the default where poses are given, None where
+    registered (or ``pose_trust`` is False). A static-camera capture (``camera``, default
+    :func:`~o3d_mvps.capture.camera_setting` of the capture) keeps every frame, identity poses
+    (unless given) and no pose refinement. ``dropped``: a dict given here gets {capture frame
+    index: why} of the frames the registration dropped."""
     camera = camera_setting(capture, _host_poses(initial_poses)) if camera is None else camera
     if camera.static:
         capture = replace(capture, camera="static")
@@ -115,6 +122,9 @@ def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses
             np.asarray(to_host(initial_poses), dtype=np.float64))
         if given.world_to_camera.shape != (capture.n_frames, 4, 4):
             raise ValueError(f"initial_poses must be ({capture.n_frames}, 4, 4), got {given.world_to_camera.shape}")
+        trust = DEFAULT_POSE_TRUST if pose_trust is None else None if pose_trust is False else _pose_trust(pose_trust)
+    else:
+        trust = None
     capture = capture.select(frames)
     why = {i: "not among the frames asked for (frames option)" for i in range(len(all_frames)) if i not in frames}
     report = {}
@@ -157,8 +167,17 @@ def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses
         masks=[capture.mask_array(i) for i in range(n)],
         K=capture.color_K(), depth_K=capture.depth_K(), scale_factor=capture.scale_factor,
         initial_poses=initial_poses, led_offset=_led_offset(options, capture), frames=frames, options=options,
-        report=report,
+        report=report, pose_trust=trust,
     ), views
+
+
+def _pose_trust(pose_trust) -> tuple[float, float]:
+    """(metres, radians) of a pose trust given as (millimetres, degrees); ValueError naming it otherwise."""
+    trust = np.asarray(pose_trust, dtype=np.float64).reshape(-1)
+    if trust.shape != (2,) or not np.all(np.isfinite(trust)) or not np.all(trust > 0):
+        raise ValueError(f"pose_trust (--pose-trust MM DEG) must be two positive numbers, millimetres and degrees "
+                         f"(e.g. 2 0.2), got {pose_trust!r}")
+    return float(trust[0]) * 1e-3, float(np.radians(trust[1]))
 
 
 #: The solver's light model for each capture.json "light".
@@ -166,18 +185,17 @@ LIGHT_MODEL_OF_CAPTURE = {"led": "led", "room": "room"}
 
 
 def with_light_model(options: RefineOptions, capture: Capture) -> RefineOptions:
-    """``options`` with a light model: the one given, else the capture's (:data:`LIGHT_MODEL_OF_CAPTURE`),
-    else per-frame SH for a static camera (a light moved by hand: ``capture.camera == "static"``),
-    else the LED model with a warning saying how to choose."""
+    """``options`` with the declared light model: the one given, else the capture's
+    (:data:`LIGHT_MODEL_OF_CAPTURE`), else per-frame SH for a static camera (a light moved by hand:
+    ``capture.camera == "static"``), else None: the solver then chooses it from the images
+    (:func:`o3d_mvps.solver.light_selection.select_light_model`, reported in
+    ``info["light_selection"]``)."""
     if options.light_model is not None:
         return options
     if capture.light is None and capture.camera == "static":
         return replace(options, light_model="sh")
     if capture.light is None:
-        warnings.warn('the capture does not say what lit it (no "light" in capture.json): using the LED model. '
-                      'Write "light": "led" (the LED on the camera) or "room" (room light) into capture.json, or '
-                      "pass --light-model led|room|sh (RefineOptions(light_model=...))", stacklevel=4)
-        return replace(options, light_model="led")
+        return options
     return replace(options, light_model=LIGHT_MODEL_OF_CAPTURE[capture.light])
 
 

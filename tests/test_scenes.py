@@ -80,9 +80,8 @@ def test_the_light_model_comes_from_capture_json(scene):
     led.light = "led"
     assert with_light_model(RefineOptions(), led).light_model == "led"
     assert with_light_model(RefineOptions(light_model="led"), capture).light_model == "led"  # the user's choice
-    led.light = None
-    with pytest.warns(UserWarning, match='no "light" in capture.json.*"led".*"room"'):
-        assert with_light_model(RefineOptions(), led).light_model == "led"
+    led.light = None  # undeclared: the solver chooses from the images (tests/test_light_selection.py)
+    assert with_light_model(RefineOptions(), led).light_model is None
 
 
 def test_the_smoothness_follows_the_light_model_unless_given():

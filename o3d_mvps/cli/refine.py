@@ -115,6 +115,10 @@ def register(subparsers) -> None:
                    help="initial poses: Open3D trajectory .json or .log, TUM .txt, or (n, 4, 4) .npy (docs/capture-guide.md, "
                         "'Poses'; default: the capture folder's poses.* if any, else registration)")
     add_pose_file_arguments(p)
+    p.add_argument("--pose-trust", type=float, nargs=2, metavar=("MM", "DEG"), default=None,
+                   help="how far the --poses (or the folder's poses.*) are trusted: the refinement keeps each "
+                        "pose unless the images and the frame's own depth agree on a better one, with a prior of "
+                        "this width towards it (default 2 mm 0.2 deg; docs/poses-and-light.md)")
     p.add_argument("--no-input-checks", action="store_true",
                    help="skip the cross-checks of intrinsics, depth scale, frame quality and poses against depth "
                         "before the solve (docs/input-checks.md; they take about 1 %% of a refinement)")
@@ -150,8 +154,8 @@ def run(args) -> int:
     options = replace(options_from_args(args), strict_registration=args.strict)
     if given is not None and not args.quiet:
         print(f"poses: from {given.path}")
-    refinement = refine(capture, options, device, initial_poses=given, save_problem=args.save_problem,
-                        overwrite=args.overwrite, checks=not args.no_input_checks)
+    refinement = refine(capture, options, device, initial_poses=given, pose_trust=args.pose_trust,
+                        save_problem=args.save_problem, overwrite=args.overwrite, checks=not args.no_input_checks)
     log_energy(refinement, args.quiet)
     views = refinement.info.get("views")
     if views and views["left_out"] and not args.quiet:

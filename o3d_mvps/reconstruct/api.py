@@ -150,6 +150,7 @@ def _reconstruct(capture, options: ReconstructOptions, poses, client, scheduler,
     if options.depth == "refined" and (client is not None or scheduler is not None):
         dask = dask_session.enter_context(dask_client(client, scheduler, **dask_args))
     n_given, kept, dropped = capture.n_frames, list(range(capture.n_frames)), {}
+    poses_given = poses is not None
     if poses is None:
         from ..odometry import register_frames
 
@@ -166,7 +167,7 @@ def _reconstruct(capture, options: ReconstructOptions, poses, client, scheduler,
                       "back is missing (walk all round the object for a closed mesh)", stacklevel=3)
     references = choose_references(poses, min(options.references, capture.n_frames))
     jobs = [plan_view(capture, poses, k, min_covisibility=options.min_covisibility,
-                      max_frames=options.frames_per_reference) for k in references]
+                      max_frames=options.frames_per_reference, poses_given=poses_given) for k in references]
     refine_options = replace(options.refine, frames=None, progress=False)
     t_plan = time.perf_counter()
     memory = {"plan": peak_memory_mb()}

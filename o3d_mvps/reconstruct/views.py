@@ -23,7 +23,9 @@ class ViewJob:
 
     arrays: the capture's frames ``frames`` as NumPy arrays (:func:`capture_arrays`; Open3D
     images do not cross Dask's serialisation); poses: (len(frames), 4, 4) reference -> frame;
-    world_to_camera: (4, 4) capture frame 0 -> reference camera; selection: why these frames.
+    world_to_camera: (4, 4) capture frame 0 -> reference camera; selection: why these frames;
+    poses_given: the poses came from the user (refined under their trust, docs/poses-and-light.md),
+    not from the registration.
     """
 
     reference: int
@@ -32,6 +34,7 @@ class ViewJob:
     poses: np.ndarray
     world_to_camera: np.ndarray
     selection: ViewSelection
+    poses_given: bool = True
 
 
 @dataclass
@@ -53,7 +56,7 @@ class ViewResult:
 
 
 def plan_view(capture, poses: np.ndarray, reference: int, *, min_covisibility: float,
-              max_frames: int | None) -> ViewJob:
+              max_frames: int | None, poses_given: bool = True) -> ViewJob:
     """The job of one reference: the frames that see its surface, poses re-based onto it.
 
     capture: the whole capture; poses: (n, 4, 4) capture frame 0 -> frame i.
@@ -65,7 +68,7 @@ def plan_view(capture, poses: np.ndarray, reference: int, *, min_covisibility: f
                                         frame_ids=order)
     keep = [order.index(i) for i in selection.frames]
     return ViewJob(reference, selection.frames, capture_arrays(sub.select(keep)), rebased[keep], poses[reference],
-                   selection)
+                   selection, poses_given)
 
 
 def capture_arrays(capture) -> dict:
@@ -105,7 +108,8 @@ def run_view(job: ViewJob, options, depth_source: str = "refined", device="auto"
     if depth_source == "refined":
         from ..solving import refine
 
-        result = refine(capture, options, device, initial_poses=job.poses)
+        result = refine(capture, options, device, initial_poses=job.poses,
+                        pose_trust=None if job.poses_given else False)
         albedo = result.albedo_array()
     else:
         from ..baselines import bicubic

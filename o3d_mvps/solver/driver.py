@@ -28,9 +28,11 @@ from ..model.robust import robust_scale
 from .depth import update_depth
 from .device import CPU, ArrayDevice, array_device, compile_notice, to_host
 from .joint import update_pose_depth
+from .light_selection import select_light_model
 from .lighting import make_light_model, update_led_offset
 from .options import AUTO, DEFAULT_CAUCHY_LAMBDA, RefineOptions
-from .pose import update_poses
+from .pose import keep_agreeing_poses, update_poses
+from .pose_trust import PoseAnchors, PoseLog
 from .problem import Estimate, LevelProblem
 from .problem_input import SolverInput
 from .pyramid import build_level, level_size
@@ -63,11 +65,13 @@ def _reference_mask(problem_input: SolverInput) -> np.ndarray:
     return mask
 
 
-def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timings: dict, stats: dict) -> list:
+def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timings: dict, stats: dict,
+            anchors: PoseAnchors | None = None, log: PoseLog | None = None) -> list:
     """Run one level's sweeps in place on ``est``: the albedo fitted to the level's images, then
     sweeps of poses and depth (one joint step, or the paper's two), albedo, lighting, LED offset,
     extrapolation. The level's evaluations live here only (no caller holds a stale one: each
-    holds frames x pixels arrays).
+    holds frames x pixels arrays). anchors: what a pose update must not worsen besides the
+    photometric energy (:mod:`.pose_trust`; calibrated here per level), log: the rejections.
 
     Returns the level's energy rows; stops at the relative energy change ``options.tolerance``.
     """
@@ -86,6 +90,13 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
     stats["cauchy_lambda"].append(problem.lam)
     timings["setup"] += time.perf_counter() - t
     refine_poses = options.refine_poses and problem.n_frames > 1 and level.grid.size >= options.pose_min_pixels
+    if refine_poses and anchors is not None:
+        t = time.perf_counter()
+        anchors.calibrate(problem.lam, est.poses, problem.points(est.z), ev.usable,
+                          footprint=(anchors.scale_factor / 2**level.index) ** 2)
+        timings["pose_anchors"] += time.perf_counter() - t
+    else:
+        anchors = None
     # the LED offset is estimated where the poses are (coarser levels constrain it as poorly)
     refine_offset = (options.refine_led_offset and problem.light.name == "led"
                      and level.grid.size >= options.pose_min_pixels)
@@ -106,12 +117,17 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
             stepped, ev, cg_iterations = update_pose_depth(problem, est, ev, rtol=options.joint_cg_tolerance,
                                                            maxiter=options.cg_max_iterations,
                                                            project_albedo=project_albedo)
-            est.z, est.albedo, est.poses = stepped.z, stepped.albedo, stepped.poses
+            poses_before, (est.z, est.albedo, est.poses) = est.poses, (stepped.z, stepped.albedo, stepped.poses)
             timings["poses_depth"] += time.perf_counter() - t
+            if anchors is not None:
+                t = time.perf_counter()
+                est.poses, ev = keep_agreeing_poses(problem, poses_before, est, ev, anchors, log)
+                timings["pose_anchors"] += time.perf_counter() - t
         else:
             if refine_poses:
                 t = time.perf_counter()
-                est.poses, ev = update_poses(problem, est, ev, options.pose_iterations, options.pose_tolerance)
+                est.poses, ev = update_poses(problem, est, ev, options.pose_iterations, options.pose_tolerance,
+                                             anchors, log)
                 timings["poses"] += time.perf_counter() - t
             t = time.perf_counter()
             stepped, ev, cg_iterations = update_depth(problem, est, ev, rtol=options.cg_tolerance,
@@ -130,7 +146,7 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
         timings["albedo_lighting"] += time.perf_counter() - t
         if options.extrapolate:
             t = time.perf_counter()
-            ev = _extrapolate(problem, est, ev, start)
+            ev = _extrapolate(problem, est, ev, start, anchors)
             timings["extrapolation"] += time.perf_counter() - t
         rows.append({"level": level.index, "iteration": iteration, "energy": ev.energy, "cg_iterations": cg_iterations})
         bar.set_postfix(energy=f"{ev.energy:.5g}")
@@ -147,7 +163,8 @@ def _snapshot(est: Estimate) -> Estimate:
                     None if est.led_offset is None else est.led_offset.copy())
 
 
-def _extrapolate(problem: LevelProblem, est: Estimate, ev, before: Estimate, factors=(1.0, 2.0, 4.0)):
+def _extrapolate(problem: LevelProblem, est: Estimate, ev, before: Estimate, anchors: PoseAnchors | None = None,
+                 factors=(1.0, 2.0, 4.0)):
     """Extrapolate the last sweep's move of every unknown; keep the best energy-lowering factor.
 
     Alternating steps creep along the valley where poses, depth and albedo trade off against
@@ -155,10 +172,20 @@ def _extrapolate(problem: LevelProblem, est: Estimate, ev, before: Estimate, fac
     continuing the sweep's own direction shortens the creep. ``before`` is the snapshot taken at
     the start of the sweep, ``est`` (evaluated as ``ev``) where it ended; unknowns the sweep did
     not move stay put. Returns the evaluation of the result (``ev`` itself, or a new one, and then
-    ``ev`` is released).
+    ``ev`` is released). With ``anchors`` the poses' depth agreement and prior count too (a
+    factor is kept only where energy plus anchors falls).
     """
     best = None
     poses_moved = not np.array_equal(est.poses, before.poses)  # else kept exactly (no log/exp round trip)
+
+    def anchored(energy: float, trial: Estimate, usable) -> float:
+        if anchors is None or not poses_moved:
+            return energy
+        points = problem.points(trial.z)
+        return energy + sum(anchors.frame_energy(i, trial.poses[i], points, usable[i])
+                            for i in range(1, len(trial.poses)))
+
+    current = anchored(ev.energy, est, ev.usable)
     delta_poses = [se3.log(T @ np.linalg.inv(T0)) for T, T0 in zip(est.poses, before.poses)] if poses_moved else []
     for factor in factors:
         z = problem.level.prior.clip(est.z + factor * (est.z - before.z))
@@ -170,10 +197,11 @@ def _extrapolate(problem: LevelProblem, est: Estimate, ev, before: Estimate, fac
                          np.stack([se3.exp(factor * d) @ T for d, T in zip(delta_poses, est.poses)])
                          if poses_moved else est.poses, offset)
         trial_ev = problem.evaluate(trial)
-        if trial_ev.energy < (ev.energy if best is None else best[1].energy):
+        trial_energy = anchored(trial_ev.energy, trial, trial_ev.usable)
+        if trial_energy < current:
             if best is None:
                 ev.release()  # superseded: not held while the next factor is evaluated
-            best = (trial, trial_ev)
+            best, current = (trial, trial_ev), trial_energy
         else:
             break
     if best is None:
@@ -223,12 +251,15 @@ def solve(problem_input: SolverInput, options: RefineOptions | None = None, devi
     :class:`~.device.ArrayDevice`; a CUDA device that cannot run raises
     :class:`~o3d_mvps.errors.DeviceError` saying what is missing (:func:`.device.check_device`).
     ``info["level_devices"]`` of the result says where each level ran, coarsest first.
+
+    The light model is ``options.light_model``, or where that is None the one that explains the
+    images best on a coarse level (:func:`.light_selection.select_light_model`; a declared model
+    that fits clearly worse than another is kept with a warning): ``info["light_selection"]``.
+    ``info["pose_updates"]`` says how far each frame's pose moved and how many of its updates
+    were rejected (:mod:`.pose_trust`).
     """
     options = problem_input.options if options is None else options
     device = array_device(device)
-    if options.light_model is None:
-        raise ValueError("options.light_model is None: the solver needs 'led' or 'sh' (o3d_mvps.refine takes it "
-                         "from the capture's light)")
     if options.progress and (notice := compile_notice(device)):
         print(notice, flush=True)
     # The solver's BLAS calls are vector dots/norms (CG, AMG) and thin products: on a loaded
@@ -246,6 +277,13 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
     colors = problem_input.colors
     masks = problem_input.masks
     ref_mask = _reference_mask(problem_input)
+    declared = None if options.light_model is None else str(options.light_model)
+    selection = select_light_model(problem_input, ref_mask, declared, occlusion_test=options.occlusion_test,
+                                   occlusion_tolerance=options.occlusion_tolerance)
+    options = replace(options, light_model=selection["chosen"])
+    timings["light_selection"] = time.perf_counter() - t0
+    if options.progress:
+        print(f"light model: {selection['chosen']} ({selection['why']})")
     z0 = problem_input.depths[0].astype(np.float64)
     if not (z0 > 0).any():
         raise CaptureError("the reference depth has no valid pixel; check the depth image of frame 0")
@@ -265,6 +303,14 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
     if smoothness == AUTO:
         smoothness = auto_smoothness(options.tau, z0, ref_mask, sf, K)
     history = []
+    # given poses answer to their own sensor depth and a prior at their stated trust; registered
+    # poses do not: the registration already used the depth, and on the 640x480 bunny (20
+    # frames, LED) the depth check held them 3.4 mm from the truth (mean) where the images alone
+    # take them to 0.64 mm
+    given = problem_input.pose_trust is not None
+    anchors = (PoseAnchors(sensor_depths, depth_K, problem_input.initial_poses, problem_input.pose_trust,
+                           scale_factor=sf) if given else None)
+    pose_log = PoseLog()
     stats = {"cg_iterations": [], "cauchy_lambda": [], "smoothness": smoothness, "levels": n_levels,
              "level_devices": []}
 
@@ -301,7 +347,7 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
         problem.update_visibility(est, occlusion_test=options.occlusion_test, rel_tol=options.occlusion_tolerance,
                                   sensor_depths=sensor_depths, depth_K=depth_K)
         timings["setup"] += time.perf_counter() - t
-        history.extend(_sweeps(problem, est, options, timings, stats))
+        history.extend(_sweeps(problem, est, options, timings, stats, anchors, pose_log))
         return Carried(fill_nearest_valid(g.scatter(to_host(est.z)), g.mask),
                        fill_nearest_valid(g.scatter(to_host(est.albedo)), g.mask), est.lights, est.poses, est.led_offset)
 
@@ -318,6 +364,10 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
     return SolverOutput(
         depth, ref_mask, albedo, K, lighting=lights, poses=poses, energy=history, timings=dict(timings),
         info={"frames": problem_input.frames, "options": options.to_dict(), "device": device.name,
-              "light_model": (light if led_offset is None else light.at(led_offset)).describe(), **stats},
+              "light_model": (light if led_offset is None else light.at(led_offset)).describe(),
+              "light_selection": selection,
+              "pose_updates": pose_log.report(problem_input.initial_poses, poses, problem_input.pose_trust,
+                                             problem_input.frames),
+              **stats},
     )
 

@@ -10,6 +10,7 @@ from ..model.robust import cauchy_weights
 from .device import to_host
 from .line_search import backtrack
 from .linear import ridge_solve
+from .pose_trust import PoseAnchors, PoseLog
 from .problem import Estimate, Evaluation, FrameGradients, FrameSample, LevelProblem
 
 
@@ -38,21 +39,32 @@ def update_pose(problem: LevelProblem, est: Estimate, i: int, points_ref: np.nda
 
 
 def refine_pose(problem: LevelProblem, est: Estimate, i: int, points_ref: np.ndarray, normals: np.ndarray,
-                iterations: int, max_halvings: int = 4, tolerance: float = 0.0) -> tuple[np.ndarray, FrameSample]:
+                iterations: int, max_halvings: int = 4, tolerance: float = 0.0, anchors: PoseAnchors | None = None,
+                log: PoseLog | None = None) -> tuple[np.ndarray, FrameSample]:
     """:func:`update_pose`, also returning frame i's sample under the refined pose.
 
     With a light model whose shading depends on the pose (the LED), the shading is recomputed
-    for every trial pose and its derivative enters the Jacobian.
+    for every trial pose and its derivative enters the Jacobian. With ``anchors``
+    (:class:`.pose_trust.PoseAnchors`) a step is accepted only where the frame's photometric
+    energy plus its depth agreement and pose prior does not rise (the prior also enters the
+    Gauss-Newton system); an iteration that finds no such step although the photometric
+    energy alone fell (at the shortest step tried) is counted in ``log``.
     """
     K = problem.level.K
     model, light, albedo = problem.light_model(est), est.lights[i], est.albedo
+    last = {}
 
     def energy_of(sample: FrameSample, pose: np.ndarray) -> float:
-        return problem.frame_data_energy(sample, albedo, model.basis(normals, points_ref, pose) @ like(light, points_ref))
+        photometric = problem.frame_data_energy(sample, albedo,
+                                                model.basis(normals, points_ref, pose) @ like(light, points_ref))
+        last["photometric"] = photometric
+        return photometric if anchors is None else photometric + anchors.frame_energy(i, pose, points_ref,
+                                                                                       sample.usable)
 
     pose = est.poses[i]
     sample = problem.sample(i, pose, points_ref)
     energy = energy_of(sample, pose)
+    photometric = last["photometric"]
     for _ in range(iterations):
         use = sample.usable
         if use.sum() < 12:
@@ -69,6 +81,9 @@ def refine_pose(problem: LevelProblem, est: Estimate, i: int, points_ref: np.nda
         wJ = J * w.reshape(-1, 1)
         H = to_host(wJ.T @ J)
         g = to_host(wJ.T @ r.reshape(-1))
+        prior = None if anchors is None else anchors.prior_system(i, pose)
+        if prior is not None:
+            H, g = H + prior[0], g + prior[1]
         step = ridge_solve(H, -g)
         if step is None:
             break
@@ -80,8 +95,11 @@ def refine_pose(problem: LevelProblem, est: Estimate, i: int, points_ref: np.nda
 
         found = backtrack(trial, energy, max_halvings)
         if found is None:
+            if log is not None and anchors is not None and last["photometric"] < photometric:
+                log.reject(i, "pose step: depth or prior disagree")  # the images alone would have taken it
             break
         t, (pose, sample), trial_energy = found
+        photometric = last["photometric"]
         converged = energy - trial_energy <= tolerance * energy
         energy = trial_energy
         if converged or t * np.linalg.norm(step) < 1e-10:
@@ -90,18 +108,55 @@ def refine_pose(problem: LevelProblem, est: Estimate, i: int, points_ref: np.nda
 
 
 def update_poses(problem: LevelProblem, est: Estimate, ev: Evaluation, iterations: int,
-                 tolerance: float = 0.0) -> tuple[np.ndarray, Evaluation]:
+                 tolerance: float = 0.0, anchors: PoseAnchors | None = None,
+                 log: PoseLog | None = None) -> tuple[np.ndarray, Evaluation]:
     """All frames' refined poses (n, 4, 4) and the evaluation under them (``ev`` is that of ``est``).
 
     Frame 0 (the reference) stays the identity. The evaluation reuses the samples the
-    Gauss-Newton steps ended with instead of warping every frame again.
+    Gauss-Newton steps ended with instead of warping every frame again. anchors, log: see
+    :func:`refine_pose`.
     """
     points_ref = problem.points(est.z)
     poses = est.poses.copy()
     color, usable = ev.color.copy(), ev.usable.copy()
     for i in range(1, problem.n_frames):
-        poses[i], sample = refine_pose(problem, est, i, points_ref, ev.normals, iterations, tolerance=tolerance)
+        poses[i], sample = refine_pose(problem, est, i, points_ref, ev.normals, iterations, tolerance=tolerance,
+                                       anchors=anchors, log=log)
         color[i], usable[i] = sample.color, sample.usable
     moved = Estimate(est.z, est.albedo, est.lights, poses)
     return poses, problem.evaluate_samples(moved, color, usable, ev.normals, ev.dA)
 
+
+
+def keep_agreeing_poses(problem: LevelProblem, previous: np.ndarray, est: Estimate, ev: Evaluation,
+                        anchors: PoseAnchors, log: PoseLog | None = None) -> tuple[np.ndarray, Evaluation]:
+    """After a step that moved z and the poses together (the joint step): each frame's pose back
+    at ``previous`` (n, 4, 4) where the move raised that frame's photometric energy plus its
+    depth agreement and prior (:class:`.pose_trust.PoseAnchors`) at the new z; returns the
+    poses (n, 4, 4) and their evaluation (``ev``, that of ``est``, where none went back).
+
+    The joint step's line search lowers the total energy, which one frame's pose can do by
+    fitting the others' errors; a frame whose anchors did not rise is kept without a warp.
+    """
+    points = problem.points(est.z)
+    model = problem.light_model(est)
+    poses = est.poses.copy()
+    for i in range(1, problem.n_frames):
+        if np.array_equal(poses[i], previous[i]):
+            continue
+        anchored = anchors.frame_energy(i, poses[i], points, ev.usable[i])
+        if anchored <= anchors.frame_energy(i, previous[i], points, ev.usable[i]):
+            continue
+        old = problem.sample(i, previous[i], points)
+        light = like(est.lights[i], points)
+        before = problem.frame_data_energy(old, est.albedo, model.basis(ev.normals, points, previous[i]) @ light)
+        before += anchors.frame_energy(i, previous[i], points, old.usable)
+        after = problem.frame_data_energy(FrameSample(ev.color[i], ev.usable[i]), est.albedo, ev.shading[i]) + anchored
+        if after > before:
+            poses[i] = previous[i]
+            if log is not None:
+                log.reject(i, "joint step: depth or prior disagree")
+    if np.array_equal(poses, est.poses):
+        return poses, ev
+    ev.release()
+    return poses, problem.evaluate(Estimate(est.z, est.albedo, est.lights, poses, est.led_offset))

@@ -38,7 +38,8 @@ class SolverInput:
     options: the refinement options (``options.frames`` was applied when the frames were picked).
     report: JSON-ready notes on how the input was made (``inputs``: the input checks,
     ``frames_report``: every capture frame, used or why not); passed on to the refinement's info,
-    not saved.
+    not saved. pose_trust: None where the initial poses were registered; for given poses, how far
+    they are trusted, (metres, radians) (:mod:`o3d_mvps.solver.pose_trust`).
     """
 
     colors: np.ndarray | list
@@ -52,6 +53,7 @@ class SolverInput:
     frames: list
     options: RefineOptions
     report: dict = field(default_factory=dict)
+    pose_trust: tuple | None = None
 
     def __post_init__(self):
         if isinstance(self.colors, np.ndarray):
@@ -64,6 +66,11 @@ class SolverInput:
         self.led_offset = np.asarray(self.led_offset, dtype=np.float64)
         self.scale_factor, self.frames = int(self.scale_factor), [int(i) for i in self.frames]
         self.masks = [None if m is None else np.asarray(m, dtype=bool) for m in self.masks]
+        if self.pose_trust is not None:
+            trust = np.asarray(self.pose_trust, dtype=np.float64).reshape(-1)
+            if trust.shape != (2,) or not np.all(np.isfinite(trust)) or not np.all(trust > 0):
+                raise ValueError(f"pose_trust must be (metres, radians), both > 0, got {self.pose_trust!r}")
+            self.pose_trust = (float(trust[0]), float(trust[1]))
         n = len(self.colors)
         H, W = self.colors[0].shape[:2] if n and self.colors[0].ndim == 3 else (0, 0)
         sf = max(self.scale_factor, 1)
@@ -103,7 +110,8 @@ def write_problem(problem: SolverInput, path, *, overwrite: bool = False) -> Pat
     """Write ``problem`` to the .npz ``path`` (compressed; refuses an existing file unless ``overwrite``).
 
     Keys: format, format_version, the arrays of :class:`SolverInput` under their names, masks
-    (n, H, W) bool with has_mask (n,) bool (False: the frame had no mask), options (JSON).
+    (n, H, W) bool with has_mask (n,) bool (False: the frame had no mask), options (JSON),
+    pose_trust (2,) where the poses were given.
     """
     path = Path(path)
     H, W = problem.color_size
@@ -111,6 +119,8 @@ def write_problem(problem: SolverInput, path, *, overwrite: bool = False) -> Pat
     arrays["masks"] = np.stack([np.zeros((H, W), bool) if m is None else m for m in problem.masks])
     arrays["has_mask"] = np.array([m is not None for m in problem.masks])
     arrays["options"] = np.array(json_text(problem.options.to_dict(), "the options"))
+    if problem.pose_trust is not None:
+        arrays["pose_trust"] = np.asarray(problem.pose_trust)
     with atomic_files([path], overwrite) as (tmp,), open(tmp, "wb") as file:
         np.savez_compressed(file, format=np.array(PROBLEM_FORMAT), format_version=np.array(PROBLEM_VERSION), **arrays)
     return path
@@ -148,7 +158,9 @@ def read_problem(path) -> SolverInput:
     try:
         masks = [m if has else None for m, has in zip(data["masks"], data["has_mask"])]
         options = RefineOptions.from_dict(json.loads(str(data["options"])))
-        return SolverInput(**{name: data[name] for name in _ARRAYS}, masks=list(masks), options=options)
+        trust = data.get("pose_trust")
+        return SolverInput(**{name: data[name] for name in _ARRAYS}, masks=list(masks), options=options,
+                           pose_trust=None if trust is None else tuple(trust.tolist()))
     except KeyError as e:
         raise MVPSError(f"{path} lacks the array {e}; {remake}") from None
     except (TypeError, ValueError) as e:

@@ -1,0 +1,185 @@
+"""Given poses are never made worse (issue #32, item 1): o3d_mvps.solver.pose_trust and the pose
+acceptance in o3d_mvps.solver.pose.
+
+Unit tests use test_joint's exact scene (a bump under per-frame SH light, ray cast into three
+cameras): a pose step that lowers the frame's photometric energy but breaks its agreement with
+its own sensor depth, or a prior towards its given pose, is rejected and counted. Render tests
+refine the bunny from exact and from perturbed given poses, under the LED and under room light.
+"""
+
+import dataclasses
+
+import numpy as np
+import pytest
+from helpers import SIZE, K, kicked_poses, make_problem, relief_capture
+from test_joint import KICKS, LIGHTS, POSES, render, surface_depth, true_estimate
+
+from o3d_mvps import RefineOptions, refine
+from o3d_mvps.metrics import reprojection_error_px
+from o3d_mvps.model import se3
+from o3d_mvps.model.camera import pixel_grid
+from o3d_mvps.solver.pose import keep_agreeing_poses, refine_pose
+from o3d_mvps.solver.pose_trust import PoseAnchors, PoseLog
+from o3d_mvps.solver.problem import LevelProblem
+from o3d_mvps.solving import problem_from_capture
+from o3d_mvps.synthetic import render_capture
+
+
+def render_depth(pose):
+    """(H, W) depth (metres) of the bump seen with ``pose``: what that camera's sensor measures."""
+    u, v = pixel_grid(*SIZE)
+    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1) @ pose[:3, :3]
+    centre = -pose[:3, :3].T @ pose[:3, 3]
+    s = (0.6 - centre[2]) / rays[..., 2]
+    for _ in range(30):
+        X = centre + s[..., None] * rays
+        s = (surface_depth(X[..., 0] / X[..., 2], X[..., 1] / X[..., 2]) - centre[2]) / rays[..., 2]
+    return s  # the rays have unit z in the camera: the ray parameter is the depth
+
+
+@pytest.fixture(scope="module")
+def level():
+    images = [render(T, light) for T, light in zip(POSES, LIGHTS)]
+    return dataclasses.replace(make_problem(3)[0].level, images=images)
+
+
+@pytest.fixture
+def problem(level):
+    return LevelProblem(level, 1.0, 0.04)
+
+
+def kicked(problem):
+    """The exact scene with frame 1 kicked by KICKS[1] (~2 mm, ~0.3 deg, ~0.7 px)."""
+    est = true_estimate(problem)
+    est.poses[1] = se3.exp(KICKS[1]) @ POSES[1]
+    return est
+
+
+def anchors_with_depth_seen_from(poses, weight=1e6):
+    """Anchors whose sensor depth of every frame is what a camera at ``poses`` (n, 4, 4) measures."""
+    anchors = PoseAnchors(np.stack([render_depth(T) for T in poses]), K)
+    anchors.depth_weight, anchors.depth_scale = weight, 0.001
+    return anchors
+
+
+def test_a_pose_step_that_breaks_the_frames_own_depth_is_rejected(problem):
+    """From frame 1 kicked off the truth, the photometric step goes back to the truth; when the
+    frame's own sensor depth says the kicked pose (weighted strongly), every step length raises
+    the frame's energy: the pose stays exactly where it was and one rejection is logged. When the
+    sensor depth says the truth, the same step is taken and nothing is rejected."""
+    est = kicked(problem)
+    points = problem.points(est.z)
+    normals = problem.normals(est.z)[0]
+    error = reprojection_error_px(est.poses[1], POSES[1], points, K)
+    assert error > 0.5
+    free, _ = refine_pose(problem, est, 1, points, normals, iterations=3)
+    assert reprojection_error_px(free, POSES[1], points, K) < 0.1 * error
+
+    log = PoseLog()
+    held, _ = refine_pose(problem, est, 1, points, normals, iterations=3,
+                          anchors=anchors_with_depth_seen_from(est.poses), log=log)
+    np.testing.assert_array_equal(held, est.poses[1])
+    assert log.rejected[1] == {"pose step: depth or prior disagree": 1}
+
+    log = PoseLog()
+    agreed, _ = refine_pose(problem, est, 1, points, normals, iterations=3,
+                            anchors=anchors_with_depth_seen_from(POSES, weight=1.0), log=log)
+    assert reprojection_error_px(agreed, POSES[1], points, K) < 0.1 * error
+    assert not any(log.rejected)
+
+
+def test_the_prior_holds_a_given_pose_as_firmly_as_it_is_trusted(problem):
+    """A joint step that moved frame 1 from its given (kicked) pose to the truth lowers its
+    photometric energy; with a trust of 0.1 mm / 0.01 deg the prior's rise outweighs that and
+    the pose goes back (logged), with a trust of 1 m / 1 rad it is kept."""
+    est = true_estimate(problem)
+    given = est.poses.copy()
+    given[1] = se3.exp(KICKS[1]) @ POSES[1]
+    ev = problem.evaluate(est)
+    for trust, kept in (((1e-4, np.radians(0.01)), False), ((1.0, 1.0), True)):
+        anchors = PoseAnchors(np.zeros((3,) + SIZE), K, given, trust, prior_weight=1.0)
+        log = PoseLog()
+        poses, ev_after = keep_agreeing_poses(problem, given, est, problem.evaluate(est), anchors, log)
+        np.testing.assert_array_equal(poses[1], POSES[1] if kept else given[1])
+        np.testing.assert_array_equal(poses[2], est.poses[2])  # did not move: not judged
+        assert ev_after.energy == pytest.approx(problem.evaluate(dataclasses.replace(est, poses=poses)).energy)
+        assert (not any(log.rejected)) if kept else log.rejected[1] == {"joint step: depth or prior disagree": 1}
+    assert ev.energy < problem.evaluate(dataclasses.replace(est, poses=given)).energy
+
+
+def test_the_report_says_how_far_each_pose_moved_and_why():
+    start = np.stack([np.eye(4)] * 3)
+    final = start.copy()
+    final[2] = se3.exp([0.003, 0, 0.004, 0, np.radians(0.5), 0])
+    log = PoseLog()
+    log.reject(2, "pose step: depth or prior disagree")
+    log.reject(2, "pose step: depth or prior disagree")
+    rows = log.report(start, final, (0.002, np.radians(0.2)), [0, 5, 7])
+    assert rows[0] == {"frame": 5, "moved_mm": 0.0, "moved_deg": 0.0, "rejected_updates": 0,
+                       "note": "given pose, trusted to 2 mm and 0.2 deg"}
+    assert rows[1]["frame"] == 7 and rows[1]["moved_deg"] == pytest.approx(0.5, abs=1e-4)
+    assert rows[1]["rejected_updates"] == 2 and "2 x pose step: depth or prior disagree" in rows[1]["note"]
+    assert log.report(start, final, None, [0, 5, 7])[0]["note"] == "registered pose, refined freely"
+
+
+# ---------------------------------------------------------------------------------------------
+# renders: the refined poses are not farther from the truth than the given ones
+
+#: the refined poses may be farther from the truth than the given ones by at most this much
+#: (millimetres, degrees; 160x120, 4 frames). Measured with the default trust (2 mm, 0.2 deg):
+#: from exact poses at most 0.20 mm / 0.020 deg (LED) and 0 (room light: every update rejected);
+#: from poses perturbed by 0.65-1.9 mm / 0.04-0.19 deg, translation never farther, rotation at most
+#: 0.047 deg farther (one frame, whose translation error fell by 0.5 mm). Without the checks, from
+#: exact poses, frames moved 1.2-4.1 mm / 0.12-0.45 deg (LED) and 2.2-5.9 mm / 0.17-0.57 deg
+#: (room light) on the 320x240, 6-frame render.
+MARGIN_MM, MARGIN_DEG = 0.3, 0.06
+
+
+@pytest.fixture(scope="module", params=["led", "room"])
+def rendered(request):
+    return request.param, render_capture("bunny", frames=4, size=(160, 120), scale_factor=4, light=request.param,
+                                         seed=0)
+
+
+@pytest.mark.parametrize("perturbed", [False, True])
+def test_given_poses_are_not_made_worse(rendered, perturbed):
+    light, capture = rendered
+    truth = capture.groundtruth.poses
+    given = kicked_poses(truth, seed=3, metres=0.001 / np.sqrt(3), degrees=0.1 / np.sqrt(3)) if perturbed else truth
+    result = refine(capture, RefineOptions(light_model=light, levels=3, progress=False), initial_poses=given)
+    refined = result.poses.numpy()
+    for i in range(1, capture.n_frames):
+        before_deg, before_m = se3.pose_error(given[i], truth[i])
+        after_deg, after_m = se3.pose_error(refined[i], truth[i])
+        assert 1e3 * after_m <= 1e3 * before_m + MARGIN_MM, (light, i, before_m, after_m)
+        assert after_deg <= before_deg + MARGIN_DEG, (light, i, before_deg, after_deg)
+    rows = result.info["pose_updates"]
+    assert [row["frame"] for row in rows] == [1, 2, 3]
+    assert all(row["note"].startswith("given pose") for row in rows)
+    for row, i in zip(rows, range(1, 4)):
+        degrees, metres = se3.pose_error(refined[i], given[i])
+        assert row["moved_mm"] == pytest.approx(1e3 * metres, abs=1e-3)
+        assert row["moved_deg"] == pytest.approx(degrees, abs=1e-4)
+
+
+def test_a_bad_pose_trust_is_refused_before_the_solve():
+    capture = relief_capture(frames=3)
+    with pytest.raises(ValueError, match=r"--pose-trust MM DEG.*two positive numbers.*got \(-1, 0.2\)"):
+        problem_from_capture(capture, RefineOptions(progress=False), capture.groundtruth.poses, pose_trust=(-1, 0.2))
+    problem, _ = problem_from_capture(capture, RefineOptions(progress=False), capture.groundtruth.poses,
+                                      pose_trust=(1.0, 0.1))
+    assert problem.pose_trust == pytest.approx((0.001, np.radians(0.1)))
+    assert problem_from_capture(capture, RefineOptions(progress=False), capture.groundtruth.poses,
+                                pose_trust=False)[0].pose_trust is None  # refined freely, like registered poses
+    assert problem_from_capture(capture, RefineOptions(progress=False))[0].pose_trust is None  # registered
+
+
+def test_a_saved_problem_keeps_its_pose_trust(tmp_path):
+    from o3d_mvps.solver.problem_input import read_problem, write_problem
+
+    capture = relief_capture(frames=2)
+    for trust in ((1.0, 0.1), False):
+        problem, _ = problem_from_capture(capture, RefineOptions(light_model="led", progress=False),
+                                          capture.groundtruth.poses, pose_trust=trust)
+        path = write_problem(problem, tmp_path / "problem.npz", overwrite=True)
+        assert read_problem(path).pose_trust == problem.pose_trust
