@@ -179,7 +179,7 @@ def test_a_saved_problem_keeps_its_pose_trust(tmp_path):
 
     capture = relief_capture(frames=2)
     for trust in ((1.0, 0.1), False):
-        problem, _ = problem_from_capture(capture, RefineOptions(light_model="led", progress=False),
+        problem, _ = problem_from_capture(capture, RefineOptions(frames=2, light_model="led", progress=False),
                                           capture.groundtruth.poses, pose_trust=trust)
         path = write_problem(problem, tmp_path / "problem.npz", overwrite=True)
         assert read_problem(path).pose_trust == problem.pose_trust
