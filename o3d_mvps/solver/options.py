@@ -142,6 +142,14 @@ class ModelOptions:
         widened by this relative margin in [0, 1) (None: unbounded; README "How it works").
     occlusion_test: drop reference pixels hidden or out of view in frame i from its data term.
     occlusion_tolerance: relative depth tolerance of that test, in [0, 1).
+    sensor_lowpass: at each pyramid level's end, replace the depth's low frequencies by the sensor
+        depth's (:func:`o3d_mvps.solver.weighting.tie_low_frequencies`): the Gaussian sigma in
+        depth pixels (> 0), "auto" (from the sensor's noise, at least 4:
+        :func:`o3d_mvps.solver.weighting.lowpass_sigma`) or None (off: the paper's model, where
+        the photometric terms may bend the whole surface).
+    evidence_weights: weight each pixel's smoothness by how little the frames' shading says
+        about its normal (:func:`o3d_mvps.solver.weighting.evidence_weights`: dark albedo, few
+        frames, little light diversity lean on the smoothness); False: one weight everywhere.
     """
 
     tau: float = 10.0
@@ -155,6 +163,8 @@ class ModelOptions:
     depth_envelope: float | None = 0.02
     occlusion_test: bool = True
     occlusion_tolerance: float = 0.02
+    sensor_lowpass: float | str | None = AUTO
+    evidence_weights: bool = True
 
     def smoothness_weight(self) -> float | str:
         """mu~, or :data:`AUTO`: ``smoothness``, else the light model's default (the light model
@@ -184,7 +194,11 @@ class ModelOptions:
              difference_scheme=DifferenceScheme.parse("difference_scheme", self.difference_scheme),
              depth_envelope=_number("depth_envelope", self.depth_envelope, 0, 1, high_open=True, none_ok=True),
              occlusion_test=_flag("occlusion_test", self.occlusion_test),
-             occlusion_tolerance=_number("occlusion_tolerance", self.occlusion_tolerance, 0, 1, high_open=True))
+             occlusion_tolerance=_number("occlusion_tolerance", self.occlusion_tolerance, 0, 1, high_open=True),
+             sensor_lowpass=self.sensor_lowpass if self.sensor_lowpass in (None, AUTO) else _number(
+                 "sensor_lowpass", self.sensor_lowpass, 0, math.inf, low_open=True, high_open=True, none_ok=True,
+                 auto_ok=True),
+             evidence_weights=_flag("evidence_weights", self.evidence_weights))
 
 
 @dataclass(frozen=True)
