@@ -51,8 +51,8 @@ def _masked_blur(values: np.ndarray, weights: np.ndarray, sigma: float) -> np.nd
 
 
 def tie_low_frequencies(z: np.ndarray, mask: np.ndarray, z0: np.ndarray, sigma: float) -> np.ndarray:
-    """z (H, W) metres with its low frequencies replaced by the sensor's: ``z - G * (z - z0')``
-    over the mask (H, W) bool, G a Gaussian of ``sigma`` depth pixels (normalised over the mask's
+    """z (H, W) metres with its low frequencies replaced by the sensor's: ``z - G * (z - z0')``,
+    applied twice (one pass leaves a curved bowl's sigma^2 curvature offset), over the mask (H, W) bool, G a Gaussian of ``sigma`` depth pixels (normalised over the mask's
     pixels with a valid sensor depth), z0' the sensor depth z0 (h, w) metres (0 = missing)
     bilinearly resampled to z's grid. Outside the mask z is returned unchanged."""
     H, W = z.shape
@@ -63,8 +63,10 @@ def tie_low_frequencies(z: np.ndarray, mask: np.ndarray, z0: np.ndarray, sigma: 
     if not weights.any():
         return z
     sigma_level = max(0.5, sigma * W / z0.shape[1])
-    difference = _masked_blur(np.where(weights > 0, z - z0_level, 0.0), weights, sigma_level)
-    return np.where(mask, z - difference, z)
+    tied = z
+    for _ in range(2):  # twice: removes G (2 - G) of the difference, 1 - O(f^4) at low frequencies f
+        tied = tied - _masked_blur(np.where(weights > 0, tied - z0_level, 0.0), weights, sigma_level)
+    return np.where(mask, tied, z)
 
 
 #: the most :func:`evidence_weights` multiplies a pixel's smoothness by

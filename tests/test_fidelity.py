@@ -1,0 +1,149 @@
+"""The solver's weighting against the sensor (issue 32 items 3 and 6): the depth's low frequencies
+tied to the sensor depth, and per-pixel smoothness from the shading system's conditioning."""
+
+import cv2
+import numpy as np
+import pytest
+
+from helpers import quilt_scene
+from o3d_mvps.model.normals import masked_grid
+from o3d_mvps.solver.driver import solve
+from o3d_mvps.solver.lighting import SHLight
+from o3d_mvps.solver.options import RefineOptions
+from o3d_mvps.solver.problem import Estimate, Evaluation
+from o3d_mvps.solver.problem_input import SolverInput
+from o3d_mvps.solver.pyramid import DepthPrior
+from o3d_mvps.solver.smoothness import second_differences
+from o3d_mvps.solver.weighting import (EVIDENCE_MAX_WEIGHT, LOWPASS_MIN_SIGMA, evidence_weights, lowpass_sigma,
+                                       normal_evidence, tie_low_frequencies)
+
+
+def _lowpass(x, mask, sigma):
+    w = cv2.GaussianBlur(mask.astype(np.float64), (0, 0), sigma)
+    return cv2.GaussianBlur(np.where(mask, x, 0.0), (0, 0), sigma) / np.maximum(w, 1e-9)
+
+
+def test_tie_replaces_the_low_frequencies_and_keeps_the_detail():
+    """A bowl of 8 mm plus a 0.5 mm relief of period 6 px on a 0.5 m plane (120x160, sensor at SF
+    2): the tie leaves under 0.15 mm of the bowl (measured 0.107 mm, at the inner region's
+    corners) and the relief within 3 %."""
+    H, W = 120, 160
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    bowl = 0.008 * (((u - W / 2) / (W / 2)) ** 2 + ((v - H / 2) / (H / 2)) ** 2)
+    detail = 0.0005 * np.sin(2 * np.pi * u / 6)
+    z0 = np.full((H // 2, W // 2), 0.5)
+    mask = np.ones((H, W), bool)
+    tied = tie_low_frequencies(0.5 + bowl + detail, mask, z0, sigma=4.0)
+    inner = (slice(10, -10), slice(10, -10))
+    assert np.abs(_lowpass(tied, mask, 8.0) - 0.5)[inner].max() < 1.5e-4
+    wave = np.sin(2 * np.pi * u / 6)[inner]
+    kept = np.sum((tied[inner] - tied[inner].mean()) * wave) / np.sum(wave * wave)  # the relief's amplitude
+    assert kept == pytest.approx(0.0005, rel=0.03)
+
+
+def test_tie_ignores_pixels_outside_the_mask_and_missing_sensor_depth():
+    z = np.full((40, 40), 0.6)
+    mask = np.zeros((40, 40), bool)
+    mask[5:35, 5:35] = True
+    z0 = np.full((20, 20), 0.5)
+    z0[:, :5] = 0.0  # missing depth: not compared
+    tied = tie_low_frequencies(z, mask, z0, sigma=4.0)
+    assert np.array_equal(tied[~mask], z[~mask])
+    assert np.allclose(tied[mask], 0.5)
+
+
+def test_lowpass_sigma_grows_with_the_sensor_noise():
+    rng = np.random.default_rng(0)
+    mask = np.ones((80, 80), bool)
+    quiet = np.full((40, 40), 0.5)
+    noisy = 0.5 + rng.normal(0, 0.003, (40, 40))
+    assert lowpass_sigma(quiet, mask, 2) == LOWPASS_MIN_SIGMA
+    # 3 mm noise at 0.5 m averaged down to 0.1 per mille: sigma = 3 / (2 sqrt(pi) 0.05) = 16.9 px
+    assert lowpass_sigma(noisy, mask, 2) == pytest.approx(16.9, rel=0.15)
+
+
+def _evaluation(normals, lights, albedo, usable):
+    shading = lights[:, :1] + lights[:, 1:] @ normals.T  # (n, N)
+    n, N = shading.shape
+    return Evaluation(np.zeros((n, N, 3)), usable, np.zeros((n, N, 3), np.float32), shading, normals,
+                      np.ones(N), None, 0.0, 0.0)
+
+
+def test_normal_evidence_scales_with_albedo_squared_and_vanishes_without_light_diversity():
+    """Four frames lit from four sides: the evidence of a pixel 10x darker is 100x smaller; with
+    one light for every frame the shading says nothing about the normal (evidence ~0)."""
+    N = 3
+    normals = np.tile([0.0, 0.0, -1.0], (N, 1))
+    lights = np.array([[0.2, 0.5, 0, -1], [0.2, -0.5, 0, -1], [0.2, 0, 0.5, -1], [0.2, 0, -0.5, -1]])
+    albedo = np.array([[0.6] * 3, [0.06] * 3, [0.6] * 3])
+    usable = np.ones((4, N), bool)
+    usable[1:, 2] = False  # pixel 2: one frame only
+    est = Estimate(np.full(N, 0.5), albedo, lights, np.tile(np.eye(4), (4, 1, 1)))
+    evidence = normal_evidence(SHLight(), est, _evaluation(normals, lights, albedo, usable), np.zeros((N, 3)))
+    assert evidence[0] > 0
+    assert evidence[1] / evidence[0] == pytest.approx(0.01, rel=1e-6)
+    assert evidence[2] < 1e-9 * evidence[0]
+    same = np.tile(lights[:1], (4, 1))
+    est.lights = same
+    flat = normal_evidence(SHLight(), est, _evaluation(normals, same, albedo, np.ones((4, N), bool)), np.zeros((N, 3)))
+    assert flat.max() < 1e-9 * evidence[0]
+
+
+def test_evidence_weights_lean_on_smoothness_where_evidence_is_weak():
+    weights = evidence_weights(np.array([1.0, 2.0, 1.0, 0.1, 0.0, 3.0, 1.0]))
+    assert np.allclose(weights, [1, 1, 1, 10, EVIDENCE_MAX_WEIGHT, 1, 1])
+    assert np.array_equal(evidence_weights(np.zeros(4)), np.ones(4))
+
+
+def test_weighted_smoothness_energy_is_the_weighted_sum_of_squared_second_differences():
+    rng = np.random.default_rng(1)
+    grid = masked_grid(np.ones((12, 15), bool))
+    S = second_differences(grid)
+    prior = DepthPrior(S[:0], np.zeros(0), S=S)
+    z = rng.random(grid.size)
+    w = 1 + 9 * rng.random(grid.size)
+    prior.weigh_smoothness(w)
+    centre = S.indices[S.data < 0]
+    assert prior.energy(z, 0.0, 2.0) == pytest.approx(2.0 * np.sum(w[centre] * (S @ z) ** 2), rel=1e-12)
+    hessian, rhs = prior.normal_equations(z, 0.0, 2.0)
+    assert np.allclose(hessian @ z, -rhs)  # the gradient of the weighted energy
+    prior.weigh_smoothness(np.ones(grid.size))  # replaces, does not compound
+    assert prior.energy(z, 0.0, 1.0) == pytest.approx(np.sum((S @ z) ** 2), rel=1e-12)
+
+
+def test_options_reject_a_wrong_sensor_lowpass():
+    with pytest.raises(ValueError, match="sensor_lowpass.*-1"):
+        RefineOptions(sensor_lowpass=-1)
+    with pytest.raises(ValueError, match="evidence_weights"):
+        RefineOptions(evidence_weights="yes")
+    assert RefineOptions().sensor_lowpass == "auto" and RefineOptions().evidence_weights is True
+
+
+def _solve_quilt(scene, **options):
+    n = len(scene["colors"])
+    opts = RefineOptions(progress=False, light_model="sh", refine_poses=False, refine_led_offset=False, levels=3,
+                         max_iterations=4, **options)
+    return solve(SolverInput(scene["colors"], scene["depths"], [None] * n, scene["K"], scene["depth_K"], 2,
+                             np.tile(np.eye(4), (n, 1, 1)), np.zeros(3), list(range(n)), opts))
+
+
+def test_static_camera_quilt_keeps_the_sensors_coarse_shape():
+    """A static camera, a hand-held light 0.35 m off axis (which the SH model cannot describe),
+    6 frames of a plaid quilt, 160x120, SF 2: without the tie the surface bends (low-pass
+    difference from the sensor, Gaussian 5 px, p95 measured 14.6 per mille of depth); with it
+    1.56 per mille (bound 2, the issue's target: 22 % margin), and the depth RMSE against the
+    truth falls (measured 3.66 -> 0.98 mm; bound: below the untied run's)."""
+    scene = quilt_scene(frames=6, size=(160, 120))
+    H, W = 120, 160
+    sensor = cv2.resize(scene["depths"][0].astype(np.float64), (W, H), interpolation=cv2.INTER_CUBIC)
+    inner = np.zeros((H, W), bool)
+    inner[8:-8, 8:-8] = True
+    results = {}
+    for label, tie in (("tied", "auto"), ("untied", None)):
+        out = _solve_quilt(scene, sensor_lowpass=tie)
+        low = np.abs(_lowpass(out.depth, out.mask, 5.0) - _lowpass(sensor, out.mask, 5.0))[inner] / out.depth[inner]
+        rmse = np.sqrt(np.mean((out.depth - scene["depth"])[inner] ** 2))
+        results[label] = (1000 * np.percentile(low, 95), 1000 * rmse)
+    assert results["tied"][0] < 2.0, results
+    assert results["untied"][0] > 3 * results["tied"][0], results
+    assert results["tied"][1] < results["untied"][1], results
