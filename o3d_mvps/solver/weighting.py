@@ -90,14 +90,15 @@ def normal_evidence(light_model, est, ev, points: np.ndarray) -> np.ndarray:
     _, L = light_model.fields(est.lights, normals, points, est.poses)
     rho2 = (est.albedo ** 2).sum(axis=1)
     N = normals.shape[0]
-    G, v, d = xp.zeros((N, 3, 3)), xp.zeros((N, 3)), xp.zeros(N)
-    for i in range(len(est.lights)):
-        Li = xp.broadcast_to(xp.asarray(L[i], dtype=np.float64), (N, 3))
-        u = ev.usable[i] * rho2
-        s = ev.shading[i].astype(np.float64)
-        G += u[:, None, None] * Li[:, :, None] * Li[:, None, :]
-        v += (u * s)[:, None] * Li
-        d += u * s * s
+    u = ev.usable * rho2  # (n, N)
+    us = u * ev.shading
+    L = xp.asarray(L, dtype=np.float64)
+    if L.ndim == 2:  # one field per frame (SH): sums over the frames as products with (n, 9) and (n, 3)
+        G = u.T.astype(np.float64) @ (L[:, :, None] * L[:, None, :]).reshape(-1, 9)
+        G, v = G.reshape(N, 3, 3), us.T.astype(np.float64) @ L
+    else:
+        G, v = xp.einsum("in,inj,ink->njk", u, L, L), xp.einsum("in,inj->nj", us, L)
+    d = (us * ev.shading).sum(axis=0)
     G -= v[:, :, None] * v[:, None, :] / xp.maximum(d, 1e-30)[:, None, None]
     # the 2 x 2 restriction to the tangent plane (t1, t2) and its smaller eigenvalue in closed form
     axis = xp.where((xp.abs(normals[:, 0]) < 0.9)[:, None], xp.asarray([1.0, 0.0, 0.0]), xp.asarray([0.0, 1.0, 0.0]))
