@@ -190,11 +190,11 @@ def _extrapolate(problem: LevelProblem, est: Estimate, ev, before: Estimate, fac
     return best[1]
 
 
-def _tie_to_sensor(problem: LevelProblem, est: Estimate, z0: np.ndarray, sigma: float) -> None:
+def _tie_to_sensor(problem: LevelProblem, g, est: Estimate, z0: np.ndarray, sigma: float) -> None:
     """At a level's end, give ``est``'s depth the sensor's low frequencies
     (:func:`.weighting.tie_low_frequencies`, Gaussian of ``sigma`` depth pixels; z0 (h, w) the
-    sensor depth, metres) and refit the albedo to the tied depth, in place."""
-    g = problem.level.grid
+    sensor depth, metres) and refit the albedo to the tied depth, in place. g: the level's grid
+    on the host."""
     tied = tie_low_frequencies(g.scatter(to_host(est.z)), g.mask, z0, sigma)
     est.z = problem.level.prior.clip(like(g.gather(tied), est.z))
     ev = problem.evaluate(est)
@@ -324,7 +324,7 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
         history.extend(_sweeps(problem, est, options, timings, stats))
         if tie_sigma is not None:
             t = time.perf_counter()
-            _tie_to_sensor(problem, est, z0, tie_sigma)
+            _tie_to_sensor(problem, g, est, z0, tie_sigma)
             timings["sensor_tie"] += time.perf_counter() - t
         return Carried(fill_nearest_valid(g.scatter(to_host(est.z)), g.mask),
                        fill_nearest_valid(g.scatter(to_host(est.albedo)), g.mask), est.lights, est.poses, est.led_offset)

@@ -20,6 +20,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from ..model.arrays import array_module
 from ..model.resampling import fill_nearest_valid
 from .smoothness import sensor_roughness
 
@@ -85,7 +86,7 @@ def normal_evidence(light_model, est, ev, points: np.ndarray) -> np.ndarray:
     n. Small where the albedo is dark, few frames see p, or their lights hardly differ; the image
     noise sigma makes the normal's standard deviation about ``sigma / sqrt(evidence)`` radians.
     est: the :class:`~.problem.Estimate`; ev its :class:`~.problem.Evaluation`; points (N, 3)."""
-    xp = np if isinstance(ev.normals, np.ndarray) else __import__("cupy")
+    xp = array_module(ev.normals)
     normals = ev.normals
     _, L = light_model.fields(est.lights, normals, points, est.poses)
     rho2 = (est.albedo ** 2).sum(axis=1)
@@ -116,7 +117,7 @@ def evidence_weights(evidence: np.ndarray) -> np.ndarray:
     says k times less about its normal than the typical pixel gets k times the smoothness, so
     the smoothing's balance against the image noise is the typical pixel's everywhere; pixels at
     or above the median keep the plain weight."""
-    xp = np if isinstance(evidence, np.ndarray) else __import__("cupy")
+    xp = array_module(evidence)
     reference = float(xp.median(evidence))
     if not reference > 0:
         return xp.ones_like(evidence)
