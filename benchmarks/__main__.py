@@ -5,14 +5,17 @@ frames: error of ours against n in {5, ..., 30} (bunny, SF 4). tau: error agains
 speed: wall time and peak memory of odometry + refine at 640x480 / 160x120, 1280x720 / 640x360 (D415)
 and 1708x1136 / 427x284 with 1M object pixels (about 2.5 min and 6 GB on two cores).
 object: reconstruct rendered 360-degree rings with raw and refined depth; Chamfer, normals, 1/2 workers.
+static: a static-camera, moving-light capture with the D415-like sensor: ours vs bicubic, normal MAE,
+depth RMSE and the low-pass shape difference from the sensor depth (p95, per mille).
 room: a table-and-wall scene (automatic masks), room-lit and LED-lit (--light): error and banding along
 the 1 mm depth steps.
 scaling: time, memory, sweeps and CG iterations against object pixels x frames (--baseline REV
 runs an earlier commit side by side; not part of 'all': hours at the default sizes).
-figures: README pictures (normals of every method, textured preview).
+figures: README and docs pictures (normals of every method, textured preview).
 gpu (python -m benchmarks.gpu make|run|count, not part of 'all'): the solver's CUDA path against the
 CPU on saved problems, for a GPU machine without Open3D, and its device operations counted without a
 GPU (see benchmarks/gpu.py).
+summary: no run; rebuild summary.md and every plot from the result files already in --out.
 all: everything, one after the other. --quick runs a tiny case of each (CI, under a minute).
 Results go to DIR (default benchmarks/results) as JSON, summary.md and PNG plots.
 """
@@ -21,7 +24,7 @@ from __future__ import annotations
 
 import argparse
 
-from . import accuracy, figures, object as object_study, room, scaling, speed, studies
+from . import accuracy, figures, object as object_study, room, scaling, speed, static, studies
 from .summary import write_summary
 
 STUDIES = ("accuracy", "frames", "tau", "speed", "room", "figures")
@@ -40,6 +43,8 @@ def _run(name: str, args) -> None:
         object_study.run(args)
     elif name == "room":
         room.run(args)
+    elif name == "static":
+        static.run(args)
     else:
         studies.run(args, name)
 
@@ -61,13 +66,16 @@ def main(argv=None) -> int:
                                               help="whole-object reconstruction on 360-degree rings, raw vs refined"))
     room.add_arguments(sub.add_parser("room", parents=[common],
                                       help="a scene under room light and the LED: error and banding along the 1 mm depth steps"))
-    figures.add_arguments(sub.add_parser("figures", parents=[common], help="README pictures (normals, preview)"))
+    static.add_arguments(sub.add_parser("static", parents=[common],
+                                        help="static camera, moving light, D415-like sensor: ours vs bicubic"))
+    figures.add_arguments(sub.add_parser("figures", parents=[common], help="README and docs pictures (normals, preview)"))
     sub.add_parser("all", parents=[common], help="every benchmark with its defaults")
+    sub.add_parser("summary", parents=[common], help="no run: rebuild summary.md and the plots from the results in --out")
     args = parser.parse_args(argv)
     if args.command == "all":
         for name in STUDIES:
             _run(name, parser.parse_args([name, *(["--quick"] if args.quick else []), "--out", args.out]))
-    else:
+    elif args.command != "summary":
         _run(args.command, args)
     print(f"wrote {write_summary(args.out)}")
     return 0

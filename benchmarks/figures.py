@@ -1,4 +1,4 @@
-"""Pictures for the README: normals of every method next to the truth, and a textured preview.
+"""Pictures for the README and the docs: normals of every method next to the truth, and a textured preview.
 
 Writes ``normals_<mesh>.png`` (ground truth, bicubic, guided, ours; normals as RGB) and
 ``preview_<mesh>.png`` (the refined mesh with its albedo texture, pyvista off-screen); with
@@ -17,21 +17,19 @@ import open3d as o3d
 
 from o3d_mvps import RefineOptions, refine
 from o3d_mvps.baselines import bicubic, guided
-from o3d_mvps.fileio import write_png
 from o3d_mvps.metrics import evaluate
 from o3d_mvps.reconstruct import ReconstructOptions, reconstruct
 from o3d_mvps.reconstruct.solid import print_frame
 from o3d_mvps.synthetic import render_capture
 from o3d_mvps.viz import render_preview
 
+from .plots import image_row
 
-def normals_picture(normals: np.ndarray, mask: np.ndarray, box: tuple, label: str) -> np.ndarray:
-    """(h, w, 3) uint8 RGB tile of unit normals (H, W, 3) as (n + 1) / 2, cropped to box, labelled."""
+
+def normals_picture(normals: np.ndarray, mask: np.ndarray, box: tuple) -> np.ndarray:
+    """(h, w, 3) uint8 RGB tile of unit normals (H, W, 3) as (n + 1) / 2, white off the mask, cropped to box."""
     r0, r1, c0, c1 = box
-    tile = np.where(mask[..., None], (normals + 1.0) * 127.5, 255.0)[r0:r1, c0:c1].astype(np.uint8)
-    tile = np.ascontiguousarray(tile)
-    cv2.putText(tile, label, (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 1, cv2.LINE_AA)
-    return tile
+    return np.where(mask[..., None], (normals + 1.0) * 127.5, 255.0)[r0:r1, c0:c1].astype(np.uint8)
 
 
 def add_arguments(parser) -> None:
@@ -60,7 +58,7 @@ def reconstruct_picture(mesh: str, path: Path, quick: bool) -> None:
         for name, shown in (("mesh", textured), ("solid", solid)):
             render_preview(shown, Path(tmp) / f"{name}.png", size=(480, 480), view="iso")
             tiles.append(cv2.cvtColor(cv2.imread(str(Path(tmp) / f"{name}.png")), cv2.COLOR_BGR2RGB))
-    write_png(path, np.concatenate(tiles, axis=1))
+    image_row(path, tiles, ["textured mesh (albedo texture)", "print solid (80 mm, closed)"], width=4.0)
     print(f"wrote {path}")
 
 
@@ -75,12 +73,13 @@ def run(args) -> None:
     rows, cols = np.nonzero(mask)
     box = (max(rows.min() - 8, 0), rows.max() + 8, max(cols.min() - 8, 0), cols.max() + 8)
     ours = refine(capture, RefineOptions(progress=False))
-    tiles = [normals_picture(gt.normals, mask, box, "ground truth")]
+    tiles, titles = [normals_picture(gt.normals, mask, box)], ["ground truth"]
     for name, result in (("bicubic", bicubic(capture)), ("guided", guided(capture)), ("ours", ours)):
-        mae = evaluate(result, gt)["mae_deg"]
-        tiles.append(normals_picture(result.normals_array(), result.mask_array(), box, f"{name} {mae:.1f} deg"))
+        tiles.append(normals_picture(result.normals_array(), result.mask_array(), box))
+        titles.append(f"{name}: MAE {evaluate(result, gt)['mae_deg']:.2f} deg")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    write_png(out / f"normals_{args.mesh}.png", np.concatenate(tiles, axis=1))
+    image_row(out / f"normals_{args.mesh}.png", tiles, titles,
+              title=f"Normals as RGB, {args.mesh}, SF 4, {frames} frames, {size[0]}x{size[1]}")
     render_preview(ours.to_mesh(), out / f"preview_{args.mesh}.png", size=(640, 480), overwrite=True)
     print(f"wrote {out / f'normals_{args.mesh}.png'} and {out / f'preview_{args.mesh}.png'}")

@@ -21,7 +21,10 @@ stand-in of tests/cupy_emulation.py; no memory counted, times meaningless).
   CUDA path's device operations (kernel launches and copies, each costing 5-20 us from Python on
   a GPU however small the level) per pyramid level and sweep, on that stand-in, with the CPU's
   kernels standing in for the CUDA ones (one launch per call) and the CUDA path's levels (those
-  below CUDA_MIN_LEVEL_PIXELS on the CPU); writes ``gpu_operations.json``.
+  below CUDA_MIN_LEVEL_PIXELS on the CPU); writes ``gpu_counts.json``: per problem the totals by
+  kind, launches (every operation but the copies) and transfers (copies either way), and per
+  level the operations, launches and transfers per sweep; with ``baseline`` the totals of
+  ``gpu_operations.json`` (the counts at aacda76) and their ratio.
 """
 
 from __future__ import annotations
@@ -139,11 +142,12 @@ def run(folder, out="benchmarks/results", device="cuda:0") -> list[dict]:
 
 def count(folder, out="benchmarks/results", min_level_pixels: int | None = None) -> list[dict]:
     """Count the CUDA path's device operations on every saved problem of ``folder`` (see the
-    module's docstring); writes ``out``/gpu_operations.json and returns its rows: problem,
-    object_pixels, operations (total) and by_kind, and per level (coarsest first) its pixels,
-    device, sweeps and the operations of its sweeps (the levels' set-up and the copies between
-    levels count in the total only). min_level_pixels: the CUDA path's smallest level on the
-    device (None: the product's, CUDA_MIN_LEVEL_PIXELS)."""
+    module's docstring); writes ``out``/gpu_counts.json and returns its rows: problem,
+    object_pixels, operations (total), launches, transfers and by_kind, and per level (coarsest
+    first) its pixels, device, sweeps and the operations, launches and transfers of its sweeps,
+    in all and per sweep (the levels' set-up and the copies between levels count in the totals
+    only). min_level_pixels: the CUDA path's smallest level on the device (None: the product's,
+    CUDA_MIN_LEVEL_PIXELS)."""
     tests = str(Path(__file__).resolve().parents[1] / "tests")
     if tests not in sys.path:
         sys.path.insert(0, tests)
@@ -160,12 +164,17 @@ def count(folder, out="benchmarks/results", min_level_pixels: int | None = None)
     solve_level_sweeps = driver._sweeps
 
     def counted_sweeps(problem, *args, **kwargs):
-        before = sum(cupy_emulation.operations.values())
+        kinds = cupy_emulation.operations
+        before, copies_before = sum(kinds.values()), kinds["to_host"] + kinds["to_device"]
         rows = solve_level_sweeps(problem, *args, **kwargs)
+        operations, transfers = sum(kinds.values()) - before, kinds["to_host"] + kinds["to_device"] - copies_before
         levels.append({"level": problem.level.index, "pixels": problem.level.grid.size, "sweeps": len(rows) - 1,
-                       "operations": sum(cupy_emulation.operations.values()) - before})
+                       "operations": operations, "launches": operations - transfers, "transfers": transfers})
         return rows
 
+    baseline_file = Path(out) / "gpu_operations.json"
+    baseline = ({row["problem"]: row["operations"] for row in json.loads(baseline_file.read_text())}
+                if baseline_file.is_file() else {})
     results = []
     driver._sweeps = counted_sweeps
     try:
@@ -178,15 +187,22 @@ def count(folder, out="benchmarks/results", min_level_pixels: int | None = None)
                 solution = driver.solve(read_problem(path), device=device)
                 for level, where in zip(levels, solution.info["level_devices"]):
                     level["device"] = where
-                results.append({"problem": path.name, "object_pixels": int(solution.mask.sum()),
-                                "operations": sum(cupy_emulation.operations.values()),
-                                "by_kind": dict(cupy_emulation.operations.most_common()), "levels": list(levels)})
+                    for name in ("operations", "launches", "transfers"):
+                        level[f"{name}_per_sweep"] = round(level[name] / max(level["sweeps"], 1), 1)
+                kinds = cupy_emulation.operations
+                total, transfers = sum(kinds.values()), kinds["to_host"] + kinds["to_device"]
+                results.append({"problem": path.name, "object_pixels": int(solution.mask.sum()), "operations": total,
+                                "launches": total - transfers, "transfers": transfers,
+                                "by_kind": dict(kinds.most_common()), "levels": list(levels),
+                                **({"baseline": {"commit": "aacda76", "operations": baseline[path.name],
+                                                 "ratio": round(total / baseline[path.name], 3)}}
+                                   if path.name in baseline else {})})
                 print(json.dumps(results[-1]), flush=True)
     finally:
         driver._sweeps = solve_level_sweeps
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "gpu_operations.json").write_text(json.dumps(results, indent=1))
+    (out / "gpu_counts.json").write_text(json.dumps(results, indent=1))
     return results
 
 
@@ -201,7 +217,7 @@ def _cpu_kernels_as_cuda_kernels(stand_in):
     def launcher(kernel):
         def launch(*args):
             stand_in.operations["kernel"] += 1
-            return kernel(*(a.view(np.ndarray) if isinstance(a, stand_in.ndarray) else a for a in args))
+            return kernel(*(stand_in.host_data(a) for a in args))
         return launch
 
     module = types.ModuleType(cuda_kernels.__name__)

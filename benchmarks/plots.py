@@ -1,65 +1,120 @@
-"""Minimal line plots drawn with OpenCV (no matplotlib): white canvas, axes, ticks, legend."""
+"""The benchmarks' figures, drawn with matplotlib (Agg, no display): line plots, the log-log
+scaling plot with its fitted power law, error maps with a colour bar, and labelled image rows.
+Every axis names its quantity and unit."""
 
 from __future__ import annotations
 
-import itertools
-import math
+from pathlib import Path
 
-import cv2
-import numpy as np
+import matplotlib
 
-COLOURS = [(200, 80, 30), (40, 40, 220), (40, 160, 40), (160, 40, 160), (0, 140, 220)]  # BGR
-FONT = cv2.FONT_HERSHEY_SIMPLEX
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402  (after the backend is chosen)
+import numpy as np  # noqa: E402
+from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter  # noqa: E402
+
+DPI = 120
 
 
-def _ticks(lo: float, hi: float, count: int = 5) -> list[float]:
-    if hi <= lo:
-        return [lo]
-    step = 10 ** math.floor(math.log10((hi - lo) / count))
-    step *= next(m for m in (1, 2, 5, 10) if (hi - lo) / (step * m) <= count)
-    return [k * step for k in range(math.ceil(lo / step), math.floor(hi / step) + 1)]
+def _save(fig, path) -> None:
+    """Write ``fig`` as a PNG at ``path`` and close it."""
+    fig.savefig(Path(path), dpi=DPI, bbox_inches="tight", metadata={"Software": None})
+    plt.close(fig)
+
+
+def _plain(value: float, _position=None) -> str:
+    """Tick text without exponents: 5, 20, 300, 2k, 1.5M."""
+    for scale, suffix in ((1e6, "M"), (1e3, "k")):
+        if abs(value) >= scale:
+            return f"{value / scale:g}{suffix}"
+    return f"{value:g}"
 
 
 def line_plot(path, series: dict, *, title: str, xlabel: str, ylabel: str, logx: bool = False,
-              size: tuple[int, int] = (640, 420)) -> None:
-    """Write a PNG of one or more lines: ``series`` maps a label to (xs, ys)."""
-    W, H = size
-    left, right, top, bottom = 70, 20, 40, 55
-    img = np.full((H, W, 3), 255, np.uint8)
-    fx = (lambda x: math.log10(x)) if logx else float
-    xs = [fx(x) for xy in series.values() for x in xy[0]]
-    ys = [float(y) for xy in series.values() for y in xy[1]]
-    x0, x1 = min(xs), max(xs)
-    y0, y1 = min(ys), max(ys)
-    pad = 0.08 * (y1 - y0 or abs(y1) or 1.0)
-    y0, y1 = y0 - pad, y1 + pad
-    x1 = x1 if x1 > x0 else x0 + 1.0
+              size: tuple[float, float] = (6.4, 4.2)) -> None:
+    """Write a PNG of one or more lines with markers: ``series`` maps a label to (xs, ys).
 
-    def px(x, y):
-        return (int(left + (fx(x) - x0) / (x1 - x0) * (W - left - right)),
-                int(H - bottom - (y - y0) / (y1 - y0) * (H - top - bottom)))
+    ``logx`` puts x on a log axis, ticked at the data's x values. ``size``: inches (width, height).
+    """
+    fig, ax = plt.subplots(figsize=size)
+    for label, (xs, ys) in series.items():
+        ax.plot(xs, ys, marker="o", label=label)
+    if logx:
+        ax.set_xscale("log")
+        ticks = sorted({x for xs, _ in series.values() for x in xs})
+        ax.set_xticks(ticks)
+        ax.xaxis.set_major_formatter(FuncFormatter(_plain))
+        ax.xaxis.set_minor_formatter(NullFormatter())
+    ax.set(title=title, xlabel=xlabel, ylabel=ylabel)
+    ax.grid(True, which="major", alpha=0.3)
+    ax.legend(fontsize="small")
+    _save(fig, path)
 
-    cv2.rectangle(img, (left, top), (W - right, H - bottom), (0, 0, 0), 1)
-    xticks = sorted({x for xy in series.values() for x in xy[0]}) if logx else _ticks(x0, x1)
-    for x in xticks:
-        p = px(x, y0)
-        cv2.line(img, (p[0], H - bottom), (p[0], H - bottom + 5), (0, 0, 0), 1)
-        cv2.putText(img, f"{x:g}", (p[0] - 12, H - bottom + 20), FONT, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
-    for y in _ticks(y0, y1):
-        p = px(10 ** x0 if logx else x0, y)
-        cv2.line(img, (left - 5, p[1]), (left, p[1]), (0, 0, 0), 1)
-        cv2.line(img, (left + 1, p[1]), (W - right - 1, p[1]), (230, 230, 230), 1)
-        cv2.putText(img, f"{y:g}", (5, p[1] + 4), FONT, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
-    for k, (label, (lx, ly)) in enumerate(series.items()):
-        colour = COLOURS[k % len(COLOURS)]
-        points = [px(x, y) for x, y in zip(lx, ly)]
-        for a, b in itertools.pairwise(points):
-            cv2.line(img, a, b, colour, 2, cv2.LINE_AA)
-        for p in points:
-            cv2.circle(img, p, 3, colour, -1, cv2.LINE_AA)
-        cv2.putText(img, label, (left + 10, top + 18 + 16 * k), FONT, 0.45, colour, 1, cv2.LINE_AA)
-    cv2.putText(img, title, (left + 90, 20), FONT, 0.55, (0, 0, 0), 1, cv2.LINE_AA)
-    cv2.putText(img, xlabel, ((W - left) // 2, H - 12), FONT, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
-    cv2.putText(img, ylabel, (5, top - 8), FONT, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
-    if not cv2.imwrite(str(path), img):
-        raise OSError(f"cannot write the plot {path}")
+
+def scaling_plot(path, series: dict, fits: dict, *, title: str, xlabel: str, ylabel: str) -> None:
+    """Log-log plot of measured points and fitted power laws.
+
+    series: label -> (xs, ys) measured points (both > 0). fits: label -> (exponent, prefactor)
+    of ``y = prefactor * x**exponent``, drawn as a dashed line over that series' x range and
+    named in the legend.
+    """
+    fig, ax = plt.subplots(figsize=(6.4, 4.4))
+    for k, (label, (xs, ys)) in enumerate(series.items()):
+        colour = f"C{k}"
+        ax.plot(xs, ys, "o", color=colour, label=f"{label} (measured)")
+        if label in fits:
+            exponent, prefactor = fits[label]
+            x = np.geomspace(min(xs), max(xs), 50)
+            ax.plot(x, prefactor * x ** exponent, "--", color=colour,
+                    label=f"{label}: fit $\\propto$ work$^{{{exponent:.2f}}}$")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    for axis in (ax.xaxis, ax.yaxis):
+        axis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+        axis.set_major_formatter(FuncFormatter(_plain))
+        axis.set_minor_formatter(NullFormatter())
+    ax.set(title=title, xlabel=xlabel, ylabel=ylabel)
+    ax.grid(True, which="major", alpha=0.3)
+    ax.legend(fontsize="small")
+    _save(fig, path)
+
+
+def error_maps(path, maps: dict, *, vmax: float, title: str, unit: str = "deg", scale_px: float | None = None) -> None:
+    """Error maps side by side on one colour scale (0 to ``vmax``, larger values at the top
+    colour) with a colour bar; NaN pixels (not evaluated) are white.
+
+    maps: label -> (H, W) array, all the same size. ``scale_px``: colour pixels per axis tick
+    step, None for plain pixel ticks.
+    """
+    n = len(maps)
+    first = next(iter(maps.values()))
+    height, width = first.shape
+    fig, axes = plt.subplots(1, n, figsize=(3.2 * n + 0.8, 3.2 * height / width + 0.6), squeeze=False,
+                             layout="constrained")
+    cmap = plt.get_cmap("inferno").with_extremes(bad="white")
+    image = None
+    for ax, (label, error) in zip(axes[0], maps.items()):
+        image = ax.imshow(np.ma.masked_invalid(error), cmap=cmap, vmin=0.0, vmax=vmax, interpolation="nearest")
+        ax.set_title(label, fontsize="medium")
+        ax.set_xlabel("column (px)")
+    axes[0][0].set_ylabel("row (px)")
+    for ax in axes[0][1:]:
+        ax.tick_params(labelleft=False)
+    fig.colorbar(image, ax=axes[0].tolist(), label=f"normal error ({unit})", extend="max", shrink=0.9)
+    fig.suptitle(title)
+    _save(fig, path)
+
+
+def image_row(path, images: list, titles: list[str], *, title: str | None = None, width: float = 3.2) -> None:
+    """RGB images (H, W, 3) uint8 or floats in [0, 1] side by side, each titled, without axes."""
+    n = len(images)
+    height, w = np.shape(images[0])[:2]
+    fig, axes = plt.subplots(1, n, figsize=(width * n, width * height / w + (0.7 if title else 0.4)), squeeze=False,
+                             layout="constrained")
+    for ax, image, label in zip(axes[0], images, titles):
+        ax.imshow(image, interpolation="nearest")
+        ax.set_title(label, fontsize="medium")
+        ax.set_axis_off()
+    if title:
+        fig.suptitle(title)
+    _save(fig, path)

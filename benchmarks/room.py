@@ -16,7 +16,8 @@ steps show through. Every slope spreads its pixels evenly over the phase, so the
 confuse steep parts (more steps, larger errors) with banding, as counting the pixels beside a
 sensor step did (that measure is kept as ``mae_beside_steps_deg``). Writes ``room.json`` (one
 entry per light under ``"scenes"``), ``room.md`` (a section per light) and the normal error maps
-``room_banding.png`` (room light) and ``room_banding_led.png`` (LED).
+``room_banding.png`` (room light) and ``room_banding_led.png`` (LED), drawn from the maps
+saved in ``room_maps.npz`` (``python -m benchmarks summary`` redraws them).
 """
 
 from __future__ import annotations
@@ -26,7 +27,6 @@ import time
 import warnings
 from pathlib import Path
 
-import cv2
 import numpy as np
 from scipy import ndimage
 
@@ -38,6 +38,8 @@ from o3d_mvps.metrics import evaluation_mask
 from o3d_mvps.model.resampling import repeat_pixels
 from o3d_mvps.synthetic import DEPTH_SCALE, render_ring
 
+from .plots import error_maps
+
 FULL = {"size": (640, 480), "scale_factor": 4, "frames": 20}
 QUICK = {"size": (160, 120), "scale_factor": 4, "frames": 12}
 ON_LINE = 0.125  # phase distance (steps) from an iso-depth line that counts as "on the line"
@@ -46,6 +48,7 @@ RIM_PX = 12  # colour pixels from the evaluated region's edge that count as the 
 LIGHTS = ("room", "led")
 TITLES = {"room": "Room light", "led": "LED"}
 PICTURES = {"room": "room_banding.png", "led": "room_banding_led.png"}
+MAPS = "room_maps.npz"  # the pictures' error maps, cropped to the object
 
 
 def add_arguments(parser) -> None:
@@ -169,31 +172,52 @@ def run(args) -> None:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     lights = LIGHTS if args.light == "both" else (args.light,)
-    scenes = []
+    scenes, maps_by_light = [], {}
     lines = [f"# Table-and-wall scene, {args.mesh}, {case['size'][0]}x{case['size'][1]}, SF {case['scale_factor']}, "
              f"{case['frames']} frames (automatic masks, true poses, no noise)", ""]
     for light in lights:
         rows, maps = scene_rows(args.mesh, case, light)
         scenes.append({"light": light, "rows": rows})
         lines += markdown_section(light, rows)
-        _picture(maps, out / PICTURES[light])
+        maps_by_light[light] = crop_to_object(maps)
     result = {"mesh": args.mesh, **{k: list(v) if isinstance(v, tuple) else v for k, v in case.items()},
               "poses": "true", "scenes": scenes}
     (out / "room.json").write_text(json_text(result, "room study"))
     (out / "room.md").write_text("\n".join(lines[:-1]) + "\n")
+    save_maps(out / MAPS, maps_by_light)
+    draw_pictures(out)
 
 
-def _picture(maps: dict, path: Path, vmax: float = 60.0) -> None:
-    """Error maps side by side (0 deg black to ``vmax`` white, evaluated pixels only), cropped to the object."""
+def crop_to_object(maps: dict, margin: int = 4) -> dict:
+    """The (H, W) error maps cropped to the evaluated pixels' box plus ``margin`` pixels."""
     valid = np.isfinite(next(iter(maps.values())))
     rows, cols = np.nonzero(valid)
-    crop = (slice(max(rows.min() - 4, 0), rows.max() + 5), slice(max(cols.min() - 4, 0), cols.max() + 5))
-    tiles = []
-    for name, error in maps.items():
-        grey = np.nan_to_num(np.clip(error[crop] / vmax, 0, 1) * 255).astype(np.uint8)
-        tile = cv2.applyColorMap(grey, cv2.COLORMAP_INFERNO)
-        tile[~np.isfinite(error[crop])] = 255
-        tile = cv2.resize(tile, None, fx=2, fy=2, interpolation=cv2.INTER_NEAREST)
-        cv2.putText(tile, name, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
-        tiles.append(tile)
-    cv2.imwrite(str(path), np.hstack(tiles))
+    crop = (slice(max(rows.min() - margin, 0), rows.max() + margin + 1),
+            slice(max(cols.min() - margin, 0), cols.max() + margin + 1))
+    return {name: error[crop] for name, error in maps.items()}
+
+
+def save_maps(path: Path, maps_by_light: dict) -> None:
+    """Write every light's cropped error maps (deg, float16, NaN = not evaluated) to one .npz,
+    keys ``LIGHT/METHOD``: what :func:`draw_pictures` draws from."""
+    np.savez_compressed(path, **{f"{light}/{name}": error.astype(np.float16)
+                                 for light, maps in maps_by_light.items() for name, error in maps.items()})
+
+
+def draw_pictures(out: Path, vmax: float = 60.0) -> list[Path]:
+    """The error-map pictures (:data:`PICTURES`) from ``out/room_maps.npz``, one per light saved
+    there; 0 deg black to ``vmax`` and above light yellow, not evaluated white."""
+    source = out / MAPS
+    if not source.is_file():
+        return []
+    with np.load(source) as saved:
+        by_light: dict = {}
+        for key in saved.files:
+            light, name = key.split("/", 1)
+            by_light.setdefault(light, {})[name] = saved[key].astype(np.float32)
+    written = []
+    for light, maps in by_light.items():
+        path = out / PICTURES[light]
+        error_maps(path, maps, vmax=vmax, title=f"{TITLES[light]}: normal error of the reference view")
+        written.append(path)
+    return written

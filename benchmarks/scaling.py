@@ -29,7 +29,7 @@ import numpy as np
 
 from o3d_mvps.fileio import json_text
 
-from .plots import line_plot
+from .plots import scaling_plot
 from .speed import warm_up
 
 REPOSITORY = Path(__file__).resolve().parent.parent
@@ -86,13 +86,22 @@ def time_capture(folder: Path, tree: Path, timeout: float) -> dict:
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
-def fitted_exponent(rows: list[dict]) -> float | None:
-    """Slope of log(seconds) against log(object pixels x frames) over the finished rows."""
+def power_law(rows: list[dict]) -> tuple[float, float] | None:
+    """(exponent, prefactor) of seconds = prefactor * (object pixels x frames) ** exponent,
+    a least-squares line through log(seconds) against log(work) over the finished rows; None
+    with fewer than two distinct amounts of work."""
     done = [r for r in rows if "seconds" in r]
     if len({r["object_pixels"] * r["frames"] for r in done}) < 2:
         return None
     work = np.log([r["object_pixels"] * r["frames"] for r in done])
-    return float(np.polyfit(work, np.log([r["seconds"] for r in done]), 1)[0])
+    slope, intercept = np.polyfit(work, np.log([r["seconds"] for r in done]), 1)
+    return float(slope), float(np.exp(intercept))
+
+
+def fitted_exponent(rows: list[dict]) -> float | None:
+    """Slope of log(seconds) against log(object pixels x frames) over the finished rows."""
+    fit = power_law(rows)
+    return None if fit is None else fit[0]
 
 
 def run(args) -> list[dict]:
@@ -143,18 +152,27 @@ def write_results(out: Path, rows: list[dict]) -> None:
         cg = r.get("finest_cg_iterations")
         lines.append(f"| {r['version']} | {r['color']} | {r['object_pixels']} | {r['frames']} | {r['seconds']:.1f} | "
                      f"{r['peak_mb']:.0f} | {r.get('sweeps', '')} | {'' if cg is None else max(cg, default=0)} |")
-    series = {}
     for version in dict.fromkeys(r["version"] for r in rows):
-        mine = [r for r in rows if r["version"] == version and "seconds" in r]
-        exponent = fitted_exponent(mine)
+        exponent = fitted_exponent([r for r in rows if r["version"] == version])
         lines.append("")
         lines.append(f"{version}: fitted exponent of seconds against object pixels x frames: "
                      f"{'n/a' if exponent is None else f'{exponent:.2f}'}")
-        mine.sort(key=lambda r: r["object_pixels"] * r["frames"])
-        if mine:
-            series[version] = ([r["object_pixels"] * r["frames"] for r in mine],
-                               [math.log10(r["seconds"]) for r in mine])
     (out / "scaling.md").write_text("\n".join(lines) + "\n")
+    draw_plot(out, rows)
+
+
+def draw_plot(out: Path, rows: list[dict]) -> None:
+    """scaling.png: seconds against object pixels x frames, log-log, each version's points and
+    fitted power law."""
+    series, fits = {}, {}
+    for version in dict.fromkeys(r["version"] for r in rows):
+        mine = sorted((r for r in rows if r["version"] == version and "seconds" in r),
+                      key=lambda r: r["object_pixels"] * r["frames"])
+        if mine:
+            series[version] = ([r["object_pixels"] * r["frames"] for r in mine], [r["seconds"] for r in mine])
+        fit = power_law(mine)
+        if fit is not None:
+            fits[version] = fit
     if series:
-        line_plot(out / "scaling.png", series, title="time against work", xlabel="object pixels x frames",
-                  ylabel="log10 seconds", logx=True)
+        scaling_plot(out / "scaling.png", series, fits, title="Refinement time against work (odometry + refine)",
+                     xlabel="work: object pixels x frames", ylabel="wall time (s)")

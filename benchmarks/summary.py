@@ -1,10 +1,12 @@
-"""summary.md and the PNG plots, rebuilt from whichever result JSON files exist in a folder."""
+"""summary.md and the PNG plots, rebuilt from whichever result files exist in a folder
+(``python -m benchmarks summary`` does only this: no benchmark runs)."""
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
 
+from . import room, scaling
 from .accuracy import markdown as accuracy_table
 from .plots import line_plot
 
@@ -39,15 +41,15 @@ def _speed_table(rows: list[dict]) -> str:
 def _study_plots(out: Path, rows: list[dict], study: str, key: str, xlabel: str, logx: bool) -> list[str]:
     names = []
     protocols = dict.fromkeys(r.get("protocol", "dense") for r in rows)
-    for metric, metric_label in (("mae_deg", "MAE (deg)"), ("rmse_mm", "RMSE (mm)")):
+    for metric, metric_label in (("mae_deg", "normal MAE (deg)"), ("rmse_mm", "depth RMSE (mm)")):
         name = f"{study}_{metric.split('_')[0]}.png"
         series = {}
         for protocol in protocols:
             mine = [r for r in rows if r.get("protocol", "dense") == protocol]
             series_label = f"{mine[0]['mesh']} SF {mine[0]['sf']}" + (f" {protocol}" if len(protocols) > 1 else "")
             series[series_label] = ([r[key] for r in mine], [r[metric] for r in mine])
-        line_plot(out / name, series, title=f"{metric_label} against {xlabel}", xlabel=xlabel, ylabel=metric_label,
-                  logx=logx)
+        line_plot(out / name, series, title=f"{metric_label} against {xlabel.split(' (')[0]}", xlabel=xlabel,
+                  ylabel=metric_label, logx=logx)
         names.append(name)
     return names
 
@@ -55,6 +57,7 @@ def _study_plots(out: Path, rows: list[dict], study: str, key: str, xlabel: str,
 def write_summary(out) -> Path:
     """Write ``summary.md`` (all tables) and the plots into ``out``; returns the summary's path."""
     out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
     parts = ["# Benchmark results", ""]
     accuracy = _load(out, "accuracy")
     if accuracy:
@@ -66,17 +69,24 @@ def write_summary(out) -> Path:
                       for m in methods}
             if len({r["sf"] for r in mine}) > 1:
                 name = f"accuracy_{mesh}_mae.png"
-                line_plot(out / name, series, title=f"{mesh}: MAE against SF", xlabel="SF", ylabel="MAE (deg)")
+                line_plot(out / name, series, title=f"{mesh}: normal error against the scale factor",
+                          xlabel="scale factor SF (colour pixels per depth pixel, per axis)", ylabel="normal MAE (deg)",
+                          logx=True)
                 parts += [f"![{mesh}]({name})", ""]
-    for study, key, xlabel, logx in (("frames", "frames", "frames n", False), ("tau", "tau", "tau~", True)):
+    for study, key, xlabel, logx in (("frames", "frames", "frames n (count)", False),
+                                       ("tau", "tau", "tau~ (depth prior weight, dimensionless)", True)):
         rows = _load(out, study)
         if rows:
-            parts += [f"## Error against {xlabel} (ours)", "", _study_table(rows), ""]
+            parts += [f"## Error against {xlabel.split(' (')[0]} (ours)", "", _study_table(rows), ""]
             if len(rows) > 1:
                 parts += [f"![{name}]({name})" for name in _study_plots(out, rows, study, key, xlabel, logx)] + [""]
     speed = _load(out, "speed")
     if speed:
         parts += ["## Speed and peak memory (odometry + refine, fresh process per case)", "", _speed_table(speed), ""]
+    scaling_rows = _load(out, "scaling")
+    if scaling_rows:
+        scaling.draw_plot(out, scaling_rows)
+    room.draw_pictures(out)
     path = out / "summary.md"
     path.write_text("\n".join(parts))
     return path

@@ -1,4 +1,4 @@
-"""Baselines for depth super-resolution: bicubic and guided-filter upsampling (paper Sec. 5.1; README "Results").
+"""Baselines for depth super-resolution: bicubic and guided-filter upsampling (paper Sec. 5.1; docs/benchmarks.md).
 
 Both upsample the reference frame's low-resolution depth (h x w, metres, 0 = missing) to the
 colour grid (H x W = SF h x SF w) and return a :class:`~o3d_mvps.refinement.Refinement`

@@ -27,3 +27,8 @@ class ExportError(MVPSError, ValueError):
 
 class DeviceError(MVPSError, RuntimeError):
     """The device asked for cannot run the solver (no CuPy, no GPU, or no solver path for it)."""
+
+
+class OutputPathError(MVPSError, ValueError):
+    """An output cannot be written where asked: its parent is a file, the folder is read-only,
+    it lies inside an input, a folder stands where a file is wanted, or the disk is full."""

@@ -1,5 +1,5 @@
 """Accuracy metrics of a refinement against synthetic ground truth (the paper's MAE and RMSE,
-its section 5.1; README "Results").
+its section 5.1; docs/benchmarks.md).
 
 - MAE: mean angle in degrees between estimated and true unit normals.
 - RMSE: root-mean-square depth error in millimetres (depths are given in metres).
@@ -189,3 +189,27 @@ def reprojection_error_px(T_est: np.ndarray, T_true: np.ndarray, points_ref: np.
     u1, v1, _ = project(transform(T_est, points_ref), K)
     u2, v2, _ = project(transform(T_true, points_ref), K)
     return float(np.median(np.hypot(u1 - u2, v1 - v2)))
+
+
+#: Gaussian scale (colour pixels) of the low-pass shape difference (issue 32: 20 px).
+LOWPASS_SIGMA_PX = 20.0
+
+
+def lowpass_difference_permille(depth: np.ndarray, reference: np.ndarray, mask: np.ndarray,
+                                sigma_px: float = LOWPASS_SIGMA_PX, percentile: float = 95.0) -> float:
+    """How far the coarse shape of ``depth`` departs from ``reference`` (the sensor's), per mille of depth.
+
+    The difference ``depth - reference`` (both (H, W) metres) is low-passed over ``mask`` (H, W)
+    bool with a Gaussian of ``sigma_px`` pixels (normalised convolution: only masked pixels
+    count), divided by ``reference`` and its ``percentile`` of absolute values over the mask
+    returned in per mille. With ``reference`` the bicubic upsampling of the sensor depth this is
+    issue 32's measure of a bowl or tilt that the refinement adds to the sensor's shape (target
+    <= 2 per mille). Fine detail (well below ``sigma_px``) does not count.
+    """
+    depth, reference = np.asarray(depth, dtype=np.float64), np.asarray(reference, dtype=np.float64)
+    mask = _check_mask(mask, depth.shape, "lowpass_difference_permille") & (reference > 0)
+    _nonempty(mask, "lowpass_difference_permille")
+    weight = ndimage.gaussian_filter(mask.astype(np.float64), sigma_px, mode="constant")
+    smooth = ndimage.gaussian_filter(np.where(mask, depth - reference, 0.0), sigma_px, mode="constant")
+    low = smooth[mask] / np.maximum(weight[mask], 1e-12)
+    return float(np.percentile(np.abs(low) / reference[mask], percentile) * 1000.0)

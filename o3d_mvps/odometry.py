@@ -30,7 +30,7 @@ error).
 
 Direction (pinned by ``tests/test_odometry.py``): registering ``source`` = reference cloud onto
 ``target`` = frame-i cloud gives the transform mapping reference-camera coordinates to frame-i
-camera coordinates, i.e. ``T_i`` of the package's convention (README "Poses from other tools").
+camera coordinates, i.e. ``T_i`` of the package's convention (docs/capture-guide.md, "Poses").
 
 Why not RGB-D odometry (``o3d.t.pipelines.odometry.rgbd_odometry_multi_scale``), measured on
 ``render_capture('bunny', scale_factor=4, light='led')``: point-to-plane odometry on the

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -80,20 +81,28 @@ class Refinement:
         return refinement_to_mesh(self, **kwargs)
 
     def report(self) -> dict:
-        """JSON-ready summary: method, energy history, timings and solver information."""
-        return {"method": self.method, "energy": self.energy, "timings": self.timings, "info": self.info}
+        """The JSON-ready report of the run (written as report.json by :meth:`save`): method,
+        energy (every sweep) and energy_per_level, timings, info, inputs (checks and conventions
+        found), frames (every capture frame: used, or dropped and why), poses (how far each moved
+        from its start, mm and degrees), light, residuals (per frame), device, peak_memory_mb,
+        warnings and a summary (:mod:`o3d_mvps.run_report`)."""
+        from .run_report import refinement_report
 
-    def save(self, folder, *, overwrite: bool = False, extra_report: dict | None = None) -> None:
+        return refinement_report(self)
+
+    def save(self, folder, *, overwrite: bool = False, extra_report: dict | None = None) -> dict:
         """Write the result folder all or nothing (never over an earlier output unless ``overwrite``;
         then only the files below are replaced, any other file in the folder stays).
 
         Files: depth.npy (H, W) float32 metres and depth_mm.png uint16 millimetres, mask.png,
         normals.npy (H, W, 3) and normals.png ((n + 1) / 2 as 8-bit RGB), albedo.npy (linear)
         and albedo.png (8-bit sRGB) when estimated, poses.npy (n, 4, 4), lighting.json,
-        intrinsic.json (Open3D PinholeCameraIntrinsic), report.json.
+        intrinsic.json (Open3D PinholeCameraIntrinsic), report.json (:meth:`report`, plus
+        ``extra_report``'s keys; its summary names the folder). Returns that report.
         """
         depth, mask, normals, albedo = self.depth_array(), self.mask_array(), self.normals_array(), self.albedo_array()
         report = {**self.report(), **(extra_report or {})}
+        report["summary"]["outputs"] = os.path.abspath(os.path.expanduser(folder))
         text = json_text(report, "the refinement report")
         with atomic_folder(folder, overwrite=overwrite, what="refinement folder", layout=REFINEMENT_FILES) as tmp:
             np.save(tmp / DEPTH_NPY, depth)
@@ -113,6 +122,7 @@ class Refinement:
                 (tmp / LIGHTING_JSON).write_text(json_text(lighting, "lighting"))
             write_intrinsic_json(tmp / INTRINSIC_JSON, self.intrinsic_matrix(), depth.shape)
             (tmp / REPORT_JSON).write_text(text)
+        return report
 
     @classmethod
     def from_arrays(cls, depth: np.ndarray, mask: np.ndarray, K: np.ndarray, *, albedo=None, poses=None,

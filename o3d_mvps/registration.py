@@ -2,7 +2,7 @@
 
 A RealSense D415 measures depth with its stereo (left infrared) camera and colour with a
 separate RGB camera a few centimetres away. The solver needs depth *registered* to the colour
-camera, on the low-resolution grid ``Ω_LR`` (colour grid / SF; README "How it works"), so that every
+camera, on the low-resolution grid ``Ω_LR`` (colour grid / SF; docs/method.md), so that every
 depth pixel area-averages SF x SF colour pixels. Open3D's ``RSBagReader`` and librealsense's
 ``align`` upsample depth to colour resolution instead, which invents samples the sensor never
 measured; :func:`register_depth` reprojects each measured sample once.

@@ -14,11 +14,12 @@ from dataclasses import replace
 
 import numpy as np
 
-from .capture import Capture, to_host
+from .capture import Capture, CameraSetting, camera_setting, to_host
 from .errors import CaptureError
 from .fileio import check_output_files
 from .model import se3
 from .refinement import Refinement
+from .run_report import peak_memory_mb, recorded_warnings
 from .solver.device import check_device
 from .solver.driver import solve
 from .solver.options import RefineOptions
@@ -26,44 +27,68 @@ from .solver.problem_input import SolverInput, write_problem
 from .views import MIN_OTHER_FRAMES, ViewSelection, frames_seeing_reference
 
 
-def refine(capture: Capture, options: RefineOptions | None = None, device="CPU:0", initial_poses=None, *,
+def refine(capture: Capture, options: RefineOptions | None = None, device="auto", initial_poses=None, *,
            save_problem=None, overwrite: bool = False) -> Refinement:
     """Jointly estimate depth (colour resolution), albedo, lighting and poses from a capture.
 
     capture: frame 0 is the reference; ``initial_poses`` (n, 4, 4) reference -> frame i, an array
     or an o3d.core.Tensor on any device (default: the registration chain of
     :func:`o3d_mvps.odometry.register_frames`, which drops a frame it cannot place, with a warning,
-    unless ``options.strict_registration``). device: "CPU:0" or "CUDA:0" (see
-    :func:`o3d_mvps.solver.device.check_device`). save_problem: also write the solver's input to
+    unless ``options.strict_registration``). device: "auto" (the GPU when it can solve, else the
+    CPU), "CPU:0" or "CUDA:0" (see :func:`o3d_mvps.solver.device.check_device`); ``info["device"]``
+    says where it solved. save_problem: also write the solver's input to
     this .npz once the frames are registered (``python -m o3d_mvps.solver`` solves it; refuses an
     existing file unless ``overwrite``). Of more than three frames, those that see too little of
     the reference's surface are left out (:func:`o3d_mvps.views.frames_seeing_reference`).
+    A static-camera capture (:func:`o3d_mvps.capture.camera_setting`: declared in capture.json or
+    detected from the depth) is not registered: its poses are the identity (or ``initial_poses``),
+    not refined, and every frame is used; ``info["camera"]`` says how it was decided.
     Returns a :class:`~o3d_mvps.Refinement`; ``info["frames"]`` lists the capture's frames it
-    used, ``info["views"]`` each frame's covisibility and why a frame was left out.
+    used, ``info["views"]`` each frame's covisibility and why a frame was left out,
+    ``info["dropped_frames"]`` the frames the registration could not place, ``info["warnings"]``
+    the warnings raised, ``info["stage_peak_memory_mb"]`` the process's peak memory after each
+    stage; :meth:`~o3d_mvps.Refinement.report` gathers them.
     """
     options = options or RefineOptions()
-    check_device(device)
+    device = check_device(device)
     if save_problem is not None:
         check_output_files([save_problem], overwrite)
     t0 = time.perf_counter()
-    problem_input, views = problem_from_capture(capture, options, initial_poses)
-    odometry = time.perf_counter() - t0
-    if save_problem is not None:
-        write_problem(problem_input, save_problem, overwrite=overwrite)
-    output = solve(problem_input, problem_input.options, device)
+    said, dropped, memory = [], {}, {}
+    with recorded_warnings(said):
+        camera = camera_setting(capture, None if initial_poses is None else to_host(initial_poses))
+        problem_input, views = problem_from_capture(capture, options, initial_poses, camera=camera, dropped=dropped)
+        odometry = time.perf_counter() - t0
+        memory["odometry"] = peak_memory_mb()
+        if save_problem is not None:
+            write_problem(problem_input, save_problem, overwrite=overwrite)
+        output = solve(problem_input, problem_input.options, device)
+        memory["solve"] = peak_memory_mb()
+    info = {**output.info, **({"views": views.to_dict()} if views else {}), "camera": camera.to_dict(),
+            "capture_frames": capture.n_frames, "dropped_frames": {str(i): why for i, why in dropped.items()},
+            "stage_peak_memory_mb": memory, "warnings": said}
     return Refinement.from_arrays(
         output.depth, output.mask, output.K, albedo=output.albedo, poses=output.poses, lighting=output.lighting,
-        method="ours", energy=output.energy, info={**output.info, **({"views": views.to_dict()} if views else {})},
+        method="ours", energy=output.energy, info=info,
         timings={"odometry": odometry, **output.timings, "total": time.perf_counter() - t0},
     )
 
 
-def problem_from_capture(capture: Capture, options: RefineOptions,
-                         initial_poses=None) -> tuple[SolverInput, ViewSelection | None]:
+def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses=None, *,
+                         camera: CameraSetting | None = None,
+                         dropped: dict | None = None) -> tuple[SolverInput, ViewSelection | None]:
     """The solver's input from a capture: the frames ``options.frames`` picks, minus those the
     registration drops when no ``initial_poses`` are given and those that do not see the
     reference (see :func:`refine`); and that view selection (None with three frames or fewer).
-    The input's options name the light model (:func:`with_light_model`)."""
+    The input's options name the light model (:func:`with_light_model`). A static-camera capture
+    (``camera``, default :func:`~o3d_mvps.capture.camera_setting` of the capture) keeps every
+    frame, identity poses (unless given) and no pose refinement. ``dropped``: a dict given here
+    gets {capture frame index: why} of the frames the registration dropped."""
+    camera = camera_setting(capture, None if initial_poses is None else to_host(initial_poses)) \
+        if camera is None else camera
+    if camera.static:
+        capture = replace(capture, camera="static")
+        options = replace(options, refine_poses=False)
     options = with_light_model(options, capture)
     frames = options.frame_indices(capture.n_frames)
     if initial_poses is not None:
@@ -72,17 +97,22 @@ def problem_from_capture(capture: Capture, options: RefineOptions,
             raise ValueError(f"initial_poses must be ({capture.n_frames}, 4, 4), got {initial_poses.shape}")
         initial_poses = se3.relative_to_reference(initial_poses[frames])  # onto the first frame used
     capture = capture.select(frames)
+    if initial_poses is None and camera.static:
+        initial_poses = np.tile(np.eye(4), (capture.n_frames, 1, 1))
     if initial_poses is None:
         if capture.n_frames > 1:
             from .odometry import register_frames
 
             registration = register_frames(capture, strict=options.strict_registration, progress=options.progress)
+            if dropped is not None:
+                dropped.update({frames[k]: why for k, why in registration.dropped.items()})
             capture, initial_poses = capture.select(registration.frames), registration.poses
             frames = [frames[k] for k in registration.frames]
         else:
             initial_poses = np.eye(4)[None]
     views = None
-    if capture.n_frames > MIN_OTHER_FRAMES + 1:  # e.g. a ring: keep the frames that see the reference's surface
+    # e.g. a ring: keep the frames that see the reference's surface (a static camera's all see it)
+    if capture.n_frames > MIN_OTHER_FRAMES + 1 and not camera.static:
         views = frames_seeing_reference(capture, initial_poses, frame_ids=frames)
         keep = [frames.index(i) for i in views.frames]
         capture, initial_poses, frames = capture.select(keep), initial_poses[keep], views.frames
@@ -102,9 +132,12 @@ LIGHT_MODEL_OF_CAPTURE = {"led": "led", "room": "room"}
 
 def with_light_model(options: RefineOptions, capture: Capture) -> RefineOptions:
     """``options`` with a light model: the one given, else the capture's (:data:`LIGHT_MODEL_OF_CAPTURE`),
+    else per-frame SH for a static camera (a light moved by hand: ``capture.camera == "static"``),
     else the LED model with a warning saying how to choose."""
     if options.light_model is not None:
         return options
+    if capture.light is None and capture.camera == "static":
+        return replace(options, light_model="sh")
     if capture.light is None:
         warnings.warn('the capture does not say what lit it (no "light" in capture.json): using the LED model. '
                       'Write "light": "led" (the LED on the camera) or "room" (room light) into capture.json, or '
@@ -124,6 +157,13 @@ def _led_offset(options: RefineOptions, capture: Capture) -> np.ndarray:
         return np.zeros(3)
     offset = np.asarray(offset, dtype=np.float64)
     if offset.shape != (3,) or not np.isfinite(offset).all() or np.abs(offset).max() > 1.0:
-        raise CaptureError(f"led_offset {offset.tolist()} must be (x, y, z) in metres within 1 m of the camera; "
-                           "fix 'led_offset' in capture.json's metadata or pass RefineOptions(led_offset=...)")
+        values = " ".join(f"{v:g}" for v in np.ravel(offset))
+        hint = (f" (in millimetres? that is {' '.join(f'{v / 1000:g}' for v in offset)} m)"
+                if offset.shape == (3,) and np.isfinite(offset).all() and np.abs(offset).max() <= 1000.0 else "")
+        if options.led_offset is not None:  # the caller's value: --led-offset or RefineOptions(led_offset=...)
+            raise CaptureError(f"--led-offset {values} (RefineOptions(led_offset=...)) must be the LED's x y z in "
+                               f"metres, within 1 m of the colour lens{hint}")
+        raise CaptureError(f"led_offset [{values}] in the capture's capture.json (metadata.led_offset) must be the "
+                           f"LED's x y z in metres, within 1 m of the colour lens{hint}; fix it there or pass "
+                           "--led-offset X Y Z (RefineOptions(led_offset=...)), which takes precedence")
     return offset

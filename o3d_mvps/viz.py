@@ -2,7 +2,7 @@
 
 VTK's Linux wheels render off-screen through EGL or OSMesa; they need the system OpenGL
 libraries (Debian/Ubuntu: ``libgl1``, ``libegl1`` and a Mesa driver ``libgl1-mesa-dri`` /
-``libegl-mesa0``), see the project README.
+``libegl-mesa0``), see the Makefile's system-libs target.
 """
 
 from __future__ import annotations

@@ -55,9 +55,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def run(args) -> int:
-    check_files([args.out], args.overwrite)  # fail before the (slow) refinement
+    check_files([args.out], args.overwrite, inputs=[args.capture])  # fail before the (slow) refinement
     if args.save_refined is not None:
-        check_folder(args.save_refined, args.overwrite, "refinement folder")
+        check_folder(args.save_refined, args.overwrite, "refinement folder", inputs=[args.capture])
     capture = read_capture(args.capture)
     refinement = refine(capture, options_from_args(args))
     log_energy(refinement, args.quiet)

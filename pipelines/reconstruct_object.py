@@ -53,7 +53,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def run(args) -> int:
-    check_folder(args.out, args.overwrite, "output folder")  # fail before the (slow) reconstruction
+    check_folder(args.out, args.overwrite, "output folder", inputs=[args.capture])  # before the slow work
     capture = read_capture(args.capture)
     given = read_capture_poses(args.capture, args.poses)
     options = ReconstructOptions(references=args.references, depth=args.depth, workers=args.workers,

@@ -54,7 +54,7 @@ def report_text(capture_path, refinement, rows) -> str:
 
 
 def run(args) -> int:
-    check_folder(args.out, args.overwrite, "output folder")
+    check_folder(args.out, args.overwrite, "output folder", inputs=[args.capture])
     capture = read_capture(args.capture)
     refinement = refine(capture, options_from_args(args))
     log_energy(refinement, args.quiet)

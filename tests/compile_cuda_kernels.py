@@ -16,7 +16,7 @@ import sys
 
 from numba import types
 
-#: exit status when NVVM is not installed (the test then skips)
+#: exit status when NVVM is not installed (the test then fails: the dev extra installs numba-cuda[cu12], which brings it)
 NO_NVVM = 3
 
 

@@ -1,20 +1,32 @@
-"""A stand-in for CuPy on NumPy, as strict as CuPy where host and device arrays meet.
+"""A stand-in for CuPy on NumPy, as strict as CuPy 14 where host and device arrays meet.
 
 The solver's CUDA path takes its array module from the data (o3d_mvps.model.arrays): arrays of
-:class:`ndarray` here (a NumPy subclass from a module whose name starts with "cupy") make it
-import this module as ``cupy`` and :mod:`sparse` as ``cupyx.scipy.sparse`` (see
-:func:`installed`). Like CuPy's, these arrays refuse to meet a host array (a NumPy array of one
-element or more) in an operation or a NumPy function, sparse matrices take and give only device
-arrays, and ``.get()`` copies to the host; reductions give 0-d arrays. Everything else is
-NumPy's and SciPy's, and numba's CUDA simulator runs the CUDA kernels on these arrays. So a
-solve on them runs the CUDA path's Python as on a GPU, and fails where it would mix host and
-device arrays there. (Not caught: ``np.asarray`` of a device array, which CuPy refuses and NumPy
-cannot be made to; CuPy functions NumPy has and CuPy lacks.)
+:class:`ndarray` here (a wrapper of a NumPy array, from a module whose name starts with "cupy")
+make it import this module as ``cupy`` and :mod:`sparse` as ``cupyx.scipy.sparse`` (see
+:func:`installed`). Like CuPy's, these arrays are no NumPy arrays, and raise TypeError where
+CuPy does:
+
+- a NumPy array (of any size, 0-d too: CuPy takes Python and NumPy scalars only) in an operation
+  with a device array, in a NumPy function given a device array, or in a function of this
+  module other than :func:`asarray`, :func:`array` and :func:`asnumpy` (the copies to and from
+  the device);
+- a device array where NumPy needs a host array: ``np.asarray``/``np.array``/
+  ``np.ascontiguousarray`` of it, writing it into a NumPy array, a SciPy function or a CPU
+  (numba) kernel given it (``__array__`` raises, as CuPy's does since CuPy 13);
+- sparse matrices take and give only device arrays.
+
+Allowed, as in CuPy: ``.get()``, ``asnumpy``; ``float()``/``int()``/``bool()``/``.item()`` of a
+one-element array (a copy to the host: counted); NumPy arrays and lists as indices, and as the
+value written into a device array (copies to the device: counted). Reductions give 0-d arrays.
+Everything else is NumPy's and SciPy's, and numba's CUDA simulator runs the CUDA kernels on the
+arrays' NumPy data (:func:`installed`). So a solve on them runs the CUDA path's Python as on a
+GPU, and fails where it would mix host and device arrays there. (Not caught: CuPy functions that
+NumPy has and CuPy lacks.)
 
 :data:`operations` counts what would each be a kernel launch or a transfer on a GPU, by kind
 (``benchmarks/gpu.py count`` reads it): elementwise operations and reductions, other NumPy
-functions, sparse products, gathers by index arrays, writes into arrays, copies to the device
-and to the host.
+functions and array methods, sparse products, gathers by index arrays, writes into arrays,
+copies to the device and to the host.
 """
 
 from __future__ import annotations
@@ -26,30 +38,38 @@ from contextlib import contextmanager
 
 import numpy as np
 import scipy.sparse as _sp
-
+from numpy.lib.mixins import NDArrayOperatorsMixin
 
 #: operations on the stand-in's arrays so far, by kind (see the module's docstring)
 operations = Counter()
 
+#: CuPy's message when NumPy asks a device array for its data
+IMPLICIT_CONVERSION = ("Implicit conversion to a NumPy array is not allowed. Please use `.get()` to construct a "
+                       "NumPy array explicitly.")
+
 
 class DeviceMixError(TypeError):
-    """A host array met a device array (CuPy raises a TypeError there too)."""
+    """A host array met a device array, or NumPy asked for a device array's data (CuPy raises
+    a TypeError there too)."""
 
 
 def _check(values) -> None:
+    """DeviceMixError for a host (NumPy or SciPy sparse) array among ``values`` (nested lists
+    and tuples too)."""
     for value in values:
         if isinstance(value, (list, tuple)):
             _check(value)
-        elif isinstance(value, np.ndarray) and not isinstance(value, ndarray) and value.ndim > 0:
-            raise DeviceMixError(f"a host NumPy array {value.shape} {value.dtype} met a device array")
+        elif isinstance(value, np.ndarray):
+            raise DeviceMixError(f"Unsupported type {type(value)}: a host NumPy array {value.shape} {value.dtype} "
+                                 "met a device array (copy it over with cupy.asarray)")
         elif isinstance(value, _sp.spmatrix | _sp.sparray):
             raise DeviceMixError(f"a host SciPy sparse matrix {value.shape} met a device array")
 
 
 def _host(value):
-    """The plain NumPy view of device arrays, also inside lists and tuples."""
+    """The NumPy data of device arrays, also inside lists, tuples and dicts."""
     if isinstance(value, ndarray):
-        return value.view(np.ndarray)
+        return value._a
     if isinstance(value, (list, tuple)):
         return type(value)(_host(v) for v in value)
     if isinstance(value, dict):
@@ -60,9 +80,9 @@ def _host(value):
 def _device(value):
     """NumPy results as device arrays (scalars as 0-d arrays, as CuPy's reductions give)."""
     if isinstance(value, np.ndarray):
-        return value if isinstance(value, ndarray) else value.view(ndarray)
+        return ndarray(value)
     if isinstance(value, np.generic):
-        return np.asarray(value).view(ndarray)
+        return ndarray(np.asarray(value))
     if isinstance(value, tuple):
         return tuple(_device(v) for v in value)
     if isinstance(value, list):
@@ -70,16 +90,32 @@ def _device(value):
     return value
 
 
-class ndarray(np.ndarray):  # noqa: N801 - CuPy's name
-    """A "device" array: a NumPy array that refuses host arrays in operations."""
+#: array methods that make a view (no kernel on a GPU: not counted)
+_VIEWS = frozenset({"reshape", "view", "transpose", "squeeze", "swapaxes", "ravel"})
+#: the kinds of the other counted array methods (default: "function")
+_METHOD_KINDS = {"item": "to_host", "tolist": "to_host", **{name: "reduction" for name in (
+    "sum", "mean", "max", "min", "prod", "any", "all", "argmax", "argmin", "std", "var", "cumsum")}}
+
+
+class ndarray(NDArrayOperatorsMixin):  # noqa: N801 - CuPy's name
+    """A "device" array: a wrapper of a NumPy array (its data, :attr:`_a`) that refuses host
+    arrays in operations and refuses NumPy its data (``__array__`` raises, as CuPy's)."""
+
+    __slots__ = ("_a",)
+    __hash__ = None
+
+    def __init__(self, a: np.ndarray):
+        self._a = a
+
+    def __array__(self, dtype=None, copy=None):
+        raise DeviceMixError(IMPLICIT_CONVERSION)
 
     def __array_ufunc__(self, ufunc, method, *inputs, **kwargs):
         operations["elementwise" if method == "__call__" else "reduction"] += 1
         _check(inputs)
+        _check(list(kwargs.values()))
         out = kwargs.get("out")
-        if out is not None:
-            _check(out)
-            kwargs["out"] = _host(out)
+        kwargs = _host(kwargs)
         result = getattr(ufunc, method)(*_host(inputs), **kwargs)
         if out is not None:
             return out[0] if len(out) == 1 else out
@@ -91,25 +127,83 @@ class ndarray(np.ndarray):  # noqa: N801 - CuPy's name
         _check(list(kwargs.values()))
         return _device(func(*_host(args), **_host(kwargs)))
 
-    def get(self) -> np.ndarray:
+    def __getattr__(self, name: str):
+        """NumPy's attributes and methods, on device arrays only."""
+        if name.startswith("__") or name == "_a":  # __array_interface__ & co: NumPy gets no host data
+            raise AttributeError(name)
+        value = getattr(self._a, name)
+        if not callable(value):
+            return _device(value)
+
+        def method(*args, **kwargs):
+            if name not in _VIEWS:
+                operations[_METHOD_KINDS.get(name, "function")] += 1
+            _check(args)
+            _check(list(kwargs.values()))
+            return _device(value(*_host(args), **_host(kwargs)))
+
+        return method
+
+    def get(self, stream=None, order="C", out=None) -> np.ndarray:
         """A host copy."""
         operations["to_host"] += 1
-        return np.array(self.view(np.ndarray))
+        return np.array(self._a, order=order)
 
     def __getitem__(self, index):
         if not _basic_index(index):
             operations["gather"] += 1
-        return super().__getitem__(index)
+            _count_host_indices(index)
+        return _device(self._a[_host(index)])
 
     def __setitem__(self, index, value):
         operations["write"] += 1
-        super().__setitem__(index, value)
+        _count_host_indices(index)
+        if isinstance(value, np.ndarray) or isinstance(value, (list, tuple)) and not isinstance(value, ndarray):
+            operations["to_device"] += 1  # CuPy copies host data over
+        self._a[_host(index)] = _host(value)
+
+    def __len__(self) -> int:
+        return len(self._a)
+
+    def __iter__(self):
+        return (self[i] for i in range(len(self)))
+
+    def _scalar(self, convert):
+        operations["to_host"] += 1  # a synchronisation and a copy on a GPU
+        return convert(self._a)
+
+    def __float__(self):
+        return self._scalar(float)
+
+    def __int__(self):
+        return self._scalar(int)
+
+    def __bool__(self):
+        return self._scalar(bool)
+
+    def __complex__(self):
+        return self._scalar(complex)
+
+    def __repr__(self) -> str:
+        return f"cupy_emulation.{np.array_repr(self._a)}"
 
 
 def _basic_index(index) -> bool:
     """Whether an index is made of integers and slices only (a view, no kernel)."""
     parts = index if isinstance(index, tuple) else (index,)
     return all(isinstance(part, (int, np.integer, slice, type(None), type(Ellipsis))) for part in parts)
+
+
+def _count_host_indices(index) -> None:
+    """Count the copies to the device of host index arrays (CuPy takes them)."""
+    parts = index if isinstance(index, tuple) else (index,)
+    operations["to_device"] += sum(isinstance(part, (np.ndarray, list)) for part in parts)
+
+
+def host_data(a):
+    """The NumPy data of a device array, itself for anything else (for the tests' and the
+    benchmarks' stand-ins of kernels: no copy, not counted)."""
+    return a._a if isinstance(a, ndarray) else a
 
 
 def _function(f):
@@ -123,15 +217,23 @@ def _function(f):
     return wrapped
 
 
-def asarray(a, dtype=None):
-    """Host or device data as a device array (CuPy copies host arrays to the device)."""
+def asarray(a, dtype=None, order=None):
+    """Host or device data as a device array (CuPy copies host data to the device)."""
     _count_copy(a)
-    return np.asarray(_host(a), dtype=dtype).view(ndarray)
+    return ndarray(np.asarray(_host(a), dtype=dtype, order=order))
 
 
-def ascontiguousarray(a, dtype=None):
+def array(a, dtype=None, copy=True, order="K", ndmin=0):
+    """A device array of host or device data, a copy (CuPy's ``array``)."""
     _count_copy(a)
-    return np.ascontiguousarray(_host(a), dtype=dtype).view(ndarray)
+    return ndarray(np.array(_host(a), dtype=dtype, copy=copy, order=order, ndmin=ndmin))
+
+
+def asnumpy(a, stream=None, order="C", out=None):
+    """A host copy of a device array; host data as it is (CuPy's ``asnumpy``)."""
+    if isinstance(a, ndarray):
+        return a.get(order=order)
+    return np.asarray(a, order=order)
 
 
 def _count_copy(a) -> None:
@@ -149,7 +251,8 @@ linalg = types.SimpleNamespace(inv=_function(np.linalg.inv), norm=_function(np.l
 
 
 def __getattr__(name: str):
-    """NumPy's functions, taking and giving device arrays; its types and constants as they are."""
+    """NumPy's functions, taking device arrays only and giving device arrays; its types and
+    constants as they are."""
     value = getattr(np, name)
     if isinstance(value, (types.FunctionType, types.BuiltinFunctionType, np.ufunc)) or callable(value) and \
             not isinstance(value, type):
@@ -158,7 +261,7 @@ def __getattr__(name: str):
 
 
 def _device_only(value):
-    if isinstance(value, np.ndarray) and not isinstance(value, ndarray):
+    if isinstance(value, np.ndarray):
         raise DeviceMixError(f"a host NumPy array {value.shape} given to a device sparse matrix")
     return _host(value)
 
@@ -256,18 +359,44 @@ def array_device(min_level_pixels: int = 0):
     return ArrayDevice("cuda-emulated", sys.modules[__name__], sparse, CUDA_RESIDUAL_DTYPE, min_level_pixels)
 
 
+class _SimulatorArguments:
+    """An extension of numba's CUDA simulator's kernels: it runs them on NumPy arrays, so a device
+    array goes in as its NumPy data (the real CUDA target takes CuPy's arrays through their
+    ``__cuda_array_interface__``)."""
+
+    def prepare_args(self, ty, val, stream=0, retr=None):
+        return ty, host_data(val)
+
+
+def _simulated_kernels() -> list:
+    """The CUDA kernels of o3d_mvps.solver.cuda_kernels where numba's CUDA simulator runs them."""
+    from numba import cuda
+
+    if not cuda.config.ENABLE_CUDASIM:
+        return []
+    from o3d_mvps.solver import cuda_kernels
+
+    return [k for k in vars(cuda_kernels).values() if type(k).__name__ == "FakeCUDAKernel"]
+
+
 @contextmanager
 def installed():
-    """Within: ``import cupy`` / ``cupyx.scipy.sparse`` give this module and :data:`sparse`."""
+    """Within: ``import cupy`` / ``cupyx.scipy.sparse`` give this module and :data:`sparse`, and
+    numba's CUDA simulator (where it is on) runs the CUDA kernels on this module's arrays."""
     modules = {"cupy": sys.modules[__name__], "cupyx": types.ModuleType("cupyx"),
                "cupyx.scipy": types.ModuleType("cupyx.scipy"), "cupyx.scipy.sparse": sparse}
     modules["cupyx"].scipy = modules["cupyx.scipy"]
     modules["cupyx.scipy"].sparse = sparse
     saved = {name: sys.modules.get(name) for name in modules}
+    kernels, extension = _simulated_kernels(), _SimulatorArguments()
     sys.modules.update(modules)
+    for kernel in kernels:
+        kernel.extensions.append(extension)
     try:
         yield
     finally:
+        for kernel in kernels:
+            kernel.extensions.remove(extension)
         for name, module in saved.items():
             if module is None:
                 sys.modules.pop(name, None)

@@ -106,6 +106,44 @@ def test_gpu_benchmark_compares_the_cuda_path_with_the_cpu_path(tmp_path):
     # a sweep's kernels, sparse products and copies: hundreds (measured: 493 of 527 in all)
     assert 300 < level["operations"] < counted["operations"]
     assert counted["by_kind"]["kernel"] > 0 and counted["by_kind"]["sparse_matvec"] > 0
-    assert json.loads((tmp_path / "results" / "gpu_operations.json").read_text()) == [counted]
+    kinds = counted["by_kind"]
+    assert counted["transfers"] == kinds["to_host"] + kinds["to_device"] > 0
+    assert counted["launches"] + counted["transfers"] == counted["operations"]
+    assert level["launches"] + level["transfers"] == level["operations"] == level["operations_per_sweep"]
+    assert json.loads((tmp_path / "results" / "gpu_counts.json").read_text()) == [counted]
     (on_cpu,) = gpu.count(tmp_path, tmp_path / "results")
     assert on_cpu["levels"][0]["device"] == "cpu" and on_cpu["levels"][0]["operations"] == 0
+
+
+def test_summary_redraws_the_plots_from_saved_results(tmp_path):
+    """``python -m benchmarks summary`` runs nothing: from scaling rows and saved room error maps
+    it draws scaling.png (log-log, fitted power law) and the error-map pictures."""
+    import numpy as np
+
+    from benchmarks.room import save_maps
+    from benchmarks.scaling import power_law
+    from o3d_mvps.fileio import json_text
+
+    rows = [{"version": "current", "target_pixels": p, "object_pixels": p, "color": "64x48", "frames": n,
+             "seconds": 0.002 * (p * n) ** 0.9, "peak_mb": 1.0} for p in (1e4, 1e5) for n in (5, 20)]
+    exponent, prefactor = power_law(rows)
+    assert abs(exponent - 0.9) < 1e-9 and abs(prefactor - 0.002) < 1e-9  # exact data, exact fit
+    (tmp_path / "scaling.json").write_text(json_text(rows, "rows"))
+    error = np.full((30, 40), np.nan)
+    error[5:25, 5:35] = np.linspace(0, 80, 600).reshape(20, 30)
+    save_maps(tmp_path / "room_maps.npz", {"room": {"bicubic": error, "ours": error / 2}})
+    assert main(["summary", "--out", str(tmp_path)]) == 0
+    assert (tmp_path / "scaling.png").stat().st_size > 10_000
+    assert (tmp_path / "room_banding.png").stat().st_size > 10_000
+    assert not (tmp_path / "room_banding_led.png").exists()  # only the lights saved are drawn
+    assert not (tmp_path / "scaling.md").exists()  # the hand-annotated table is left alone
+
+
+def test_no_hand_drawn_plots_in_benchmarks():
+    """Plots are matplotlib's: no OpenCV text, lines or rectangles drawn in benchmarks/*.py."""
+    import re
+    from pathlib import Path
+
+    folder = Path(__file__).resolve().parents[1] / "benchmarks"
+    drawn = [p.name for p in folder.glob("*.py") if re.search(r"cv2\.(putText|line|rectangle)", p.read_text())]
+    assert drawn == []

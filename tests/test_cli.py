@@ -103,7 +103,7 @@ def test_ctrl_c_is_one_line_and_exit_130(monkeypatch, capture_dir, tmp_path, cap
     monkeypatch.setattr(refine_cli, "refine", interrupted)
     assert main(["refine", str(capture_dir), str(tmp_path / "out")]) == 130
     assert capsys.readouterr().err == "o3d-mvps refine: interrupted\n"
-    assert "130 (interrupted" in (REPO / "README.md").read_text()
+    assert "130 (interrupted" in (REPO / "docs" / "cli_intro.md").read_text()  # the CLI reference page
 
 
 def test_ctrl_c_on_a_running_command(tmp_path):
@@ -158,3 +158,28 @@ def test_submodules_after_a_plain_import():
                  "print(capture.n_frames, callable(o3d_mvps.realsense.read_recording))")
     assert run.returncode == 0, run.stderr
     assert run.stdout.split() == ["2", "True"]
+
+
+def test_led_offset_error_names_the_flag_the_user_typed(capture_dir, tmp_path, capsys):
+    # millimetres given to --led-offset: the error quotes the flag and its values (not capture.json)
+    assert main(["refine", str(capture_dir), str(tmp_path / "out"), "--led-offset", "30", "-20", "0",
+                 *TINY_SOLVER]) == 1
+    err = capsys.readouterr().err
+    assert "--led-offset 30 -20 0" in err and "0.03 -0.02 0 m" in err and "capture.json" not in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_render_makes_ring_captures_for_reconstruct(tmp_path, capsys):
+    from o3d_mvps import read_capture
+    from o3d_mvps.reconstruct import azimuth_span_deg
+
+    assert main(["render", "bunny", str(tmp_path / "arc"), "--trajectory", "ring", "--arc-deg", "90",
+                 "--frames", "4", "--size", "64x48", "--scale-factor", "2"]) == 0
+    capture = read_capture(tmp_path / "arc")
+    assert capture.n_frames == 4 and (tmp_path / "arc" / "mask").is_dir()
+    assert azimuth_span_deg(capture.groundtruth.poses) == pytest.approx(90, abs=0.5)
+    assert main(["render", "bunny", str(tmp_path / "x"), "--trajectory", "ring", "--arc-deg", "400"]) == 1
+    assert "--arc-deg 400" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["render", "--help"])
+    assert "o3d-mvps render bunny captures/ring --trajectory ring" in capsys.readouterr().out

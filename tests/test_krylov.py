@@ -81,6 +81,27 @@ def test_pcg_reports_a_run_out_of_iterations():
     assert np.linalg.norm(b - M @ x) > 1e-8 * np.linalg.norm(b)
 
 
+@pytest.mark.parametrize("preconditioner", ["jacobi", "multigrid"])
+def test_pcg_on_device_arrays_matches_numpy(preconditioner):
+    """The CUDA path's PCG and preconditioners run on device arrays (the CuPy stand-in of
+    tests/cupy_emulation.py, which refuses host arrays as CuPy does): the same iterations and,
+    to round-off (1e-12 relative; the same arithmetic), the same solution as on NumPy."""
+    import cupy_emulation as cp
+
+    M, b, grid = grid_system(shape=(24, 36))
+    with cp.installed():
+        results = []
+        for A, rhs, u, v in ((M, b, grid.u, grid.v), (cp.sparse.csr_matrix(M), cp.asarray(b), cp.asarray(grid.u),
+                                                      cp.asarray(grid.v))):
+            P = (krylov.jacobi_preconditioner(A) if preconditioner == "jacobi" else
+                 krylov.multigrid_preconditioner(A, krylov.pixel_prolongations(u, v)))
+            results.append(krylov.pcg(A, rhs, None, 1e-8, 1000, P))
+    (x, iterations, converged), (x_device, iterations_device, converged_device) = results
+    assert isinstance(x_device, cp.ndarray) and converged and converged_device
+    assert iterations_device == iterations > 1
+    np.testing.assert_allclose(x_device.get(), x, rtol=0, atol=1e-12 * np.abs(x).max())
+
+
 def test_pixel_aggregates_join_2x2_pixels_stride_apart():
     u, v = (c.ravel() for c in np.mgrid[:4, :4][::-1])  # a full 4x4 grid, row-major
     for stride, members in ((1, {(0, 0), (1, 0), (0, 1), (1, 1)}), (2, {(0, 0), (2, 0), (0, 2), (2, 2)})):

@@ -44,6 +44,31 @@ def test_references_spread_round_the_ring_and_the_span(ring):
     assert azimuth_span_deg(arc.groundtruth.poses) == pytest.approx(30, abs=0.5)
 
 
+
+@pytest.mark.parametrize("arc_deg, elevation_deg", [(60, 20), (180, 60), (360, 60)])
+def test_span_of_arcs_across_the_azimuth_wrap(arc_deg, elevation_deg):
+    # A ring's arc centred on azimuth 0 (frames on both sides of the +-180 degree seam of the
+    # arctan2, for every choice of frame 0) and seen from above: the span is the arc, not 360.
+    from o3d_mvps.model.se3 import relative_to_reference
+    from o3d_mvps.synthetic.camera import ring_trajectory
+
+    world = ring_trajectory(12, 0.6, elevation_deg, arc_deg)
+    expected = arc_deg if arc_deg < 360 else 330
+    for first in (0, 5, 11):  # frame 0 at one end, the middle, the other end
+        poses = relative_to_reference(np.roll(world, -first, axis=0))
+        assert azimuth_span_deg(poses) == pytest.approx(expected, abs=0.5)
+
+
+@pytest.mark.parametrize("max_angle_deg", [5, 15, 30])
+def test_an_orbit_in_front_of_the_object_does_not_go_around(max_angle_deg):
+    # The +-15 degree spiral orbit of the refine captures once read as 323 degrees (its viewing
+    # directions' cone axis, the mean viewing direction, was taken as 'up'). Its span is the
+    # yaw range: at most 2 * max_angle_deg, with a 20 % margin for the spiral's sampling.
+    from o3d_mvps.synthetic.camera import orbit_trajectory
+
+    span = azimuth_span_deg(orbit_trajectory(20, 0.6, "orbit", max_angle_deg))
+    assert 1.0 * max_angle_deg < span <= 2.0 * max_angle_deg * 1.2
+
 def test_pixel_weights_ramp_from_the_silhouette():
     depth = np.full((48, 64), 0.5)
     mask = np.zeros((48, 64), bool)
@@ -145,6 +170,26 @@ def test_an_arc_warns_that_the_back_is_missing_and_prints_flat(tmp_path, capsys)
     report = json.loads((tmp_path / "out" / "report.json").read_text())
     assert report["goes_around"] is False and report["azimuth_span_deg"] == pytest.approx(30, abs=0.5)
     assert (tmp_path / "out" / "mesh.glb").is_file() and (tmp_path / "out" / "mesh.obj").is_file()
+    assert (tmp_path / "out" / "report.html").is_file()
+    # export takes the folder: the mesh simplified, and its print.stl rescaled
+    assert main(["export", str(tmp_path / "out"), str(tmp_path / "small.ply"), "--max-triangles", "400"]) == 0
+    small = trimesh.load(tmp_path / "small.ply")
+    assert 300 <= len(small.faces) <= 400 and small.visual.vertex_colors.shape[0] == len(small.vertices)
+    assert main(["export", str(tmp_path / "out"), str(tmp_path / "p.stl"), "--size-mm", "80"]) == 0
+    rescaled = trimesh.load(tmp_path / "p.stl")
+    assert rescaled.is_volume and rescaled.extents.max() == pytest.approx(80.0, rel=1e-5)
+    assert np.allclose(rescaled.extents / rescaled.extents.max(), solid.extents / solid.extents.max(), atol=1e-5)
+
+
+def test_export_of_an_open_reconstruction_points_at_reconstruct_print(raw_result, tmp_path, capsys):
+    folder = tmp_path / "object"
+    folder.mkdir()
+    write_mesh(raw_result.mesh, folder / "mesh.ply")
+    (folder / "report.json").write_text(json.dumps(raw_result.info))
+    assert main(["export", str(folder), str(tmp_path / "x.stl")]) == 1
+    err = capsys.readouterr().err
+    assert f"the mesh in {folder} is not closed" in err and f"reconstruct CAPTURE {folder} --overwrite --print" in err
+    assert not (tmp_path / "x.stl").exists()
 
 
 def test_two_dask_workers_give_the_same_mesh_as_one():

@@ -191,13 +191,13 @@ def test_cpu_device_names():
     for name in ("cpu", "CPU:0", "cpu:0", o3d.core.Device("CPU:0")):
         assert check_device(name) == "cpu"
     for name in ("gpu", "cpu:1", "cuda:x", ""):
-        with pytest.raises(ValueError, match="is not a device name; pass 'cpu'"):
+        with pytest.raises(ValueError, match="is not a device name; pass 'auto', 'cpu'"):
             check_device(name)
 
 
 @pytest.mark.parametrize("cupy, device, message", [
     (None, "cuda", r"needs CuPy, which is not installed: pip install o3d-mvps\[cuda\] \(CuPy and numba-cuda for "
-                   r"CUDA 12; for CUDA 13 run pip install cupy-cuda13x numba-cuda\[cu13\] instead\)"),
+                   r"CUDA 12; for CUDA 13: pip install o3d-mvps\[cuda13\]\)"),
     (fake_cupy(None), "CUDA:0", "CuPy sees no GPU; check the NVIDIA driver"),
     (fake_cupy(1), "cuda:1", r"CuPy sees 1 GPU\(s\), cuda:0 to cuda:0; .* or solve on the CPU instead"),
     (fake_cupy(1), "cuda:0", r"needs numba's CUDA target \(numba-cuda\), which is not installed: pip install "

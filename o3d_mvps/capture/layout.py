@@ -11,4 +11,7 @@ COLOR_SUFFIXES = (".png", ".jpg", ".jpeg")
 GT_ARRAYS = ("depth", "normals", "albedo", "poses", "mesh_to_reference")
 #: capture.json's "light": the LED on the camera, or room light (the solver's "led" and "sh" models).
 CAPTURE_LIGHTS = ("led", "room")
+#: capture.json's "camera": fixed on a tripod while a light moves (the static-camera, moving-light
+#: setting of Peng et al. 2017: no registration, identity poses) or moved around the object.
+CAPTURE_CAMERAS = ("static", "moving")
 DEFAULT_SETTINGS = {"depth_scale": 1000.0, "depth_trunc": 3.0, "color_encoding": "srgb", "sensor": "unknown"}

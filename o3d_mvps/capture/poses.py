@@ -99,7 +99,7 @@ def read_poses(path, frame_names: list[str]) -> np.ndarray:
     suffix = path.suffix.lower()
     if suffix not in readers:
         raise CaptureError(f"{path}: unknown pose file format {suffix!r}; use one of {', '.join(POSE_SUFFIXES)} "
-                           "(formats in the README section 'Poses from other tools')")
+                           "(formats in docs/capture-guide.md, 'Poses')")
     if not path.is_file():
         raise CaptureError(f"pose file {path} does not exist; check the path")
     world_to_camera, ids = readers[suffix](path)

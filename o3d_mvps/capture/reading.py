@@ -27,7 +27,8 @@ from .layout import (
 )
 from .masks import auto_masks
 from .types import Capture, GroundTruth, default_depth_intrinsic, image_from_array
-from .validation import check_light, check_settings, groundtruth_problem, intrinsic_matrix, size_text, validate_capture
+from .validation import (check_camera, check_light, check_settings, groundtruth_problem, intrinsic_matrix, size_text,
+                         validate_capture)
 
 #: EXIF tag of the image orientation (1 = stored as displayed).
 EXIF_ORIENTATION = 0x0112
@@ -103,6 +104,7 @@ def read_capture(path, mask: str | None = None, depth_range=None) -> Capture:
         sensor=settings["sensor"],
         metadata={**settings["metadata"], "color_bit_depth": bit_depths.pop()},
         light=settings["light"],
+        camera=settings["camera"],
     )
     validate_capture(capture, names)
     _check_intrinsic_size(root / INTRINSIC_JSON, color_K_size, capture.color_size, COLOR_DIR)
@@ -314,7 +316,7 @@ def _read_masks(folder: Path, names: list[str]) -> list | None:
 
 def _read_settings(path: Path) -> dict:
     """capture.json with defaults filled in; 'frames' is None when absent."""
-    settings = {**DEFAULT_SETTINGS, "frames": None, "metadata": {}, "light": None}
+    settings = {**DEFAULT_SETTINGS, "frames": None, "metadata": {}, "light": None, "camera": None}
     if not path.exists():
         return settings
     data = load_json(path)
@@ -324,14 +326,19 @@ def _read_settings(path: Path) -> dict:
     try:
         settings["depth_scale"] = float(settings["depth_scale"])
         settings["depth_trunc"] = float(settings["depth_trunc"])
-        settings["frames"] = None if settings["frames"] is None else int(settings["frames"])
+        frames = settings["frames"]
+        settings["frames"] = None if frames is None else int(frames)
     except (TypeError, ValueError):
         raise CaptureError(f"{path}: depth_scale, depth_trunc and frames must be numbers; fix the file") from None
+    if frames is not None and (isinstance(frames, bool) or settings["frames"] != frames or settings["frames"] < 1):
+        raise CaptureError(f"{path}: \"frames\": {frames!r} must be a whole number of frames >= 1 (the count of "
+                           "color/ images); fix the file or remove the key")
     check_settings(settings["depth_scale"], settings["depth_trunc"], settings["color_encoding"], 8, f"{path}: ")
     if not isinstance(settings["metadata"], dict):
         raise CaptureError(f"{path}: metadata must be a JSON object")
     settings["sensor"] = str(settings["sensor"])
     check_light(settings["light"], f"{path}: ")
+    check_camera(settings["camera"], f"{path}: ")
     return settings
 
 

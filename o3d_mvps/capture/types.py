@@ -8,7 +8,14 @@ import numpy as np
 import open3d as o3d
 
 from ..model.camera import as_intrinsic_matrix, scale_intrinsics
-from .validation import integer_scale_factor
+from ..model.sensor import choose_scale_factor
+
+
+def integer_scale_factor(color_size, depth_size) -> int:
+    """The capture's scale-factor rule: SF = H / h = W / w, an integer >= 1 (color_size (H, W),
+    depth_size (h, w) in pixels); :func:`o3d_mvps.model.sensor.choose_scale_factor` with exact
+    grids, whose CaptureError names the mismatch and the fix."""
+    return choose_scale_factor(color_size, depth_size, exact=True)
 
 
 @dataclass
@@ -43,6 +50,8 @@ class Capture:
     color_encoding: how colour PNGs are encoded on disk ("srgb" or "linear").
     light: what lit the frames (capture.json's "light"): "led" (the LED on the camera) or "room"
     (room light); None when the capture does not say.
+    camera: capture.json's "camera": "static" (a fixed camera, a light moved between frames:
+    :mod:`o3d_mvps.capture.static`), "moving", or None when the capture does not say.
     """
 
     color: list
@@ -57,6 +66,7 @@ class Capture:
     groundtruth: GroundTruth | None = None
     metadata: dict = field(default_factory=dict)
     light: str | None = None
+    camera: str | None = None
 
     # --- sizes -------------------------------------------------------------------------
     @property

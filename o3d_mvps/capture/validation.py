@@ -8,8 +8,9 @@ import numpy as np
 
 from ..errors import CaptureError
 from ..model.camera import as_intrinsic_matrix
-from ..model.sensor import check_depth_unit, choose_scale_factor
-from .layout import CAPTURE_LIGHTS, COLOR_ENCODINGS
+from ..model.sensor import check_depth_unit
+from .layout import CAPTURE_CAMERAS, CAPTURE_LIGHTS, COLOR_ENCODINGS
+from .types import integer_scale_factor
 
 if TYPE_CHECKING:
     from .types import Capture, GroundTruth
@@ -51,17 +52,11 @@ def validate_capture(capture: Capture, frame_names: list[str] | None = None) -> 
         intrinsic_matrix(K, f"the {name} intrinsics")
     check_settings(capture.depth_scale, capture.depth_trunc, capture.color_encoding,
                    capture.metadata.get("color_bit_depth", 8))
+    check_camera(capture.camera)
     if capture.groundtruth is not None:
         problem = groundtruth_problem(capture.groundtruth, n, color_size)
         if problem:
             raise CaptureError(f"{problem}; regenerate the ground truth")
-
-
-def integer_scale_factor(color_size, depth_size) -> int:
-    """The capture's scale-factor rule: SF = H / h = W / w, an integer >= 1 (color_size (H, W),
-    depth_size (h, w) in pixels); :func:`o3d_mvps.model.sensor.choose_scale_factor` with exact
-    grids, whose CaptureError names the mismatch and the fix."""
-    return choose_scale_factor(color_size, depth_size, exact=True)
 
 
 def pixels(image) -> np.ndarray:
@@ -99,6 +94,14 @@ def check_light(light, where: str = "") -> None:
     if light is not None and light not in CAPTURE_LIGHTS:
         raise CaptureError(f"{where}light must be one of {', '.join(map(repr, CAPTURE_LIGHTS))} (the LED on the camera "
                            f"or room light), got {light!r}")
+
+
+def check_camera(camera, where: str = "") -> None:
+    """Check a capture's ``camera`` (None, or one of :data:`.layout.CAPTURE_CAMERAS`); ``where`` prefixes messages."""
+    if camera is not None and camera not in CAPTURE_CAMERAS:
+        raise CaptureError(f"{where}camera must be one of {', '.join(map(repr, CAPTURE_CAMERAS))} (a camera fixed "
+                           f"while a light moves, or a camera moved around the object), got {camera!r}; or leave it "
+                           "out and the depth decides")
 
 
 def groundtruth_problem(gt: GroundTruth, n: int, color_size) -> str | None:

@@ -95,6 +95,7 @@ def _write_folder(capture: Capture, root: Path, bits: int) -> None:
         "sensor": capture.sensor,
         "frames": capture.n_frames,
         **({"light": capture.light} if capture.light is not None else {}),
+        **({"camera": capture.camera} if capture.camera is not None else {}),
         "metadata": {**capture.metadata, "color_bit_depth": bits},
     }
     (root / CAPTURE_JSON).write_text(_capture_json(settings, "capture settings"))

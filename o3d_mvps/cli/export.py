@@ -11,7 +11,10 @@ from .argtypes import positive_float, positive_int
 from .outputs import add_overwrite_argument, check_files
 
 DESCRIPTION = """\
-Turn a refinement (a folder written by Refinement.save / `o3d-mvps refine`) into a mesh.
+Turn a refinement (a folder written by Refinement.save / `o3d-mvps refine`) into a mesh, or
+convert the whole-object mesh of an `o3d-mvps reconstruct` folder (its mesh.ply, with vertex
+colours; --max-triangles simplifies it; .stl or --print rescale its print.stl, from reconstruct
+--print, to --size-mm).
 
   .obj  textured mesh: OUT.obj + OUT.mtl + OUT_albedo.png (albedo texture, sRGB)
   .glb  textured mesh, texture embedded
@@ -24,6 +27,7 @@ largest extent is --size-mm; it can be written as .stl, .obj, .glb or .ply.
 examples:
   o3d-mvps export out/refined scan.obj --preview scan.png
   o3d-mvps export out/refined scan.stl --size-mm 100 --base-mm 3 --pieces all
+  o3d-mvps export out/object object_small.glb --max-triangles 50000   # a reconstruct folder
 """
 
 
@@ -54,7 +58,8 @@ def register(subparsers) -> None:
         "export", help="refined result -> textured mesh (.obj/.glb/.ply) or print-ready solid (.stl)",
         description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("refined", type=Path, help="folder written by Refinement.save (o3d-mvps refine)")
+    parser.add_argument("refined", type=Path, metavar="FOLDER",
+                        help="folder written by o3d-mvps refine (Refinement.save) or o3d-mvps reconstruct")
     parser.add_argument("out", type=_mesh_path, help=f"output mesh: {', '.join(MESH_SUFFIXES)}")
     solid = parser.add_argument_group("print-ready solid")
     solid.add_argument("--print", dest="print_solid", action="store_true",
@@ -88,14 +93,20 @@ def run(args) -> int:
         targets.append(args.preview)
     check_files(targets, args.overwrite)
     if not args.refined.is_dir():
-        raise ExportError(f"{args.refined} is not a folder; pass the folder written by Refinement.save (o3d-mvps refine)")
+        raise ExportError(f"{args.refined} is not a folder; pass the folder written by o3d-mvps refine "
+                          "(Refinement.save) or o3d-mvps reconstruct")
 
-    refinement = read_refinement(args.refined)
-    if make_solid:
+    from ..reconstruct.api import is_reconstruction_folder
+
+    if is_reconstruction_folder(args.refined):
+        mesh = _reconstruction_mesh(args, make_solid)
+    elif make_solid:
+        refinement = read_refinement(args.refined)
         mesh = printable_solid(refinement, size_mm=args.size_mm, base_mm=args.base_mm, pieces=args.pieces,
                                max_depth_jump=args.max_depth_jump, max_triangles=args.max_triangles)
     else:
-        mesh = refinement_to_mesh(refinement, max_depth_jump=args.max_depth_jump, max_triangles=args.max_triangles)
+        mesh = refinement_to_mesh(read_refinement(args.refined), max_depth_jump=args.max_depth_jump,
+                                  max_triangles=args.max_triangles)
     written = write_mesh(mesh, out, overwrite=args.overwrite)
     if args.preview is not None:
         from ..viz import render_preview
@@ -107,3 +118,34 @@ def run(args) -> int:
     for path in written:
         print(f"wrote {path}")
     return 0
+
+
+def _reconstruction_mesh(args, make_solid: bool):
+    """The mesh of a reconstruct folder, simplified to --max-triangles; for a print solid, the folder's
+    print.stl (from reconstruct --print) rescaled to --size-mm, else the mesh itself when it is closed."""
+    import open3d as o3d
+
+    from ..export import mesh_arrays, simplify_mesh
+    from ..reconstruct.api import read_reconstruction
+    from ..reconstruct.solid import mesh_solid
+
+    mesh, report = read_reconstruction(args.refined)
+    up = report.get("up", [0.0, -1.0, 0.0])
+    if make_solid and (args.refined / "print.stl").is_file():
+        solid = o3d.io.read_triangle_mesh(str(args.refined / "print.stl"))  # mm, +z up; STL repeats vertices
+        mesh, up = o3d.t.geometry.TriangleMesh.from_legacy(solid.remove_duplicated_vertices()), [0.0, 0.0, 1.0]
+    if args.max_triangles is not None:
+        mesh = simplify_mesh(mesh, args.max_triangles)
+    if not make_solid:
+        return mesh
+    positions, triangles = mesh_arrays(mesh)[:2]
+    try:
+        return mesh_solid(positions, triangles, up, args.size_mm)
+    except ExportError as err:
+        span = report.get("azimuth_span_deg")
+        seen = f"; the frames cover {span:g} degrees" if isinstance(span, (int, float)) else ""
+        raise ExportError(f"the mesh in {args.refined} is not closed (the object's underside is never seen{seen}), "
+                          f"so it is no solid ({err}). Make the print solid with the reconstruction, which closes it "
+                          f"from the views' depths: 'o3d-mvps reconstruct CAPTURE {args.refined} --overwrite --print "
+                          f"{args.size_mm:g}'; then 'o3d-mvps export {args.refined} OUT.stl --size-mm MM' rescales "
+                          "its print.stl") from None

@@ -1,6 +1,6 @@
 """``o3d-mvps record`` (live, from a RealSense camera) and ``o3d-mvps convert`` (a recording).
 
-Both write a capture folder (layout in README's "Capture guide" and ``o3d_mvps.capture``) with
+Both write a capture folder (layout in docs/capture-guide.md and ``o3d_mvps.capture``) with
 depth registered to the colour camera at the sensor's native resolution (colour / SF), ready
 for ``o3d-mvps refine``.
 """
@@ -12,7 +12,7 @@ from pathlib import Path
 
 from ..capture import write_capture
 from ..capture.layout import CAPTURE_LIGHTS
-from .argtypes import image_size, positive_int
+from .argtypes import image_size, positive_float, positive_int
 from .outputs import add_overwrite_argument, check_folder
 
 RECORD_EXAMPLES = """\
@@ -42,10 +42,12 @@ def add_recording_arguments(group, frames_flag: str = "--frames") -> None:
                        help="depth size (default 640x360)")
     group.add_argument("--fps", type=positive_int, default=30, help="stream rate (default 30)")
     when = group.add_mutually_exclusive_group()
-    when.add_argument("--interval", type=float, default=1.0, metavar="S", help="seconds between frames (default 1)")
+    when.add_argument("--interval", type=positive_float, default=1.0, metavar="S",
+                      help="seconds between frames (default 1)")
     when.add_argument("--on-key", action="store_true", help="take a frame at each Enter (q + Enter stops)")
     group.add_argument("--emitter", choices=["on", "off"], default="on", help="IR dot projector (default on)")
-    group.add_argument("--exposure", type=float, metavar="US", help="fixed colour exposure in microseconds (default auto)")
+    group.add_argument("--exposure", type=positive_float, metavar="US",
+                       help="fixed colour exposure in microseconds (default auto)")
     group.add_argument("--serial", help="serial number of the camera when several are connected")
     group.add_argument("--light", choices=CAPTURE_LIGHTS, default="led",
                        help="what lights the object, written to capture.json for refine's light model: the LED on "
@@ -104,7 +106,7 @@ def run(args) -> int:
 def run_convert(args) -> int:
     from ..realsense import read_recording
 
-    check_folder(args.out, args.overwrite, "capture folder")
+    check_folder(args.out, args.overwrite, "capture folder", inputs=[args.recording])
     capture = read_recording(args.recording, frames=args.frames, stride=args.stride, scale_factor=args.scale_factor,
                              light=args.light, progress=not args.quiet)  # fmt: skip
     write_capture(capture, args.out, overwrite=args.overwrite)

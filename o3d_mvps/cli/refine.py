@@ -9,17 +9,20 @@ from dataclasses import replace
 from ..capture import read_capture, read_capture_poses
 from ..capture.reading import MASK_SOURCES, mask_source
 from ..report import accuracy_rows, markdown_table
-from ..solver.device import DEVICE_HELP, check_device
+from ..report_page import write_report_page
+from ..solver.device import DEVICE_HELP, resolve_device
 from ..solver.lighting import LIGHT_MODELS
 from ..solver.options import AUTO, RefineOptions
 from ..solving import refine
 from ..views import ViewSelection
-from .outputs import add_overwrite_argument, check_files, check_folder, log_energy
+from .argtypes import frame_count_fits, metres_offset, positive_float, positive_int, unit_interval
+from .outputs import add_overwrite_argument, check_files, check_folder, frame_files, log_energy, print_summary
 
 DESCRIPTION = """\
 Refine a capture folder: depth at colour resolution, RGB albedo, per-frame lighting and
 refined camera poses of the reference view (the first frame), written to the folder OUT
-(depth.npy, depth_mm.png, normals, albedo, poses.npy, lighting.json, report.json). For a
+(depth.npy, depth_mm.png, normals, albedo, poses.npy, lighting.json, report.json, and
+report.html: a page with the plots and a 3D view, to open in a browser). For a
 synthetic capture (with groundtruth/) the accuracy against the baselines is printed too.
 """
 
@@ -41,24 +44,25 @@ def _cauchy_lambda(text: str) -> float | str:
     if text == AUTO:
         return AUTO
     try:
-        return float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number or {AUTO!r}, got {text!r}") from None
+        return positive_float(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"expected a positive number or {AUTO!r}, got {text!r}") from None
 
 
 def add_solver_arguments(parser: argparse.ArgumentParser) -> None:
     """Options shared by every subcommand that runs the solver."""
     d = RefineOptions()
     g = parser.add_argument_group("solver")
-    g.add_argument("--frames", type=int, default=None, help="use the first N frames (default: all)")
-    g.add_argument("--tau", type=float, default=d.tau, help=f"normalised depth-prior weight (default {d.tau:g})")
+    g.add_argument("--frames", type=positive_int, default=None, help="use the first N frames (default: all)")
+    g.add_argument("--tau", type=positive_float, default=d.tau,
+                   help=f"normalised depth-prior weight (default {d.tau:g})")
     g.add_argument("--lambda", dest="cauchy_lambda", type=_cauchy_lambda, default=None, metavar="LAMBDA|auto",
                    help="Cauchy scale in linear intensity, or auto: the residuals' robust standard deviation "
                         "(default: 0.04 with the LED and SH models, auto with room light)")
-    g.add_argument("--levels", type=int, default=d.levels, help=f"pyramid levels (default {d.levels})")
-    g.add_argument("--iterations", type=int, default=d.max_iterations,
+    g.add_argument("--levels", type=positive_int, default=d.levels, help=f"pyramid levels (default {d.levels})")
+    g.add_argument("--iterations", type=positive_int, default=d.max_iterations,
                    help=f"sweep cap per level (default {d.max_iterations})")
-    g.add_argument("--tolerance", type=float, default=d.tolerance,
+    g.add_argument("--tolerance", type=unit_interval, default=d.tolerance,
                    help=f"relative energy change that ends a level (default {d.tolerance:g})")
     g.add_argument("--no-pose-refinement", action="store_true", help="keep the odometry poses (two-stage baseline)")
     g.add_argument("--no-occlusion-test", action="store_true", help="let hidden pixels enter the data term")
@@ -66,7 +70,7 @@ def add_solver_arguments(parser: argparse.ArgumentParser) -> None:
                    help="near-field LED, one SH light fixed in the room (room) or the paper's first-order SH "
                         "per frame (sh) (default: capture.json's light, led -> led, room -> room; led when it "
                         "does not say)")
-    g.add_argument("--led-offset", type=float, nargs=3, metavar=("X", "Y", "Z"), default=None,
+    g.add_argument("--led-offset", type=metres_offset, nargs=3, metavar=("X", "Y", "Z"), default=None,
                    help="LED position in metres from the colour lens (x right, y down, z forward); a ruler "
                         "measure within ~1 cm is enough, the solver refines it (default: capture.json's "
                         "metadata.led_offset, else 0 0 0)")
@@ -88,20 +92,20 @@ def register(subparsers) -> None:
     p.add_argument("out", help="output folder for the refinement")
     add_overwrite_argument(p, "output folder (or --save-problem file)")
     p.add_argument("--poses", default=None, metavar="FILE",
-                   help="initial poses: Open3D trajectory .json or .log, TUM .txt, or (n, 4, 4) .npy (README "
-                        "'Poses from other tools'; default: the capture folder's poses.* if any, else registration)")
+                   help="initial poses: Open3D trajectory .json or .log, TUM .txt, or (n, 4, 4) .npy (docs/capture-guide.md, "
+                        "'Poses'; default: the capture folder's poses.* if any, else registration)")
     p.add_argument("--strict", action="store_true",
                    help="stop when a frame cannot be registered, instead of dropping it with a warning")
     p.add_argument("--mask", choices=MASK_SOURCES, default=None,
                    help="object masks: the capture's mask/ folder, automatic from depth (the connected region "
                         "nearest the image centre, table and wall planes cut), or none (default: mask/ when "
                         "present, else auto)")
-    p.add_argument("--device", default="cpu", help=DEVICE_HELP)
+    p.add_argument("--device", default="auto", help=DEVICE_HELP)
     p.add_argument("--save-problem", default=None, metavar="FILE.npz",
                    help="also write the solver's input (frames, depth, masks, intrinsics, registered poses, "
                         "options) to this file once the capture is read, masked and registered; `python -m "
                         "o3d_mvps.solver FILE.npz OUT.npz` solves it, without Open3D (bug reports, a GPU box)")
-    p.add_argument("--depth-range", type=float, nargs=2, metavar=("NEAR", "FAR"), default=None,
+    p.add_argument("--depth-range", type=positive_float, nargs=2, metavar=("NEAR", "FAR"), default=None,
                    help="metres; the automatic mask keeps only depths in this range (default: around the "
                         "depth at the image centre)")
     add_solver_arguments(p)
@@ -109,18 +113,20 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    out = check_folder(args.out, args.overwrite, "refinement folder")
-    check_device(args.device)
+    out = check_folder(args.out, args.overwrite, "refinement folder", inputs=[args.capture])
+    device, device_line = resolve_device(args.device)
     if args.save_problem is not None:
-        check_files([args.save_problem], args.overwrite)
+        check_files([args.save_problem], args.overwrite, inputs=[args.capture])
     capture = read_capture(args.capture, mask=args.mask, depth_range=args.depth_range)
+    frame_count_fits("--frames", args.frames, capture.n_frames, f"the capture {args.capture}")
     if not args.quiet:
+        print(device_line)
         print(f"masks: {mask_source(args.capture, args.mask, args.depth_range)}")
     given = read_capture_poses(args.capture, args.poses)
     options = replace(options_from_args(args), strict_registration=args.strict)
     if given is not None and not args.quiet:
         print(f"poses: from {given[1]}")
-    refinement = refine(capture, options, args.device, initial_poses=None if given is None else given[0],
+    refinement = refine(capture, options, device, initial_poses=None if given is None else given[0],
                         save_problem=args.save_problem, overwrite=args.overwrite)
     log_energy(refinement, args.quiet)
     views = refinement.info.get("views")
@@ -132,6 +138,9 @@ def run(args) -> int:
         extra["accuracy"] = rows
         if not args.quiet:
             print(markdown_table(rows))
-    refinement.save(out, overwrite=args.overwrite, extra_report=extra)
+    refinement.info["frame_files"] = frame_files(args.capture)
+    report = refinement.save(out, overwrite=args.overwrite, extra_report=extra)
+    write_report_page(out, refinement=refinement, capture=capture)
+    print_summary(report["summary"], args.quiet)
     print(f"wrote {out}")
     return 0

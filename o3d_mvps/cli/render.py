@@ -6,7 +6,8 @@ import argparse
 import time
 from pathlib import Path
 
-from .argtypes import image_size, positive_int
+from ..errors import MVPSError
+from .argtypes import image_size, nonnegative_int, positive_int
 from .outputs import add_overwrite_argument, check_folder
 
 EXAMPLES = """\
@@ -15,6 +16,14 @@ examples:
   o3d-mvps render armadillo captures/arma --frames 30 --scale-factor 8 --size 1280x720
   o3d-mvps render my_scan.ply captures/scan --trajectory orbit-translate --light directional --seed 3
   o3d-mvps render bunny captures/room --scene --light room --frames 20   # table, wall, 360-degree ring
+  o3d-mvps render bunny captures/real --sensor d415            # terraces, flying pixels, holes, gain drift
+  o3d-mvps render bunny captures/static --static-camera --size 1280x960 --scale-factor 2 --sensor d415
+
+ring captures, for `o3d-mvps reconstruct` (the whole object):
+  o3d-mvps render bunny captures/ring --trajectory ring --frames 24 --size 320x240 --scale-factor 2
+  o3d-mvps reconstruct captures/ring object/ --print 80       # object/mesh.obj, report.html, print.stl
+  o3d-mvps render bunny captures/arc --trajectory ring --arc-deg 90 --frames 7   # part of a ring
+  o3d-mvps render bunny captures/scene --scene --frames 24   # a ring round the object on a table
 
 The folder holds color/, depth/, mask/, intrinsic.json, depth_intrinsic.json, capture.json and
 groundtruth/ (reference depth, normals, albedo, poses, light, mesh_to_reference); read it with
@@ -25,7 +34,7 @@ finds the object with its automatic masks, as in a user's capture.
 
 def register(subparsers) -> None:
     """Add the ``render`` subcommand."""
-    from ..synthetic import LIGHTS, TRAJECTORIES
+    from ..synthetic import LIGHTS, SENSORS, TRAJECTORIES
 
     p = subparsers.add_parser(
         "render",
@@ -44,19 +53,33 @@ def register(subparsers) -> None:
     p.add_argument("--scale-factor", type=positive_int, default=4, metavar="SF",
                    help="depth grid = colour size / SF; must divide the size (default 4)")
     p.add_argument("--size", type=image_size, default=(640, 480), metavar="WxH", help="colour size (default 640x480)")
-    p.add_argument("--trajectory", choices=TRAJECTORIES, default="orbit",
+    p.add_argument("--trajectory", choices=(*TRAJECTORIES, "ring"), default="orbit",
                    help="orbit: yaw/pitch up to 15 deg around the object; orbit-translate: plus a few cm of "
-                   "translation and distance change (default orbit)")
+                   "translation and distance change; ring: frames evenly all round the object (360/FRAMES "
+                   "degrees apart, 20 degrees above it; --arc-deg for part of a ring), the capture `o3d-mvps "
+                   "reconstruct` makes a whole object of (default orbit)")
+    p.add_argument("--arc-deg", type=float, default=360.0, metavar="DEG",
+                   help="with --trajectory ring or --scene: degrees of the ring the frames cover, both ends "
+                   "included below 360 (default 360: all round)")
     p.add_argument("--light", choices=LIGHTS, default="led",
                    help="led: point light near the camera, 1/r^2, shadows; directional: first-order SH, exact; "
                    "room: ambient plus three distant lights fixed in the room, shadows (default led)")
     p.add_argument("--scene", action="store_true",
-                   help="scene mode: the object on a table in front of a wall, frames on a 360-degree ring "
-                   "(360/FRAMES degrees apart, 20 degrees above the table), no mask/ folder; --trajectory is "
-                   "ignored")
-    p.add_argument("--seed", type=int, default=0, help="seed of the albedo texture and noise (default 0)")
+                   help="scene mode: the object on a table in front of a wall, frames on a ring (as --trajectory "
+                   "ring, 20 degrees above the table), no mask/ folder; --trajectory is ignored")
+    p.add_argument("--static-camera", action="store_true",
+                   help="static camera, moving light (Peng et al. 2017): the camera stays at the reference pose "
+                   "and a point light is moved by hand around it, 0.3-0.5 m from the optical axis, one position "
+                   "per frame; capture.json says \"camera\": \"static\"; --trajectory and --light are ignored")
+    p.add_argument("--sensor", choices=SENSORS, default="gaussian",
+                   help="sensor profile: gaussian (the paper's: depth noise 1e-5 z^2 mm, 1 mm steps, colour noise "
+                   "0.005), d415 (RealSense-D415-like: disparity terraces of 1.1 mm at 1 m, noise growing with "
+                   "z^2 plus a smooth error of a few mm, flying pixels at edges, 3%% speckle holes; colour with "
+                   "exposure and white-balance drift, shot and read noise) or none (quantisation only) "
+                   "(default gaussian)")
+    p.add_argument("--seed", type=nonnegative_int, default=0, help="seed of the albedo texture and noise (default 0)")
     p.add_argument("--no-noise", dest="noise", action="store_false",
-                   help="no colour or depth noise (quantisation stays)")
+                   help="no colour or depth noise (quantisation stays): --sensor none")
     add_overwrite_argument(p, "capture folder")
     p.set_defaults(handler=run)
 
@@ -64,16 +87,26 @@ def register(subparsers) -> None:
 def run(args) -> int:
     """Render and write the capture; returns the exit code."""
     from ..capture import write_capture
-    from ..synthetic import render_capture, render_ring
+    from ..synthetic import render_capture, render_ring, render_static_capture
 
+    if not 0.0 < args.arc_deg <= 360.0:
+        raise MVPSError(f"--arc-deg {args.arc_deg:g}: give the degrees of the ring the frames cover, in (0, 360]")
+    if args.scene and args.static_camera:
+        raise ValueError("--scene and --static-camera exclude each other (a scene is rendered from a ring of "
+                         "camera positions); pick one")
+    if not args.noise and args.sensor not in ("gaussian", "none"):
+        raise ValueError(f"--no-noise contradicts --sensor {args.sensor}; drop one of them")
+    sensor = args.sensor if args.noise else "none"
     out = check_folder(args.out, args.overwrite, "capture folder")
     start = time.perf_counter()
-    common = dict(frames=args.frames, scale_factor=args.scale_factor, size=args.size, light=args.light, seed=args.seed,
-                  noise=args.noise, progress=not args.quiet)
-    if args.scene:
-        capture, _ = render_ring(args.mesh, surroundings=True, **common)
+    common = dict(frames=args.frames, scale_factor=args.scale_factor, size=args.size, seed=args.seed, sensor=sensor,
+                  progress=not args.quiet)
+    if args.static_camera:
+        capture = render_static_capture(args.mesh, **common)
+    elif args.scene or args.trajectory == "ring":
+        capture, _ = render_ring(args.mesh, surroundings=args.scene, arc_deg=args.arc_deg, light=args.light, **common)
     else:
-        capture = render_capture(args.mesh, trajectory=args.trajectory, **common)
+        capture = render_capture(args.mesh, trajectory=args.trajectory, light=args.light, **common)
     write_capture(capture, out, overwrite=args.overwrite)
     (H, W), (h, w) = capture.color_size, capture.depth_size
     print(f"wrote {capture.n_frames} frames ({W}x{H} colour, {w}x{h} depth) to {out} "

@@ -1,6 +1,6 @@
 """Meshes from a Refinement: a textured surface for viewers and a watertight solid for printing.
 
-Two products (README "Python"):
+Two products (docs/api.md):
 
 - :func:`refinement_to_mesh` -- the refined depth back-projected into the reference camera
   frame (metres) and triangulated on the pixel grid, with vertex normals, per-vertex sRGB
@@ -22,7 +22,7 @@ origin at the bottom-left of the image. Colours (``vertex.colors`` and the textu
 sRGB-encoded, ready for display; the albedo itself is linear RGB.
 """
 
-from .relief import DEFAULT_MAX_DEPTH_JUMP, refinement_to_mesh
+from .relief import DEFAULT_MAX_DEPTH_JUMP, refinement_to_mesh, simplify_mesh
 from .solid import PIECES, check_solid, printable_solid, solid_volume
 from .topology import mesh_arrays
 from .writers import MESH_SUFFIXES, write_mesh, write_stl
@@ -32,6 +32,7 @@ __all__ = [
     "MESH_SUFFIXES",
     "PIECES",
     "refinement_to_mesh",
+    "simplify_mesh",
     "printable_solid",
     "check_solid",
     "solid_volume",

@@ -9,7 +9,7 @@ from ..colour import linear_to_srgb
 from ..errors import ExportError
 from ..model.camera import as_intrinsic_matrix, backproject, project
 from ..model.warping import sample_bilinear
-from .topology import unique, vertex_normals
+from .topology import mesh_arrays, unique, vertex_normals
 
 #: Default discontinuity threshold of :func:`refinement_to_mesh`, in pixel footprints: an edge
 #: between neighbouring pixels is cut when its depth step exceeds 10 footprints, i.e. where the
@@ -231,6 +231,32 @@ def compact_vertices(tri: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     used = np.flatnonzero(occupied)
     new_index = np.cumsum(occupied) - 1
     return used, new_index[tri].astype(np.int64)
+
+
+def simplify_mesh(mesh, max_triangles: int) -> o3d.t.geometry.TriangleMesh:
+    """``mesh`` quadric-decimated to at most ``max_triangles`` triangles (unchanged below that).
+
+    Geometry only is decimated: vertex colours are taken from the nearest original vertex,
+    normals recomputed from the triangles; texture coordinates are dropped (vertex colours
+    remain). For any mesh (e.g. a whole-object reconstruction); a refinement's relief has its
+    own, exact texture re-projection (:func:`refinement_to_mesh`'s ``max_triangles``).
+    """
+    positions, tri, _, colours, _, _ = mesh_arrays(mesh)
+    if int(max_triangles) < 1:
+        raise ExportError(f"max_triangles must be a positive integer, got {max_triangles}")
+    if len(tri) <= max_triangles:
+        return mesh if isinstance(mesh, o3d.t.geometry.TriangleMesh) else o3d.t.geometry.TriangleMesh.from_legacy(mesh)
+    new_positions, tri = _decimate(positions.astype(np.float64), tri, int(max_triangles))
+    out = o3d.t.geometry.TriangleMesh()
+    out.vertex.positions = o3d.core.Tensor(new_positions.astype(np.float32))
+    out.vertex.normals = o3d.core.Tensor(vertex_normals(new_positions, tri).astype(np.float32))
+    out.triangle.indices = o3d.core.Tensor(tri)
+    if colours is not None:
+        from scipy.spatial import cKDTree
+
+        _, nearest = cKDTree(positions).query(new_positions)
+        out.vertex.colors = o3d.core.Tensor(np.ascontiguousarray(colours[nearest], dtype=np.float32))
+    return out
 
 
 def _decimate(positions: np.ndarray, tri: np.ndarray, max_triangles: int) -> tuple[np.ndarray, np.ndarray]:

@@ -24,8 +24,12 @@ def array_module(x) -> ModuleType:
 
 def like(a, reference, dtype=None):
     """``a`` (a host array or scalar) as a C-contiguous array of ``reference``'s module (no copy
-    of a contiguous host array on the host)."""
-    return array_module(reference).ascontiguousarray(a, dtype=dtype)
+    of a contiguous host array on the host).
+
+    Host data reaches a GPU through ``cupy.asarray`` only: CuPy's other functions
+    (``ascontiguousarray`` among them) refuse NumPy arrays with a TypeError.
+    """
+    return array_module(reference).asarray(a, dtype=dtype, order="C")
 
 
 def sparse_module(x) -> ModuleType:

@@ -16,8 +16,9 @@ from .arrays import array_module
 
 
 def cauchy(r: np.ndarray, lam: float) -> np.ndarray:
-    """phi(r), elementwise (computed in one temporary: the solver applies it to (n, N, 3) arrays)."""
-    out = np.asarray(np.square(np.multiply(r, 1.0 / lam)))  # 0-d for a scalar r, so out= works
+    """phi(r), elementwise (computed in one temporary: the solver applies it to (n, N, 3) arrays;
+    NumPy or CuPy)."""
+    out = array_module(r).asarray(np.square(np.multiply(r, 1.0 / lam)))  # 0-d for a scalar r, so out= works
     np.log1p(out, out=out)
     out *= 0.5 * lam * lam
     return out

@@ -23,8 +23,9 @@ def sh_basis(normals: np.ndarray) -> np.ndarray:
 
 
 def shading(normals: np.ndarray, light: np.ndarray) -> np.ndarray:
-    """<l, m(n)>: (...) shading of unit normals (..., 3) under SH light (4,)."""
-    return light[0] + normals @ np.asarray(light[1:], dtype=normals.dtype)
+    """<l, m(n)>: (...) shading of unit normals (..., 3) under SH light (4,) (NumPy or CuPy
+    normals; the light on the host or the device)."""
+    return light[0] + normals @ like(light[1:], normals, dtype=normals.dtype)
 
 
 def led_vectors(points: np.ndarray, light_position: np.ndarray) -> np.ndarray:

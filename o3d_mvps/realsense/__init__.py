@@ -11,7 +11,7 @@ Two ways to a :class:`~o3d_mvps.capture.Capture`:
 Depth is read raw (z16 times the depth sensor's depth units) in the depth camera and
 registered to the colour camera with :func:`o3d_mvps.registration.register_depth` on the grid
 colour resolution / SF, never upsampled (``o3d.t.io.RSBagReader`` aligns at colour resolution and loses the native
-low-resolution depth; README "Capture guide").
+low-resolution depth; docs/capture-guide.md).
 
 Frame selection (:func:`select_frames`): a frame is *blurred* when the variance of the
 Laplacian of its grey image is below ``blur_fraction`` times the median over the candidates;

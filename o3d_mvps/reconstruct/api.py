@@ -14,12 +14,15 @@ from __future__ import annotations
 
 import time
 import warnings
+from contextlib import ExitStack
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 import open3d as o3d
 
 from ..errors import MVPSError
+from ..run_report import peak_memory_mb, workers_peak_memory_mb
+from ..solver.device import check_device_name
 from ..solver.options import RefineOptions
 from ..views import MIN_COVISIBILITY
 from .fusion import GRAZING_EXPONENT, TSDFVolume, pixel_weights
@@ -42,7 +45,11 @@ class ReconstructOptions:
     silhouette ramp of the fusion weights. weight_threshold: least accumulated weight of a
     fused surface voxel. hole_mm: largest hole closed in the mesh. texture_px: edge of the
     square albedo texture (0: vertex colours only). refine: the solver's
-    options. workers: local Dask worker processes (default: the CPU count). progress: bars.
+    options. workers: local Dask worker processes (default: the CPU count), >= 1.
+    scheduler_timeout: seconds to wait for a scheduler to answer or, while it has no worker,
+    for one (then the views fail, naming the address). progress: bars and Dask's notices
+    (False: Dask logs errors only). device: where each view is refined, "auto" (the GPU when it
+    can solve, else the CPU), "cpu" or "cuda:N" (:func:`o3d_mvps.solver.device.check_device`).
     """
 
     references: int = 8
@@ -56,12 +63,15 @@ class ReconstructOptions:
     texture_px: int = 1024
     refine: RefineOptions = field(default_factory=lambda: RefineOptions(progress=False))
     workers: int | None = None
+    scheduler_timeout: float = 60.0
     progress: bool = True
+    device: str = "auto"
 
     def __post_init__(self):
+        check_device_name(self.device)
         if self.depth not in DEPTH_SOURCES:
             raise ValueError(f"depth={self.depth!r}; choose one of {', '.join(DEPTH_SOURCES)}")
-        for name in ("voxel_mm", "edge_px", "weight_threshold", "hole_mm"):
+        for name in ("voxel_mm", "edge_px", "weight_threshold", "hole_mm", "scheduler_timeout"):
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):
                 raise ValueError(f"{name}={value!r} must be a positive number")
@@ -71,6 +81,8 @@ class ReconstructOptions:
             raise ValueError(f"frames_per_reference={self.frames_per_reference!r} must be an integer >= 2")
         if not (isinstance(self.texture_px, int) and self.texture_px >= 0):
             raise ValueError(f"texture_px={self.texture_px!r} must be an integer >= 0 (0: no texture)")
+        if not (self.workers is None or (isinstance(self.workers, int) and self.workers >= 1)):
+            raise ValueError(f"workers={self.workers!r} must be an integer >= 1, or None for the CPU count")
 
 
 @dataclass
@@ -123,11 +135,26 @@ def reconstruct(capture, options: ReconstructOptions | None = None, *, poses=Non
         Every reference view failed (each failure is named), or the fused mesh is empty.
     """
     options = options or ReconstructOptions()
+    with ExitStack() as dask_session:
+        return _reconstruct(capture, options, poses, client, scheduler, dask_session)
+
+
+def _reconstruct(capture, options: ReconstructOptions, poses, client, scheduler, dask_session: ExitStack):
+    """:func:`reconstruct`; a user's scheduler is connected to first (a wrong address fails in
+    seconds, not after the registration), a local cluster only when the views are planned."""
+    from .parallel import dask_client, run_views
+
     t0 = time.perf_counter()
+    dask_args = dict(timeout=options.scheduler_timeout, quiet=not options.progress)
+    dask = None
+    if options.depth == "refined" and (client is not None or scheduler is not None):
+        dask = dask_session.enter_context(dask_client(client, scheduler, **dask_args))
+    n_given, kept, dropped = capture.n_frames, list(range(capture.n_frames)), {}
     if poses is None:
         from ..odometry import register_frames
 
         registration = register_frames(capture, progress=options.progress)
+        kept, dropped = list(registration.frames), registration.dropped
         capture, poses = capture.select(registration.frames), registration.poses
     poses = np.asarray(poses, dtype=np.float64)
     if poses.shape != (capture.n_frames, 4, 4):
@@ -136,24 +163,39 @@ def reconstruct(capture, options: ReconstructOptions | None = None, *, poses=Non
     goes_around = span >= FULL_TURN_DEG
     if not goes_around:
         warnings.warn(f"the frames cover {span:.0f} degrees around the object: the mesh holds what they saw, the "
-                      "back is missing (walk all round the object for a closed mesh)", stacklevel=2)
+                      "back is missing (walk all round the object for a closed mesh)", stacklevel=3)
     references = choose_references(poses, min(options.references, capture.n_frames))
     jobs = [plan_view(capture, poses, k, min_covisibility=options.min_covisibility,
                       max_frames=options.frames_per_reference) for k in references]
     refine_options = replace(options.refine, frames=None, progress=False)
     t_plan = time.perf_counter()
+    memory = {"plan": peak_memory_mb()}
+    retried = {}
     if options.depth == "refined":
-        from .parallel import dask_client, run_views
-
-        with dask_client(client, scheduler, options.workers or min(len(jobs), _cpu_count())) as dask:
-            views, failed = run_views(jobs, refine_options, "refined", dask, options.progress)
+        if dask is None:
+            dask = dask_session.enter_context(
+                dask_client(None, None, options.workers or min(len(jobs), _cpu_count()), **dask_args))
+        views, failed, retried = run_views(jobs, refine_options, "refined", dask, options.progress,
+                                           timeout=options.scheduler_timeout, device=options.device)
+        dask_session.close()  # the local cluster's processes are not kept through the fusion
     else:
         views, failed = [run_view(job, refine_options, "raw") for job in jobs], {}
+    for reference, why in retried.items():
+        warnings.warn(why if isinstance(reference, str) else f"reference view {reference} was run again: {why}",
+                      stacklevel=3)
+    said = {}
+    for view in views:  # the workers' warnings, each message once with the views that raised it
+        for message in view.warnings:
+            said.setdefault(message, []).append(view.reference)
+    for message, references in said.items():
+        warnings.warn(f"reference view{'s' if len(references) > 1 else ''} {', '.join(map(str, references))}: "
+                      f"{message}", stacklevel=3)
     for reference, error in failed.items():
-        warnings.warn(f"reference view {reference} failed and is left out: {error}", stacklevel=2)
+        warnings.warn(f"reference view {reference} failed and is left out: {error}", stacklevel=3)
     if not views:
         raise MVPSError("every reference view failed: " + "; ".join(f"{k}: {e}" for k, e in failed.items()))
     t_views = time.perf_counter()
+    memory["views"] = peak_memory_mb()
 
     volume = TSDFVolume(options.voxel_mm / 1000)
     for view in views:
@@ -169,13 +211,20 @@ def reconstruct(capture, options: ReconstructOptions | None = None, *, poses=Non
     colouring = ViewColours(views, options.edge_px, positions, normals)
     mesh.vertex.colors = o3d.core.Tensor(colouring.vertex_colours(positions, normals).astype(np.float32))
     t_fusion = time.perf_counter()
+    memory["fusion"] = peak_memory_mb()
     textured = options.texture_px > 0 and texture_mesh(mesh, colouring, options.texture_px)
+    memory["texture"] = peak_memory_mb()
     info = {"references": references, "failed": {str(k): e for k, e in failed.items()},
+            "retried": {str(k): e for k, e in retried.items()},
             "views": [{"reference": v.reference, "seconds": round(v.seconds, 3), **v.selection} for v in views],
             "azimuth_span_deg": round(span, 1), "goes_around": goes_around, "depth": options.depth,
-            "voxel_mm": options.voxel_mm, "vertices": len(positions), "triangles": int(len(mesh.triangle.indices)), "textured": bool(textured),
+            "voxel_mm": options.voxel_mm, "up": up_direction(poses).tolist(), "vertices": len(positions),
+            "triangles": int(len(mesh.triangle.indices)), "textured": bool(textured),
             "timings": {"plan": t_plan - t0, "views": t_views - t_plan, "fusion": t_fusion - t_views,
-                        "texture": time.perf_counter() - t_fusion}}
+                        "texture": time.perf_counter() - t_fusion, "total": time.perf_counter() - t0},
+            "capture_frames": n_given, "registered_frames": kept,
+            "dropped_frames": {str(i): why for i, why in dropped.items()},
+            "stage_peak_memory_mb": memory, "workers_peak_memory_mb": workers_peak_memory_mb()}
     return Reconstruction(mesh, views, failed, goes_around, span, up_direction(poses), options.voxel_mm / 1000, info)
 
 
@@ -183,3 +232,41 @@ def _cpu_count() -> int:
     import os
 
     return os.cpu_count() or 1
+
+
+#: The whole-object mesh of a folder written by ``o3d-mvps reconstruct`` (vertex colours, normals).
+RECONSTRUCTION_MESH = "mesh.ply"
+
+
+def is_reconstruction_folder(folder) -> bool:
+    """Whether ``folder`` was written by ``o3d-mvps reconstruct`` (mesh.ply and report.json, no depth.npy)."""
+    from pathlib import Path
+
+    root = Path(folder)
+    return (root / RECONSTRUCTION_MESH).is_file() and (root / "report.json").is_file() and \
+        not (root / "depth.npy").is_file()
+
+
+def read_reconstruction(folder) -> tuple[o3d.t.geometry.TriangleMesh, dict]:
+    """(mesh, report) of a folder written by ``o3d-mvps reconstruct``: mesh.ply (metres, frame-0
+    camera, vertex colours and normals; the folder's mesh.obj/.glb hold the albedo texture) and
+    report.json.
+
+    Raises MVPSError naming the file when either cannot be read.
+    """
+    import json
+    from pathlib import Path
+
+    root = Path(folder)
+    path = root / RECONSTRUCTION_MESH
+    if not path.is_file():
+        raise MVPSError(f"{root} is not a reconstruct folder ({RECONSTRUCTION_MESH} missing); give the folder that "
+                        "'o3d-mvps reconstruct' wrote")
+    mesh = o3d.t.io.read_triangle_mesh(str(path))
+    if "indices" not in mesh.triangle or len(mesh.triangle.indices) == 0:
+        raise MVPSError(f"{path} holds no triangles; reconstruct again ('o3d-mvps reconstruct CAPTURE {root}')")
+    try:
+        report = json.loads((root / "report.json").read_text())
+    except (OSError, ValueError) as e:
+        raise MVPSError(f"cannot read {root / 'report.json'} ({e}); reconstruct again") from None
+    return mesh, report

@@ -22,17 +22,34 @@ def viewing_directions(poses: np.ndarray) -> np.ndarray:
     return poses[:, 2, :3] / np.linalg.norm(poses[:, 2, :3], axis=1, keepdims=True)
 
 
+#: When the fitted cone axis counts as 'up' (see :func:`up_direction`): the viewing directions
+#: make at least this angle (degrees) with it ...
+MIN_CONE_ANGLE_DEG = 45.0
+#: ... or the cameras' image-up vectors lean toward it by at least this much on average (cosine;
+#: a ring at elevation e gives cos(e), so rings up to 75 degrees above the object qualify).
+MIN_UP_ALONG_AXIS = float(np.cos(np.radians(75.0)))
+
+
 def up_direction(poses: np.ndarray) -> np.ndarray:
     """World 'up' (3,): the axis of the cone the viewing directions lie on (the normal of the plane
     through their tips, for a ring or an arc at one elevation), signed along the cameras' mean
-    image-up (-y); that mean itself when the directions do not span a plane (fewer than 3 views)."""
-    mean_up = -poses[:, 1, :3].mean(axis=0)
+    image-up (-y); that mean itself when the directions do not span a plane (fewer than 3 views)
+    or the axis is not an up axis: the directions hug it (cone narrower than
+    :data:`MIN_CONE_ANGLE_DEG`) while the image-ups stay square to it (below
+    :data:`MIN_UP_ALONG_AXIS`). That is an orbit in front of the object (yaw/pitch within
+    +-15 degrees): its tips also lie near a plane, but the plane's normal is the mean viewing
+    direction, about which the directions would seem to go all round."""
+    ups = -poses[:, 1, :3]
+    mean_up = ups.mean(axis=0)
     tips = viewing_directions(poses)
     if len(tips) >= 3:
         _, singular, vt = np.linalg.svd(tips - tips.mean(axis=0))
-        if singular[1] > 1e-3 * max(singular[0], 1e-12):
-            axis = vt[2]
-            return axis * np.sign(axis @ mean_up or 1.0)
+        axis = vt[2] * np.sign(vt[2] @ mean_up or 1.0)
+        cone_deg = np.degrees(np.arccos(min(abs(float(np.mean(tips @ axis))), 1.0)))
+        up_along = float(np.mean(ups @ axis)) / max(float(np.mean(np.linalg.norm(ups, axis=1))), 1e-12)
+        if singular[1] > 1e-3 * max(singular[0], 1e-12) and (cone_deg >= MIN_CONE_ANGLE_DEG
+                                                              or up_along >= MIN_UP_ALONG_AXIS):
+            return axis
     return mean_up / np.linalg.norm(mean_up)
 
 

@@ -88,3 +88,19 @@ def closed_solid(views: list, mesh_positions: np.ndarray, up: np.ndarray, voxel:
     mesh.compute_vertex_normals()
     return mesh
 
+
+
+def mesh_solid(positions: np.ndarray, triangles: np.ndarray, up: np.ndarray,
+               size_mm: float) -> o3d.t.geometry.TriangleMesh:
+    """A closed mesh (positions (n, 3) metres, triangles (T, 3)) as a print solid: millimetres, ``up``
+    turned to +z, largest extent ``size_mm`` (:func:`print_frame`), outward triangles; checked by
+    :func:`o3d_mvps.export.check_solid` (ExportError naming the defect when the mesh is open)."""
+    positions = print_frame(np.asarray(positions, dtype=np.float64), np.asarray(up, dtype=np.float64), size_mm)
+    triangles = np.asarray(triangles, dtype=np.int64)
+    if solid_volume(positions, triangles) < 0:
+        triangles = triangles[:, ::-1]
+    check_solid(positions, triangles)
+    mesh = o3d.t.geometry.TriangleMesh(o3d.core.Tensor(positions.astype(np.float32)),
+                                       o3d.core.Tensor(triangles.astype(np.int32)))
+    mesh.compute_vertex_normals()
+    return mesh

@@ -8,7 +8,7 @@ bicubic-upsamples its sensor depth, and returns a :class:`ViewResult` of NumPy a
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -37,7 +37,8 @@ class ViewJob:
 @dataclass
 class ViewResult:
     """A reference view's depth (H, W) metres, mask (H, W) bool, albedo (H, W, 3) linear RGB
-    (the colour image for raw depth), colour intrinsics K (3, 3), world_to_camera (4, 4)."""
+    (the colour image for raw depth), colour intrinsics K (3, 3), world_to_camera (4, 4);
+    warnings: the messages of the Python warnings its refinement raised (in a Dask worker)."""
 
     reference: int
     frames: list
@@ -48,6 +49,7 @@ class ViewResult:
     world_to_camera: np.ndarray
     seconds: float
     selection: dict
+    warnings: list = field(default_factory=list)
 
 
 def plan_view(capture, poses: np.ndarray, reference: int, *, min_covisibility: float,
@@ -95,14 +97,15 @@ def capture_from_arrays(arrays: dict):
                    **arrays["fields"])
 
 
-def run_view(job: ViewJob, options, depth_source: str = "refined") -> ViewResult:
-    """Refine (or, for ``depth_source="raw"``, bicubic-upsample) a job's reference depth."""
+def run_view(job: ViewJob, options, depth_source: str = "refined", device="auto") -> ViewResult:
+    """Refine (or, for ``depth_source="raw"``, bicubic-upsample) a job's reference depth, on
+    ``device`` (:func:`o3d_mvps.solver.device.check_device`)."""
     t0 = time.perf_counter()
     capture = capture_from_arrays(job.arrays)
     if depth_source == "refined":
         from ..solving import refine
 
-        result = refine(capture, options, initial_poses=job.poses)
+        result = refine(capture, options, device, initial_poses=job.poses)
         albedo = result.albedo_array()
     else:
         from ..baselines import bicubic

@@ -1,4 +1,4 @@
-"""The joint variational solver (paper sections 3-4; README "How it works").
+"""The joint variational solver (paper sections 3-4; docs/method.md).
 
 NumPy in, NumPy out, without Open3D: :func:`.driver.solve` takes a :class:`.problem_input.SolverInput`
 (the arrays of a read, masked and registered capture; saved as .npz by ``refine --save-problem``)

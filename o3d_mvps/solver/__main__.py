@@ -6,9 +6,10 @@ import argparse
 import sys
 from dataclasses import replace
 
-from ..cli import run_handler
-from ..cli.outputs import add_overwrite_argument, check_files, log_energy
-from .device import DEVICE_HELP, check_device
+from ..cli import restore_signals, run_handler, stop_on_signals
+from ..cli.outputs import add_overwrite_argument, check_files, log_energy, print_summary
+from ..run_report import peak_memory_mb, summarise
+from .device import DEVICE_HELP, resolve_device
 from .driver import solve
 from .problem_input import SAVE_HOW, read_problem
 from .solution import ENERGY_COLUMNS, write_solution
@@ -27,25 +28,34 @@ def build_parser() -> argparse.ArgumentParser:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("problem", help="saved problem (.npz)")
     parser.add_argument("out", help="solution file to write (.npz)")
-    parser.add_argument("--device", default="cpu", help=DEVICE_HELP)
+    parser.add_argument("--device", default="auto", help=DEVICE_HELP)
     add_overwrite_argument(parser, "solution file")
     parser.add_argument("--quiet", action="store_true", help="no progress bars or energy log")
     return parser
 
 
 def run(args) -> int:
-    (out,) = check_files([args.out], args.overwrite)
-    check_device(args.device)
+    (out,) = check_files([args.out], args.overwrite, inputs=[args.problem])
+    device, device_line = resolve_device(args.device)
     problem_input = read_problem(args.problem)
-    output = solve(problem_input, replace(problem_input.options, progress=not args.quiet), args.device)
+    if not args.quiet:
+        print(device_line)
+    output = solve(problem_input, replace(problem_input.options, progress=not args.quiet), device)
     log_energy(output, args.quiet)
     write_solution(output, out, overwrite=args.overwrite)
+    frames = [{"used": True} for _ in output.info.get("frames", [])]
+    print_summary(summarise({"energy": output.energy, "timings": output.timings, "frames": frames,
+                             "peak_memory_mb": peak_memory_mb(), "warnings": []}), args.quiet)
     print(f"wrote {out}")
     return 0
 
 
 def main(argv=None) -> int:
-    return run_handler(PROG, run, build_parser().parse_args(argv))
+    previous = stop_on_signals(PROG)
+    try:
+        return run_handler(PROG, run, build_parser().parse_args(argv))
+    finally:
+        restore_signals(previous)
 
 
 if __name__ == "__main__":

@@ -7,7 +7,11 @@ Arrays are whatever numba's CUDA target takes: device arrays with ``__cuda_array
 launch: the tests, and numba's CUDA simulator). Each kernel calls the per-pixel function of its
 CPU twin, compiled for the device from the same Python source (:func:`_device`): one copy of the
 maths. Nothing is compiled at import (numba compiles a kernel at its first launch), so this
-module imports without CUDA.
+module imports without CUDA. Compiled kernels are cached on disk (``cache=True``: numba's cache
+beside this file, or in the user's cache directory where that is read-only), so only a
+machine's first run compiles. numba checks this file's time stamp only: after editing the
+per-pixel functions in :mod:`.kernels` or :mod:`o3d_mvps.model`, clear the cache
+(``__pycache__/*.nbi``, ``*.nbc``) or touch this file.
 
 Threads take adjacent pixels (the fastest-varying index of the per-pixel arrays), so that
 neighbouring threads read neighbouring memory. Reductions over pixels go to per-thread
@@ -87,7 +91,7 @@ def chunk_count(n_pixels: int) -> int:
     return _blocks(-(-n_pixels // PIXELS_PER_THREAD)) * THREADS_PER_BLOCK
 
 
-@cuda.jit
+@cuda.jit(cache=True)
 def _accumulate_frame(r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, pose, K, image, dshading,
                       albedo, with_jacobian, parallax, sums, e, rows, F, slot, gram, rhs):  # pragma: no cover - device
     t_ = cuda.grid(1)
@@ -118,7 +122,7 @@ def accumulate_frame(r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, p
         with_jacobian, parallax, sums, e, rows, F, slot, gram, rhs)
 
 
-@cuda.jit
+@cuda.jit(cache=True)
 def _project_twist_rows(rows, F, scaled, sqrt_inv_d):  # pragma: no cover - device
     index = cuda.grid(1)
     N = F.shape[2]
@@ -133,7 +137,7 @@ def project_twist_rows(rows, F, scaled, sqrt_inv_d) -> None:
     _project_twist_rows[_blocks(F.shape[0] * 6 * F.shape[2]), THREADS_PER_BLOCK](rows, F, scaled, sqrt_inv_d)
 
 
-@cuda.jit
+@cuda.jit(cache=True)
 def _scatter_sparse_transpose_rows(indptr, indices, data, X, out):  # pragma: no cover - device
     index = cuda.grid(1)
     R = X.shape[1]
@@ -158,7 +162,7 @@ def scatter_sparse_transpose_rows(indptr, indices, data, X, out) -> None:
     _scatter_sparse_transpose_rows[_blocks(X.shape[0] * X.shape[1]), THREADS_PER_BLOCK](indptr, indices, data, X, out)
 
 
-@cuda.jit
+@cuda.jit(cache=True)
 def _shading_residuals(color, albedo, basis, lights, usable, shading, residual):  # pragma: no cover - device
     index = cuda.grid(1)
     n, N = usable.shape
@@ -172,7 +176,7 @@ def shading_residuals(color, albedo, basis, lights, usable, shading, residual) -
                                                                 residual)
 
 
-@cuda.jit
+@cuda.jit(cache=True)
 def _weighted_albedo_sums(residual, usable, values, shading, inv_lam, num, den):  # pragma: no cover - device
     p = cuda.grid(1)
     if p < usable.shape[1]:
@@ -185,7 +189,7 @@ def weighted_albedo_sums(residual, usable, values, shading, inv_lam, num, den) -
                                                                        num, den)
 
 
-@cuda.jit
+@cuda.jit(cache=True)
 def _weighted_lighting_sums(residual, usable, color, albedo, inv_lam, wr2, wri):  # pragma: no cover - device
     index = cuda.grid(1)
     n, N = usable.shape
@@ -199,7 +203,7 @@ def weighted_lighting_sums(residual, usable, color, albedo, inv_lam, wr2, wri) -
                                                                      wri)
 
 
-@cuda.jit
+@cuda.jit(cache=True)
 def _led_irradiances_into(normals, points, positions, out):  # pragma: no cover - device
     index = cuda.grid(1)
     N = points.shape[0]
@@ -214,7 +218,7 @@ def led_irradiances_into(normals, points, positions, out) -> None:
     _led_irradiances_into[_blocks(out.size), THREADS_PER_BLOCK](normals, points, positions, out)
 
 
-@cuda.jit
+@cuda.jit(cache=True)
 def _warp_sample(points_ref, pose, K, image, visible, color, usable):  # pragma: no cover - device
     p = cuda.grid(1)
     if p < points_ref.shape[0]:
@@ -226,7 +230,7 @@ def warp_sample(points_ref, pose, K, image, visible, color, usable) -> None:
     _warp_sample[_blocks(points_ref.shape[0]), THREADS_PER_BLOCK](points_ref, pose, K, image, visible, color, usable)
 
 
-@cuda.jit
+@cuda.jit(cache=True)
 def _warp_gradients(points_ref, pose, K, image, points, grad_u, grad_v):  # pragma: no cover - device
     p = cuda.grid(1)
     if p < points_ref.shape[0]:
@@ -239,7 +243,7 @@ def warp_gradients(points_ref, pose, K, image, points, grad_u, grad_v) -> None:
                                                                      grad_v)
 
 
-@cuda.jit
+@cuda.jit(cache=True)
 def _log1p_square_partials(x, scale, partial):  # pragma: no cover - device
     """partial[block] = the block's share of sum log(1 + (scale x)^2): each thread sums a strided
     share, then the block adds its threads' sums in shared memory (a tree, in a fixed order)."""

@@ -27,7 +27,7 @@ from ..model.arrays import like
 from ..model.resampling import fill_nearest_valid, repeat_pixels, resize
 from ..model.robust import robust_scale
 from .depth import update_depth
-from .device import CPU, ArrayDevice, array_device, to_host
+from .device import CPU, ArrayDevice, array_device, compile_notice, to_host
 from .joint import update_pose_depth
 from .lighting import make_light_model, update_led_offset
 from .options import AUTO, DEFAULT_CAUCHY_LAMBDA, RefineOptions
@@ -145,6 +145,7 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
         if abs(previous - ev.energy) <= options.tolerance * abs(previous):
             break
     bar.close()
+    stats["frame_rms"] = ev.frame_rms()  # the finest level's stays: the report's per-frame residual
     return rows
 
 
@@ -248,6 +249,8 @@ def solve(problem_input: SolverInput, options: RefineOptions | None = None, devi
     if options.light_model is None:
         raise ValueError("options.light_model is None: the solver needs 'led' or 'sh' (o3d_mvps.refine takes it "
                          "from the capture's light)")
+    if options.progress and (notice := compile_notice(device)):
+        print(notice, flush=True)
     # The solver's BLAS calls are vector dots/norms (CG, AMG) and thin products: on a loaded
     # 2-core machine OpenBLAS's threads made each 60k-vector norm take ~5 ms instead of 30 us
     # (~20 % of a 640x480 refinement); one thread loses nothing on an idle machine.
@@ -335,18 +338,13 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
     depth = np.where(ref_mask, z_full, 0.0)
     albedo = np.clip(np.where(ref_mask[..., None], albedo_full, 0.0), 0.0, None)
     timings["total"] = time.perf_counter() - t0
+    frame_rms = stats.pop("frame_rms", [])
+    stats["residuals"] = [{"frame": int(f), "rms": None if np.isnan(v) else v}
+                          for f, v in zip(problem_input.frames, frame_rms)]
+    stats["initial_poses"] = np.asarray(problem_input.initial_poses, dtype=np.float64).tolist()
     return SolverOutput(
         depth, ref_mask, albedo, K, lighting=lights, poses=poses, energy=history, timings=dict(timings),
         info={"frames": problem_input.frames, "options": options.to_dict(), "device": device.name,
               "light_model": (light if led_offset is None else light.at(led_offset)).describe(), **stats},
     )
 
-
-def __getattr__(name: str):
-    """``from o3d_mvps.solver.driver import refine`` (its home before the Open3D side moved out)
-    still works, importing Open3D only then."""
-    if name == "refine":
-        from ..solving import refine
-
-        return refine
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

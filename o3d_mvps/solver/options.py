@@ -2,8 +2,7 @@
 
 Like the option structs of Open3D's pipelines, the options are grouped by meaning:
 :class:`ModelOptions` (the energy: paper section 3), :class:`ConvergenceCriteria` (when the
-iterations of paper section 4 stop) and :class:`StepOptions` (which updates a sweep runs; README
-"How it works, and where it departs from the paper"). ``RefineOptions(tau=100, refine_poses=False)``
+iterations of paper section 4 stop) and :class:`StepOptions` (which updates a sweep runs; docs/method.md). ``RefineOptions(tau=100, refine_poses=False)``
 still takes every field by its flat name and ``options.tau`` still reads it.
 """
 
@@ -139,7 +138,7 @@ class ModelOptions:
     difference_scheme: :class:`DifferenceScheme` of the normals' depth derivatives, "central" or
         the paper's "forward" (o3d_mvps.model.normals).
     depth_envelope: keep each pixel's depth between the least and greatest sensor depth around it,
-        widened by this relative margin in [0, 1) (None: unbounded; README "How it works").
+        widened by this relative margin in [0, 1) (None: unbounded; docs/method.md).
     occlusion_test: drop reference pixels hidden or out of view in frame i from its data term.
     occlusion_tolerance: relative depth tolerance of that test, in [0, 1).
     sensor_lowpass: at each pyramid level's end, replace the depth's low frequencies by the sensor
@@ -243,8 +242,8 @@ class ConvergenceCriteria:
 
 @dataclass(frozen=True)
 class StepOptions:
-    """Which updates a sweep runs (paper section 4's sweep and the departures README "How it works,
-    and where it departs from the paper" describes).
+    """Which updates a sweep runs (paper section 4's sweep and the departures docs/method.md
+    describes).
 
     refine_poses: refine poses jointly (False gives the paper's two-stage baseline, section 5.1).
     pose_min_pixels: refine poses only on levels whose reference mask has this many pixels, >= 0

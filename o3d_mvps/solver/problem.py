@@ -75,6 +75,18 @@ class Evaluation:
         (1.2 GB at 1M object pixels and 20 frames). A released evaluation is not read again."""
         self.residual = self.usable = self.color = self.shading = self.normals = self.dA = self.basis = None
 
+    def frame_rms(self) -> list[float]:
+        """Per frame, the RMS of the data term's residuals (linear intensity) over its usable
+        pixels and the three channels: (n,) floats, NaN for a frame with no usable pixel. One pass
+        over the residuals, a frame at a time (no frames x pixels temporary)."""
+        xp = array_module(self.residual)
+        rms = []
+        for i in range(len(self.usable)):
+            r = self.residual[i].ravel()
+            count = 3 * int(self.usable[i].sum())
+            rms.append(float(xp.sqrt(xp.vdot(r, r).astype(np.float64) / count)) if count else float("nan"))
+        return rms
+
     def frame_basis(self, i: int) -> np.ndarray:
         """Frame i's light basis (N, k)."""
         return self.basis[min(i, len(self.basis) - 1)]

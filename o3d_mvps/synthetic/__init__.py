@@ -1,7 +1,7 @@
 """Synthetic captures: a mesh rendered by ray casting under an LED that moves with the camera,
 alone or (scene mode, :func:`render_ring` with ``surroundings=True``) on a table in front of a wall.
 
-The benchmark protocol of the paper's synthetic experiments (Sec. 5.1; README "Results").
+The benchmark protocol of the paper's synthetic experiments (Sec. 5.1; docs/benchmarks.md).
 Conventions (all lengths in metres):
 
 - Reference camera (frame 0) at the origin, looking along +z, x right, y down (OpenCV /
@@ -18,6 +18,12 @@ Conventions (all lengths in metres):
 - Depth: z rendered at colour resolution, area-averaged over SF x SF blocks (a block is valid
   only if all its pixels hit the object), + Gaussian noise ``sigma = 1e-5 z_mm^2`` mm, 1 mm
   quantisation.
+- Sensor profiles (``sensor=``, :mod:`.sensor`): "gaussian" (the two lines above, the default),
+  "d415" (an active-stereo camera like the RealSense D415: disparity terraces, flying pixels,
+  z^2 noise with a smooth low-frequency part, speckle holes; colour with per-frame exposure and
+  white-balance drift, shot and read noise), "none" (quantisation only).
+- Static camera (:func:`render_static_capture`): identity poses, a hand-held point light moved
+  around the camera, one position per frame (Peng et al. 2017's setting).
 
 Lights (``groundtruth.light``):
 
@@ -39,12 +45,14 @@ from .lights import (LED_AMBIENT, LED_FRONTAL_IRRADIANCE, LED_OFFSET, LIGHTS, SH
                      DirectionalLight, PointLight, RoomLight, make_light)
 from .render import FrameRender, SensorFrames, render_frame, render_sensor_frames
 from .ring import render_ring
+from .static import render_static_capture
 from .scene import ProceduralAlbedo, SyntheticScene, build_scene, placement_transform, random_stream
-from .sensor import (COLOR_NOISE_SIGMA, DEPTH_SCALE, SRGB8_TO_LINEAR, depth_noise_sigma, quantise_srgb8,
-                     simulate_depth_sensor)
+from .sensor import (COLOR_NOISE_SIGMA, DEPTH_SCALE, SENSORS, SRGB8_TO_LINEAR, D415Sensor, GaussianSensor,
+                     depth_noise_sigma, make_sensor, quantise_srgb8, simulate_depth_sensor)
 
 __all__ = [
-    "render_capture", "render_ring", "build_scene", "render_frame", "render_sensor_frames", "SensorFrames", "make_light",
+    "render_capture", "render_ring", "render_static_capture", "SENSORS", "make_sensor", "GaussianSensor",
+    "D415Sensor", "build_scene", "render_frame", "render_sensor_frames", "SensorFrames", "make_light",
     "PointLight", "DirectionalLight", "RoomLight", "FrameRender",
     "SyntheticScene", "ProceduralAlbedo", "placement_transform", "random_stream", "synthetic_intrinsics",
     "camera_rays", "look_at_pose", "orbit_trajectory", "ring_trajectory", "quantise_srgb8", "depth_noise_sigma",

@@ -71,6 +71,7 @@ def render_capture(
     light: str = "led",
     seed: int = 0,
     noise: bool = True,
+    sensor: str | None = None,
     object_size: float = 0.2,
     distance: float = 0.6,
     progress: bool = False,
@@ -96,6 +97,11 @@ def render_capture(
         Seeds the albedo texture and the noise; equal seeds give identical captures.
     noise : bool
         Colour (sigma 0.005 linear) and depth (sigma 1e-5 z_mm^2 mm) noise; quantisation always.
+        False is ``sensor="none"``.
+    sensor : {"gaussian", "d415", "none"} or None
+        Sensor profile (:data:`~o3d_mvps.synthetic.sensor.SENSORS`): the paper's Gaussian noise,
+        a RealSense-D415-like sensor (disparity terraces, flying pixels, holes, exposure and
+        white-balance drift, shot noise) or none; None: "gaussian", or "none" when not ``noise``.
     object_size, distance : float
         Largest bounding-box extent of the object and its distance to the reference camera (m).
     progress : bool
@@ -111,7 +117,8 @@ def render_capture(
     scene = build_scene(mesh, size=(W, H), object_size=object_size, distance=distance, seed=seed)
     poses = orbit_trajectory(int(frames), distance, trajectory)
     lighting = make_light(light, distance)
-    rendered = render_sensor_frames(scene, poses, lighting, scale_factor, seed=seed, noise=noise, progress=progress)
+    rendered = render_sensor_frames(scene, poses, lighting, scale_factor, seed=seed, noise=noise, sensor=sensor,
+                                    progress=progress)
     K = scene.K
     gt = rendered.groundtruth(poses, lighting.parameters(poses), scene.mesh_to_reference)
     return Capture(
@@ -140,6 +147,7 @@ def render_capture(
                 "noise": bool(noise),
                 "object_size": float(object_size),
                 "distance": float(distance),
+                **rendered.sensor_metadata(),
             }
         },
     )

@@ -177,6 +177,47 @@ class RoomLight:
         }
 
 
+#: Hand-held light of the static-camera renders: its distance (m) from the camera's optical axis.
+HANDHELD_RADIUS = (0.3, 0.5)
+GOLDEN_ANGLE = np.pi * (3.0 - np.sqrt(5.0))
+
+
+def handheld_offsets(frames: int, radius=HANDHELD_RADIUS) -> np.ndarray:
+    """(frames, 3) positions (m, camera frame) of a light moved by hand around a fixed camera.
+
+    In the camera's plane (z = 0), at azimuths a golden angle (137.5 deg) apart, so any first k
+    frames spread around the camera; the distance from the optical axis runs from ``radius[0]``
+    to ``radius[1]`` and back (one cycle every 5 frames).
+    """
+    i = np.arange(int(frames))
+    r = radius[0] + (radius[1] - radius[0]) * 0.5 * (1.0 - np.cos(2 * np.pi * i / 5))
+    angle = GOLDEN_ANGLE * i
+    return np.stack([r * np.cos(angle), r * np.sin(angle), np.zeros_like(r)], axis=1)
+
+
+def handheld_lights(frames: int, distance: float = 0.6, radius=HANDHELD_RADIUS) -> list:
+    """One :class:`PointLight` per frame at :func:`handheld_offsets` (fixed camera: camera frame =
+    reference frame), with shadows and the LED's ambient; one intensity for all, giving a frontal
+    surface at the object centre the LED's irradiance from the middle radius."""
+    middle = 0.5 * (radius[0] + radius[1])
+    intensity = LED_FRONTAL_IRRADIANCE * (distance**2 + middle**2)
+    offsets = handheld_offsets(frames, radius)
+    return [PointLight(offset=tuple(float(v) for v in p), intensity=intensity) for p in offsets]
+
+
+def handheld_parameters(lights: list) -> dict:
+    """JSON-serialisable parameters of :func:`handheld_lights` (``positions`` (n, 3) m, reference frame)."""
+    return {
+        "model": "point",
+        "positions": [list(light.offset) for light in lights],
+        "intensity": float(lights[0].intensity),
+        "ambient": float(lights[0].ambient),
+        "falloff": "inverse-square",
+        "shadows": bool(lights[0].shadows),
+        "formula": "albedo * (ambient + intensity * visible * max(0, n.l) / r^2), l toward positions[i]",
+    }
+
+
 def make_light(light: str, distance: float = 0.6):
     """The light model named ``light`` ("led", "directional" or "room"), LED scaled for ``distance`` m."""
     if light == "led":

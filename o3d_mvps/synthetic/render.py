@@ -9,7 +9,7 @@ import open3d as o3d
 
 from ..capture import GroundTruth, image_from_array
 from .scene import SyntheticScene, apply_matrix, random_stream
-from .sensor import quantise_srgb8, simulate_depth_sensor
+from .sensor import resolve_sensor
 
 
 @dataclass
@@ -95,12 +95,16 @@ def render_frame(scene: SyntheticScene, pose: np.ndarray, light) -> FrameRender:
 class SensorFrames:
     """What the cameras recorded: ``color`` n (H, W, 3) float32 images (8-bit sRGB values,
     linearised), ``depth`` n (h, w, 1) float32 images (metres, 1 mm steps), ``masks`` n (H, W, 1)
-    uint8 images of the object or None, and the reference frame's noise-free ``reference``."""
+    uint8 images of the object or None, the reference frame's noise-free ``reference``, and the
+    sensor profile's ``sensor`` description with its per-frame draws ``frames`` (e.g. the D415
+    profile's exposure gain and white balance)."""
 
     color: list
     depth: list
     masks: list | None
     reference: FrameRender
+    sensor: dict | None = None
+    frames: list | None = None
 
     def groundtruth(self, poses: np.ndarray, light: dict, mesh_to_reference: np.ndarray) -> GroundTruth:
         """The reference frame's ground truth on the object (zero on the table and wall), with the
@@ -111,25 +115,37 @@ class SensorFrames:
                            albedo=np.where(on_object, frame.albedo, 0.0).astype(np.float32),
                            poses=poses, light=light, mesh_to_reference=mesh_to_reference)
 
+    def sensor_metadata(self) -> dict:
+        """``{"sensor": {...profile, "frames": [...]}}`` for capture.json's metadata.synthetic."""
+        return {"sensor": {**(self.sensor or {}), **({"frames": self.frames} if any(self.frames or []) else {})}}
+
 
 def render_sensor_frames(scene: SyntheticScene, poses: np.ndarray, light, scale_factor: int, *, seed: int = 0,
-                         noise: bool = True, masks: bool = True, progress: bool = False) -> SensorFrames:
+                         noise: bool = True, sensor: str | None = None, masks: bool = True,
+                         progress: bool = False) -> SensorFrames:
     """Render every pose (n, 4, 4; scene frame -> camera) and simulate the colour and depth sensors.
 
-    Noise (colour and depth) is drawn from ``seed``'s streams when ``noise``; ``masks=False``
+    ``light``: one light for every frame, or a sequence of n (one per frame). ``sensor``: the
+    profile (:data:`~o3d_mvps.synthetic.sensor.SENSORS`; None: "gaussian", or "none" when not
+    ``noise``); its noise is drawn from ``seed``'s colour and depth streams. ``masks=False``
     leaves the object masks out (what a user's capture without a ``mask/`` folder looks like).
     """
-    color_rng = random_stream(seed, "color") if noise else None
-    depth_rng = random_stream(seed, "depth") if noise else None
-    color, depth, object_masks, reference = [], [], [], None
-    for pose in _progress(poses, progress):
-        frame = render_frame(scene, pose, light)
+    profile = resolve_sensor(sensor, noise)
+    lights = list(light) if isinstance(light, (list, tuple)) else [light] * len(poses)
+    if len(lights) != len(poses):
+        raise ValueError(f"{len(lights)} lights for {len(poses)} poses; give one light, or one per frame")
+    color_rng, depth_rng = random_stream(seed, "color"), random_stream(seed, "depth")
+    color, depth, object_masks, reference, draws = [], [], [], None, []
+    for pose, frame_light in _progress(list(zip(poses, lights)), progress):
+        frame = render_frame(scene, pose, frame_light)
         reference = frame if reference is None else reference
-        color.append(image_from_array(quantise_srgb8(frame.color, color_rng).astype(np.float32)))
-        z = simulate_depth_sensor(frame.depth, scale_factor, depth_rng)
+        image, drawn = profile.color(frame.color, color_rng)
+        color.append(image_from_array(image))
+        draws.append(drawn)
+        z = profile.depth(frame.depth, scale_factor, depth_rng)
         depth.append(image_from_array(z.astype(np.float32)[:, :, None]))
         object_masks.append(image_from_array((frame.mask * np.uint8(255))[:, :, None]))
-    return SensorFrames(color, depth, object_masks if masks else None, reference)
+    return SensorFrames(color, depth, object_masks if masks else None, reference, profile.describe(), draws)
 
 
 def _progress(iterable, enabled: bool):

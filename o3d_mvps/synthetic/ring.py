@@ -25,12 +25,14 @@ from .sensor import DEPTH_SCALE
 
 def render_ring(mesh="bunny", *, frames: int = 12, size=(160, 120), scale_factor: int = 4, arc_deg: float = 360.0,
                 elevation_deg: float = 20.0, light: str = "led", surroundings: bool = False, seed: int = 0,
-                noise: bool = True, object_size: float = 0.2, distance: float = 0.6, progress: bool = False):
+                noise: bool = True, sensor: str | None = None, object_size: float = 0.2, distance: float = 0.6,
+                progress: bool = False):
     """(Capture, scene): a ring capture of ``mesh`` and its :class:`~o3d_mvps.synthetic.SyntheticScene`.
 
     ``light``: "led", "directional" or "room" (:func:`~o3d_mvps.synthetic.make_light`; the
     capture's ``light`` says "led" or "room"). ``surroundings``: scene mode (table, wall, no
-    masks). ``capture.groundtruth.poses`` (n, 4, 4) map frame-0 camera -> frame-i camera (what a
+    masks). ``sensor``: the sensor profile (:func:`~o3d_mvps.synthetic.render_capture`).
+    ``capture.groundtruth.poses`` (n, 4, 4) map frame-0 camera -> frame-i camera (what a
     pose file gives); ground truth depth, normals and albedo cover the object only.
     ``capture.metadata["world_to_camera"]`` holds the poses from the scene's reference camera
     (the frame the scene's ray caster works in).
@@ -41,7 +43,7 @@ def render_ring(mesh="bunny", *, frames: int = 12, size=(160, 120), scale_factor
     world = ring_trajectory(frames, distance, elevation_deg, arc_deg)
     lighting = make_light(light, distance)
     rendered = render_sensor_frames(scene, world, lighting, scale_factor, seed=seed, noise=noise,
-                                    masks=not surroundings, progress=progress)
+                                    sensor=sensor, masks=not surroundings, progress=progress)
     poses = relative_to_reference(world)
     gt = rendered.groundtruth(poses, lighting.parameters(poses, world[0]), world[0] @ scene.mesh_to_reference)
     K = scene.K
@@ -49,5 +51,6 @@ def render_ring(mesh="bunny", *, frames: int = 12, size=(160, 120), scale_factor
     capture = Capture(color=rendered.color, depth=rendered.depth, color_intrinsic=o3d.core.Tensor(K),
                       depth_intrinsic=o3d.core.Tensor(default_depth_intrinsic(K, scale_factor)), masks=rendered.masks,
                       depth_scale=DEPTH_SCALE, sensor="synthetic", light=capture_light(light), groundtruth=gt,
-                      metadata={**offset, "world_to_camera": world.tolist()})
+                      metadata={**offset, "world_to_camera": world.tolist(),
+                                "synthetic": rendered.sensor_metadata()})
     return capture, scene

@@ -1,0 +1,136 @@
+"""The static-camera, moving-light setting (Peng et al. 2017): a camera fixed on a tripod, a light
+moved by hand between frames. Such a capture needs no registration (every pose is the identity).
+
+:func:`camera_setting` decides whether a capture is one: capture.json's ``"camera"`` when it says,
+else the depth (:func:`static_depth_agreement`): a fixed camera sees the same surface in every
+frame, so on a coarse grid every frame's depth matches the reference's within the sensor noise
+over nearly the same pixels; a camera moved by even a degree shifts the silhouette and tilts the
+surface by more.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from ..model.resampling import resample_valid
+from .types import Capture
+
+#: Coarse grid of the check: about this many pixels across.
+COARSE_WIDTH = 80
+#: Depth agreement tolerance: max(STATIC_TOLERANCE_M, STATIC_TOLERANCE_REL * z) on the coarse grid.
+STATIC_TOLERANCE_M = 0.005
+STATIC_TOLERANCE_REL = 0.01
+#: A frame agrees when this fraction of the coarse pixels fully valid in both agree, and the
+#: pixels valid in both are this fraction of those valid in either (holes and flying pixels at the
+#: silhouette change a static D415-like capture's by 5-10 %; rendered 320x240 bunny, SF 2).
+MIN_AGREEMENT = 0.8
+MIN_OVERLAP = 0.75
+#: Fewer coarse pixels valid in both frames than this: too little depth to call a camera static.
+MIN_COARSE_PIXELS = 50
+
+
+#: Given poses that move a frame by more than this (m, or radians) are a moving camera.
+MOVED_M = 1e-3
+MOVED_RAD = np.radians(0.1)
+
+
+def _poses_move(poses: np.ndarray) -> bool:
+    """Whether any pose (n, 4, 4; frame 0 -> frame i) moves by more than MOVED_M or turns by more than MOVED_RAD."""
+    relative = poses @ np.linalg.inv(poses[0])
+    cos = np.clip((np.trace(relative[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1.0, 1.0)
+    return bool(np.any(np.linalg.norm(relative[:, :3, 3], axis=1) > MOVED_M) or np.any(np.arccos(cos) > MOVED_RAD))
+
+
+@dataclass(frozen=True)
+class CameraSetting:
+    """Whether a capture is treated as static-camera, and why (JSON-ready via :meth:`to_dict`).
+
+    static: treated as static (no registration, identity poses, no pose refinement).
+    declared: capture.json's "camera" ("static", "moving" or None). detected: what the depth
+    says (None when not checked: a capture that declares "moving", or a single frame).
+    agreement, overlap: the worst frame's figures (:func:`static_depth_agreement`); worst_frame
+    its index. detail: in words.
+    """
+
+    static: bool
+    declared: str | None
+    detected: bool | None
+    agreement: float | None = None
+    overlap: float | None = None
+    worst_frame: int | None = None
+    detail: str = ""
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def static_depth_agreement(depths: np.ndarray, coarse_width: int = COARSE_WIDTH) -> list[tuple[float, float, int]]:
+    """(agreement, overlap, pixels) of every frame i >= 1 with frame 0, on a coarse grid.
+
+    depths (n, h, w) metres, 0 = none. Each frame is area-averaged to about ``coarse_width``
+    pixels across. agreement: the fraction of the coarse pixels fully valid in both frames (no
+    hole, no silhouette) whose depths differ by at most ``max(5 mm, 1 % z)``; overlap: the
+    coarse pixels at least half valid in both over those in either (1 when none is valid anywhere);
+    pixels: how many coarse pixels the agreement counts.
+    """
+    depths = np.asarray(depths, dtype=np.float64)
+    n, h, w = depths.shape
+    k = max(1, int(round(w / coarse_width)))
+    size = (max(1, h // k), max(1, w // k))
+    full = [resample_valid(d, d > 0, size, min_valid_fraction=1.0) for d in depths]
+    half = [resample_valid(d, d > 0, size, min_valid_fraction=0.5)[1] for d in depths]
+    z0, v0 = full[0]
+    out = []
+    for (z, v), h in zip(full[1:], half[1:]):
+        both = v & v0
+        tolerance = np.maximum(STATIC_TOLERANCE_M, STATIC_TOLERANCE_REL * z0)
+        agree = float(np.mean(np.abs(z - z0)[both] <= tolerance[both])) if both.any() else 0.0
+        either = h | half[0]
+        out.append((agree, float((h & half[0]).sum() / either.sum()) if either.any() else 1.0, int(both.sum())))
+    return out
+
+
+def camera_setting(capture: Capture, poses=None, warn: bool = True) -> CameraSetting:
+    """Whether ``capture`` is a static-camera capture: declared in capture.json, or detected from
+    the depth (:func:`static_depth_agreement`; every frame must agree). Warns (when ``warn``) if
+    the depth finds a static camera the capture does not declare, or contradicts a declared one;
+    a declared "camera" always wins. Given ``poses`` (n, 4, 4) that move a frame by more than
+    :data:`MOVED_M` or :data:`MOVED_RAD` settle an undeclared capture as moving (no check)."""
+    declared = capture.camera
+    if declared == "moving" or capture.n_frames < 2:
+        return CameraSetting(static=declared == "static", declared=declared, detected=None,
+                             detail="declared moving in capture.json" if declared == "moving" else "a single frame")
+    poses = None if poses is None else np.asarray(poses, dtype=np.float64)
+    if declared is None and poses is not None and poses.shape == (capture.n_frames, 4, 4) and _poses_move(poses):
+        return CameraSetting(static=False, declared=None, detected=None, detail="the given poses move the camera")
+    depths = np.stack([capture.depth_array(i) for i in range(capture.n_frames)])
+    figures = static_depth_agreement(depths)
+    scores = [min(a / MIN_AGREEMENT, o / MIN_OVERLAP, p / MIN_COARSE_PIXELS) for a, o, p in figures]
+    worst = int(np.argmin(scores))
+    agreement, overlap, _ = figures[worst]
+    detected = all(a >= MIN_AGREEMENT and o >= MIN_OVERLAP and p >= MIN_COARSE_PIXELS for a, o, p in figures)
+    pixels = figures[worst][2]
+    figures_text = (f"the depth of frame {worst + 1} agrees with the reference's on {agreement:.0%} of the pixels "
+                    f"both see, which overlap {overlap:.0%}" + (f" (only {pixels} coarse pixels: too little depth "
+                                                                f"to tell)" if pixels < MIN_COARSE_PIXELS else ""))
+    static = declared == "static" or detected
+    if declared == "static":
+        detail = "declared static in capture.json" + ("" if detected else f", although {figures_text}")
+        if warn and not detected:
+            warnings.warn(f"capture.json says \"camera\": \"static\", but {figures_text} (a static camera gives "
+                          f"at least {MIN_AGREEMENT:.0%} and {MIN_OVERLAP:.0%}): treating it as static as declared; "
+                          "if the camera moved, write \"camera\": \"moving\"", stacklevel=3)
+    elif detected:
+        detail = f"detected from the depth (every frame agrees with the reference; the worst: {figures_text})"
+        if warn:
+            warnings.warn("every frame's depth agrees with the reference's (no camera motion): treating the capture "
+                          "as static-camera, moving-light (no registration, identity poses, no pose refinement). "
+                          "Write \"camera\": \"static\" into capture.json to say so, or \"camera\": \"moving\" if "
+                          "the camera did move", stacklevel=3)
+    else:
+        detail = f"not static: {figures_text}"
+    return CameraSetting(static=static, declared=declared, detected=detected, agreement=agreement, overlap=overlap,
+                         worst_frame=worst + 1, detail=detail)

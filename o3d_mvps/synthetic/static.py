@@ -1,0 +1,84 @@
+"""Static-camera, moving-light captures (the setting of Peng et al. 2017 and its public data): the
+camera stays at the reference pose while a light is moved by hand around it, one position per frame.
+
+Rendered like :func:`.capture.render_capture` (same scene, sensors and ground truth); the poses
+are all the identity, the light is a point light per frame at :func:`.lights.handheld_offsets`
+(0.3-0.5 m from the optical axis, in the camera's plane, 1/r^2, shadows), and capture.json says
+``"camera": "static"`` (no "light": refine then uses per-frame SH,
+:func:`o3d_mvps.solving.with_light_model`). Used by ``o3d-mvps render --static-camera``, the
+static-camera tests and ``python -m benchmarks static``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+
+from ..capture import Capture, default_depth_intrinsic
+from .capture import check_render_arguments
+from .lights import HANDHELD_RADIUS, handheld_lights, handheld_parameters
+from .render import render_sensor_frames
+from .scene import build_scene
+from .sensor import DEPTH_SCALE
+
+
+def render_static_capture(mesh="bunny", *, frames: int = 20, scale_factor: int = 2, size=(1280, 960),
+                          light_radius=HANDHELD_RADIUS, seed: int = 0, sensor: str | None = None, noise: bool = True,
+                          object_size: float = 0.2, distance: float = 0.6, progress: bool = False) -> Capture:
+    """Render a static-camera capture of ``mesh`` lit by a hand-held light, with ground truth.
+
+    Parameters
+    ----------
+    mesh : o3d.t.geometry.TriangleMesh, o3d.geometry.TriangleMesh, str or Path
+        The object (as :func:`~o3d_mvps.synthetic.render_capture`).
+    frames : int
+        Number of frames n >= 1 (Peng et al.'s data: about 20).
+    scale_factor : int
+        Depth grid = colour size / SF (Peng et al.'s data: 1280x960 colour, 640x480 depth, SF 2).
+    size : (int, int)
+        Colour resolution (W, H) in pixels.
+    light_radius : (float, float)
+        The light's distance range from the optical axis (m).
+    seed : int
+        Seeds the albedo texture and the noise.
+    sensor : {"gaussian", "d415", "none"} or None
+        Sensor profile (:data:`~o3d_mvps.synthetic.sensor.SENSORS`); None: "gaussian", or
+        "none" when not ``noise``.
+    noise : bool
+        False: quantisation only (``sensor="none"``).
+    object_size, distance : float
+        Largest extent of the object and its distance to the camera (m).
+    progress : bool
+        Show a progress bar over frames.
+
+    Returns
+    -------
+    Capture
+        ``camera == "static"``, ``light`` None; ground truth poses all the identity and
+        ``light["positions"]`` the n light positions (reference frame, m).
+    """
+    W, H = check_render_arguments(frames, scale_factor, size, None, "led", object_size, distance)
+    radius = tuple(float(r) for r in light_radius)
+    if len(radius) != 2 or not 0 <= radius[0] <= radius[1] or not np.isfinite(radius).all():
+        raise ValueError(f"light_radius must be (near, far) metres with 0 <= near <= far, got {light_radius!r}; "
+                         "e.g. (0.3, 0.5)")
+    scene = build_scene(mesh, size=(W, H), object_size=object_size, distance=distance, seed=seed)
+    poses = np.tile(np.eye(4), (int(frames), 1, 1))
+    lights = handheld_lights(int(frames), distance, radius)
+    rendered = render_sensor_frames(scene, poses, lights, scale_factor, seed=seed, noise=noise, sensor=sensor,
+                                    progress=progress)
+    gt = rendered.groundtruth(poses, handheld_parameters(lights), scene.mesh_to_reference)
+    K = scene.K
+    return Capture(
+        color=rendered.color, depth=rendered.depth, color_intrinsic=o3d.core.Tensor(K),
+        depth_intrinsic=o3d.core.Tensor(default_depth_intrinsic(K, scale_factor)), masks=rendered.masks,
+        depth_scale=DEPTH_SCALE, depth_trunc=3.0, color_encoding="srgb", sensor="synthetic", camera="static",
+        groundtruth=gt,
+        metadata={"synthetic": {
+            "mesh": str(mesh) if isinstance(mesh, (str, Path)) else type(mesh).__name__, "frames": int(frames),
+            "scale_factor": int(scale_factor), "size": [W, H], "camera": "static", "light": "handheld",
+            "light_radius": list(radius), "seed": int(seed), "object_size": float(object_size),
+            "distance": float(distance), **rendered.sensor_metadata()}},
+    )

@@ -1,0 +1,128 @@
+"""The CuPy stand-in of tests/cupy_emulation.py is as strict as CuPy 14 where host and device
+arrays meet: it raises TypeError wherever CuPy does (a NumPy array given to a CuPy function other
+than asarray/array/asnumpy or met in an operation, NumPy asked for a device array's data), so
+that the CUDA path's tests (tests/test_cuda_path.py) fail on what would fail on a GPU; and it
+allows what CuPy allows (scalars, float() of one element, .get()).
+"""
+
+import numpy as np
+import pytest
+import scipy.linalg
+
+import cupy_emulation as cp
+from cupy_emulation import DeviceMixError
+from o3d_mvps.model.arrays import array_module, like
+from o3d_mvps.solver import kernels
+
+HOST = np.arange(6.0).reshape(2, 3)
+IMPLICIT = "Implicit conversion to a NumPy array is not allowed"
+
+
+@pytest.fixture
+def device():
+    return cp.asarray(HOST)
+
+
+@pytest.mark.parametrize("call", [
+    lambda d: cp.ascontiguousarray(HOST),  # the crash of model.arrays.like on a GPU (issue 33)
+    lambda d: cp.zeros_like(HOST),
+    lambda d: cp.concatenate([d, HOST]),
+    lambda d: cp.einsum("ij,ij->i", d, HOST),
+])
+def test_cupy_functions_refuse_host_arrays(device, call):
+    with pytest.raises(TypeError, match="host NumPy array"):
+        call(device)
+
+
+@pytest.mark.parametrize("call", [
+    lambda d: d + HOST,
+    lambda d: HOST * d,
+    lambda d: np.add(HOST, d),
+    lambda d: d @ HOST.T,
+    lambda d: d + np.array(2.0),  # a 0-d host array too: CuPy takes Python and NumPy scalars only
+    lambda d: np.stack([d, HOST]),
+    lambda d: d.dot(HOST.T),
+    lambda d: cp.sparse.csr_matrix(scipy_eye()) @ HOST[0, :2],
+])
+def test_operations_refuse_host_arrays(device, call):
+    with pytest.raises(TypeError):
+        call(device)
+
+
+def scipy_eye():
+    import scipy.sparse
+
+    return scipy.sparse.eye(2, format="csr")
+
+
+@pytest.mark.parametrize("call", [
+    np.asarray, np.array, np.ascontiguousarray, lambda d: np.asarray(d, dtype=np.float32),
+    scipy.linalg.cho_factor,  # SciPy converts with np.asarray
+])
+def test_numpy_cannot_take_a_device_array(device, call):
+    with pytest.raises(TypeError, match=IMPLICIT):
+        call(device)
+
+
+def test_a_device_array_is_not_written_into_a_host_array(device):
+    host = np.zeros((2, 3))
+    with pytest.raises(TypeError, match=IMPLICIT):
+        host[:] = device
+    assert not host.any()
+
+
+def test_cpu_kernels_refuse_device_arrays(device):
+    """numba's CPU kernels type their arguments: a device array is no NumPy array to them."""
+    from numba.core.errors import TypingError
+
+    with pytest.raises(TypingError, match="non-precise type pyobject"):
+        kernels.log1p_square_sum(device[0], 1.0)
+
+
+def test_what_cupy_allows(device):
+    """Copies both ways, scalars in operations, one element to a Python number (a
+    synchronisation on a GPU), host index arrays, host values written into a device array."""
+    assert not isinstance(device, np.ndarray)
+    with cp.installed():
+        assert array_module(device) is cp
+    np.testing.assert_array_equal(device.get(), HOST)
+    assert type(device.get()) is np.ndarray and type(cp.asnumpy(device)) is np.ndarray
+    np.testing.assert_array_equal(cp.array(HOST).get(), HOST)
+    total = (device * 2.0 + np.float64(1.0)).sum()
+    assert isinstance(total, cp.ndarray) and total.shape == () and float(total) == 36.0
+    assert int(device[1, 2]) == 5 and bool(device[0, 1]) and device.max().item() == 5.0
+    np.testing.assert_array_equal(device[np.array([1, 0])].get(), HOST[[1, 0]])
+    copy = cp.zeros_like(device)
+    copy[0] = HOST[1]
+    np.testing.assert_array_equal(copy.get()[0], HOST[1])
+    host = np.zeros(2)
+    host[0] = device[1, 1]  # one element: float(), as NumPy does for CuPy's
+    assert host[0] == 4.0
+
+
+def test_like_copies_host_data_with_asarray(device):
+    """model.arrays.like: a host array of the device's module through asarray (before issue 33 it
+    called ascontiguousarray, which CuPy and this stand-in refuse)."""
+    with cp.installed():
+        moved = like(HOST.T, device, dtype=np.float32)
+        assert isinstance(moved, cp.ndarray) and moved.dtype == np.float32 and moved.flags.c_contiguous
+        np.testing.assert_array_equal(moved.get(), HOST.T)
+        assert like(HOST, HOST) is HOST  # the host: no copy
+        with pytest.raises(TypeError, match="host NumPy array"):
+            array_module(device).ascontiguousarray(HOST)
+
+
+def test_model_functions_take_device_arrays(device):
+    """The model's elementwise maths on device arrays (host lights copied over), as on the host."""
+    from o3d_mvps.model.robust import cauchy, cauchy_weights
+    from o3d_mvps.model.shading import shading
+
+    normals = np.array([[0.0, 0.6, -0.8], [0.0, 0.0, -1.0]])
+    light = np.array([0.2, 0.1, -0.3, -1.0])
+    with cp.installed():
+        for f, args, device_args in ((cauchy, (HOST, 0.5), (device, 0.5)),
+                                     (cauchy_weights, (HOST, 0.5), (device, 0.5)),
+                                     (shading, (normals, light), (cp.asarray(normals), light))):
+            result = f(*device_args)
+            assert isinstance(result, cp.ndarray)
+            np.testing.assert_allclose(result.get(), f(*args), rtol=1e-15)

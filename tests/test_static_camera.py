@@ -1,0 +1,173 @@
+"""Static-camera, moving-light captures (Peng et al. 2017's setting): declared in capture.json or
+detected from the depth, refined without registration (identity poses, no pose refinement,
+per-frame SH), and rendered by o3d_mvps.synthetic.render_static_capture."""
+
+import json
+import warnings
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from o3d_mvps import RefineOptions, read_capture, synthetic
+from o3d_mvps.capture import camera_setting, write_capture
+from o3d_mvps.cli import main
+from o3d_mvps.errors import CaptureError
+from o3d_mvps.solving import problem_from_capture, with_light_model
+
+SIZE = (320, 240)
+
+
+@pytest.fixture(scope="module")
+def static():
+    """The hand-held-light bunny with the D415-like sensor, camera undeclared: 320x240, SF 2, 12 frames."""
+    capture = synthetic.render_static_capture("bunny", frames=12, size=SIZE, scale_factor=2, sensor="d415")
+    return replace(capture, camera=None)
+
+
+@pytest.fixture(scope="module")
+def moving():
+    """An orbit (camera moving up to 15 degrees) with the same sensor, 6 frames."""
+    return synthetic.render_capture("bunny", frames=6, size=SIZE, scale_factor=2, sensor="d415")
+
+
+def test_the_render_is_a_static_capture():
+    """Identity poses, one light position per frame 0.3-0.5 m from the optical axis, the camera
+    declared static, no "light" (refine then picks per-frame SH), and every frame lit differently."""
+    capture = synthetic.render_static_capture("bunny", frames=5, size=(160, 120), scale_factor=2, noise=False)
+    gt = capture.groundtruth
+    assert capture.camera == "static" and capture.light is None
+    np.testing.assert_array_equal(gt.poses, np.tile(np.eye(4), (5, 1, 1)))
+    positions = np.array(gt.light["positions"])
+    radius = np.linalg.norm(positions[:, :2], axis=1)
+    assert positions.shape == (5, 3) and np.all((radius >= 0.3 - 1e-9) & (radius <= 0.5 + 1e-9))
+    np.testing.assert_array_equal(capture.depth_array(0), capture.depth_array(4))  # no noise, no motion
+    mask = capture.mask_array(0)
+    assert np.abs(capture.color_array(0)[mask] - capture.color_array(1)[mask]).mean() > 0.02
+    with pytest.raises(ValueError, match="light_radius must be"):
+        synthetic.render_static_capture("bunny", frames=2, size=(160, 120), light_radius=(0.5, 0.3))
+
+
+def test_static_is_detected_from_the_depth_and_said(static):
+    """Undeclared, the depth finds the static camera (every frame agrees on >= 80 % of the coarse
+    pixels: measured 91 % at worst) and a warning says to declare it."""
+    with pytest.warns(UserWarning, match='no camera motion.*"camera": "static"'):
+        setting = camera_setting(static)
+    assert setting.static and setting.detected and setting.declared is None
+    assert setting.agreement > 0.85 and setting.overlap > 0.85
+    assert "detected from the depth" in setting.detail
+
+
+def test_a_moving_capture_is_not_static(moving):
+    """An orbit's depth disagrees (measured: 22 % agreement at worst): not static, no warning."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        setting = camera_setting(moving)
+    assert not setting.static and setting.detected is False
+    assert setting.agreement < 0.5 and "not static" in setting.detail
+
+
+def test_declared_camera_wins_and_a_contradiction_is_said(static, moving):
+    """Declared "static": no warning when the depth agrees; declared static though the depth says
+    it moved: still static, with a warning; declared "moving": not checked."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert camera_setting(replace(static, camera="static")).static
+        setting = camera_setting(replace(static, camera="moving"))
+    assert not setting.static and setting.detected is None
+    with pytest.warns(UserWarning, match='capture.json says "camera": "static", but the depth of frame'):
+        assert camera_setting(replace(moving, camera="static")).static
+
+
+def test_capture_json_camera_round_trip_and_bad_value(tmp_path):
+    """capture.json's "camera" is written and read back; a wrong value is refused naming the file,
+    the value and the choices."""
+    capture = synthetic.render_static_capture("bunny", frames=2, size=(160, 120), scale_factor=2, noise=False)
+    write_capture(capture, tmp_path / "c")
+    settings = json.loads((tmp_path / "c" / "capture.json").read_text())
+    assert settings["camera"] == "static" and "light" not in settings
+    assert read_capture(tmp_path / "c").camera == "static"
+    settings["camera"] = "tripod"
+    (tmp_path / "c" / "capture.json").write_text(json.dumps(settings))
+    with pytest.raises(CaptureError, match=r"capture.json: camera must be one of 'static', 'moving'.*'tripod'"):
+        read_capture(tmp_path / "c")
+    with pytest.raises(CaptureError, match="camera must be one of"):
+        write_capture(replace(capture, camera="fixed"), tmp_path / "d")
+
+
+def test_light_model_of_a_static_capture(static):
+    """A static capture that does not say what lit it gets per-frame SH; a declared light or a
+    chosen model wins."""
+    declared = replace(static, camera="static")
+    assert with_light_model(RefineOptions(), declared).light_model == "sh"
+    assert with_light_model(RefineOptions(), replace(declared, light="led")).light_model == "led"
+    assert with_light_model(RefineOptions(light_model="room"), declared).light_model == "room"
+
+
+def test_problem_without_registration(static, monkeypatch):
+    """The solver's input: every frame, identity poses, pose refinement off, SH light; the
+    registration is never called."""
+    monkeypatch.setattr("o3d_mvps.odometry.register_frames", lambda *a, **k: pytest.fail("registered"))
+    problem, views = problem_from_capture(replace(static, camera="static"), RefineOptions(progress=False))
+    assert problem.frames == list(range(12)) and views is None
+    np.testing.assert_array_equal(problem.initial_poses, np.tile(np.eye(4), (12, 1, 1)))
+    assert problem.options.refine_poses is False and problem.options.light_model == "sh"
+
+
+def test_refine_a_static_capture(monkeypatch):
+    """The undeclared D415-like static capture (320x240, SF 2, 12 frames), refined with the
+    defaults through ``python -m benchmarks static``'s measure: detected, no registration, poses
+    exactly the identity, normals far better than bicubic upsampling. Measured: normal MAE 7.8 deg
+    against bicubic's 14.0 (a factor 1.8), low-pass shape difference 2.3 per mille; bounds 9.5 deg
+    (20 % margin), a factor 1.5 and 4 per mille (issue 32's target is 2)."""
+    from benchmarks.static import QUICK, markdown, measure
+
+    monkeypatch.setattr("o3d_mvps.odometry.register_frames", lambda *a, **k: pytest.fail("registered"))
+    result = measure("bunny", **QUICK)
+    assert result["camera"]["static"] and result["camera"]["detected"] and result["camera"]["declared"] is None
+    assert any("no camera motion" in w for w in result["warnings"])
+    assert result["max_pose_deviation"] == 0.0
+    ours, cubic = result["methods"]["ours"], result["methods"]["bicubic"]
+    assert ours["mae_deg"] < 9.5
+    assert ours["mae_deg"] < cubic["mae_deg"] / 1.5
+    assert ours["lowpass_p95_permille"] < 4.0 and cubic["lowpass_p95_permille"] == 0.0
+    assert "| ours | " in markdown(result)
+
+
+def test_render_cli_static_camera(tmp_path, capsys):
+    """`o3d-mvps render --static-camera` writes a static capture; with --scene it is refused."""
+    out = tmp_path / "s"
+    assert main(["render", "bunny", str(out), "--static-camera", "--frames", "3", "--size", "160x120",
+                 "--scale-factor", "2", "--sensor", "d415", "--quiet"]) == 0
+    assert json.loads((out / "capture.json").read_text())["camera"] == "static"
+    assert main(["render", "bunny", str(tmp_path / "x"), "--static-camera", "--scene", "--quiet"]) == 1
+    assert "--scene and --static-camera exclude each other" in capsys.readouterr().err
+
+
+def test_given_moving_poses_settle_it(static, moving):
+    """Given poses that move the camera make an undeclared capture moving without a depth check;
+    identity poses leave the decision to the depth."""
+    setting = camera_setting(moving, moving.groundtruth.poses)
+    assert not setting.static and setting.detail == "the given poses move the camera"
+    with pytest.warns(UserWarning, match="no camera motion"):
+        assert camera_setting(static, np.tile(np.eye(4), (12, 1, 1))).static
+
+
+def test_lowpass_difference_sees_a_bowl_not_detail():
+    """The low-pass shape difference: a uniform 1.2 mm offset at 0.6 m is 2 per mille; fine detail
+    (a +-1 mm checkerboard of 2 px cells) is below 0.05 per mille; a bowl is its own p95."""
+    from o3d_mvps.metrics import lowpass_difference_permille
+
+    H, W = 240, 320
+    reference = np.full((H, W), 0.6)
+    mask = np.zeros((H, W), bool)
+    mask[40:200, 60:260] = True
+    assert lowpass_difference_permille(reference + 0.0012, reference, mask) == pytest.approx(2.0, rel=1e-6)
+    v, u = np.mgrid[0:H, 0:W]
+    detail = 0.001 * np.where(((u // 2) + (v // 2)) % 2 == 0, 1.0, -1.0)
+    assert lowpass_difference_permille(reference + detail, reference, mask) < 0.05
+    bowl = 0.004 * (((u - 160) / 100.0) ** 2 + ((v - 120) / 80.0) ** 2)
+    value = lowpass_difference_permille(reference + bowl, reference, mask)
+    assert 0.5 * np.percentile(bowl[mask], 95) / 0.6 * 1000 < value < np.percentile(bowl[mask], 95) / 0.6 * 1000
+    with pytest.raises(ValueError, match="mask has shape"):
+        lowpass_difference_permille(reference, reference, mask[1:])
