@@ -262,21 +262,25 @@ def quilt_albedo(x: np.ndarray, y: np.ndarray, seed: int = 3) -> np.ndarray:
     band = (np.mod(x, 0.03) < 0.006) | (np.mod(y, 0.03) < 0.006)
     rng = np.random.default_rng(seed)
     cells = rng.random((200, 200)) < 0.25  # speckles on a 4 mm grid
-    speckle = cells[np.clip(((y + 0.4) / 0.004).astype(int), 0, 199), np.clip(((x + 0.4) / 0.004).astype(int), 0, 199)]
+    row, col = (np.clip(((c + 0.4) / 0.004).astype(int), 0, 199) for c in (y, x))
+    speckle = cells[row, col]
     albedo = np.where(band[..., None], np.array([0.08, 0.05, 0.04]), base)
     return np.where(speckle[..., None], np.array([0.05, 0.05, 0.06]), albedo)
 
 
 def quilt_scene(frames: int = 12, size=(320, 240), scale_factor: int = 2, light_distance: float = 0.35,
-                light_height: float = 0.65, colour_noise: float = 0.005, depth_noise_mm: float = 1.5, seed: int = 0) -> dict:
+                light_height: float = 0.65, colour_noise: float = 0.005, depth_noise_mm: float = 1.5,
+                seed: int = 0) -> dict:
     """A static camera looking at the quilt (:func:`quilt_depth`) under a hand-held point light.
 
     Frame i's light sits on a circle of radius ``light_distance`` around the optical axis,
-    ``light_height`` before the sheet's centre (0.1 m before the camera; 1/r^2 falloff, plus ambient 0.05): shading no first-order SH light
-    describes exactly. Colour: linear float32 with Gaussian noise ``colour_noise`` and 8-bit
-    quantisation; depth: the colour-grid depth block-averaged by ``scale_factor``, Gaussian noise
-    of ``depth_noise_mm`` mm and 1 mm quantisation. Returns a dict of arrays: colors (n, H, W, 3),
-    depths (n, h, w), K, depth_K, depth (H, W), normals (H, W, 3), albedo (H, W, 3) (the truth).
+    ``light_height`` before the sheet's centre (0.1 m before the camera; 1/r^2 falloff, plus
+    ambient 0.05): shading no first-order SH light describes exactly (far away, e.g. 35 and 65,
+    it is a distant light, which SH does). Colour: linear float32 with Gaussian noise
+    ``colour_noise`` and 8-bit quantisation; depth: the colour-grid depth block-averaged by
+    ``scale_factor``, Gaussian noise of ``depth_noise_mm`` mm and 1 mm quantisation. Returns a
+    dict of arrays: colors (n, H, W, 3), depths (n, h, w), K, depth_K, depth (H, W), normals
+    (H, W, 3), albedo (H, W, 3) (the truth).
     """
     W, H = size
     f = 0.5 * W / np.tan(np.radians(30.0))
@@ -292,7 +296,8 @@ def quilt_scene(frames: int = 12, size=(320, 240), scale_factor: int = 2, light_
     colors = []
     for t in np.linspace(0, 2 * np.pi, frames, endpoint=False):
         light = np.array([light_distance * np.cos(t), light_distance * np.sin(t), QUILT_DISTANCE - light_height])
-        irradiance = np.einsum("...k,...k->...", normals, led_vectors(points.reshape(-1, 3), light).reshape(H, W, 3))
+        to_light = led_vectors(points.reshape(-1, 3), light).reshape(H, W, 3)
+        irradiance = np.einsum("...k,...k->...", normals, to_light)
         intensity = 0.9 * np.sum((light - np.array([0, 0, QUILT_DISTANCE])) ** 2)
         image = albedo * (0.05 + intensity * np.maximum(irradiance, 0.0))[..., None]
         image = image + rng.normal(0, colour_noise, image.shape)

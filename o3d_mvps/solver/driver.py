@@ -5,8 +5,10 @@ Per level, sweeps of poses -> depth -> albedo -> lighting (paper section 4) unti
 relative energy change falls below the tolerance or the sweep cap is reached. Where poses are
 refined, poses and depth take one joint Gauss-Newton step (:mod:`.joint`); the depth and
 joint steps move the albedo along (variable projection) and keep z inside the sensor's depth
-envelope (:func:`.pyramid.depth_envelope`). z and albedo are upsampled bilinearly between levels; lighting and poses carry over (the authors' code reset
-lighting at every level).
+envelope (:func:`.pyramid.depth_envelope`). Each sweep starts by weighting the smoothness per pixel
+by the shading's evidence, and each level ends by tying the depth's low frequencies to the sensor
+(:mod:`.weighting`). z and albedo are upsampled bilinearly between levels; lighting and poses
+carry over (the authors' code reset lighting at every level).
 """
 
 from __future__ import annotations
@@ -288,8 +290,8 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
     if tie_sigma == AUTO:
         tie_sigma = lowpass_sigma(z0, ref_mask, sf)
     history = []
-    stats = {"sensor_lowpass_sigma": tie_sigma, "cg_iterations": [], "cauchy_lambda": [], "smoothness": smoothness, "levels": n_levels,
-             "level_devices": []}
+    stats = {"cg_iterations": [], "cauchy_lambda": [], "smoothness": smoothness, "levels": n_levels,
+             "level_devices": [], "sensor_lowpass_sigma": tie_sigma}
 
     def solve_level(level_index: int, carried: Carried | None) -> Carried | None:
         """One level: the level's problem, the unknowns gathered from ``carried`` (None on the

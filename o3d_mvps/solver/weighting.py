@@ -53,12 +53,14 @@ def _masked_blur(values: np.ndarray, weights: np.ndarray, sigma: float) -> np.nd
 
 def tie_low_frequencies(z: np.ndarray, mask: np.ndarray, z0: np.ndarray, sigma: float) -> np.ndarray:
     """z (H, W) metres with its low frequencies replaced by the sensor's: ``z - G * (z - z0')``,
-    applied twice (one pass leaves a curved bowl's sigma^2 curvature offset), over the mask (H, W) bool, G a Gaussian of ``sigma`` depth pixels (normalised over the mask's
-    pixels with a valid sensor depth), z0' the sensor depth z0 (h, w) metres (0 = missing)
-    bilinearly resampled to z's grid. Outside the mask z is returned unchanged."""
+    applied twice (one pass leaves a curved bowl's sigma^2 curvature offset), over the mask
+    (H, W) bool; G a Gaussian of ``sigma`` depth pixels, normalised over the mask's pixels with a
+    valid sensor depth; z0' the sensor depth z0 (h, w) metres (0 = missing) bilinearly resampled
+    to z's grid. Outside the mask z is returned unchanged."""
     H, W = z.shape
     valid = z0 > 0
-    z0_level = cv2.resize(fill_nearest_valid(z0.astype(np.float64), valid), (W, H), interpolation=cv2.INTER_LINEAR)
+    filled = fill_nearest_valid(z0.astype(np.float64), valid)
+    z0_level = cv2.resize(filled, (W, H), interpolation=cv2.INTER_LINEAR)
     valid_level = cv2.resize(valid.astype(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST).astype(bool)
     weights = (mask & valid_level).astype(np.float64)
     if not weights.any():
@@ -102,7 +104,8 @@ def normal_evidence(light_model, est, ev, points: np.ndarray) -> np.ndarray:
     d = (us * ev.shading).sum(axis=0)
     G -= v[:, :, None] * v[:, None, :] / xp.maximum(d, 1e-30)[:, None, None]
     # the 2 x 2 restriction to the tangent plane (t1, t2) and its smaller eigenvalue in closed form
-    axis = xp.where((xp.abs(normals[:, 0]) < 0.9)[:, None], xp.asarray([1.0, 0.0, 0.0]), xp.asarray([0.0, 1.0, 0.0]))
+    axis = xp.where((xp.abs(normals[:, 0]) < 0.9)[:, None], xp.asarray([1.0, 0.0, 0.0]),
+                    xp.asarray([0.0, 1.0, 0.0]))
     t1 = xp.cross(normals, axis)
     t1 /= xp.linalg.norm(t1, axis=1, keepdims=True)
     t2 = xp.cross(normals, t1)
