@@ -51,24 +51,43 @@ def _masked_blur(values: np.ndarray, weights: np.ndarray, sigma: float) -> np.nd
     return num / np.maximum(den, 1e-12)
 
 
+#: relative depth range over a depth pixel's 3 x 3 neighbourhood above which the sensor depth is
+#: taken to step there (an occluding edge), and its pixels are left out of the tie's average
+EDGE_STEP = 0.02
+#: differences from the sensor beyond this many robust standard deviations (1.4826 MAD) are left
+#: out of the tie's average (edges the sensor and the refinement place a pixel apart)
+OUTLIER_SIGMAS = 4.0
+
+
 def tie_low_frequencies(z: np.ndarray, mask: np.ndarray, z0: np.ndarray, sigma: float) -> np.ndarray:
     """z (H, W) metres with its low frequencies replaced by the sensor's: ``z - G * (z - z0')``,
     applied twice (one pass leaves a curved bowl's sigma^2 curvature offset), over the mask
-    (H, W) bool; G a Gaussian of ``sigma`` depth pixels, normalised over the mask's pixels with a
-    valid sensor depth; z0' the sensor depth z0 (h, w) metres (0 = missing) bilinearly resampled
-    to z's grid. Outside the mask z is returned unchanged."""
+    (H, W) bool; G a Gaussian of ``sigma`` depth pixels, normalised over the pixels it averages;
+    z0' the sensor depth z0 (h, w) metres (0 = missing) bilinearly resampled to z's grid. The
+    average leaves out pixels without sensor depth, next to a step of the sensor depth (range
+    over 3 x 3 depth pixels above :data:`EDGE_STEP` of the depth) and differences beyond
+    :data:`OUTLIER_SIGMAS` robust standard deviations: across an occluding edge the difference
+    is the edge's misplacement, not a bend, and blurred it moved the surfaces on both sides (a
+    room scene's RMSE 3.5 -> 8.8 mm). Outside the mask z is returned unchanged."""
     H, W = z.shape
     valid = z0 > 0
     filled = fill_nearest_valid(z0.astype(np.float64), valid)
+    kernel = np.ones((3, 3), np.uint8)
+    flat = valid & (cv2.dilate(filled, kernel) - cv2.erode(filled, kernel) <= EDGE_STEP * filled)
     z0_level = cv2.resize(filled, (W, H), interpolation=cv2.INTER_LINEAR)
-    valid_level = cv2.resize(valid.astype(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST).astype(bool)
-    weights = (mask & valid_level).astype(np.float64)
-    if not weights.any():
+    flat_level = cv2.resize(flat.astype(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST).astype(bool)
+    use = mask & flat_level
+    if not use.any():
         return z
+    difference = z - z0_level
+    centre = float(np.median(difference[use]))
+    spread = 1.4826 * float(np.median(np.abs(difference[use] - centre)))
+    use &= np.abs(difference - centre) <= OUTLIER_SIGMAS * spread + 1e-6 * z0_level
+    weights = use.astype(np.float64)
     sigma_level = max(0.5, sigma * W / z0.shape[1])
     tied = z
     for _ in range(2):  # twice: removes G (2 - G) of the difference, 1 - O(f^4) at low frequencies f
-        tied = tied - _masked_blur(np.where(weights > 0, tied - z0_level, 0.0), weights, sigma_level)
+        tied = tied - _masked_blur(np.where(use, tied - z0_level, 0.0), weights, sigma_level)
     return np.where(mask, tied, z)
 
 
