@@ -117,7 +117,10 @@ def test_options_reject_a_wrong_sensor_lowpass():
         RefineOptions(sensor_lowpass=-1)
     with pytest.raises(ValueError, match="evidence_weights"):
         RefineOptions(evidence_weights="yes")
-    assert RefineOptions().sensor_lowpass == "auto" and RefineOptions().evidence_weights is True
+    sh, led = RefineOptions(light_model="sh").model, RefineOptions(light_model="led").model
+    assert (sh.lowpass_width(), sh.evidence_weighted()) == ("auto", True)
+    assert (led.lowpass_width(), led.evidence_weighted()) == (None, False)
+    assert RefineOptions(light_model="sh", sensor_lowpass=0).model.lowpass_width() is None
 
 
 def _solve_quilt(scene, **options):

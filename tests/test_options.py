@@ -51,7 +51,7 @@ def test_fields_are_read_only():
 BAD = [
     ("tau", 0.0, "(0, inf)"), ("tau", float("nan"), "(0, inf)"), ("cauchy_lambda", -0.1, "(0, inf)"),
     ("cauchy_lambda", "automatic", "a number in (0, inf), 'auto' or None"),
-    ("smoothness", -1.0, "[0, inf), 'auto' or None"), ("sensor_lowpass", 0.0, "(0, inf), 'auto' or None"),
+    ("smoothness", -1.0, "[0, inf), 'auto' or None"), ("sensor_lowpass", -1.0, "[0, inf), 'auto' or None"),
     ("evidence_weights", 1, "True or False"),
     ("depth_envelope", 1.0, "[0, 1) or None"), ("occlusion_tolerance", -0.01, "[0, 1)"),
     ("levels", 0, "an integer in [1, inf]"), ("levels", 2.5, "an integer"), ("max_iterations", 0, "[1, inf]"),

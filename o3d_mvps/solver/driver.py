@@ -103,7 +103,7 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
     bar = tqdm(range(1, options.max_iterations + 1), desc=f"level {level.index} ({level.size[1]}x{level.size[0]})",
                disable=not options.progress, leave=False)
     for iteration in bar:
-        if options.model.evidence_weights and problem.mu > 0 and problem.level.prior.S is not None:
+        if options.model.evidence_weighted() and problem.mu > 0 and problem.level.prior.S is not None:
             t = time.perf_counter()
             evidence = normal_evidence(problem.light_model(est), est, ev, problem.points(est.z))
             problem.level.prior.weigh_smoothness(evidence_weights(evidence))
@@ -286,7 +286,7 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
     smoothness = options.model.smoothness_weight()
     if smoothness == AUTO:
         smoothness = auto_smoothness(options.tau, z0, ref_mask, sf, K)
-    tie_sigma = options.model.sensor_lowpass
+    tie_sigma = options.model.lowpass_width()
     if tie_sigma == AUTO:
         tie_sigma = lowpass_sigma(z0, ref_mask, sf)
     history = []
