@@ -18,7 +18,7 @@ from o3d_mvps.capture import Capture, GroundTruth, default_depth_intrinsic, imag
 from o3d_mvps.model import se3
 from o3d_mvps.metrics import reprojection_error_px
 from o3d_mvps.model.camera import backproject, pixel_grid
-from o3d_mvps.model.normals import masked_grid
+from o3d_mvps.model.normals import masked_grid, perspective_normals
 from o3d_mvps.model.resampling import block_average
 from o3d_mvps.model.shading import led_vectors
 from o3d_mvps.solver.pose import update_pose
@@ -239,3 +239,70 @@ def write_pose_file(path, truth: np.ndarray) -> None:
     else:
         np.save(path, E)
 
+
+
+# ------------------------------------------------------------------------------------------
+# A static camera and a hand-held light (the predecessor's setting, Peng et al. 2017): quilted
+# fabric with a plaid, dark-patched albedo, rendered without o3d_mvps.synthetic
+# ------------------------------------------------------------------------------------------
+QUILT_DISTANCE, QUILT_AMPLITUDE, QUILT_PERIOD = 0.55, 0.002, 0.04  # metres
+
+
+def quilt_depth(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Depth z (metres) of a quilted sheet at lateral x, y (metres): cushions 2 mm high, 4 cm wide,
+    (a smooth sin^2 profile) on a sheet tilted by 10 degrees about the vertical axis."""
+    k = np.pi / QUILT_PERIOD
+    return QUILT_DISTANCE + 0.18 * x + QUILT_AMPLITUDE * (np.sin(k * x) * np.sin(k * y)) ** 2
+
+
+def quilt_albedo(x: np.ndarray, y: np.ndarray, seed: int = 3) -> np.ndarray:
+    """Linear RGB albedo (..., 3): a plaid of light squares (0.55-0.75) crossed by dark bands
+    (0.04-0.08) 6 mm wide every 3 cm, plus dark speckles (albedo 0.05) on a 4 mm grid."""
+    base = np.stack([0.7 + 0.05 * np.sin(x / 0.02), 0.6 + 0.05 * np.cos(y / 0.03), 0.55 + 0.0 * x], axis=-1)
+    band = (np.mod(x, 0.03) < 0.006) | (np.mod(y, 0.03) < 0.006)
+    rng = np.random.default_rng(seed)
+    cells = rng.random((200, 200)) < 0.25  # speckles on a 4 mm grid
+    row, col = (np.clip(((c + 0.4) / 0.004).astype(int), 0, 199) for c in (y, x))
+    speckle = cells[row, col]
+    albedo = np.where(band[..., None], np.array([0.08, 0.05, 0.04]), base)
+    return np.where(speckle[..., None], np.array([0.05, 0.05, 0.06]), albedo)
+
+
+def quilt_scene(frames: int = 12, size=(320, 240), scale_factor: int = 2, light_distance: float = 0.35,
+                light_height: float = 0.65, colour_noise: float = 0.005, depth_noise_mm: float = 1.5,
+                seed: int = 0) -> dict:
+    """A static camera looking at the quilt (:func:`quilt_depth`) under a hand-held point light.
+
+    Frame i's light sits on a circle of radius ``light_distance`` around the optical axis,
+    ``light_height`` before the sheet's centre (0.1 m before the camera; 1/r^2 falloff, plus
+    ambient 0.05): shading no first-order SH light describes exactly (far away, e.g. 35 and 65,
+    it is a distant light, which SH does). Colour: linear float32 with Gaussian noise
+    ``colour_noise`` and 8-bit quantisation; depth: the colour-grid depth block-averaged by
+    ``scale_factor``, Gaussian noise of ``depth_noise_mm`` mm and 1 mm quantisation. Returns a
+    dict of arrays: colors (n, H, W, 3), depths (n, h, w), K, depth_K, depth (H, W), normals
+    (H, W, 3), albedo (H, W, 3) (the truth).
+    """
+    W, H = size
+    f = 0.5 * W / np.tan(np.radians(30.0))
+    K = np.array([[f, 0.0, (W - 1) / 2], [0.0, f, (H - 1) / 2], [0.0, 0.0, 1.0]])
+    rays = backproject(np.ones((H, W)), K)
+    s = np.full((H, W), QUILT_DISTANCE)
+    for _ in range(60):  # ray parameter t with t = z(t x, t y): contracting for slopes < 0.5
+        s = quilt_depth(s * rays[..., 0], s * rays[..., 1])
+    points = s[..., None] * rays
+    normals, _ = perspective_normals(s, K)
+    albedo = quilt_albedo(points[..., 0], points[..., 1])
+    rng = np.random.default_rng(seed)
+    colors = []
+    for t in np.linspace(0, 2 * np.pi, frames, endpoint=False):
+        light = np.array([light_distance * np.cos(t), light_distance * np.sin(t), QUILT_DISTANCE - light_height])
+        to_light = led_vectors(points.reshape(-1, 3), light).reshape(H, W, 3)
+        irradiance = np.einsum("...k,...k->...", normals, to_light)
+        intensity = 0.9 * np.sum((light - np.array([0, 0, QUILT_DISTANCE])) ** 2)
+        image = albedo * (0.05 + intensity * np.maximum(irradiance, 0.0))[..., None]
+        image = image + rng.normal(0, colour_noise, image.shape)
+        colors.append(np.clip(np.round(image * 255) / 255, 0, 1))
+    sensor = block_average(s, scale_factor)
+    depths = [np.round(sensor * 1000 + rng.normal(0, depth_noise_mm, sensor.shape)) / 1000 for _ in range(frames)]
+    return {"colors": np.array(colors, np.float32), "depths": np.array(depths, np.float32), "K": K,
+            "depth_K": default_depth_intrinsic(K, scale_factor), "depth": s, "normals": normals, "albedo": albedo}

@@ -13,7 +13,7 @@ FLAT = dict(tau=100.0, smoothness=5.0, slope_weights=True, cauchy_lambda=0.1, li
             levels=3, max_iterations=4, tolerance=1e-4, pose_iterations=2, pose_tolerance=0.0, cg_tolerance=1e-3,
             cg_max_iterations=50, joint_cg_tolerance=0.1, refine_poses=False, pose_min_pixels=0,
             joint_pose_depth=False, joint_min_pixels=5, project_albedo=False, extrapolate=False,
-            refine_led_offset=False, strict_registration=True)
+            refine_led_offset=False, strict_registration=True, sensor_lowpass=6.0, evidence_weights=False)
 
 
 def grouped_of(flat):
@@ -51,7 +51,8 @@ def test_fields_are_read_only():
 BAD = [
     ("tau", 0.0, "(0, inf)"), ("tau", float("nan"), "(0, inf)"), ("cauchy_lambda", -0.1, "(0, inf)"),
     ("cauchy_lambda", "automatic", "a number in (0, inf), 'auto' or None"),
-    ("smoothness", -1.0, "[0, inf), 'auto' or None"),
+    ("smoothness", -1.0, "[0, inf), 'auto' or None"), ("sensor_lowpass", -1.0, "[0, inf), 'auto' or None"),
+    ("evidence_weights", 1, "True or False"),
     ("depth_envelope", 1.0, "[0, 1) or None"), ("occlusion_tolerance", -0.01, "[0, 1)"),
     ("levels", 0, "an integer in [1, inf]"), ("levels", 2.5, "an integer"), ("max_iterations", 0, "[1, inf]"),
     ("tolerance", 1.0, "[0, 1)"), ("pose_iterations", 0, "[1, inf]"), ("pose_tolerance", -1e-3, "[0, 1)"),
@@ -74,7 +75,7 @@ def test_each_field_rejects_a_bad_value_naming_field_value_and_range(name, value
 def test_every_numeric_field_is_covered_by_the_bad_values():
     numeric = {f.name for cls in (ModelOptions, ConvergenceCriteria, StepOptions) for f in dataclasses.fields(cls)
                if f.type in ("int", "float", "float | None", "float | str | None")}
-    assert len(numeric) == 15 and numeric <= {name for name, _, _ in BAD}
+    assert len(numeric) == 16 and numeric <= {name for name, _, _ in BAD}
 
 
 def test_enums_take_plain_strings_and_reject_others_with_the_choices():

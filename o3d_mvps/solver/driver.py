@@ -5,8 +5,10 @@ Per level, sweeps of poses -> depth -> albedo -> lighting (paper section 4) unti
 relative energy change falls below the tolerance or the sweep cap is reached. Where poses are
 refined, poses and depth take one joint Gauss-Newton step (:mod:`.joint`); the depth and
 joint steps move the albedo along (variable projection) and keep z inside the sensor's depth
-envelope (:func:`.pyramid.depth_envelope`). z and albedo are upsampled bilinearly between levels; lighting and poses carry over (the authors' code reset
-lighting at every level).
+envelope (:func:`.pyramid.depth_envelope`). Each sweep starts by weighting the smoothness per pixel
+by the shading's evidence, and each level ends by tying the depth's low frequencies to the sensor
+(:mod:`.weighting`). z and albedo are upsampled bilinearly between levels; lighting and poses
+carry over (the authors' code reset lighting at every level).
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from tqdm.auto import tqdm
 
 from ..errors import CaptureError
 from ..model import se3
+from ..model.arrays import like
 from ..model.resampling import fill_nearest_valid, repeat_pixels, resize
 from ..model.robust import robust_scale
 from .depth import update_depth
@@ -39,6 +42,7 @@ from .pyramid import build_level, level_size
 from .reflectance import update_albedo, update_lighting
 from .smoothness import auto_smoothness
 from .solution import SolverOutput
+from .weighting import evidence_weights, lowpass_sigma, normal_evidence, tie_low_frequencies
 
 
 def normalised_tau(tau_tilde: float, n_frames: int, mean_intensity: float, n_hr: int, mean_z0: float, n_lr: int,
@@ -110,6 +114,12 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
     bar = tqdm(range(1, options.max_iterations + 1), desc=f"level {level.index} ({level.size[1]}x{level.size[0]})",
                disable=not options.progress, leave=False)
     for iteration in bar:
+        if options.model.evidence_weighted() and problem.mu > 0 and problem.level.prior.S is not None:
+            t = time.perf_counter()
+            evidence = normal_evidence(problem.light_model(est), est, ev, problem.points(est.z))
+            problem.level.prior.weigh_smoothness(evidence_weights(evidence))
+            ev.prior = problem.prior_energy(est.z)
+            timings["evidence_weights"] += time.perf_counter() - t
         previous = ev.energy
         start = _snapshot(est)
         if refine_poses and options.joint_pose_depth and (parallax_only or level.grid.size >= options.joint_min_pixels):
@@ -211,6 +221,18 @@ def _extrapolate(problem: LevelProblem, est: Estimate, ev, before: Estimate, anc
     return best[1]
 
 
+def _tie_to_sensor(problem: LevelProblem, g, est: Estimate, z0: np.ndarray, sigma: float) -> None:
+    """At a level's end, give ``est``'s depth the sensor's low frequencies
+    (:func:`.weighting.tie_low_frequencies`, Gaussian of ``sigma`` depth pixels; z0 (h, w) the
+    sensor depth, metres) and refit the albedo to the tied depth, in place. g: the level's grid
+    on the host."""
+    tied = tie_low_frequencies(g.scatter(to_host(est.z)), g.mask, z0, sigma)
+    est.z = problem.level.prior.clip(like(g.gather(tied), est.z))
+    ev = problem.evaluate(est)
+    est.albedo = update_albedo(est, ev, problem.lam)
+    ev.release()
+
+
 @dataclass
 class Carried:
     """The unknowns handed from one pyramid level to the next: z (H, W) metres and albedo
@@ -302,6 +324,9 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
     smoothness = options.model.smoothness_weight()
     if smoothness == AUTO:
         smoothness = auto_smoothness(options.tau, z0, ref_mask, sf, K)
+    tie_sigma = options.model.lowpass_width()
+    if tie_sigma == AUTO:
+        tie_sigma = lowpass_sigma(z0, ref_mask, sf)
     history = []
     # given poses answer to their own sensor depth and a prior at their stated trust; registered
     # poses do not: the registration already used the depth, and on the 640x480 bunny (20
@@ -312,7 +337,7 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
                            scale_factor=sf) if given else None)
     pose_log = PoseLog()
     stats = {"cg_iterations": [], "cauchy_lambda": [], "smoothness": smoothness, "levels": n_levels,
-             "level_devices": []}
+             "level_devices": [], "sensor_lowpass_sigma": tie_sigma}
 
     def solve_level(level_index: int, carried: Carried | None) -> Carried | None:
         """One level: the level's problem, the unknowns gathered from ``carried`` (None on the
@@ -348,6 +373,10 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
                                   sensor_depths=sensor_depths, depth_K=depth_K)
         timings["setup"] += time.perf_counter() - t
         history.extend(_sweeps(problem, est, options, timings, stats, anchors, pose_log))
+        if tie_sigma is not None:
+            t = time.perf_counter()
+            _tie_to_sensor(problem, g, est, z0, tie_sigma)
+            timings["sensor_tie"] += time.perf_counter() - t
         return Carried(fill_nearest_valid(g.scatter(to_host(est.z)), g.mask),
                        fill_nearest_valid(g.scatter(to_host(est.albedo)), g.mask), est.lights, est.poses, est.led_offset)
 

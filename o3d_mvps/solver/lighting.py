@@ -218,15 +218,28 @@ class LEDLight(FrameFields):
                 "parameters": ["ambient", "intensity"], "offset_m": self.offset.tolist()}
 
 
+#: the least eigenvalue of a frame's light gram, relative to its largest, whose direction the
+#: lighting step moves (:func:`fit_per_frame`)
+LIGHT_MIN_EIGENVALUE = 1e-3
+
+
 def fit_per_frame(gram: np.ndarray, rhs: np.ndarray, lights: np.ndarray) -> np.ndarray:
-    """Each frame's light (n, k) solving ``gram_i l_i = rhs_i``; gram (n, k, k), rhs (n, k);
-    ``lights`` (n, k) kept for a frame whose gram is zero or singular."""
+    """Each frame's light (n, k): the least-squares solution of ``gram_i l_i = rhs_i`` in the
+    directions the pixels determine (eigenvalues of gram_i above :data:`LIGHT_MIN_EIGENVALUE`
+    times its largest), the current light ``lights_i`` kept in the others. On a coarse level of a
+    nearly flat object the normals hardly vary, so ambient and directional light trade off
+    freely: solved in full, a static-camera quilt's SH lights turned 140-160 degrees away on
+    the 1/16 level, the finer levels kept that basin and the normals came out 8.0 degrees off
+    (with 3 levels instead of 5: 2.6). gram (n, k, k), rhs (n, k); ``lights`` (n, k) kept for a
+    frame whose gram is zero or not finite."""
     out = lights.copy()
     for i in range(len(out)):
-        if np.trace(gram[i]) > 0:
-            solution = ridge_solve(gram[i], rhs[i], ridge=1e-12)
-            if solution is not None:
-                out[i] = solution
+        if not (np.trace(gram[i]) > 0 and np.isfinite(gram[i]).all() and np.isfinite(rhs[i]).all()):
+            continue
+        values, vectors = np.linalg.eigh(gram[i])
+        keep = values > LIGHT_MIN_EIGENVALUE * values[-1]
+        V = vectors[:, keep]
+        out[i] = lights[i] + V @ ((V.T @ (rhs[i] - gram[i] @ lights[i])) / values[keep])
     return out
 
 

@@ -60,6 +60,20 @@ DEFAULT_CAUCHY_LAMBDA = {"led": 0.04, "sh": 0.04, "room": "auto"}
 DEFAULT_SLOPE_WEIGHTS = {"led": False, "sh": False, "room": True}
 AUTO = "auto"
 
+#: the sensor tie (:func:`o3d_mvps.solver.weighting.tie_low_frequencies`) per light model when
+#: not given: on ("auto") with per-frame SH, the model of static-camera, hand-held-light captures,
+#: whose shading bias bent a rendered quilt into a bowl (low-pass difference from the sensor
+#: 12.1 -> 1.8 per mille of depth, RMSE 2.89 -> 1.09 mm). Off (0) with the LED, where the photometric
+#: low frequencies are good and the tie passes on the sensor's own (a bunny, 640x480, SF 4, 20
+#: frames: 2.33 deg / 0.895 mm without, 2.32 deg / 0.944 mm with), and under room light (not measured).
+DEFAULT_SENSOR_LOWPASS = {"led": 0, "sh": AUTO, "room": 0}
+
+#: the evidence weights (:func:`o3d_mvps.solver.weighting.evidence_weights`) per light model when
+#: not given: on with per-frame SH (a plaid quilt's dark patches: normals 2.02 -> 1.68 deg, the
+#: smoothed sensor 4.29); off with the LED, whose small smoothness (0.3) lets the pixels few frames
+#: see follow their data (the bunny above: 0.895 -> 0.985 mm with them) and under room light.
+DEFAULT_EVIDENCE_WEIGHTS = {"led": False, "sh": True, "room": False}
+
 LightModel = _Choice("LightModel", {v.upper(): v for v in LIGHT_MODELS})
 LightModel.__doc__ = ('Light model: LED ("led", a point light moving with the camera, paper section 6\'s '
                       'future work), SH ("sh", first-order spherical harmonics per frame, paper section 3.2) or '
@@ -141,6 +155,16 @@ class ModelOptions:
         widened by this relative margin in [0, 1) (None: unbounded; docs/method.md).
     occlusion_test: drop reference pixels hidden or out of view in frame i from its data term.
     occlusion_tolerance: relative depth tolerance of that test, in [0, 1).
+    sensor_lowpass: at each pyramid level's end, replace the depth's low frequencies by the sensor
+        depth's (:func:`o3d_mvps.solver.weighting.tie_low_frequencies`): the Gaussian sigma in
+        depth pixels (> 0), "auto" (from the sensor's noise, at least 4:
+        :func:`o3d_mvps.solver.weighting.lowpass_sigma`) or 0 (off: the paper's model, where the
+        photometric terms may bend the whole surface); None: :data:`DEFAULT_SENSOR_LOWPASS` of
+        the light model.
+    evidence_weights: weight each pixel's smoothness by how little the frames' shading says
+        about its normal (:func:`o3d_mvps.solver.weighting.evidence_weights`: dark albedo, few
+        frames, little light diversity lean on the smoothness); False: one weight everywhere;
+        None: :data:`DEFAULT_EVIDENCE_WEIGHTS` of the light model.
     """
 
     tau: float = 10.0
@@ -154,11 +178,25 @@ class ModelOptions:
     depth_envelope: float | None = 0.02
     occlusion_test: bool = True
     occlusion_tolerance: float = 0.02
+    sensor_lowpass: float | str | None = None
+    evidence_weights: bool | None = None
 
     def smoothness_weight(self) -> float | str:
         """mu~, or :data:`AUTO`: ``smoothness``, else the light model's default (the light model
         must be known)."""
         return DEFAULT_SMOOTHNESS[str(self.light_model)] if self.smoothness is None else self.smoothness
+
+    def lowpass_width(self) -> float | str | None:
+        """The sensor tie's sigma (depth pixels), :data:`AUTO`, or None (off): ``sensor_lowpass``,
+        else the light model's default (the light model must be known)."""
+        width = DEFAULT_SENSOR_LOWPASS[str(self.light_model)] if self.sensor_lowpass is None else self.sensor_lowpass
+        return None if width == 0 else width
+
+    def evidence_weighted(self) -> bool:
+        """``evidence_weights``, else the light model's default (the light model must be known)."""
+        if self.evidence_weights is None:
+            return DEFAULT_EVIDENCE_WEIGHTS[str(self.light_model)]
+        return self.evidence_weights
 
     def slope_weighted(self) -> bool:
         """``slope_weights``, else the light model's default (the light model must be known)."""
@@ -183,7 +221,11 @@ class ModelOptions:
              difference_scheme=DifferenceScheme.parse("difference_scheme", self.difference_scheme),
              depth_envelope=_number("depth_envelope", self.depth_envelope, 0, 1, high_open=True, none_ok=True),
              occlusion_test=_flag("occlusion_test", self.occlusion_test),
-             occlusion_tolerance=_number("occlusion_tolerance", self.occlusion_tolerance, 0, 1, high_open=True))
+             occlusion_tolerance=_number("occlusion_tolerance", self.occlusion_tolerance, 0, 1, high_open=True),
+             sensor_lowpass=self.sensor_lowpass if self.sensor_lowpass in (None, AUTO) else _number(
+                 "sensor_lowpass", self.sensor_lowpass, 0, math.inf, high_open=True, auto_ok=True),
+             evidence_weights=None if self.evidence_weights is None else _flag("evidence_weights",
+                                                                                self.evidence_weights))
 
 
 @dataclass(frozen=True)

@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 import scipy.sparse as sp
 
+from ..model.arrays import sparse_module
 from ..model.camera import scale_intrinsics
 from ..model.normals import MaskedGrid, masked_grid
 from ..model.resampling import fill_nearest_valid, resample_valid, resize
@@ -40,6 +41,17 @@ class DepthPrior:
     lower: np.ndarray | None = None
     upper: np.ndarray | None = None
     S: sp.csr_matrix | None = None
+
+    def weigh_smoothness(self, pixel_weights: np.ndarray) -> None:
+        """Weight each smoothness row of the unweighted S by ``pixel_weights`` (N,) at its centre
+        pixel (the energy's mu ||S z||^2 becomes mu sum_k w_k (S z)_k^2); replaces the last
+        weights."""
+        if self.S is None:
+            return
+        base = self.__dict__.setdefault("_S_unweighted", self.S)
+        centre = base.indices[base.data < 0]  # each row's -2 entry, in row order
+        self.S = sparse_module(base).csr_matrix(sparse_module(base).diags(pixel_weights[centre] ** 0.5) @ base)
+        self.__dict__.pop("StS", None)
 
     def energy(self, z: np.ndarray, tau: float, mu: float) -> float:
         """tau ||D z - z0||^2 + mu ||S z||^2 of depth z (N,) metres."""
