@@ -22,7 +22,7 @@ from typing import Iterator
 
 import numpy as np
 
-from .model.se3 import rotation_angle_deg
+from .model import se3
 
 #: Top-level keys of a refinement's report.json, in order.
 REPORT_KEYS = ("method", "energy", "energy_per_level", "timings", "info", "inputs", "frames", "poses", "light",
@@ -65,12 +65,12 @@ def recorded_warnings(into: list) -> Iterator[None]:
 
 def pose_movement(initial: np.ndarray, refined: np.ndarray, frames: list) -> list[dict]:
     """How far each frame's camera moved between two pose sets (n, 4, 4), reference -> frame:
-    rows {"frame", "moved_mm" (camera centre, reference coordinates), "moved_deg" (rotation)}."""
+    rows {"frame", "moved_mm" (camera centre, reference coordinates), "moved_deg" (rotation)}
+    (:func:`o3d_mvps.model.se3.camera_movement`)."""
     rows = []
     for f, T0, T1 in zip(frames, np.asarray(initial, dtype=np.float64), np.asarray(refined, dtype=np.float64)):
-        c0, c1 = -T0[:3, :3].T @ T0[:3, 3], -T1[:3, :3].T @ T1[:3, 3]
-        rows.append({"frame": int(f), "moved_mm": round(float(np.linalg.norm(c1 - c0)) * 1000, 4),
-                     "moved_deg": round(rotation_angle_deg(T1[:3, :3] @ T0[:3, :3].T), 5)})
+        degrees, metres = se3.camera_movement(T0, T1)
+        rows.append({"frame": int(f), "moved_mm": round(metres * 1000, 4), "moved_deg": round(degrees, 5)})
     return rows
 
 

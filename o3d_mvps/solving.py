@@ -16,12 +16,13 @@ import numpy as np
 
 from .capture import Capture, CameraSetting, camera_setting, to_host
 from .capture.checks import check_inputs
+from .capture.layout import COLOR_DIR
 from .capture.poses import GivenPoses
 from .errors import CaptureError
 from .fileio import check_output_files
 from .model import se3
 from .refinement import Refinement
-from .run_report import peak_memory_mb, recorded_warnings
+from .run_report import NOT_PICKED, peak_memory_mb, recorded_warnings
 from .solver.device import check_device
 from .solver.driver import solve
 from .solver.options import RefineOptions
@@ -114,7 +115,8 @@ def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses
         capture = replace(capture, camera="static")
         options = replace(options, refine_poses=False)
     options = with_light_model(options, capture)
-    all_frames = capture.frame_names or [None] * capture.n_frames
+    all_frames = [f"{COLOR_DIR}/{name}" for name in capture.frame_names] if capture.frame_names \
+        else [None] * capture.n_frames
     frames = options.frame_indices(capture.n_frames)
     given = None
     if initial_poses is not None:
@@ -126,7 +128,7 @@ def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses
     else:
         trust = None
     capture = capture.select(frames)
-    why = {i: "not among the frames asked for (frames option)" for i in range(len(all_frames)) if i not in frames}
+    why = {i: NOT_PICKED for i in range(len(all_frames)) if i not in frames}
     report = {}
     if checks:
         t0 = time.perf_counter()

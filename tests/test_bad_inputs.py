@@ -110,7 +110,7 @@ def test_correct_pose_file_refines_and_reports_the_checks(folder, tmp_path, caps
     assert poses["source"] == str(tmp_path / "trajectory.log") and poses["fits"] == "as given"
     assert min(poses["frame_agreement"].values()) > 0.8  # measured 0.93-0.98
     assert [(r["index"], r["file"], r["used"]) for r in info["frames_report"]] == [
-        (i, f"{i:06d}.png", True) for i in range(N)]
+        (i, f"color/{i:06d}.png", True) for i in range(N)]
 
 
 def test_a_ring_with_its_poses_passes_and_inverted_poses_are_named():

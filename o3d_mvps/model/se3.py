@@ -68,6 +68,13 @@ def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
     return rotation_angle_deg(D[:3, :3]), float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]))
 
 
+def camera_movement(T_from: np.ndarray, T_to: np.ndarray) -> tuple[float, float]:
+    """How far a camera moved between two poses (4, 4), reference -> camera: (rotation in
+    degrees, distance between the camera centres in metres, in reference coordinates)."""
+    centre = lambda T: -T[:3, :3].T @ T[:3, 3]  # noqa: E731
+    return rotation_angle_deg(T_to[:3, :3] @ T_from[:3, :3].T), float(np.linalg.norm(centre(T_to) - centre(T_from)))
+
+
 def relative_to_reference(world_to_camera: np.ndarray) -> np.ndarray:
     """(n, 4, 4) world-to-camera transforms E_i -> T_i = E_i E_0^-1 (reference -> frame i);
     poses already relative to some frame re-base onto frame 0 the same way."""

@@ -147,14 +147,14 @@ class PoseLog:
 
     def report(self, start: np.ndarray, final: np.ndarray, trust: tuple | None, frames: list) -> list[dict]:
         """info["pose_updates"]: per frame 1.. (``frames``: the capture's index of each) how far
-        its pose moved from ``start`` (n, 4, 4) to ``final``, how many updates were rejected,
+        its camera moved from ``start`` (n, 4, 4) to ``final`` (:func:`~o3d_mvps.model.se3.camera_movement`), how many updates were rejected,
         and a note saying why; trust: the given poses' (metres, radians), None for poses refined
         freely (registered)."""
         rows = []
         kind = ("registered pose, refined freely" if trust is None else
                 f"given pose, trusted to {1e3 * trust[0]:g} mm and {np.degrees(trust[1]):g} deg")
         for i in range(1, len(final)):
-            degrees, metres = se3.pose_error(final[i], start[i])
+            degrees, metres = se3.camera_movement(start[i], final[i])
             reasons = self.rejected[i] if i < len(self.rejected) else {}
             note = kind + (
                 "; rejected: " + ", ".join(f"{n} x {r}" for r, n in sorted(reasons.items())) if reasons else "")
