@@ -79,15 +79,7 @@ def closed_solid(views: list, mesh_positions: np.ndarray, up: np.ndarray, voxel:
         sizes = np.bincount(labels.ravel())[1:]
         occupancy = (labels == 1 + int(np.argmax(sizes))).astype(np.float32)
     positions, triangles = contour(occupancy, origin, voxel)
-    positions = print_frame(positions, up, size_mm)
-    if solid_volume(positions, triangles) < 0:  # outward orientation
-        triangles = triangles[:, ::-1]
-    check_solid(positions, triangles)
-    mesh = o3d.t.geometry.TriangleMesh(o3d.core.Tensor(positions.astype(np.float32)),
-                                       o3d.core.Tensor(triangles.astype(np.int32)))
-    mesh.compute_vertex_normals()
-    return mesh
-
+    return mesh_solid(positions, triangles, up, size_mm)
 
 
 def mesh_solid(positions: np.ndarray, triangles: np.ndarray, up: np.ndarray,
@@ -97,7 +89,7 @@ def mesh_solid(positions: np.ndarray, triangles: np.ndarray, up: np.ndarray,
     :func:`o3d_mvps.export.check_solid` (ExportError naming the defect when the mesh is open)."""
     positions = print_frame(np.asarray(positions, dtype=np.float64), np.asarray(up, dtype=np.float64), size_mm)
     triangles = np.asarray(triangles, dtype=np.int64)
-    if solid_volume(positions, triangles) < 0:
+    if solid_volume(positions, triangles) < 0:  # outward orientation
         triangles = triangles[:, ::-1]
     check_solid(positions, triangles)
     mesh = o3d.t.geometry.TriangleMesh(o3d.core.Tensor(positions.astype(np.float32)),
