@@ -63,9 +63,14 @@ SMOOTH_PX = 0.7
 #: Radius (m) and neighbour cap of the normal estimation.
 NORMAL_RADIUS = 0.02
 NORMAL_MAX_NN = 40
-#: Maximum correspondence distances (m) of the coarse-to-fine ICP levels.
+#: Maximum correspondence distances (m) of the coarse-to-fine ICP levels ...
 ICP_DISTANCES = (0.03, 0.015, 0.008)
-ICP_MAX_ITERATIONS = 50
+#: ... the voxel (m) each level's clouds are downsampled to (None: the full cloud) ...
+ICP_VOXELS = (0.006, 0.003, None)
+#: ... and each level's iteration cap (it stops earlier when fitness and RMSE change by less than
+#: ICP_RELATIVE_CHANGE).
+ICP_MAX_ITERATIONS = (30, 30, 30)
+ICP_RELATIVE_CHANGE = 1e-6
 #: A frame needs at least this many valid depth points.
 MIN_POINTS = 50
 #: A registration is accepted when at least this fraction of the source points has a
@@ -186,14 +191,26 @@ def _judge(step: str, T: np.ndarray, fitness: float, start: np.ndarray) -> Attem
     return Attempt(step, T, fitness)
 
 
-def register(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, init: np.ndarray,
-             step: str = "ICP", colored: bool = False) -> Attempt:
+def cloud_pyramid(cloud: o3d.geometry.PointCloud) -> tuple:
+    """The clouds of the ICP levels (``ICP_VOXELS``), coarse to fine: ``cloud`` voxel-downsampled
+    (points, normals and colours averaged per voxel, so the normals are estimated once, on the
+    full cloud), or ``cloud`` itself where the voxel is None."""
+    return tuple(cloud if voxel is None else cloud.voxel_down_sample(voxel) for voxel in ICP_VOXELS)
+
+
+def _levels(cloud) -> tuple:
+    """One cloud per ICP level: a :func:`cloud_pyramid` as it is, a single cloud at every level."""
+    return tuple(cloud) if isinstance(cloud, (tuple, list)) else (cloud,) * len(ICP_DISTANCES)
+
+
+def register(source, target, init: np.ndarray, step: str = "ICP", colored: bool = False) -> Attempt:
     """Multi-scale point-to-plane (or coloured) ICP of ``source`` onto ``target``, judged.
 
     Parameters
     ----------
-    source, target : o3d.geometry.PointCloud
-        Clouds with normals (and colours for ``colored``), metres.
+    source, target : o3d.geometry.PointCloud or tuple of them
+        Clouds with normals (and colours for ``colored``), metres: one cloud used at every level,
+        or one per level (:func:`cloud_pyramid`, coarse to fine).
     init : (4, 4) array
         Initial source -> target transform.
     step : str
@@ -205,22 +222,26 @@ def register(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, i
     -------
     Attempt
         ``T`` (4, 4) maps source coordinates to target coordinates; ``fitness`` is the fraction of
-        source points with a correspondence within the finest ICP distance; ``failure`` is None
-        when the fitness is at least ``MIN_FITNESS`` and the move from ``init`` is below
-        ``MAX_STEP_DEG`` / ``MAX_STEP_M``.
+        (finest-level) source points with a correspondence within the finest ICP distance;
+        ``failure`` is None when the fitness is at least ``MIN_FITNESS`` and the move from ``init``
+        is below ``MAX_STEP_DEG`` / ``MAX_STEP_M``.
     """
     init = np.asarray(init, dtype=np.float64)
-    few = min(len(source.points), len(target.points))
+    sources, targets = _levels(source), _levels(target)
+    few = min(len(sources[-1].points), len(targets[-1].points))
     if few < MIN_POINTS:
         return Attempt(step, init, 0.0, f"too few depth points ({few}, at least {MIN_POINTS} needed)", "points")
     reg = o3d.pipelines.registration
     estimation = reg.TransformationEstimationForColoredICP() if colored else reg.TransformationEstimationPointToPlane()
     icp = reg.registration_colored_icp if colored else reg.registration_icp
-    criteria = reg.ICPConvergenceCriteria(relative_fitness=1e-7, relative_rmse=1e-7, max_iteration=ICP_MAX_ITERATIONS)
     T = init
-    for distance in ICP_DISTANCES:
+    for src, tgt, distance, iterations in zip(sources, targets, ICP_DISTANCES, ICP_MAX_ITERATIONS):
+        if min(len(src.points), len(tgt.points)) < MIN_POINTS:  # a tiny cloud: its coarse levels are skipped
+            continue
+        criteria = reg.ICPConvergenceCriteria(relative_fitness=ICP_RELATIVE_CHANGE, relative_rmse=ICP_RELATIVE_CHANGE,
+                                              max_iteration=iterations)
         try:
-            result = icp(source, target, distance, T, estimation, criteria)
+            result = icp(src, tgt, distance, T, estimation, criteria)
         except RuntimeError:  # coloured ICP raises when no point has a correspondence
             return Attempt(step, T, 0.0, f"fitness 0 (no correspondence within {distance * 1000:.0f} mm)", "fitness")
         T = np.asarray(result.transformation, dtype=np.float64)
@@ -250,6 +271,8 @@ def register_globally(source: o3d.geometry.PointCloud, target: o3d.geometry.Poin
     vouches for the start). Single views of ~1000 noisy points give unreliable FPFH matches
     (13-25 deg off at 30-45 deg baselines on the rendered bunny), which this threshold refuses.
     """
+    pyramids = source, target
+    source, target = _levels(source)[-1], _levels(target)[-1]
     few = min(len(source.points), len(target.points))
     if few < MIN_POINTS:
         return Attempt(step, np.eye(4), 0.0, f"too few depth points ({few}, at least {MIN_POINTS} needed)", "points")
@@ -264,8 +287,8 @@ def register_globally(source: o3d.geometry.PointCloud, target: o3d.geometry.Poin
         [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(distance)],
         reg.RANSACConvergenceCriteria(RANSAC_ITERATIONS, RANSAC_CONFIDENCE))
     # colour misleads ICP where the LED moves with the camera: the candidates keep point-to-plane ICP
-    refined = [register(source, target, np.asarray(ransac.transformation), step, colored=True)]
-    refined += [register(source, target, np.asarray(T), step) for T in candidates]
+    refined = [register(*pyramids, np.asarray(ransac.transformation), step, colored=True)]
+    refined += [register(*pyramids, np.asarray(T), step) for T in candidates]
     best = max(refined, key=lambda a: (a.failure is None, a.fitness))
     if best.failure is None and best.fitness < GLOBAL_MIN_FITNESS:
         best.failure, best.kind = f"fitness {best.fitness:.2f} (at least {GLOBAL_MIN_FITNESS} needed)", "fitness"
@@ -310,10 +333,10 @@ def register_frames(capture, *, strict: bool = False, max_depth: float = 3.0,
     """
     n = capture.n_frames
     K = np.asarray(capture.depth_K(), dtype=np.float64)
-    clouds = [depth_cloud(capture.depth_array(i), K, max_depth, capture.color_array(i), _region(capture, i))
-              for i in range(n)]
-    if len(clouds[0].points) < MIN_POINTS:
-        raise OdometryError(f"the reference frame 0 has only {len(clouds[0].points)} valid depth points below "
+    clouds = [cloud_pyramid(depth_cloud(capture.depth_array(i), K, max_depth, capture.color_array(i),
+                                        _region(capture, i))) for i in range(n)]
+    if len(clouds[0][-1].points) < MIN_POINTS:
+        raise OdometryError(f"the reference frame 0 has only {len(clouds[0][-1].points)} valid depth points below "
                             f"{max_depth} m (at least {MIN_POINTS} are needed): {FIXES['points']}, so that another "
                             "frame becomes the reference")
     result = FrameRegistration(frames=[0], poses=np.eye(4)[None], steps={0: "reference"})
