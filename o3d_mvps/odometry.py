@@ -65,8 +65,9 @@ NORMAL_RADIUS = 0.02
 NORMAL_MAX_NN = 40
 #: Maximum correspondence distances (m) of the coarse-to-fine ICP levels ...
 ICP_DISTANCES = (0.03, 0.015, 0.008)
-#: ... the voxel (m) each level's clouds are downsampled to (None: the full cloud) ...
-ICP_VOXELS = (0.006, 0.003, None)
+#: ... the voxel (m) each level's clouds are downsampled to (None: the full cloud; the finest
+#: voxel bounds a frame's points by the object's area, whatever the resolution) ...
+ICP_VOXELS = (0.006, 0.003, 0.0015)
 #: ... and each level's iteration cap (it stops earlier when fitness and RMSE change by less than
 #: ICP_RELATIVE_CHANGE).
 ICP_MAX_ITERATIONS = (30, 30, 30)
@@ -133,7 +134,8 @@ def registration_region(mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 
 
 def depth_cloud(depth: np.ndarray, K: np.ndarray, max_depth: float = 3.0,
-                color: np.ndarray | None = None, region: np.ndarray | None = None) -> o3d.geometry.PointCloud:
+                color: np.ndarray | None = None, region: np.ndarray | None = None,
+                voxel: float | None = None) -> o3d.geometry.PointCloud:
     """Denoised point cloud with camera-facing normals (and colours) of one depth frame.
 
     Parameters
@@ -149,6 +151,8 @@ def depth_cloud(depth: np.ndarray, K: np.ndarray, max_depth: float = 3.0,
         onto the depth grid as the points' colours (coloured ICP needs them).
     region : (h, w) bool array, optional
         Pixels to keep (e.g. :func:`registration_region`); None keeps every valid one.
+    voxel : float, optional
+        Downsample the points to this voxel (m) before estimating the normals (None: every point).
 
     Returns
     -------
@@ -170,6 +174,8 @@ def depth_cloud(depth: np.ndarray, K: np.ndarray, max_depth: float = 3.0,
     if color is not None:
         low = cv2.resize(np.asarray(color, dtype=np.float32), (z.shape[1], z.shape[0]), interpolation=cv2.INTER_AREA)
         cloud.colors = o3d.utility.Vector3dVector(low[keep].astype(np.float64))
+    if voxel is not None:
+        cloud = cloud.voxel_down_sample(voxel)
     if len(cloud.points) >= 3:
         cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=NORMAL_RADIUS, max_nn=NORMAL_MAX_NN))
         cloud.orient_normals_towards_camera_location(np.zeros(3))
@@ -193,9 +199,10 @@ def _judge(step: str, T: np.ndarray, fitness: float, start: np.ndarray) -> Attem
 
 def cloud_pyramid(cloud: o3d.geometry.PointCloud) -> tuple:
     """The clouds of the ICP levels (``ICP_VOXELS``), coarse to fine: ``cloud`` voxel-downsampled
-    (points, normals and colours averaged per voxel, so the normals are estimated once, on the
-    full cloud), or ``cloud`` itself where the voxel is None."""
-    return tuple(cloud if voxel is None else cloud.voxel_down_sample(voxel) for voxel in ICP_VOXELS)
+    (points, normals and colours averaged per voxel, so the normals are estimated once, on
+    ``cloud``); the finest level, and any whose voxel is None, is ``cloud`` itself (already at
+    the finest voxel: :func:`depth_cloud` with ``voxel=ICP_VOXELS[-1]``)."""
+    return tuple(cloud if voxel is None else cloud.voxel_down_sample(voxel) for voxel in ICP_VOXELS[:-1]) + (cloud,)
 
 
 def _levels(cloud) -> tuple:
@@ -334,7 +341,7 @@ def register_frames(capture, *, strict: bool = False, max_depth: float = 3.0,
     n = capture.n_frames
     K = np.asarray(capture.depth_K(), dtype=np.float64)
     clouds = [cloud_pyramid(depth_cloud(capture.depth_array(i), K, max_depth, capture.color_array(i),
-                                        _region(capture, i))) for i in range(n)]
+                                        _region(capture, i), ICP_VOXELS[-1])) for i in range(n)]
     if len(clouds[0][-1].points) < MIN_POINTS:
         raise OdometryError(f"the reference frame 0 has only {len(clouds[0][-1].points)} valid depth points below "
                             f"{max_depth} m (at least {MIN_POINTS} are needed): {FIXES['points']}, so that another "
