@@ -49,6 +49,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--baseline", default=None, metavar="REV",
                         help="with --registration: also run this git revision (e.g. aacda76) on the same captures, "
                              "in the same run")
+    parser.add_argument("--memory-curve", nargs="+", type=int, default=None, metavar="FRAMES",
+                        help="peak memory of odometry + refine against frames (these counts) x colour pixels (the "
+                             "--cases sizes), one solver sweep per level: memory_curve.json and memory_curve.png")
     parser.add_argument("--captures", default=None, metavar="DIR",
                         help="with --registration: keep the rendered captures here and reuse them on the next run")
 
@@ -124,6 +127,8 @@ def run(args) -> list[dict]:
     """Run every case one after the other; writes ``speed.json`` into ``args.out`` after each."""
     if args.registration:
         return run_registration(args)
+    if args.memory_curve:
+        return run_memory_curve(args)
     cases = [parse_case(c) for c in args.cases]
     frames, options = args.frames, {}
     if args.quick:
@@ -233,6 +238,47 @@ def registration_plot(rows: list[dict], path: Path) -> None:
     ax.set_ylabel("registration, CPU seconds (20 frames)")
     ax.set_title("Frame registration: this tree against the baseline, same run")
     ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def run_memory_curve(args) -> list[dict]:
+    """Peak memory (and time) of odometry + refine for every ``--cases`` size x ``--memory-curve``
+    frame count, capped at one sweep per level (``max_iterations=1``: the peak is reached in the
+    first sweep of the finest level, whose arrays later sweeps reuse); rows as :func:`run_case`'s
+    in ``memory_curve.json``, plotted by :func:`memory_curve_plot`."""
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    warm_up([Path(__file__).resolve().parent.parent])
+    rows = []
+    for size, sf, distance in (parse_case(c) for c in args.cases):
+        for frames in args.memory_curve:
+            row = run_case(args.mesh, size, sf, frames, {"max_iterations": 1}, distance)
+            rows.append(row)
+            print(f"memory: {row['color']}, {frames} frames: peak {row['peak_mb']:.0f} MB, {row['seconds']:.1f} s",
+                  flush=True)
+            (out / "memory_curve.json").write_text(json_text(rows, "memory curve rows"))
+            memory_curve_plot(rows, out / "memory_curve.png")
+    return rows
+
+
+def memory_curve_plot(rows: list[dict], path: Path) -> None:
+    """Peak MB against frames, one line per colour size (matplotlib, PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for color in dict.fromkeys(r["color"] for r in rows):
+        mine = sorted((r["frames"], r["peak_mb"]) for r in rows if r["color"] == color)
+        ax.plot(*zip(*mine), marker="o", label=f"{color} colour")
+    ax.set_xlabel("frames")
+    ax.set_ylabel("peak resident memory (MB)")
+    ax.set_title("odometry + refine, one sweep per level")
+    ax.legend()
+    ax.grid(alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
