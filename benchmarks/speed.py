@@ -245,9 +245,10 @@ def registration_plot(rows: list[dict], path: Path) -> None:
 
 def run_memory_curve(args) -> list[dict]:
     """Peak memory (and time) of odometry + refine for every ``--cases`` size x ``--memory-curve``
-    frame count, capped at one sweep per level (``max_iterations=1``: the peak is reached in the
-    first sweep of the finest level, whose arrays later sweeps reuse); rows as :func:`run_case`'s
-    in ``memory_curve.json``, plotted by :func:`memory_curve_plot`."""
+    frame count, capped at one sweep per level (``max_iterations=1``, to keep the curve cheap: a
+    lower bound, as the resident size of a full run keeps growing over the finest level's sweeps,
+    docs/performance.md); rows as :func:`run_case`'s in ``memory_curve.json``, plotted by
+    :func:`memory_curve_plot`."""
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     warm_up([Path(__file__).resolve().parent.parent])
