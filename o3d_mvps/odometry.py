@@ -13,9 +13,9 @@ are 0.9-4.5 deg off (a margin of table around the object, 8 % of its size, gave 
 
 Each ICP runs coarse to fine on a pyramid of voxel-downsampled clouds (:func:`cloud_pyramid`,
 ``ICP_VOXELS``: 6 mm, 3 mm, 1 mm), built once per frame, with normals estimated once on the finest
-cloud: the cost is bounded by the object's area rather than the pixel count (a 2-megapixel
-capture's 20 frames register in 3 s of CPU, 4x less than full-resolution ICP, with the same pose
-errors; ``benchmarks/results/registration.json``). Open3D's ICP releases the GIL but already
+cloud: the cost is bounded by the object's area rather than the pixel count (a rendered
+2-megapixel capture's 20 frames register in 2.7 s of CPU, 2.7x less than full-resolution ICP
+at aacda76 in the same run, with the same pose errors; ``benchmarks/results/registration.json``). Open3D's ICP releases the GIL but already
 runs on every core (OpenMP), so frames are registered one after the other.
 
 The registration chain (:func:`register_frames`), per frame i, until one step is accepted:
