@@ -15,8 +15,9 @@ Each ICP runs coarse to fine on a pyramid of voxel-downsampled clouds (:func:`cl
 ``ICP_VOXELS``: 6 mm, 3 mm, 1 mm), built once per frame, with normals estimated once on the finest
 cloud: the cost is bounded by the object's area rather than the pixel count (a rendered
 2-megapixel capture's 20 frames register in 2.7 s of CPU, 2.7x less than full-resolution ICP
-at aacda76 in the same run, with the same pose errors; ``benchmarks/results/registration.json``). Open3D's ICP releases the GIL but already
-runs on every core (OpenMP), so frames are registered one after the other.
+at aacda76 in the same run, with the same pose errors; ``benchmarks/results/registration.json``).
+Open3D's ICP releases the GIL but already runs on every core (OpenMP), so frames are registered
+one after the other.
 
 The registration chain (:func:`register_frames`), per frame i, until one step is accepted:
 
