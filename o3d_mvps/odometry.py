@@ -76,6 +76,9 @@ ICP_DISTANCES = (0.03, 0.015, 0.008)
 #: ... the voxel (m) each level's clouds are downsampled to (None: the full cloud; the finest
 #: voxel bounds a frame's points by the object's area, whatever the resolution) ...
 ICP_VOXELS = (0.006, 0.003, 0.001)
+#: A finest cloud with more points than this (a whole room, when no mask keeps the object) is
+#: downsampled further, to about this many (an object frame has 10-30k at 1 mm).
+MAX_CLOUD_POINTS = 30_000
 #: ... and each level's iteration cap (it stops earlier when fitness and RMSE change by less than
 #: ICP_RELATIVE_CHANGE).
 ICP_MAX_ITERATIONS = (30, 30, 30)
@@ -160,7 +163,8 @@ def depth_cloud(depth: np.ndarray, K: np.ndarray, max_depth: float = 3.0,
     region : (h, w) bool array, optional
         Pixels to keep (e.g. :func:`registration_region`); None keeps every valid one.
     voxel : float, optional
-        Downsample the points to this voxel (m) before estimating the normals (None: every point).
+        Downsample the points to this voxel (m), then to every k-th point where more than
+        ``MAX_CLOUD_POINTS`` remain, before estimating the normals (None: every point).
 
     Returns
     -------
@@ -184,6 +188,8 @@ def depth_cloud(depth: np.ndarray, K: np.ndarray, max_depth: float = 3.0,
         cloud.colors = o3d.utility.Vector3dVector(low[keep].astype(np.float64))
     if voxel is not None:
         cloud = cloud.voxel_down_sample(voxel)
+        if len(cloud.points) > MAX_CLOUD_POINTS:  # every k-th point (row-major pixels, so spread evenly)
+            cloud = cloud.uniform_down_sample(int(np.ceil(len(cloud.points) / MAX_CLOUD_POINTS)))
     if len(cloud.points) >= 3:
         cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=NORMAL_RADIUS, max_nn=NORMAL_MAX_NN))
         cloud.orient_normals_towards_camera_location(np.zeros(3))
