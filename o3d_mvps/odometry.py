@@ -279,9 +279,11 @@ def _fpfh(cloud: o3d.geometry.PointCloud, voxel: float):
     return down, feature
 
 
-def register_globally(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, candidates=(),
-                      step: str = "global registration") -> Attempt:
+def register_globally(source, target, candidates=(), step: str = "global registration") -> Attempt:
     """Registration of ``source`` onto ``target`` without a trusted start: FPFH + RANSAC, then coloured ICP.
+
+    ``source``, ``target``: clouds or :func:`cloud_pyramid` tuples, as for :func:`register`; the
+    features are computed on the finest cloud.
 
     The RANSAC estimate (seeded with ``o3d.utility.random.seed(0)``, so a capture always
     registers the same way) and the ``candidates`` (4, 4) (e.g. ICP results refused only for
