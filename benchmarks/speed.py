@@ -13,6 +13,7 @@ imports and capture reading).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import resource
@@ -27,6 +28,7 @@ import numpy as np
 from o3d_mvps.fileio import json_text
 
 from .accuracy import QUICK_FRAMES, QUICK_OPTIONS, QUICK_SIZE, parse_size
+from .registration_worker import peak_rss_mb  # noqa: F401  (the workers' peak memory, re-exported)
 
 #: (colour size, scale factor, distance of the bunny in m): the 640 x 480 benchmark size, the
 #: D415's 1280 x 720 colour with 640 x 360 depth, and a 2-megapixel frame (a phone's or DSLR's,
@@ -41,23 +43,17 @@ def add_arguments(parser) -> None:
                              "or 1708x1136:4:0.25")
     parser.add_argument("--frames", type=int, default=20)
     parser.add_argument("--mesh", default="bunny")
-
-
-def peak_rss_mb() -> float:
-    """This process's peak resident set size in MiB: ``VmHWM`` of ``/proc/self/status``, the
-    high-water mark of this program's own memory. (Linux's ``getrusage`` ``ru_maxrss`` also
-    counts the parent's size at the fork that started this process: a worker started by a
-    benchmark that had rendered a 2-megapixel capture reported the parent's gigabytes.) Falls
-    back to ``ru_maxrss`` where /proc is missing (macOS: bytes there, not KiB)."""
-    try:
-        with open("/proc/self/status") as status:
-            for line in status:
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return peak / 2**20 if sys.platform == "darwin" else peak / 1024.0
+    parser.add_argument("--registration", action="store_true",
+                        help="time the frame registration only (registration.json), on each case's object orbit "
+                             "and on a room scene (a 360-degree ring under room light, automatic masks)")
+    parser.add_argument("--baseline", default=None, metavar="REV",
+                        help="with --registration: also run this git revision (e.g. aacda76) on the same captures, "
+                             "in the same run")
+    parser.add_argument("--memory-curve", nargs="+", type=int, default=None, metavar="FRAMES",
+                        help="peak memory of odometry + refine against frames (these counts) x colour pixels (the "
+                             "--cases sizes), one solver sweep per level: memory_curve.json and memory_curve.png")
+    parser.add_argument("--captures", default=None, metavar="DIR",
+                        help="with --registration: keep the rendered captures here and reuse them on the next run")
 
 
 def measure(capture_folder: str, options: dict) -> dict:
@@ -129,6 +125,10 @@ def parse_case(text: str) -> tuple[tuple[int, int], int, float]:
 
 def run(args) -> list[dict]:
     """Run every case one after the other; writes ``speed.json`` into ``args.out`` after each."""
+    if args.registration:
+        return run_registration(args)
+    if args.memory_curve:
+        return run_memory_curve(args)
     cases = [parse_case(c) for c in args.cases]
     frames, options = args.frames, {}
     if args.quick:
@@ -144,6 +144,145 @@ def run(args) -> list[dict]:
               f"peak {row['peak_mb']:.0f} MB", flush=True)
         (out / "speed.json").write_text(json_text(rows, "speed rows"))
     return rows
+
+
+def registration_captures(cases, frames: int, mesh: str, folder: Path,
+                          kinds=("orbit", "scene")) -> list[tuple[str, Path]]:
+    """(name, capture folder) of each case's LED orbit (the object ``distance`` m away) and room
+    scene (:func:`o3d_mvps.synthetic.render_ring` with surroundings; its ring needs about 20
+    frames to be registrable), rendered into ``folder`` unless already there."""
+    from o3d_mvps.capture import write_capture
+    from o3d_mvps.synthetic import render_capture, render_ring
+
+    out = []
+    for (w, h), sf, distance in cases:
+        for kind in kinds:
+            name = f"{kind}_{w}x{h}_sf{sf}" + (f"_{distance:g}m" if kind == "orbit" else "") + f"_{frames}"
+            target = folder / name
+            if not (target / "groundtruth" / "poses.npy").exists():
+                common = dict(frames=frames, scale_factor=sf, size=(w, h), seed=0, progress=False)
+                capture = render_capture(mesh, distance=distance, **common) if kind == "orbit" else \
+                    render_ring(mesh, surroundings=True, light="room", **common)[0]
+                write_capture(capture, target, overwrite=True)
+                del capture
+            out.append((name, target))
+    return out
+
+
+def register_capture(folder: Path, tree: Path) -> dict:
+    """Run :mod:`benchmarks.registration_worker` with the package of ``tree`` in a fresh process."""
+    worker = Path(__file__).resolve().parent / "registration_worker.py"
+    done = subprocess.run([sys.executable, str(worker), str(tree), str(folder)], capture_output=True, text=True,
+                          check=False, cwd=tree)
+    if done.returncode != 0:
+        raise RuntimeError(f"registration worker failed in {tree} ({done.returncode}):\n{done.stderr[-2000:]}")
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def run_registration(args) -> list[dict]:
+    """Registration A/B: every capture of :func:`registration_captures` registered by this tree and
+    (``--baseline``) by that revision, one after the other in the same run; ``registration.json``
+    rows {"capture", "version", "seconds", "cpu_seconds", "peak_mb", "frames", "dropped", "deg",
+    "mm", and for this tree "ratio_seconds" / "ratio_cpu" = baseline / this}."""
+    from .scaling import checkout
+
+    cases, frames, kinds = [parse_case(c) for c in args.cases], args.frames, ("orbit", "scene")
+    if args.quick:  # tests/test_odometry.py's capture
+        cases, frames, kinds = [((320, 240), 4, 0.6)], 8, ("orbit",)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    with contextlib.ExitStack() as stack:
+        folder = Path(args.captures) if args.captures else Path(stack.enter_context(tempfile.TemporaryDirectory()))
+        captures = registration_captures(cases, frames, args.mesh, folder, kinds)
+        trees = {"current": Path(__file__).resolve().parent.parent}
+        if args.baseline:
+            trees[args.baseline] = stack.enter_context(checkout(args.baseline))
+        for name, capture in captures:
+            measured = {version: register_capture(capture, tree) for version, tree in trees.items()}
+            for version, row in measured.items():
+                if version == "current" and args.baseline:
+                    base = measured[args.baseline]
+                    row["ratio_seconds"] = base["seconds"] / row["seconds"]
+                    row["ratio_cpu"] = base["cpu_seconds"] / row["cpu_seconds"]
+                rows.append({"capture": name, "version": version, **row})
+                print(f"registration {name} [{version}]: {row['seconds']:.2f} s ({row['cpu_seconds']:.2f} s CPU), "
+                      f"peak {row['peak_mb']:.0f} MB, max {max(row['deg'], default=0):.2f} deg", flush=True)
+            (out / "registration.json").write_text(json_text(rows, "registration rows"))
+    registration_plot(rows, out / "registration.png")
+    return rows
+
+
+def registration_plot(rows: list[dict], path: Path) -> None:
+    """Bars of each capture's registration CPU seconds per version (matplotlib, PNG), labelled
+    with the baseline / current ratio where the rows have one."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    captures = list(dict.fromkeys(r["capture"] for r in rows))
+    versions = list(dict.fromkeys(r["version"] for r in rows))
+    seconds = {(r["capture"], r["version"]): r["cpu_seconds"] for r in rows}
+    fig, ax = plt.subplots(figsize=(8, 4))
+    width = 0.8 / len(versions)
+    for k, version in enumerate(versions):
+        x = np.arange(len(captures)) + k * width
+        ax.bar(x, [seconds.get((c, version), np.nan) for c in captures], width, label=version)
+    for j, c in enumerate(captures):
+        ratio = next((r.get("ratio_cpu") for r in rows if r["capture"] == c and "ratio_cpu" in r), None)
+        if ratio:
+            top = max(seconds.get((c, v), 0) for v in versions)
+            ax.text(j + 0.4 - width / 2, top, f"x{ratio:.1f}", ha="center", va="bottom")
+    ax.set_xticks(np.arange(len(captures)) + 0.4 - width / 2, [c.replace("_", " ") for c in captures], fontsize=7)
+    ax.set_ylabel("registration, CPU seconds (20 frames)")
+    ax.set_title("Frame registration: this tree against the baseline, same run")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def run_memory_curve(args) -> list[dict]:
+    """Peak memory (and time) of odometry + refine for every ``--cases`` size x ``--memory-curve``
+    frame count, capped at one sweep per level (``max_iterations=1``, to keep the curve cheap: a
+    lower bound, as the resident size of a full run keeps growing over the finest level's sweeps,
+    docs/performance.md); rows as :func:`run_case`'s in ``memory_curve.json``, plotted by
+    :func:`memory_curve_plot`."""
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    warm_up([Path(__file__).resolve().parent.parent])
+    rows = []
+    for size, sf, distance in (parse_case(c) for c in args.cases):
+        for frames in args.memory_curve:
+            row = run_case(args.mesh, size, sf, frames, {"max_iterations": 1}, distance)
+            rows.append(row)
+            print(f"memory: {row['color']}, {frames} frames: peak {row['peak_mb']:.0f} MB, {row['seconds']:.1f} s",
+                  flush=True)
+            (out / "memory_curve.json").write_text(json_text(rows, "memory curve rows"))
+            memory_curve_plot(rows, out / "memory_curve.png")
+    return rows
+
+
+def memory_curve_plot(rows: list[dict], path: Path) -> None:
+    """Peak MB against frames, one line per colour size (matplotlib, PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for color in dict.fromkeys(r["color"] for r in rows):
+        mine = sorted((r["frames"], r["peak_mb"]) for r in rows if r["color"] == color)
+        ax.plot(*zip(*mine), marker="o", label=f"{color} colour")
+    ax.set_xlabel("frames")
+    ax.set_ylabel("peak resident memory (MB)")
+    ax.set_title("odometry + refine, one sweep per level")
+    ax.legend()
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
 
 
 def _worker(argv=None) -> int:

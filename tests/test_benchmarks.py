@@ -147,3 +147,20 @@ def test_no_hand_drawn_plots_in_benchmarks():
     folder = Path(__file__).resolve().parents[1] / "benchmarks"
     drawn = [p.name for p in folder.glob("*.py") if re.search(r"cv2\.(putText|line|rectangle)", p.read_text())]
     assert drawn == []
+
+
+def test_registration_benchmark_rows(tmp_path):
+    """``speed --registration --quick``: a row for the 8-frame 320 x 240 orbit with each frame's pose
+    error against the render's truth, the registration's time and peak memory."""
+    import json
+
+    from benchmarks.__main__ import main
+
+    main(["speed", "--registration", "--quick", "--out", str(tmp_path)])
+    rows = json.loads((tmp_path / "registration.json").read_text())
+    assert [r["capture"] for r in rows] == ["orbit_320x240_sf4_0.6m_8"]
+    orbit = rows[0]
+    assert orbit["version"] == "current" and orbit["dropped"] == [] and len(orbit["deg"]) == len(orbit["frames"]) - 1
+    assert max(orbit["deg"]) < 2.5 and max(orbit["mm"]) < 25, orbit  # test_odometry's bounds
+    assert all(r["seconds"] > 0 and r["peak_mb"] > 100 for r in rows)
+    assert (tmp_path / "registration.png").stat().st_size > 1000
