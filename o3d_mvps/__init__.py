@@ -48,8 +48,8 @@ _EXPORTS = {
 
 #: Submodules reachable as attributes (``o3d_mvps.synthetic``) without an import of their own.
 _SUBMODULES = {"baselines", "capture", "cli", "colour", "datasets", "errors", "export", "fileio", "integration",
-               "metrics", "model", "odometry", "realsense", "reconstruct", "refinement", "registration", "report", "solver",
-               "solving", "synthetic", "views", "viz"}
+               "metrics", "model", "odometry", "realsense", "reconstruct", "refinement", "depth_to_colour", "report", "solver",
+               "solving", "synthetic", "covisibility", "viz"}
 
 __all__ = list(_EXPORTS)
 

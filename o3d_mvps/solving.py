@@ -28,7 +28,7 @@ from .solver.driver import solve
 from .solver.options import RefineOptions
 from .solver.pose_trust import DEFAULT_POSE_TRUST
 from .solver.problem_input import SolverInput, write_problem
-from .views import MIN_OTHER_FRAMES, ViewSelection, frames_seeing_reference
+from .covisibility import MIN_OTHER_FRAMES, ViewSelection, frames_seeing_reference
 
 
 def refine(capture: Capture, options: RefineOptions | None = None, device="auto", initial_poses=None, *,
@@ -49,7 +49,7 @@ def refine(capture: Capture, options: RefineOptions | None = None, device="auto"
     says where it solved. save_problem: also write the solver's input to
     this .npz once the frames are registered (``python -m o3d_mvps.solver`` solves it; refuses an
     existing file unless ``overwrite``). Of more than three frames, those that see too little of
-    the reference's surface are left out (:func:`o3d_mvps.views.frames_seeing_reference`).
+    the reference's surface are left out (:func:`o3d_mvps.covisibility.frames_seeing_reference`).
     A static-camera capture (:func:`o3d_mvps.capture.camera_setting`: declared in capture.json or
     detected from the depth) is not registered: its poses are the identity (or ``initial_poses``),
     not refined, and every frame is used; ``info["camera"]`` says how it was decided.

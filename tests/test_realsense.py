@@ -22,7 +22,7 @@ from o3d_mvps.realsense import (
     record_capture,
     select_frames,
 )
-from o3d_mvps.registration import register_depth
+from o3d_mvps.depth_to_colour import register_depth
 
 CW, CH, DW, DH = 128, 72, 64, 36
 COLOR_K = np.array([[110.0, 0.0, 63.2], [0.0, 111.0, 36.1], [0.0, 0.0, 1.0]])

@@ -424,7 +424,7 @@ def test_frames_reach_the_workers_by_scatter_not_in_the_graph():
 
     from o3d_mvps.reconstruct.parallel import run_views
     from o3d_mvps.reconstruct.views import ViewJob
-    from o3d_mvps.views import ViewSelection
+    from o3d_mvps.covisibility import ViewSelection
 
     big = {"color": [np.zeros((1200, 1600, 3), np.float32)] * 2}  # 46 MB, as two 1600 x 1200 frames
     jobs = [ViewJob(k, [k], big, np.eye(4)[None], np.eye(4), ViewSelection([k], {}, {})) for k in range(2)]

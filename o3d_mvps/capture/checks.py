@@ -56,7 +56,7 @@ CENTRE_TOLERANCE = 0.2
 #: 2 px per 320 px of width: 0.52-0.92).
 BLACK, SATURATED, BLURRED = 0.01, 0.3, 0.15
 #: Frames uncalibrated photometric stereo needs: the reference and two more
-#: (:data:`o3d_mvps.views.MIN_OTHER_FRAMES`).
+#: (:data:`o3d_mvps.covisibility.MIN_OTHER_FRAMES`).
 MIN_FRAMES = 3
 #: Widest grid the image statistics are taken on (pixels).
 STATS_WIDTH = 640
@@ -133,7 +133,7 @@ def check_inputs(capture, given_poses=None, *, frames: list | None = None, frame
                    f"by up to {off:.3g} px ({np.round(capture.depth_K(), 2).tolist()} against "
                    f"{np.round(registered, 2).tolist()}): depth registered to the colour camera shares its "
                    "intrinsics; remove depth_intrinsic.json, or register the depth first "
-                   "(o3d_mvps.registration.register_depth)")
+                   "(o3d_mvps.depth_to_colour.register_depth)")
     median = check_depth_scale(capture, folder)
     report.add("depth scale", "ok", f"median depth {median:.3g} m")
     usable = check_frame_quality(capture, labels, report)
@@ -301,7 +301,7 @@ def alignment(capture, report: InputReport, shift: int = 3) -> None:
         report.add("colour/depth alignment", "warning",
                    f"the reference's colour edges match its depth edges best {best[0]:+d}, {best[1]:+d} depth "
                    f"pixels away (correlation {scores[best]:.2f}, {zero:.2f} in place): is depth registered to the "
-                   "colour camera? (o3d_mvps.registration.register_depth)")
+                   "colour camera? (o3d_mvps.depth_to_colour.register_depth)")
     else:
         report.add("colour/depth alignment", "ok", f"colour and depth edges line up (correlation {zero:.2f})")
 

@@ -15,7 +15,7 @@ from ..solver.device import DEVICE_HELP, resolve_device
 from ..solver.lighting import LIGHT_MODELS
 from ..solver.options import AUTO, RefineOptions
 from ..solving import refine
-from ..views import ViewSelection
+from ..covisibility import ViewSelection
 from .argtypes import frame_count_fits, metres_offset, positive_float, positive_int, unit_interval
 from .outputs import add_overwrite_argument, check_files, check_folder, frame_files, log_energy, print_summary
 

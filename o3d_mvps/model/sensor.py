@@ -47,7 +47,7 @@ def choose_scale_factor(colour_size: tuple[int, int], depth_size: tuple[int, int
         raise CaptureError(
             f"depth is {w}x{h} but colour is {W}x{H} (WxH): colour must be an integer multiple SF >= 1 of depth in "
             f"both directions (W = SF*w, H = SF*h; SF {sf} {'was asked for' if requested is not None else 'is the nearest'}). Colour and depth from different cameras "
-            "(or camera modes) must first be registered to the colour camera (o3d_mvps.registration.register_depth), "
+            "(or camera modes) must first be registered to the colour camera (o3d_mvps.depth_to_colour.register_depth), "
             "or crop or resample one of them"
         )
     return sf

@@ -9,7 +9,7 @@ Two ways to a :class:`~o3d_mvps.capture.Capture`:
   ``.db3`` files (the 2.59+ recorder, which refuses ``.bag`` names).
 
 Depth is read raw (z16 times the depth sensor's depth units) in the depth camera and
-registered to the colour camera with :func:`o3d_mvps.registration.register_depth` on the grid
+registered to the colour camera with :func:`o3d_mvps.depth_to_colour.register_depth` on the grid
 colour resolution / SF, never upsampled (``o3d.t.io.RSBagReader`` aligns at colour resolution and loses the native
 low-resolution depth; docs/capture-guide.md).
 

@@ -12,7 +12,7 @@ from ..capture.validation import check_light
 from ..colour import srgb_to_linear
 from ..errors import CaptureError, RecordingError
 from ..model.sensor import choose_scale_factor
-from ..registration import register_depth
+from ..depth_to_colour import register_depth
 from .streams import COLOR_BYTES, StreamInfo
 
 

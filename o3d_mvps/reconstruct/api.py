@@ -2,7 +2,7 @@
 
 Steps: poses (given, else the registration chain); ``references`` reference views with
 spread-out viewing directions; for each, the frames that see its surface
-(:func:`o3d_mvps.views.frames_seeing_reference`) and a refinement with the poses re-based onto
+(:func:`o3d_mvps.covisibility.frames_seeing_reference`) and a refinement with the poses re-based onto
 it, as Dask tasks (:mod:`.parallel`); the refined depths fused with per-pixel weights
 (:mod:`.fusion`); the mesh's largest piece kept, small holes closed (:mod:`.surface`), vertices
 coloured from the refined albedos (:mod:`.colour`) and one UV atlas texture baked from them
@@ -24,7 +24,7 @@ from ..errors import MVPSError
 from ..run_report import peak_memory_mb, workers_peak_memory_mb
 from ..solver.device import check_device_name
 from ..solver.options import RefineOptions
-from ..views import MIN_COVISIBILITY
+from ..covisibility import MIN_COVISIBILITY
 from .fusion import GRAZING_EXPONENT, TSDFVolume, pixel_weights
 from .references import FULL_TURN_DEG, azimuth_span_deg, choose_references, up_direction
 from .solid import closed_solid

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..views import ViewSelection, frames_seeing_reference
+from ..covisibility import ViewSelection, frames_seeing_reference
 
 DEPTH_SOURCES = ("refined", "raw")
 

@@ -7,7 +7,7 @@ from scipy.ndimage import binary_erosion, maximum_filter
 
 from o3d_mvps.capture import default_depth_intrinsic
 from o3d_mvps.model.camera import backproject, project, transform
-from o3d_mvps.registration import register_depth
+from o3d_mvps.depth_to_colour import register_depth
 
 # Colour 320 x 240 registered at SF 2 -> target grid 160 x 120; the depth camera is a
 # 160 x 120 camera with slightly different intrinsics, 15 mm to the side, slightly rotated.

@@ -1,4 +1,4 @@
-"""Covisibility of a reference's surface and the frames chosen to refine it (o3d_mvps.views)."""
+"""Covisibility of a reference's surface and the frames chosen to refine it (o3d_mvps.covisibility)."""
 
 import numpy as np
 import pytest
@@ -9,7 +9,7 @@ from o3d_mvps.capture.masks import auto_masks
 from o3d_mvps.synthetic import render_ring
 from o3d_mvps.errors import CaptureError
 from o3d_mvps.model import se3
-from o3d_mvps.views import ViewSelection, covisibility, frames_seeing_reference, reference_surface, select_views
+from o3d_mvps.covisibility import ViewSelection, covisibility, frames_seeing_reference, reference_surface, select_views
 
 K = np.array([[100.0, 0, 31.5], [0, 100.0, 23.5], [0, 0, 1]])
 SIZE = (48, 64)
