@@ -46,7 +46,9 @@ SAID_FD = "O3D_MVPS_SAID_FD"
 def _say_interrupted(prog: str | None = None) -> None:
     """Print ``PROG: interrupted`` on stderr, once per process (and tell a supervisor)."""
     if _said.acquire(blocking=False):
-        print(f"{prog or _prog[0]}: interrupted", file=sys.stderr, flush=True)
+        # a progress bar mid-line: the line starts on a line of its own
+        bars = "tqdm" in sys.modules and bool(getattr(sys.modules["tqdm"].tqdm, "_instances", None))
+        print(f"{chr(10) if bars else ''}{prog or _prog[0]}: interrupted", file=sys.stderr, flush=True)
         if os.environ.get(SAID_FD):
             try:
                 os.write(int(os.environ[SAID_FD]), b"1")
