@@ -29,7 +29,7 @@ from o3d_mvps.reconstruct import ReconstructOptions
 
 EXAMPLES = """examples:
   python pipelines/reconstruct_object.py ring/ object/
-  python pipelines/reconstruct_object.py ring/ object/ --references 12 --print-mm 80 --workers 4
+  python pipelines/reconstruct_object.py ring/ object/ --references 12 --print 80 --workers 4
 """
 
 
@@ -43,7 +43,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="reference views refined and fused (default: %(default)s)")
     parser.add_argument("--depth", choices=("refined", "raw"), default="refined",
                         help="fuse refined depth, or the sensor's (for comparison)")
-    parser.add_argument("--print-mm", type=positive_float, default=None, metavar="MM",
+    parser.add_argument("--print", dest="print_mm", type=positive_float, default=None, metavar="MM",
                         help="also write print.stl, a closed solid MM millimetres across")
     parser.add_argument("--workers", type=positive_int, default=None, help="local Dask workers (default: CPU count)")
     add_overwrite_argument(parser, "output folder")

@@ -73,7 +73,7 @@ def test_reconstruct_object(tmp_path):
     write_capture(ring, tmp_path / "ring")
     np.save(tmp_path / "ring" / "poses.npy", ring.groundtruth.poses)
     done = run_script("reconstruct_object.py", tmp_path / "ring", tmp_path / "object", "--references", "3",
-                      "--depth", "raw", "--print-mm", "50", "--quiet")
+                      "--depth", "raw", "--print", "50", "--quiet")
     assert done.returncode == 0, done.stderr
     assert sorted(p.name for p in (tmp_path / "object").iterdir()) == ["mesh.mtl", "mesh.obj", "mesh_albedo.png",
                                                                         "print.stl"]
