@@ -157,7 +157,7 @@ def test_given_poses_are_not_made_worse(rendered, perturbed):
     assert [row["frame"] for row in rows] == [1, 2, 3]
     assert all(row["note"].startswith("given pose") for row in rows)
     for row, i in zip(rows, range(1, 4)):
-        degrees, metres = se3.pose_error(refined[i], given[i])
+        degrees, metres = se3.camera_movement(given[i], refined[i])
         assert row["moved_mm"] == pytest.approx(1e3 * metres, abs=1e-3)
         assert row["moved_deg"] == pytest.approx(degrees, abs=1e-4)
 
