@@ -11,8 +11,8 @@ import dataclasses
 
 import numpy as np
 import pytest
-from helpers import SIZE, K, kicked_poses, make_problem, relief_capture
-from test_joint import KICKS, LIGHTS, POSES, render, surface_depth, true_estimate
+from helpers import SIZE, K, kicked_poses, relief_capture
+from test_joint import KICKS, POSES, level, problem, surface_depth, true_estimate  # noqa: F401 (fixtures)
 
 from o3d_mvps import RefineOptions, refine
 from o3d_mvps.metrics import reprojection_error_px
@@ -20,7 +20,6 @@ from o3d_mvps.model import se3
 from o3d_mvps.model.camera import pixel_grid
 from o3d_mvps.solver.pose import keep_agreeing_poses, refine_pose
 from o3d_mvps.solver.pose_trust import PoseAnchors, PoseLog
-from o3d_mvps.solver.problem import LevelProblem
 from o3d_mvps.solving import problem_from_capture
 from o3d_mvps.synthetic import render_capture
 
@@ -35,17 +34,6 @@ def render_depth(pose):
         X = centre + s[..., None] * rays
         s = (surface_depth(X[..., 0] / X[..., 2], X[..., 1] / X[..., 2]) - centre[2]) / rays[..., 2]
     return s  # the rays have unit z in the camera: the ray parameter is the depth
-
-
-@pytest.fixture(scope="module")
-def level():
-    images = [render(T, light) for T, light in zip(POSES, LIGHTS)]
-    return dataclasses.replace(make_problem(3)[0].level, images=images)
-
-
-@pytest.fixture
-def problem(level):
-    return LevelProblem(level, 1.0, 0.04)
 
 
 def kicked(problem):
