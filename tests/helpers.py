@@ -9,6 +9,8 @@ not share a renderer's conventions (or bugs) with the code under test.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+from pathlib import Path
 
 import numpy as np
 import open3d as o3d
@@ -306,3 +308,9 @@ def quilt_scene(frames: int = 12, size=(320, 240), scale_factor: int = 2, light_
     depths = [np.round(sensor * 1000 + rng.normal(0, depth_noise_mm, sensor.shape)) / 1000 for _ in range(frames)]
     return {"colors": np.array(colors, np.float32), "depths": np.array(depths, np.float32), "K": K,
             "depth_K": default_depth_intrinsic(K, scale_factor), "depth": s, "normals": normals, "albedo": albedo}
+
+
+def snapshot(*paths) -> dict:
+    """{file: sha256} of every file under the paths (a file or a folder): what a run must not change."""
+    files = [f for p in paths for f in ([Path(p)] if Path(p).is_file() else sorted(Path(p).rglob("*"))) if f.is_file()]
+    return {str(f): hashlib.sha256(f.read_bytes()).hexdigest() for f in files}

@@ -4,7 +4,6 @@ leave every input file unchanged, and never give a confident wrong result. And t
 a correct capture with correct poses passes every check (no false alarm), LED- and room-lit.
 """
 
-import hashlib
 import json
 import re
 import shutil
@@ -26,7 +25,7 @@ from o3d_mvps.solver.options import RefineOptions
 from o3d_mvps.solver.problem_input import SolverInput, read_problem, write_problem
 from o3d_mvps.synthetic import render_capture
 
-from helpers import world_to_camera, write_open3d
+from helpers import snapshot, world_to_camera, write_open3d
 
 TINY = ["--quiet", "--levels", "1", "--iterations", "1"]
 N = 6
@@ -52,12 +51,6 @@ def led_folder(led, tmp_path_factory):
 def folder(led_folder, tmp_path):
     """A fresh copy of the LED capture folder, for a test to spoil."""
     return Path(shutil.copytree(led_folder, tmp_path / "capture"))
-
-
-def snapshot(*paths) -> dict:
-    """{file: sha256} of every file under the paths (what must not change)."""
-    files = [f for p in paths for f in ([p] if Path(p).is_file() else sorted(Path(p).rglob("*"))) if f.is_file()]
-    return {str(f): hashlib.sha256(f.read_bytes()).hexdigest() for f in files}
 
 
 def refuse(capsys, args, *expected, inputs=()):

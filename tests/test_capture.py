@@ -9,6 +9,8 @@ import numpy as np
 import open3d as o3d
 import pytest
 
+from helpers import snapshot
+
 from o3d_mvps.capture import writing as capture_writing
 from o3d_mvps import fileio
 from o3d_mvps.capture import (
@@ -72,10 +74,6 @@ def folder(tmp_path) -> Path:
     path = tmp_path / "capture"
     write_capture(make_capture(), path)
     return path
-
-
-def snapshot(path: Path) -> dict:
-    return {p.relative_to(path): p.read_bytes() for p in sorted(path.rglob("*")) if p.is_file()}
 
 
 def siblings(path: Path) -> list:

@@ -4,7 +4,6 @@ SIGTERM at any moment (exit 130, one line, within a second), and the report of e
 
 import collections
 import errno
-import hashlib
 import json
 import os
 import signal
@@ -18,6 +17,8 @@ import numpy as np
 import pytest
 
 import o3d_mvps.fileio as fileio
+from helpers import snapshot
+
 from o3d_mvps import write_capture
 from o3d_mvps.cli import main
 from o3d_mvps.cli import refine as refine_cli
@@ -38,12 +39,6 @@ def capture_dir(tmp_path_factory):
     return path
 
 
-def tree(path: Path) -> dict:
-    """{relative path: sha1} of every file under path (what a run must not change)."""
-    return {str(p.relative_to(path)): hashlib.sha1(p.read_bytes()).hexdigest()
-            for p in sorted(path.rglob("*")) if p.is_file()}
-
-
 def no_work(*args, **kwargs):
     raise AssertionError("the command started its work before checking its output")
 
@@ -60,10 +55,10 @@ def refused(argv, capsys, monkeypatch) -> str:
 # ---------------------------------------------------------------------------------------------
 def test_an_output_whose_parent_is_a_file(capture_dir, tmp_path, capsys, monkeypatch):
     (tmp_path / "notes.txt").write_text("mine")
-    before = tree(tmp_path)
+    before = snapshot(tmp_path)
     err = refused(["refine", capture_dir, tmp_path / "notes.txt" / "out"], capsys, monkeypatch)
     assert f"{tmp_path / 'notes.txt'} is a file, not a folder" in err and "choose an output path" in err
-    assert tree(tmp_path) == before
+    assert snapshot(tmp_path) == before
 
 
 def test_a_read_only_output_folder(capture_dir, tmp_path, capsys, monkeypatch):
@@ -90,12 +85,12 @@ def test_a_read_only_output_folder(capture_dir, tmp_path, capsys, monkeypatch):
 @pytest.mark.parametrize("inside", [False, True])
 def test_an_output_in_the_capture_is_refused(capture_dir, capsys, monkeypatch, inside):
     """`--overwrite` with OUT = the capture wrote poses.npy into it, which its next run read."""
-    before = tree(capture_dir)
+    before = snapshot(capture_dir)
     out = capture_dir / "refined" if inside else capture_dir
     err = refused(["refine", capture_dir, out, "--overwrite"], capsys, monkeypatch)
     assert f"{out} {'is inside' if inside else 'is'} the input {capture_dir}" in err
     assert "choose an output path outside it" in err
-    assert tree(capture_dir) == before
+    assert snapshot(capture_dir) == before
 
 
 def test_a_solution_path_that_is_a_folder(tmp_path, capsys):
