@@ -15,14 +15,14 @@ from pathlib import Path
 from _common import run_main, say
 
 from o3d_mvps import read_capture, refine
-from o3d_mvps.cli.argtypes import positive_float, positive_int
+from o3d_mvps.cli.argtypes import deprecated_alias, positive_float, positive_int
 from o3d_mvps.cli.outputs import add_overwrite_argument, check_files, check_folder
 from o3d_mvps.cli.refine import add_solver_arguments, log_energy, options_from_args
-from o3d_mvps.export import PIECES, printable_solid, write_stl
+from o3d_mvps.export import DEFAULT_SIZE_MM, PIECES, printable_solid, write_stl
 
 EXAMPLES = """examples:
   python pipelines/print_scan.py capture/ scan.stl
-  python pipelines/print_scan.py capture/ scan.stl --size-mm 80 --base-mm 3 --pieces all --save-refined refined/
+  python pipelines/print_scan.py capture/ scan.stl --print 80 --base-mm 3 --pieces all --save-refined refined/
 """
 
 
@@ -39,8 +39,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("capture", type=Path, help="capture folder (color/, depth/, intrinsic.json, ...)")
     parser.add_argument("out", type=_stl_path, help="output .stl file")
     solid = parser.add_argument_group("print-ready solid")
-    solid.add_argument("--size-mm", type=positive_float, default=120.0, metavar="MM",
-                       help="largest bounding-box extent of the solid (default: %(default)s)")
+    solid.add_argument("--print", dest="size_mm", type=positive_float, default=DEFAULT_SIZE_MM, metavar="MM",
+                       help="largest bounding-box extent of the solid in millimetres, as o3d-mvps export/reconstruct "
+                            "--print MM (default: %(default)s)")
+    solid.add_argument("--size-mm", dest="size_mm", type=positive_float, metavar="MM",
+                       action=deprecated_alias("--print MM"), help="deprecated spelling of --print MM")
     solid.add_argument("--base-mm", type=positive_float, default=4.0, metavar="MM",
                        help="back plate thickness behind the deepest point (default: %(default)s)")
     solid.add_argument("--pieces", choices=PIECES, default="largest",

@@ -24,8 +24,11 @@ from o3d_mvps.fileio import atomic_folder
 
 EXAMPLES = """examples:
   python pipelines/record_and_refine.py out/scan
-  python pipelines/record_and_refine.py out/scan --frames 20 --interval 1.5 --color 1280x720 --depth 640x360
+  python pipelines/record_and_refine.py out/scan --record-frames 20 --interval 1.5 --color 1280x720 --depth 640x360
   python pipelines/record_and_refine.py out/scan --on-key      # Enter keeps a frame, q + Enter stops
+
+--record-frames N records N frames; --frames N (a solver option, as in o3d-mvps refine) then
+refines with the first N of them.
 """
 
 

@@ -184,3 +184,65 @@ def test_render_makes_ring_captures_for_reconstruct(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["render", "--help"])
     assert "o3d-mvps render bunny captures/ring --trajectory ring" in capsys.readouterr().out
+
+
+def bump_refinement_folder(path: Path) -> Path:
+    """A saved refinement of a 40x30 Gaussian bump (cheap: no solver run)."""
+    from o3d_mvps import Refinement
+
+    K = np.array([[50.0, 0, 20], [0, 50.0, 15], [0, 0, 1]])
+    v, u = np.mgrid[0:30, 0:40].astype(float)
+    depth = 0.6 - 0.05 * np.exp(-((u - 20) ** 2 + (v - 15) ** 2) / 60.0)
+    Refinement.from_arrays(depth, np.ones((30, 40), bool), K, albedo=np.full((30, 40, 3), 0.5)).save(path)
+    return path
+
+
+def test_export_print_takes_the_size_as_reconstruct_does_and_size_mm_still_works_with_a_warning(tmp_path, capsys):
+    import trimesh
+
+    folder = bump_refinement_folder(tmp_path / "refined")
+    extent = lambda name: trimesh.load(tmp_path / name).extents.max()  # noqa: E731
+
+    assert main(["export", str(folder), str(tmp_path / "a.stl"), "--print", "50"]) == 0
+    assert extent("a.stl") == pytest.approx(50.0, rel=1e-6)
+    assert main(["export", str(folder), str(tmp_path / "b.stl")]) == 0  # .stl alone: the default size
+    assert extent("b.stl") == pytest.approx(120.0, rel=1e-6)
+    assert main(["export", str(folder), str(tmp_path / "c.ply"), "--print", "40"]) == 0  # a solid as .ply too
+    assert trimesh.load(tmp_path / "c.ply").is_volume and extent("c.ply") == pytest.approx(40.0, rel=1e-6)
+    assert main(["export", str(folder), str(tmp_path / "d.ply")]) == 0  # no --print: the open relief
+    assert not trimesh.load(tmp_path / "d.ply").is_volume
+    capsys.readouterr()
+
+    assert main(["export", str(folder), str(tmp_path / "e.stl"), "--size-mm", "70"]) == 0  # the old spelling
+    assert "--size-mm is deprecated; use --print MM (e.g. --print 70.0)" in capsys.readouterr().err
+    assert extent("e.stl") == pytest.approx(70.0, rel=1e-6)
+    assert main(["export", str(folder), str(tmp_path / "f.stl"), "--print", "50", "--size-mm", "70"]) == 1
+    err = capsys.readouterr().err
+    assert "--print 50 and --size-mm 70 disagree" in err and not (tmp_path / "f.stl").exists()
+
+
+@pytest.mark.parametrize("command, meaning", [("render", "number of frames to render"),
+                                              ("demo", "number of frames to render"),
+                                              ("record", "number of frames to record"),
+                                              ("convert", "number of frames to keep"),
+                                              ("refine", "number of frames to use: the first N"),
+                                              ("reconstruct", "number of frames to use: the first N")])
+def test_frames_is_a_number_of_frames_everywhere_and_the_help_says_which(command, meaning, capsys):
+    text = " ".join(help_text(command, capsys).split())
+    assert f"--frames N {meaning}" in text, text
+
+
+def test_pipelines_use_the_same_vocabulary(capsys):
+    sys.path.insert(0, str(REPO / "pipelines"))
+    try:
+        import print_scan
+        import record_and_refine
+    finally:
+        sys.path.remove(str(REPO / "pipelines"))
+    parser = print_scan.build_parser()
+    assert parser.parse_args(["cap", "s.stl", "--print", "80"]).size_mm == 80.0
+    assert parser.parse_args(["cap", "s.stl"]).size_mm == 120.0
+    assert parser.parse_args(["cap", "s.stl", "--size-mm", "60"]).size_mm == 60.0
+    assert "print_scan.py: warning: --size-mm is deprecated; use --print MM" in capsys.readouterr().err
+    args = record_and_refine.build_parser().parse_args(["out", "--record-frames", "30", "--frames", "10"])
+    assert (args.record_frames, args.frames) == (30, 10)  # recorded, then the first 10 refined

@@ -483,7 +483,7 @@ def test_cli_export(tmp_path, monkeypatch, capsys):
     assert "wrote" in capsys.readouterr().out
     assert len(o3d.t.io.read_triangle_mesh(str(tmp_path / "scan.glb")).triangle.indices) > 0
 
-    assert main(["export", str(folder), str(tmp_path / "print.stl"), "--size-mm", "50", "--base-mm", "2"]) == 0
+    assert main(["export", str(folder), str(tmp_path / "print.stl"), "--print", "50", "--base-mm", "2"]) == 0
     tm = trimesh.load(str(tmp_path / "print.stl"))
     assert tm.is_volume and abs(tm.extents.max() - 50.0) < 1e-4
 

@@ -53,7 +53,7 @@ def test_print_scan(capture_dir, tmp_path):
     import open3d as o3d
 
     out = tmp_path / "scan.stl"
-    result = run_script("print_scan.py", capture_dir, out, "--size-mm", "60", *TINY_SOLVER)
+    result = run_script("print_scan.py", capture_dir, out, "--print", "60", *TINY_SOLVER)
     assert result.returncode == 0, result.stderr
     mesh = o3d.io.read_triangle_mesh(str(out))
     assert len(mesh.triangles) > 100

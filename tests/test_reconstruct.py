@@ -175,7 +175,7 @@ def test_an_arc_warns_that_the_back_is_missing_and_prints_flat(tmp_path, capsys)
     assert main(["export", str(tmp_path / "out"), str(tmp_path / "small.ply"), "--max-triangles", "400"]) == 0
     small = trimesh.load(tmp_path / "small.ply")
     assert 300 <= len(small.faces) <= 400 and small.visual.vertex_colors.shape[0] == len(small.vertices)
-    assert main(["export", str(tmp_path / "out"), str(tmp_path / "p.stl"), "--size-mm", "80"]) == 0
+    assert main(["export", str(tmp_path / "out"), str(tmp_path / "p.stl"), "--print", "80"]) == 0
     rescaled = trimesh.load(tmp_path / "p.stl")
     assert rescaled.is_volume and rescaled.extents.max() == pytest.approx(80.0, rel=1e-5)
     assert np.allclose(rescaled.extents / rescaled.extents.max(), solid.extents / solid.extents.max(), atol=1e-5)

@@ -98,3 +98,18 @@ def frame_count_fits(flag: str, count: int | None, available: int, what: str) ->
     if count is not None and count > available:
         raise ValueError(f"{flag} {count}: {what} has {available} frames; pass {flag} 1..{available} "
                          "or leave it out to use them all")
+
+
+def deprecated_alias(new_flag: str):
+    """An argparse action for an old option spelling: it stores its value where ``new_flag`` does
+    (pass the same ``dest``) and prints ``PROG: warning: OLD is deprecated; use NEW`` to stderr."""
+
+    class DeprecatedAlias(argparse.Action):
+        def __call__(self, parser, namespace, values, option_string=None):
+            import sys
+
+            print(f"{parser.prog}: warning: {option_string} is deprecated; use {new_flag} "
+                  f"(e.g. {new_flag.split()[0]} {values})", file=sys.stderr)
+            setattr(namespace, self.dest, values)
+
+    return DeprecatedAlias

@@ -40,7 +40,8 @@ def register(subparsers) -> None:
     p.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
     add_overwrite_argument(p, "demo folder")
     p.add_argument("--mesh", default="bunny", choices=sorted(MESHES), help="shipped mesh (default bunny)")
-    p.add_argument("--frames", type=positive_int, default=20, help="frames to render (default 20)")
+    p.add_argument("--frames", type=positive_int, default=20, metavar="N",
+                   help="number of frames to render, all used (default 20)")
     p.add_argument("--scale-factor", type=positive_int, default=4, help="depth super-resolution factor (default 4)")
     p.add_argument("--size", type=image_size, default=(640, 480), metavar="WxH", help="colour resolution (default 640x480)")
     p.add_argument("--seed", type=nonnegative_int, default=0,

@@ -6,27 +6,29 @@ import argparse
 from pathlib import Path
 
 from ..errors import ExportError
-from ..export import DEFAULT_MAX_DEPTH_JUMP, MESH_SUFFIXES
-from .argtypes import positive_float, positive_int
+from ..export import DEFAULT_MAX_DEPTH_JUMP, DEFAULT_SIZE_MM, MESH_SUFFIXES
+from .argtypes import deprecated_alias, positive_float, positive_int
 from .outputs import add_overwrite_argument, check_files
 
 DESCRIPTION = """\
 Turn a refinement (a folder written by Refinement.save / `o3d-mvps refine`) into a mesh, or
 convert the whole-object mesh of an `o3d-mvps reconstruct` folder (its mesh.ply, with vertex
-colours; --max-triangles simplifies it; .stl or --print rescale its print.stl, from reconstruct
---print, to --size-mm).
+colours; --max-triangles simplifies it; .stl or --print MM rescale its print.stl, from reconstruct
+--print MM, to MM millimetres).
 
   .obj  textured mesh: OUT.obj + OUT.mtl + OUT_albedo.png (albedo texture, sRGB)
   .glb  textured mesh, texture embedded
   .ply  mesh with vertex colours and normals
-  .stl  print-ready watertight solid in millimetres (implies --print)
+  .stl  print-ready watertight solid in millimetres (implies --print, 120 mm unless --print MM)
 
-With --print the relief is closed into a solid (walls down to a flat back plate) scaled so its
-largest extent is --size-mm; it can be written as .stl, .obj, .glb or .ply.
+With --print MM the relief is closed into a solid (walls down to a flat back plate) scaled so its
+largest extent is MM millimetres, as with `o3d-mvps reconstruct --print MM`; it can be written as
+.stl, .obj, .glb or .ply. (--size-mm MM is the old spelling of --print MM: it still works, with a
+warning.)
 
 examples:
   o3d-mvps export out/refined scan.obj --preview scan.png
-  o3d-mvps export out/refined scan.stl --size-mm 100 --base-mm 3 --pieces all
+  o3d-mvps export out/refined scan.stl --print 100 --base-mm 3 --pieces all
   o3d-mvps export out/object object_small.glb --max-triangles 50000   # a reconstruct folder
 """
 
@@ -62,10 +64,13 @@ def register(subparsers) -> None:
                         help="folder written by o3d-mvps refine (Refinement.save) or o3d-mvps reconstruct")
     parser.add_argument("out", type=_mesh_path, help=f"output mesh: {', '.join(MESH_SUFFIXES)}")
     solid = parser.add_argument_group("print-ready solid")
-    solid.add_argument("--print", dest="print_solid", action="store_true",
-                       help="close the relief into a watertight solid in millimetres (implied by .stl)")
-    solid.add_argument("--size-mm", type=positive_float, default=120.0, metavar="MM",
-                       help="largest bounding-box extent of the solid (default: %(default)s)")
+    solid.add_argument("--print", dest="print_mm", type=positive_float, nargs="?", const=DEFAULT_SIZE_MM,
+                       default=None, metavar="MM",
+                       help="close the relief into a watertight solid MM millimetres across (its largest "
+                            f"bounding-box extent), as reconstruct --print MM; implied by .stl, where MM "
+                            f"defaults to {DEFAULT_SIZE_MM:g}")
+    solid.add_argument("--size-mm", dest="size_mm_alias", type=positive_float, default=None, metavar="MM",
+                       action=deprecated_alias("--print MM"), help="deprecated spelling of --print MM")
     solid.add_argument("--base-mm", type=positive_float, default=4.0, metavar="MM",
                        help="back plate thickness behind the deepest point (default: %(default)s)")
     solid.add_argument("--pieces", choices=["largest", "all"], default="largest",
@@ -85,7 +90,9 @@ def run(args) -> int:
     from ..refinement import read_refinement
 
     out: Path = args.out
-    make_solid = args.print_solid or out.suffix.lower() == ".stl"
+    args.size_mm = _print_size(args)
+    make_solid = args.size_mm is not None or out.suffix.lower() == ".stl"
+    args.size_mm = DEFAULT_SIZE_MM if args.size_mm is None else args.size_mm
     targets = [out]  # checked before the (slow) meshing; the writers check again
     if out.suffix.lower() == ".obj" and not make_solid:
         targets += [out.with_suffix(".mtl"), out.with_name(out.stem + "_albedo.png")]
@@ -120,9 +127,18 @@ def run(args) -> int:
     return 0
 
 
+def _print_size(args) -> float | None:
+    """The solid's size in mm from --print MM (or its old spelling --size-mm MM); None without either."""
+    size, alias = args.print_mm, args.size_mm_alias
+    if alias is not None and size not in (None, DEFAULT_SIZE_MM, alias):
+        raise ExportError(f"--print {size:g} and --size-mm {alias:g} disagree; --size-mm is the old spelling of "
+                          "--print MM: pass only --print MM")
+    return alias if alias is not None else size
+
+
 def _reconstruction_mesh(args, make_solid: bool):
     """The mesh of a reconstruct folder, simplified to --max-triangles; for a print solid, the folder's
-    print.stl (from reconstruct --print) rescaled to --size-mm, else the mesh itself when it is closed."""
+    print.stl (from reconstruct --print MM) rescaled to --print MM, else the mesh itself when it is closed."""
     import open3d as o3d
 
     from ..export import mesh_arrays, simplify_mesh
@@ -147,5 +163,5 @@ def _reconstruction_mesh(args, make_solid: bool):
         raise ExportError(f"the mesh in {args.refined} is not closed (the object's underside is never seen{seen}), "
                           f"so it is no solid ({err}). Make the print solid with the reconstruction, which closes it "
                           f"from the views' depths: 'o3d-mvps reconstruct CAPTURE {args.refined} --overwrite --print "
-                          f"{args.size_mm:g}'; then 'o3d-mvps export {args.refined} OUT.stl --size-mm MM' rescales "
+                          f"{args.size_mm:g}'; then 'o3d-mvps export {args.refined} OUT.stl --print MM' rescales "
                           "its print.stl") from None

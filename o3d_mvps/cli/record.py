@@ -35,7 +35,7 @@ def add_recording_arguments(group, frames_flag: str = "--frames") -> None:
     ``frames_flag`` names the frame count (dest ``record_frames``) where ``--frames`` is taken.
     """
     group.add_argument(frames_flag, dest="record_frames", type=positive_int, default=20, metavar="N",
-                       help="frames to record (default 20)")
+                       help="number of frames to record (default 20)")
     group.add_argument("--color", type=image_size, default=(1280, 720), metavar="WxH",
                        help="colour size (default 1280x720)")
     group.add_argument("--depth", type=image_size, default=(640, 360), metavar="WxH",
@@ -77,7 +77,8 @@ def register(subparsers) -> None:
     )
     conv.add_argument("recording", metavar="RECORDING", type=Path, help=".bag or .db3 recording")
     conv.add_argument("out", metavar="OUT", type=Path, help="capture folder to write")
-    conv.add_argument("--frames", type=positive_int, default=20, help="frames to keep (default 20)")
+    conv.add_argument("--frames", type=positive_int, default=20, metavar="N",
+                      help="number of frames to keep from the recording (default 20)")
     conv.add_argument("--stride", type=positive_int, metavar="K", help="consider every K-th frame (default automatic)")
     conv.add_argument(
         "--scale-factor", type=positive_int, metavar="SF", help="depth grid = colour / SF (default: from the sizes)"

@@ -55,7 +55,8 @@ def add_solver_arguments(parser: argparse.ArgumentParser) -> None:
     """Options shared by every subcommand that runs the solver."""
     d = RefineOptions()
     g = parser.add_argument_group("solver")
-    g.add_argument("--frames", type=positive_int, default=None, help="use the first N frames (default: all)")
+    g.add_argument("--frames", type=positive_int, default=None, metavar="N",
+                   help="number of frames to use: the first N of the capture (default: all)")
     g.add_argument("--tau", type=positive_float, default=d.tau,
                    help=f"normalised depth-prior weight (default {d.tau:g})")
     g.add_argument("--lambda", dest="cauchy_lambda", type=_cauchy_lambda, default=None, metavar="LAMBDA|auto",

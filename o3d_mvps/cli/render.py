@@ -49,7 +49,7 @@ def register(subparsers) -> None:
     p.add_argument("mesh", metavar="MESH", help="'bunny', 'armadillo' or a mesh file (.ply, .obj, .stl, ...)")
     p.add_argument("out", metavar="OUT", type=Path, help="capture folder to write")
     p.add_argument("--frames", type=positive_int, default=20,
-                   help="number of frames, the first is the reference (default 20)")
+                   metavar="N", help="number of frames to render; the first is the reference (default 20)")
     p.add_argument("--scale-factor", type=positive_int, default=4, metavar="SF",
                    help="depth grid = colour size / SF; must divide the size (default 4)")
     p.add_argument("--size", type=image_size, default=(640, 480), metavar="WxH", help="colour size (default 640x480)")

@@ -23,12 +23,13 @@ sRGB-encoded, ready for display; the albedo itself is linear RGB.
 """
 
 from .relief import DEFAULT_MAX_DEPTH_JUMP, refinement_to_mesh, simplify_mesh
-from .solid import PIECES, check_solid, printable_solid, solid_volume
+from .solid import DEFAULT_SIZE_MM, PIECES, check_solid, printable_solid, solid_volume
 from .topology import mesh_arrays
 from .writers import MESH_SUFFIXES, write_mesh, write_stl
 
 __all__ = [
     "DEFAULT_MAX_DEPTH_JUMP",
+    "DEFAULT_SIZE_MM",
     "MESH_SUFFIXES",
     "PIECES",
     "refinement_to_mesh",

@@ -13,9 +13,10 @@ from .relief import DEFAULT_MAX_DEPTH_JUMP, compact_vertices, drop_bowties, refi
 from .topology import contains, mesh_arrays, triangle_cross
 
 PIECES = ("largest", "all")
+DEFAULT_SIZE_MM = 120.0  # largest extent of a print solid when none is asked (export .stl, print_scan.py)
 
 
-def printable_solid(source, *, size_mm: float = 120.0, base_mm: float = 4.0, pieces: str = "largest",
+def printable_solid(source, *, size_mm: float = DEFAULT_SIZE_MM, base_mm: float = 4.0, pieces: str = "largest",
                     max_depth_jump: float | None = DEFAULT_MAX_DEPTH_JUMP,
                     max_triangles: int | None = None) -> o3d.t.geometry.TriangleMesh:
     """Close a scanned relief into a watertight solid for 3D printing, in millimetres.
