@@ -162,3 +162,28 @@ def test_show_mesh_is_the_viewer_or_a_static_image(refine_page, monkeypatch):
     image = show_mesh(mesh, size=(160, 120))
     pixels = np.asarray(Image.open(io.BytesIO(image.data)).convert("RGB"))
     assert pixels.shape == (120, 160, 3) and pixels.std() > 5.0
+
+
+def test_page_mesh_is_a_strided_grid_of_the_refined_depth_within_the_budget():
+    # A 200x150 bump, every pixel in the mask: 30k pixels, ~60k triangles meshed at full resolution.
+    # Budget 5000 -> stride ceil(sqrt(2 * 30000 / 5000)) = 4; each vertex is a full-resolution
+    # pixel (4u', 4v') back-projected (no quadric decimation moving it).
+    from o3d_mvps import Refinement
+    from o3d_mvps.report_page import page_mesh
+
+    K = np.array([[250.0, 0, 99.5], [0, 250.0, 74.5], [0, 0, 1]])
+    v, u = np.mgrid[0:150, 0:200].astype(float)
+    depth = 0.6 - 0.05 * np.exp(-((u - 100) ** 2 + (v - 75) ** 2) / 800.0)
+    refinement = Refinement.from_arrays(depth, np.ones((150, 200), bool), K, albedo=np.full((150, 200, 3), 0.5))
+    mesh, stride = page_mesh(refinement, max_triangles=5000)
+    assert stride == 4
+    positions = mesh.vertex.positions.numpy().astype(np.float64)
+    assert 0 < len(mesh.triangle.indices) <= 5000
+    pu = K[0, 0] * positions[:, 0] / positions[:, 2] + K[0, 2]
+    pv = K[1, 1] * positions[:, 1] / positions[:, 2] + K[1, 2]
+    assert np.allclose(pu / 4, np.round(pu / 4), atol=1e-3) and np.allclose(pv / 4, np.round(pv / 4), atol=1e-3)
+    iu, iv = np.round(pu).astype(int), np.round(pv).astype(int)
+    assert np.allclose(positions[:, 2], depth[iv, iu], atol=1e-6)  # float32 positions
+    assert page_mesh(refinement, max_triangles=10**6)[1] == 1  # within the budget: every pixel
+    text = report_page_html({"method": "ours"}, refinement=refinement)
+    assert "meshed from one pixel in 2 along each row and column" in text  # 30k pixels, 40k triangles at most
