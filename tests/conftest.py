@@ -36,3 +36,28 @@ import pytest  # noqa: E402
 @pytest.fixture
 def rng():
     return np.random.default_rng(0)
+
+
+@pytest.fixture(scope="session")
+def tiny_capture():
+    """The bunny rendered small: 3 frames, colour 80x60, depth 40x30 (SF 2), seed 1 (the capture of
+    the command-line tests). One object for the whole session: never modify it."""
+    from o3d_mvps.synthetic import render_capture
+
+    return render_capture("bunny", frames=3, scale_factor=2, size=(80, 60), seed=1, progress=False)
+
+
+@pytest.fixture(scope="session")
+def capture_dir(tiny_capture, tmp_path_factory):
+    """``tiny_capture`` as a capture folder, shared by every test file of the session: read it,
+    never write into it (a test that needs a changed capture copies it first). Checked at the end
+    of the session: a test that changed it fails the run, naming this fixture."""
+    from helpers import snapshot
+
+    from o3d_mvps import write_capture
+
+    path = tmp_path_factory.mktemp("shared") / "capture"
+    write_capture(tiny_capture, path)
+    before = snapshot(path)
+    yield path
+    assert snapshot(path) == before, f"a test wrote into the shared capture_dir {path}; copy it first"

@@ -15,22 +15,14 @@ import pytest
 import o3d_mvps.realsense
 import o3d_mvps.refinement
 import o3d_mvps.synthetic
-from o3d_mvps import read_refinement, write_capture
+from o3d_mvps import read_refinement
 from o3d_mvps.cli import SUBCOMMANDS, build_parser, main
 from o3d_mvps.cli import demo as demo_cli
 from o3d_mvps.cli import refine as refine_cli
 from o3d_mvps.cli import reconstruct as reconstruct_cli
-from o3d_mvps.synthetic import render_capture
 
 REPO = Path(__file__).resolve().parents[1]
 TINY_SOLVER = ["--levels", "2", "--iterations", "2"]
-
-
-@pytest.fixture(scope="module")
-def capture_dir(tmp_path_factory):
-    path = tmp_path_factory.mktemp("cli") / "capture"
-    write_capture(render_capture("bunny", frames=3, scale_factor=2, size=(80, 60), seed=1, progress=False), path)
-    return path
 
 
 def users_folder(path: Path) -> Path:

@@ -9,7 +9,6 @@ not skip without it: it fails and says how to install it.
 
 import io
 import json
-import shutil
 import time
 from pathlib import Path
 
@@ -20,7 +19,7 @@ from PIL import Image
 from o3d_mvps import write_capture
 from o3d_mvps.cli import main
 from o3d_mvps.report_page import REPORT_HTML, report_page_html
-from o3d_mvps.synthetic import render_capture, render_ring
+from o3d_mvps.synthetic import render_ring
 
 TINY_SOLVER = ["--levels", "2", "--iterations", "2"]
 CHROMIUM = "/usr/bin/chromium"
@@ -31,12 +30,10 @@ LOCAL_SCHEMES = ("file:", "data:", "blob:", "about:")
 
 
 @pytest.fixture(scope="module")
-def refine_page(tmp_path_factory):
+def refine_page(tmp_path_factory, capture_dir):
     root = tmp_path_factory.mktemp("page")
-    write_capture(render_capture("bunny", frames=3, scale_factor=2, size=(80, 60), seed=1, progress=False),
-                  root / "capture")
     t0 = time.perf_counter()
-    assert main(["--quiet", "refine", str(root / "capture"), str(root / "refined"), *TINY_SOLVER]) == 0
+    assert main(["--quiet", "refine", str(capture_dir), str(root / "refined"), *TINY_SOLVER]) == 0
     print(f"refine with its page: {time.perf_counter() - t0:.1f} s")
     return root / "refined" / REPORT_HTML
 

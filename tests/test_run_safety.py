@@ -32,13 +32,6 @@ REPO = Path(__file__).resolve().parents[1]
 TINY = ["--levels", "2", "--iterations", "2"]
 
 
-@pytest.fixture(scope="module")
-def capture_dir(tmp_path_factory):
-    path = tmp_path_factory.mktemp("safety") / "capture"
-    write_capture(render_capture("bunny", frames=3, scale_factor=2, size=(80, 60), seed=1, progress=False), path)
-    return path
-
-
 def no_work(*args, **kwargs):
     raise AssertionError("the command started its work before checking its output")
 

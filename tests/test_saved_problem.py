@@ -15,29 +15,21 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from o3d_mvps import RefineOptions, read_refinement, refine, write_capture
+from o3d_mvps import RefineOptions, read_refinement, refine
 from o3d_mvps.cli import main
 from o3d_mvps.cli import refine as refine_cli
 from o3d_mvps.errors import DeviceError, MVPSError, OutputExistsError
 from o3d_mvps.solver import __main__ as solver_main
 from o3d_mvps.solver.device import check_device
 from o3d_mvps.solver.problem_input import SolverInput, read_problem, write_problem
-from o3d_mvps.synthetic import render_capture
 
 REPO = Path(__file__).resolve().parents[1]
 TINY_SOLVER = ["--levels", "2", "--iterations", "2"]
 
 
-@pytest.fixture(scope="module")
-def capture():
-    return render_capture("bunny", frames=3, scale_factor=2, size=(80, 60), seed=1, progress=False)
-
-
-@pytest.fixture(scope="module")
-def capture_dir(capture, tmp_path_factory):
-    path = tmp_path_factory.mktemp("saved") / "capture"
-    write_capture(capture, path)
-    return path
+@pytest.fixture
+def capture(tiny_capture):
+    return tiny_capture  # conftest.py's, shared by the session (capture_dir is it as a folder)
 
 
 @pytest.fixture
