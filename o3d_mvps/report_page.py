@@ -331,7 +331,7 @@ def normals_figure(refinement, input_normals: np.ndarray | None = None, truth: n
     fig, axes = _subplots(1, len(panels) + (against is not None), (4.0 * (len(panels) + 1), 3.6))
     box, extent = _crop(mask)
     for ax, (title, image) in zip(axes[0], panels):
-        ax.imshow(_shown(_normal_rgb(image, mask), box), extent=extent)
+        ax.imshow(_normal_rgb(_shown(image, box), _shown(mask, box)), extent=extent)
         _image_axes(ax, title)
     if against is not None:
         cosine = np.clip(np.sum(against * normals, axis=-1), -1, 1)
@@ -355,8 +355,8 @@ def albedo_depth_figure(refinement):
     fig, axes = _subplots(1, 2 if albedo is not None else 1, (9, 3.6))
     k = 0
     if albedo is not None:
-        axes[0, 0].imshow(_shown(np.where(mask[..., None], np.clip(linear_to_srgb(albedo), 0, 1), 1.0), box),
-                          extent=extent)
+        shown = _shown(mask, box)[..., None]
+        axes[0, 0].imshow(np.where(shown, np.clip(linear_to_srgb(_shown(albedo, box)), 0, 1), 1.0), extent=extent)
         _image_axes(axes[0, 0], "albedo (sRGB)")
         k = 1
     z = np.where(mask, refinement.depth_array() * 1000.0, np.nan)
