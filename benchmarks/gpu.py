@@ -216,7 +216,7 @@ def _cpu_kernels_as_cuda_kernels(stand_in):
 
     def launcher(kernel):
         def launch(*args):
-            stand_in.operations["kernel"] += 1
+            stand_in.count("kernel")
             return kernel(*(stand_in.host_data(a) for a in args))
         return launch
 

@@ -82,6 +82,12 @@ def pcg(matrix, rhs: np.ndarray, x0: np.ndarray, rtol: float, maxiter: int,
     return x, count[0], info == 0
 
 
+#: The CUDA path's last CG iteration count per system size: where :func:`.krylov.pcg` first reads
+#: its status back (the sweeps of a level take similar counts). A guess of when to test, which
+#: changes the number of host synchronisations and idle iterations, never the result.
+_CG_ITERATIONS: dict[int, int] = {}
+
+
 def solve_spd(matrix, rhs: np.ndarray, rtol: float, maxiter: int, sparse_part=None,
               pixel_prolongations: Callable[[], list] | None = None) -> tuple[np.ndarray, int]:
     """PCG from zero on ``matrix`` ((N, N) sparse SPD, or an operator whose sparse part
@@ -102,8 +108,11 @@ def solve_spd(matrix, rhs: np.ndarray, rtol: float, maxiter: int, sparse_part=No
     if on_gpu(rhs):
         if pixel_prolongations is None:
             raise ValueError("solve_spd on the CUDA path needs the pixels' aggregation (pixel_prolongations=)")
+        n = rhs.shape[0]
         x, iterations, _ = krylov.pcg(matrix, rhs, None, rtol, maxiter,
-                                      krylov.multigrid_preconditioner(sparse, pixel_prolongations()))
+                                      krylov.multigrid_preconditioner(sparse, pixel_prolongations()),
+                                      first_check=_CG_ITERATIONS.get(n, 2) - 1)
+        _CG_ITERATIONS[n] = max(iterations, 1)
         return x, iterations
     x, iterations, _ = pcg(matrix, rhs, np.zeros_like(rhs), rtol, maxiter, amg_preconditioner(sparse))
     return x, iterations
