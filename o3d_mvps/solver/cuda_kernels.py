@@ -34,7 +34,7 @@ from . import kernels
 #: the launchers, the same in :mod:`.kernels` (chunk_count is the size of accumulate_frame's partial sums)
 __all__ = ["chunk_count", "accumulate_frame", "project_twist_rows", "scatter_sparse_transpose_rows",
            "shading_residuals", "weighted_albedo_sums", "weighted_lighting_sums", "log1p_square_sum",
-           "led_irradiances_into", "warp_sample", "warp_gradients"]
+           "led_irradiances_into", "warp_sample", "warp_sample_frames", "warp_gradients"]
 
 #: Threads per block of every kernel.
 THREADS_PER_BLOCK = 128
@@ -228,6 +228,21 @@ def _warp_sample(points_ref, pose, K, image, visible, color, usable):  # pragma:
 def warp_sample(points_ref, pose, K, image, visible, color, usable) -> None:
     """:func:`.kernels.warp_sample` on the GPU (one thread per pixel)."""
     _warp_sample[_blocks(points_ref.shape[0]), THREADS_PER_BLOCK](points_ref, pose, K, image, visible, color, usable)
+
+
+@cuda.jit(cache=True)
+def _warp_sample_frames(points_ref, poses, K, images, visible, color, usable):  # pragma: no cover - device
+    index = cuda.grid(1)
+    n, N = visible.shape
+    if index < n * N:
+        i, p = index // N, index % N
+        _warp_sample_pixel(points_ref, poses[i], K, images[i], visible[i], color[i], usable[i], p)
+
+
+def warp_sample_frames(points_ref, poses, K, images, visible, color, usable) -> None:
+    """:func:`.kernels.warp_sample_frames` on the GPU (one thread per frame and pixel)."""
+    _warp_sample_frames[_blocks(visible.size), THREADS_PER_BLOCK](points_ref, poses, K, images, visible, color,
+                                                                  usable)
 
 
 @cuda.jit(cache=True)

@@ -389,6 +389,17 @@ def warp_sample(points_ref, pose, K, image, visible, color, usable):  # pragma: 
         warp_sample_pixel(points_ref, pose, K, image, visible, color, usable, p)
 
 
+@numba.njit(parallel=True, cache=True)
+def warp_sample_frames(points_ref, poses, K, images, visible, color, usable):  # pragma: no cover - compiled
+    """:func:`warp_sample` of every frame at once: poses (n, 4, 4), images (n, H, W, 3),
+    visible (n, N) bool; writes color (n, N, 3) and usable (n, N) (the GPU's one launch per
+    evaluation; the host's loop calls :func:`warp_sample` a frame at a time)."""
+    n, N = visible.shape
+    for index in numba.prange(n * N):
+        i, p = index // N, index % N
+        warp_sample_pixel(points_ref, poses[i], K, images[i], visible[i], color[i], usable[i], p)
+
+
 @numba.njit(inline="always")
 def warp_gradients_pixel(points_ref, pose, K, image, points, grad_u, grad_v, p):  # pragma: no cover - compiled
     """:func:`warp_gradients` on pixel p."""

@@ -210,8 +210,12 @@ class LevelProblem:
         color = xp.empty((n, N, 3), dtype=np.float32)  # sampled from float32 images
         usable = xp.empty((n, N), dtype=bool)
         poses = like(est.poses, P)  # one copy to the GPU for all the frames
-        for i in range(n):
-            self._warp_sample(i, poses[i], P, color[i], usable[i])
+        if self.level.image_stack is not None:  # the GPU: every frame in one launch
+            kernels_for(P).warp_sample_frames(P, poses, self.device_K, self.level.image_stack, self.visibility, color,
+                                              usable)
+        else:
+            for i in range(n):
+                self._warp_sample(i, poses[i], P, color[i], usable[i])
         return self.evaluate_samples(est, color, usable, *self.normals(est.z))
 
     def evaluate_samples(self, est: Estimate, color: np.ndarray, usable: np.ndarray, normals: np.ndarray,
