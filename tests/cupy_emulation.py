@@ -71,12 +71,17 @@ def count(kind: str, n: int = 1) -> None:
         sites[kind, _call_site()] += n
 
 
+#: o3d_mvps's helpers that only pass arrays on: a call site is their caller
+_HELPERS = ("model/arrays.py", "solver/device.py")
+
+
 def _call_site() -> str:
-    """The innermost frame of the o3d_mvps package on the stack, as "path:line function"."""
+    """The innermost frame of the o3d_mvps package on the stack, but for :data:`_HELPERS`, as
+    "path:line function"."""
     frame = sys._getframe(2)
     while frame is not None:
         name = frame.f_code.co_filename
-        if "/o3d_mvps/" in name:
+        if "/o3d_mvps/" in name and not name.endswith(_HELPERS):
             return f"{name.rsplit('/o3d_mvps/', 1)[1]}:{frame.f_lineno} {frame.f_code.co_name}"
         frame = frame.f_back
     return "?"

@@ -23,7 +23,7 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse as sp
 
-from ..model.arrays import array_module, like, linear_operator, sparse_module
+from ..model.arrays import array_module, fused, like, linear_operator, sparse_module
 from .device import kernels_for, on_gpu, to_host
 from .pose import pose_jacobian
 from .problem import Estimate, Evaluation, LevelProblem
@@ -118,8 +118,13 @@ def _reference_parallax(albedo: np.ndarray, dshading: np.ndarray, ray: np.ndarra
 
 
 def _row_dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """sum_j a[:, j] b[:, j] of two (N, 3) arrays: (N,)."""
-    return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
+    """sum_j a[:, j] b[:, j] of two (N, 3) arrays: (N,) (one kernel on a GPU)."""
+    return _dot3(a[:, 0], a[:, 1], a[:, 2], b[:, 0], b[:, 1], b[:, 2])
+
+
+@fused
+def _dot3(a0, a1, a2, b0, b1, b2):
+    return a0 * b0 + a1 * b1 + a2 * b2
 
 
 #: Reference pixels per block of the joint assembly. Every per-pixel array of the refined
