@@ -78,10 +78,12 @@ def pcg(A, b, x0, rtol: float, maxiter: int, preconditioner: Callable | None = N
             rz_previous = rz
             active, iterations, status = _progress(active, iterations, xp.dot(r, r), threshold)
             if iteration == next_check or iteration == maxiter:
-                if not int(status) & 2:
+                code = int(status)
+                if not code & 2:
                     break
                 next_check += check_every
-    code = int(status)
+        else:
+            code = int(status)  # maxiter 0
     return x, code >> 2, bool(code & 1)
 
 

@@ -56,11 +56,11 @@ class DepthPrior:
     def energy(self, z: np.ndarray, tau: float, mu: float) -> float:
         """tau ||D z - z0||^2 + mu ||S z||^2 of depth z (N,) metres."""
         d = self.D @ z - self.z0
-        e = tau * float(d @ d)
+        e = tau * (d @ d)
         if mu > 0 and self.S is not None:
             s = self.S @ z
-            e += mu * float(s @ s)
-        return e
+            e = e + mu * (s @ s)
+        return float(e)  # one copy to the host (a synchronisation on a GPU)
 
     @cached_property
     def DtD(self) -> sp.csr_matrix:
