@@ -260,10 +260,15 @@ def host_data(a):
     return a._a if isinstance(a, ndarray) else a
 
 
+#: functions that only allocate (from CuPy's memory pool: no kernel, not counted)
+_ALLOCATIONS = frozenset({"empty", "empty_like"})
+
+
 def _function(f):
     def wrapped(*args, **kwargs):
         elementwise = isinstance(f, np.ufunc) or _fusing is not None and wrapped.__name__ in _FUSABLE
-        count("elementwise" if elementwise else "function")
+        if wrapped.__name__ not in _ALLOCATIONS:
+            count("elementwise" if elementwise else "function")
         _check(args)
         _check(list(kwargs.values()))
         return _device(f(*_host(args), **_host(kwargs)))

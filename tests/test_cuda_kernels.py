@@ -214,3 +214,25 @@ def test_warp_sample_frames_matches_cpu_and_the_per_frame_kernel():
         np.testing.assert_array_equal(cpu[-1][i], usable)
         np.testing.assert_array_equal(cpu[-2][i], color)
     assert 0 < cpu[-1].sum() < n * N_PIXELS
+
+
+def test_multigrid_kernels_match_cpu_and_the_sparse_formulas():
+    """The multigrid's one-pass kernels: chebyshev_update (r - A v, scale d + diagonal r, x + d)
+    and csr_multiply_add (y + alpha A v), CUDA against CPU against SciPy's product."""
+    n = 60
+    A = sp.random(n, n, density=0.1, random_state=3, format="csr") + sp.eye(n, format="csr")
+    A.indices, A.indptr = A.indices.astype(np.int32), A.indptr.astype(np.int32)
+    r, v, d, diagonal, x = RNG.normal(size=(5, n))
+    cpu, gpu = run_both("chebyshev_update", A.indptr, A.indices, A.data, r, v, d, 0.7, diagonal, x,
+                        np.zeros(n), np.zeros(n), np.zeros(n))
+    r_new = r - A @ v
+    d_new = 0.7 * d + diagonal * r_new
+    for k, expected in zip((-3, -2, -1), (r_new, d_new, x + d_new)):
+        assert_close(cpu[k], expected)
+        assert_close(gpu[k], cpu[k])
+    P = sp.random(n, 15, density=0.2, random_state=4, format="csr")
+    P.indices, P.indptr = P.indices.astype(np.int32), P.indptr.astype(np.int32)
+    c = RNG.normal(size=15)
+    cpu, gpu = run_both("csr_multiply_add", P.indptr, P.indices, P.data, -1.0, c, x, np.zeros(n))
+    assert_close(cpu[-1], x - P @ c)
+    assert_close(gpu[-1], cpu[-1])

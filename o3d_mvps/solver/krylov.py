@@ -26,6 +26,7 @@ from typing import Callable
 import numpy as np
 
 from ..model.arrays import array_module, fused, sparse_module
+from .device import kernels_for
 
 #: Multigrid: the hierarchy ends at a level of at most this many unknowns, solved there by a
 #: dense inverse (one matrix-vector product). pyamg's ``max_coarse`` on the CPU
@@ -197,31 +198,41 @@ class ChebyshevSmoother:
 
     def __call__(self, b, x=None):
         """x (N,) after the steps on right-hand side b (N,), from x (N,) or zero (a new array:
-        neither is written). A step is a product with A and one fused kernel."""
+        neither is written). A step is one kernel (:func:`.kernels.chebyshev_update`: the product
+        with A and the vector updates in one pass)."""
         if x is None:
             r = b
             d = x = self._first * r
-        else:
-            r, d, x = _chebyshev_restart(b, self.A @ x, self._first, x)
+        else:  # the restart: r = b - A x, d = first r, x + d
+            r, d, x = _chebyshev_update(self.A, b, x, x, 0.0, self._first, x)
         for scale, diagonal in zip(self._scales, self._diagonals):
-            r, d, x = _chebyshev_step(r, self.A @ d, d, scale, diagonal, x)
+            r, d, x = _chebyshev_update(self.A, r, d, d, scale, diagonal, x)
         return x
 
 
-@fused
-def _chebyshev_restart(b, Ax, first, x):
-    """The Chebyshev iteration's first step from x: (r, d, x) = (b - A x, first r, x + d), (N,) each."""
-    r = b - Ax
-    d = first * r
-    return r, d, x + d
+def _chebyshev_update(A, r, v, d, scale: float, diagonal, x):
+    """(r - A v, scale d + diagonal r_new, x + d_new), new (N,) arrays each, in one kernel on a
+    GPU (on the host, where only the tests run this module's multigrid, by SciPy's product: the
+    per-call start of numba's threads would cost more on their small systems)."""
+    xp = array_module(r)
+    if xp is np:
+        r = r - A @ v
+        d = d * scale + diagonal * r
+        return r, d, x + d
+    outputs = tuple(xp.empty_like(r) for _ in range(3))
+    kernels_for(r).chebyshev_update(A.indptr, A.indices, A.data, r, v, d, float(scale), diagonal, x, *outputs)
+    return outputs
 
 
-@fused
-def _chebyshev_step(r, Ad, d, scale, diagonal, x):
-    """A Chebyshev step: (r, d, x) = (r - A d, scale d + diagonal r, x + d) with the new r and d, (N,) each."""
-    r = r - Ad
-    d = d * scale + diagonal * r
-    return r, d, x + d
+def _multiply_add(A, alpha: float, v, y):
+    """``y + alpha A v`` (N,), a new array, for A (N, M) sparse CSR, in one kernel on a GPU (by
+    SciPy's product on the host, as :func:`_chebyshev_update`)."""
+    xp = array_module(y)
+    if xp is np:
+        return y + alpha * (A @ v)
+    out = xp.empty_like(y)
+    kernels_for(y).csr_multiply_add(A.indptr, A.indices, A.data, float(alpha), v, y, out)
+    return out
 
 
 def jacobi_preconditioner(A) -> JacobiSmoother:
@@ -312,8 +323,8 @@ class Multigrid:
             return self.coarse_inverse @ b
         level = self.levels[k]
         x = level.smoother(b)
-        x += level.P @ self._cycle(k + 1, level.R @ (b - level.A @ x))
-        return level.smoother(b, x)
+        coarse = self._cycle(k + 1, level.R @ _multiply_add(level.A, -1.0, x, b))
+        return level.smoother(b, _multiply_add(level.P, 1.0, coarse, x))
 
     @property
     def operator_complexity(self) -> float:
