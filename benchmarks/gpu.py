@@ -23,8 +23,11 @@ stand-in of tests/cupy_emulation.py; no memory counted, times meaningless).
   kernels standing in for the CUDA ones (one launch per call) and the CUDA path's levels (those
   below CUDA_MIN_LEVEL_PIXELS on the CPU); writes ``gpu_counts.json``: per problem the totals by
   kind, launches (every operation but the copies) and transfers (copies either way), and per
-  level the operations, launches and transfers per sweep; with ``baseline`` the totals of
-  ``gpu_operations.json`` (the counts at aacda76) and their ratio.
+  level the operations, launches and transfers per sweep, the commit counted, the linear solves
+  and their host reads (copies to the host) each; with ``baseline`` the totals of
+  ``gpu_operations.json`` (the counts at aacda76) and their ratio, with ``previous`` the counts
+  of the ``gpu_counts.json`` it overwrites (launches and transfers, per sweep of each device
+  level) and the ratios to them.
 """
 
 from __future__ import annotations

@@ -55,7 +55,8 @@ def dense_operator(apply, n):
 def test_pcg_reaches_the_tolerance_and_agrees_with_a_direct_solve_and_scipy(preconditioner):
     M, b, grid = grid_system()
     P = {"none": None, "jacobi": krylov.jacobi_preconditioner(M),
-         "multigrid": krylov.multigrid_preconditioner(M, krylov.pixel_prolongations(grid.u, grid.v, max_coarse=300))}[preconditioner]
+         "multigrid": krylov.multigrid_preconditioner(M, krylov.pixel_prolongations(grid.u, grid.v, max_coarse=300)),
+         }[preconditioner]
     exact = spla.spsolve(M.tocsc(), b)
     for rtol in (1e-4, 1e-10):
         x, iterations, converged = krylov.pcg(M, b, None, rtol, 5000, P)
