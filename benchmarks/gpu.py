@@ -23,8 +23,11 @@ stand-in of tests/cupy_emulation.py; no memory counted, times meaningless).
   kernels standing in for the CUDA ones (one launch per call) and the CUDA path's levels (those
   below CUDA_MIN_LEVEL_PIXELS on the CPU); writes ``gpu_counts.json``: per problem the totals by
   kind, launches (every operation but the copies) and transfers (copies either way), and per
-  level the operations, launches and transfers per sweep; with ``baseline`` the totals of
-  ``gpu_operations.json`` (the counts at aacda76) and their ratio.
+  level the operations, launches and transfers per sweep, the commit counted, the linear solves
+  and their host reads (copies to the host) each; with ``baseline`` the totals of
+  ``gpu_operations.json`` (the counts at aacda76) and their ratio, with ``previous`` the counts
+  of the ``gpu_counts.json`` it overwrites (launches and transfers, per sweep of each device
+  level) and the ratios to them.
 """
 
 from __future__ import annotations
@@ -153,7 +156,7 @@ def count(folder, out="benchmarks/results", min_level_pixels: int | None = None)
         sys.path.insert(0, tests)
     import cupy_emulation
 
-    from o3d_mvps.solver import driver
+    from o3d_mvps.solver import driver, krylov, linear
     from o3d_mvps.solver.device import CUDA_MIN_LEVEL_PIXELS
     from o3d_mvps.solver.problem_input import read_problem
 
@@ -175,13 +178,27 @@ def count(folder, out="benchmarks/results", min_level_pixels: int | None = None)
     baseline_file = Path(out) / "gpu_operations.json"
     baseline = ({row["problem"]: row["operations"] for row in json.loads(baseline_file.read_text())}
                 if baseline_file.is_file() else {})
+    previous_file = Path(out) / "gpu_counts.json"  # the last count, before this one overwrites it
+    previous = ({row["problem"]: row for row in json.loads(previous_file.read_text())}
+                if previous_file.is_file() else {})
+    solves = []  # the host reads (copies to the host) of each linear solve
+    pcg = krylov.pcg
+
+    def counted_pcg(*args, **kwargs):
+        before = cupy_emulation.operations["to_host"]
+        result = pcg(*args, **kwargs)
+        solves.append(cupy_emulation.operations["to_host"] - before)
+        return result
+
     results = []
-    driver._sweeps = counted_sweeps
+    driver._sweeps, krylov.pcg = counted_sweeps, counted_pcg
     try:
         with cupy_emulation.installed(), _cpu_kernels_as_cuda_kernels(cupy_emulation):
             for path in paths:
                 levels.clear()
+                solves.clear()
                 cupy_emulation.operations.clear()
+                linear._CG_ITERATIONS.clear()  # CG's first status read: the same guesses in every count
                 device = cupy_emulation.array_device(CUDA_MIN_LEVEL_PIXELS if min_level_pixels is None
                                                      else min_level_pixels)
                 solution = driver.solve(read_problem(path), device=device)
@@ -191,19 +208,54 @@ def count(folder, out="benchmarks/results", min_level_pixels: int | None = None)
                         level[f"{name}_per_sweep"] = round(level[name] / max(level["sweeps"], 1), 1)
                 kinds = cupy_emulation.operations
                 total, transfers = sum(kinds.values()), kinds["to_host"] + kinds["to_device"]
-                results.append({"problem": path.name, "object_pixels": int(solution.mask.sum()), "operations": total,
+                results.append({"problem": path.name, "commit": _commit(), "object_pixels": int(solution.mask.sum()),
+                                "operations": total,
                                 "launches": total - transfers, "transfers": transfers,
                                 "by_kind": dict(kinds.most_common()), "levels": list(levels),
+                                "linear_solves": len(solves), "host_reads_per_linear_solve": {
+                                    "max": max(solves, default=0),
+                                    "mean": round(sum(solves) / max(len(solves), 1), 2)},
                                 **({"baseline": {"commit": "aacda76", "operations": baseline[path.name],
                                                  "ratio": round(total / baseline[path.name], 3)}}
-                                   if path.name in baseline else {})})
+                                   if path.name in baseline else {}),
+                                **({"previous": _compared(previous[path.name], total - transfers, transfers, levels)}
+                                   if path.name in previous else {})})
                 print(json.dumps(results[-1]), flush=True)
     finally:
-        driver._sweeps = solve_level_sweeps
+        driver._sweeps, krylov.pcg = solve_level_sweeps, pcg
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "gpu_counts.json").write_text(json.dumps(results, indent=1))
     return results
+
+
+def _commit() -> str:
+    """This checkout's commit (short hash, "+" where the work tree differs from it), or "?"."""
+    import subprocess
+
+    root = Path(__file__).resolve().parents[1]
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True,
+                              check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root,
+                               capture_output=True, text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "?"
+    return head + ("+" if dirty else "")
+
+
+def _compared(previous: dict, launches: int, transfers: int, levels: list) -> dict:
+    """The previous count of a problem (its row of gpu_counts.json) beside this one: launches and
+    transfers in all and per sweep of each level on the device, and this count's ratio to it."""
+    before = {level["level"]: level for level in previous["levels"]}
+    per_level = [{"level": level["level"], **{f"{name}_per_sweep": before[level["level"]][f"{name}_per_sweep"]
+                                              for name in ("launches", "transfers")},
+                  **{f"{name}_ratio": round(level[f"{name}_per_sweep"] / before[level["level"]][f"{name}_per_sweep"], 3)
+                     for name in ("launches", "transfers")}}
+                 for level in levels if level["device"] != "cpu" and before.get(level["level"], {}).get("launches")]
+    return {"commit": previous.get("commit", "0ece6d0"), "launches": previous["launches"],
+            "transfers": previous["transfers"], "launches_ratio": round(launches / previous["launches"], 3),
+            "transfers_ratio": round(transfers / previous["transfers"], 3), "levels": per_level}
 
 
 @contextmanager
@@ -216,7 +268,7 @@ def _cpu_kernels_as_cuda_kernels(stand_in):
 
     def launcher(kernel):
         def launch(*args):
-            stand_in.operations["kernel"] += 1
+            stand_in.count("kernel")
             return kernel(*(stand_in.host_data(a) for a in args))
         return launch
 

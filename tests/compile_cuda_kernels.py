@@ -44,6 +44,11 @@ SIGNATURES = {
     "_log1p_square_partials": (_R1, types.float64, _F1),
     "_warp_sample": (_F2, _F2, _F2, _COLOR, _array(1, types.boolean), _array(2, types.float32),
                      _array(1, types.boolean)),
+    "_warp_sample_frames": (_F2, _F3, _F2, _array(4, types.float32), _array(2, types.boolean), _COLOR,
+                            _array(2, types.boolean)),
+    "_chebyshev_update": (_array(1, types.int32), _array(1, types.int32), _F1, _F1, _F1, _F1, types.float64, _F1,
+                          _F1, _F1, _F1, _F1),
+    "_csr_multiply_add": (_array(1, types.int32), _array(1, types.int32), _F1, types.float64, _F1, _F1, _F1),
     "_warp_gradients": (_F2, _F2, _F2, _COLOR, _F2, _F2, _F2),
 }
 

@@ -24,9 +24,10 @@ GPU, and fails where it would mix host and device arrays there. (Not caught: CuP
 NumPy has and CuPy lacks.)
 
 :data:`operations` counts what would each be a kernel launch or a transfer on a GPU, by kind
-(``benchmarks/gpu.py count`` reads it): elementwise operations and reductions, other NumPy
-functions and array methods, sparse products, gathers by index arrays, writes into arrays,
-copies to the device and to the host.
+(``benchmarks/gpu.py count`` reads it): elementwise operations and reductions, fused kernels
+(:func:`fuse`: one each), other NumPy functions and array methods, sparse products, gathers by
+index arrays, writes into arrays, copies to the device and to the host; :func:`recording_sites`
+also counts them by the call site in o3d_mvps (the profile of a sweep).
 """
 
 from __future__ import annotations
@@ -42,6 +43,59 @@ from numpy.lib.mixins import NDArrayOperatorsMixin
 
 #: operations on the stand-in's arrays so far, by kind (see the module's docstring)
 operations = Counter()
+
+#: where the operations were asked for, when :func:`recording_sites` is on: (kind, "file:line
+#: function" of the innermost caller in o3d_mvps) -> count
+sites = Counter()
+_recording = False
+
+
+#: the name of the kernel :func:`fuse` is running, None outside one
+_fusing = None
+#: the functions of this module a fused kernel may call (CuPy's fusion takes ufuncs, operators,
+#: where; its reductions, which this stand-in does not fuse, only at the end)
+_FUSABLE = frozenset({"where"})
+
+
+def count(kind: str, n: int = 1) -> None:
+    """Count ``n`` operations of ``kind`` (and their call site, see :data:`sites`); within a
+    fused kernel (:func:`fuse`) nothing is counted, and anything but an elementwise operation
+    raises TypeError."""
+    if _fusing is not None:
+        if kind != "elementwise" and n:
+            raise TypeError(f"cupy.fuse: kernel {_fusing!r} asks for a {kind} operation; a fused kernel takes "
+                            "elementwise operations (ufuncs, operators, where) of its arguments only")
+        return
+    operations[kind] += n
+    if _recording and n:
+        sites[kind, _call_site()] += n
+
+
+#: o3d_mvps's helpers that only pass arrays on: a call site is their caller
+_HELPERS = ("model/arrays.py", "solver/device.py")
+
+
+def _call_site() -> str:
+    """The innermost frame of the o3d_mvps package on the stack, but for :data:`_HELPERS`, as
+    "path:line function"."""
+    frame = sys._getframe(2)
+    while frame is not None:
+        name = frame.f_code.co_filename
+        if "/o3d_mvps/" in name and not name.endswith(_HELPERS):
+            return f"{name.rsplit('/o3d_mvps/', 1)[1]}:{frame.f_lineno} {frame.f_code.co_name}"
+        frame = frame.f_back
+    return "?"
+
+
+@contextmanager
+def recording_sites():
+    """Within: every count also goes to :data:`sites` by call site (slow: walks the stack)."""
+    global _recording
+    _recording, saved = True, _recording
+    try:
+        yield sites
+    finally:
+        _recording = saved
 
 #: CuPy's message when NumPy asks a device array for its data
 IMPLICIT_CONVERSION = ("Implicit conversion to a NumPy array is not allowed. Please use `.get()` to construct a "
@@ -111,7 +165,7 @@ class ndarray(NDArrayOperatorsMixin):  # noqa: N801 - CuPy's name
         raise DeviceMixError(IMPLICIT_CONVERSION)
 
     def __array_ufunc__(self, ufunc, method, *inputs, **kwargs):
-        operations["elementwise" if method == "__call__" else "reduction"] += 1
+        count("elementwise" if method == "__call__" else "reduction")
         _check(inputs)
         _check(list(kwargs.values()))
         out = kwargs.get("out")
@@ -122,7 +176,7 @@ class ndarray(NDArrayOperatorsMixin):  # noqa: N801 - CuPy's name
         return _device(result)
 
     def __array_function__(self, func, types, args, kwargs):
-        operations["function"] += 1
+        count("function")
         _check(args)
         _check(list(kwargs.values()))
         return _device(func(*_host(args), **_host(kwargs)))
@@ -137,7 +191,7 @@ class ndarray(NDArrayOperatorsMixin):  # noqa: N801 - CuPy's name
 
         def method(*args, **kwargs):
             if name not in _VIEWS:
-                operations[_METHOD_KINDS.get(name, "function")] += 1
+                count(_METHOD_KINDS.get(name, "function"))
             _check(args)
             _check(list(kwargs.values()))
             return _device(value(*_host(args), **_host(kwargs)))
@@ -146,20 +200,20 @@ class ndarray(NDArrayOperatorsMixin):  # noqa: N801 - CuPy's name
 
     def get(self, stream=None, order="C", out=None) -> np.ndarray:
         """A host copy."""
-        operations["to_host"] += 1
+        count("to_host")
         return np.array(self._a, order=order)
 
     def __getitem__(self, index):
         if not _basic_index(index):
-            operations["gather"] += 1
+            count("gather")
             _count_host_indices(index)
         return _device(self._a[_host(index)])
 
     def __setitem__(self, index, value):
-        operations["write"] += 1
+        count("write")
         _count_host_indices(index)
         if isinstance(value, np.ndarray) or isinstance(value, (list, tuple)) and not isinstance(value, ndarray):
-            operations["to_device"] += 1  # CuPy copies host data over
+            count("to_device")  # CuPy copies host data over
         self._a[_host(index)] = _host(value)
 
     def __len__(self) -> int:
@@ -169,7 +223,7 @@ class ndarray(NDArrayOperatorsMixin):  # noqa: N801 - CuPy's name
         return (self[i] for i in range(len(self)))
 
     def _scalar(self, convert):
-        operations["to_host"] += 1  # a synchronisation and a copy on a GPU
+        count("to_host")  # a synchronisation and a copy on a GPU
         return convert(self._a)
 
     def __float__(self):
@@ -197,7 +251,7 @@ def _basic_index(index) -> bool:
 def _count_host_indices(index) -> None:
     """Count the copies to the device of host index arrays (CuPy takes them)."""
     parts = index if isinstance(index, tuple) else (index,)
-    operations["to_device"] += sum(isinstance(part, (np.ndarray, list)) for part in parts)
+    count("to_device", sum(isinstance(part, (np.ndarray, list)) for part in parts))
 
 
 def host_data(a):
@@ -206,15 +260,59 @@ def host_data(a):
     return a._a if isinstance(a, ndarray) else a
 
 
+#: functions that only allocate (from CuPy's memory pool: no kernel, not counted)
+_ALLOCATIONS = frozenset({"empty", "empty_like"})
+
+
 def _function(f):
     def wrapped(*args, **kwargs):
-        operations["function"] += 1
+        elementwise = isinstance(f, np.ufunc) or _fusing is not None and wrapped.__name__ in _FUSABLE
+        if wrapped.__name__ not in _ALLOCATIONS:
+            count("elementwise" if elementwise else "function")
         _check(args)
         _check(list(kwargs.values()))
         return _device(f(*_host(args), **_host(kwargs)))
 
     wrapped.__name__ = getattr(f, "__name__", "function")
     return wrapped
+
+
+class _Fused:
+    """A function fused into one kernel (:func:`fuse`)."""
+
+    def __init__(self, function, kernel_name: str | None):
+        self.function, self.name = function, kernel_name or function.__name__
+
+    def __call__(self, *args):
+        global _fusing
+        if not any(isinstance(a, ndarray) for a in args):  # CuPy calls the function on NumPy's arrays
+            return self.function(*args)
+        _check(args)
+        for a in args:
+            if not isinstance(a, (ndarray, int, float, bool, complex, np.generic)):
+                raise TypeError(f"cupy.fuse: kernel {self.name!r} got a {type(a).__name__}: give device arrays "
+                                "and scalars")
+        if _fusing is not None:
+            raise TypeError(f"cupy.fuse: kernel {self.name!r} called inside kernel {_fusing!r}")
+        _fusing = self.name
+        try:
+            result = self.function(*args)
+        finally:
+            _fusing = None
+        count("fused")
+        return result
+
+
+def fuse(*args, kernel_name: str | None = None):
+    """CuPy's ``fuse``: ``@fuse()`` / ``@fuse`` makes a function of arrays and scalars one kernel
+    (one launch, counted as "fused"), run here with NumPy's semantics on the arrays' data; inside
+    it only elementwise operations (TypeError for anything else: reductions, copies, other
+    functions, float() of an array). Given no device array, it calls the function as it is."""
+    if len(args) == 1 and callable(args[0]):
+        return _Fused(args[0], kernel_name)
+    if args:
+        raise TypeError(f"fuse() takes a function or kernel_name=, not {args!r}")
+    return lambda function: _Fused(function, kernel_name)
 
 
 def asarray(a, dtype=None, order=None):
@@ -239,7 +337,7 @@ def asnumpy(a, stream=None, order="C", out=None):
 def _count_copy(a) -> None:
     """Count a copy of host data to the device."""
     if not isinstance(a, ndarray):
-        operations["to_device"] += 1
+        count("to_device")
 
 
 def get_array_module(*arrays):
@@ -311,9 +409,9 @@ class csr_matrix:  # noqa: N801 - cupyx's name
 
     def __matmul__(self, other):
         if isinstance(other, csr_matrix):
-            operations["sparse_product"] += 1
+            count("sparse_product")
             return csr_matrix(self._m @ other._m)
-        operations["sparse_matvec"] += 1
+        count("sparse_matvec")
         return _device(self._m @ _device_only(other))
 
     def __add__(self, other):

@@ -162,6 +162,8 @@ def test_kernels_compile_to_ptx():
     numba-cuda[cu12], which the ``dev`` extra installs (``make test``): no skip without it."""
     env = {k: v for k, v in os.environ.items() if k != "NUMBA_ENABLE_CUDASIM"}
     script = Path(compile_cuda_kernels.__file__)
+    # this checkout's o3d_mvps (the script's own folder, tests/, comes first on its sys.path)
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, (str(script.parents[1]), env.get("PYTHONPATH"))))
     done = subprocess.run([sys.executable, str(script), "9.0"], env=env, capture_output=True, text=True, timeout=600)
     assert done.returncode != compile_cuda_kernels.NO_NVVM, done.stdout + " (pip install -e '.[dev]')"
     assert done.returncode == 0, done.stdout + done.stderr
@@ -191,3 +193,46 @@ def test_warp_sample_matches_cpu():
     np.testing.assert_array_equal(gpu[-1], cpu[-1])
     assert 0 < cpu[-1].sum() < N_PIXELS
     np.testing.assert_array_equal(gpu[-2], cpu[-2])  # float64 interpolation, both rounded to float32
+
+
+def test_warp_sample_frames_matches_cpu_and_the_per_frame_kernel():
+    """Every frame in one launch: the CUDA kernel equals its CPU twin, which equals
+    warp_sample called a frame at a time (the host's loop)."""
+    H, W, n = 30, 40, N_FRAMES
+    K = np.array([[50.0, 0.0, 19.5], [0.0, 50.0, 14.5], [0.0, 0.0, 1.0]])
+    points = RNG.normal(size=(N_PIXELS, 3)) * [0.3, 0.2, 0.3] + [0.0, 0.0, 0.6]
+    poses = np.stack([POSE, np.eye(4), POSE @ POSE])
+    images = RNG.random((n, H, W, 3)).astype(np.float32)
+    visible = RNG.random((n, N_PIXELS)) > 0.1
+    cpu, gpu = run_both("warp_sample_frames", points, poses, K, images, visible,
+                        np.zeros((n, N_PIXELS, 3), np.float32), np.zeros((n, N_PIXELS), bool))
+    np.testing.assert_array_equal(gpu[-1], cpu[-1])
+    np.testing.assert_array_equal(gpu[-2], cpu[-2])
+    for i in range(n):
+        color, usable = np.zeros((N_PIXELS, 3), np.float32), np.zeros(N_PIXELS, bool)
+        kernels.warp_sample(points, poses[i], K, images[i], visible[i], color, usable)
+        np.testing.assert_array_equal(cpu[-1][i], usable)
+        np.testing.assert_array_equal(cpu[-2][i], color)
+    assert 0 < cpu[-1].sum() < n * N_PIXELS
+
+
+def test_multigrid_kernels_match_cpu_and_the_sparse_formulas():
+    """The multigrid's one-pass kernels: chebyshev_update (r - A v, scale d + diagonal r, x + d)
+    and csr_multiply_add (y + alpha A v), CUDA against CPU against SciPy's product."""
+    n = 60
+    A = sp.random(n, n, density=0.1, random_state=3, format="csr") + sp.eye(n, format="csr")
+    A.indices, A.indptr = A.indices.astype(np.int32), A.indptr.astype(np.int32)
+    r, v, d, diagonal, x = RNG.normal(size=(5, n))
+    cpu, gpu = run_both("chebyshev_update", A.indptr, A.indices, A.data, r, v, d, 0.7, diagonal, x,
+                        np.zeros(n), np.zeros(n), np.zeros(n))
+    r_new = r - A @ v
+    d_new = 0.7 * d + diagonal * r_new
+    for k, expected in zip((-3, -2, -1), (r_new, d_new, x + d_new)):
+        assert_close(cpu[k], expected)
+        assert_close(gpu[k], cpu[k])
+    P = sp.random(n, 15, density=0.2, random_state=4, format="csr")
+    P.indices, P.indptr = P.indices.astype(np.int32), P.indptr.astype(np.int32)
+    c = RNG.normal(size=15)
+    cpu, gpu = run_both("csr_multiply_add", P.indptr, P.indices, P.data, -1.0, c, x, np.zeros(n))
+    assert_close(cpu[-1], x - P @ c)
+    assert_close(gpu[-1], cpu[-1])

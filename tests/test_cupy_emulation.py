@@ -126,3 +126,55 @@ def test_model_functions_take_device_arrays(device):
             result = f(*device_args)
             assert isinstance(result, cp.ndarray)
             np.testing.assert_allclose(result.get(), f(*args), rtol=1e-15)
+
+
+def test_fuse_is_one_launch_with_numpys_results(device):
+    """cupy.fuse as CuPy's: a chain of elementwise operations (where too) of device arrays and
+    scalars is one kernel, counted as one "fused" launch, with NumPy's results; the same function
+    on host arrays only is called as it is (CuPy's fallback)."""
+    def step(x, y, a):
+        return cp.where(x > 1.0, x + a * y, x), x * y
+
+    fused = cp.fuse(kernel_name="step")(step)
+    before = cp.operations.copy()
+    z, w = fused(device, device * 2.0, 0.5)
+    counted = cp.operations - before
+    assert counted == {"fused": 1, "elementwise": 1}  # device * 2.0 outside the kernel
+    np.testing.assert_array_equal(z.get(), np.where(HOST > 1.0, HOST + 0.5 * HOST * 2.0, HOST))
+    np.testing.assert_array_equal(w.get(), HOST * HOST * 2.0)
+    assert isinstance(cp.fuse(lambda x: x + 1.0)(HOST), np.ndarray)
+
+
+@pytest.mark.parametrize("body, message", [
+    (lambda x, y: x.sum() + y, "asks for a reduction operation"),
+    (lambda x, y: x + float(y.max()), "asks for a reduction operation"),
+    (lambda x, y: cp.concatenate([x, y]), "asks for a function operation"),
+    (lambda x, y: x[cp.asarray(np.array([0]))] + y, "asks for a to_device operation"),
+])
+def test_fuse_refuses_what_is_not_elementwise(device, body, message):
+    before = cp.operations.copy()
+    with pytest.raises(TypeError, match=message):
+        cp.fuse()(body)(device, device)
+    assert cp.operations == before  # nothing counted, no kernel launched
+
+
+def test_fuse_refuses_host_arrays(device):
+    with pytest.raises(TypeError, match="host NumPy array"):
+        cp.fuse()(lambda x, y: x + y)(device, HOST)
+
+
+def test_fused_helper_runs_numpy_or_one_kernel(device):
+    """o3d_mvps.model.arrays.fused: the function itself on NumPy's arrays, one kernel on the
+    device's (cupy.fuse of the arrays' module)."""
+    from o3d_mvps.model.arrays import fused
+
+    @fused
+    def axpy(a, x, y):
+        return a * x + y
+
+    np.testing.assert_array_equal(axpy(2.0, HOST, HOST), 3.0 * HOST)
+    with cp.installed():
+        before = cp.operations.copy()
+        result = axpy(2.0, device, device)
+        assert cp.operations - before == {"fused": 1}
+    np.testing.assert_array_equal(result.get(), 3.0 * HOST)

@@ -65,3 +65,24 @@ class MatvecOperator:
 
     def __matmul__(self, x):
         return self.matvec(x)
+
+
+def fused(function):
+    """``function`` (elementwise arithmetic of arrays and scalars: operators, ufuncs,
+    ``array_module(x).where``; one result or a tuple) as one kernel on CuPy's arrays, by
+    ``cupy.fuse``, compiled once per process; on NumPy's the function itself. On a GPU every
+    array operation is a kernel launch (5-20 us from Python whatever the array's size): a fused
+    chain of them is one. The function must not write into its arguments."""
+    kernels = {}
+
+    def call(*args):
+        xp = next((module for a in args if (module := array_module(a)) is not np), np)
+        if xp is np:
+            return function(*args)
+        kernel = kernels.get(xp)
+        if kernel is None:
+            kernel = kernels[xp] = xp.fuse(kernel_name=function.__name__)(function)
+        return kernel(*args)
+
+    call.__name__, call.__doc__, call.__wrapped__ = function.__name__, function.__doc__, function
+    return call

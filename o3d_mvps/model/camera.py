@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .arrays import like
+from .arrays import fused, like
 
 
 def as_intrinsic_matrix(intrinsic) -> np.ndarray:
@@ -52,9 +52,14 @@ def backproject(z: np.ndarray, K: np.ndarray, u: np.ndarray | None = None, v: np
     """3D points (..., 3) in metres of depth z at pixels (u, v); the full grid if u, v are None."""
     if u is None or v is None:
         u, v = pixel_grid(*z.shape)
-    x = (u - K[0, 2]) / K[0, 0] * z
-    y = (v - K[1, 2]) / K[1, 1] * z
+    x, y = _backproject_xy(u, v, z, K[0, 0], K[1, 1], K[0, 2], K[1, 2])
     return np.stack([x, y, z], axis=-1)
+
+
+@fused
+def _backproject_xy(u, v, z, fx, fy, cx, cy):
+    """x, y (metres) of depth z at pixels (u, v) (one kernel on a GPU)."""
+    return (u - cx) / fx * z, (v - cy) / fy * z
 
 
 def project(points: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

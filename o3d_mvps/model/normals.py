@@ -20,6 +20,8 @@ from functools import cached_property
 import numpy as np
 import scipy.sparse as sp
 
+from .arrays import fused
+
 SCHEMES = ("central", "forward")
 
 
@@ -81,7 +83,7 @@ class MaskedGrid:
 
     def gradient(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(z_u, z_v), each (N,), of a masked depth vector z (N,)."""
-        return tuple(wf * (z[f] - z) + wb * (z - z[b]) for f, b, wf, wb in self._stencils())
+        return tuple(_one_sided_sum(z[f], z, z[b], wf, wb) for f, b, wf, wb in self._stencils())
 
     def difference_operators(self) -> tuple[sp.csr_matrix, sp.csr_matrix]:
         """Sparse (N, N) matrices Du, Dv with Du @ z == gradient(z)[0] (and likewise Dv); built
@@ -141,8 +143,19 @@ def masked_grid(mask: np.ndarray, scheme: str = "central") -> MaskedGrid:
 def unnormalised_normals(grid: MaskedGrid, z: np.ndarray, K: np.ndarray) -> np.ndarray:
     """ñ (N, 3) of the masked depth vector z (N,) in metres; units metres (pixel-scaled)."""
     z_u, z_v = grid.gradient(z)
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    return np.stack([fx * z_u, fy * z_v, -z - (grid.u - cx) * z_u - (grid.v - cy) * z_v], axis=-1)
+    return np.stack(_normal_components(z, z_u, z_v, grid.u, grid.v, K[0, 0], K[1, 1], K[0, 2], K[1, 2]), axis=-1)
+
+
+@fused
+def _one_sided_sum(z_forward, z, z_backward, wf, wb):
+    """A difference of z (N,) from its neighbours' values: ``wf (z_f - z) + wb (z - z_b)``."""
+    return wf * (z_forward - z) + wb * (z - z_backward)
+
+
+@fused
+def _normal_components(z, z_u, z_v, u, v, fx, fy, cx, cy):
+    """The components of ñ, each (N,), of depth z (N,) and its differences at pixels (u, v)."""
+    return fx * z_u, fy * z_v, -z - (u - cx) * z_u - (v - cy) * z_v
 
 
 def perspective_normals(depth: np.ndarray, K: np.ndarray, mask: np.ndarray | None = None,

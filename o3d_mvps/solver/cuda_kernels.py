@@ -34,7 +34,8 @@ from . import kernels
 #: the launchers, the same in :mod:`.kernels` (chunk_count is the size of accumulate_frame's partial sums)
 __all__ = ["chunk_count", "accumulate_frame", "project_twist_rows", "scatter_sparse_transpose_rows",
            "shading_residuals", "weighted_albedo_sums", "weighted_lighting_sums", "log1p_square_sum",
-           "led_irradiances_into", "warp_sample", "warp_gradients"]
+           "led_irradiances_into", "warp_sample", "warp_sample_frames", "warp_gradients", "chebyshev_update",
+           "csr_multiply_add"]
 
 #: Threads per block of every kernel.
 THREADS_PER_BLOCK = 128
@@ -78,6 +79,8 @@ _log1p_square_term = _device(log1p_square_term)
 _led_irradiance = _device(led_irradiance)
 _warp_sample_pixel = _device(kernels.warp_sample_pixel)
 _warp_gradients_pixel = _device(kernels.warp_gradients_pixel)
+_chebyshev_row = _device(kernels.chebyshev_row)
+_csr_row_dot = _device(kernels.csr_row_dot)
 
 
 def _blocks(n_threads: int) -> int:
@@ -228,6 +231,46 @@ def _warp_sample(points_ref, pose, K, image, visible, color, usable):  # pragma:
 def warp_sample(points_ref, pose, K, image, visible, color, usable) -> None:
     """:func:`.kernels.warp_sample` on the GPU (one thread per pixel)."""
     _warp_sample[_blocks(points_ref.shape[0]), THREADS_PER_BLOCK](points_ref, pose, K, image, visible, color, usable)
+
+
+@cuda.jit(cache=True)
+def _warp_sample_frames(points_ref, poses, K, images, visible, color, usable):  # pragma: no cover - device
+    index = cuda.grid(1)
+    n, N = visible.shape
+    if index < n * N:
+        i, p = index // N, index % N
+        _warp_sample_pixel(points_ref, poses[i], K, images[i], visible[i], color[i], usable[i], p)
+
+
+def warp_sample_frames(points_ref, poses, K, images, visible, color, usable) -> None:
+    """:func:`.kernels.warp_sample_frames` on the GPU (one thread per frame and pixel)."""
+    _warp_sample_frames[_blocks(visible.size), THREADS_PER_BLOCK](points_ref, poses, K, images, visible, color,
+                                                                  usable)
+
+
+@cuda.jit(cache=True)
+def _chebyshev_update(indptr, indices, data, r, v, d, scale, diagonal, x, r_out, d_out, x_out):  # pragma: no cover
+    row = cuda.grid(1)
+    if row < r.shape[0]:
+        _chebyshev_row(indptr, indices, data, r, v, d, scale, diagonal, x, r_out, d_out, x_out, row)
+
+
+def chebyshev_update(indptr, indices, data, r, v, d, scale, diagonal, x, r_out, d_out, x_out) -> None:
+    """:func:`.kernels.chebyshev_update` on the GPU (one thread per row)."""
+    _chebyshev_update[_blocks(r.shape[0]), THREADS_PER_BLOCK](indptr, indices, data, r, v, d, scale, diagonal, x,
+                                                             r_out, d_out, x_out)
+
+
+@cuda.jit(cache=True)
+def _csr_multiply_add(indptr, indices, data, alpha, v, y, out):  # pragma: no cover - device
+    row = cuda.grid(1)
+    if row < out.shape[0]:
+        out[row] = y[row] + alpha * _csr_row_dot(indptr, indices, data, v, row)
+
+
+def csr_multiply_add(indptr, indices, data, alpha, v, y, out) -> None:
+    """:func:`.kernels.csr_multiply_add` on the GPU (one thread per row)."""
+    _csr_multiply_add[_blocks(out.shape[0]), THREADS_PER_BLOCK](indptr, indices, data, alpha, v, y, out)
 
 
 @cuda.jit(cache=True)

@@ -43,11 +43,12 @@ CUDA_RESIDUAL_DTYPE = np.float32
 
 #: :attr:`ArrayDevice.min_level_pixels` on CUDA. A GPU's cost per array operation (a kernel
 #: launch or a small copy, 5-20 us from Python) does not shrink with the level, and a sweep makes
-#: thousands: on 20-frame LED problems (``python -m benchmarks.gpu count``) 1600-2300 per joint
-#: sweep, about 5000 per sweep of the coarser levels' separate pose and depth steps, i.e. some
-#: 20-100 ms. This machine's 2 cores take 0.4 s for a joint sweep of 22400 pixels x 20 frames,
-#: so a GPU machine's 16 about 50 ms: below some 20000 pixels the CPU is as fast. An estimate
-#: from counts and CPU times, not a GPU measurement.
+#: hundreds: on 20-frame LED problems (``python -m benchmarks.gpu count``, docs/gpu.md) 550-850
+#: launches and 50-80 copies per joint sweep (1600-2300 operations before issue 33's item 4),
+#: i.e. some 5-20 ms. This machine's 2 cores take 0.4 s for a joint sweep of 22400 pixels x 20
+#: frames, so a GPU machine's 16 about 50 ms: below some 20000 pixels the CPU was as fast at the
+#: earlier counts (with today's, the threshold may be lower). An estimate from counts and CPU
+#: times, not a GPU measurement.
 CUDA_MIN_LEVEL_PIXELS = 20000
 
 

@@ -228,6 +228,44 @@ def scatter_sparse_transpose_rows(indptr, indices, data, X, out):  # pragma: no 
 
 
 @numba.njit(inline="always")
+def csr_row_dot(indptr, indices, data, v, row):  # pragma: no cover - compiled
+    """(A v)[row] of a CSR matrix A given by its arrays."""
+    total = 0.0
+    for nz in range(indptr[row], indptr[row + 1]):
+        total += data[nz] * v[indices[nz]]
+    return total
+
+
+@numba.njit(inline="always")
+def chebyshev_row(indptr, indices, data, r, v, d, scale, diagonal, x, r_out, d_out, x_out, row):  # pragma: no cover
+    """:func:`chebyshev_update` on one row."""
+    r_new = r[row] - csr_row_dot(indptr, indices, data, v, row)
+    d_new = d[row] * scale + diagonal[row] * r_new
+    r_out[row] = r_new
+    d_out[row] = d_new
+    x_out[row] = x[row] + d_new
+
+
+@numba.njit(parallel=True, cache=True)
+def chebyshev_update(indptr, indices, data, r, v, d, scale, diagonal, x, r_out, d_out, x_out):  # pragma: no cover
+    """One step of the multigrid's Chebyshev smoother (:class:`.krylov.ChebyshevSmoother`) for a
+    CSR matrix A (N, N) given by its arrays, vectors (N,): ``r_out = r - A v``, ``d_out = scale d
+    + diagonal r_out``, ``x_out = x + d_out`` (the outputs are other arrays than the inputs: A v
+    reads v's neighbours). A step is v = d; the restart from x is r = b, v = x, scale 0."""
+    for row in numba.prange(r.shape[0]):
+        chebyshev_row(indptr, indices, data, r, v, d, scale, diagonal, x, r_out, d_out, x_out, row)
+
+
+@numba.njit(parallel=True, cache=True)
+def csr_multiply_add(indptr, indices, data, alpha, v, y, out):  # pragma: no cover - compiled
+    """``out = y + alpha A v`` (out (N,), another array than v) for a CSR matrix A (N, M) given
+    by its arrays, v (M,), y (N,): the multigrid's residual ``b - A x`` and coarse correction
+    ``x + P c`` in one pass each."""
+    for row in numba.prange(out.shape[0]):
+        out[row] = y[row] + alpha * csr_row_dot(indptr, indices, data, v, row)
+
+
+@numba.njit(inline="always")
 def shading_residual_pixel(color, albedo, basis, lights, usable, shading, residual, i, p):  # pragma: no cover
     """:func:`shading_residuals` on pixel p of frame i."""
     b = 0 if basis.shape[0] == 1 else i
@@ -387,6 +425,17 @@ def warp_sample(points_ref, pose, K, image, visible, color, usable):  # pragma: 
     pass. H, W >= 2."""
     for p in numba.prange(points_ref.shape[0]):
         warp_sample_pixel(points_ref, pose, K, image, visible, color, usable, p)
+
+
+@numba.njit(parallel=True, cache=True)
+def warp_sample_frames(points_ref, poses, K, images, visible, color, usable):  # pragma: no cover - compiled
+    """:func:`warp_sample` of every frame at once: poses (n, 4, 4), images (n, H, W, 3),
+    visible (n, N) bool; writes color (n, N, 3) and usable (n, N) (the GPU's one launch per
+    evaluation; the host's loop calls :func:`warp_sample` a frame at a time)."""
+    n, N = visible.shape
+    for index in numba.prange(n * N):
+        i, p = index // N, index % N
+        warp_sample_pixel(points_ref, poses[i], K, images[i], visible[i], color[i], usable[i], p)
 
 
 @numba.njit(inline="always")

@@ -25,56 +25,100 @@ from typing import Callable
 
 import numpy as np
 
-from ..model.arrays import array_module, sparse_module
+from ..model.arrays import array_module, fused, sparse_module
+from .device import kernels_for
 
-#: Multigrid: the hierarchy ends at a level of at most this many unknowns (as pyamg's
-#: ``max_coarse`` in :func:`.linear.amg_preconditioner`), solved there by a dense inverse.
-MAX_COARSE = 300
+#: Multigrid: the hierarchy ends at a level of at most this many unknowns, solved there by a
+#: dense inverse (one matrix-vector product). pyamg's ``max_coarse`` on the CPU
+#: (:func:`.linear.amg_preconditioner`) is 300; on a GPU, where each level of a V-cycle costs 16
+#: kernel launches and a 2000 x 2000 product no more than one, the hierarchy stops a level or
+#: two earlier (a 22400-pixel level: 2 levels above the dense one instead of 4).
+MAX_COARSE = 2000
 
 
-def pcg(A, b, x0, rtol: float, maxiter: int, preconditioner: Callable | None = None):
+#: PCG's convergence test on a device (:func:`pcg`): every this many iterations after the first
+#: test, the host reads the iteration's status (one synchronisation).
+CHECK_EVERY = 2
+
+
+def pcg(A, b, x0, rtol: float, maxiter: int, preconditioner: Callable | None = None, first_check: int = 1,
+        check_every: int = CHECK_EVERY):
     """Preconditioned CG on ``A x = b`` from x0 (None: zero) until the residual is at most
     ``rtol * |b|`` (as :func:`.linear.pcg`); returns (x, iterations, converged).
 
     A: (N, N) SPD, a sparse matrix or anything with ``A @ x`` (the Schur operator);
     b, x0: (N,) arrays of one module (NumPy or CuPy); preconditioner: SPD callable r -> z, None
-    for plain CG. Per iteration one product with A, one preconditioner application, three dot
-    products, and one host synchronisation (the residual test); the step lengths stay on the
-    device. Stops early, unconverged, where the residual is no longer finite.
+    for plain CG. Stops early, unconverged, where the residual is no longer finite.
+
+    Every scalar stays on the device: an iteration is the preconditioner, one product with A,
+    three dot products and three fused kernels (:func:`o3d_mvps.model.arrays.fused`), and the
+    residual test is made there too: once it passes, the iterations that follow change nothing
+    (the same x and iteration count as stopping there). The host reads the status (one
+    synchronisation) after ``first_check`` iterations and every ``check_every`` after: a solve
+    expected to take about ``first_check`` iterations synchronises once or twice, for at most
+    ``check_every - 1`` idle iterations.
     """
     xp = array_module(b)
-    b_norm = float(xp.linalg.norm(b))
-    if b_norm == 0.0:
-        return xp.zeros_like(b), 0, True
-    threshold = (rtol * b_norm) ** 2
+    bb = xp.dot(b, b)
+    threshold = (rtol * rtol) * bb
     if x0 is None:
-        x, r = xp.zeros_like(b), b.copy()
+        x, r = xp.zeros_like(b), b
     else:
-        x = x0.astype(b.dtype, copy=True)
+        x = _zero_if(bb, x0.astype(b.dtype))  # b = 0: x = 0, as on the host
         r = b - A @ x
-    rr = float(xp.dot(r, r))
-    if rr <= threshold:
-        return x, 0, True
+    active, iterations, status = _progress(True, -1, xp.dot(r, r), threshold)  # x0: iteration 0
     p = rz_previous = None
-    for iteration in range(1, maxiter + 1):
-        z = r if preconditioner is None else preconditioner(r)
-        rz = xp.dot(r, z)
-        if p is None:
-            p = z.copy()
+    next_check = max(1, min(first_check, maxiter))
+    with np.errstate(divide="ignore", invalid="ignore"):  # idle iterations may divide by zero
+        for iteration in range(1, maxiter + 1):
+            z = r if preconditioner is None else preconditioner(r)
+            rz = xp.dot(r, z)
+            p = z if p is None else _cg_direction(active, z, p, rz, rz_previous)
+            q = A @ p
+            x, r = _cg_step(active, x, r, p, q, rz, xp.dot(p, q))
+            rz_previous = rz
+            active, iterations, status = _progress(active, iterations, xp.dot(r, r), threshold)
+            if iteration == next_check or iteration == maxiter:
+                code = int(status)
+                if not code & 2:
+                    break
+                next_check += check_every
         else:
-            p *= rz / rz_previous
-            p += z
-        q = A @ p
-        alpha = rz / xp.dot(p, q)
-        x += alpha * p
-        r -= alpha * q
-        rz_previous = rz
-        rr = float(xp.dot(r, r))
-        if rr <= threshold:
-            return x, iteration, True
-        if not np.isfinite(rr):
-            return x, iteration, False
-    return x, maxiter, False
+            code = int(status)  # maxiter 0
+    return x, code >> 2, bool(code & 1)
+
+
+@fused
+def _zero_if(bb, x):
+    """x (N,), or zeros where ``bb`` (0-d) is zero."""
+    return array_module(x).where(bb == 0, 0.0, x)
+
+
+@fused
+def _cg_direction(active, z, p, rz, rz_previous):
+    """CG's next direction ``z + (rz / rz_previous) p`` (N,), p itself once ``active`` is False."""
+    return array_module(z).where(active, z + (rz / rz_previous) * p, p)
+
+
+@fused
+def _cg_step(active, x, r, p, q, rz, pq):
+    """CG's step ``x + alpha p``, ``r - alpha q`` (alpha = rz / pq), x and r themselves once
+    ``active`` is False."""
+    xp = array_module(x)
+    alpha = rz / pq
+    return xp.where(active, x + alpha * p, x), xp.where(active, r - alpha * q, r)
+
+
+@fused
+def _progress(was_active, iterations, rr, threshold):
+    """CG's state after an iteration of residual ``rr`` that ``was_active``: (active, iterations,
+    status), active while neither converged (rr <= threshold) nor broken down (rr not finite),
+    iterations counting the active ones, status ``4 iterations + 2 active + converged`` (what the host
+    reads, in one copy)."""
+    converged = rr <= threshold
+    iterations = iterations + was_active
+    active = was_active & ~converged & array_module(rr).isfinite(rr)
+    return active, iterations, 4 * iterations + 2 * active + converged
 
 
 def inverse_diagonal(A):
@@ -111,13 +155,17 @@ class JacobiSmoother:
         self._scaled = self.omega * self.inv_diag  # omega D^-1, once: one operation less per sweep
 
     def __call__(self, b, x=None):
-        """x (N,) after the sweeps on right-hand side b (N,), from x (N,; updated in place) or zero."""
+        """x (N,) after the sweeps on right-hand side b (N,), from x (N,) or zero (a new array:
+        neither is written)."""
         for _ in range(self.steps):
-            if x is None:
-                x = self._scaled * b
-            else:
-                x += self._scaled * (b - self.A @ x)
+            x = self._scaled * b if x is None else _jacobi_sweep(x, self._scaled, b, self.A @ x)
         return x
+
+
+@fused
+def _jacobi_sweep(x, scaled, b, Ax):
+    """One damped Jacobi sweep ``x + omega D^-1 (b - A x)`` (N,) (scaled: omega D^-1)."""
+    return x + scaled * (b - Ax)
 
 
 @dataclass
@@ -149,21 +197,42 @@ class ChebyshevSmoother:
             rho = rho_next
 
     def __call__(self, b, x=None):
-        """x (N,) after the steps on right-hand side b (N,), from x (N,; updated in place) or zero."""
+        """x (N,) after the steps on right-hand side b (N,), from x (N,) or zero (a new array:
+        neither is written). A step is one kernel (:func:`.kernels.chebyshev_update`: the product
+        with A and the vector updates in one pass)."""
         if x is None:
             r = b
-            d = self._first * r
-            x = d.copy()
-        else:
-            r = b - self.A @ x
-            d = self._first * r
-            x += d
+            d = x = self._first * r
+        else:  # the restart: r = b - A x, d = first r, x + d
+            r, d, x = _chebyshev_update(self.A, b, x, x, 0.0, self._first, x)
         for scale, diagonal in zip(self._scales, self._diagonals):
-            r = r - self.A @ d  # a new array: b is not written
-            d *= scale
-            d += diagonal * r
-            x += d
+            r, d, x = _chebyshev_update(self.A, r, d, d, scale, diagonal, x)
         return x
+
+
+def _chebyshev_update(A, r, v, d, scale: float, diagonal, x):
+    """(r - A v, scale d + diagonal r_new, x + d_new), new (N,) arrays each, in one kernel on a
+    GPU (on the host, where only the tests run this module's multigrid, by SciPy's product: the
+    per-call start of numba's threads would cost more on their small systems)."""
+    xp = array_module(r)
+    if xp is np:
+        r = r - A @ v
+        d = d * scale + diagonal * r
+        return r, d, x + d
+    outputs = tuple(xp.empty_like(r) for _ in range(3))
+    kernels_for(r).chebyshev_update(A.indptr, A.indices, A.data, r, v, d, float(scale), diagonal, x, *outputs)
+    return outputs
+
+
+def _multiply_add(A, alpha: float, v, y):
+    """``y + alpha A v`` (N,), a new array, for A (N, M) sparse CSR, in one kernel on a GPU (by
+    SciPy's product on the host, as :func:`_chebyshev_update`)."""
+    xp = array_module(y)
+    if xp is np:
+        return y + alpha * (A @ v)
+    out = xp.empty_like(y)
+    kernels_for(y).csr_multiply_add(A.indptr, A.indices, A.data, float(alpha), v, y, out)
+    return out
 
 
 def jacobi_preconditioner(A) -> JacobiSmoother:
@@ -254,8 +323,8 @@ class Multigrid:
             return self.coarse_inverse @ b
         level = self.levels[k]
         x = level.smoother(b)
-        x += level.P @ self._cycle(k + 1, level.R @ (b - level.A @ x))
-        return level.smoother(b, x)
+        coarse = self._cycle(k + 1, level.R @ _multiply_add(level.A, -1.0, x, b))
+        return level.smoother(b, _multiply_add(level.P, 1.0, coarse, x))
 
     @property
     def operator_complexity(self) -> float:

@@ -82,6 +82,15 @@ def pcg(matrix, rhs: np.ndarray, x0: np.ndarray, rtol: float, maxiter: int,
     return x, count[0], info == 0
 
 
+#: The CUDA path's last CG iteration count per kind of system (the joint step's Schur operator,
+#: the depth step's matrix): where :func:`.krylov.pcg` first reads its status back, one iteration
+#: before it (the sweeps, and with the multigrid the levels, take similar counts). A guess of
+#: when to test, which changes the number of host synchronisations and idle iterations, never
+#: the result. FIRST_CHECK: the guess for a kind not solved yet in this process.
+_CG_ITERATIONS: dict[str, int] = {}
+FIRST_CHECK = 6
+
+
 def solve_spd(matrix, rhs: np.ndarray, rtol: float, maxiter: int, sparse_part=None,
               pixel_prolongations: Callable[[], list] | None = None) -> tuple[np.ndarray, int]:
     """PCG from zero on ``matrix`` ((N, N) sparse SPD, or an operator whose sparse part
@@ -102,8 +111,11 @@ def solve_spd(matrix, rhs: np.ndarray, rtol: float, maxiter: int, sparse_part=No
     if on_gpu(rhs):
         if pixel_prolongations is None:
             raise ValueError("solve_spd on the CUDA path needs the pixels' aggregation (pixel_prolongations=)")
+        kind = type(matrix).__name__  # the joint step's Schur operator, or the depth step's matrix
         x, iterations, _ = krylov.pcg(matrix, rhs, None, rtol, maxiter,
-                                      krylov.multigrid_preconditioner(sparse, pixel_prolongations()))
+                                      krylov.multigrid_preconditioner(sparse, pixel_prolongations()),
+                                      first_check=_CG_ITERATIONS.get(kind, FIRST_CHECK + 1) - 1)
+        _CG_ITERATIONS[kind] = max(iterations, 1)
         return x, iterations
     x, iterations, _ = pcg(matrix, rhs, np.zeros_like(rhs), rtol, maxiter, amg_preconditioner(sparse))
     return x, iterations

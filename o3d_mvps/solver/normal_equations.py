@@ -23,8 +23,8 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse as sp
 
-from ..model.arrays import array_module, like, linear_operator, sparse_module
-from .device import kernels_for, to_host
+from ..model.arrays import array_module, fused, like, linear_operator, sparse_module
+from .device import kernels_for, on_gpu, to_host
 from .pose import pose_jacobian
 from .problem import Estimate, Evaluation, LevelProblem
 
@@ -49,15 +49,20 @@ class JointSystem:
         """(S, rhs): ``S = M - U H^-1 U^T`` as an operator (:func:`~o3d_mvps.model.arrays.linear_operator`) and
         its right-hand side ``b_z - U H^-1 b_xi``. S is applied as M x - U (H^-1 (U^T x)): two
         passes over U per product, where forming U H^-1 (N, 6m) once cost as much as twenty
-        products. The small solve with H (6m, 6m) runs on the host (on the GPU path, 6m numbers
-        go there and back per product)."""
+        products. The small solve with H (6m, 6m) runs on the host; on the GPU path H^-1 goes to
+        the device once (no copy per product)."""
         M, U = self.matrix, self.coupling
         if not self.frames:
             return linear_operator(M.shape, lambda x: M @ x.ravel(), self.rhs_z), self.rhs_z
         factor = _cholesky(self.hessian)
+        if on_gpu(U):  # H^-1 on the device, once: no copy either way per product
+            inverse = like(scipy.linalg.cho_solve(factor, np.eye(len(self.hessian))), U)
 
-        def solve_h(y):
-            return like(scipy.linalg.cho_solve(factor, to_host(y)), U)
+            def solve_h(y):
+                return inverse @ like(y, inverse)  # rhs_xi comes from the host
+        else:
+            def solve_h(y):
+                return like(scipy.linalg.cho_solve(factor, to_host(y)), U)
 
         def matvec(x):
             x = x.ravel()
@@ -113,8 +118,13 @@ def _reference_parallax(albedo: np.ndarray, dshading: np.ndarray, ray: np.ndarra
 
 
 def _row_dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """sum_j a[:, j] b[:, j] of two (N, 3) arrays: (N,)."""
-    return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
+    """sum_j a[:, j] b[:, j] of two (N, 3) arrays: (N,) (one kernel on a GPU)."""
+    return _dot3(a[:, 0], a[:, 1], a[:, 2], b[:, 0], b[:, 1], b[:, 2])
+
+
+@fused
+def _dot3(a0, a1, a2, b0, b1, b2):
+    return a0 * b0 + a1 * b1 + a2 * b2
 
 
 #: Reference pixels per block of the joint assembly. Every per-pixel array of the refined

@@ -114,6 +114,7 @@ class LevelProblem:
         self.lam = float(cauchy_lambda)
         self.n_frames = len(level.images)
         self._prolongations = None
+        self._pixels = None
         self.visibility = like(np.ones((self.n_frames, level.grid.size), dtype=bool), level.grid.u)
         #: the level's intrinsics (3, 3) where its arrays live, for the kernels
         self.device_K = like(level.K, level.grid.u)
@@ -130,8 +131,9 @@ class LevelProblem:
     # geometry ----------------------------------------------------------------------------
     def points(self, z: np.ndarray) -> np.ndarray:
         """Reference-camera points (N, 3) of the masked depth z (N,)."""
-        g = self.level.grid
-        return backproject(z, self.level.K, g.u.astype(np.float64), g.v.astype(np.float64))
+        if self._pixels is None:  # float64 pixel coordinates, once per level
+            self._pixels = (self.level.grid.u.astype(np.float64), self.level.grid.v.astype(np.float64))
+        return backproject(z, self.level.K, *self._pixels)
 
     def normals(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Unit normals (N, 3) and dA (N,) of z."""
@@ -210,8 +212,12 @@ class LevelProblem:
         color = xp.empty((n, N, 3), dtype=np.float32)  # sampled from float32 images
         usable = xp.empty((n, N), dtype=bool)
         poses = like(est.poses, P)  # one copy to the GPU for all the frames
-        for i in range(n):
-            self._warp_sample(i, poses[i], P, color[i], usable[i])
+        if self.level.image_stack is not None:  # the GPU: every frame in one launch
+            kernels_for(P).warp_sample_frames(P, poses, self.device_K, self.level.image_stack, self.visibility, color,
+                                              usable)
+        else:
+            for i in range(n):
+                self._warp_sample(i, poses[i], P, color[i], usable[i])
         return self.evaluate_samples(est, color, usable, *self.normals(est.z))
 
     def evaluate_samples(self, est: Estimate, color: np.ndarray, usable: np.ndarray, normals: np.ndarray,

@@ -56,11 +56,11 @@ class DepthPrior:
     def energy(self, z: np.ndarray, tau: float, mu: float) -> float:
         """tau ||D z - z0||^2 + mu ||S z||^2 of depth z (N,) metres."""
         d = self.D @ z - self.z0
-        e = tau * float(d @ d)
+        e = tau * (d @ d)
         if mu > 0 and self.S is not None:
             s = self.S @ z
-            e += mu * float(s @ s)
-        return e
+            e = e + mu * (s @ s)
+        return float(e)  # one copy to the host (a synchronisation on a GPU)
 
     @cached_property
     def DtD(self) -> sp.csr_matrix:
@@ -150,6 +150,8 @@ class Level:
     images: per frame an (H, W, 3) float32 linear RGB image (its gradients are sampled from it:
         :func:`.kernels.image_gradients_at`).
     frame_masks: per frame an (H, W) bool mask or None. prior: the depth prior.
+    image_stack: on a GPU, the images as one (n, H, W, 3) array (``images`` are its frames),
+        for kernels over every frame at once; None on the host.
     """
 
     index: int
@@ -159,6 +161,7 @@ class Level:
     images: list
     frame_masks: list
     prior: DepthPrior
+    image_stack: object = None
 
     def on_device(self, device) -> "Level":
         """This level with its grid, images and prior on ``device`` (an
@@ -166,8 +169,9 @@ class Level:
         host (the visibility test runs there)."""
         if device.xp is np:
             return self
-        return replace(self, grid=self.grid.on_device(device), images=[device.asarray(i) for i in self.images],
-                       prior=self.prior.on_device(device))
+        stack = device.asarray(np.stack(self.images))  # one copy; the frames' images are views of it
+        return replace(self, grid=self.grid.on_device(device), images=[stack[i] for i in range(len(stack))],
+                       image_stack=stack, prior=self.prior.on_device(device))
 
 
 def build_level(index: int, colors: list, masks: list, ref_mask: np.ndarray, K: np.ndarray, z0: np.ndarray,

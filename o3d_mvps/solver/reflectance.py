@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..model.arrays import array_module
-from .device import kernels_for, to_host
+from .device import kernels_for, on_gpu, to_host
 from .problem import Estimate, Evaluation
 
 
@@ -33,6 +33,12 @@ def update_lighting(est: Estimate, ev: Evaluation, lam: float, light) -> np.ndar
     n, k = est.lights.shape
     gram, rhs = np.zeros((n, k, k)), np.zeros((n, k))
     counts = to_host(ev.usable.sum(axis=1))
+    if on_gpu(wr2):  # every frame's system in three launches and two copies (the host's loop: 5 a frame)
+        basis = ev.basis  # (n, N, k), or (1, N, k) shared
+        gram = to_host(xp.matmul((basis * wr2[:, :, None]).transpose(0, 2, 1), basis))
+        rhs = to_host(xp.matmul(wri[:, None, :], basis)[:, 0])
+        gram[counts < 8], rhs[counts < 8] = 0.0, 0.0
+        return light.fit(gram, rhs, est.lights)
     for i in range(n):
         if counts[i] >= 8:
             m = ev.frame_basis(i)  # (N, k)

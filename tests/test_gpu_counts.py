@@ -1,0 +1,46 @@
+"""The CUDA path's kernel launches and host-device copies per sweep, counted on the CuPy stand-in
+(tests/cupy_emulation.py: every array operation a launch, a fused kernel one) by the counting of
+``python -m benchmarks.gpu count``, on the saved problems of tests/test_cuda_path.py with every
+level on the device. The counts are deterministic (the same operations every run): the bounds
+are the counts measured at this commit, so that a change that adds launches to a sweep fails
+here. Before issue 33's item 4 (commit 0ece6d0) the same counts were: LED problem 719 launches
+and 108 copies per sweep on its finer level, room problem 722 and 84.
+"""
+
+import shutil
+
+import pytest
+
+from benchmarks import gpu
+
+#: (problem, level) -> (launches per sweep, copies per sweep, host reads per linear solve): at most
+BOUNDS = {("led", 1): (474, 57, 4), ("led", 0): (516, 59, 4), ("room", 0): (563, 71, 1)}
+
+
+@pytest.fixture(scope="module")
+def counts(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("problems")
+    for case in ("led", "room"):
+        shutil.copy(f"tests/data/cuda_path_{case}.npz", folder)
+    rows = gpu.count(folder, out=tmp_path_factory.mktemp("out"), min_level_pixels=0)
+    return {row["problem"].split("_")[-1].split(".")[0]: row for row in rows}
+
+
+def test_launches_and_copies_per_sweep_stay_within_the_measured_counts(counts):
+    for (case, index), (launches, copies, reads) in BOUNDS.items():
+        row = counts[case]
+        level = next(level for level in row["levels"] if level["level"] == index)
+        assert level["device"] == "cuda-emulated" and level["sweeps"] >= 1
+        assert level["launches_per_sweep"] <= launches, (case, index, level)
+        assert level["transfers_per_sweep"] <= copies, (case, index, level)
+        assert row["linear_solves"] >= 1 and row["host_reads_per_linear_solve"]["max"] <= reads, row
+        # the fused kernels count: one launch each
+        assert row["by_kind"]["fused"] > 0
+
+
+def test_the_counts_are_deterministic(counts, tmp_path):
+    folder = tmp_path / "problems"
+    folder.mkdir()
+    shutil.copy("tests/data/cuda_path_led.npz", folder)
+    again = gpu.count(folder, out=tmp_path, min_level_pixels=0)[0]
+    assert again["by_kind"] == counts["led"]["by_kind"]
