@@ -28,7 +28,7 @@ import numpy as np
 from o3d_mvps import RefineOptions, refine
 from o3d_mvps.baselines import bicubic
 from o3d_mvps.fileio import json_text
-from o3d_mvps.metrics import evaluate, evaluation_mask, lowpass_difference_permille
+from o3d_mvps.metrics import albedo_error, evaluate, evaluation_mask, lowpass_difference_permille
 from o3d_mvps.synthetic import render_static_capture
 
 FULL = {"size": (640, 480), "scale_factor": 2, "frames": 20}
@@ -64,11 +64,14 @@ def measure(mesh: str = "bunny", size=(640, 480), scale_factor: int = 2, frames:
         scores["mae_dark_deg"] = evaluate(result, gt, dark)["mae_deg"]
         mask = evaluation_mask(result, capture.groundtruth) & cubic.mask_array()
         scores["lowpass_p95_permille"] = lowpass_difference_permille(result.depth_array(), cubic.depth_array(), mask)
+        if result.albedo is not None:
+            scores["albedo_error"] = albedo_error(result.albedo_array(), gt.albedo, mask)
         rows[name] = scores
     poses = ours.poses.numpy()
     return {
         "mesh": mesh, "size": list(size), "scale_factor": scale_factor, "frames": frames, "sensor": sensor,
         "seed": seed, "seconds": seconds, "camera": ours.info["camera"],
+        "stages_s": {k: round(float(v), 3) for k, v in ours.timings.items()},
         "light_model": ours.info.get("light_selection", {}).get("chosen", "sh"),
         "max_pose_deviation": float(np.abs(poses - np.eye(4)).max()),
         "warnings": [str(w.message) for w in caught], "methods": rows,
@@ -81,10 +84,14 @@ def markdown(result: dict) -> str:
              f"{result['frames']} frames, sensor {result['sensor']}", "",
              f"Camera: {result['camera']['detail']}; poses moved {result['max_pose_deviation']:.2g} from the "
              f"identity; refine {result['seconds']:.1f} s.", "",
-             "| method | normal MAE (deg) | MAE, darkest quarter (deg) | depth RMSE (mm) | low-pass p95 (per mille) |",
-             "|---|---:|---:|---:|---:|"]
+             f"Light model: {result['light_model']}. Refine stages (s): "
+             + ", ".join(f"{k} {v:.1f}" for k, v in result.get("stages_s", {}).items() if v >= 0.05) + ".", "",
+             "| method | normal MAE (deg) | MAE, darkest quarter (deg) | depth RMSE (mm) | low-pass p95 (per mille) "
+             "| albedo error (%) |",
+             "|---|---:|---:|---:|---:|---:|"]
     lines += [f"| {name} | {r['mae_deg']:.2f} | {r['mae_dark_deg']:.2f} | {r['rmse_mm']:.2f} | "
-              f"{r['lowpass_p95_permille']:.2f} |"
+              f"{r['lowpass_p95_permille']:.2f} | "
+              + (f"{100 * r['albedo_error']:.1f} |" if "albedo_error" in r else " |")
               for name, r in result["methods"].items()]
     return "\n".join(lines) + "\n"
 

@@ -96,10 +96,11 @@ def test_capture_json_camera_round_trip_and_bad_value(tmp_path):
 
 
 def test_light_model_of_a_static_capture(static):
-    """A static capture that does not say what lit it gets per-frame SH; a declared light or a
-    chosen model wins."""
+    """A static capture that does not say what lit it leaves the choice to the data (per-frame SH
+    or point lights: :func:`select_light_model`); a declared light or a chosen model wins."""
     declared = replace(static, camera="static")
-    assert with_light_model(RefineOptions(), declared).light_model == "sh"
+    assert with_light_model(RefineOptions(), declared).light_model is None
+    assert with_light_model(RefineOptions(), replace(declared, light="point")).light_model == "point"
     assert with_light_model(RefineOptions(), replace(declared, light="led")).light_model == "led"
     assert with_light_model(RefineOptions(light_model="room"), declared).light_model == "room"
 
