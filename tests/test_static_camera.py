@@ -106,13 +106,13 @@ def test_light_model_of_a_static_capture(static):
 
 
 def test_problem_without_registration(static, monkeypatch):
-    """The solver's input: every frame, identity poses, pose refinement off, SH light; the
-    registration is never called."""
+    """The solver's input: every frame, identity poses, pose refinement off, the light model left to
+    the data (per-frame SH or point lights); the registration is never called."""
     monkeypatch.setattr("o3d_mvps.odometry.register_frames", lambda *a, **k: pytest.fail("registered"))
     problem, views = problem_from_capture(replace(static, camera="static"), RefineOptions(progress=False))
     assert problem.frames == list(range(12)) and views is None
     np.testing.assert_array_equal(problem.initial_poses, np.tile(np.eye(4), (12, 1, 1)))
-    assert problem.options.refine_poses is False and problem.options.light_model == "sh"
+    assert problem.options.refine_poses is False and problem.options.light_model is None
 
 
 def test_refine_a_static_capture(monkeypatch):
