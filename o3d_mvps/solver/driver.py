@@ -46,6 +46,12 @@ from .solution import SolverOutput
 from .weighting import evidence_weights, lowpass_sigma, normal_evidence, tie_low_frequencies
 
 
+#: levels with more object pixels than this refit the point lights' positions in their first sweep
+#: only (the lighting step refits ambient and intensity in every sweep): the coarse levels place
+#: the lights, and the refit's line search costs a full evaluation
+POINT_FIT_MAX_PIXELS = 20000
+
+
 def normalised_tau(tau_tilde: float, n_frames: int, mean_intensity: float, n_hr: int, mean_z0: float, n_lr: int,
                    channels: int = 3) -> float:
     """tau = tau~ n mean(I)^2 |Omega_HR| |C| / (mean(z0)^2 |Omega_LR|) (paper section 5.1)."""
@@ -157,8 +163,8 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
         ev = problem.reevaluate(est, ev, overwrite=True)
         if refine_offset:
             est.led_offset, ev = update_led_offset(problem, est, ev, min_decrease=0.1 * options.tolerance * ev.energy)
-        if problem.light.name == "point":
-            est.lights, est.led_offset, ev = fit_point_lights(problem, est, ev)
+        if problem.light.name == "point" and (iteration == 1 or level.grid.size <= POINT_FIT_MAX_PIXELS):
+            ev = fit_point_lights(problem, est, ev)
         timings["albedo_lighting"] += time.perf_counter() - t
         if options.extrapolate:
             t = time.perf_counter()
@@ -384,7 +390,7 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
         timings["setup"] += time.perf_counter() - t
         if first and light.name == "point":  # the lights' start, from per-frame SH on the first level
             t = time.perf_counter()
-            initial_point_lights(problem, est, problem.evaluate(est))[2].release()
+            initial_point_lights(problem, est, problem.evaluate(est)).release()
             timings["point_lights"] += time.perf_counter() - t
         history.extend(_sweeps(problem, est, options, timings, stats, anchors, pose_log))
         if tie_sigma is not None:

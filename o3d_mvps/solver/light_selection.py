@@ -144,7 +144,7 @@ def _held_out_score(problem_input: SolverInput, level, name: str, held_out: np.n
     color, usable, normals, dA = samples
     ev = problem.evaluate_samples(est, color, usable & ~held_out[None, :], normals, dA)  # fit on the other half
     if name == "point":
-        est.lights, est.led_offset, ev = initial_point_lights(problem, est, ev)
+        ev = initial_point_lights(problem, est, ev)
     for _ in range(SWEEPS):
         est.albedo = update_albedo(est, ev, problem.lam)
         ev = problem.reevaluate(est, ev, overwrite=True)
@@ -153,7 +153,7 @@ def _held_out_score(problem_input: SolverInput, level, name: str, held_out: np.n
         if name == "led":
             est.led_offset, ev = update_led_offset(problem, est, ev)
         if name == "point":
-            est.lights, est.led_offset, ev = fit_point_lights(problem, est, ev)
+            ev = fit_point_lights(problem, est, ev)
     ev = problem.evaluate_samples(est, color, usable, normals, dA)  # the held-out pixels' albedo under these lights
     for _ in range(2):  # the albedo's IRLS weights settle
         est.albedo = update_albedo(est, ev, problem.lam)

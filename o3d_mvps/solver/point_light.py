@@ -12,7 +12,7 @@ import dataclasses
 import numpy as np
 
 from ..model.robust import cauchy, cauchy_weights
-from ..model.shading import led_vectors
+from ..model.shading import led_vector_jacobian, led_vectors
 from .device import to_host
 from .lighting import PointLight, SHLight, lit_point_gradients
 from .reflectance import update_albedo, update_lighting
@@ -79,36 +79,103 @@ def _host_samples(problem, est, ev, max_pixels: int):
             *(to_host(a[spread]) for a in (ev.normals, problem.points(est.z), est.albedo)))
 
 
-def fit_point_lights(problem, est, ev, *, iterations: int = POINT_LM_ITERATIONS, max_pixels: int = 2000):
+def _frames_shading(X: np.ndarray, normals: np.ndarray, points: np.ndarray) -> tuple:
+    """Shading (n, M) of n frames' lights X (n, 5) = (ambient, intensity, position) on unit
+    normals and points (M, 3), and the unclamped irradiances <n, v> (n, M)."""
+    g = np.einsum("mj,nmj->nm", normals, led_vectors(points, X[:, 2:]))
+    return X[:, :1] + X[:, 1:2] * np.maximum(g, 0.0), g
+
+
+def _projected_albedo(colour: np.ndarray, shading: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Per pixel and channel the albedo (M, 3) minimising sum_i w (I - rho s)^2 over the frames:
+    colour (n, M, 3), shading (n, M), weights (n, M, 3) (zero where unusable)."""
+    num = np.einsum("nmc,nm->mc", weights * colour, shading)
+    den = np.einsum("nmc,nm->mc", weights, shading**2)
+    return np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
+
+
+def _fit_projected(X: np.ndarray, colour: np.ndarray, usable: np.ndarray, normals: np.ndarray, points: np.ndarray,
+                   lam: float, iterations: int) -> np.ndarray:
+    """All frames' point lights X (n, 5) at once, the albedo projected out (variable projection):
+    Levenberg-Marquardt on the IRLS model whose normal matrix is the Schur complement of the
+    per-pixel albedo, so that lights and albedo move together. Fitted in turn, a common falloff
+    passes slowly between them (the albedo takes the light's misfit, the lights fit that albedo):
+    on a quilt the lamps settled 1.3-1.55 times too far away. colour (n, M, 3), usable (n, M),
+    normals, points (M, 3); returns X (n, 5)."""
+    n, M = usable.shape
+    u = usable[..., None].astype(np.float64)
+
+    def state(X, w):
+        shading, g = _frames_shading(X, normals, points)
+        rho = _projected_albedo(colour, shading, w)
+        r = (colour - rho[None] * shading[..., None]) * u
+        return shading, g, rho, r, float((cauchy(r, lam) * u).sum())
+
+    w = u
+    shading, g, rho, r, energy = state(X, w)
+    damping = 1e-3
+    for _ in range(iterations):
+        w = cauchy_weights(r, lam) * u
+        shading, g, rho, r, energy = state(X, w)  # the albedo of these weights
+        lit = g > 0
+        dpos = -led_vector_jacobian(points, X[:, 2:], normals) * (X[:, 1:2] * lit)[..., None]  # (n, M, 3)
+        J = np.concatenate([np.ones((n, M, 1)), np.maximum(g, 0.0)[..., None], dpos], axis=2)  # (n, M, 5)
+        wr2 = w * rho[None] ** 2
+        S = np.zeros((n, 5, n, 5))
+        S[np.arange(n), :, np.arange(n), :] = np.einsum("nmc,nmk,nml->nkl", wr2, J, J)
+        b = np.einsum("nmc,nmk->nk", w * r * rho[None], J).ravel()
+        C = (w * rho[None] * shading[..., None])[..., None] * J[:, :, None, :]  # (n, M, 3, 5): lights x albedo
+        C = C.transpose(1, 2, 0, 3).reshape(M * 3, n * 5)
+        A = np.einsum("nmc,nm->mc", w, shading**2).reshape(-1)
+        S = S.reshape(n * 5, n * 5) - (C / np.maximum(A, 1e-300)[:, None]).T @ C
+        diagonal = np.maximum(np.diag(S), 1e-12 * max(float(np.trace(S)), 1e-300))
+        while damping < 1e8:
+            try:
+                step = np.linalg.solve(S + damping * np.diag(diagonal), b)
+            except np.linalg.LinAlgError:
+                step = None
+            if step is not None and np.isfinite(step).all():
+                trial = X + step.reshape(n, 5)
+                found = state(trial, w)
+                if np.isfinite(found[-1]) and found[-1] < energy:
+                    X, (shading, g, rho, r, energy) = trial, found
+                    damping = max(damping / 4.0, 1e-6)
+                    break
+            damping *= 8.0
+        else:
+            break
+    return X
+
+
+def fit_point_lights(problem, est, ev, *, iterations: int = POINT_LM_ITERATIONS, max_pixels: int = 1500):
     """Every frame's point light (ambient, intensity, position) refitted to the images with the
-    depth and albedo fixed (:class:`PointLight`): per frame, Levenberg-Marquardt on at most
-    ``max_pixels`` evenly spread usable pixels (five unknowns need few). Returns (lights (n, 2),
-    positions (n, 3), evaluation): the new lights where they lower the full energy, else
-    ``est``'s and ``ev``."""
+    depth fixed and the albedo projected out (:func:`_fit_projected`, on at most ``max_pixels``
+    evenly spread pixels: 5 unknowns per frame need few), then the albedo refitted
+    (:func:`.reflectance.update_albedo`). Updates ``est``'s lights, positions (``led_offset``)
+    and albedo in place where that lowers the level's energy and returns the evaluation (else
+    ``ev``)."""
     light = problem.light_model(est)
-    usable, colour, normals, points, albedo = _host_samples(problem, est, ev, max_pixels)
-    lights, positions = est.lights.copy(), light.offset.copy()
-    for i in range(problem.n_frames):
-        use = usable[i]
-        if use.sum() < 8:
-            continue
-        x, _ = _fit_point_light(np.r_[lights[i], positions[i]], colour[i, use], albedo[use], normals[use],
-                                points[use], problem.lam, iterations)
-        lights[i], positions[i] = x[:2], x[2:]
-    moved = dataclasses.replace(est, lights=lights, led_offset=positions)
+    usable, colour, normals, points, _ = _host_samples(problem, est, ev, max_pixels)
+    X = _fit_projected(np.concatenate([est.lights, light.offset], axis=1), colour, usable, normals, points,
+                       problem.lam, iterations)
+    moved = dataclasses.replace(est, lights=X[:, :2].copy(), led_offset=X[:, 2:].copy())
     trial = problem.evaluate_samples(moved, ev.color, ev.usable, ev.normals, ev.dA)
+    moved.albedo = update_albedo(moved, trial, problem.lam)
+    trial = problem.reevaluate(moved, trial, overwrite=True)
     if trial.energy < ev.energy:
-        return lights, positions, trial
-    return est.lights, light.offset, ev
+        est.lights, est.led_offset, est.albedo = moved.lights, moved.led_offset, moved.albedo
+        return trial
+    return ev
 
 
 def initial_point_lights(problem, est, ev, *, sweeps: int = 4, max_pixels: int = 4000):
     """Starting point lights for :class:`PointLight` on a (coarse) level: per-frame SH lights
     fitted with the albedo (``sweeps`` rounds), then per frame the point light along the SH
     light's direction from the object's centroid at each of :data:`POINT_START_DISTANCES`
-    times its distance from the camera, refined by :func:`_fit_point_light`, the best kept.
-    est (its albedo is refitted in place), ev its evaluation (its usable pixels are those fitted).
-    Returns (lights (n, 2), positions (n, 3), evaluation)."""
+    times its distance from the camera, refined by :func:`_fit_point_light` with that albedo, the
+    best kept; then all together with the albedo (:func:`fit_point_lights`). Updates est's
+    lights, positions (``led_offset``) and albedo in place; ev its evaluation (its usable pixels
+    are those fitted). Returns the evaluation of the result."""
     sh_problem = copy.copy(problem)
     sh_problem.light = SHLight()
     sh_est = dataclasses.replace(est, albedo=est.albedo.copy(), lights=sh_problem.light.initial_lights(problem.n_frames, 0.0),
@@ -138,4 +205,5 @@ def initial_point_lights(problem, est, ev, *, sweeps: int = 4, max_pixels: int =
                 best = fitted
         lights[i], positions[i] = best[0][:2], best[0][2:]
     est.lights, est.led_offset = lights, positions
-    return lights, positions, problem.evaluate_samples(est, ev.color, ev.usable, ev.normals, ev.dA)
+    return fit_point_lights(problem, est, problem.evaluate_samples(est, ev.color, ev.usable, ev.normals, ev.dA),
+                            iterations=4 * POINT_LM_ITERATIONS)
