@@ -1,8 +1,8 @@
 """The light model chosen from the data (issue #32, item 2).
 
-Each candidate of :data:`.lighting.LIGHT_MODELS` is fitted on one coarse pyramid level (about
-:data:`LEVEL_PIXELS` object pixels) with the initial depth and poses: a few sweeps of the
-closed-form albedo and lighting updates (and the LED offset), on half of the reference pixels
+Each candidate (:data:`STATIC_CANDIDATES` or :data:`MOVING_CANDIDATES`) is fitted on one coarse
+pyramid level (about :data:`LEVEL_PIXELS` object pixels) with the initial depth and poses: a few
+sweeps of the closed-form albedo and lighting updates (and the LED offset or the point lights), on half of the reference pixels
 (a checkerboard). On the other half the albedo is then fitted per pixel under the fitted lights
 and the score is the robust RMS of those held-out residuals,
 ``sqrt(2 mean phi(r))`` (linear intensity, Cauchy scale :data:`SCORE_CAUCHY_LAMBDA`): a model with
@@ -80,7 +80,8 @@ def select_light_model(problem_input: SolverInput, ref_mask: np.ndarray, declare
     held_out = to_host((g.u + g.v) % 2 == 1)
     samples = None  # the same depth and poses for every model: the frames warped once
     scores = {}
-    candidates = tuple(dict.fromkeys((STATIC_CANDIDATES if static else MOVING_CANDIDATES) + ((declared,) if declared else ())))
+    candidates = STATIC_CANDIDATES if static else MOVING_CANDIDATES
+    candidates = tuple(dict.fromkeys(candidates + ((declared,) if declared else ())))
     for name in candidates:
         scores[name], samples = _held_out_score(problem_input, level, name, held_out, samples, occlusion_test,
                                                 occlusion_tolerance)
@@ -134,7 +135,8 @@ def _held_out_score(problem_input: SolverInput, level, name: str, held_out: np.n
     z = resize(fill_nearest_valid(z0, z0 > 0), level.size, interpolation=cv2.INTER_LINEAR)
     est = Estimate(level.prior.clip(g.gather(z)), g.gather(level.images[0]).astype(np.float64),
                    light.initial_lights(problem_input.n_frames, mean_z0), problem_input.initial_poses.copy(),
-                   light.offset.copy() if name == "led" else np.zeros((problem_input.n_frames, 3)) if name == "point" else None)
+                   light.offset.copy() if name == "led"
+                   else np.zeros((problem_input.n_frames, 3)) if name == "point" else None)
     problem = LevelProblem(level, 0.0, SCORE_CAUCHY_LAMBDA, light)
     if samples is None:
         problem.update_visibility(est, occlusion_test=occlusion_test, rel_tol=occlusion_tolerance,

@@ -190,8 +190,8 @@ def initial_point_lights(problem, est, ev, *, sweeps: int = 4, max_pixels: int =
     are those fitted). Returns the evaluation of the result."""
     sh_problem = copy.copy(problem)
     sh_problem.light = SHLight()
-    sh_est = dataclasses.replace(est, albedo=est.albedo.copy(), lights=sh_problem.light.initial_lights(problem.n_frames, 0.0),
-                                 led_offset=None)
+    sh_est = dataclasses.replace(est, albedo=est.albedo.copy(), led_offset=None,
+                                 lights=sh_problem.light.initial_lights(problem.n_frames, 0.0))
     sh_ev = sh_problem.evaluate_samples(sh_est, ev.color, ev.usable, ev.normals, ev.dA)
     for _ in range(sweeps):
         sh_est.albedo = update_albedo(sh_est, sh_ev, problem.lam)
