@@ -95,3 +95,16 @@ def test_capture_json_declares_a_point_light(tmp_path):
     settings_file.write_text(settings_file.read_text().replace('"point"', '"torch"'))
     with pytest.raises(CaptureError, match="capture.json: light must be one of 'led', 'room', 'point'.*got 'torch'"):
         read_capture(tmp_path / "c")
+
+
+def test_point_model_keeps_the_poses_and_says_so():
+    """Asked to refine poses, the point model keeps them (a free lamp per frame would absorb a
+    pose's shading) and warns, naming the LED model for a camera that moved."""
+    scene = quilt_scene(frames=3, size=(64, 48))
+    kicked = np.tile(np.eye(4), (3, 1, 1))
+    kicked[1, 0, 3] = 0.002
+    opts = RefineOptions(progress=False, light_model="point", levels=1, max_iterations=1)
+    with pytest.warns(UserWarning, match="point light model .* keeps the initial poses.*--light-model led"):
+        out = solve(SolverInput(scene["colors"], scene["depths"], [None] * 3, scene["K"], scene["depth_K"], 2, kicked,
+                                np.zeros(3), [0, 1, 2], opts))
+    np.testing.assert_array_equal(out.poses, kicked)

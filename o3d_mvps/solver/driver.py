@@ -14,6 +14,7 @@ carry over (the authors' code reset lighting at every level).
 from __future__ import annotations
 
 import time
+import warnings
 from collections import defaultdict
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -334,6 +335,10 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
         n_levels -= 1
     light = make_light_model(options.light_model, initial_sh=options.initial_light,
                              led_offset=problem_input.led_offset)
+    if light.name == "point" and options.refine_poses and n_frames > 1:
+        warnings.warn("the point light model (a lamp per frame, for a static camera) keeps the initial poses: "
+                      "they are not refined; for a camera that moved with its own LED use --light-model led "
+                      "(RefineOptions(light_model='led'))", stacklevel=3)
     smoothness = options.model.smoothness_weight()
     if smoothness == AUTO:
         smoothness = auto_smoothness(options.tau, z0, ref_mask, sf, K)
