@@ -22,11 +22,13 @@ Writes ``static.json`` and ``static.md``.
 
 from __future__ import annotations
 
+import os
 import time
 import warnings
 from dataclasses import replace
 from pathlib import Path
 
+import numba
 import numpy as np
 
 from o3d_mvps import RefineOptions, refine
@@ -98,6 +100,9 @@ def measure(mesh: str = "bunny", size=(640, 480), scale_factor: int = 2, frames:
     return {
         "mesh": mesh, "size": list(size), "scale_factor": scale_factor, "frames": frames, "sensor": sensor,
         "seed": seed, "seconds": seconds, "camera": ours.info["camera"],
+        # numba's parallel kernels on a machine busy with other jobs: each launch waited ~24 ms for
+        # its threads (a 320x240 refine 51-103 s with 2 threads at load 12-17, 5.1 s with one)
+        "numba_threads": numba.get_num_threads(), "load_average": round(os.getloadavg()[0], 1),
         "stages_s": {k: round(float(v), 3) for k, v in ours.timings.items()},
         "light_model": ours.info["light_selection"]["chosen"],
         "light_selection": ours.info["light_selection"]["why"],
@@ -111,7 +116,8 @@ def markdown(result: dict) -> str:
     lines = [f"# Static camera, moving light: {result['mesh']}, {W}x{H} colour, SF {result['scale_factor']}, "
              f"{result['frames']} frames, sensor {result['sensor']}", "",
              f"Camera: {result['camera']['detail']}; poses moved {result['max_pose_deviation']:.2g} from the "
-             f"identity; refine {result['seconds']:.1f} s.", "",
+             f"identity; refine {result['seconds']:.1f} s ({result.get('numba_threads', '?')} numba threads, "
+             f"load average {result.get('load_average', '?')}).", "",
              f"Light model: {result['light_model']} ({result.get('light_selection', '')}).", "",
              "Refine stages (s): "
              + ", ".join(f"{k} {v:.1f}" for k, v in result.get("stages_s", {}).items() if v >= 0.05) + ".", "",
