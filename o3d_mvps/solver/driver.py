@@ -125,7 +125,10 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
     bar = tqdm(range(1, options.max_iterations + 1), desc=f"level {level.index} ({level.size[1]}x{level.size[0]})",
                disable=not options.progress, leave=False)
     for iteration in bar:
-        if options.model.evidence_weighted() and problem.mu > 0 and problem.level.prior.S is not None:
+        # point lights: their per-pixel fields make the evidence cost a frames x pixels x 3 x 3
+        # sum; weighed once per level where the lamps are no longer refitted every sweep
+        settled = problem.light.name == "point" and level.grid.size > POINT_FIT_MAX_PIXELS and iteration > 1
+        if options.model.evidence_weighted() and problem.mu > 0 and problem.level.prior.S is not None and not settled:
             t = time.perf_counter()
             evidence = normal_evidence(problem.light_model(est), est, ev, problem.points(est.z))
             problem.level.prior.weigh_smoothness(evidence_weights(evidence))
