@@ -4,12 +4,16 @@ al. 2017 (a fixed RGB-D camera, a light moved by hand around it, 0.3-0.5 m from 
 z^2 and low-frequency depth noise, speckle holes, exposure and white-balance drift, shot noise).
 
 The capture declares nothing ("camera" left out): refine must detect the static camera from the
-depth. Ours (defaults: no registration, identity poses, per-frame SH) against bicubic upsampling
+depth. Ours (defaults: no registration, identity poses, the light model chosen from the data:
+per-frame SH or a point light per frame), ours with per-frame SH declared, and bicubic upsampling
 of the sensor depth: normal MAE (over the object and over the darkest quarter of its albedo, where
 grain shows first) and depth RMSE against the ground truth (the evaluation mask of
-:func:`o3d_mvps.metrics.evaluate`), and the low-pass shape difference from the sensor depth
+:func:`o3d_mvps.metrics.evaluate`), the low-pass shape difference from the sensor depth
 (:func:`o3d_mvps.metrics.lowpass_difference_permille`: Gaussian of 20 px of refined - bicubic,
-p95 in per mille of depth; issue 32's target <= 2). Writes ``static.json`` and ``static.md``.
+p95 in per mille of depth; issue 32's target <= 2) and the albedo error
+(:func:`o3d_mvps.metrics.albedo_error`: median relative, after a global scale), also of ours on
+the same scene rendered without noise (the albedo error the noisy capture should not exceed).
+Writes ``static.json`` and ``static.md``.
 
     python -m benchmarks static            # 640x480 colour, 320x240 depth, 20 frames
     python -m benchmarks static --size 1280x960
@@ -18,17 +22,19 @@ p95 in per mille of depth; issue 32's target <= 2). Writes ``static.json`` and `
 
 from __future__ import annotations
 
+import os
 import time
 import warnings
 from dataclasses import replace
 from pathlib import Path
 
+import numba
 import numpy as np
 
 from o3d_mvps import RefineOptions, refine
 from o3d_mvps.baselines import bicubic
 from o3d_mvps.fileio import json_text
-from o3d_mvps.metrics import evaluate, evaluation_mask, lowpass_difference_permille
+from o3d_mvps.metrics import albedo_error, evaluate, evaluation_mask, lowpass_difference_permille
 from o3d_mvps.synthetic import render_static_capture
 
 FULL = {"size": (640, 480), "scale_factor": 2, "frames": 20}
@@ -43,35 +49,65 @@ def add_arguments(parser) -> None:
     parser.add_argument("--seed", type=int, default=0)
 
 
-def measure(mesh: str = "bunny", size=(640, 480), scale_factor: int = 2, frames: int = 20, sensor: str = "d415",
-            seed: int = 0, options: RefineOptions | None = None) -> dict:
-    """Render, refine and score one static-camera capture; a JSON-ready dict."""
-    capture = render_static_capture(mesh, frames=frames, size=size, scale_factor=scale_factor, sensor=sensor,
-                                    seed=seed)
-    capture = replace(capture, camera=None)  # undeclared: the depth must tell
-    start = time.perf_counter()
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        ours = refine(capture, options or RefineOptions(progress=False))
-    seconds = time.perf_counter() - start
-    cubic = bicubic(capture)
+def _scores(result, capture, cubic) -> dict:
+    """Normal MAE (object, darkest quarter), depth RMSE, low-pass difference from the sensor's
+    bicubic surface, albedo error (where estimated) of ``result`` against the capture's truth."""
     gt = capture.groundtruth
     brightness = gt.albedo.mean(axis=2)
     dark = (gt.depth > 0) & (brightness <= np.percentile(brightness[gt.depth > 0], DARK_PERCENT))
-    rows = {}
-    for name, result in (("ours", ours), ("bicubic", cubic)):
-        scores = evaluate(result, gt)
-        scores["mae_dark_deg"] = evaluate(result, gt, dark)["mae_deg"]
-        mask = evaluation_mask(result, capture.groundtruth) & cubic.mask_array()
-        scores["lowpass_p95_permille"] = lowpass_difference_permille(result.depth_array(), cubic.depth_array(), mask)
-        rows[name] = scores
+    scores = evaluate(result, gt)
+    scores["mae_dark_deg"] = evaluate(result, gt, dark)["mae_deg"]
+    mask = evaluation_mask(result, gt) & cubic.mask_array()
+    scores["lowpass_p95_permille"] = lowpass_difference_permille(result.depth_array(), cubic.depth_array(), mask)
+    if result.albedo is not None:
+        scores["albedo_error"] = albedo_error(result.albedo_array(), gt.albedo, mask)
+    return scores
+
+
+def _refine(capture, options: RefineOptions) -> tuple:
+    """(refinement, seconds, warnings) of ``capture`` refined with ``options``."""
+    start = time.perf_counter()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = refine(capture, options)
+    return result, time.perf_counter() - start, [str(w.message) for w in caught]
+
+
+def measure(mesh: str = "bunny", size=(640, 480), scale_factor: int = 2, frames: int = 20, sensor: str = "d415",
+            seed: int = 0, options: RefineOptions | None = None, compare: bool = False) -> dict:
+    """Render, refine and score one static-camera capture; a JSON-ready dict. compare: also
+    refine it with per-frame SH declared (row "ours, sh") and refine the same scene rendered
+    without sensor noise (row "ours, clean render": the albedo error a noisy capture should not
+    exceed)."""
+    options = options or RefineOptions(progress=False)
+    capture = replace(render_static_capture(mesh, frames=frames, size=size, scale_factor=scale_factor, sensor=sensor,
+                                            seed=seed), camera=None)  # undeclared: the depth must tell
+    ours, seconds, caught = _refine(capture, options)
+    cubic = bicubic(capture)
+    rows = {"ours": {**_scores(ours, capture, cubic), "seconds": seconds,
+                     "light_model": ours.info["light_selection"]["chosen"]}}
+    if compare:
+        sh, sh_seconds, _ = _refine(capture, replace(options, light_model="sh"))
+        rows["ours, sh"] = {**_scores(sh, capture, cubic), "seconds": sh_seconds, "light_model": "sh"}
+    rows["bicubic"] = _scores(cubic, capture, cubic)
+    if compare and sensor != "none":
+        clean = replace(render_static_capture(mesh, frames=frames, size=size, scale_factor=scale_factor,
+                                              sensor="none", seed=seed), camera=None)
+        result, clean_seconds, _ = _refine(clean, options)
+        rows["ours, clean render"] = {**_scores(result, clean, bicubic(clean)), "seconds": clean_seconds,
+                                      "light_model": result.info["light_selection"]["chosen"]}
     poses = ours.poses.numpy()
     return {
         "mesh": mesh, "size": list(size), "scale_factor": scale_factor, "frames": frames, "sensor": sensor,
         "seed": seed, "seconds": seconds, "camera": ours.info["camera"],
-        "light_model": ours.info.get("light_selection", {}).get("chosen", "sh"),
+        # numba's parallel kernels on a machine busy with other jobs: each launch waited ~24 ms for
+        # its threads (a 320x240 refine 51-103 s with 2 threads at load 12-17, 5.1 s with one)
+        "numba_threads": numba.get_num_threads(), "load_average": round(os.getloadavg()[0], 1),
+        "stages_s": {k: round(float(v), 3) for k, v in ours.timings.items()},
+        "light_model": ours.info["light_selection"]["chosen"],
+        "light_selection": ours.info["light_selection"]["why"],
         "max_pose_deviation": float(np.abs(poses - np.eye(4)).max()),
-        "warnings": [str(w.message) for w in caught], "methods": rows,
+        "warnings": caught, "methods": rows,
     }
 
 
@@ -80,12 +116,20 @@ def markdown(result: dict) -> str:
     lines = [f"# Static camera, moving light: {result['mesh']}, {W}x{H} colour, SF {result['scale_factor']}, "
              f"{result['frames']} frames, sensor {result['sensor']}", "",
              f"Camera: {result['camera']['detail']}; poses moved {result['max_pose_deviation']:.2g} from the "
-             f"identity; refine {result['seconds']:.1f} s.", "",
-             "| method | normal MAE (deg) | MAE, darkest quarter (deg) | depth RMSE (mm) | low-pass p95 (per mille) |",
-             "|---|---:|---:|---:|---:|"]
-    lines += [f"| {name} | {r['mae_deg']:.2f} | {r['mae_dark_deg']:.2f} | {r['rmse_mm']:.2f} | "
-              f"{r['lowpass_p95_permille']:.2f} |"
-              for name, r in result["methods"].items()]
+             f"identity; refine {result['seconds']:.1f} s ({result.get('numba_threads', '?')} numba threads, "
+             f"load average {result.get('load_average', '?')}).", "",
+             f"Light model: {result['light_model']} ({result.get('light_selection', '')}).", "",
+             "Refine stages (s): "
+             + ", ".join(f"{k} {v:.1f}" for k, v in result.get("stages_s", {}).items() if v >= 0.05) + ".", "",
+             "| method | normal MAE (deg) | MAE, darkest quarter (deg) | depth RMSE (mm) | low-pass p95 (per mille) "
+             "| albedo error (%) | refine (s) |",
+             "|---|---:|---:|---:|---:|---:|---:|"]
+    for name, r in result["methods"].items():
+        label = f"{name} ({r['light_model']})" if name == "ours" else name
+        albedo = f"{100 * r['albedo_error']:.1f}" if "albedo_error" in r else ""
+        seconds = f"{r['seconds']:.1f}" if "seconds" in r else ""
+        lines.append(f"| {label} | {r['mae_deg']:.2f} | {r['mae_dark_deg']:.2f} | {r['rmse_mm']:.2f} | "
+                     f"{r['lowpass_p95_permille']:.2f} | {albedo} | {seconds} |")
     return "\n".join(lines) + "\n"
 
 
@@ -95,7 +139,7 @@ def run(args) -> None:
         case["size"] = tuple(int(v) for v in args.size.lower().split("x"))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    result = measure(args.mesh, sensor=args.sensor, seed=args.seed, **case)
+    result = measure(args.mesh, sensor=args.sensor, seed=args.seed, compare=True, **case)
     (out / "static.json").write_text(json_text(result, "static study"))
     (out / "static.md").write_text(markdown(result))
     print(markdown(result))

@@ -213,3 +213,16 @@ def lowpass_difference_permille(depth: np.ndarray, reference: np.ndarray, mask: 
     smooth = ndimage.gaussian_filter(np.where(mask, depth - reference, 0.0), sigma_px, mode="constant")
     low = smooth[mask] / np.maximum(weight[mask], 1e-12)
     return float(np.percentile(np.abs(low) / reference[mask], percentile) * 1000.0)
+
+
+def albedo_error(albedo: np.ndarray, albedo_true: np.ndarray, mask: np.ndarray) -> float:
+    """Median relative albedo error after one global scale: ``median |s rho - rho*| / rho*`` over
+    the masked pixels (H, W) bool and the channels of albedos (H, W, 3), s the median ratio
+    ``rho* / rho`` (an albedo is known up to the light's scale). Shading left in the albedo (a
+    bright centre, a side that darkens) shows here; 0 is perfect."""
+    albedo, albedo_true = np.asarray(albedo, dtype=np.float64), np.asarray(albedo_true, dtype=np.float64)
+    mask = _check_mask(mask, albedo.shape[:2], "albedo_error")
+    use = mask[..., None] & (albedo > 0) & (albedo_true > 0)
+    _nonempty(use.any(axis=2), "albedo_error")
+    scale = float(np.median(albedo_true[use] / albedo[use]))
+    return float(np.median(np.abs(scale * albedo[use] - albedo_true[use]) / albedo_true[use]))

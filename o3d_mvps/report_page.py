@@ -406,6 +406,8 @@ def reference_residual(refinement, capture) -> np.ndarray | None:
     name = described.get("model", "sh" if lights.shape[1] == 4 else "led")
     offset = described.get("offset_m")
     model = make_light_model(name, led_offset=None if offset is None else np.asarray(offset, dtype=np.float64))
+    if name == "point":  # a lamp per frame: the reference frame's
+        model = model.at(np.asarray(described["positions_m"], dtype=np.float64)[:1])
     mask = refinement.mask_array()
     if not mask.any() or tuple(capture.color_size) != mask.shape:
         return None

@@ -183,19 +183,17 @@ def _pose_trust(pose_trust) -> tuple[float, float]:
 
 
 #: The solver's light model for each capture.json "light".
-LIGHT_MODEL_OF_CAPTURE = {"led": "led", "room": "room"}
+LIGHT_MODEL_OF_CAPTURE = {"led": "led", "room": "room", "point": "point"}
 
 
 def with_light_model(options: RefineOptions, capture: Capture) -> RefineOptions:
     """``options`` with the declared light model: the one given, else the capture's
-    (:data:`LIGHT_MODEL_OF_CAPTURE`), else per-frame SH for a static camera (a light moved by hand:
-    ``capture.camera == "static"``), else None: the solver then chooses it from the images
+    (:data:`LIGHT_MODEL_OF_CAPTURE`), else None: the solver then chooses it from the images
     (:func:`o3d_mvps.solver.light_selection.select_light_model`, reported in
-    ``info["light_selection"]``)."""
+    ``info["light_selection"]``; for a static camera, a light moved by hand, between per-frame SH
+    and a point light per frame)."""
     if options.light_model is not None:
         return options
-    if capture.light is None and capture.camera == "static":
-        return replace(options, light_model="sh")
     if capture.light is None:
         return options
     return replace(options, light_model=LIGHT_MODEL_OF_CAPTURE[capture.light])

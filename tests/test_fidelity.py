@@ -181,7 +181,7 @@ def test_dark_texture_does_not_become_relief():
 def test_static_capture_with_sensor_noise_follows_the_sensors_coarse_shape():
     """o3d_mvps.synthetic's static-camera bunny under a hand-held light with the D415-like sensor
     (quantised terraces, flying pixels, holes, gain drift), 320x240, SF 2, 12 frames, refined with
-    the capture's defaults (per-frame SH, identity poses): the low-pass difference from the
+    per-frame SH (identity poses): the low-pass difference from the
     sensor (Gaussian 10 px over the pixels within 4 robust sigmas, p95) is 0.48 per mille of
     depth (without the tie and the evidence weights 3.27), bound 2; normals 6.5 deg (bicubic
     14.0), bound 0.6 x bicubic's."""
@@ -190,7 +190,7 @@ def test_static_capture_with_sensor_noise_follows_the_sensors_coarse_shape():
     from o3d_mvps.metrics import evaluate
 
     capture = synthetic.render_static_capture("bunny", frames=12, size=(320, 240), scale_factor=2, sensor="d415")
-    result = refine(capture, RefineOptions(progress=False))
+    result = refine(capture, RefineOptions(progress=False, light_model="sh"))
     assert result.info["light_model"]["model"] == "sh"
     depth = result.depth_array()
     sensor = cv2.resize(capture.depth_array(0).astype(np.float64), (320, 240), interpolation=cv2.INTER_CUBIC)

@@ -83,8 +83,8 @@ def test_enums_take_plain_strings_and_reject_others_with_the_choices():
     assert options.light_model is LightModel.SH and options.light_model == "sh"
     assert options.difference_scheme is DifferenceScheme.FORWARD and f"{options.difference_scheme}" == "forward"
     assert RefineOptions().light_model is None and RefineOptions().difference_scheme == "central"  # None: the capture says
-    with pytest.raises(ValueError, match=r"light_model must be one of \['led', 'sh', 'room'\], got 'point'"):
-        RefineOptions(light_model="point")
+    with pytest.raises(ValueError, match=r"light_model must be one of \['led', 'sh', 'room', 'point'\], got 'spot'"):
+        RefineOptions(light_model="spot")
     with pytest.raises(ValueError, match=r"difference_scheme must be one of \['central', 'forward'\], got 'backward'"):
         RefineOptions(difference_scheme="backward")
 

@@ -96,30 +96,32 @@ def test_capture_json_camera_round_trip_and_bad_value(tmp_path):
 
 
 def test_light_model_of_a_static_capture(static):
-    """A static capture that does not say what lit it gets per-frame SH; a declared light or a
-    chosen model wins."""
+    """A static capture that does not say what lit it leaves the choice to the data (per-frame SH
+    or point lights: :func:`select_light_model`); a declared light or a chosen model wins."""
     declared = replace(static, camera="static")
-    assert with_light_model(RefineOptions(), declared).light_model == "sh"
+    assert with_light_model(RefineOptions(), declared).light_model is None
+    assert with_light_model(RefineOptions(), replace(declared, light="point")).light_model == "point"
     assert with_light_model(RefineOptions(), replace(declared, light="led")).light_model == "led"
     assert with_light_model(RefineOptions(light_model="room"), declared).light_model == "room"
 
 
 def test_problem_without_registration(static, monkeypatch):
-    """The solver's input: every frame, identity poses, pose refinement off, SH light; the
-    registration is never called."""
+    """The solver's input: every frame, identity poses, pose refinement off, the light model left to
+    the data (per-frame SH or point lights); the registration is never called."""
     monkeypatch.setattr("o3d_mvps.odometry.register_frames", lambda *a, **k: pytest.fail("registered"))
     problem, views = problem_from_capture(replace(static, camera="static"), RefineOptions(progress=False))
     assert problem.frames == list(range(12)) and views is None
     np.testing.assert_array_equal(problem.initial_poses, np.tile(np.eye(4), (12, 1, 1)))
-    assert problem.options.refine_poses is False and problem.options.light_model == "sh"
+    assert problem.options.refine_poses is False and problem.options.light_model is None
 
 
 def test_refine_a_static_capture(monkeypatch):
     """The undeclared D415-like static capture (320x240, SF 2, 12 frames), refined with the
     defaults through ``python -m benchmarks static``'s measure: detected, no registration, poses
-    exactly the identity, normals far better than bicubic upsampling. Measured: normal MAE 7.8 deg
-    against bicubic's 14.0 (a factor 1.8), low-pass shape difference 2.3 per mille; bounds 9.5 deg
-    (20 % margin), a factor 1.5 and 4 per mille (issue 32's target is 2)."""
+    exactly the identity, the point light per frame chosen, normals far better than bicubic
+    upsampling. Measured: normal MAE 5.08 deg against bicubic's 14.0 (per-frame SH: 6.5), low-pass
+    shape difference 1.24 per mille, albedo error 2.7 % (SH 9.4 %); bounds 6.5 deg, a factor 2
+    below bicubic's, 2 per mille (issue 32's target) and 4 %."""
     from benchmarks.static import QUICK, markdown, measure
 
     monkeypatch.setattr("o3d_mvps.odometry.register_frames", lambda *a, **k: pytest.fail("registered"))
@@ -128,10 +130,12 @@ def test_refine_a_static_capture(monkeypatch):
     assert any("no camera motion" in w for w in result["warnings"])
     assert result["max_pose_deviation"] == 0.0
     ours, cubic = result["methods"]["ours"], result["methods"]["bicubic"]
-    assert ours["mae_deg"] < 9.5
-    assert ours["mae_deg"] < cubic["mae_deg"] / 1.5
-    assert ours["lowpass_p95_permille"] < 4.0 and cubic["lowpass_p95_permille"] == 0.0
-    assert "| ours | " in markdown(result)
+    assert result["light_model"] == "point"
+    assert ours["mae_deg"] < 6.5
+    assert ours["mae_deg"] < cubic["mae_deg"] / 2
+    assert ours["lowpass_p95_permille"] < 2.0 and cubic["lowpass_p95_permille"] == 0.0
+    assert ours["albedo_error"] < 0.04
+    assert "| ours (point) | " in markdown(result)
 
 
 def test_render_cli_static_camera(tmp_path, capsys):

@@ -9,8 +9,9 @@ COLOR_ENCODINGS = ("srgb", "linear")
 COLOR_SUFFIXES = (".png", ".jpg", ".jpeg")
 #: Ground-truth arrays, each groundtruth/<name>.npy, besides groundtruth/light.json.
 GT_ARRAYS = ("depth", "normals", "albedo", "poses", "mesh_to_reference")
-#: capture.json's "light": the LED on the camera, or room light (the solver's "led" and "sh" models).
-CAPTURE_LIGHTS = ("led", "room")
+#: capture.json's "light": the LED on the camera, room light, or a lamp moved by hand around a
+#: static camera (the solver's "led", "room" and "point" models).
+CAPTURE_LIGHTS = ("led", "room", "point")
 #: capture.json's "camera": fixed on a tripod while a light moves (the static-camera, moving-light
 #: setting of Peng et al. 2017: no registration, identity poses) or moved around the object.
 CAPTURE_CAMERAS = ("static", "moving")

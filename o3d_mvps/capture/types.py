@@ -48,8 +48,8 @@ class Capture:
     masks: None, or n entries each None or an (H, W, 1) uint8 image (nonzero = object).
     depth_scale: depth PNG units per metre (1000 = mm). depth_trunc: metres.
     color_encoding: how colour PNGs are encoded on disk ("srgb" or "linear").
-    light: what lit the frames (capture.json's "light"): "led" (the LED on the camera) or "room"
-    (room light); None when the capture does not say.
+    light: what lit the frames (capture.json's "light"): "led" (the LED on the camera), "room"
+    (room light) or "point" (a lamp moved by hand, one position per frame); None when the capture does not say.
     camera: capture.json's "camera": "static" (a fixed camera, a light moved between frames:
     :mod:`o3d_mvps.capture.static`), "moving", or None when the capture does not say.
     frame_names: the colour file of each frame (read from a folder), or None; folder: the

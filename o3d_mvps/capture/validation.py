@@ -92,8 +92,8 @@ def check_settings(depth_scale, depth_trunc, color_encoding, color_bit_depth, wh
 def check_light(light, where: str = "") -> None:
     """Check a capture's ``light`` (None, or one of :data:`.layout.CAPTURE_LIGHTS`); ``where`` prefixes the message."""
     if light is not None and light not in CAPTURE_LIGHTS:
-        raise CaptureError(f"{where}light must be one of {', '.join(map(repr, CAPTURE_LIGHTS))} (the LED on the camera "
-                           f"or room light), got {light!r}")
+        raise CaptureError(f"{where}light must be one of {', '.join(map(repr, CAPTURE_LIGHTS))} (the LED on the camera, "
+                           f"room light or a lamp moved by hand: one point light per frame), got {light!r}")
 
 
 def check_camera(camera, where: str = "") -> None:

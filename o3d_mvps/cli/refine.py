@@ -71,7 +71,8 @@ def add_solver_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--no-occlusion-test", action="store_true", help="let hidden pixels enter the data term")
     g.add_argument("--light-model", choices=LIGHT_MODELS, default=None,
                    help="near-field LED, one SH light fixed in the room (room) or the paper's first-order SH "
-                        "per frame (sh) (default: capture.json's light, led -> led, room -> room; led when it "
+                        "per frame (sh), or a point light per frame at its own position, a lamp moved around a static camera "
+                        "(point) (default: capture.json's light, led -> led, room -> room; led when it "
                         "does not say)")
     g.add_argument("--led-offset", type=metres_offset, nargs=3, metavar=("X", "Y", "Z"), default=None,
                    help="LED position in metres from the colour lens (x right, y down, z forward); a ruler "

@@ -37,7 +37,7 @@ def update_depth(problem: LevelProblem, est: Estimate, ev: Evaluation, *, rtol: 
 
     def moved(t: float):
         z = problem.level.prior.clip(est.z + t * step)
-        return Estimate(z, est.albedo, est.lights, est.poses) if np.all(z > 0) else None
+        return Estimate(z, est.albedo, est.lights, est.poses, est.led_offset) if np.all(z > 0) else None
 
     return (*search_estimates(problem, est, energy, moved, max_halvings, refit_albedo=project_albedo), iterations)
 

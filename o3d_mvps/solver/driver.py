@@ -14,6 +14,7 @@ carry over (the authors' code reset lighting at every level).
 from __future__ import annotations
 
 import time
+import warnings
 from collections import defaultdict
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -35,6 +36,7 @@ from .light_selection import select_light_model
 from .lighting import make_light_model, update_led_offset
 from .options import AUTO, DEFAULT_CAUCHY_LAMBDA, RefineOptions
 from .pose import keep_agreeing_poses, update_poses
+from .point_light import fit_point_lights, initial_point_lights
 from .pose_trust import PoseAnchors, PoseLog
 from .problem import Estimate, LevelProblem
 from .problem_input import SolverInput
@@ -43,6 +45,12 @@ from .reflectance import update_albedo, update_lighting
 from .smoothness import auto_smoothness
 from .solution import SolverOutput
 from .weighting import evidence_weights, lowpass_sigma, normal_evidence, tie_low_frequencies
+
+
+#: levels with more object pixels than this refit the point lights' positions in their first sweep
+#: only (the lighting step refits ambient and intensity in every sweep): the coarse levels place
+#: the lights, and the refit's line search costs a full evaluation
+POINT_FIT_MAX_PIXELS = 20000
 
 
 def normalised_tau(tau_tilde: float, n_frames: int, mean_intensity: float, n_hr: int, mean_z0: float, n_lr: int,
@@ -93,7 +101,10 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
         ev = problem.reevaluate(est, ev, overwrite=True)
     stats["cauchy_lambda"].append(problem.lam)
     timings["setup"] += time.perf_counter() - t
-    refine_poses = options.refine_poses and problem.n_frames > 1 and level.grid.size >= options.pose_min_pixels
+    # a point light per frame is fitted in reference coordinates, for all frames together: a
+    # pose step's per-frame shading cannot name its light (and a free light absorbs the pose's)
+    refine_poses = (options.refine_poses and problem.n_frames > 1 and level.grid.size >= options.pose_min_pixels
+                    and problem.light.name != "point")
     if refine_poses and anchors is not None:
         t = time.perf_counter()
         anchors.calibrate(problem.lam, est.poses, problem.points(est.z), ev.usable,
@@ -114,7 +125,10 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
     bar = tqdm(range(1, options.max_iterations + 1), desc=f"level {level.index} ({level.size[1]}x{level.size[0]})",
                disable=not options.progress, leave=False)
     for iteration in bar:
-        if options.model.evidence_weighted() and problem.mu > 0 and problem.level.prior.S is not None:
+        # point lights: their per-pixel fields make the evidence cost a frames x pixels x 3 x 3
+        # sum; weighed once per level where the lamps are no longer refitted every sweep
+        settled = problem.light.name == "point" and level.grid.size > POINT_FIT_MAX_PIXELS and iteration > 1
+        if options.model.evidence_weighted() and problem.mu > 0 and problem.level.prior.S is not None and not settled:
             t = time.perf_counter()
             evidence = normal_evidence(problem.light_model(est), est, ev, problem.points(est.z))
             problem.level.prior.weigh_smoothness(evidence_weights(evidence))
@@ -153,6 +167,8 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
         ev = problem.reevaluate(est, ev, overwrite=True)
         if refine_offset:
             est.led_offset, ev = update_led_offset(problem, est, ev, min_decrease=0.1 * options.tolerance * ev.energy)
+        if problem.light.name == "point" and (iteration == 1 or level.grid.size <= POINT_FIT_MAX_PIXELS):
+            ev = fit_point_lights(problem, est, ev)
         timings["albedo_lighting"] += time.perf_counter() - t
         if options.extrapolate:
             t = time.perf_counter()
@@ -301,7 +317,8 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
     ref_mask = _reference_mask(problem_input)
     declared = None if options.light_model is None else str(options.light_model)
     selection = select_light_model(problem_input, ref_mask, declared, occlusion_test=options.occlusion_test,
-                                   occlusion_tolerance=options.occlusion_tolerance)
+                                   occlusion_tolerance=options.occlusion_tolerance,
+                                   static=bool(np.allclose(problem_input.initial_poses, np.eye(4))))
     options = replace(options, light_model=selection["chosen"])
     timings["light_selection"] = time.perf_counter() - t0
     if options.progress:
@@ -321,6 +338,10 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
         n_levels -= 1
     light = make_light_model(options.light_model, initial_sh=options.initial_light,
                              led_offset=problem_input.led_offset)
+    if light.name == "point" and options.refine_poses and n_frames > 1:
+        warnings.warn("the point light model (a lamp per frame, for a static camera) keeps the initial poses: "
+                      "they are not refined; for a camera that moved with its own LED use --light-model led "
+                      "(RefineOptions(light_model='led'))", stacklevel=3)
     smoothness = options.model.smoothness_weight()
     if smoothness == AUTO:
         smoothness = auto_smoothness(options.tau, z0, ref_mask, sf, K)
@@ -350,11 +371,14 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
         g = level.grid
         if g.size < 16:
             return None
-        if carried is None:
+        first = carried is None
+        if first:
             z_full = resize(fill_nearest_valid(z0, z0 > 0), level.size, interpolation=cv2.INTER_LINEAR)
+            # the LED offset and the point lights' positions are unknowns, like the rest
+            offset = (light.offset.copy() if light.name == "led" else np.zeros((n_frames, 3)) if light.name == "point"
+                      else None)
             carried = Carried(z_full, level.images[0].astype(np.float64), light.initial_lights(n_frames, mean_z0),
-                              problem_input.initial_poses.copy(),
-                              light.offset.copy() if light.name == "led" else None)  # an unknown, like the rest
+                              problem_input.initial_poses.copy(), offset)
         else:
             carried = carried.resized(level.size)
         level_device = device if g.size >= device.min_level_pixels else CPU
@@ -372,6 +396,10 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
         problem.update_visibility(est, occlusion_test=options.occlusion_test, rel_tol=options.occlusion_tolerance,
                                   sensor_depths=sensor_depths, depth_K=depth_K)
         timings["setup"] += time.perf_counter() - t
+        if first and light.name == "point":  # the lights' start, from per-frame SH on the first level
+            t = time.perf_counter()
+            initial_point_lights(problem, est, problem.evaluate(est)).release()
+            timings["point_lights"] += time.perf_counter() - t
         history.extend(_sweeps(problem, est, options, timings, stats, anchors, pose_log))
         if tie_sigma is not None:
             t = time.perf_counter()

@@ -45,6 +45,6 @@ def update_pose_depth(problem: LevelProblem, est: Estimate, ev: Evaluation, *, r
         poses = est.poses.copy()
         for i, x in zip(frames, xi):
             poses[i] = se3.exp(t * x) @ est.poses[i]
-        return Estimate(z, est.albedo, est.lights, poses)
+        return Estimate(z, est.albedo, est.lights, poses, est.led_offset)
 
     return (*search_estimates(problem, est, energy, moved, max_halvings, refit_albedo=project_albedo), iterations)

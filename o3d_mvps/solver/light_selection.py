@@ -1,8 +1,8 @@
 """The light model chosen from the data (issue #32, item 2).
 
-Each candidate of :data:`.lighting.LIGHT_MODELS` is fitted on one coarse pyramid level (about
-:data:`LEVEL_PIXELS` object pixels) with the initial depth and poses: a few sweeps of the
-closed-form albedo and lighting updates (and the LED offset), on half of the reference pixels
+Each candidate (:data:`STATIC_CANDIDATES` or :data:`MOVING_CANDIDATES`) is fitted on one coarse
+pyramid level (about :data:`LEVEL_PIXELS` object pixels) with the initial depth and poses: a few
+sweeps of the closed-form albedo and lighting updates (and the LED offset or the point lights), on half of the reference pixels
 (a checkerboard). On the other half the albedo is then fitted per pixel under the fitted lights
 and the score is the robust RMS of those held-out residuals,
 ``sqrt(2 mean phi(r))`` (linear intensity, Cauchy scale :data:`SCORE_CAUCHY_LAMBDA`): a model with
@@ -26,6 +26,7 @@ from ..model.resampling import fill_nearest_valid, resize
 from ..model.robust import cauchy
 from .device import to_host
 from .lighting import LIGHT_MODELS, make_light_model, update_led_offset
+from .point_light import fit_point_lights, initial_point_lights
 from .problem import Estimate, LevelProblem
 from .problem_input import SolverInput
 from .pyramid import build_level, level_size
@@ -45,12 +46,19 @@ WARN_MARGIN = 0.10
 
 def light_parameters(name: str, n_frames: int) -> int:
     """How many light parameters model ``name`` has for n frames (LED: 2 per frame and the
-    offset; room: one SH light and n - 1 gains; SH: 4 per frame)."""
-    return {"led": 2 * n_frames + 3, "room": 4 + n_frames - 1, "sh": 4 * n_frames}[name]
+    offset; room: one SH light and n - 1 gains; SH: 4 per frame; point: 5 per frame)."""
+    return {"led": 2 * n_frames + 3, "room": 4 + n_frames - 1, "sh": 4 * n_frames, "point": 5 * n_frames}[name]
+
+
+#: the candidates for a static camera (a light moved around it: per-frame SH or point lights)
+#: and for a moving one (every model but the free point light, whose positions need a camera
+#: that stays put)
+STATIC_CANDIDATES = ("sh", "point")
+MOVING_CANDIDATES = tuple(name for name in LIGHT_MODELS if name != "point")
 
 
 def select_light_model(problem_input: SolverInput, ref_mask: np.ndarray, declared: str | None = None, *,
-                       occlusion_test: bool = True, occlusion_tolerance: float = 0.02) -> dict:
+                       occlusion_test: bool = True, occlusion_tolerance: float = 0.02, static: bool = False) -> dict:
     """Fit every light model on a coarse level and pick the one that explains the images best.
 
     problem_input: the solver's input (n >= 2 frames; its initial poses and LED offset are
@@ -58,6 +66,8 @@ def select_light_model(problem_input: SolverInput, ref_mask: np.ndarray, declare
     named, or None. Returns info["light_selection"]: {"chosen", "declared", "scores" {model:
     held-out robust RMS residual}, "parameters" {model: count}, "level" (H, W), "why"}; with a
     declared model "chosen" is the declared one (a warning says when another fits clearly better).
+    static: the camera stands still (identity poses): the candidates are :data:`STATIC_CANDIDATES`,
+    else :data:`MOVING_CANDIDATES` (and the declared model).
     """
     n = problem_input.n_frames
     if n < 2:
@@ -70,12 +80,14 @@ def select_light_model(problem_input: SolverInput, ref_mask: np.ndarray, declare
     held_out = to_host((g.u + g.v) % 2 == 1)
     samples = None  # the same depth and poses for every model: the frames warped once
     scores = {}
-    for name in LIGHT_MODELS:
+    candidates = STATIC_CANDIDATES if static else MOVING_CANDIDATES
+    candidates = tuple(dict.fromkeys(candidates + ((declared,) if declared else ())))
+    for name in candidates:
         scores[name], samples = _held_out_score(problem_input, level, name, held_out, samples, occlusion_test,
                                                 occlusion_tolerance)
-    parameters = {name: light_parameters(name, n) for name in LIGHT_MODELS}
+    parameters = {name: light_parameters(name, n) for name in candidates}
     best = min(scores.values())
-    near = [name for name in LIGHT_MODELS if scores[name] <= best * (1 + TIE_MARGIN)]
+    near = [name for name in candidates if scores[name] <= best * (1 + TIE_MARGIN)]
     picked = min(near, key=lambda name: parameters[name])
     ranking = ", ".join(f"{name} {scores[name]:.4f}" for name in sorted(scores, key=scores.get))
     why = (f"held-out robust RMS residual on a {level.size[1]}x{level.size[0]} level: {ranking}; "
@@ -123,7 +135,8 @@ def _held_out_score(problem_input: SolverInput, level, name: str, held_out: np.n
     z = resize(fill_nearest_valid(z0, z0 > 0), level.size, interpolation=cv2.INTER_LINEAR)
     est = Estimate(level.prior.clip(g.gather(z)), g.gather(level.images[0]).astype(np.float64),
                    light.initial_lights(problem_input.n_frames, mean_z0), problem_input.initial_poses.copy(),
-                   light.offset.copy() if name == "led" else None)
+                   light.offset.copy() if name == "led"
+                   else np.zeros((problem_input.n_frames, 3)) if name == "point" else None)
     problem = LevelProblem(level, 0.0, SCORE_CAUCHY_LAMBDA, light)
     if samples is None:
         problem.update_visibility(est, occlusion_test=occlusion_test, rel_tol=occlusion_tolerance,
@@ -132,6 +145,8 @@ def _held_out_score(problem_input: SolverInput, level, name: str, held_out: np.n
         samples = (ev.color, ev.usable, ev.normals, ev.dA)
     color, usable, normals, dA = samples
     ev = problem.evaluate_samples(est, color, usable & ~held_out[None, :], normals, dA)  # fit on the other half
+    if name == "point":
+        ev = initial_point_lights(problem, est, ev)
     for _ in range(SWEEPS):
         est.albedo = update_albedo(est, ev, problem.lam)
         ev = problem.reevaluate(est, ev, overwrite=True)
@@ -139,6 +154,8 @@ def _held_out_score(problem_input: SolverInput, level, name: str, held_out: np.n
         ev = problem.reevaluate(est, ev, overwrite=True)
         if name == "led":
             est.led_offset, ev = update_led_offset(problem, est, ev)
+        if name == "point":
+            ev = fit_point_lights(problem, est, ev)
     ev = problem.evaluate_samples(est, color, usable, normals, dA)  # the held-out pixels' albedo under these lights
     for _ in range(2):  # the albedo's IRLS weights settle
         est.albedo = update_albedo(est, ev, problem.lam)

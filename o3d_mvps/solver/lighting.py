@@ -187,11 +187,8 @@ class LEDLight(FrameFields):
 
     def _camera_gradients(self, lights, normals, points, poses):
         """d(shading)/d(point) (m, N, 3) in each frame's camera coordinates, zero where unlit."""
-        s = self.positions(poses)
-        J = led_vector_jacobian(points, s, normals)
-        lit = like(lights[:, 1:], points) * (np.einsum("...j,...j->...", normals,
-                                                       like(s, points)[:, None, :] - points) > 0)
-        return np.matmul(J * lit[..., None], like(poses[:, :3, :3].transpose(0, 2, 1), points))
+        J = lit_point_gradients(lights, normals, points, self.positions(poses))
+        return np.matmul(J, like(poses[:, :3, :3].transpose(0, 2, 1), points))
 
     def shading_jacobians(self, lights: np.ndarray, normals: np.ndarray, points: np.ndarray,
                           poses: np.ndarray) -> np.ndarray:
@@ -216,6 +213,74 @@ class LEDLight(FrameFields):
         return {"model": "led",
                 "formula": "shading = ambient + intensity * max(0, n . (o - X)) / |o - X|^3, camera frame",
                 "parameters": ["ambient", "intensity"], "offset_m": self.offset.tolist()}
+
+
+def lit_point_gradients(lights: np.ndarray, normals: np.ndarray, points: np.ndarray,
+                        positions: np.ndarray) -> np.ndarray:
+    """d(shading)/d(point) (m, N, 3) of m point lights at ``positions`` (m, 3) with intensities
+    ``lights[:, 1]`` (m,) on unit normals and points (N, 3), all in one frame (metres): the
+    intensity times :func:`~o3d_mvps.model.shading.led_vector_jacobian`, zero where the point
+    faces away. The derivative with respect to the light's position is its negative."""
+    J = led_vector_jacobian(points, positions, normals)
+    lit = like(lights[:, 1:], points) * (np.einsum("...j,...j->...", normals,
+                                                   like(positions, points)[:, None, :] - points) > 0)
+    return J * lit[..., None]
+
+
+@dataclass
+class PointLight(LEDLight):
+    """A free point light per frame (a lamp moved by hand around a static camera, Peng et al.
+    2017), plus ambient: frame i's light sits at ``positions[i]`` (3,) metres in reference
+    coordinates (a static camera's own frame) and shades like the LED,
+    ``B_i = [1, max(0, <n, v_i>)]``, ``v_i = (p_i - X) / |p_i - X|^3``; l_i = (ambient,
+    intensity in irradiance x m^2). The positions are unknowns (:mod:`.point_light`),
+    carried in the estimate's ``led_offset`` (n, 3); the shading does not depend on the poses
+    (the light does not move with the camera), so the poses are not refined with this model."""
+
+    offset: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    name = "point"
+    size = 2
+    fixed_in_world = False
+
+    def __post_init__(self):
+        self.offset = np.asarray(self.offset, dtype=np.float64).reshape(-1, 3)
+
+    def at(self, offset: np.ndarray) -> "PointLight":
+        """The same model with the lights at ``offset`` (n, 3) metres."""
+        return PointLight(offset)
+
+    def positions(self, poses: np.ndarray) -> np.ndarray:
+        """The frames' light positions (n, 3) in reference coordinates; poses (n, 4, 4) of all n
+        frames (a single frame's pose cannot say which light is its own)."""
+        if len(poses) != len(self.offset):
+            raise ValueError(f"the point light model has {len(self.offset)} light positions, one per frame, "
+                             f"but was asked for {len(poses)} frames: it shades all frames together (a static "
+                             f"camera, no pose refinement)")
+        return self.offset
+
+    def shading_jacobians(self, lights, normals, points, poses) -> None:
+        """d(shading)/d(xi): zero, the lights live in reference coordinates."""
+        return None
+
+    def position_jacobians(self, lights: np.ndarray, normals: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """d(shading)/d(position) (n, N, 3) of every frame's light (:func:`lit_point_gradients`)."""
+        return -lit_point_gradients(lights, normals, points, self.offset)
+
+    def initial_positions(self, sh_lights: np.ndarray, centre: np.ndarray, distance: float) -> tuple:
+        """Lights (n, 2) and positions (n, 3) from per-frame SH lights (n, 4): each light at
+        ``distance`` metres from ``centre`` (3,) (the object's centroid) along its SH light's
+        direction, its intensity giving a surface facing it the SH light's directional strength,
+        its ambient the SH ambient."""
+        direction = sh_lights[:, 1:]
+        strength = np.linalg.norm(direction, axis=1)
+        unit = np.where(strength[:, None] > 0, direction / np.maximum(strength, 1e-12)[:, None], [0.0, 0.0, -1.0])
+        return (np.stack([sh_lights[:, 0], strength * distance**2], axis=1), centre + distance * unit)
+
+    def describe(self) -> dict:
+        return {"model": "point",
+                "formula": "shading = ambient_i + intensity_i * max(0, n . (p_i - X)) / |p_i - X|^3, "
+                           "reference camera frame",
+                "parameters": ["ambient", "intensity"], "positions_m": self.offset.tolist()}
 
 
 #: the least eigenvalue of a frame's light gram, relative to its largest, whose direction the
@@ -243,17 +308,20 @@ def fit_per_frame(gram: np.ndarray, rhs: np.ndarray, lights: np.ndarray) -> np.n
     return out
 
 
-LIGHT_MODELS = ("led", "sh", "room")
+LIGHT_MODELS = ("led", "sh", "room", "point")
 
 
 def make_light_model(name: str, *, initial_sh=INITIAL_LIGHT, led_offset=None):
-    """The light model ``name`` ("led", "sh" or "room")."""
+    """The light model ``name`` ("led", "sh", "room" or "point": its positions, one per frame, are
+    set by :func:`.point_light.initial_point_lights`)."""
     if name == "sh":
         return SHLight(tuple(initial_sh))
     if name == "room":
         return RoomLight(tuple(initial_sh))
     if name == "led":
         return LEDLight(np.zeros(3) if led_offset is None else led_offset)
+    if name == "point":
+        return PointLight()
     raise ValueError(f"light_model must be one of {LIGHT_MODELS}, got {name!r}")
 
 
@@ -297,3 +365,4 @@ def update_led_offset(problem, est, ev, *, max_halvings: int = 3, max_pixels: in
 
     found = backtrack(trial, ev.energy, max_halvings)
     return (start, ev) if found is None else found[1]
+

@@ -45,19 +45,19 @@ class _Choice(str, Enum):
 #: 42.7). Room light ("room"): the depth learns from parallax alone, which is noisy pixel to pixel,
 #: and the sensor depth's noise needs smoothing: "auto" sets mu~ from the sensor depth's roughness
 #: and the pixels' footprint (:func:`o3d_mvps.solver.smoothness.auto_smoothness`).
-DEFAULT_SMOOTHNESS = {"led": 0.3, "sh": 30.0, "room": "auto"}
+DEFAULT_SMOOTHNESS = {"led": 0.3, "sh": 30.0, "room": "auto", "point": 30.0}
 
 #: Cauchy scale lambda per light model when none is given: a number (linear intensity), or
 #: "auto", the residuals' robust standard deviation (1.4826 x their median absolute deviation) at
 #: each pyramid level's start (:func:`o3d_mvps.model.robust.robust_scale`). Under room light the
 #: noise floor differs between captures by 3x (noiseless renders 0.003, noisy 0.008) and 0.04
 #: let the aliased albedo edges pull the depth.
-DEFAULT_CAUCHY_LAMBDA = {"led": 0.04, "sh": 0.04, "room": "auto"}
+DEFAULT_CAUCHY_LAMBDA = {"led": 0.04, "sh": 0.04, "room": "auto", "point": 0.04}
 
 #: whether the smoothness rows are weighted down on steep slopes, per light model when not given
 #: (:func:`o3d_mvps.solver.smoothness.slope_weights`; with the LED they freed the pixels only the
 #: reference sees at the rims)
-DEFAULT_SLOPE_WEIGHTS = {"led": False, "sh": False, "room": True}
+DEFAULT_SLOPE_WEIGHTS = {"led": False, "sh": False, "room": True, "point": False}
 AUTO = "auto"
 
 #: the sensor tie (:func:`o3d_mvps.solver.weighting.tie_low_frequencies`) per light model when
@@ -66,18 +66,19 @@ AUTO = "auto"
 #: 12.1 -> 1.8 per mille of depth, RMSE 2.89 -> 1.09 mm). Off (0) with the LED, where the photometric
 #: low frequencies are good and the tie passes on the sensor's own (a bunny, 640x480, SF 4, 20
 #: frames: 2.33 deg / 0.895 mm without, 2.32 deg / 0.944 mm with), and under room light (not measured).
-DEFAULT_SENSOR_LOWPASS = {"led": 0, "sh": AUTO, "room": 0}
+DEFAULT_SENSOR_LOWPASS = {"led": 0, "sh": AUTO, "room": 0, "point": AUTO}
 
 #: the evidence weights (:func:`o3d_mvps.solver.weighting.evidence_weights`) per light model when
 #: not given: on with per-frame SH (a plaid quilt's dark patches: normals 2.02 -> 1.68 deg, the
 #: smoothed sensor 4.29); off with the LED, whose small smoothness (0.3) lets the pixels few frames
 #: see follow their data (the bunny above: 0.895 -> 0.985 mm with them) and under room light.
-DEFAULT_EVIDENCE_WEIGHTS = {"led": False, "sh": True, "room": False}
+DEFAULT_EVIDENCE_WEIGHTS = {"led": False, "sh": True, "room": False, "point": True}
 
 LightModel = _Choice("LightModel", {v.upper(): v for v in LIGHT_MODELS})
 LightModel.__doc__ = ('Light model: LED ("led", a point light moving with the camera, paper section 6\'s '
                       'future work), SH ("sh", first-order spherical harmonics per frame, paper section 3.2) or '
-                      'ROOM ("room", one SH light fixed in the room, times a per-frame exposure gain).')
+                      'ROOM ("room", one SH light fixed in the room, times a per-frame exposure gain) or POINT '
+                      '("point", a free point light per frame: a lamp moved by hand around a static camera).')
 DifferenceScheme = _Choice("DifferenceScheme", {v.upper(): v for v in SCHEMES})
 DifferenceScheme.__doc__ = 'Depth derivatives of the normals: CENTRAL ("central") or the paper\'s FORWARD ("forward").'
 
@@ -143,7 +144,9 @@ class ModelOptions:
         :data:`DEFAULT_CAUCHY_LAMBDA` of the light model.
     light_model: :class:`LightModel` "led" (point light moving with the camera, 1/r^2 falloff,
         plus ambient; o3d_mvps.solver.lighting), "sh" (the paper's first-order SH per frame) or
-        "room" (one SH light fixed in the room, a gain per frame); None takes it from the capture
+        "room" (one SH light fixed in the room, a gain per frame) or "point" (a point light per
+        frame at its own, estimated position: a lamp moved around a static camera; the poses are
+        then not refined); None takes it from the capture
         (capture.json's "light": "led" -> "led", "room" -> "room"; "led", with a warning, when
         the capture does not say).
     led_offset: LED position (x, y, z) in metres in the colour camera's frame (x right, y down,

@@ -123,7 +123,7 @@ def update_poses(problem: LevelProblem, est: Estimate, ev: Evaluation, iteration
         poses[i], sample = refine_pose(problem, est, i, points_ref, ev.normals, iterations, tolerance=tolerance,
                                        anchors=anchors, log=log)
         color[i], usable[i] = sample.color, sample.usable
-    moved = Estimate(est.z, est.albedo, est.lights, poses)
+    moved = Estimate(est.z, est.albedo, est.lights, poses, est.led_offset)
     return poses, problem.evaluate_samples(moved, color, usable, ev.normals, ev.dA)
 
 

@@ -116,6 +116,8 @@ class LevelProblem:
         self._prolongations = None
         self._pixels = None
         self.visibility = like(np.ones((self.n_frames, level.grid.size), dtype=bool), level.grid.u)
+        #: the frames' samples (colours, usable) at identity poses, which do not depend on z
+        self._static_samples = None
         #: the level's intrinsics (3, 3) where its arrays live, for the kernels
         self.device_K = like(level.K, level.grid.u)
 
@@ -169,6 +171,7 @@ class LevelProblem:
     def update_visibility(self, est: Estimate, *, occlusion_test: bool, rel_tol: float, sensor_depths=None,
                           depth_K=None) -> None:
         """Recompute which reference pixels each frame sees (held fixed while a level runs)."""
+        self._static_samples = None
         P = to_host(self.points(est.z))  # the z-buffer's scatter-min runs on the host
         for i in range(self.n_frames):
             points, u, v, Z = warp(P, est.poses[i], self.level.K)
@@ -205,10 +208,15 @@ class LevelProblem:
 
     def evaluate(self, est: Estimate) -> Evaluation:
         """Residuals and energy of the estimate over all frames (each frame warped and sampled in
-        one pass: :func:`.kernels.warp_sample`)."""
+        one pass: :func:`.kernels.warp_sample`). Where every pose is the identity (a static
+        camera) each reference pixel sees its own pixel in every frame, whatever z: the frames
+        are sampled once per visibility and the samples shared (read-only) by the evaluations."""
         n, N = self.n_frames, self.level.grid.size
         P = self.points(est.z)
         xp = array_module(P)
+        identity = bool(np.array_equal(to_host(est.poses), np.broadcast_to(np.eye(4), (n, 4, 4))))
+        if identity and self._static_samples is not None:
+            return self.evaluate_samples(est, *self._static_samples, *self.normals(est.z))
         color = xp.empty((n, N, 3), dtype=np.float32)  # sampled from float32 images
         usable = xp.empty((n, N), dtype=bool)
         poses = like(est.poses, P)  # one copy to the GPU for all the frames
@@ -218,6 +226,8 @@ class LevelProblem:
         else:
             for i in range(n):
                 self._warp_sample(i, poses[i], P, color[i], usable[i])
+        if identity:
+            self._static_samples = (color, usable)
         return self.evaluate_samples(est, color, usable, *self.normals(est.z))
 
     def evaluate_samples(self, est: Estimate, color: np.ndarray, usable: np.ndarray, normals: np.ndarray,

@@ -1,0 +1,110 @@
+"""The per-frame point light of static captures (issue 32 item 4-6: a lamp moved by hand around a
+tripod camera; o3d_mvps.solver.lighting.PointLight, o3d_mvps.solver.point_light)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from helpers import QUILT_DISTANCE, quilt_scene
+
+from o3d_mvps import RefineOptions
+from o3d_mvps.capture import read_capture, write_capture
+from o3d_mvps.errors import CaptureError
+from o3d_mvps.metrics import albedo_error, normal_mae_deg
+from o3d_mvps.model.normals import perspective_normals
+from o3d_mvps.solver.driver import solve
+from o3d_mvps.solver.lighting import PointLight, make_light_model
+from o3d_mvps.solver.problem_input import SolverInput
+from o3d_mvps.synthetic import render_static_capture
+
+FRAMES = 6
+
+
+@pytest.fixture(scope="module")
+def quilt():
+    """The quilt under a lamp 0.35 m off axis, 0.65 m before the sheet (6 frames, 160x120, SF 2),
+    refined with the point light model: (scene, solver output)."""
+    scene = quilt_scene(frames=FRAMES, size=(160, 120))
+    opts = RefineOptions(progress=False, light_model="point", refine_poses=False, levels=3, max_iterations=4)
+    out = solve(SolverInput(scene["colors"], scene["depths"], [None] * FRAMES, scene["K"], scene["depth_K"], 2,
+                            np.tile(np.eye(4), (FRAMES, 1, 1)), np.zeros(3), list(range(FRAMES)), opts))
+    return scene, out
+
+
+def test_point_lights_are_found(quilt):
+    """Each frame's lamp is found in the right direction from the sheet's centre: measured 3.4-16.1
+    deg off (bound 25) at 1.21-1.45 times its distance (bounds 0.8-1.8: on a nearly flat sheet
+    with a free albedo per pixel, distance and intensity nearly trade off); the model is reported
+    with its positions, and the light selection scores it better than per-frame SH (measured
+    held-out residual 0.0073 against 0.041, bound half)."""
+    scene, out = quilt
+    t = np.linspace(0, 2 * np.pi, FRAMES, endpoint=False)
+    truth = np.stack([0.35 * np.cos(t), 0.35 * np.sin(t), np.full(FRAMES, QUILT_DISTANCE - 0.65)], axis=1)
+    assert out.info["light_model"]["model"] == "point"
+    found = np.asarray(out.info["light_model"]["positions_m"]) - [0.0, 0.0, QUILT_DISTANCE]
+    expected = truth - [0.0, 0.0, QUILT_DISTANCE]
+    cosine = np.sum(found * expected, axis=1) / np.linalg.norm(found, axis=1) / np.linalg.norm(expected, axis=1)
+    assert np.degrees(np.arccos(np.clip(cosine, -1, 1))).max() < 25.0
+    ratio = np.linalg.norm(found, axis=1) / np.linalg.norm(expected, axis=1)
+    assert 0.8 < ratio.min() and ratio.max() < 1.8, ratio
+    assert out.lighting.shape == (FRAMES, 2) and (out.lighting[:, 1] > 0).all()
+    scores = out.info["light_selection"]["scores"]
+    assert set(scores) == {"sh", "point"} and scores["point"] < 0.5 * scores["sh"], scores
+
+
+def test_point_lights_give_normals_and_albedo_without_shading(quilt):
+    """Under the near lamp the normals come out 1.77 deg off (per-frame SH: 10.4 deg), bound 2.5;
+    the albedo's median relative error after a global scale 4.0 % (SH 7.6 %), bound 5.5 %."""
+    scene, out = quilt
+    normals, _ = perspective_normals(out.depth, scene["K"])
+    assert normal_mae_deg(normals, scene["normals"], out.mask) < 2.5
+    assert albedo_error(out.albedo, scene["albedo"], out.mask) < 0.055
+
+
+def test_borders_are_as_good_as_the_interior(quilt):
+    """The quilt fills the frame and touches the image border on every side (where a real capture
+    showed blocks of wrong normals and albedo): the normals within 2 px of the border are 2.16
+    deg off against the interior's (16 px or more from the border) 1.68; bound: the interior's +
+    0.8 deg. The albedo error there: 4.9 % against 3.0 %; bound: the interior's x 2."""
+    scene, out = quilt
+    normals, _ = perspective_normals(out.depth, scene["K"])
+    error = np.degrees(np.arccos(np.clip(np.sum(normals * scene["normals"], axis=-1), -1, 1)))
+    H, W = error.shape
+    v, u = np.mgrid[:H, :W]
+    distance = np.minimum(np.minimum(u, W - 1 - u), np.minimum(v, H - 1 - v))
+    border, interior = out.mask & (distance < 2), out.mask & (distance >= 16)
+    assert error[border].mean() < error[interior].mean() + 0.8
+    assert albedo_error(out.albedo, scene["albedo"], border) < 2 * albedo_error(out.albedo, scene["albedo"], interior)
+
+
+def test_point_model_needs_every_frame_at_once():
+    """One frame's pose cannot name its light: the model says so instead of shading wrongly."""
+    light = PointLight(np.zeros((3, 3)))
+    with pytest.raises(ValueError, match="3 light positions, one per frame, but was asked for 1 frames"):
+        light.basis(np.array([[0.0, 0.0, -1.0]]), np.array([[0.0, 0.0, 0.5]]), np.eye(4))
+    assert make_light_model("point").name == "point"
+
+
+def test_capture_json_declares_a_point_light(tmp_path):
+    """capture.json's "light": "point" reads back; an unknown light names the file and the choices."""
+    capture = render_static_capture("bunny", frames=2, size=(160, 120), scale_factor=2, noise=False)
+    capture.light = "point"
+    write_capture(capture, tmp_path / "c")
+    assert read_capture(tmp_path / "c").light == "point"
+    settings_file = tmp_path / "c" / "capture.json"
+    settings_file.write_text(settings_file.read_text().replace('"point"', '"torch"'))
+    with pytest.raises(CaptureError, match="capture.json: light must be one of 'led', 'room', 'point'.*got 'torch'"):
+        read_capture(tmp_path / "c")
+
+
+def test_point_model_keeps_the_poses_and_says_so():
+    """Asked to refine poses, the point model keeps them (a free lamp per frame would absorb a
+    pose's shading) and warns, naming the LED model for a camera that moved."""
+    scene = quilt_scene(frames=3, size=(64, 48))
+    kicked = np.tile(np.eye(4), (3, 1, 1))
+    kicked[1, 0, 3] = 0.002
+    opts = RefineOptions(progress=False, light_model="point", levels=1, max_iterations=1)
+    with pytest.warns(UserWarning, match="point light model .* keeps the initial poses.*--light-model led"):
+        out = solve(SolverInput(scene["colors"], scene["depths"], [None] * 3, scene["K"], scene["depth_K"], 2, kicked,
+                                np.zeros(3), [0, 1, 2], opts))
+    np.testing.assert_array_equal(out.poses, kicked)
