@@ -42,7 +42,8 @@ from .pyramid import build_level, level_size
 from .reflectance import update_albedo, update_lighting
 from .smoothness import auto_smoothness
 from .solution import SolverOutput
-from .weighting import evidence_weights, lowpass_sigma, normal_evidence, tie_low_frequencies
+from .weighting import (absolute_evidence_weights, evidence_weights, lowpass_sigma, normal_evidence,
+                        tie_low_frequencies)
 
 
 def normalised_tau(tau_tilde: float, n_frames: int, mean_intensity: float, n_hr: int, mean_z0: float, n_lr: int,
@@ -117,7 +118,12 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
         if options.model.evidence_weighted() and problem.mu > 0 and problem.level.prior.S is not None:
             t = time.perf_counter()
             evidence = normal_evidence(problem.light_model(est), est, ev, problem.points(est.z))
-            problem.level.prior.weigh_smoothness(evidence_weights(evidence))
+            if problem.light.name == "sh":  # a large smoothness: relative to the median pixel
+                weights = evidence_weights(evidence)
+            else:  # a small one (LED): where the shading's normal is noisier than the sensor's
+                weights = absolute_evidence_weights(evidence, robust_scale(ev.residual, ev.usable),
+                                                    stats["sensor_smoothness"] / max(stats["smoothness"], 1e-12))
+            problem.level.prior.weigh_smoothness(weights)
             ev.prior = problem.prior_energy(est.z)
             timings["evidence_weights"] += time.perf_counter() - t
         previous = ev.energy
@@ -322,8 +328,9 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
     light = make_light_model(options.light_model, initial_sh=options.initial_light,
                              led_offset=problem_input.led_offset)
     smoothness = options.model.smoothness_weight()
+    sensor_smoothness = auto_smoothness(options.tau, z0, ref_mask, sf, K)
     if smoothness == AUTO:
-        smoothness = auto_smoothness(options.tau, z0, ref_mask, sf, K)
+        smoothness = sensor_smoothness
     tie_sigma = options.model.lowpass_width()
     if tie_sigma == AUTO:
         tie_sigma = lowpass_sigma(z0, ref_mask, sf)
@@ -336,7 +343,8 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
     anchors = (PoseAnchors(sensor_depths, depth_K, problem_input.initial_poses, problem_input.pose_trust,
                            scale_factor=sf) if given else None)
     pose_log = PoseLog()
-    stats = {"cg_iterations": [], "cauchy_lambda": [], "smoothness": smoothness, "levels": n_levels,
+    stats = {"cg_iterations": [], "cauchy_lambda": [], "smoothness": smoothness, "sensor_smoothness": sensor_smoothness,
+             "levels": n_levels,
              "level_devices": [], "sensor_lowpass_sigma": tie_sigma}
 
     def solve_level(level_index: int, carried: Carried | None) -> Carried | None:
