@@ -125,3 +125,18 @@ def test_few_frames_seeing_the_reference_warn_and_lean_on_the_sensor():
     assert any("leans on the sensor" in s for s in result.info["warnings"])
     got = grain_figures(capture, result.depth_array())
     assert got["all"] < got["bicubic"] + 1.5, got
+
+
+def test_render_command_draws_the_speckled_stone(tmp_path, capsys):
+    from o3d_mvps.capture import read_capture
+    from o3d_mvps.cli import main
+
+    assert main(["--quiet", "render", "bunny", str(tmp_path / "c"), "--frames", "2", "--size", "64x48",
+                 "--light", "room", "--sensor", "d415", "--albedo", "speckled"]) == 0
+    capture = read_capture(tmp_path / "c")
+    assert capture.metadata["synthetic"]["albedo"] == "speckled"
+    albedo = np.asarray(capture.groundtruth.albedo).mean(axis=2)[capture.mask_array(0)]
+    assert (albedo < 0.1).mean() > 0.15 and (albedo > 0.45).mean() > 0.5
+    assert main(["--quiet", "render", "bunny", str(tmp_path / "s"), "--static-camera", "--albedo", "speckled"]) != 0
+    assert "--albedo speckled is not available with --static-camera" in capsys.readouterr().err
+    assert not (tmp_path / "s").exists()
