@@ -126,8 +126,9 @@ class ProceduralAlbedo:
 
 @dataclass(frozen=True)
 class SpeckledAlbedo:
-    """A dark-speckled stone (granite, speckled plaster): a pale grey base with a smooth variation
-    and dark speckles, the texture whose colour must not become relief (issue 32 item 3).
+    """A dark-speckled stone (granite, speckled plaster): pale grey cells and dark speckles, each
+    cell's brightness varied a little; the texture whose colour must not become relief (issue 32
+    item 3).
 
     Defined on object coordinates q like :class:`ProceduralAlbedo`. ``seeds`` (K, 3) centres of
     small Voronoi cells (about 1/``cells_per_axis`` of the object: 8 mm on a 0.2 m object, 3-4
