@@ -72,9 +72,9 @@ DEFAULT_SENSOR_LOWPASS = {"led": 0, "sh": AUTO, "room": 0}
 #: median pixel (:func:`o3d_mvps.solver.weighting.evidence_weights`; a plaid quilt's dark patches:
 #: normals 2.02 -> 1.68 deg, the smoothed sensor 4.29); on with the LED against an absolute normal
 #: precision (:func:`o3d_mvps.solver.weighting.absolute_evidence_weights`: a dark-speckled bunny
-#: with the D415-like sensor, 320x240, 10 frames: darkest albedo quarter 23.6 -> 12.6 deg, the
-#: accuracy benchmark's bunny at 320x240 4.56 deg / 1.66 mm -> 4.53 / 1.58; the median rule had
-#: cost that bunny depth accuracy, 0.895 -> 0.985 mm at 640x480); off under room light, whose
+#: with the D415-like sensor, 320x240, 10 frames: darkest albedo quarter 23.6 -> 13.1 deg; the
+#: accuracy benchmark's bunny, 640x480, SF 4, 20 frames: 2.32 deg / 0.895 mm -> 2.30 / 0.897,
+#: where the median rule had cost depth accuracy, 0.985 mm); off under room light, whose
 #: smoothness is already the sensor's (the absolute rule's ceiling).
 DEFAULT_EVIDENCE_WEIGHTS = {"led": True, "sh": True, "room": False}
 

@@ -151,8 +151,9 @@ def evidence_weights(evidence: np.ndarray) -> np.ndarray:
 #: ``noise / sqrt(evidence)`` above it makes the pixel lean on the smoothness. On a speckled
 #: LED-lit bunny with the D415-like sensor the dark speckles' shading gives 10-20 degrees and the
 #: pale stone's 3-4; on the accuracy benchmark's LED bunny (Gaussian noise) the median pixel's 1,
-#: the 1st percentile's 4. 1 degree measured better than 2 on both (docs "Fidelity")
-NORMAL_PRECISION_DEG = 1.0
+#: the 1st percentile's 4. 1.5 measured: the speckles' normals 13.1 deg off (1: 12.6, 2: 13.9),
+#: the 640x480 bunny 2.30 deg / 0.897 mm (1: 2.33 / 0.919; without weights 2.32 / 0.895)
+NORMAL_PRECISION_DEG = 1.5
 
 
 def absolute_evidence_weights(evidence: np.ndarray, noise: float, ceiling: float,
