@@ -70,9 +70,7 @@ def test_cuda_path_matches_the_cpu_path(solutions):
     energies = np.array([[r["energy"] for r in cpu.energy], [r["energy"] for r in cuda.energy]])
     np.testing.assert_allclose(energies[1], energies[0], rtol=energy_rtol)
     finest = [r["energy"] for r in cpu.energy if r["level"] == 0]
-    # the solve did something to compare (measured: 0.84 LED, whose evidence weights raise the
-    # smoothness after the level's first energy, 0.66 without them; 0.23 room)
-    assert finest[-1] < 0.9 * finest[0]
+    assert finest[-1] < 0.8 * finest[0]  # the solve did something to compare (measured: 0.66 LED, 0.23 room)
     np.testing.assert_array_equal(cuda.mask, cpu.mask)
     assert np.abs(cuda.depth - cpu.depth)[cpu.mask].max() < depth_m
     n_cpu, _ = perspective_normals(cpu.depth, cpu.K, cpu.mask)

@@ -111,21 +111,13 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
     # alone, so every depth step takes it, on every level (the joint step's size limit is for
     # lights that also inform the normals)
     parallax_only = problem.light.fixed_in_world
+    _weigh_smoothness(problem, est, ev, options, timings, stats)
     rows = [{"level": level.index, "iteration": 0, "energy": ev.energy}]
     bar = tqdm(range(1, options.max_iterations + 1), desc=f"level {level.index} ({level.size[1]}x{level.size[0]})",
                disable=not options.progress, leave=False)
     for iteration in bar:
-        if options.model.evidence_weighted() and problem.mu > 0 and problem.level.prior.S is not None:
-            t = time.perf_counter()
-            evidence = normal_evidence(problem.light_model(est), est, ev, problem.points(est.z))
-            if problem.light.name == "sh":  # a large smoothness: relative to the median pixel
-                weights = evidence_weights(evidence)
-            else:  # a small one (LED): where the shading's normal is noisier than the sensor's
-                weights = absolute_evidence_weights(evidence, robust_scale(ev.residual, ev.usable),
-                                                    stats["sensor_smoothness"] / max(stats["smoothness"], 1e-12))
-            problem.level.prior.weigh_smoothness(weights)
-            ev.prior = problem.prior_energy(est.z)
-            timings["evidence_weights"] += time.perf_counter() - t
+        if iteration > 1:  # the first sweep's weights are set before the level's first energy
+            _weigh_smoothness(problem, est, ev, options, timings, stats)
         previous = ev.energy
         start = _snapshot(est)
         if refine_poses and options.joint_pose_depth and (parallax_only or level.grid.size >= options.joint_min_pixels):
@@ -171,6 +163,26 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
     bar.close()
     stats["frame_rms"] = ev.frame_rms()  # the finest level's stays: the report's per-frame residual
     return rows
+
+
+def _weigh_smoothness(problem: LevelProblem, est: Estimate, ev, options: RefineOptions, timings: dict,
+                      stats: dict) -> None:
+    """Weight each pixel's smoothness by the shading's evidence (:mod:`.weighting`; per-frame SH:
+    relative to the median pixel, else against an absolute normal precision up to the sensor's
+    own smoothness) and update ``ev``'s prior energy, where the options ask for it; at the start
+    of every sweep."""
+    if not (options.model.evidence_weighted() and problem.mu > 0 and problem.level.prior.S is not None):
+        return
+    t = time.perf_counter()
+    evidence = normal_evidence(problem.light_model(est), est, ev, problem.points(est.z))
+    if problem.light.name == "sh":  # a large smoothness: relative to the median pixel
+        weights = evidence_weights(evidence)
+    else:  # a small one (LED): where the shading's normal is noisier than the sensor's
+        weights = absolute_evidence_weights(evidence, robust_scale(ev.residual, ev.usable),
+                                            stats["sensor_smoothness"] / max(stats["smoothness"], 1e-12))
+    problem.level.prior.weigh_smoothness(weights)
+    ev.prior = problem.prior_energy(est.z)
+    timings["evidence_weights"] += time.perf_counter() - t
 
 
 def _snapshot(est: Estimate) -> Estimate:
