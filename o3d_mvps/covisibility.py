@@ -35,6 +35,12 @@ MAX_VIEW_ANGLE_DEG = 75.0
 OCCLUSION_TOLERANCE = 0.03
 #: Frames besides the reference that a selection always has (else it is an error).
 MIN_OTHER_FRAMES = 2
+#: A frame "sees most of" the reference when its covisibility is at least this.
+MOST_OF_REFERENCE = 0.6
+#: Fewer frames than this (besides the reference) that see most of it: the photometric evidence is
+#: weak (issue 32 item 3: 8 frames of which 3 saw the reference came out grainy, 64 deg against
+#: bicubic's 18), and the refinement leans on the sensor (:func:`o3d_mvps.solving.refine`).
+MIN_WELL_COVISIBLE = 3
 #: Widest grid (pixels) the reference surface is taken on. Finite-difference normals of a finer
 #: sensor depth map follow its quantisation steps, not the surface (1 mm steps at 0.6 m are
 #: several pixels apart at 1000 px wide): at 1064 px a bunny's frames 15 degrees away seemed to
@@ -110,6 +116,19 @@ class ViewSelection:
         if self.left_out:
             line += "; left out " + ", ".join(f"{i} ({why})" for i, why in sorted(self.left_out.items()))
         return line
+
+    def weak_coverage(self) -> str | None:
+        """None when at least :data:`MIN_WELL_COVISIBLE` of the chosen frames see
+        :data:`MOST_OF_REFERENCE` of the reference, else one sentence naming how many frames see
+        how much (the frames chosen, best first)."""
+        seen = sorted(((self.covisibility[i], i) for i in self.frames[1:]), reverse=True)
+        well = sum(c >= MOST_OF_REFERENCE for c, _ in seen)
+        if well >= MIN_WELL_COVISIBLE:
+            return None
+        listed = ", ".join(f"frame {i} {c:.0%}" for c, i in seen) or "none"
+        return (f"only {well} of the {len(self.covisibility)} other frames see at least {MOST_OF_REFERENCE:.0%} of "
+                f"reference frame {self.frames[0]}'s surface ({len(seen)} used: {listed}); "
+                f"{MIN_WELL_COVISIBLE} are needed for photometric detail")
 
     @classmethod
     def from_dict(cls, d: dict) -> "ViewSelection":

@@ -25,7 +25,7 @@ from .refinement import Refinement
 from .run_report import NOT_PICKED, peak_memory_mb, recorded_warnings
 from .solver.device import check_device
 from .solver.driver import solve
-from .solver.options import RefineOptions
+from .solver.options import AUTO, RefineOptions
 from .solver.pose_trust import DEFAULT_POSE_TRUST
 from .solver.problem_input import SolverInput, write_problem
 from .covisibility import MIN_OTHER_FRAMES, ViewSelection, frames_seeing_reference
@@ -160,6 +160,11 @@ def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses
         keep = [frames.index(i) for i in views.frames]
         capture, initial_poses, frames = capture.select(keep), initial_poses[keep], views.frames
         why.update({int(i): reason for i, reason in views.left_out.items()})
+        weak = views.weak_coverage()
+        if weak is not None:
+            options = lean_on_sensor(options)
+            warnings.warn(f"{weak}: the refinement leans on the sensor depth ({WEAK_COVERAGE_NOTE}); capture more "
+                          "frames 15-30 degrees around the reference for photometric detail", stacklevel=3)
     report["frames_report"] = [{"index": i, "file": name, "used": i in frames, "reason": why.get(i)}
                                for i, name in enumerate(all_frames)]
     n = capture.n_frames
@@ -171,6 +176,20 @@ def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses
         initial_poses=initial_poses, led_offset=_led_offset(options, capture), frames=frames, options=options,
         report=report, pose_trust=trust,
     ), views
+
+
+#: what :func:`lean_on_sensor` changes, for the warning
+WEAK_COVERAGE_NOTE = "the sensor's smoothness and low frequencies"
+
+
+def lean_on_sensor(options: RefineOptions) -> RefineOptions:
+    """``options`` for a reference few frames see (:meth:`ViewSelection.weak_coverage`): the
+    smoothness set from the sensor's noise (``"auto"``, room light's rule) and the sensor tie on,
+    unless the caller chose them. With 3 of 8 frames 45 degrees apart seeing an LED-lit bunny's
+    reference (320x240, SF 2, D415-like sensor) the normals were 23.1 deg off with the LED's
+    defaults and are 11.0 so, bicubic upsampling's 9.8 (docs/fidelity.md, tests/test_grain.py)."""
+    return replace(options, smoothness=AUTO if options.smoothness is None else options.smoothness,
+                   sensor_lowpass=AUTO if options.sensor_lowpass is None else options.sensor_lowpass)
 
 
 def _pose_trust(pose_trust) -> tuple[float, float]:

@@ -119,7 +119,7 @@ def test_options_reject_a_wrong_sensor_lowpass():
         RefineOptions(evidence_weights="yes")
     sh, led = RefineOptions(light_model="sh").model, RefineOptions(light_model="led").model
     assert (sh.lowpass_width(), sh.evidence_weighted()) == ("auto", True)
-    assert (led.lowpass_width(), led.evidence_weighted()) == (None, False)
+    assert (led.lowpass_width(), led.evidence_weighted()) == (None, True)
     assert RefineOptions(light_model="sh", sensor_lowpass=0).model.lowpass_width() is None
 
 

@@ -77,6 +77,10 @@ def register(subparsers) -> None:
                    "z^2 plus a smooth error of a few mm, flying pixels at edges, 3%% speckle holes; colour with "
                    "exposure and white-balance drift, shot and read noise) or none (quantisation only) "
                    "(default gaussian)")
+    p.add_argument("--albedo", choices=("patches", "speckled"), default="patches",
+                   help="surface texture: patches (coloured cells) or speckled (a pale stone with dark speckles 3-4 "
+                   "px wide at 320x240, for 'colour must not become relief'; not with --static-camera) "
+                   "(default patches)")
     p.add_argument("--seed", type=nonnegative_int, default=0, help="seed of the albedo texture and noise (default 0)")
     p.add_argument("--no-noise", dest="noise", action="store_false",
                    help="no colour or depth noise (quantisation stays): --sensor none")
@@ -94,6 +98,8 @@ def run(args) -> int:
     if args.scene and args.static_camera:
         raise ValueError("--scene and --static-camera exclude each other (a scene is rendered from a ring of "
                          "camera positions); pick one")
+    if args.static_camera and args.albedo != "patches":
+        raise ValueError(f"--albedo {args.albedo} is not available with --static-camera; drop one of them")
     if not args.noise and args.sensor not in ("gaussian", "none"):
         raise ValueError(f"--no-noise contradicts --sensor {args.sensor}; drop one of them")
     sensor = args.sensor if args.noise else "none"
@@ -104,9 +110,10 @@ def run(args) -> int:
     if args.static_camera:
         capture = render_static_capture(args.mesh, **common)
     elif args.scene or args.trajectory == "ring":
-        capture, _ = render_ring(args.mesh, surroundings=args.scene, arc_deg=args.arc_deg, light=args.light, **common)
+        capture, _ = render_ring(args.mesh, surroundings=args.scene, arc_deg=args.arc_deg, light=args.light,
+                                 albedo=args.albedo, **common)
     else:
-        capture = render_capture(args.mesh, trajectory=args.trajectory, light=args.light, **common)
+        capture = render_capture(args.mesh, trajectory=args.trajectory, light=args.light, albedo=args.albedo, **common)
     write_capture(capture, out, overwrite=args.overwrite)
     (H, W), (h, w) = capture.color_size, capture.depth_size
     print(f"wrote {capture.n_frames} frames ({W}x{H} colour, {w}x{h} depth) to {out} "

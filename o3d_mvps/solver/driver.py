@@ -44,7 +44,8 @@ from .pyramid import build_level, level_size
 from .reflectance import update_albedo, update_lighting
 from .smoothness import auto_smoothness
 from .solution import SolverOutput
-from .weighting import evidence_weights, lowpass_sigma, normal_evidence, tie_low_frequencies
+from .weighting import (absolute_evidence_weights, evidence_weights, lowpass_sigma, normal_evidence,
+                        tie_low_frequencies)
 
 
 #: levels with more object pixels than this refit the point lights' positions in their first sweep
@@ -121,19 +122,16 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
     # alone, so every depth step takes it, on every level (the joint step's size limit is for
     # lights that also inform the normals)
     parallax_only = problem.light.fixed_in_world
+    _weigh_smoothness(problem, est, ev, options, timings, stats)
     rows = [{"level": level.index, "iteration": 0, "energy": ev.energy}]
     bar = tqdm(range(1, options.max_iterations + 1), desc=f"level {level.index} ({level.size[1]}x{level.size[0]})",
                disable=not options.progress, leave=False)
     for iteration in bar:
         # point lights: their per-pixel fields make the evidence cost a frames x pixels x 3 x 3
         # sum; weighed once per level where the lamps are no longer refitted every sweep
-        settled = problem.light.name == "point" and level.grid.size > POINT_FIT_MAX_PIXELS and iteration > 1
-        if options.model.evidence_weighted() and problem.mu > 0 and problem.level.prior.S is not None and not settled:
-            t = time.perf_counter()
-            evidence = normal_evidence(problem.light_model(est), est, ev, problem.points(est.z))
-            problem.level.prior.weigh_smoothness(evidence_weights(evidence))
-            ev.prior = problem.prior_energy(est.z)
-            timings["evidence_weights"] += time.perf_counter() - t
+        settled = problem.light.name == "point" and level.grid.size > POINT_FIT_MAX_PIXELS
+        if iteration > 1 and not settled:  # the first sweep's weights are set before the level's first energy
+            _weigh_smoothness(problem, est, ev, options, timings, stats)
         previous = ev.energy
         start = _snapshot(est)
         if refine_poses and options.joint_pose_depth and (parallax_only or level.grid.size >= options.joint_min_pixels):
@@ -181,6 +179,26 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
     bar.close()
     stats["frame_rms"] = ev.frame_rms()  # the finest level's stays: the report's per-frame residual
     return rows
+
+
+def _weigh_smoothness(problem: LevelProblem, est: Estimate, ev, options: RefineOptions, timings: dict,
+                      stats: dict) -> None:
+    """Weight each pixel's smoothness by the shading's evidence (:mod:`.weighting`; per-frame SH:
+    relative to the median pixel, else against an absolute normal precision up to the sensor's
+    own smoothness) and update ``ev``'s prior energy, where the options ask for it; at the start
+    of every sweep."""
+    if not (options.model.evidence_weighted() and problem.mu > 0 and problem.level.prior.S is not None):
+        return
+    t = time.perf_counter()
+    evidence = normal_evidence(problem.light_model(est), est, ev, problem.points(est.z))
+    if problem.light.name in ("sh", "point"):  # a large smoothness: relative to the median pixel
+        weights = evidence_weights(evidence)
+    else:  # a small one (LED): where the shading's normal is noisier than the sensor's
+        weights = absolute_evidence_weights(evidence, robust_scale(ev.residual, ev.usable),
+                                            stats["sensor_smoothness"] / max(stats["smoothness"], 1e-12))
+    problem.level.prior.weigh_smoothness(weights)
+    ev.prior = problem.prior_energy(est.z)
+    timings["evidence_weights"] += time.perf_counter() - t
 
 
 def _snapshot(est: Estimate) -> Estimate:
@@ -343,8 +361,9 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
                       "they are not refined; for a camera that moved with its own LED use --light-model led "
                       "(RefineOptions(light_model='led'))", stacklevel=3)
     smoothness = options.model.smoothness_weight()
+    sensor_smoothness = auto_smoothness(options.tau, z0, ref_mask, sf, K)
     if smoothness == AUTO:
-        smoothness = auto_smoothness(options.tau, z0, ref_mask, sf, K)
+        smoothness = sensor_smoothness
     tie_sigma = options.model.lowpass_width()
     if tie_sigma == AUTO:
         tie_sigma = lowpass_sigma(z0, ref_mask, sf)
@@ -357,7 +376,8 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
     anchors = (PoseAnchors(sensor_depths, depth_K, problem_input.initial_poses, problem_input.pose_trust,
                            scale_factor=sf) if given else None)
     pose_log = PoseLog()
-    stats = {"cg_iterations": [], "cauchy_lambda": [], "smoothness": smoothness, "levels": n_levels,
+    stats = {"cg_iterations": [], "cauchy_lambda": [], "smoothness": smoothness, "sensor_smoothness": sensor_smoothness,
+             "levels": n_levels,
              "level_devices": [], "sensor_lowpass_sigma": tie_sigma}
 
     def solve_level(level_index: int, carried: Carried | None) -> Carried | None:

@@ -68,11 +68,15 @@ AUTO = "auto"
 #: frames: 2.33 deg / 0.895 mm without, 2.32 deg / 0.944 mm with), and under room light (not measured).
 DEFAULT_SENSOR_LOWPASS = {"led": 0, "sh": AUTO, "room": 0, "point": AUTO}
 
-#: the evidence weights (:func:`o3d_mvps.solver.weighting.evidence_weights`) per light model when
-#: not given: on with per-frame SH (a plaid quilt's dark patches: normals 2.02 -> 1.68 deg, the
-#: smoothed sensor 4.29); off with the LED, whose small smoothness (0.3) lets the pixels few frames
-#: see follow their data (the bunny above: 0.895 -> 0.985 mm with them) and under room light.
-DEFAULT_EVIDENCE_WEIGHTS = {"led": False, "sh": True, "room": False, "point": True}
+#: the evidence weights per light model when not given: on with per-frame SH and point lights,
+#: relative to the median pixel (:func:`o3d_mvps.solver.weighting.evidence_weights`; a plaid
+#: quilt's dark patches: normals 2.02 -> 1.68 deg, the smoothed sensor 4.29); on with the LED
+#: against an absolute normal precision (:func:`o3d_mvps.solver.weighting.absolute_evidence_weights`:
+#: a dark-speckled bunny with the D415-like sensor, 320x240, 10 frames: darkest albedo quarter
+#: 23.6 -> 13.1 deg; the accuracy benchmark's bunny, 640x480, SF 4, 20 frames: 2.32 deg / 0.895 mm
+#: -> 2.30 / 0.897, where the median rule had cost depth accuracy, 0.985 mm); off under room
+#: light, whose smoothness is already the sensor's (the absolute rule's ceiling).
+DEFAULT_EVIDENCE_WEIGHTS = {"led": True, "sh": True, "room": False, "point": True}
 
 LightModel = _Choice("LightModel", {v.upper(): v for v in LIGHT_MODELS})
 LightModel.__doc__ = ('Light model: LED ("led", a point light moving with the camera, paper section 6\'s '

@@ -75,6 +75,7 @@ def render_capture(
     object_size: float = 0.2,
     distance: float = 0.6,
     progress: bool = False,
+    albedo: str = "patches",
 ) -> Capture:
     """Render a synthetic LED-lit RGB-D capture of ``mesh`` with ground truth.
 
@@ -106,6 +107,9 @@ def render_capture(
         Largest bounding-box extent of the object and its distance to the reference camera (m).
     progress : bool
         Show a tqdm progress bar over frames.
+    albedo : {"patches", "speckled"}
+        The surface texture: coloured patches, or a pale stone with dark speckles
+        (:class:`~o3d_mvps.synthetic.scene.SpeckledAlbedo`).
 
     Returns
     -------
@@ -114,7 +118,7 @@ def render_capture(
         steps, masks (H, W, 1) uint8 255 on the object, and :class:`GroundTruth`.
     """
     W, H = check_render_arguments(frames, scale_factor, size, trajectory, light, object_size, distance)
-    scene = build_scene(mesh, size=(W, H), object_size=object_size, distance=distance, seed=seed)
+    scene = build_scene(mesh, size=(W, H), object_size=object_size, distance=distance, seed=seed, albedo=albedo)
     poses = orbit_trajectory(int(frames), distance, trajectory)
     lighting = make_light(light, distance)
     rendered = render_sensor_frames(scene, poses, lighting, scale_factor, seed=seed, noise=noise, sensor=sensor,
@@ -147,6 +151,7 @@ def render_capture(
                 "noise": bool(noise),
                 "object_size": float(object_size),
                 "distance": float(distance),
+                "albedo": albedo,
                 **rendered.sensor_metadata(),
             }
         },

@@ -26,12 +26,13 @@ from .sensor import DEPTH_SCALE
 def render_ring(mesh="bunny", *, frames: int = 12, size=(160, 120), scale_factor: int = 4, arc_deg: float = 360.0,
                 elevation_deg: float = 20.0, light: str = "led", surroundings: bool = False, seed: int = 0,
                 noise: bool = True, sensor: str | None = None, object_size: float = 0.2, distance: float = 0.6,
-                progress: bool = False):
+                progress: bool = False, albedo: str = "patches"):
     """(Capture, scene): a ring capture of ``mesh`` and its :class:`~o3d_mvps.synthetic.SyntheticScene`.
 
     ``light``: "led", "directional" or "room" (:func:`~o3d_mvps.synthetic.make_light`; the
     capture's ``light`` says "led" or "room"). ``surroundings``: scene mode (table, wall, no
-    masks). ``sensor``: the sensor profile (:func:`~o3d_mvps.synthetic.render_capture`).
+    masks). ``sensor``: the sensor profile and ``albedo`` the texture ("patches" or "speckled")
+    (:func:`~o3d_mvps.synthetic.render_capture`).
     ``capture.groundtruth.poses`` (n, 4, 4) map frame-0 camera -> frame-i camera (what a
     pose file gives); ground truth depth, normals and albedo cover the object only.
     ``capture.metadata["world_to_camera"]`` holds the poses from the scene's reference camera
@@ -39,7 +40,7 @@ def render_ring(mesh="bunny", *, frames: int = 12, size=(160, 120), scale_factor
     """
     size = check_render_arguments(frames, scale_factor, size, None, light, object_size, distance)
     scene = build_scene(mesh, size=size, object_size=object_size, distance=distance, seed=seed,
-                        surroundings=surroundings)
+                        surroundings=surroundings, albedo=albedo)
     world = ring_trajectory(frames, distance, elevation_deg, arc_deg)
     lighting = make_light(light, distance)
     rendered = render_sensor_frames(scene, world, lighting, scale_factor, seed=seed, noise=noise,

@@ -124,6 +124,47 @@ class ProceduralAlbedo:
         return np.clip(base * smooth[:, None], 0.2, 0.9)
 
 
+@dataclass(frozen=True)
+class SpeckledAlbedo:
+    """A dark-speckled stone (granite, speckled plaster): pale grey cells and dark speckles, each
+    cell's brightness varied a little; the texture whose colour must not become relief (issue 32
+    item 3).
+
+    Defined on object coordinates q like :class:`ProceduralAlbedo`. ``seeds`` (K, 3) centres of
+    small Voronoi cells (about 1/``cells_per_axis`` of the object: 8 mm on a 0.2 m object, 3-4
+    pixels at 320x240 and 0.6 m), ``dark`` (K,) bool the speckles' cells, ``shade`` (K,) each
+    cell's brightness factor; the base is ``BASE * shade`` and a speckle ``DARK * shade``.
+    """
+
+    seeds: np.ndarray
+    dark: np.ndarray
+    shade: np.ndarray
+
+    #: linear RGB of the pale stone and of its speckles (the speckles about 8x darker)
+    BASE = np.array([0.62, 0.58, 0.52])
+    DARK = np.array([0.075, 0.07, 0.065])
+
+    @classmethod
+    def random(cls, rng: np.random.Generator, cells_per_axis: int = 25, dark_fraction: float = 0.3) -> "SpeckledAlbedo":
+        """A random speckled texture drawn from ``rng``: ``cells_per_axis``^3 cells uniformly over
+        [-0.5, 0.5]^3, ``dark_fraction`` of them speckles, brightness factors in [0.85, 1.15]."""
+        k = int(cells_per_axis) ** 3
+        return cls(rng.uniform(-0.5, 0.5, size=(k, 3)), rng.random(k) < dark_fraction, rng.uniform(0.85, 1.15, k))
+
+    @cached_property
+    def _cells(self) -> cKDTree:
+        return cKDTree(self.seeds)
+
+    def __call__(self, q: np.ndarray) -> np.ndarray:
+        """Linear RGB albedo (N, 3) of object-coordinate points q (N, 3)."""
+        cell = self._cells.query(np.asarray(q, dtype=np.float64))[1]
+        return np.where(self.dark[cell, None], self.DARK, self.BASE) * self.shade[cell, None]
+
+
+#: the surface textures :func:`build_scene` draws (``albedo=``)
+ALBEDOS = {"patches": ProceduralAlbedo, "speckled": SpeckledAlbedo}
+
+
 @dataclass
 class SyntheticScene:
     """The placed mesh ready for ray casting.
@@ -142,7 +183,7 @@ class SyntheticScene:
     mesh_to_reference: np.ndarray
     object_size: float
     distance: float
-    albedo: ProceduralAlbedo
+    albedo: ProceduralAlbedo | SpeckledAlbedo
     triangles: np.ndarray | None = None
     vertex_normals: np.ndarray | None = None
     object_id: int = 0
@@ -178,12 +219,15 @@ class SyntheticScene:
 
 
 def build_scene(mesh, *, size=(640, 480), object_size=0.2, distance=0.6, seed=0,
-                surroundings: bool = False) -> SyntheticScene:
+                surroundings: bool = False, albedo: str = "patches") -> SyntheticScene:
     """Place ``mesh`` (tensor/legacy TriangleMesh, name or path) in front of the reference camera.
 
     ``size`` (W, H) pixels; ``object_size``, ``distance`` metres; ``seed`` draws the albedo;
-    ``surroundings`` stands the object on a table in front of a wall (:mod:`.surroundings`).
+    ``surroundings`` stands the object on a table in front of a wall (:mod:`.surroundings`);
+    ``albedo`` the texture: "patches" (:class:`ProceduralAlbedo`) or "speckled" (:class:`SpeckledAlbedo`).
     """
+    if albedo not in ALBEDOS:
+        raise ValueError(f"unknown albedo {albedo!r}; choose one of {list(ALBEDOS)}")
     front = FRONT_ROTATIONS.get(mesh) if isinstance(mesh, str) else None
     legacy = _as_legacy_mesh(mesh)
     vertices = np.asarray(legacy.vertices, dtype=np.float64)
@@ -195,13 +239,13 @@ def build_scene(mesh, *, size=(640, 480), object_size=0.2, distance=0.6, seed=0,
         o3d.core.Tensor(np.asarray(legacy.triangles, dtype=np.uint32)),
     )
     room = add_surroundings(raycaster, float(placed[:, 1].max()), float(distance)) if surroundings else None
-    albedo = ProceduralAlbedo.random(random_stream(seed, "albedo"))
+    texture = ALBEDOS[albedo].random(random_stream(seed, "albedo"))
     W, H = (int(s) for s in size)
     legacy.compute_vertex_normals()
     vertex_normals = apply_matrix(M[:3, :3], np.asarray(legacy.vertex_normals, dtype=np.float64))
     vertex_normals /= np.maximum(np.linalg.norm(vertex_normals, axis=1, keepdims=True), 1e-12)
     return SyntheticScene(raycaster, synthetic_intrinsics(W, H), (W, H), M, float(object_size), float(distance),
-                          albedo, np.asarray(legacy.triangles, dtype=np.int64), vertex_normals, int(object_id), room)
+                          texture, np.asarray(legacy.triangles, dtype=np.int64), vertex_normals, int(object_id), room)
 
 
 def random_stream(seed: int, stream: str) -> np.random.Generator:

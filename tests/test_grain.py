@@ -1,0 +1,143 @@
+"""No grain (issue 32 item 3): where the shading says little about the normals (dark speckles, few
+frames seeing the reference) the refinement leans on the sensor and the smoothness.
+
+Rendered captures of the bunny in a pale stone with dark speckles (``albedo="speckled"``: 30 % of
+cells about 8 x darker, 3-4 px wide), the D415-like sensor (shot noise, disparity terraces, holes,
+gain drift), 320x240 colour, SF 2. Figures inside the object (9 px from its silhouette):
+normal MAE over all and over the darkest quarter of albedo; bicubic upsampling of the sensor and
+that surface smoothed by a Gaussian of 4 px (normalised over the mask) are the references; the
+correlation of the depth error's high-pass with the albedo's (Gaussians of 3 px) says whether
+colour became relief.
+"""
+
+import warnings
+
+import cv2
+import numpy as np
+import pytest
+
+from o3d_mvps import RefineOptions, refine, synthetic
+from o3d_mvps.baselines import bicubic
+from o3d_mvps.covisibility import MIN_WELL_COVISIBLE, MOST_OF_REFERENCE, ViewSelection
+from o3d_mvps.metrics import normal_mae_deg
+from o3d_mvps.model.normals import perspective_normals
+from o3d_mvps.solver.weighting import absolute_evidence_weights
+from o3d_mvps.synthetic.scene import SpeckledAlbedo
+
+SIZE, SF = (320, 240), 2
+
+
+def _blur(x, weight, sigma):
+    return cv2.GaussianBlur(x * weight, (0, 0), sigma) / np.maximum(cv2.GaussianBlur(weight, (0, 0), sigma), 1e-9)
+
+
+def grain_figures(capture, depth) -> dict:
+    """Normal MAE (deg) over the object and its darkest albedo quarter for ``depth`` (H, W) metres,
+    bicubic and bicubic smoothed (4 px); the depth error's high-pass correlation with the albedo's."""
+    gt, K = capture.groundtruth, capture.color_K()
+    b = bicubic(capture)
+    sensor, sensor_mask = b.depth_array(), b.mask_array()
+    truth = np.asarray(gt.depth, np.float64)
+    mask = (truth > 0) & (depth > 0) & sensor_mask
+    inner = cv2.erode(mask.astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)
+    albedo = np.asarray(gt.albedo, np.float64).mean(axis=2)
+    dark = inner & (albedo <= np.percentile(albedo[inner], 25))
+    normals = np.asarray(gt.normals, np.float64)
+    ours = perspective_normals(depth, K)[0]
+    smoothed = perspective_normals(_blur(sensor, sensor_mask.astype(float), 4.0), K)[0]
+    plain = perspective_normals(sensor, K)[0]
+    m = mask.astype(float)
+    error = np.where(mask, depth - truth, 0.0)
+    high = (error - _blur(error, m, 3.0))[inner]
+    high_albedo = (albedo - _blur(albedo, m, 3.0))[inner]
+    return {"all": normal_mae_deg(ours, normals, inner), "dark": normal_mae_deg(ours, normals, dark),
+            "bicubic": normal_mae_deg(plain, normals, inner), "bicubic_dark": normal_mae_deg(plain, normals, dark),
+            "smoothed_dark": normal_mae_deg(smoothed, normals, dark),
+            "correlation": float(np.corrcoef(high, high_albedo)[0, 1])}
+
+
+def test_speckled_albedo_is_a_pale_stone_with_dark_speckles():
+    albedo = SpeckledAlbedo.random(np.random.default_rng(0))
+    values = albedo(np.random.default_rng(1).uniform(-0.4, 0.4, (20000, 3))).mean(axis=1)
+    dark = values < 0.15
+    assert 0.25 < dark.mean() < 0.35
+    assert values[~dark].min() > 6 * values[dark].max()
+    with pytest.raises(ValueError, match="albedo 'granite'.*speckled"):
+        synthetic.render_capture("bunny", frames=2, size=(64, 48), albedo="granite")
+
+
+def test_absolute_evidence_weights_smooth_only_what_the_shading_leaves_noisy():
+    """Noise 0.01 and a precision of 1 deg: evidence (0.01 / 0.01745)^2 = 0.328 is the break-even;
+    4x less evidence gets 4x the smoothness, none gets the ceiling; the scale is absolute (a
+    capture whose pixels are all well determined is left alone, unlike the median rule)."""
+    reference = (0.01 / np.radians(1.0)) ** 2
+    got = absolute_evidence_weights(np.array([10 * reference, reference, reference / 4, 0.0]), 0.01, 800.0, 1.0)
+    assert np.allclose(got, [1.0, 1.0, 4.0, 800.0])
+    assert np.array_equal(absolute_evidence_weights(np.full(5, 100 * reference), 0.01, 800.0, 1.0), np.ones(5))
+    assert np.allclose(absolute_evidence_weights(np.array([reference / 4]), 0.01, 800.0, 2.0), 1.0)
+
+
+def test_weak_coverage_says_how_many_frames_see_how_much():
+    good = ViewSelection([0, 1, 2, 3], {1: 0.9, 2: 0.8, 3: 0.7})
+    assert good.weak_coverage() is None
+    weak = ViewSelection([0, 1, 7], {1: 0.65, 2: 0.14, 6: 0.24, 7: 0.73}).weak_coverage()
+    assert weak.startswith(f"only 2 of the 4 other frames see at least {MOST_OF_REFERENCE:.0%}")
+    assert "frame 7 73%, frame 1 65%" in weak and f"{MIN_WELL_COVISIBLE} are needed" in weak
+
+
+def _refine(capture, **options):
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        result = refine(capture, RefineOptions(progress=False, **options), initial_poses=capture.groundtruth.poses)
+    return result, [str(w.message) for w in said]
+
+
+@pytest.mark.parametrize("light, frames", [("room", 8), ("led", 10)])
+def test_dark_speckles_do_not_become_grain(light, frames):
+    """A speckled bunny on an orbit (frames within 15 deg of the reference), given poses, the
+    light's defaults. LED, 10 frames: the darkest quarter's normals 13.1 deg off (before the
+    absolute evidence weights 23.6), the smoothed sensor's 16.1 (bicubic's 10.3): bound 1.0 x
+    the smoothed sensor's; all pixels 10.0 (before 13.8), bicubic 9.82: bound 1.1 x bicubic's.
+    Room light, 8 frames: 9.6 dark, 9.96 all. The depth error's high-pass does not follow the
+    albedo: |correlation| 0.010 (LED), 0.012 (room), bound 0.1. No coverage warning."""
+    capture = synthetic.render_capture("bunny", frames=frames, size=SIZE, scale_factor=SF, light=light,
+                                       sensor="d415", albedo="speckled")
+    result, said = _refine(capture)
+    got = grain_figures(capture, result.depth_array())
+    assert got["dark"] < got["smoothed_dark"], got
+    assert got["all"] < 1.1 * got["bicubic"], got
+    assert abs(got["correlation"]) < 0.1, got
+    assert not any("frames see" in s for s in said), said
+
+
+def test_few_frames_seeing_the_reference_warn_and_lean_on_the_sensor():
+    """8 frames 45 degrees apart around an LED-lit speckled bunny: 2 besides the reference see
+    most of it (frame 7 73 %, frame 1 65 %). The warning names them; leaning on the sensor
+    (its smoothness and low frequencies) the normals are 11.0 deg off (with the LED's defaults
+    23.1; bicubic 9.8): bound bicubic's + 1.5 deg (not yet at bicubic's: docs/fidelity.md)."""
+    capture, _ = synthetic.render_ring("bunny", frames=8, size=SIZE, scale_factor=SF, light="led", sensor="d415",
+                                       albedo="speckled", elevation_deg=0.0)
+    result, said = _refine(capture)
+    weak = [s for s in said if "frames see" in s]
+    assert len(weak) == 1, said
+    assert weak[0].startswith("only 2 of the 7 other frames see at least 60% of reference frame 0's surface "
+                              "(2 used: frame 7 73%, frame 1 65%)"), weak
+    assert "leans on the sensor depth" in weak[0]
+    assert any("leans on the sensor" in s for s in result.info["warnings"])
+    got = grain_figures(capture, result.depth_array())
+    assert got["all"] < got["bicubic"] + 1.5, got
+
+
+def test_render_command_draws_the_speckled_stone(tmp_path, capsys):
+    from o3d_mvps.capture import read_capture
+    from o3d_mvps.cli import main
+
+    assert main(["--quiet", "render", "bunny", str(tmp_path / "c"), "--frames", "2", "--size", "64x48",
+                 "--light", "room", "--sensor", "d415", "--albedo", "speckled"]) == 0
+    capture = read_capture(tmp_path / "c")
+    assert capture.metadata["synthetic"]["albedo"] == "speckled"
+    albedo = np.asarray(capture.groundtruth.albedo).mean(axis=2)[capture.mask_array(0)]
+    assert (albedo < 0.1).mean() > 0.15 and (albedo > 0.45).mean() > 0.5
+    assert main(["--quiet", "render", "bunny", str(tmp_path / "s"), "--static-camera", "--albedo", "speckled"]) != 0
+    assert "--albedo speckled is not available with --static-camera" in capsys.readouterr().err
+    assert not (tmp_path / "s").exists()
