@@ -22,8 +22,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.ndimage as ndi
 
+from ..covisibility import MAX_VIEW_ANGLE_DEG
 from ..errors import CaptureError
 from ..model.camera import backproject, project, scale_intrinsics, transform
+from ..model.normals import perspective_normals
 from ..model.resampling import resample_valid
 from ..model.se3 import relative_to_reference
 from ..model.warping import in_view
@@ -49,6 +51,12 @@ CLOSE_RATIO, CLEAR_MARGIN = 0.9, 0.03
 #: A frame whose best agreement (with the reference or a neighbour) is below this share of the
 #: frames' median is placed wrongly (a frame turned 5 degrees off: 0.39 against 0.95).
 OUTLIER_RATIO = 0.5
+#: Frames (besides the reference) a frame is also placed on: those looking most nearly its way.
+NEIGHBOURS = 3
+#: Least share of a frame's points facing the other camera under the pose for its agreement to count.
+MIN_JUDGED = 0.1
+#: Cosine of the largest angle between a surface normal and the direction to a camera that sees it.
+COS_VIEW = float(np.cos(np.radians(MAX_VIEW_ANGLE_DEG)))
 #: Most points taken from one frame.
 MAX_POINTS = 4000
 
@@ -79,17 +87,40 @@ class CoarseDepth:
         hi = ndi.maximum_filter(np.where(valid, depth, -np.inf), size=3)
         return cls(depth, K, np.where(valid, lo, 0.0), np.where(valid, hi, 0.0))
 
-    def points(self, limit: int = MAX_POINTS) -> np.ndarray:
-        """(m, 3) camera-frame points of the valid pixels (every k-th, m <= ``limit``)."""
-        p = backproject(self.depth, self.K)[self.depth > 0]
-        return p[::max(1, -(-len(p) // limit))]
+    def points(self, visible: bool = False, limit: int = MAX_POINTS) -> tuple:
+        """Camera-frame points (m, 3) of the valid pixels and None (every k-th, m <= ``limit``).
 
-    def agreement(self, points: np.ndarray, T: np.ndarray) -> float:
-        """Fraction of ``points`` (m, 3), in frame i's camera, that agree with this (reference)
-        depth once moved by ``T`` (4, 4; reference -> frame i) into the reference (module docstring)."""
+        ``visible``: only the pixels measured well enough to be seen from another camera, and
+        their unit normals (m, 3, toward this camera) instead of None: all 3x3 neighbours have
+        depth (no silhouette, where a sensor's flying pixels lie) and the surface faces this
+        camera within :data:`~o3d_mvps.covisibility.MAX_VIEW_ANGLE_DEG` (no grazing view).
+        """
+        valid = self.depth > 0
+        p = backproject(self.depth, self.K)
+        keep, normals = valid, None
+        if visible:
+            normals, _ = perspective_normals(self.depth, self.K, valid)
+            facing = -np.einsum("hwc,hwc->hw", normals, p) / np.maximum(np.linalg.norm(p, axis=2), 1e-12)
+            keep = ndi.binary_erosion(valid, np.ones((3, 3), bool)) & (facing >= COS_VIEW)
+        step = max(1, -(-int(keep.sum()) // limit))
+        return p[keep][::step], None if normals is None else normals[keep][::step]
+
+    def agreement(self, points, T: np.ndarray) -> float:
+        """Fraction of ``points`` (:meth:`points`' pair, in frame i's camera) that agree with this
+        (reference) depth once moved by ``T`` (4, 4; reference -> frame i) into the reference
+        (module docstring). With normals, only the points whose surface faces the reference camera
+        (within :data:`~o3d_mvps.covisibility.MAX_VIEW_ANGLE_DEG`) under the pose are judged: the
+        others cannot be seen from it; when fewer than :data:`MIN_JUDGED` of them face it, 0."""
+        points, normals = points
         if len(points) == 0:
             return 0.0
-        q = transform(np.linalg.inv(T), points)
+        Tinv = np.linalg.inv(T)
+        q = transform(Tinv, points)
+        judged = np.ones(len(q), bool)
+        if normals is not None:
+            n = normals @ Tinv[:3, :3].T
+            judged = -np.einsum("ij,ij->i", n, q) / np.maximum(np.linalg.norm(q, axis=1), 1e-12) >= COS_VIEW
+        q = q[judged]
         u, v, Z = project(q, self.K)
         seen = in_view(u, v, Z, self.depth.shape)
         iu = np.rint(np.where(seen, u, 0)).astype(np.int64)
@@ -98,7 +129,7 @@ class CoarseDepth:
         margin = TOLERANCE * np.abs(Z)
         with np.errstate(invalid="ignore"):
             hit = seen & (lo > 0) & (Z >= lo - margin) & (Z <= hi + margin)
-        return float(hit.mean())
+        return float(hit.mean()) if judged.mean() >= MIN_JUDGED else 0.0
 
 
 def frame_agreement(reference: CoarseDepth, frames: list, poses: np.ndarray) -> np.ndarray:
@@ -200,6 +231,7 @@ def check_poses(depths: list, depth_K: np.ndarray, given, frames: list, labels: 
     """
     coarse = [CoarseDepth.of(d, depth_K) for d in depths]
     reference, points = coarse[0], [None] + [c.points() for c in coarse[1:]]
+    visible = [None] + [c.points(visible=True) for c in coarse[1:]]
     conventions = {"source": given.where, **{k: v for k, v in given.options.items() if v is not None}}
     if len(frames) < 2:
         return PoseCheck("ok", "one frame: nothing to compare", [1.0], conventions)
@@ -211,16 +243,23 @@ def check_poses(depths: list, depth_K: np.ndarray, given, frames: list, labels: 
                        for c in candidates])[:, 1:]  # (candidates, n - 1)
     best = scores.max(axis=0)
     informative = best >= MIN_AGREEMENT
-    fits = (scores >= np.maximum(MIN_AGREEMENT, FIT_RATIO * best)) & informative
-    count = fits.sum(axis=1)
     close = (scores >= np.maximum(MIN_AGREEMENT, CLOSE_RATIO * best)) & informative  # the near-best readings
     close_count = close.sum(axis=1)
-    k = int(np.argmax(close_count[1:])) + 1
-    if close_count[k] > close_count[0] and close_count[k] >= 0.5 * informative.sum() and \
-            np.median(scores[k][informative]) > np.median(scores[0][informative]) + CLEAR_MARGIN:
-        count[0] = 0  # another reading fits clearly better: the given one is wrong even where it fits loosely
     conventions["agreement"] = {c.name: round(float(np.median(s)), 3) for c, s in zip(candidates, scores)}
-    others = labels[1:]
+    table = "; ".join(f"{c.name}: {np.median(s):.0%}" for c, s in zip(candidates, scores))
+    k = int(np.argmax(close_count[1:])) + 1
+    mixup = close_count[k] > close_count[0] and close_count[k] >= 0.5 * informative.sum()
+    clearly = mixup and np.median(scores[k][informative]) > np.median(scores[0][informative]) + CLEAR_MARGIN
+
+    def mixup_error():
+        conventions["fits"] = candidates[k].name
+        return CaptureError(
+            f"the poses in {given.where} do not fit the depth as read, but they fit as {candidates[k].name}: "
+            f"{close_count[k]} of {informative.sum()} frames agree best that way, {close_count[0]} as read (median "
+            f"share of each frame's depth on the reference's: {table}). Fix: {candidates[k].fix}")
+
+    if clearly:  # another reading fits clearly better: the given one is wrong even where it fits loosely
+        raise mixup_error()
     if not informative.any():
         raise CaptureError(
             f"the poses in {given.where} put no frame's depth onto the reference's: at most "
@@ -228,49 +267,40 @@ def check_poses(depths: list, depth_K: np.ndarray, given, frames: list, labels: 
             f"({', '.join(c.name for c in candidates[1:])}). The poses do not belong to these frames (check the "
             "file and the frame order), or the frames do not overlap; without the pose file, registration "
             "estimates the poses")
-    if count[0] == informative.sum():
-        conventions["fits"] = "as given"
-        detail = (f"every frame's depth agrees with the reference under the poses of {given.where} (median "
-                  f"{np.median(scores[0]):.0%} of its pixels)")
-        far = [j + 1 for j in np.flatnonzero(~informative)]  # frames apart from the reference: their neighbours
-        placed = np.array([max(scores[0][i - 1], *_neighbour_agreement(coarse, points, poses, i))
-                           for i in range(1, len(poses))])
-        floor = max(MIN_AGREEMENT, OUTLIER_RATIO * float(np.median(placed)))
-        lost = [i for i in range(1, len(poses)) if placed[i - 1] < floor]
-        if lost:
-            raise CaptureError(
-                f"the poses in {given.where} do not place {', '.join(labels[i] for i in lost)}: moved by its pose, "
-                f"its depth meets neither {labels[0]}'s nor its neighbours' (at most "
-                f"{max(placed[i - 1] for i in lost):.0%} agrees, the frames' median {np.median(placed):.0%}), "
-                f"and no usual mix-up ({', '.join(c.name for c in candidates[1:])}) fits it. Fix or remove that "
-                "pose (and frame), or drop the pose file so registration estimates the poses")
-        if far:
-            detail += (f"; {', '.join(labels[i] for i in far)} overlap the reference too little to be checked "
-                       "against it, but agree with their neighbours")
-        return PoseCheck("ok", detail, [1.0] + scores[0].round(3).tolist(), conventions)
-    k = int(np.argmax(close_count[1:])) + 1
-    table = "; ".join(f"{c.name}: {np.median(s):.0%}" for c, s in zip(candidates, scores))
-    if close_count[k] > close_count[0] and close_count[k] >= 0.5 * informative.sum():
-        conventions["fits"] = candidates[k].name
+    # each frame placed under the given poses: on the reference, or on the frames looking its way (a
+    # wide-baseline frame may share little with the reference but much with its ring neighbours)
+    placed = np.array([max([scores[0][i - 1], *_neighbour_agreement(coarse, visible, poses, i)])
+                       for i in range(1, len(poses))])
+    floor = max(MIN_AGREEMENT, OUTLIER_RATIO * float(np.median(placed)))
+    lost = [i for i in range(1, len(poses)) if placed[i - 1] < floor]
+    if lost and mixup:
+        raise mixup_error()
+    if lost:
         raise CaptureError(
-            f"the poses in {given.where} do not fit the depth as read, but they fit as {candidates[k].name}: "
-            f"{close_count[k]} of {informative.sum()} frames agree best that way, {close_count[0]} as read (median "
-            "share of each "
-            f"frame's depth on the reference's: {table}). Fix: {candidates[k].fix}")
-    wrong = np.flatnonzero(informative & ~fits[0])
-    raise CaptureError(
-        f"the poses in {given.where} do not fit {', '.join(others[j] for j in wrong)}: their depth, moved by the "
-        f"pose, disagrees with {labels[0]}'s (agreement {', '.join(f'{scores[0][j]:.0%}' for j in wrong)}"
-        f"; best under a mix-up {', '.join(f'{best[j]:.0%}' for j in wrong)}), "
-        f"and no usual mix-up ({', '.join(c.name for c in candidates[1:])}) fits them all. Fix or remove those "
-        "poses and frames, or drop the pose file so registration estimates the poses")
+            f"the poses in {given.where} do not place {', '.join(labels[i] for i in lost)}: moved by its pose, "
+            f"its depth meets neither {labels[0]}'s nor that of the frames looking its way (at most "
+            f"{max(placed[i - 1] for i in lost):.0%} agrees, the frames' median {np.median(placed):.0%}), "
+            f"and no usual mix-up ({', '.join(c.name for c in candidates[1:])}) fits it. Fix or remove that "
+            "pose (and frame), or drop the pose file so registration estimates the poses")
+    conventions["fits"] = "as given"
+    detail = (f"every frame's depth agrees with the reference or the frames looking its way under the poses of "
+              f"{given.where} (median {np.median(placed):.0%} of its pixels, least {placed.min():.0%})")
+    far = [i for i in range(1, len(poses)) if scores[0][i - 1] < floor]
+    if far:
+        detail += (f"; {', '.join(labels[i] for i in far)} overlap the reference too little to be checked "
+                   "against it, but agree with the frames looking their way")
+    return PoseCheck("ok", detail, [1.0] + scores[0].round(3).tolist(), conventions)
 
 
 def _neighbour_agreement(coarse: list, points: list, poses: np.ndarray, i: int) -> list:
-    """Agreement of frame i's points with its neighbours' depth (frames i - 1 and i + 1) under
-    the relative poses T_i T_j^-1 (frame j -> frame i)."""
-    return [coarse[j].agreement(points[i], poses[i] @ np.linalg.inv(poses[j]))
-            for j in (i - 1, i + 1) if 0 <= j < len(poses)]
+    """Agreement of frame i's points with the reference's depth and that of the :data:`NEIGHBOURS` frames whose optical
+    axes (the third rows of ``poses``' rotations, (n, 4, 4) reference -> frame) are nearest to
+    frame i's, under the relative poses T_i T_j^-1 (frame j -> frame i). Nearest in viewing
+    direction, not in the list: a reference's frames are listed by index, so on a ring the
+    frames next to i in the list may be on the far side of the object."""
+    axes = poses[:, 2, :3] / np.linalg.norm(poses[:, 2, :3], axis=1, keepdims=True)
+    others = [0] + [j for j in np.argsort(-(axes @ axes[i])) if j not in (0, i)][:NEIGHBOURS]
+    return [coarse[j].agreement(points[i], poses[i] @ np.linalg.inv(poses[j])) for j in others]
 
 
 def _check_identity(reference, depths, depth_K, given, labels, conventions) -> PoseCheck:
