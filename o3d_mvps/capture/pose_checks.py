@@ -55,7 +55,9 @@ OUTLIER_RATIO = 0.5
 #: Frames (besides the reference) a frame is also placed on: those looking most nearly its way.
 NEIGHBOURS = 3
 #: A frame's pose is also off when turned by TURN_DEG degrees about an axis of its camera its
-#: agreement is higher by more than TURNED_BETTER_BY (true ring poses: at most 0.04; 5 degrees off: 0.22 or more).
+#: agreement is higher by more than TURNED_BETTER_BY, or 2 / sqrt(m) for a frame of m points (4 binomial
+#: sigmas: a 24x18 depth map holds ~15 points of a bunny). Rings at 160-640 px: true poses at most 0.04
+#: better, 5 degrees off 0.19 or more; 96 px: true poses up to 0.18 better, too coarse to judge 5 degrees.
 TURN_DEG, TURNED_BETTER_BY = 3.0, 0.1
 #: Least share of a frame's points facing the other camera under the pose for its agreement to count.
 MIN_JUDGED = 0.1
@@ -278,15 +280,16 @@ def check_poses(depths: list, depth_K: np.ndarray, given, frames: list, labels: 
     floor = max(MIN_AGREEMENT, OUTLIER_RATIO * float(np.median(placed)))
     # ... and no better when turned a little: the given pose fits at least as well as its neighbours in SE(3)
     turned = np.array([_turned_agreement(coarse, points, poses, i) for i in range(1, len(poses))])  # (n - 1, 2)
-    lost = [i for i in range(1, len(poses))
-            if placed[i - 1] < floor or turned[i - 1, 1] > turned[i - 1, 0] + TURNED_BETTER_BY]
+    margin = [max(TURNED_BETTER_BY, 2.0 / np.sqrt(max(len(points[i][0]), 1))) for i in range(1, len(poses))]
+    better = [turned[i - 1, 1] > turned[i - 1, 0] + margin[i - 1] for i in range(1, len(poses))]
+    lost = [i for i in range(1, len(poses)) if placed[i - 1] < floor or better[i - 1]]
     if lost and mixup:
         raise mixup_error()
     if lost:
         why = "; ".join(
             f"{labels[i]}: {placed[i - 1]:.0%} agrees" + (
                 f", and turned {TURN_DEG:g} degrees it would agree better ({turned[i - 1, 1]:.0%} against "
-                f"{turned[i - 1, 0]:.0%})" if turned[i - 1, 1] > turned[i - 1, 0] + TURNED_BETTER_BY else "")
+                f"{turned[i - 1, 0]:.0%})" if better[i - 1] else "")
             for i in lost)
         raise CaptureError(
             f"the poses in {given.where} do not place {', '.join(labels[i] for i in lost)}: moved by its pose, "
