@@ -11,8 +11,13 @@ pose is wrong (its points land off the object, in front of it or behind it).
 When the given poses disagree, the usual mix-ups are tried (:func:`pose_candidates`): the
 inverse (camera-to-world read as world-to-camera), the other TUM quaternion order, transposed
 rotations, translations in millimetres, and frames listed in text order; the one that fits is
-named with its fix. Identity poses are checked apart: they must fit every frame (a static
-camera: same pixels, same depth), else the camera moved. Open3D-free: NumPy arrays in, NumPy arrays out.
+named with its fix. Every frame must also be *placed* by the given poses: its best agreement
+with the reference or the frames looking its way (nearest optical axes), over the points both
+cameras can see (no silhouettes, no grazing views), near the frames' median; and turned by
+:data:`TURN_DEG` it must not fit clearly better (a relative test: a wide-baseline frame may agree
+little with anything, but its true pose still fits best). Identity poses are checked apart: they
+must fit every frame (a static camera: same pixels, same depth), else the camera moved.
+Open3D-free: NumPy arrays in, NumPy arrays out.
 """
 
 from __future__ import annotations
