@@ -64,6 +64,9 @@ NEIGHBOURS = 3
 #: sigmas: a 24x18 depth map holds ~15 points of a bunny). Rings at 160-640 px: true poses at most 0.04
 #: better, 5 degrees off 0.19 or more; 96 px: true poses up to 0.18 better, too coarse to judge 5 degrees.
 TURN_DEG, TURNED_BETTER_BY = 3.0, 0.1
+#: Most frames (share of those besides the reference) that a check drops for poses that do not place
+#: them; more, and the pose file is refused.
+MAX_DROPPED = 0.25
 #: Least share of a frame's points facing the other camera under the pose for its agreement to count.
 MIN_JUDGED = 0.1
 #: Cosine of the largest angle between a surface normal and the direction to a camera that sees it.
@@ -216,16 +219,22 @@ def _format_convention(path) -> str:
 @dataclass
 class PoseCheck:
     """What :func:`check_poses` found: status "ok" or "warning", one line of detail, the
-    agreement of each frame under the poses used, and the conventions (JSON-ready)."""
+    agreement of each frame under the poses used, the conventions (JSON-ready), and the frames
+    dropped ({index into the checked frames: why}; a few frames the given poses do not place)."""
 
     status: str
     detail: str
     agreement: list
     conventions: dict
+    dropped: dict = field(default_factory=dict)
 
 
-def check_poses(depths: list, depth_K: np.ndarray, given, frames: list, labels: list) -> PoseCheck:
+def check_poses(depths: list, depth_K: np.ndarray, given, frames: list, labels: list,
+                min_frames: int = 1) -> PoseCheck:
     """Check the given poses against the frames' depth; CaptureError naming the mix-up and its fix.
+
+    A few frames (at most :data:`MAX_DROPPED` of the others, leaving ``min_frames``) that the
+    given poses do not place and no mix-up fits are dropped with a warning; more are an error.
 
     Parameters
     ----------
@@ -239,6 +248,8 @@ def check_poses(depths: list, depth_K: np.ndarray, given, frames: list, labels: 
         The capture's indices of ``depths``' frames (poses are picked and re-based on frames[0]).
     labels : list of str
         Each frame's name in messages (``frame 3 (frame_3.png)``).
+    min_frames : int
+        Least frames (the reference included) left after dropping.
     """
     coarse = [CoarseDepth.of(d, depth_K) for d in depths]
     reference, points = coarse[0], [None] + [c.points() for c in coarse[1:]]
@@ -291,17 +302,22 @@ def check_poses(depths: list, depth_K: np.ndarray, given, frames: list, labels: 
     if lost and mixup:
         raise mixup_error()
     if lost:
-        why = "; ".join(
-            f"{labels[i]}: {placed[i - 1]:.0%} agrees" + (
-                f", and turned {TURN_DEG:g} degrees it would agree better ({turned[i - 1, 1]:.0%} against "
-                f"{turned[i - 1, 0]:.0%})" if better[i - 1] else "")
-            for i in lost)
-        raise CaptureError(
+        why = {i: f"{placed[i - 1]:.0%} agrees" + (
+            f", and turned {TURN_DEG:g} degrees it would agree better ({turned[i - 1, 1]:.0%} against "
+            f"{turned[i - 1, 0]:.0%})" if better[i - 1] else "") for i in lost}
+        message = (
             f"the poses in {given.where} do not place {', '.join(labels[i] for i in lost)}: moved by its pose, "
-            f"its depth does not sit on {labels[0]}'s nor on that of the frames looking its way ({why}; the "
-            f"frames' median {np.median(placed):.0%}), and no usual mix-up "
-            f"({', '.join(c.name for c in candidates[1:])}) fits it. Fix or remove that pose (and frame), or drop "
-            "the pose file so registration estimates the poses")
+            f"its depth does not sit on {labels[0]}'s nor on that of the frames looking its way ("
+            f"{'; '.join(f'{labels[i]}: {why[i]}' for i in lost)}; the frames' median {np.median(placed):.0%}), "
+            f"and no usual mix-up ({', '.join(c.name for c in candidates[1:])}) fits it. Fix or remove that pose "
+            "(and frame), or drop the pose file so registration estimates the poses")
+        if len(lost) > MAX_DROPPED * (len(poses) - 1) or len(poses) - len(lost) < min_frames:
+            raise CaptureError(message)
+        conventions["fits"] = "as given"
+        conventions["dropped"] = {labels[i]: why[i] for i in lost}
+        return PoseCheck("warning", f"dropped {len(lost)} frame(s): {message}", [1.0] + scores[0].round(3).tolist(),
+                         conventions, {i: f"its pose in {given.where} does not fit its depth ({why[i]})"
+                                       for i in lost})
     conventions["fits"] = "as given"
     detail = (f"every frame's depth agrees with the reference or the frames looking its way under the poses of "
               f"{given.where} (median {np.median(placed):.0%} of its pixels, least {placed.min():.0%})")
