@@ -22,7 +22,10 @@ frame count            at least :data:`MIN_FRAMES` usable frames (unless fewer  
 colour/depth           depth discontinuities line up with colour edges (coarse      warning
 alignment              cross-correlation over small shifts)
 poses                  each frame's depth, moved by its pose, on the reference's;   error naming the
-                       the usual mix-ups tried (:mod:`.pose_checks`)                mix-up and its fix
+                       the usual mix-ups tried (:mod:`.pose_checks`)                mix-up and its fix;
+                                                                                    a few frames placed
+                                                                                    by no pose: warning,
+                                                                                    dropped
 =====================  ===========================================================  ==========
 """
 
@@ -148,10 +151,13 @@ def check_inputs(capture, given_poses=None, *, frames: list | None = None, frame
     if given_poses is not None:
         picked = [frames[k] for k in usable]
         pose = check_poses([capture.depth_array(k) for k in usable], capture.depth_K(), given_poses, picked,
-                           [labels[k] for k in usable])
+                           [labels[k] for k in usable], 1 if frames_asked else MIN_FRAMES)
         report.add("poses", pose.status, pose.detail)
         report.conventions["poses"] = {**pose.conventions,
                                        "frame_agreement": {str(i): a for i, a in zip(picked, pose.agreement)}}
+        for j, why in pose.dropped.items():  # j indexes usable
+            report.frames[usable[j]].update(used=False, reason=why)
+        usable = [k for j, k in enumerate(usable) if j not in pose.dropped]
     report.usable = usable
     return report
 
@@ -308,8 +314,12 @@ def alignment(capture, report: InputReport, shift: int = 3) -> None:
 
 def check_given_poses(capture, given) -> dict:
     """:func:`.pose_checks.check_poses` of all of a capture's frames against its frame 0 (e.g. a
-    ring before it is split into references); the conventions found (CaptureError on a mix-up)."""
+    ring before it is split into references); the conventions found (CaptureError on a mix-up; a
+    warning naming the few frames the poses do not place, which the views' own checks then drop)."""
     n = capture.n_frames
     labels = [capture.frame_label(k) for k in range(n)]
-    return check_poses([capture.depth_array(k) for k in range(n)], capture.depth_K(), given, list(range(n)),
-                       labels).conventions
+    found = check_poses([capture.depth_array(k) for k in range(n)], capture.depth_K(), given, list(range(n)),
+                        labels, MIN_FRAMES)
+    if found.dropped:
+        warnings.warn(f"poses: {found.detail}", stacklevel=2)
+    return found.conventions
