@@ -8,7 +8,8 @@ import scipy.sparse as sp
 
 from o3d_mvps.model.robust import cauchy, cauchy_energy, cauchy_weights
 from o3d_mvps.model.shading import led_irradiances, led_vectors
-from o3d_mvps.solver.kernels import (scatter_sparse_transpose_rows, shading_residuals, weighted_albedo_sums,
+from o3d_mvps.solver.kernels import (add_stencil_transpose_rows, columns_times, rows_times,
+                                     scatter_sparse_transpose_rows, shading_residuals, weighted_albedo_sums,
                                      weighted_lighting_sums)
 
 RNG = np.random.default_rng(7)
@@ -65,6 +66,34 @@ def test_sparse_transpose_product_scatters_and_accumulates():
     expected = out + (A.T @ X.T).T
     scatter_sparse_transpose_rows(A.indptr, A.indices, A.data, X, out)
     np.testing.assert_allclose(out, expected, rtol=1e-12, atol=1e-14)
+
+
+def test_stencil_transpose_rows_are_both_scatters_and_the_identity_part():
+    """One pass adds Du_b^T a + Dv_b^T b + c (c at the block's own columns) to a float32 or
+    float64 output, as two scatters and a slice addition do (float32: to its rounding)."""
+    Du, Dv = (sp.random(300, 700, density=0.01, random_state=seed, format="csr") for seed in (2, 3))
+    rows = RNG.normal(size=(3, 5, 300))
+    for dtype, tolerance in ((np.float64, 1e-12), (np.float32, 1e-6)):
+        start = RNG.normal(size=(5, 700))
+        expected = start + (Du.T @ rows[0].T).T + (Dv.T @ rows[1].T).T
+        expected[:, 200:500] += rows[2]
+        out = start.astype(dtype)
+        add_stencil_transpose_rows(Du.indptr, Du.indices, Du.data, Dv.indptr, Dv.indices, Dv.data, rows, 200, out)
+        np.testing.assert_allclose(out, expected, rtol=tolerance, atol=tolerance * np.abs(expected).max())
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_products_with_a_stored_matrix_sum_in_float64(dtype):
+    """rows_times (A x) and columns_times (A^T y) of a float32 or float64 A (k, N) equal the
+    float64 products of the stored values to float64 round-off, over several column chunks."""
+    A = RNG.normal(size=(13, 40000)).astype(dtype)
+    x, y = RNG.normal(size=40000), RNG.normal(size=13)
+    exact = A.astype(np.float64)
+    out_k, out_n = np.empty(13), np.empty(40000)
+    rows_times(A, x, out_k)
+    columns_times(A, y, out_n)
+    np.testing.assert_allclose(out_k, exact @ x, rtol=1e-12, atol=1e-12 * np.abs(exact).sum(1).max())
+    np.testing.assert_allclose(out_n, exact.T @ y, rtol=1e-12, atol=1e-14)
 
 
 def test_led_irradiances_match_led_vectors():

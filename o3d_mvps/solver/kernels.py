@@ -227,6 +227,50 @@ def scatter_sparse_transpose_rows(indptr, indices, data, X, out):  # pragma: no 
                 out[j, indices[nz]] += data[nz] * x
 
 
+@numba.njit(parallel=True, cache=True)
+def add_stencil_transpose_rows(u_indptr, u_indices, u_data, v_indptr, v_indices, v_data, rows, first, out):  # pragma: no cover
+    """out (k, N) += the rows' stencil transpose ``Du_b^T a + Dv_b^T b + c`` per row of
+    ``rows`` (3, k, B) = (a, b, c), for the rows Du_b, Dv_b (B, N) (CSR arrays) of the difference
+    operators at the block of pixels first..first+B, whose c lands on columns first..first+B:
+    :func:`scatter_sparse_transpose_rows` of both operators and the identity part in one pass;
+    in parallel over the k rows, so threads never share an output row."""
+    for j in numba.prange(rows.shape[1]):
+        for p in range(rows.shape[2]):
+            a = rows[0, j, p]
+            b = rows[1, j, p]
+            out[j, first + p] += rows[2, j, p]
+            for nz in range(u_indptr[p], u_indptr[p + 1]):
+                out[j, u_indices[nz]] += u_data[nz] * a
+            for nz in range(v_indptr[p], v_indptr[p + 1]):
+                out[j, v_indices[nz]] += v_data[nz] * b
+
+
+@numba.njit(parallel=True, cache=True, fastmath={"reassoc"})
+def rows_times(A, x, out):  # pragma: no cover - compiled
+    """out (k,) = A x for A (k, N) C-ordered (float32 or float64) and x (N,) float64, each
+    row's sum in float64; in parallel over A's rows."""
+    for j in numba.prange(A.shape[0]):
+        total = 0.0
+        for p in range(A.shape[1]):
+            total += A[j, p] * x[p]
+        out[j] = total
+
+
+@numba.njit(parallel=True, cache=True)
+def columns_times(A, y, out):  # pragma: no cover - compiled
+    """out (N,) = A^T y for A (k, N) C-ordered (float32 or float64) and y (k,) float64, in
+    float64; in parallel over chunks of :data:`CHUNK` columns, each reading A's rows in order."""
+    N = A.shape[1]
+    for chunk in numba.prange((N + CHUNK - 1) // CHUNK):
+        first, last = chunk * CHUNK, min(N, (chunk + 1) * CHUNK)
+        for p in range(first, last):
+            out[p] = 0.0
+        for j in range(A.shape[0]):
+            yj = y[j]
+            for p in range(first, last):
+                out[p] += A[j, p] * yj
+
+
 @numba.njit(inline="always")
 def csr_row_dot(indptr, indices, data, v, row):  # pragma: no cover - compiled
     """(A v)[row] of a CSR matrix A given by its arrays."""

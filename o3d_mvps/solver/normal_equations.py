@@ -13,6 +13,13 @@ The albedo is eliminated by variable projection (:class:`_AlbedoProjection`). Wi
 weights of the Cauchy loss the normal equations are
 ``[[M, U], [U^T, H]] [dz; xi] = [b_z; b_xi]``: M (N, N) sparse 7-point plus 2 tau D^T D, U (N, 6m)
 dense, H (6m, 6m) dense. :meth:`JointSystem.schur_operator` eliminates the twists.
+
+U is the step's largest array (6m x N: 0.87 GB in float64 at 2 megapixels and 20 frames, where
+every frame sees nearly every reference pixel, so a per-frame sparse form would save nothing).
+On the host it is stored in float32 (:data:`COUPLING_DTYPE`) and multiplied by compiled loops
+that sum in float64 (:func:`.kernels.rows_times`, :func:`.kernels.columns_times`): half the
+memory and half the bytes read per product; its entries' rounding (6e-8 relative) is far below
+the joint step's CG tolerance (1e-2).
 """
 
 from __future__ import annotations
@@ -24,16 +31,22 @@ import scipy.linalg
 import scipy.sparse as sp
 
 from ..model.arrays import array_module, fused, like, linear_operator, sparse_module
+from . import kernels as host_kernels
 from .device import kernels_for, on_gpu, to_host
 from .pose import pose_jacobian
 from .problem import Estimate, Evaluation, LevelProblem
+
+
+#: Storage type of the coupling U on the host (:mod:`numpy` arrays); on the GPU it stays float64.
+COUPLING_DTYPE = np.float32
 
 
 @dataclass
 class JointSystem:
     """Normal equations of the joint step for the increments dz (N,) and twists xi (6m,).
 
-    matrix (N, N) sparse: the depth block M; rhs_z (N,); coupling (N, 6m): U; hessian
+    matrix (N, N) sparse: the depth block M; rhs_z (N,); coupling (N, 6m): U, the transpose
+    (a view) of a C-ordered (6m, N) array, float32 on the host (:data:`COUPLING_DTYPE`); hessian
     (6m, 6m): H (block-diagonal per frame unless the albedo is projected out); rhs_xi (6m,);
     frames (m,): the refined frames' indices.
     """
@@ -62,19 +75,37 @@ class JointSystem:
                 return inverse @ like(y, inverse)  # rhs_xi comes from the host
         else:
             def solve_h(y):
-                return like(scipy.linalg.cho_solve(factor, to_host(y)), U)
+                return like(scipy.linalg.cho_solve(factor, to_host(y)), self.rhs_z)
 
         def matvec(x):
             x = x.ravel()
-            return M @ x - U @ solve_h(U.T @ x)
+            return M @ x - self.couple(solve_h(self.couple_t(x)))
 
-        return linear_operator(M.shape, matvec, U), self.rhs_z - U @ solve_h(self.rhs_xi)
+        return linear_operator(M.shape, matvec, self.rhs_z), self.rhs_z - self.couple(solve_h(self.rhs_xi))
+
+    def couple(self, y: np.ndarray) -> np.ndarray:
+        """U y (N,) float64 for y (6m,)."""
+        U_t = self.coupling.T
+        if array_module(U_t) is not np:
+            return U_t.T @ y
+        out = np.empty(U_t.shape[1])
+        host_kernels.columns_times(U_t, np.ascontiguousarray(y, dtype=np.float64), out)
+        return out
+
+    def couple_t(self, x: np.ndarray) -> np.ndarray:
+        """U^T x (6m,) float64 for x (N,)."""
+        U_t = self.coupling.T
+        if array_module(U_t) is not np:
+            return U_t @ x
+        out = np.empty(U_t.shape[0])
+        host_kernels.rows_times(U_t, np.ascontiguousarray(x, dtype=np.float64), out)
+        return out
 
     def twists(self, dz: np.ndarray) -> np.ndarray:
         """The twists (m, 6) that go with the depth increment dz (N,)."""
         if not self.frames:
             return np.zeros((0, 6))
-        return scipy.linalg.cho_solve(_cholesky(self.hessian), self.rhs_xi - to_host(self.coupling.T @ dz)).reshape(-1, 6)
+        return scipy.linalg.cho_solve(_cholesky(self.hessian), self.rhs_xi - to_host(self.couple_t(dz))).reshape(-1, 6)
 
 
 def _cholesky(H: np.ndarray):
@@ -160,7 +191,8 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
     candidates = [i for i in range(1, problem.n_frames) if twists and counts[i] >= min_pixels]
     m = len(candidates)
     sums = xp.empty((9, N))  # per pixel: Saa, Sbb, Sgg, Sab, Sag, Sbg, Ba, Bb, Bg
-    coupling_t = xp.zeros((6 * m, N))  # U^T, frame j's twist in rows 6j..6j+5
+    # U^T, frame j's twist in rows 6j..6j+5
+    coupling_t = xp.zeros((6 * m, N), dtype=COUPLING_DTYPE if xp is np else np.float64)
     grams, rhs_xi = np.zeros((m, 6, 6)), np.zeros(6 * m)  # per frame: upper triangle of w J^T J; -J^T w r
     downdate = np.zeros((6 * m, 6 * m))  # the albedo projection's sum f f^T over pixels and channels
     points_ref = problem.points(est.z)
@@ -183,7 +215,10 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
     prior_hessian, prior_rhs = problem.level.prior.normal_equations(est.z, problem.tau, problem.mu)
     matrix = stencil_normal_matrix(grid, *sums[:6]) + prior_hessian
     rhs_z = -stencil_transpose(grid, *sums[6:]) + prior_rhs
-    coupling = coupling_t[kept].T if len(kept) < 6 * m else coupling_t.T  # (N, 6m'): no copy when all are kept
+    for row, k in enumerate(kept):  # the kept rows moved up in place (kept is ascending): no second U
+        if row != k:
+            coupling_t[row] = coupling_t[k]
+    coupling = coupling_t[:len(kept)].T  # (N, 6m')
     return JointSystem(sparse_module(matrix).csr_matrix(matrix), rhs_z, coupling, hessian, rhs_xi[kept], frames)
 
 
@@ -240,6 +275,11 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
     sums[:] = block_sums
     if m:
         # U^T += the stencil transpose of the rows: Du^T rows_a + Dv^T rows_b + rows_c
+        if xp is np:  # one pass on the host
+            kernels.add_stencil_transpose_rows(Du_rows.indptr, Du_rows.indices, Du_rows.data, Dv_rows.indptr,
+                                               Dv_rows.indices, Dv_rows.data, rows.reshape(3, 6 * m, B),
+                                               block.start, coupling_t)
+            return
         for D, r in ((Du_rows, rows[0]), (Dv_rows, rows[1])):
             kernels.scatter_sparse_transpose_rows(D.indptr, D.indices, D.data, r.reshape(6 * m, B), coupling_t)
         coupling_t[:, block] += rows[2].reshape(6 * m, B)
