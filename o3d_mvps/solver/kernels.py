@@ -23,7 +23,7 @@ import numba
 import numpy as np
 
 from ..model.robust import log1p_square_sum  # noqa: F401 - re-exported: the same names as .cuda_kernels
-from ..model.shading import led_irradiances_into  # noqa: F401
+from ..model.shading import FRAME_CHUNK, led_irradiances_into  # noqa: F401
 
 # OpenMP first: the TBB that Open3D's wheels may put on the path can be too old for numba,
 # which then warns on every first parallel call.
@@ -252,25 +252,31 @@ def shading_residuals(color, albedo, basis, lights, usable, shading, residual): 
     frames share it, lights (n, k), usable (n, N) bool.
     """
     n, N = usable.shape
-    for p in numba.prange(N):
+    for k in numba.prange(-(-N // FRAME_CHUNK)):
         for i in range(n):
-            shading_residual_pixel(color, albedo, basis, lights, usable, shading, residual, i, p)
+            for p in range(k * FRAME_CHUNK, min(N, (k + 1) * FRAME_CHUNK)):
+                shading_residual_pixel(color, albedo, basis, lights, usable, shading, residual, i, p)
 
 
 @numba.njit(inline="always")
 def weighted_albedo_pixel(residual, usable, values, shading, inv_lam, num, den, p):  # pragma: no cover - compiled
     """:func:`weighted_albedo_sums` on pixel p (all frames and channels)."""
     for c in range(3):
-        a = 0.0
-        b = 0.0
-        for i in range(usable.shape[0]):
-            if usable[i, p]:
-                x = residual[i, p, c] * inv_lam
-                ws = shading[i, p] / (1.0 + x * x)
-                a += ws * values[i, p, c]
-                b += ws * shading[i, p]
-        num[p, c] = a
-        den[p, c] = b
+        num[p, c] = 0.0
+        den[p, c] = 0.0
+    for i in range(usable.shape[0]):
+        weighted_albedo_add(residual, usable, values, shading, inv_lam, num, den, i, p)
+
+
+@numba.njit(inline="always")
+def weighted_albedo_add(residual, usable, values, shading, inv_lam, num, den, i, p):  # pragma: no cover - compiled
+    """Frame i's terms of :func:`weighted_albedo_sums` at pixel p, added to num and den."""
+    if usable[i, p]:
+        for c in range(3):
+            x = residual[i, p, c] * inv_lam
+            ws = shading[i, p] / (1.0 + x * x)
+            num[p, c] += ws * values[i, p, c]
+            den[p, c] += ws * shading[i, p]
 
 
 @numba.njit(parallel=True, cache=True)
@@ -279,8 +285,16 @@ def weighted_albedo_sums(residual, usable, values, shading, inv_lam, num, den): 
     IRLS weight w = usable / (1 + (r inv_lam)^2) of residual (n, N, 3), shading s (n, N) and
     values x (n, N, 3): the warped colours for the albedo's weighted least squares, the
     residuals for its variable projection; usable (n, N) bool."""
-    for p in numba.prange(usable.shape[1]):
-        weighted_albedo_pixel(residual, usable, values, shading, inv_lam, num, den, p)
+    n, N = usable.shape
+    for k in numba.prange(-(-N // FRAME_CHUNK)):
+        start, stop = k * FRAME_CHUNK, min(N, (k + 1) * FRAME_CHUNK)
+        for p in range(start, stop):
+            for c in range(3):
+                num[p, c] = 0.0
+                den[p, c] = 0.0
+        for i in range(n):  # the frames in turn over the chunk (the same sums, in the same order)
+            for p in range(start, stop):
+                weighted_albedo_add(residual, usable, values, shading, inv_lam, num, den, i, p)
 
 
 @numba.njit(inline="always")
@@ -303,9 +317,10 @@ def weighted_lighting_sums(residual, usable, color, albedo, inv_lam, wr2, wri): 
     """wr2 (n, N) = sum_c w rho^2 and wri (n, N) = sum_c w rho I over the channels, with the
     Cauchy IRLS weight w = usable / (1 + (r inv_lam)^2) of residual (n, N, 3)."""
     n, N = usable.shape
-    for p in numba.prange(N):
+    for k in numba.prange(-(-N // FRAME_CHUNK)):
         for i in range(n):
-            weighted_lighting_pixel(residual, usable, color, albedo, inv_lam, wr2, wri, i, p)
+            for p in range(k * FRAME_CHUNK, min(N, (k + 1) * FRAME_CHUNK)):
+                weighted_lighting_pixel(residual, usable, color, albedo, inv_lam, wr2, wri, i, p)
 
 
 @numba.njit(inline="always")
