@@ -342,9 +342,10 @@ def project_point(pose, K, x, y, z):  # pragma: no cover - compiled
 
 
 @numba.njit(inline="always")
-def bilinear_at(image, u, v, c):  # pragma: no cover - compiled
-    """Channel c of the (H, W, C) image's bilinear sample at pixel (u, v), clamped to the image
-    (the border repeats; pixel centres at integers), in float64. H, W >= 2."""
+def bilinear_cell(image, u, v):  # pragma: no cover - compiled
+    """The (H, W, C) image's bilinear cell at pixel (u, v), clamped to the image (the border
+    repeats; pixel centres at integers): its top-left pixel (u0, v0) and the weights (a, b) in
+    [0, 1] towards the next column and row, for :func:`bilinear_in_cell`. H, W >= 2."""
     H, W = image.shape[0], image.shape[1]
     # no min, max or int(): numba 0.68's own CUDA target needs a driver to type those,
     # numba-cuda does not
@@ -356,13 +357,26 @@ def bilinear_at(image, u, v, c):  # pragma: no cover - compiled
         u0 = W - 2
     if v0 > H - 2:
         v0 = H - 2
-    a = u - u0
-    b = v - v0
+    return u0, v0, u - u0, v - v0
+
+
+@numba.njit(inline="always")
+def bilinear_in_cell(image, u0, v0, a, b, c):  # pragma: no cover - compiled
+    """Channel c of the image's bilinear sample in the cell (u0, v0, a, b) of :func:`bilinear_cell`,
+    in float64."""
     i00, i01 = np.float64(image[v0, u0, c]), np.float64(image[v0, u0 + 1, c])  # float64 differences
     i10, i11 = np.float64(image[v0 + 1, u0, c]), np.float64(image[v0 + 1, u0 + 1, c])
     top = i00 + a * (i01 - i00)
     bottom = i10 + a * (i11 - i10)
     return top + b * (bottom - top)
+
+
+@numba.njit(inline="always")
+def bilinear_at(image, u, v, c):  # pragma: no cover - compiled
+    """Channel c of the (H, W, C) image's bilinear sample at pixel (u, v), clamped to the image
+    (the border repeats; pixel centres at integers), in float64. H, W >= 2."""
+    u0, v0, a, b = bilinear_cell(image, u, v)
+    return bilinear_in_cell(image, u0, v0, a, b, c)
 
 
 @numba.njit(inline="always")
@@ -388,8 +402,9 @@ def warp_sample_pixel(points_ref, pose, K, image, visible, color, usable, p):  #
     _, _, Z, u, v = project_point(pose, K, points_ref[p, 0], points_ref[p, 1], points_ref[p, 2])
     H, W = image.shape[0], image.shape[1]
     usable[p] = visible[p] and Z > 1e-6 and u >= 0.0 and u <= W - 1.0 and v >= 0.0 and v <= H - 1.0
+    u0, v0, a, b = bilinear_cell(image, u, v)  # once for the three channels
     for c in range(3):
-        color[p, c] = bilinear_at(image, u, v, c)
+        color[p, c] = bilinear_in_cell(image, u0, v0, a, b, c)
 
 
 @numba.njit(parallel=True, cache=True)
