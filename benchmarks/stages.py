@@ -29,11 +29,14 @@ import time
 from pathlib import Path
 
 #: (module, function, stage) whose calls the worker times for their own peak memory
-STAGE_FUNCTIONS = (("solving", "problem_from_capture", "odometry"), ("solver.driver", "select_light_model", "light_selection"),
+STAGE_FUNCTIONS = (("solving", "problem_from_capture", "odometry"),
+                   ("solver.driver", "select_light_model", "light_selection"),
                    ("solver.driver", "build_level", "build_level"), ("solver.driver", "update_albedo", "albedo"),
-                   ("solver.driver", "update_lighting", "lighting"), ("solver.driver", "_extrapolate", "extrapolation"),
+                   ("solver.driver", "update_lighting", "lighting"),
+                   ("solver.driver", "_extrapolate", "extrapolation"),
                    ("solver.driver", "update_poses", "poses"), ("solver.driver", "update_depth", "depth"),
-                   ("solver.driver", "update_pose_depth", "poses_depth"), ("solver.driver", "_tie_to_sensor", "sensor_tie"))
+                   ("solver.driver", "update_pose_depth", "poses_depth"),
+                   ("solver.driver", "_tie_to_sensor", "sensor_tie"))
 
 
 def _status_mb(key: str) -> float:
