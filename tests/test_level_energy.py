@@ -7,6 +7,7 @@ import tracemalloc
 import numpy as np
 import pytest
 
+from o3d_mvps.solver import problem as problem_module
 from o3d_mvps.solver.lighting import LEDLight
 from o3d_mvps.solver.problem import LevelProblem
 
@@ -31,9 +32,12 @@ def frames_problem(n_frames: int, light: str):
     return problem, est
 
 
+@pytest.mark.parametrize("frames_per_batch", [1, 3, 10])
 @pytest.mark.parametrize("light", ["sh", "led"])
-def test_frame_at_a_time_energy_is_the_evaluation_energy(light):
+def test_frame_at_a_time_energy_is_the_evaluation_energy(light, frames_per_batch, monkeypatch):
+    """In batches of 1 frame, of 3 (the last one short) and all 4 at once."""
     problem, est = frames_problem(4, light)
+    monkeypatch.setattr(problem_module, "ENERGY_BATCH_PIXELS", frames_per_batch * problem.level.grid.size)
     ev = problem.evaluate(est)
     energy, usable = problem.energy(est)
     assert ev.data > 1e-3 and 0 < usable.sum() < usable.size  # a real residual, some pixels out of view
@@ -57,10 +61,11 @@ def _peak_bytes(call) -> int:
     return peak
 
 
-def test_frame_at_a_time_energy_holds_one_frame_of_temporaries():
+def test_frame_at_a_time_energy_holds_one_frame_of_temporaries(monkeypatch):
     """From 2 to 10 frames the evaluation's peak grows by at least 50 bytes a pixel and frame
-    (warped colours, residuals, shading, LED basis), the energy's by at most 4 (the usable mask,
-    1 byte, and slack)."""
+    (warped colours, residuals, shading, LED basis), the energy's, one frame a batch, by at most 4
+    (the usable mask, 1 byte, and slack)."""
+    monkeypatch.setattr(problem_module, "ENERGY_BATCH_PIXELS", 1)
     peaks = {}
     for n in (2, 10):
         problem, est = frames_problem(n, "led")

@@ -185,7 +185,7 @@ def _extrapolate(problem: LevelProblem, est: Estimate, ev, before: Estimate, anc
     ``ev`` is released). With ``anchors`` the poses' depth agreement and prior count too (a
     factor is kept only where energy plus anchors falls).
 
-    The factors are judged by their energy alone, a frame at a time (:meth:`.LevelProblem.energy`),
+    The factors are judged by their energy alone, a few frames at a time (:meth:`.LevelProblem.energy`),
     and only the one kept is evaluated in full, after ``ev`` is released: never two evaluations
     held at once (at 2 MP and 20 frames 1.2 GB each).
     """
