@@ -15,6 +15,8 @@ figures: README and docs pictures (normals of every method, textured preview).
 gpu (python -m benchmarks.gpu make|run|count, not part of 'all'): the solver's CUDA path against the
 CPU on saved problems, for a GPU machine without Open3D, and its device operations counted without a
 GPU (see benchmarks/gpu.py).
+stages (python -m benchmarks.stages, not part of 'all'): CPU seconds and peak memory of every refine
+stage, this tree against a baseline checkout, alternating in the same run (speed_stages.json).
 summary: no run; rebuild summary.md and every plot from the result files already in --out.
 all: everything, one after the other. --quick runs a tiny case of each (CI, under a minute).
 Results go to DIR (default benchmarks/results) as JSON, summary.md and PNG plots.

@@ -2,6 +2,9 @@
 
 import json
 from dataclasses import replace
+from pathlib import Path
+
+import pytest
 
 from benchmarks.__main__ import main
 
@@ -164,3 +167,30 @@ def test_registration_benchmark_rows(tmp_path):
     assert max(orbit["deg"]) < 2.5 and max(orbit["mm"]) < 25, orbit  # test_odometry's bounds
     assert all(r["seconds"] > 0 and r["peak_mb"] > 100 for r in rows)
     assert (tmp_path / "registration.png").stat().st_size > 1000
+
+
+def test_stage_benchmark_rows(tmp_path):
+    """``benchmarks.stages``: this tree against itself on a tiny capture, alternating; each row's
+    stage timings are CPU seconds (their sum within the process's CPU time), each stage's peak
+    memory its own (at least the capture's resident size, at most the process's peak), the same
+    energy for the same code, and the plot."""
+    import json
+
+    from benchmarks import stages
+    from o3d_mvps.capture import write_capture
+    from o3d_mvps.synthetic import render_capture
+
+    write_capture(render_capture("bunny", frames=3, scale_factor=2, size=(160, 120), seed=0), tmp_path / "tiny")
+    tree = str(Path(stages.__file__).resolve().parent.parent)
+    stages.main(["--baseline-tree", tree, "--captures", f"tiny={tmp_path / 'tiny'}", "--repeats", "1",
+                 "--options", '{"max_iterations": 1}', "--out", str(tmp_path)])
+    rows = json.loads((tmp_path / "speed_stages.json").read_text())
+    assert [(r["capture"], r["version"]) for r in rows] == [("tiny", "baseline"), ("tiny", "this")]
+    for r in rows:
+        stage_cpu = sum(v for k, v in r["timings"].items() if k != "total")
+        assert 0 < stage_cpu <= r["cpu_seconds"], r
+        peaks = r["stage_peak_mb"]
+        assert {"read", "odometry", "build_level", "albedo", "extrapolation"} <= set(peaks), peaks
+        assert all(peaks["read"] * 0.95 <= v <= r["peak_mb"] for v in peaks.values()), peaks
+    assert rows[0]["energy"] == pytest.approx(rows[1]["energy"], rel=1e-6)
+    assert (tmp_path / "speed_stages.png").stat().st_size > 1000

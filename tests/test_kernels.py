@@ -2,14 +2,16 @@
 NumPy definitions on random data: equal to float64 round-off (relative 1e-12), the energy to
 its float32 logarithms (1e-6)."""
 
+import numba
 import numpy as np
 import pytest
 import scipy.sparse as sp
 
 from o3d_mvps.model.robust import cauchy, cauchy_energy, cauchy_weights
-from o3d_mvps.model.shading import led_irradiances, led_vectors
-from o3d_mvps.solver.kernels import (add_stencil_transpose_rows, columns_times, rows_times,
-                                     scatter_sparse_transpose_rows, shading_residuals, weighted_albedo_sums,
+from o3d_mvps.model.shading import led_irradiance, led_irradiances, led_irradiances_into, led_vectors
+from o3d_mvps.solver.kernels import (FRAME_CHUNK, add_stencil_transpose_rows, columns_times, rows_times,
+                                     scatter_sparse_transpose_rows, shading_residual_pixel, shading_residuals,
+                                     weighted_albedo_pixel, weighted_albedo_sums, weighted_lighting_pixel,
                                      weighted_lighting_sums)
 
 RNG = np.random.default_rng(7)
@@ -158,3 +160,48 @@ def test_warp_gradients_are_warp_and_central_differences_of_the_bilinear_image()
     np.testing.assert_allclose(grad_u, expected_u, rtol=0, atol=1e-12)
     np.testing.assert_allclose(grad_v, expected_v, rtol=0, atol=1e-12)
     assert np.abs(grad_u).max() > 0.3 and np.abs(grad_v).max() > 0.3
+
+
+@numba.njit
+def _pixel_by_pixel(color, albedo, basis, lights, usable, residual_in, values, shading_in, inv_lam, positions,
+                    normals, points, shading, residual, num, den, wr2, wri, irradiance):  # pragma: no cover
+    """The kernels' per-pixel functions in their first loop order (every frame inside each pixel):
+    what the chunked launchers must reproduce bit for bit."""
+    n, N = usable.shape
+    for p in range(N):
+        for i in range(n):
+            shading_residual_pixel(color, albedo, basis, lights, usable, shading, residual, i, p)
+            weighted_lighting_pixel(residual_in, usable, values, albedo, inv_lam, wr2, wri, i, p)
+        weighted_albedo_pixel(residual_in, usable, values, shading_in, inv_lam, num, den, p)
+        for i in range(positions.shape[0]):
+            irradiance[i, p] = led_irradiance(normals, points, positions, i, p)
+
+
+@pytest.mark.parametrize("n_pixels", [5, FRAME_CHUNK, 2 * FRAME_CHUNK + 123])
+def test_chunked_frame_loops_equal_the_per_pixel_loop(n_pixels):
+    """The launchers that run frame after frame over chunks of pixels (FRAME_CHUNK) give exactly
+    the per-pixel loop's numbers, on sizes below, at and across chunk boundaries."""
+    n = 5
+    residual = RNG.normal(size=(n, n_pixels, 3)) * 0.1
+    usable = RNG.random((n, n_pixels)) > 0.2
+    color = RNG.random((n, n_pixels, 3)).astype(np.float32)
+    values = RNG.random((n, n_pixels, 3))
+    shading_in = RNG.random((n, n_pixels))
+    albedo = RNG.random((n_pixels, 3))
+    basis = RNG.random((n, n_pixels, 2))
+    lights = RNG.random((n, 2))
+    points = RNG.normal(size=(n_pixels, 3)) * 0.05 + [0.0, 0.0, 0.6]
+    normals = RNG.normal(size=(n_pixels, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    positions = RNG.normal(size=(n, 3)) * 0.05
+    expected = [np.full((n, n_pixels), np.nan), np.full((n, n_pixels, 3), np.nan),
+                *(np.full((n_pixels, 3), np.nan) for _ in range(2)), *(np.full((n, n_pixels), np.nan) for _ in range(3))]
+    _pixel_by_pixel(color, albedo, basis, lights, usable, residual, values, shading_in, 1.0 / LAM, positions, normals,
+                    points, *expected)
+    got = [np.full_like(a, np.nan) for a in expected]
+    shading_residuals(color, albedo, basis, lights, usable, got[0], got[1])
+    weighted_albedo_sums(residual, usable, values, shading_in, 1.0 / LAM, got[2], got[3])
+    weighted_lighting_sums(residual, usable, values, albedo, 1.0 / LAM, got[4], got[5])
+    led_irradiances_into(normals, points, positions, got[6])
+    for name, a, b in zip(("shading", "residual", "num", "den", "wr2", "wri", "irradiance"), got, expected):
+        assert np.array_equal(a, b), name

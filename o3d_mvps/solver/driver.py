@@ -218,6 +218,10 @@ def _extrapolate(problem: LevelProblem, est: Estimate, ev, before: Estimate, anc
     not move stay put. Returns the evaluation of the result (``ev`` itself, or a new one, and then
     ``ev`` is released). With ``anchors`` the poses' depth agreement and prior count too (a
     factor is kept only where energy plus anchors falls).
+
+    The factors are judged by their energy alone, a few frames at a time (:meth:`.LevelProblem.energy`),
+    and only the one kept is evaluated in full, after ``ev`` is released: never two evaluations
+    held at once (at 2 MP and 20 frames 1.2 GB each).
     """
     best = None
     poses_moved = not np.array_equal(est.poses, before.poses)  # else kept exactly (no log/exp round trip)
@@ -240,19 +244,18 @@ def _extrapolate(problem: LevelProblem, est: Estimate, ev, before: Estimate, anc
                          est.lights + factor * (est.lights - before.lights),
                          np.stack([se3.exp(factor * d) @ T for d, T in zip(delta_poses, est.poses)])
                          if poses_moved else est.poses, offset)
-        trial_ev = problem.evaluate(trial)
-        trial_energy = anchored(trial_ev.energy, trial, trial_ev.usable)
+        energy, usable = problem.energy(trial)
+        trial_energy = anchored(energy, trial, usable)
         if trial_energy < current:
-            if best is None:
-                ev.release()  # superseded: not held while the next factor is evaluated
-            best, current = (trial, trial_ev), trial_energy
+            best, current = trial, trial_energy
         else:
             break
     if best is None:
         return ev
-    est.z, est.albedo, est.lights, est.poses, est.led_offset = (best[0].z, best[0].albedo, best[0].lights,
-                                                                best[0].poses, best[0].led_offset)
-    return best[1]
+    ev.release()  # superseded: not held while the kept factor is evaluated
+    est.z, est.albedo, est.lights, est.poses, est.led_offset = (best.z, best.albedo, best.lights, best.poses,
+                                                                best.led_offset)
+    return problem.evaluate(est)
 
 
 def _tie_to_sensor(problem: LevelProblem, g, est: Estimate, z0: np.ndarray, sigma: float) -> None:

@@ -23,7 +23,7 @@ import numba
 import numpy as np
 
 from ..model.robust import log1p_square_sum  # noqa: F401 - re-exported: the same names as .cuda_kernels
-from ..model.shading import led_irradiances_into  # noqa: F401
+from ..model.shading import FRAME_CHUNK, led_irradiances_into  # noqa: F401
 
 # OpenMP first: the TBB that Open3D's wheels may put on the path can be too old for numba,
 # which then warns on every first parallel call.
@@ -334,25 +334,31 @@ def shading_residuals(color, albedo, basis, lights, usable, shading, residual): 
     frames share it, lights (n, k), usable (n, N) bool.
     """
     n, N = usable.shape
-    for p in numba.prange(N):
+    for k in numba.prange(-(-N // FRAME_CHUNK)):
         for i in range(n):
-            shading_residual_pixel(color, albedo, basis, lights, usable, shading, residual, i, p)
+            for p in range(k * FRAME_CHUNK, min(N, (k + 1) * FRAME_CHUNK)):
+                shading_residual_pixel(color, albedo, basis, lights, usable, shading, residual, i, p)
 
 
 @numba.njit(inline="always")
 def weighted_albedo_pixel(residual, usable, values, shading, inv_lam, num, den, p):  # pragma: no cover - compiled
     """:func:`weighted_albedo_sums` on pixel p (all frames and channels)."""
     for c in range(3):
-        a = 0.0
-        b = 0.0
-        for i in range(usable.shape[0]):
-            if usable[i, p]:
-                x = residual[i, p, c] * inv_lam
-                ws = shading[i, p] / (1.0 + x * x)
-                a += ws * values[i, p, c]
-                b += ws * shading[i, p]
-        num[p, c] = a
-        den[p, c] = b
+        num[p, c] = 0.0
+        den[p, c] = 0.0
+    for i in range(usable.shape[0]):
+        weighted_albedo_add(residual, usable, values, shading, inv_lam, num, den, i, p)
+
+
+@numba.njit(inline="always")
+def weighted_albedo_add(residual, usable, values, shading, inv_lam, num, den, i, p):  # pragma: no cover - compiled
+    """Frame i's terms of :func:`weighted_albedo_sums` at pixel p, added to num and den."""
+    if usable[i, p]:
+        for c in range(3):
+            x = residual[i, p, c] * inv_lam
+            ws = shading[i, p] / (1.0 + x * x)
+            num[p, c] += ws * values[i, p, c]
+            den[p, c] += ws * shading[i, p]
 
 
 @numba.njit(parallel=True, cache=True)
@@ -361,8 +367,16 @@ def weighted_albedo_sums(residual, usable, values, shading, inv_lam, num, den): 
     IRLS weight w = usable / (1 + (r inv_lam)^2) of residual (n, N, 3), shading s (n, N) and
     values x (n, N, 3): the warped colours for the albedo's weighted least squares, the
     residuals for its variable projection; usable (n, N) bool."""
-    for p in numba.prange(usable.shape[1]):
-        weighted_albedo_pixel(residual, usable, values, shading, inv_lam, num, den, p)
+    n, N = usable.shape
+    for k in numba.prange(-(-N // FRAME_CHUNK)):
+        start, stop = k * FRAME_CHUNK, min(N, (k + 1) * FRAME_CHUNK)
+        for p in range(start, stop):
+            for c in range(3):
+                num[p, c] = 0.0
+                den[p, c] = 0.0
+        for i in range(n):  # the frames in turn over the chunk (the same sums, in the same order)
+            for p in range(start, stop):
+                weighted_albedo_add(residual, usable, values, shading, inv_lam, num, den, i, p)
 
 
 @numba.njit(inline="always")
@@ -385,9 +399,10 @@ def weighted_lighting_sums(residual, usable, color, albedo, inv_lam, wr2, wri): 
     """wr2 (n, N) = sum_c w rho^2 and wri (n, N) = sum_c w rho I over the channels, with the
     Cauchy IRLS weight w = usable / (1 + (r inv_lam)^2) of residual (n, N, 3)."""
     n, N = usable.shape
-    for p in numba.prange(N):
+    for k in numba.prange(-(-N // FRAME_CHUNK)):
         for i in range(n):
-            weighted_lighting_pixel(residual, usable, color, albedo, inv_lam, wr2, wri, i, p)
+            for p in range(k * FRAME_CHUNK, min(N, (k + 1) * FRAME_CHUNK)):
+                weighted_lighting_pixel(residual, usable, color, albedo, inv_lam, wr2, wri, i, p)
 
 
 @numba.njit(inline="always")
@@ -409,9 +424,10 @@ def project_point(pose, K, x, y, z):  # pragma: no cover - compiled
 
 
 @numba.njit(inline="always")
-def bilinear_at(image, u, v, c):  # pragma: no cover - compiled
-    """Channel c of the (H, W, C) image's bilinear sample at pixel (u, v), clamped to the image
-    (the border repeats; pixel centres at integers), in float64. H, W >= 2."""
+def bilinear_cell(image, u, v):  # pragma: no cover - compiled
+    """The (H, W, C) image's bilinear cell at pixel (u, v), clamped to the image (the border
+    repeats; pixel centres at integers): its top-left pixel (u0, v0) and the weights (a, b) in
+    [0, 1] towards the next column and row, for :func:`bilinear_in_cell`. H, W >= 2."""
     H, W = image.shape[0], image.shape[1]
     # no min, max or int(): numba 0.68's own CUDA target needs a driver to type those,
     # numba-cuda does not
@@ -423,13 +439,26 @@ def bilinear_at(image, u, v, c):  # pragma: no cover - compiled
         u0 = W - 2
     if v0 > H - 2:
         v0 = H - 2
-    a = u - u0
-    b = v - v0
+    return u0, v0, u - u0, v - v0
+
+
+@numba.njit(inline="always")
+def bilinear_in_cell(image, u0, v0, a, b, c):  # pragma: no cover - compiled
+    """Channel c of the image's bilinear sample in the cell (u0, v0, a, b) of :func:`bilinear_cell`,
+    in float64."""
     i00, i01 = np.float64(image[v0, u0, c]), np.float64(image[v0, u0 + 1, c])  # float64 differences
     i10, i11 = np.float64(image[v0 + 1, u0, c]), np.float64(image[v0 + 1, u0 + 1, c])
     top = i00 + a * (i01 - i00)
     bottom = i10 + a * (i11 - i10)
     return top + b * (bottom - top)
+
+
+@numba.njit(inline="always")
+def bilinear_at(image, u, v, c):  # pragma: no cover - compiled
+    """Channel c of the (H, W, C) image's bilinear sample at pixel (u, v), clamped to the image
+    (the border repeats; pixel centres at integers), in float64. H, W >= 2."""
+    u0, v0, a, b = bilinear_cell(image, u, v)
+    return bilinear_in_cell(image, u0, v0, a, b, c)
 
 
 @numba.njit(inline="always")
@@ -455,8 +484,9 @@ def warp_sample_pixel(points_ref, pose, K, image, visible, color, usable, p):  #
     _, _, Z, u, v = project_point(pose, K, points_ref[p, 0], points_ref[p, 1], points_ref[p, 2])
     H, W = image.shape[0], image.shape[1]
     usable[p] = visible[p] and Z > 1e-6 and u >= 0.0 and u <= W - 1.0 and v >= 0.0 and v <= H - 1.0
+    u0, v0, a, b = bilinear_cell(image, u, v)  # once for the three channels
     for c in range(3):
-        color[p, c] = bilinear_at(image, u, v, c)
+        color[p, c] = bilinear_in_cell(image, u0, v0, a, b, c)
 
 
 @numba.njit(parallel=True, cache=True)

@@ -1,0 +1,78 @@
+"""LevelProblem.energy, the frame-at-a-time energy that sweep extrapolation judges its factors
+by: the evaluation's energy and usable mask (to float64 round-off of the sum's order), under
+the shared SH basis and the per-frame LED basis, with temporaries of one frame (tracemalloc)."""
+
+import tracemalloc
+
+import numpy as np
+import pytest
+
+from o3d_mvps.solver import problem as problem_module
+from o3d_mvps.solver.lighting import LEDLight
+from o3d_mvps.solver.problem import LevelProblem
+
+from helpers import make_problem
+
+
+def frames_problem(n_frames: int, light: str):
+    """make_problem's level with ``n_frames`` frames, poses spread about frame 1's (the last one
+    shifted so that part of the reference falls out of its view), and the SH
+    or LED light model with lights for every frame."""
+    problem, est = make_problem(n_frames)
+    est.poses = est.poses.copy()
+    for i in range(2, n_frames):  # each frame a little further along
+        est.poses[i][:3, 3] *= 1.0 + 0.2 * i
+    est.poses[-1][0, 3] += 0.08  # the last frame sees part of the reference out of its view
+    if light == "led":
+        problem = LevelProblem(problem.level, problem.tau, problem.lam, LEDLight(np.array([0.02, -0.01, 0.0])))
+        est.lights = np.tile([0.1, 0.3], (n_frames, 1)) * (1.0 + 0.05 * np.arange(n_frames))[:, None]
+    else:
+        est.lights = np.tile(est.lights[:1], (n_frames, 1)) * (1.0 + 0.05 * np.arange(n_frames))[:, None]
+    est.led_offset = None
+    return problem, est
+
+
+@pytest.mark.parametrize("frames_per_batch", [1, 3, 10])
+@pytest.mark.parametrize("light", ["sh", "led"])
+def test_frame_at_a_time_energy_is_the_evaluation_energy(light, frames_per_batch, monkeypatch):
+    """In batches of 1 frame, of 3 (the last one short) and all 4 at once."""
+    problem, est = frames_problem(4, light)
+    monkeypatch.setattr(problem_module, "ENERGY_BATCH_PIXELS", frames_per_batch * problem.level.grid.size)
+    ev = problem.evaluate(est)
+    energy, usable = problem.energy(est)
+    assert ev.data > 1e-3 and 0 < usable.sum() < usable.size  # a real residual, some pixels out of view
+    assert energy == pytest.approx(ev.energy, rel=1e-12)
+    assert np.array_equal(usable, ev.usable)
+    est.albedo = est.albedo * 1.1  # a different estimate, a different energy, the same agreement
+    assert problem.energy(est)[0] == pytest.approx(problem.evaluate(est).energy, rel=1e-12)
+    assert abs(problem.energy(est)[0] - energy) > 1e-3 * energy
+
+
+def _peak_bytes(call) -> int:
+    tracemalloc.start()
+    try:
+        tracemalloc.reset_peak()
+        start = tracemalloc.get_traced_memory()[0]
+        result = call()
+        peak = tracemalloc.get_traced_memory()[1] - start
+    finally:
+        tracemalloc.stop()
+    del result
+    return peak
+
+
+def test_frame_at_a_time_energy_holds_one_frame_of_temporaries(monkeypatch):
+    """From 2 to 10 frames the evaluation's peak grows by at least 50 bytes a pixel and frame
+    (warped colours, residuals, shading, LED basis), the energy's, one frame a batch, by at most 4
+    (the usable mask, 1 byte, and slack)."""
+    monkeypatch.setattr(problem_module, "ENERGY_BATCH_PIXELS", 1)
+    peaks = {}
+    for n in (2, 10):
+        problem, est = frames_problem(n, "led")
+        problem.energy(est), problem.evaluate(est)  # first calls (kernel dispatch) outside the measurement
+        peaks[n] = (_peak_bytes(lambda: problem.energy(est)), _peak_bytes(lambda: problem.evaluate(est)))
+    pixels = problem.level.grid.size
+    energy_growth, evaluation_growth = ((peaks[10][k] - peaks[2][k]) / (8 * pixels) for k in (0, 1))
+    assert evaluation_growth > 50, peaks
+    assert energy_growth < 4, peaks
+    assert peaks[10][0] < 0.3 * peaks[10][1], peaks
