@@ -208,16 +208,18 @@ def recommended_multigrid(system):
 
 
 def test_multigrid_needs_few_iterations_where_jacobi_needs_many(solver_systems):
-    """Depth-only system (5608 unknowns, rtol 1e-4): measured 9 iterations with the multigrid
-    (bound 12), 60 with Jacobi and 25 with a degree-3 Chebyshev polynomial."""
+    """Depth-only system (5608 unknowns, rtol 1e-4), with the LED's evidence weights (a pixel's
+    smoothness up to the sensor's where its shading says little; three frames here): measured
+    17 iterations with the multigrid (bound 20), 135 with Jacobi and 54 with a degree-3
+    Chebyshev polynomial (pyamg's CG 21). Without the weights: 9, 60, 25 (pyamg 12)."""
     s = solver_systems["depth"]
     assert s["rtol"] == RefineOptions().cg_tolerance and s["M"].shape[0] > 5000
     counts = {name: krylov.pcg(s["A"], s["b"], None, s["rtol"], 1000, P)[1:] for name, P in (
         ("multigrid", recommended_multigrid(s)), ("jacobi", krylov.jacobi_preconditioner(s["M"])),
         ("chebyshev", krylov.chebyshev_preconditioner(s["M"], 3, 0.03)))}
     assert all(converged for _, converged in counts.values())
-    assert counts["multigrid"][0] <= 12
-    assert counts["jacobi"][0] >= 50 and counts["chebyshev"][0] >= 20
+    assert counts["multigrid"][0] <= 20
+    assert counts["jacobi"][0] >= 100 and counts["chebyshev"][0] >= 40
 
 
 def test_schur_operator_with_the_multigrid_of_its_sparse_part(solver_systems):
