@@ -49,25 +49,37 @@ def _fit_point_light(x: np.ndarray, colour: np.ndarray, albedo: np.ndarray, norm
         J = np.column_stack([np.ones(len(g)), np.maximum(g, 0.0), dpos])  # d(shading)/dx (M, 5)
         H = (J * (w * albedo**2).sum(axis=1)[:, None]).T @ J
         b = J.T @ (w * albedo * r).sum(axis=1)  # r = I - rho s: the IRLS model's descent direction
-        diagonal = np.maximum(np.diag(H), 1e-12 * max(float(np.trace(H)), 1e-300))
-        while damping < 1e8:
-            try:
-                step = np.linalg.solve(H + damping * np.diag(diagonal), b)
-            except np.linalg.LinAlgError:
-                step = None
-            if step is not None and np.isfinite(step).all():
-                trial = x + step
-                shading_t, g_t = _point_shading(trial, normals, points)
-                r_t = colour - albedo * shading_t[:, None]
-                energy_t = float(cauchy(r_t, lam).sum())
-                if np.isfinite(energy_t) and energy_t < energy:
-                    x, g, r, energy = trial, g_t, r_t, energy_t
-                    damping = max(damping / 4.0, 1e-6)
-                    break
-            damping *= 8.0
-        else:
+
+        def accept(step, x=x, energy=energy):
+            trial = x + step
+            shading_t, g_t = _point_shading(trial, normals, points)
+            r_t = colour - albedo * shading_t[:, None]
+            energy_t = float(cauchy(r_t, lam).sum())
+            return (trial, g_t, r_t, energy_t) if np.isfinite(energy_t) and energy_t < energy else None
+
+        found, damping = _damped_step(H, b, accept, damping)
+        if found is None:
             break
+        x, g, r, energy = found
     return x, energy
+
+
+def _damped_step(H: np.ndarray, b: np.ndarray, accept, damping: float) -> tuple:
+    """One Levenberg-Marquardt step of the system H (k, k), b (k,): ``H + damping diag(H)`` is
+    solved and the step offered to ``accept(step)``, which returns what the step leads to or None
+    to refuse it; the damping grows 8 times per refusal (up to 1e8) and shrinks 4 times after an
+    accepted step. Returns (what ``accept`` returned, or None; the new damping)."""
+    diagonal = np.maximum(np.diag(H), 1e-12 * max(float(np.trace(H)), 1e-300))
+    while damping < 1e8:
+        try:
+            step = np.linalg.solve(H + damping * np.diag(diagonal), b)
+        except np.linalg.LinAlgError:
+            step = None
+        found = accept(step) if step is not None and np.isfinite(step).all() else None
+        if found is not None:
+            return found, max(damping / 4.0, 1e-6)
+        damping *= 8.0
+    return None, damping
 
 
 def _host_samples(problem, est, ev, max_pixels: int):
@@ -128,22 +140,18 @@ def _fit_projected(X: np.ndarray, colour: np.ndarray, usable: np.ndarray, normal
         C = C.transpose(1, 2, 0, 3).reshape(M * 3, n * 5)
         A = np.einsum("nmc,nm->mc", w, shading**2).reshape(-1)
         S = S.reshape(n * 5, n * 5) - (C / np.maximum(A, 1e-300)[:, None]).T @ C
-        diagonal = np.maximum(np.diag(S), 1e-12 * max(float(np.trace(S)), 1e-300))
-        while damping < 1e8:
-            try:
-                step = np.linalg.solve(S + damping * np.diag(diagonal), b)
-            except np.linalg.LinAlgError:
-                step = None
-            trial = None if step is None else X + step.reshape(n, 5)
-            if trial is not None and np.isfinite(trial).all() and (trial[:, 1] > 0).all() and (trial[:, 0] >= 0).all():
-                found = state(trial, w)
-                if np.isfinite(found[-1]) and found[-1] < energy:
-                    X, (shading, g, rho, r, energy) = trial, found
-                    damping = max(damping / 4.0, 1e-6)
-                    break
-            damping *= 8.0
-        else:
+
+        def accept(step, X=X, w=w, energy=energy):
+            trial = X + step.reshape(n, 5)
+            if not (np.isfinite(trial).all() and (trial[:, 1] > 0).all() and (trial[:, 0] >= 0).all()):
+                return None
+            found = state(trial, w)
+            return (trial, found) if np.isfinite(found[-1]) and found[-1] < energy else None
+
+        accepted, damping = _damped_step(S, b, accept, damping)
+        if accepted is None:
             break
+        X, (shading, g, rho, r, energy) = accepted
     return X
 
 
