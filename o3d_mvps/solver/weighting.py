@@ -119,7 +119,7 @@ def normal_evidence(light_model, est, ev, points: np.ndarray) -> np.ndarray:
         G = u.T.astype(np.float64) @ (L[:, :, None] * L[:, None, :]).reshape(-1, 9)
         G, v = G.reshape(N, 3, 3), us.T.astype(np.float64) @ L
     else:
-        G, v = xp.einsum("in,inj,ink->njk", u, L, L), xp.einsum("in,inj->nj", us, L)
+        G, v = xp.einsum("in,inj,ink->njk", u, L, L, optimize=True), xp.einsum("in,inj->nj", us, L, optimize=True)
     d = (us * ev.shading).sum(axis=0)
     G -= v[:, :, None] * v[:, None, :] / xp.maximum(d, 1e-30)[:, None, None]
     # the 2 x 2 restriction to the tangent plane (t1, t2) and its smaller eigenvalue in closed form
