@@ -28,7 +28,7 @@ from .solver.driver import solve
 from .solver.options import AUTO, RefineOptions
 from .solver.pose_trust import DEFAULT_POSE_TRUST
 from .solver.problem_input import SolverInput, write_problem
-from .covisibility import MIN_OTHER_FRAMES, ViewSelection, frames_seeing_reference
+from .covisibility import MIN_OTHER_FRAMES, WEAK_COVERAGE_NOTE, ViewSelection, frames_seeing_reference
 
 
 def refine(capture: Capture, options: RefineOptions | None = None, device="auto", initial_poses=None, *,
@@ -176,10 +176,6 @@ def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses
         initial_poses=initial_poses, led_offset=_led_offset(options, capture), frames=frames, options=options,
         report=report, pose_trust=trust,
     ), views
-
-
-#: what :func:`lean_on_sensor` changes, for the warning
-WEAK_COVERAGE_NOTE = "the sensor's smoothness and low frequencies"
 
 
 def lean_on_sensor(options: RefineOptions) -> RefineOptions:

@@ -92,6 +92,28 @@ def _refine(capture, **options):
     return result, [str(w.message) for w in said]
 
 
+
+def test_reconstruct_says_once_which_views_lean_on_the_sensor():
+    """A 12-frame ring's views each warned with their own percentages (6 warnings of 8 views);
+    reconstruct gathers them into one naming the views and the remedy, and keeps other messages
+    once with their views."""
+    from types import SimpleNamespace
+
+    from o3d_mvps.covisibility import WEAK_COVERAGE_NOTE
+    from o3d_mvps.reconstruct.api import view_warnings
+
+    def weak(i):
+        return f"only 2 of the 4 other frames see at least 60% ... frame {i} 81%: leans on ({WEAK_COVERAGE_NOTE}); ..."
+    views = [SimpleNamespace(reference=0, warnings=[weak(4), "odd light"]),
+             SimpleNamespace(reference=3, warnings=[weak(2)]),
+             SimpleNamespace(reference=5, warnings=["odd light"]),
+             SimpleNamespace(reference=7, warnings=[])]
+    messages = view_warnings(views)
+    assert messages[0] == "reference views 0, 5: odd light"
+    assert len(messages) == 2 and messages[1].startswith("reference views 0, 3 (of 4): fewer than 3 of the frames")
+    assert WEAK_COVERAGE_NOTE in messages[1] and "18 or more for a whole ring" in messages[1]
+    assert view_warnings(views[2:]) == ["reference view 5: odd light"]
+
 @pytest.mark.parametrize("light, frames", [("room", 8), ("led", 10)])
 def test_dark_speckles_do_not_become_grain(light, frames):
     """A speckled bunny on an orbit (frames within 15 deg of the reference), given poses, the

@@ -24,7 +24,7 @@ from ..errors import MVPSError
 from ..run_report import peak_memory_mb, workers_peak_memory_mb
 from ..solver.device import check_device_name
 from ..solver.options import RefineOptions
-from ..covisibility import MIN_COVISIBILITY
+from ..covisibility import MIN_COVISIBILITY, MIN_WELL_COVISIBLE, MOST_OF_REFERENCE, WEAK_COVERAGE_NOTE
 from .fusion import GRAZING_EXPONENT, TSDFVolume, pixel_weights
 from .references import FULL_TURN_DEG, azimuth_span_deg, choose_references, up_direction
 from .solid import closed_solid
@@ -184,13 +184,8 @@ def _reconstruct(capture, options: ReconstructOptions, poses, client, scheduler,
     for reference, why in retried.items():
         warnings.warn(why if isinstance(reference, str) else f"reference view {reference} was run again: {why}",
                       stacklevel=3)
-    said = {}
-    for view in views:  # the workers' warnings, each message once with the views that raised it
-        for message in view.warnings:
-            said.setdefault(message, []).append(view.reference)
-    for message, references in said.items():
-        warnings.warn(f"reference view{'s' if len(references) > 1 else ''} {', '.join(map(str, references))}: "
-                      f"{message}", stacklevel=3)
+    for message in view_warnings(views):
+        warnings.warn(message, stacklevel=3)
     for reference, error in failed.items():
         warnings.warn(f"reference view {reference} failed and is left out: {error}", stacklevel=3)
     if not views:
@@ -271,3 +266,28 @@ def read_reconstruction(folder) -> tuple[o3d.t.geometry.TriangleMesh, dict]:
     except (OSError, ValueError) as e:
         raise MVPSError(f"cannot read {root / 'report.json'} ({e}); reconstruct again") from None
     return mesh, report
+
+
+def view_warnings(views: list) -> list[str]:
+    """The workers' warnings of the views (each with ``reference`` and ``warnings``), each message
+    once with the views that raised it; the views whose refinement leant on the sensor for weak
+    coverage (:data:`~o3d_mvps.covisibility.WEAK_COVERAGE_NOTE`) in one message with the remedy."""
+    said, weak = {}, []
+    for view in views:
+        for message in view.warnings:
+            if WEAK_COVERAGE_NOTE in message:
+                weak.append(view.reference)
+            else:
+                said.setdefault(message, []).append(view.reference)
+    messages = [f"{_views_named(references)}: {message}" for message, references in said.items()]
+    if weak:
+        messages.append(f"{_views_named(weak)} (of {len(views)}): fewer than {MIN_WELL_COVISIBLE} of the frames see "
+                        f"at least {MOST_OF_REFERENCE:.0%} of the reference's surface, so the refinement leans on the "
+                        f"sensor depth there ({WEAK_COVERAGE_NOTE}); frames at most 20 degrees apart all round the "
+                        "object (18 or more for a whole ring) give every view photometric detail")
+    return messages
+
+
+def _views_named(references: list) -> str:
+    """'reference view 3' or 'reference views 0, 3, 5'."""
+    return f"reference view{'s' if len(references) > 1 else ''} {', '.join(map(str, references))}"
