@@ -205,14 +205,18 @@ def test_two_dask_workers_give_the_same_mesh_as_one():
 
 @pytest.mark.parametrize("light", ["led", "room", None])
 def test_a_view_job_keeps_the_capture_and_what_lit_it(ring, light):
-    """The arrays a Dask task carries give the capture back: images, intrinsics and its light
-    (without it a room-lit ring was refined with the LED model, with a warning per view)."""
+    """The arrays a Dask task carries give the capture back: images, intrinsics, its light
+    (without it a room-lit ring was refined with the LED model, with a warning per view) and its
+    frames' file names."""
     from o3d_mvps.reconstruct.views import capture_arrays, capture_from_arrays
 
     capture = ring[0].select(range(3))
     capture.light = light
+    capture.frame_names = ["000000.png", "000001.png", "000002.png"]
     back = capture_from_arrays(capture_arrays(capture))
     assert back.light == light and back.n_frames == 3
+    # a view's messages name the capture's files: "frame 1 (000001.png)"
+    assert back.frame_names == capture.frame_names and back.frame_label(1) == "frame 1 (000001.png)"
     np.testing.assert_array_equal(back.color_array(2), capture.color_array(2))
     np.testing.assert_array_equal(back.depth_array(1), capture.depth_array(1))
     np.testing.assert_array_equal(back.color_K(), capture.color_K())

@@ -72,13 +72,15 @@ def plan_view(capture, poses: np.ndarray, reference: int, *, min_covisibility: f
 
 
 def capture_arrays(capture) -> dict:
-    """A capture as a dict of NumPy arrays and plain fields (no ground truth); :func:`capture_from_arrays` inverts it."""
+    """A capture as a dict of NumPy arrays and plain fields (no ground truth); :func:`capture_from_arrays` inverts it.
+    The frames' file names go with them, so that a view's messages name the capture's files, not
+    only the frames' places in the view."""
     masks = None if capture.masks is None else [capture.mask_array(i) for i in range(capture.n_frames)]
     return {"color": [capture.color_array(i) for i in range(capture.n_frames)],
             "depth": [capture.depth_array(i) for i in range(capture.n_frames)], "masks": masks,
             "color_K": capture.color_K(), "depth_K": capture.depth_K(),
             "fields": {name: getattr(capture, name) for name in ("depth_scale", "depth_trunc", "color_encoding",
-                                                                  "sensor", "light", "metadata")}}
+                                                                  "sensor", "light", "metadata", "frame_names")}}
 
 
 def capture_from_arrays(arrays: dict):
