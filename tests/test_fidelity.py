@@ -90,6 +90,27 @@ def test_normal_evidence_scales_with_albedo_squared_and_vanishes_without_light_d
     assert flat.max() < 1e-9 * evidence[0]
 
 
+
+def test_the_tangent_eigenvalue_is_that_of_the_projected_matrix():
+    """normal_evidence's closed form (one fused kernel on a GPU): the smaller eigenvalue of
+    G - v v^T / d restricted to the plane normal to n, against NumPy's eigvalsh of that 2 x 2
+    restriction in an orthonormal tangent basis; normals along the axes included."""
+    from o3d_mvps.solver.weighting import _tangent_min_eigenvalue
+
+    rng = np.random.default_rng(1)
+    n = rng.normal(size=(400, 3))
+    n[:3] = np.eye(3)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    A = rng.normal(size=(400, 3, 5))
+    G, v = A @ A.transpose(0, 2, 1), rng.normal(size=(400, 3))
+    d = rng.random(400) + 3 * (v**2).sum(axis=1)
+    H = G - v[:, :, None] * v[:, None, :] / d[:, None, None]
+    # any orthonormal tangent basis: from the QR of [n, e1, e2]
+    T = np.stack([np.linalg.qr(np.column_stack([m, np.eye(3)[:, :2]]))[0][:, 1:] for m in n])  # (N, 3, 2)
+    expected = np.maximum(np.linalg.eigvalsh(T.transpose(0, 2, 1) @ H @ T)[:, 0], 0.0)
+    got = _tangent_min_eigenvalue(*n.T, G[:, 0, 0], G[:, 0, 1], G[:, 0, 2], G[:, 1, 1], G[:, 1, 2], G[:, 2, 2], *v.T, d)
+    np.testing.assert_allclose(got, expected, rtol=1e-9, atol=1e-12 * np.abs(expected).max())
+
 def test_evidence_weights_lean_on_smoothness_where_evidence_is_weak():
     weights = evidence_weights(np.array([1.0, 2.0, 1.0, 0.1, 0.0, 3.0, 1.0]))
     assert np.allclose(weights, [1, 1, 1, 10, EVIDENCE_MAX_WEIGHT, 1, 1])

@@ -20,7 +20,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from ..model.arrays import array_module
+from ..model.arrays import array_module, fused
 from ..model.resampling import fill_nearest_valid
 from .smoothness import sensor_roughness
 
@@ -121,16 +121,32 @@ def normal_evidence(light_model, est, ev, points: np.ndarray) -> np.ndarray:
     else:
         G, v = xp.einsum("in,inj,ink->njk", u, L, L, optimize=True), xp.einsum("in,inj->nj", us, L, optimize=True)
     d = (us * ev.shading).sum(axis=0)
-    G -= v[:, :, None] * v[:, None, :] / xp.maximum(d, 1e-30)[:, None, None]
-    # the 2 x 2 restriction to the tangent plane (t1, t2) and its smaller eigenvalue in closed form
-    axis = xp.where((xp.abs(normals[:, 0]) < 0.9)[:, None], xp.asarray([1.0, 0.0, 0.0]),
-                    xp.asarray([0.0, 1.0, 0.0]))
-    t1 = xp.cross(normals, axis)
-    t1 /= xp.linalg.norm(t1, axis=1, keepdims=True)
-    t2 = xp.cross(normals, t1)
-    Gt1, Gt2 = xp.einsum("nij,nj->ni", G, t1), xp.einsum("nij,nj->ni", G, t2)
-    a, b, c = (t1 * Gt1).sum(axis=1), (t1 * Gt2).sum(axis=1), (t2 * Gt2).sum(axis=1)
-    return xp.maximum(0.5 * (a + c) - xp.sqrt(0.25 * (a - c) ** 2 + b * b), 0.0)
+    return _tangent_min_eigenvalue(normals[:, 0], normals[:, 1], normals[:, 2], G[:, 0, 0], G[:, 0, 1], G[:, 0, 2],
+                                   G[:, 1, 1], G[:, 1, 2], G[:, 2, 2], v[:, 0], v[:, 1], v[:, 2], d)
+
+
+@fused
+def _tangent_min_eigenvalue(nx, ny, nz, g00, g01, g02, g11, g12, g22, v0, v1, v2, d):
+    """The smaller eigenvalue (N,) of ``G - v v^T / d`` (G symmetric, its six entries gjk; v and d
+    as in :func:`normal_evidence`; each (N,)) restricted to the plane normal to the unit normal
+    (nx, ny, nz), in closed form: tangents t1 = n x a (a the x axis, or the y axis where n is
+    near the x axis) and t2 = n x t1. Elementwise: one kernel on a GPU."""
+    xp = array_module(nx)
+    d = xp.maximum(d, 1e-30)
+    g00, g01, g02 = g00 - v0 * v0 / d, g01 - v0 * v1 / d, g02 - v0 * v2 / d
+    g11, g12, g22 = g11 - v1 * v1 / d, g12 - v1 * v2 / d, g22 - v2 * v2 / d
+    near_x = xp.abs(nx) >= 0.9  # n x (1, 0, 0) = (0, nz, -ny); n x (0, 1, 0) = (-nz, 0, nx)
+    t1x, t1y, t1z = xp.where(near_x, -nz, 0.0), xp.where(near_x, 0.0, nz), xp.where(near_x, nx, -ny)
+    norm = xp.sqrt(t1x * t1x + t1y * t1y + t1z * t1z)
+    t1x, t1y, t1z = t1x / norm, t1y / norm, t1z / norm
+    t2x, t2y, t2z = ny * t1z - nz * t1y, nz * t1x - nx * t1z, nx * t1y - ny * t1x
+    a = (g00 * t1x * t1x + g11 * t1y * t1y + g22 * t1z * t1z
+         + 2.0 * (g01 * t1x * t1y + g02 * t1x * t1z + g12 * t1y * t1z))
+    c = (g00 * t2x * t2x + g11 * t2y * t2y + g22 * t2z * t2z
+         + 2.0 * (g01 * t2x * t2y + g02 * t2x * t2z + g12 * t2y * t2z))
+    b = (g00 * t1x * t2x + g11 * t1y * t2y + g22 * t1z * t2z + g01 * (t1x * t2y + t1y * t2x)
+         + g02 * (t1x * t2z + t1z * t2x) + g12 * (t1y * t2z + t1z * t2y))
+    return xp.maximum(0.5 * (a + c) - xp.sqrt(0.25 * (a - c) * (a - c) + b * b), 0.0)
 
 
 def evidence_weights(evidence: np.ndarray) -> np.ndarray:
