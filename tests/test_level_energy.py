@@ -48,6 +48,21 @@ def test_frame_at_a_time_energy_is_the_evaluation_energy(light, frames_per_batch
     assert abs(problem.energy(est)[0] - energy) > 1e-3 * energy
 
 
+
+def test_a_static_camera_s_energy_reuses_the_samples_of_its_evaluation(monkeypatch):
+    """Identity poses (a static camera): after one evaluation the energy reads the frames' cached
+    samples, warping no frame again, and agrees with the evaluation for another z."""
+    problem, est = frames_problem(3, "sh")
+    est.poses = np.tile(np.eye(4), (3, 1, 1))
+    monkeypatch.setattr(problem_module, "ENERGY_BATCH_PIXELS", problem.level.grid.size)  # a frame a batch
+    problem.evaluate(est)  # samples the frames once
+    warped = []
+    monkeypatch.setattr(problem, "_warp_sample", lambda *args: warped.append(args[0]))
+    est.z = est.z * 1.01
+    energy, usable = problem.energy(est)
+    ev = problem.evaluate(est)
+    assert warped == [] and energy == pytest.approx(ev.energy, rel=1e-12) and np.array_equal(usable, ev.usable)
+
 def _peak_bytes(call) -> int:
     tracemalloc.start()
     try:

@@ -165,6 +165,24 @@ class LevelProblem:
         kernels_for(points_ref).warp_sample(points_ref, like(pose, points_ref), self.device_K, self.level.images[i],
                                             self.visibility[i], color, usable)
 
+    def _sample_frames(self, points_ref: np.ndarray, poses: np.ndarray, frames: slice, color: np.ndarray,
+                       usable: np.ndarray) -> None:
+        """:meth:`_warp_sample` of the frames ``frames`` (a slice with step 1) written into color
+        (m, N, 3) and usable (m, N); poses (n, 4, 4) where the points are. On the GPU one launch
+        for them all (:func:`.kernels.warp_sample_frames`)."""
+        if self.level.image_stack is not None:
+            kernels_for(points_ref).warp_sample_frames(points_ref, poses[frames], self.device_K,
+                                                       self.level.image_stack[frames], self.visibility[frames],
+                                                       color, usable)
+        else:
+            for k, i in enumerate(range(*frames.indices(self.n_frames))):
+                self._warp_sample(i, poses[i], points_ref, color[k], usable[k])
+
+    def _identity(self, est: Estimate) -> bool:
+        """Whether every pose of ``est`` is the identity (a static camera: the frames' samples
+        do not depend on z, :attr:`_static_samples`)."""
+        return bool(np.array_equal(to_host(est.poses), np.broadcast_to(np.eye(4), (self.n_frames, 4, 4))))
+
     def warped_gradients(self, i: int, pose: np.ndarray, points_ref: np.ndarray) -> FrameGradients:
         """Frame i's colour gradients at the reference points (N, 3) warped by ``pose``, by the
         per-pixel function of the assembly's kernel (:func:`.kernels.warp_gradients`)."""
@@ -221,18 +239,12 @@ class LevelProblem:
         n, N = self.n_frames, self.level.grid.size
         P = self.points(est.z)
         xp = array_module(P)
-        identity = bool(np.array_equal(to_host(est.poses), np.broadcast_to(np.eye(4), (n, 4, 4))))
+        identity = self._identity(est)
         if identity and self._static_samples is not None:
             return self.evaluate_samples(est, *self._static_samples, *self.normals(est.z))
         color = xp.empty((n, N, 3), dtype=np.float32)  # sampled from float32 images
         usable = xp.empty((n, N), dtype=bool)
-        poses = like(est.poses, P)  # one copy to the GPU for all the frames
-        if self.level.image_stack is not None:  # the GPU: every frame in one launch
-            kernels_for(P).warp_sample_frames(P, poses, self.device_K, self.level.image_stack, self.visibility, color,
-                                              usable)
-        else:
-            for i in range(n):
-                self._warp_sample(i, poses[i], P, color[i], usable[i])
+        self._sample_frames(P, like(est.poses, P), slice(0, n), color, usable)
         if identity:
             self._static_samples = (color, usable)
         return self.evaluate_samples(est, color, usable, *self.normals(est.z))
@@ -254,13 +266,17 @@ class LevelProblem:
         light = self.light_model(est)
         per_frame = light.bases(normals[:1], P[:1], est.poses).shape[0] > 1  # else one basis for all frames
         basis = None if per_frame else light.bases(normals, P, est.poses[:1])  # (1, N, k)
+        static = self._static_samples if self._identity(est) else None  # the samples of every z
         data = 0.0
         for start in range(0, n, batch):
             stop = min(n, start + batch)
-            m = stop - start
-            for i in range(start, stop):
-                self._warp_sample(i, poses[i], P, color[i - start], usable[i])
-            kernels.shading_residuals(color[:m], est.albedo, light.bases(normals, P, est.poses[start:stop])
+            m, frames = stop - start, slice(start, stop)
+            if static is None:
+                self._sample_frames(P, poses, frames, color[:m], usable[frames])
+                sampled = color[:m]
+            else:
+                sampled, usable[frames] = static[0][frames], static[1][frames]
+            kernels.shading_residuals(sampled, est.albedo, light.bases(normals, P, est.poses[start:stop])
                                       if per_frame else basis, lights[start:stop], usable[start:stop], shading[:m],
                                       residual[:m])
             data += cauchy_energy(residual[:m], self.lam, kernels.log1p_square_sum)
