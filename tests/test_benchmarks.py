@@ -192,8 +192,8 @@ def test_stage_benchmark_rows(tmp_path):
         peaks = r["stage_peak_mb"]
         assert {"read", "odometry", "build_level", "albedo", "extrapolation"} <= set(peaks), peaks
         assert all(peaks["read"] * 0.95 <= v <= r["peak_mb"] for v in peaks.values()), peaks
-    # the same code, to 1e-4: Open3D's registration sums in threads, its poses differ between
-    # processes by ~1e-16 m, and the solve carries that to two outcomes 1.4e-5 apart (measured
-    # 3.99659 and 3.99665 at random; with given poses the energy repeats to the last digit)
-    assert rows[0]["energy"] == pytest.approx(rows[1]["energy"], rel=1e-4)
+    # the same code, to 1e-9: Open3D's registration sums in threads, its poses differ between
+    # processes by ~1e-16 m, and the solve carries that on continuously (measured <= 2e-13 over 30
+    # such moves; before the AMG strength threshold of solver/linear.py: two outcomes 1.4e-5 apart)
+    assert rows[0]["energy"] == pytest.approx(rows[1]["energy"], rel=1e-9)
     assert (tmp_path / "speed_stages.png").stat().st_size > 1000
