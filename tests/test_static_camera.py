@@ -46,6 +46,14 @@ def test_the_render_is_a_static_capture():
     assert np.abs(capture.color_array(0)[mask] - capture.color_array(1)[mask]).mean() > 0.02
     with pytest.raises(ValueError, match="light_radius must be"):
         synthetic.render_static_capture("bunny", frames=2, size=(160, 120), light_radius=(0.5, 0.3))
+    # without cast shadows: the same scene, nowhere darker, brighter where a shadow fell
+    unshadowed = synthetic.render_static_capture("bunny", frames=5, size=(160, 120), scale_factor=2, noise=False,
+                                                 shadows=False)
+    assert gt.light["shadows"] and not unshadowed.groundtruth.light["shadows"]
+    brighter = [unshadowed.color_array(i)[mask].mean(axis=1) - capture.color_array(i)[mask].mean(axis=1)
+                for i in range(5)]
+    assert min(b.min() for b in brighter) >= -1.5 / 255  # 8-bit rounding
+    assert 0.005 < np.mean([(b > 0.05).mean() for b in brighter]) < 0.05  # measured 1.3-2.0 % a frame
 
 
 def test_static_is_detected_from_the_depth_and_said(static):
