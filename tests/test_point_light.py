@@ -108,3 +108,23 @@ def test_point_model_keeps_the_poses_and_says_so():
         out = solve(SolverInput(scene["colors"], scene["depths"], [None] * 3, scene["K"], scene["depth_K"], 2, kicked,
                                 np.zeros(3), [0, 1, 2], opts))
     np.testing.assert_array_equal(out.poses, kicked)
+
+
+def test_point_model_energy_in_frame_batches(monkeypatch):
+    """On large levels :meth:`LevelProblem.energy` (the extrapolation's trials) takes the frames in
+    batches (``ENERGY_BATCH_PIXELS``); each batch must shade with its own frames' lamps (a 640x480
+    bunny filling half the image raised "asked for 13 frames" there). Batches of 2 frames give
+    the one-batch solve's energies (to 1e-9, the order of the float64 sums)."""
+    from o3d_mvps.solver import problem
+
+    scene = quilt_scene(frames=FRAMES, size=(80, 60))
+    opts = RefineOptions(progress=False, light_model="point", refine_poses=False, levels=2, max_iterations=3)
+
+    def energies():
+        out = solve(SolverInput(scene["colors"], scene["depths"], [None] * FRAMES, scene["K"], scene["depth_K"], 2,
+                                np.tile(np.eye(4), (FRAMES, 1, 1)), np.zeros(3), list(range(FRAMES)), opts))
+        return np.array([row["energy"] for row in out.energy])
+
+    whole = energies()
+    monkeypatch.setattr(problem, "ENERGY_BATCH_PIXELS", 2 * 80 * 60)
+    np.testing.assert_allclose(energies(), whole, rtol=1e-9)
