@@ -127,8 +127,8 @@ def test_refine_a_static_capture(monkeypatch):
     """The undeclared D415-like static capture (320x240, SF 2, 12 frames), refined with the
     defaults through ``python -m benchmarks static``'s measure: detected, no registration, poses
     exactly the identity, the point light per frame chosen, normals far better than bicubic
-    upsampling. Measured: normal MAE 5.08 deg against bicubic's 14.0 (per-frame SH: 6.5), low-pass
-    shape difference 1.24 per mille, albedo error 2.7 % (SH 9.4 %); bounds 6.5 deg, a factor 2
+    upsampling. Measured: normal MAE 4.81 deg against bicubic's 14.0 (per-frame SH: 6.5), low-pass
+    shape difference 1.26 per mille, albedo error 2.1 % (SH 9.4 %); bounds 6.5 deg, a factor 2
     below bicubic's, 2 per mille (issue 32's target) and 4 %."""
     from benchmarks.static import QUICK, markdown, measure
 
