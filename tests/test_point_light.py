@@ -128,3 +128,43 @@ def test_point_model_energy_in_frame_batches(monkeypatch):
     whole = energies()
     monkeypatch.setattr(problem, "ENERGY_BATCH_PIXELS", 2 * 80 * 60)
     np.testing.assert_allclose(energies(), whole, rtol=1e-9)
+
+
+def _lamp_scene(positions, M=600, seed=0):
+    """Points on a bumpy patch 0.6 m before the camera, its unit normals, an albedo (M, 3) and the
+    colours (n, M, 3) that lamps at ``positions`` (n, 3), ambient 0.05 and intensity 0.2 give."""
+    from o3d_mvps.model.shading import led_vectors
+
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-0.08, 0.08, (M, 2))
+    z = 0.6 + 0.03 * np.cos(20 * xy[:, 0]) * np.sin(15 * xy[:, 1])
+    points = np.column_stack([xy, z])
+    gx, gy = -0.6 * np.sin(20 * xy[:, 0]) * np.sin(15 * xy[:, 1]), 0.45 * np.cos(20 * xy[:, 0]) * np.cos(15 * xy[:, 1])
+    normals = np.column_stack([gx, gy, -np.ones(M)])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    albedo = rng.uniform(0.3, 0.9, (M, 3))
+    g = np.einsum("mj,nmj->nm", normals, led_vectors(points, np.asarray(positions)))
+    colour = albedo[None] * (0.05 + 0.2 * np.maximum(g, 0.0))[..., None]
+    return points, normals, albedo, colour
+
+
+def test_frames_fit_finds_the_lamps_and_keeps_them_in_reach():
+    """:func:`_fit_frames` (all frames' Levenberg-Marquardt together) finds noise-free lamps from
+    starts 10 cm off to 1e-6 m, and a lamp whose data come from 10 object distances away is held
+    within 5 (:data:`POINT_MAX_DISTANCE`)."""
+    from o3d_mvps.solver.point_light import POINT_MAX_DISTANCE, _fit_frames
+
+    truth = np.array([[0.3, 0.0, 0.0], [-0.2, 0.25, 0.05], [0.0, -0.4, 0.1]])
+    points, normals, albedo, colour = _lamp_scene(truth)
+    usable = np.ones(colour.shape[:2], bool)
+    start = np.column_stack([np.full(3, 0.04), np.full(3, 0.25), truth + [0.1, -0.05, 0.05]])
+    X, energy = _fit_frames(start, colour, albedo, usable, normals, points, 0.04, 40)
+    np.testing.assert_allclose(X[:, 2:], truth, atol=1e-6)
+    np.testing.assert_allclose(X[:, :2], [[0.05, 0.2]] * 3, atol=1e-6)
+    centre = points.mean(axis=0)
+    far = centre + 10 * np.linalg.norm(centre) * np.array([[0.6, 0.0, -0.8]])
+    points, normals, albedo, colour = _lamp_scene(far)
+    start = np.r_[0.05, 0.2 * 100.0, centre + 2 * np.linalg.norm(centre) * np.array([0.6, 0.0, -0.8])][None]
+    X, _ = _fit_frames(start, colour, albedo, np.ones((1, len(points)), bool), normals, points, 0.04, 40)
+    assert np.linalg.norm(X[0, 2:] - centre) <= POINT_MAX_DISTANCE * np.linalg.norm(centre) + 1e-9
+    assert np.linalg.norm(X[0, 2:] - centre) > 3 * np.linalg.norm(centre)  # it did move out towards the lamp
