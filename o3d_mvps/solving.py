@@ -33,7 +33,7 @@ from .covisibility import MIN_OTHER_FRAMES, WEAK_COVERAGE_NOTE, ViewSelection, f
 #: the depth step's CG tolerance for a static camera, where ``cg_tolerance`` is left at its default
 #: (1e-4): each depth step of the reweighted least squares is a linearisation anyway, and on the
 #: rendered bunny (20 frames, D415-like) 1e-3 gave the same normals, depth and albedo to 0.001 deg,
-#: 0.001 mm and 0.01 points, in 0.67 of the refine's CPU time at 1280x960 (10.7 s against 15.9)
+#: 0.001 mm and 0.01 points, in about 0.7 of the refine's CPU time at 1280x960 (10.7 s against 15.0)
 STATIC_CG_TOLERANCE = 1e-3
 
 

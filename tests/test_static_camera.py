@@ -115,12 +115,18 @@ def test_light_model_of_a_static_capture(static):
 
 def test_problem_without_registration(static, monkeypatch):
     """The solver's input: every frame, identity poses, pose refinement off, the light model left to
-    the data (per-frame SH or point lights); the registration is never called."""
+    the data (per-frame SH or point lights), the depth steps' CG tolerance 1e-3 unless one is
+    given; the registration is never called."""
+    from o3d_mvps.solving import STATIC_CG_TOLERANCE
+
     monkeypatch.setattr("o3d_mvps.odometry.register_frames", lambda *a, **k: pytest.fail("registered"))
     problem, views = problem_from_capture(replace(static, camera="static"), RefineOptions(progress=False))
     assert problem.frames == list(range(12)) and views is None
     np.testing.assert_array_equal(problem.initial_poses, np.tile(np.eye(4), (12, 1, 1)))
     assert problem.options.refine_poses is False and problem.options.light_model is None
+    assert problem.options.cg_tolerance == STATIC_CG_TOLERANCE == 1e-3
+    given, _ = problem_from_capture(replace(static, camera="static"), RefineOptions(progress=False, cg_tolerance=1e-5))
+    assert given.options.cg_tolerance == 1e-5
 
 
 def test_refine_a_static_capture(monkeypatch):
