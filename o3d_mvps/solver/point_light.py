@@ -25,12 +25,12 @@ POINT_LM_ITERATIONS = 4
 #: albedo: on the 640x480 bunny (D415-like) the lamps ended 44 mm from the truth (albedo error
 #: 2.8 %); with rounds 21 mm (1.1 %)
 POINT_ROUNDS = 3
+POINT_ROUND_TOLERANCE = 1e-4
 #: how far a lamp may go from the object's centroid, in units of the object's distance from the
 #: camera (a lamp held by hand is at arm's length): a step beyond is refused. Far away, a point
-#: light becomes a directional one whose intensity grows with its distance squared; unbounded, a
-#: frame's lamp of the clean 320x240 bunny ran off to some 700 km (albedo error 13 %)
+#: light becomes a directional one whose intensity grows with its distance squared; unbounded,
+#: one lamp of the clean 320x240 bunny started on a 20-pixel level ran off to some 700 km
 POINT_MAX_DISTANCE = 5.0
-POINT_ROUND_TOLERANCE = 1e-4
 #: the distances, in units of the object's distance from the camera, at which
 #: :func:`initial_point_lights` tries each frame's light along its SH light's direction (a lamp
 #: held at arm's length beside a camera 0.5-1 m from the object is 0.7-1.5 of that away)
@@ -65,7 +65,7 @@ def _fit_frames(X: np.ndarray, colour: np.ndarray, albedo: np.ndarray, usable: n
     for _ in range(iterations):
         if not active.any():
             break
-        w = (cauchy_weights(r, lam) * u)
+        w = cauchy_weights(r, lam) * u
         lit = g > 0
         dpos = -led_vector_jacobian(points, X[:, 2:], normals) * (X[:, 1:2] * lit)[..., None]  # (n, M, 3)
         J = np.concatenate([np.ones(g.shape + (1,)), np.maximum(g, 0.0)[..., None], dpos], axis=2)  # (n, M, 5)
