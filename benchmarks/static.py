@@ -65,12 +65,14 @@ def _scores(result, capture, cubic) -> dict:
 
 
 def _refine(capture, options: RefineOptions) -> tuple:
-    """(refinement, seconds, warnings) of ``capture`` refined with ``options``."""
-    start = time.perf_counter()
+    """(refinement, seconds, CPU seconds of this process, warnings) of ``capture`` refined with
+    ``options``. On a machine shared with other jobs the wall time varies with their load; the
+    CPU seconds much less (with one numba thread, about the wall time on an idle core)."""
+    start, cpu = time.perf_counter(), time.process_time()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         result = refine(capture, options)
-    return result, time.perf_counter() - start, [str(w.message) for w in caught]
+    return result, time.perf_counter() - start, time.process_time() - cpu, [str(w.message) for w in caught]
 
 
 def measure(mesh: str = "bunny", size=(640, 480), scale_factor: int = 2, frames: int = 20, sensor: str = "d415",
@@ -82,24 +84,26 @@ def measure(mesh: str = "bunny", size=(640, 480), scale_factor: int = 2, frames:
     options = options or RefineOptions(progress=False)
     capture = replace(render_static_capture(mesh, frames=frames, size=size, scale_factor=scale_factor, sensor=sensor,
                                             seed=seed), camera=None)  # undeclared: the depth must tell
-    ours, seconds, caught = _refine(capture, options)
+    ours, seconds, cpu_seconds, caught = _refine(capture, options)
     cubic = bicubic(capture)
-    rows = {"ours": {**_scores(ours, capture, cubic), "seconds": seconds,
+    rows = {"ours": {**_scores(ours, capture, cubic), "seconds": seconds, "cpu_seconds": cpu_seconds,
                      "light_model": ours.info["light_selection"]["chosen"]}}
     if compare:
-        sh, sh_seconds, _ = _refine(capture, replace(options, light_model="sh"))
-        rows["ours, sh"] = {**_scores(sh, capture, cubic), "seconds": sh_seconds, "light_model": "sh"}
+        sh, sh_seconds, sh_cpu, _ = _refine(capture, replace(options, light_model="sh"))
+        rows["ours, sh"] = {**_scores(sh, capture, cubic), "seconds": sh_seconds, "cpu_seconds": sh_cpu,
+                            "light_model": "sh"}
     rows["bicubic"] = _scores(cubic, capture, cubic)
     if compare and sensor != "none":
         clean = replace(render_static_capture(mesh, frames=frames, size=size, scale_factor=scale_factor,
                                               sensor="none", seed=seed), camera=None)
-        result, clean_seconds, _ = _refine(clean, options)
+        result, clean_seconds, clean_cpu, _ = _refine(clean, options)
         rows["ours, clean render"] = {**_scores(result, clean, bicubic(clean)), "seconds": clean_seconds,
+                                      "cpu_seconds": clean_cpu,
                                       "light_model": result.info["light_selection"]["chosen"]}
     poses = ours.poses.numpy()
     return {
         "mesh": mesh, "size": list(size), "scale_factor": scale_factor, "frames": frames, "sensor": sensor,
-        "seed": seed, "seconds": seconds, "camera": ours.info["camera"],
+        "seed": seed, "seconds": seconds, "cpu_seconds": cpu_seconds, "camera": ours.info["camera"],
         # numba's parallel kernels on a machine busy with other jobs: each launch waited ~24 ms for
         # its threads (a 320x240 refine 51-103 s with 2 threads at load 12-17, 5.1 s with one)
         "numba_threads": numba.get_num_threads(), "load_average": round(os.getloadavg()[0], 1),
@@ -116,20 +120,22 @@ def markdown(result: dict) -> str:
     lines = [f"# Static camera, moving light: {result['mesh']}, {W}x{H} colour, SF {result['scale_factor']}, "
              f"{result['frames']} frames, sensor {result['sensor']}", "",
              f"Camera: {result['camera']['detail']}; poses moved {result['max_pose_deviation']:.2g} from the "
-             f"identity; refine {result['seconds']:.1f} s ({result.get('numba_threads', '?')} numba threads, "
+             f"identity; refine {result['seconds']:.1f} s, {result.get('cpu_seconds', float('nan')):.1f} CPU s "
+             f"({result.get('numba_threads', '?')} numba threads, "
              f"load average {result.get('load_average', '?')}).", "",
              f"Light model: {result['light_model']} ({result.get('light_selection', '')}).", "",
              "Refine stages (s): "
              + ", ".join(f"{k} {v:.1f}" for k, v in result.get("stages_s", {}).items() if v >= 0.05) + ".", "",
              "| method | normal MAE (deg) | MAE, darkest quarter (deg) | depth RMSE (mm) | low-pass p95 (per mille) "
-             "| albedo error (%) | refine (s) |",
-             "|---|---:|---:|---:|---:|---:|---:|"]
+             "| albedo error (%) | refine (s) | refine CPU (s) |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|"]
     for name, r in result["methods"].items():
         label = f"{name} ({r['light_model']})" if name == "ours" else name
         albedo = f"{100 * r['albedo_error']:.1f}" if "albedo_error" in r else ""
         seconds = f"{r['seconds']:.1f}" if "seconds" in r else ""
+        cpu = f"{r['cpu_seconds']:.1f}" if "cpu_seconds" in r else ""
         lines.append(f"| {label} | {r['mae_deg']:.2f} | {r['mae_dark_deg']:.2f} | {r['rmse_mm']:.2f} | "
-                     f"{r['lowpass_p95_permille']:.2f} | {albedo} | {seconds} |")
+                     f"{r['lowpass_p95_permille']:.2f} | {albedo} | {seconds} | {cpu} |")
     return "\n".join(lines) + "\n"
 
 

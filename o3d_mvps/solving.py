@@ -25,10 +25,16 @@ from .refinement import Refinement
 from .run_report import NOT_PICKED, peak_memory_mb, recorded_warnings
 from .solver.device import check_device
 from .solver.driver import solve
-from .solver.options import AUTO, RefineOptions
+from .solver.options import AUTO, ConvergenceCriteria, RefineOptions
 from .solver.pose_trust import DEFAULT_POSE_TRUST
 from .solver.problem_input import SolverInput, write_problem
 from .covisibility import MIN_OTHER_FRAMES, WEAK_COVERAGE_NOTE, ViewSelection, frames_seeing_reference
+
+#: the depth step's CG tolerance for a static camera, where ``cg_tolerance`` is left at its default
+#: (1e-4): each depth step of the reweighted least squares is a linearisation anyway, and on the
+#: rendered bunny (20 frames, D415-like) 1e-3 gave the same normals, depth and albedo to 0.001 deg,
+#: 0.001 mm and 0.01 points, in about 0.7 of the refine's CPU time at 1280x960 (10.7 s against 15.0)
+STATIC_CG_TOLERANCE = 1e-3
 
 
 def refine(capture: Capture, options: RefineOptions | None = None, device="auto", initial_poses=None, *,
@@ -114,6 +120,8 @@ def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses
     if camera.static:
         capture = replace(capture, camera="static")
         options = replace(options, refine_poses=False)
+        if options.cg_tolerance == ConvergenceCriteria.cg_tolerance:  # left at the default
+            options = replace(options, cg_tolerance=STATIC_CG_TOLERANCE)
     options = with_light_model(options, capture)
     all_frames = [f"{COLOR_DIR}/{name}" for name in capture.frame_names] if capture.frame_names \
         else [None] * capture.n_frames

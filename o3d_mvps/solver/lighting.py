@@ -39,6 +39,11 @@ class FrameFields:
     """One frame's light field and shading Jacobian, from the light model's batched ``fields``
     and ``shading_jacobians`` of m frames (lights (m, k), poses (m, 4, 4))."""
 
+    def frames(self, selection: slice) -> "FrameFields":
+        """The model for the frames ``selection`` picks (a batch of frames, with their poses
+        ``poses[selection]``): the same model, unless it holds something per frame."""
+        return self
+
     def field(self, light: np.ndarray, normals: np.ndarray, points: np.ndarray, pose: np.ndarray):
         """(c, L): frame's shading ``c + <L, n>`` for light (k,) and pose (4, 4) (:meth:`fields`)."""
         c, L = self.fields(light[None], normals, points, pose[None])
@@ -249,9 +254,14 @@ class PointLight(LEDLight):
         """The same model with the lights at ``offset`` (n, 3) metres."""
         return PointLight(offset)
 
+    def frames(self, selection: slice) -> "PointLight":
+        """The model of the frames ``selection`` picks: their own lights."""
+        return PointLight(self.offset[selection])
+
     def positions(self, poses: np.ndarray) -> np.ndarray:
         """The frames' light positions (n, 3) in reference coordinates; poses (n, 4, 4) of all n
-        frames (a single frame's pose cannot say which light is its own)."""
+        frames of the model (a single frame's pose cannot say which light is its own: take
+        :meth:`frames` first)."""
         if len(poses) != len(self.offset):
             raise ValueError(f"the point light model has {len(self.offset)} light positions, one per frame, "
                              f"but was asked for {len(poses)} frames: it shades all frames together (a static "

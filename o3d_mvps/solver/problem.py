@@ -276,7 +276,7 @@ class LevelProblem:
                 sampled = color[:m]
             else:
                 sampled, usable[frames] = static[0][frames], static[1][frames]
-            kernels.shading_residuals(sampled, est.albedo, light.bases(normals, P, est.poses[start:stop])
+            kernels.shading_residuals(sampled, est.albedo, light.frames(frames).bases(normals, P, est.poses[frames])
                                       if per_frame else basis, lights[start:stop], usable[start:stop], shading[:m],
                                       residual[:m])
             data += cauchy_energy(residual[:m], self.lam, kernels.log1p_square_sum)

@@ -195,14 +195,15 @@ def handheld_offsets(frames: int, radius=HANDHELD_RADIUS) -> np.ndarray:
     return np.stack([r * np.cos(angle), r * np.sin(angle), np.zeros_like(r)], axis=1)
 
 
-def handheld_lights(frames: int, distance: float = 0.6, radius=HANDHELD_RADIUS) -> list:
+def handheld_lights(frames: int, distance: float = 0.6, radius=HANDHELD_RADIUS, shadows: bool = True) -> list:
     """One :class:`PointLight` per frame at :func:`handheld_offsets` (fixed camera: camera frame =
-    reference frame), with shadows and the LED's ambient; one intensity for all, giving a frontal
-    surface at the object centre the LED's irradiance from the middle radius."""
+    reference frame), with cast shadows (unless ``shadows`` is False) and the LED's ambient; one
+    intensity for all, giving a frontal surface at the object centre the LED's irradiance from the
+    middle radius."""
     middle = 0.5 * (radius[0] + radius[1])
     intensity = LED_FRONTAL_IRRADIANCE * (distance**2 + middle**2)
     offsets = handheld_offsets(frames, radius)
-    return [PointLight(offset=tuple(float(v) for v in p), intensity=intensity) for p in offsets]
+    return [PointLight(offset=tuple(float(v) for v in p), intensity=intensity, shadows=bool(shadows)) for p in offsets]
 
 
 def handheld_parameters(lights: list) -> dict:

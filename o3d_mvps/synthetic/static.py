@@ -26,7 +26,8 @@ from .sensor import DEPTH_SCALE
 
 def render_static_capture(mesh="bunny", *, frames: int = 20, scale_factor: int = 2, size=(1280, 960),
                           light_radius=HANDHELD_RADIUS, seed: int = 0, sensor: str | None = None, noise: bool = True,
-                          object_size: float = 0.2, distance: float = 0.6, progress: bool = False) -> Capture:
+                          object_size: float = 0.2, distance: float = 0.6, shadows: bool = True,
+                          progress: bool = False) -> Capture:
     """Render a static-camera capture of ``mesh`` lit by a hand-held light, with ground truth.
 
     Parameters
@@ -50,6 +51,9 @@ def render_static_capture(mesh="bunny", *, frames: int = 20, scale_factor: int =
         False: quantisation only (``sensor="none"``).
     object_size, distance : float
         Largest extent of the object and its distance to the camera (m).
+    shadows : bool
+        Cast shadows (a shadow ray toward the light per pixel; False: every surface facing the
+        light is lit, as the ``point`` light model assumes).
     progress : bool
         Show a progress bar over frames.
 
@@ -66,7 +70,7 @@ def render_static_capture(mesh="bunny", *, frames: int = 20, scale_factor: int =
                          "e.g. (0.3, 0.5)")
     scene = build_scene(mesh, size=(W, H), object_size=object_size, distance=distance, seed=seed)
     poses = np.tile(np.eye(4), (int(frames), 1, 1))
-    lights = handheld_lights(int(frames), distance, radius)
+    lights = handheld_lights(int(frames), distance, radius, shadows)
     rendered = render_sensor_frames(scene, poses, lights, scale_factor, seed=seed, noise=noise, sensor=sensor,
                                     progress=progress)
     gt = rendered.groundtruth(poses, handheld_parameters(lights), scene.mesh_to_reference)
