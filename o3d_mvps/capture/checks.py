@@ -117,7 +117,8 @@ def check_inputs(capture, given_poses=None, *, frames: list | None = None, frame
     n = capture.n_frames
     frames = list(range(n)) if frames is None else [int(i) for i in frames]
     names = capture.frame_names or [None] * n
-    labels = [f"frame {frames[k]}" + (f" ({names[k]})" if names[k] else "") for k in range(n)]
+    ids = frames if capture.frame_ids is None else [capture.frame_id(k) for k in range(n)]  # as the user knows it
+    labels = [f"frame {ids[k]}" + (f" ({names[k]})" if names[k] else "") for k in range(n)]
     report = InputReport(frames=[{"index": frames[k], "file": names[k], "used": True, "reason": None}
                                  for k in range(n)])
     where = where or capture.folder

@@ -73,8 +73,9 @@ MOVE_DEG, MOVE_MM, MOVED_BETTER_BY = 5.0, 10.0, 0.01
 MOVE_WIDTH = 160
 #: Depth difference (relative to z) at which a point stops counting as close (:meth:`CoarseDepth.closeness`).
 CLOSE_TOLERANCE = 0.01
-#: Fewest points (seen by both cameras) a frame needs for the moved-pose test; fewer (a 40x30 depth map
-#: holds ~20 points of a bunny) cannot tell 5 degrees (true poses up to 0.19 better).
+#: Fewest points (seen by both cameras) for that margin; a frame of fewer, m, must fit better by 2 / sqrt(m)
+#: (4 binomial sigmas: a 40x30 depth map holds ~20 points of a bunny; its true poses fit up to 0.19 better
+#: moved, so 5 degrees off is caught only now and then).
 MIN_MOVE_POINTS = 50
 #: Most frames (share of those besides the reference) that a check drops for poses that do not place
 #: them; more, and the pose file is refused.
@@ -394,17 +395,20 @@ class Moved:
 
     @property
     def better(self) -> bool:
-        """The pose is off: a move fits clearly better (and the frame has points enough to tell)."""
-        return self.points >= MIN_MOVE_POINTS and self.best > self.given + MOVED_BETTER_BY
+        """The pose is off: a move fits clearly better (:data:`MOVED_BETTER_BY`, more for few points)."""
+        margin = MOVED_BETTER_BY if self.points >= MIN_MOVE_POINTS else 2.0 / np.sqrt(max(self.points, 1))
+        return self.best > self.given + margin
 
     def describe(self, labels: list) -> str:
         return (f"{self.move} it would fit {labels[self.j]}'s depth better ({self.best:.0%} of its points close "
                 f"against {self.given:.0%})")
 
 
-#: The moves of :func:`_moved_closeness`: (name, twist (6,) translation first, in the frame's camera).
-MOVES = [(f"{'turned' if r else 'shifted'} {MOVE_DEG if r else MOVE_MM:g} {'degrees about' if r else 'mm along'} its "
-          f"{'-' if sign < 0 else '+'}{'xyz'[axis]} axis" + (" (the optical axis)" if r and axis == 2 else ""),
+#: The moves of :func:`_moved_closeness`: (name, twist (6,) translation first, applied on the left of
+#: a pose; the name says how the camera moves: the opposite way to the scene in its coordinates).
+MOVES = [(f"with its camera {'turned' if r else 'shifted'} {MOVE_DEG if r else MOVE_MM:g} "
+          f"{'degrees about' if r else 'mm along'} its {'+' if sign < 0 else '-'}{'xyz'[axis]} axis"
+          + (" (the optical axis)" if r and axis == 2 else ""),
           np.eye(6)[3 * r + axis] * sign * (np.radians(MOVE_DEG) if r else MOVE_MM * 1e-3))
          for r in (1, 0) for axis in range(3) for sign in (-1.0, 1.0)]
 

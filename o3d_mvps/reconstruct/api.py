@@ -156,7 +156,8 @@ def _reconstruct(capture, options: ReconstructOptions, poses, client, scheduler,
 
         registration = register_frames(capture, progress=options.progress)
         kept, dropped = list(registration.frames), registration.dropped
-        capture, poses = capture.select(registration.frames), registration.poses
+        capture, poses = replace(capture.select(registration.frames), frame_ids=[
+            capture.frame_id(i) for i in registration.frames]), registration.poses  # named as given
     poses = np.asarray(poses, dtype=np.float64)
     if poses.shape != (capture.n_frames, 4, 4):
         raise ValueError(f"poses must be ({capture.n_frames}, 4, 4) for the capture's frames, got {poses.shape}")
