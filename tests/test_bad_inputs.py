@@ -415,6 +415,18 @@ def test_bad_frames_are_dropped_and_reported(folder, tmp_path):
     assert all(report[i]["used"] for i in (0, 1, 4))
 
 
+def test_a_frame_written_twice_is_dropped_and_named(folder):
+    """Frame 4's files are copies of frame 2's (a recorder that wrote one frame twice): the copy
+    is dropped with a warning naming both files and the fix; frame 2 and the rest are used."""
+    for sub in ("color", "depth"):
+        shutil.copyfile(folder / sub / "000002.png", folder / sub / "000004.png")
+    capture = read_capture(folder)
+    with pytest.warns(UserWarning, match=r"frame quality: dropped 1 frame\(s\): frame 4 \(000004.png\): a copy of "
+                                         r"frame 2 \(000002.png\) \(the same colour and depth.*remove the copy"):
+        report = check_inputs(capture)
+    assert report.usable == [0, 1, 2, 3, 5] and report.frames[4]["reason"].startswith("a copy of frame 2")
+
+
 @pytest.mark.parametrize("how, word", [(lambda im: np.zeros_like(im), "black"),
                                        (lambda im: np.full_like(im, 255), "saturated")])
 def test_a_bad_reference_frame_is_an_error(how, word, folder, tmp_path, capsys):

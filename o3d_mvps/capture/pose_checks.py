@@ -344,7 +344,8 @@ def check_poses(depths: list, depth_K: np.ndarray, given, frames: list, labels: 
                for i in lost}
         message = (
             f"the poses in {given.where} do not place {', '.join(labels[i] for i in lost)}: moved by its pose, "
-            f"its depth does not sit on {labels[0]}'s nor on that of the frames looking its way ("
+            f"its depth does not sit on {labels[0]}'s nor on that of the frames looking its way, or sits on them "
+            f"better with the pose moved a little ("
             f"{'; '.join(f'{labels[i]}: {why[i]}' for i in lost)}; the frames' median {np.median(placed):.0%}), "
             f"and no usual mix-up ({', '.join(c.name for c in candidates[1:])}) fits it. Fix or remove that pose "
             "(and frame), or drop the pose file so registration estimates the poses")
