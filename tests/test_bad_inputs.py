@@ -511,3 +511,21 @@ def test_singular_log_matrix_and_nan_quaternion_name_file_and_line(led_folder, t
     with pytest.raises(CaptureError, match=rf"{tmp_path / 't.txt'}, line 5: quaternion \[nan, 0.0, 0.0, 1.0\]"):
         given_poses(led_folder, tmp_path / "t.txt")
     assert issubclass(CaptureError, MVPSError)
+
+
+@pytest.mark.parametrize("size", [(30, 40), (120, 160), (240, 424), (360, 640), (480, 848), (720, 1280)])
+def test_the_pose_checks_coarse_grid_taken_from_its_fine_grid_is_the_same(size):
+    """The placement test's 80-px grid is averaged from the moved-pose test's 160-px grid where whole
+    blocks nest (640x360: 4 x 4 into 8 x 8), else from the depth: either way the same depth, the same
+    intrinsics and the same valid pixels as averaged directly (to 1e-12 m)."""
+    from o3d_mvps.capture.pose_checks import MOVE_WIDTH, CoarseDepth, _coarser
+
+    h, w = size
+    depth = np.random.default_rng(0).uniform(0.5, 0.7, size)
+    depth[:5], depth[:, -3:], depth[h // 2, w // 3] = 0, 0, 0  # invalid rows, columns and one pixel
+    K = np.array([[0.9 * w, 0, (w - 1) / 2], [0, 0.9 * w, (h - 1) / 2], [0, 0, 1]])
+    got, direct = _coarser(depth, CoarseDepth.of(depth, K, MOVE_WIDTH), K), CoarseDepth.of(depth, K)
+    assert got.depth.shape == direct.depth.shape
+    np.testing.assert_allclose(got.depth, direct.depth, atol=1e-12)
+    np.testing.assert_allclose(got.K, direct.K, atol=1e-12)
+    np.testing.assert_array_equal(got.lo > 0, direct.lo > 0)

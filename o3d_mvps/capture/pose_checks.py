@@ -189,6 +189,16 @@ def frame_agreement(reference: CoarseDepth, frames: list, poses: np.ndarray) -> 
     return np.array([1.0] + [reference.agreement(frames[i], poses[i]) for i in range(1, len(poses))])
 
 
+def _coarser(depth: np.ndarray, fine: CoarseDepth, K: np.ndarray) -> CoarseDepth:
+    """:meth:`CoarseDepth.of` ``depth`` (h, w) at :data:`COARSE_WIDTH`, from its ``fine`` grid where
+    whole blocks nest (the same averages of fully valid blocks: 640x360 gives 4 x 4 and 8 x 8 blocks)."""
+    h, w = depth.shape
+    k_fine, k = -(-w // MOVE_WIDTH), -(-w // COARSE_WIDTH)
+    if h % k == 0 and w % k == 0 and k % k_fine == 0 and -(-fine.depth.shape[1] // COARSE_WIDTH) == k // k_fine:
+        return CoarseDepth.of(fine.depth, fine.K)
+    return CoarseDepth.of(depth, K)
+
+
 @dataclass
 class Candidate:
     """One reading of the given poses: name, world-to-camera matrices (n, 4, 4) of all the
@@ -288,7 +298,8 @@ def check_poses(depths: list, depth_K: np.ndarray, given, frames: list, labels: 
     min_frames : int
         Least frames (the reference included) left after dropping.
     """
-    coarse = [CoarseDepth.of(d, depth_K) for d in depths]
+    fine = [CoarseDepth.of(d, depth_K, MOVE_WIDTH) for d in depths]  # for the moved-pose test
+    coarse = [_coarser(d, f, depth_K) for d, f in zip(depths, fine)]
     reference, points = coarse[0], [None] + [c.points() for c in coarse[1:]]
     visible = [None] + [c.points(visible=True) for c in coarse[1:]]
     conventions = {"source": given.where, **{k: v for k, v in given.options.items() if v is not None}}
@@ -332,7 +343,6 @@ def check_poses(depths: list, depth_K: np.ndarray, given, frames: list, labels: 
                        for i in range(1, len(poses))])
     floor = max(MIN_AGREEMENT, OUTLIER_RATIO * float(np.median(placed)))
     # ... and no better when moved a little: the given pose fits at least as well as its neighbours in SE(3)
-    fine = [CoarseDepth.of(d, depth_K, MOVE_WIDTH) for d in depths]
     fine_visible = [None] + [c.points(visible=True) for c in fine[1:]]
     moved = [_moved_closeness(fine, fine_visible, poses, i) for i in range(1, len(poses))]
     better = [m.better for m in moved]
