@@ -18,8 +18,9 @@ cameras can see (no silhouettes, no grazing views), near the frames' median; and
 better (a relative test: a wide-baseline frame may agree little with anything, but its true pose
 still fits best). The moved poses are judged on a finer grid (:data:`MOVE_WIDTH`) with a graded
 measure (:meth:`CoarseDepth.closeness`): a roll about the optical axis slides the points along
-the surface by about a coarse pixel, which the 3x3 agreement cannot see. Identity poses are checked apart: they
-must fit every frame (a static camera: same pixels, same depth), else the camera moved.
+the surface by about a coarse pixel, which the 3x3 agreement cannot see. Identity poses are
+checked apart: they must fit every frame (a static camera: same pixels, same depth), else the
+camera moved.
 Open3D-free: NumPy arrays in, NumPy arrays out.
 """
 
@@ -65,8 +66,9 @@ NEIGHBOURS = 3
 #: A frame's pose is also off when, turned by MOVE_DEG degrees about an axis of its camera or shifted
 #: by MOVE_MM millimetres along one, its :meth:`~CoarseDepth.closeness` to the depth it fits best is
 #: higher by more than MOVED_BETTER_BY. Measured on 13 renders (rings, arcs, 45-degree elevation, D415
-#: noise, armadillo, a table-and-wall scene; 255 frames): true poses at most 0.007 better (most 0.02-0.1
-#: worse); 5 degrees off about x, y or z (the optical axis): at least 0.016 better.
+#: noise, armadillo, a table-and-wall scene, an orbit; 255 frames, docs/input-checks.md): true poses at
+#: most 0.007 better (most 0.02-0.1 worse); 5 degrees off about x, y or z (the optical axis) at least
+#: 0.016 better, where a frame has MIN_MOVE_POINTS points.
 MOVE_DEG, MOVE_MM, MOVED_BETTER_BY = 5.0, 10.0, 0.01
 #: Widest grid (pixels) of the moved-pose test (a 5-degree roll moves a point 40 px from the image
 #: centre by 3.5 px on it).
