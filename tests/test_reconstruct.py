@@ -246,3 +246,10 @@ def test_a_views_frames_are_named_by_their_index_in_the_capture(ring):
     named = dataclasses.replace(capture, frame_names=[f"{i:06d}.png" for i in range(capture.n_frames)])
     job = plan_view(named, capture.groundtruth.poses, 9, min_covisibility=MIN_COVISIBILITY, max_frames=8)
     assert capture_from_arrays(job.arrays).frame_label(1) == "frame 0 (000000.png)"
+    # registration dropped frame 5: the 11 left keep their numbers in the view, its reference and its selection
+    kept = [i for i in range(12) if i != 5]
+    left = dataclasses.replace(capture.select(kept), frame_ids=kept)
+    job = plan_view(left, capture.groundtruth.poses[kept], kept.index(9), min_covisibility=MIN_COVISIBILITY,
+                    max_frames=8)
+    assert job.reference == 9 and job.frames[:2] == [9, 0] and 5 not in job.selection.covisibility
+    assert capture_from_arrays(job.arrays).frame_ids == job.frames and set(job.frames) <= set(kept)

@@ -211,7 +211,8 @@ def _reconstruct(capture, options: ReconstructOptions, poses, client, scheduler,
     memory["fusion"] = peak_memory_mb()
     textured = options.texture_px > 0 and texture_mesh(mesh, colouring, options.texture_px)
     memory["texture"] = peak_memory_mb()
-    info = {"references": references, "failed": {str(k): e for k, e in failed.items()},
+    info = {"references": [capture.frame_id(k) for k in references],
+            "failed": {str(k): e for k, e in failed.items()},
             "retried": {str(k): e for k, e in retried.items()},
             "views": [{"reference": v.reference, "seconds": round(v.seconds, 3), **v.selection} for v in views],
             "azimuth_span_deg": round(span, 1), "goes_around": goes_around, "depth": options.depth,

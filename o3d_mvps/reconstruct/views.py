@@ -59,16 +59,20 @@ def plan_view(capture, poses: np.ndarray, reference: int, *, min_covisibility: f
               max_frames: int | None, poses_given: bool = True) -> ViewJob:
     """The job of one reference: the frames that see its surface, poses re-based onto it.
 
-    capture: the whole capture; poses: (n, 4, 4) capture frame 0 -> frame i.
+    capture: the whole capture; poses: (n, 4, 4) capture frame 0 -> frame i. The job's reference,
+    frames and selection name the frames as the user knows them (:meth:`~o3d_mvps.Capture.frame_id`:
+    their index in the capture given, also when registration dropped some), and so do the view's
+    messages.
     """
     order = [reference] + [i for i in range(capture.n_frames) if i != reference]
+    ids = [capture.frame_id(i) for i in order]
     rebased = poses[order] @ np.linalg.inv(poses[reference])
     sub = capture.select(order)
     selection = frames_seeing_reference(sub, rebased, min_covisibility=min_covisibility, max_frames=max_frames,
-                                        frame_ids=order)
-    keep = [order.index(i) for i in selection.frames]
-    view = replace(sub.select(keep), frame_ids=[capture.frame_id(i) for i in selection.frames])  # named as given
-    return ViewJob(reference, selection.frames, capture_arrays(view), rebased[keep], poses[reference],
+                                        frame_ids=ids)
+    keep = [ids.index(i) for i in selection.frames]
+    view = replace(sub.select(keep), frame_ids=selection.frames)
+    return ViewJob(ids[0], selection.frames, capture_arrays(view), rebased[keep], poses[reference],
                    selection, poses_given)
 
 
