@@ -164,10 +164,12 @@ def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses
     views = None
     # e.g. a ring: keep the frames that see the reference's surface (a static camera's all see it)
     if capture.n_frames > MIN_OTHER_FRAMES + 1 and not camera.static:
-        views = frames_seeing_reference(capture, initial_poses, frame_ids=frames)
-        keep = [frames.index(i) for i in views.frames]
-        capture, initial_poses, frames = capture.select(keep), initial_poses[keep], views.frames
-        why.update({int(i): reason for i, reason in views.left_out.items()})
+        ids = frames if capture.frame_ids is None else [int(i) for i in capture.frame_ids]  # as the user knows them
+        local = dict(zip(ids, frames))  # -> its index in the capture given
+        views = frames_seeing_reference(capture, initial_poses, frame_ids=ids)
+        keep = [ids.index(i) for i in views.frames]
+        capture, initial_poses, frames = capture.select(keep), initial_poses[keep], [local[i] for i in views.frames]
+        why.update({local[int(i)]: reason for i, reason in views.left_out.items()})
         weak = views.weak_coverage()
         if weak is not None:
             options = lean_on_sensor(options)

@@ -125,7 +125,9 @@ def test_true_poses_of_every_reference_view_of_a_wide_baseline_ring_pass(sensor,
     lists frames 9, 0, 7, 8, 10, 11, so frame 0 (90 degrees off, list position 1) had the reference
     and frame 7 (150 degrees off) as list neighbours, and its ground-truth pose was refused ("do not
     place frame 1 ... 37% agrees, median 85%"; D415 noise, seed 1: 40%). Every view's true poses
-    pass, every frame used; that frame turned 5 degrees is still named (and dropped)."""
+    pass, every frame used; that frame turned 5 degrees about its y axis, or rolled 5 degrees about
+    its optical axis, is still named (and dropped), by its index in the ring (the capture has no
+    file names), not by its place in the view."""
     from o3d_mvps.covisibility import MIN_COVISIBILITY
     from o3d_mvps.reconstruct import choose_references
     from o3d_mvps.reconstruct.views import capture_from_arrays, plan_view
@@ -140,9 +142,12 @@ def test_true_poses_of_every_reference_view_of_a_wide_baseline_ring_pass(sensor,
         report = check_inputs(capture_from_arrays(job.arrays), GivenPoses.from_array(job.poses))
         assert {c["name"]: c["status"] for c in report.checks}["poses"] == "ok", r
         assert report.conventions["poses"]["fits"] == "as given" and report.usable == list(range(len(job.frames)))
-    with pytest.warns(UserWarning, match=r"do not place frame 1: .*turned 3 degrees it would agree better"):
-        report = check_inputs(capture_from_arrays(jobs[9].arrays), GivenPoses.from_array(turned(jobs[9].poses, 1, 5)))
-    assert report.usable == [0, 2, 3, 4, 5] and not report.frames[1]["used"]
+    for axis in (1, 2):
+        with pytest.warns(UserWarning, match=r"do not place frame 0: .*frame 0: .*with its camera turned 5 degrees "
+                                             f"about its [-+]{'xyz'[axis]} axis.* it would fit frame \d+'s depth"):
+            report = check_inputs(capture_from_arrays(jobs[9].arrays),
+                                  GivenPoses.from_array(turned(jobs[9].poses, 1, 5, axis)))
+        assert report.usable == [0, 2, 3, 4, 5] and not report.frames[1]["used"]
 
 
 def test_a_static_camera_with_identity_poses_passes(led):
@@ -220,13 +225,41 @@ def test_identity_poses_for_a_moving_camera_are_refused(folder, tmp_path, capsys
            inputs=[folder, tmp_path / "poses.npy"])
 
 
-def turned(E, k, degrees):
-    """World-to-camera poses E (n, 4, 4) with frame k's camera turned ``degrees`` about its y axis."""
+def turned(E, k, degrees, axis=1):
+    """World-to-camera poses E (n, 4, 4) with frame k's scene turned ``degrees`` about its camera's
+    ``axis`` (0 x, 1 y, 2 z: its optical axis), so its camera by -``degrees``."""
     E = E.copy()
     kick = np.eye(4)
-    kick[:3, :3] = Rotation.from_rotvec([0.0, np.radians(degrees), 0.0]).as_matrix()  # turned about its centre
+    kick[:3, :3] = Rotation.from_rotvec(np.radians(degrees) * np.eye(3)[axis]).as_matrix()  # about its centre
     E[k] = kick @ E[k]
     return E
+
+
+def shifted(E, k, mm, axis):
+    """World-to-camera poses E (n, 4, 4) with frame k's camera shifted ``mm`` along its ``axis``."""
+    E = E.copy()
+    E[k, axis, 3] -= mm / 1000  # the camera moves +mm: the scene moves -mm in its coordinates
+    return E
+
+
+@pytest.mark.parametrize("spoil, named", [
+    (lambda E: turned(E, 3, 5, axis=2), r"with its camera turned 5 degrees about its \+z axis \(the optical axis\)"),
+    (lambda E: turned(E, 3, -5, axis=0), r"with its camera turned 5 degrees about its -x axis"),
+    (lambda E: shifted(E, 3, 10, axis=0), r"with its camera shifted 10 mm along its -x axis"),
+    (lambda E: shifted(E, 3, -10, axis=2), r"with its camera shifted 10 mm along its \+z axis")])
+def test_a_frame_rolled_turned_or_shifted_a_little_is_named_with_the_move_back(led, spoil, named):
+    """A pose 5 degrees off about its camera's optical axis (a roll: the points slide along the
+    surface by about one pixel of the 80-px grid, which the 3x3 agreement cannot see), about x, or
+    10 mm off along x or z: the frame is dropped, and the message names it, how it was placed and
+    the move that fits its depth better (the way back), against true poses that pass (above)."""
+    truth = world_to_camera(led.groundtruth.poses)
+    with pytest.warns(UserWarning, match=r"poses: dropped 1 frame\(s\): the poses in initial_poses do "
+                                         r"not place frame 3: .*frame 3: \d+% agrees, and " + named +
+                                         r" it would fit frame \d's depth better \(\d+% of its points close against "
+                                         r"\d+%\).*Fix or remove that pose"):
+        report = check_inputs(led, GivenPoses.from_array(spoil(truth)))
+    assert report.usable == [0, 1, 2, 4, 5] and not report.frames[3]["used"]
+    assert "does not fit its depth" in report.frames[3]["reason"]
 
 
 @pytest.mark.parametrize("degrees", [5, 34])
@@ -382,6 +415,18 @@ def test_bad_frames_are_dropped_and_reported(folder, tmp_path):
     assert all(report[i]["used"] for i in (0, 1, 4))
 
 
+def test_a_frame_written_twice_is_dropped_and_named(folder):
+    """Frame 4's files are copies of frame 2's (a recorder that wrote one frame twice): the copy
+    is dropped with a warning naming both files and the fix; frame 2 and the rest are used."""
+    for sub in ("color", "depth"):
+        shutil.copyfile(folder / sub / "000002.png", folder / sub / "000004.png")
+    capture = read_capture(folder)
+    with pytest.warns(UserWarning, match=r"frame quality: dropped 1 frame\(s\): frame 4 \(000004.png\): a copy of "
+                                         r"frame 2 \(000002.png\) \(the same colour and depth.*remove the copy"):
+        report = check_inputs(capture)
+    assert report.usable == [0, 1, 2, 3, 5] and report.frames[4]["reason"].startswith("a copy of frame 2")
+
+
 @pytest.mark.parametrize("how, word", [(lambda im: np.zeros_like(im), "black"),
                                        (lambda im: np.full_like(im, 255), "saturated")])
 def test_a_bad_reference_frame_is_an_error(how, word, folder, tmp_path, capsys):
@@ -466,3 +511,21 @@ def test_singular_log_matrix_and_nan_quaternion_name_file_and_line(led_folder, t
     with pytest.raises(CaptureError, match=rf"{tmp_path / 't.txt'}, line 5: quaternion \[nan, 0.0, 0.0, 1.0\]"):
         given_poses(led_folder, tmp_path / "t.txt")
     assert issubclass(CaptureError, MVPSError)
+
+
+@pytest.mark.parametrize("size", [(30, 40), (120, 160), (240, 424), (360, 640), (480, 848), (720, 1280)])
+def test_the_pose_checks_coarse_grid_taken_from_its_fine_grid_is_the_same(size):
+    """The placement test's 80-px grid is averaged from the moved-pose test's 160-px grid where whole
+    blocks nest (640x360: 4 x 4 into 8 x 8), else from the depth: either way the same depth, the same
+    intrinsics and the same valid pixels as averaged directly (to 1e-12 m)."""
+    from o3d_mvps.capture.pose_checks import MOVE_WIDTH, CoarseDepth, _coarser
+
+    h, w = size
+    depth = np.random.default_rng(0).uniform(0.5, 0.7, size)
+    depth[:5], depth[:, -3:], depth[h // 2, w // 3] = 0, 0, 0  # invalid rows, columns and one pixel
+    K = np.array([[0.9 * w, 0, (w - 1) / 2], [0, 0.9 * w, (h - 1) / 2], [0, 0, 1]])
+    got, direct = _coarser(depth, CoarseDepth.of(depth, K, MOVE_WIDTH), K), CoarseDepth.of(depth, K)
+    assert got.depth.shape == direct.depth.shape
+    np.testing.assert_allclose(got.depth, direct.depth, atol=1e-12)
+    np.testing.assert_allclose(got.K, direct.K, atol=1e-12)
+    np.testing.assert_array_equal(got.lo > 0, direct.lo > 0)

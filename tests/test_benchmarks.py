@@ -197,3 +197,18 @@ def test_stage_benchmark_rows(tmp_path):
     # such moves; before the AMG strength threshold of solver/linear.py: two outcomes 1.4e-5 apart)
     assert rows[0]["energy"] == pytest.approx(rows[1]["energy"], rel=1e-9)
     assert (tmp_path / "speed_stages.png").stat().st_size > 1000
+
+
+def test_pose_check_benchmark_counts_frames_named_and_true_poses_refused(tmp_path):
+    """--quick: the 40x30-depth ring and the 6-frame orbit; no true pose refused (6 checks), and on
+    the orbit (80x60 depth) every frame 5 degrees off about an axis or 10 mm off along one is named;
+    the ring's frames (about 20 points each) only in part."""
+    from benchmarks import pose_checks
+
+    assert pose_checks.main(["--quick", "--out", str(tmp_path)]) == 0
+    result = json.loads((tmp_path / "pose_checks.json").read_text())
+    assert result["checks"] == 6 and result["true_poses_refused"] == [] and result["frames"] == 22
+    for key in ("rx5", "ry5", "rz5", "tx10", "ty10", "tz10"):
+        assert "orbit" not in result["missed"][key], key
+    assert set(result["missed"]["rz5"]) <= {"ring12_160"} and result["caught"]["rz5"] >= 5
+    assert f"| rz5 | {result['caught']['rz5']} of 22 |" in (tmp_path / "pose_checks.md").read_text()

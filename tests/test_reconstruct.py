@@ -220,3 +220,36 @@ def test_a_view_job_keeps_the_capture_and_what_lit_it(ring, light):
     np.testing.assert_array_equal(back.color_array(2), capture.color_array(2))
     np.testing.assert_array_equal(back.depth_array(1), capture.depth_array(1))
     np.testing.assert_array_equal(back.color_K(), capture.color_K())
+
+
+def test_a_views_frames_are_named_by_their_index_in_the_capture(ring):
+    """A ring made in memory has no file names: a view's messages (its input checks among them)
+    name its frames by their index in the ring ("frame 0" for the view's second frame of reference
+    9's view), not by their place in the view ("frame 1"); with file names, by both."""
+    import dataclasses
+
+    from o3d_mvps.capture import image_from_array
+    from o3d_mvps.capture.checks import check_inputs
+    from o3d_mvps.capture.poses import GivenPoses
+    from o3d_mvps.covisibility import MIN_COVISIBILITY
+    from o3d_mvps.reconstruct.views import capture_from_arrays, plan_view
+
+    capture = ring[0]
+    job = plan_view(capture, capture.groundtruth.poses, 9, min_covisibility=MIN_COVISIBILITY, max_frames=8)
+    view = capture_from_arrays(job.arrays)
+    assert job.frames[:2] == [9, 0] and view.frame_ids == job.frames
+    assert [view.frame_label(k) for k in range(2)] == ["frame 9", "frame 0"]
+    assert check_inputs(view, GivenPoses.from_array(job.poses)).checks[-1]["name"] == "poses"
+    with pytest.warns(UserWarning, match=r"frame quality: dropped 1 frame\(s\): frame 0: black"):
+        check_inputs(dataclasses.replace(view, color=[view.color[0], image_from_array(
+            np.zeros_like(view.color_array(1)))] + view.color[2:]))
+    named = dataclasses.replace(capture, frame_names=[f"{i:06d}.png" for i in range(capture.n_frames)])
+    job = plan_view(named, capture.groundtruth.poses, 9, min_covisibility=MIN_COVISIBILITY, max_frames=8)
+    assert capture_from_arrays(job.arrays).frame_label(1) == "frame 0 (000000.png)"
+    # registration dropped frame 5: the 11 left keep their numbers in the view, its reference and its selection
+    kept = [i for i in range(12) if i != 5]
+    left = dataclasses.replace(capture.select(kept), frame_ids=kept)
+    job = plan_view(left, capture.groundtruth.poses[kept], kept.index(9), min_covisibility=MIN_COVISIBILITY,
+                    max_frames=8)
+    assert job.reference == 9 and job.frames[:2] == [9, 0] and 5 not in job.selection.covisibility
+    assert capture_from_arrays(job.arrays).frame_ids == job.frames and set(job.frames) <= set(kept)

@@ -15,8 +15,8 @@ intrinsics             K not transposed; principal point inside the image (and  
                        names a D415)
 depth scale            median depth within :data:`SENSOR_RANGE_M`; names the        error
                        ``depth_scale`` that would fit
-frame quality          black, saturated or blurred frames (against the others)      warning, frame dropped
-                                                                                    (error for the reference)
+frame quality          black, saturated or blurred frames (against the others);     warning, frame dropped
+                       a frame that repeats an earlier one exactly                  (error for the reference)
 frame count            at least :data:`MIN_FRAMES` usable frames (unless fewer      error
                        were asked for on purpose, ``RefineOptions.frames``)
 colour/depth           depth discontinuities line up with colour edges (coarse      warning
@@ -117,7 +117,8 @@ def check_inputs(capture, given_poses=None, *, frames: list | None = None, frame
     n = capture.n_frames
     frames = list(range(n)) if frames is None else [int(i) for i in frames]
     names = capture.frame_names or [None] * n
-    labels = [f"frame {frames[k]}" + (f" ({names[k]})" if names[k] else "") for k in range(n)]
+    ids = frames if capture.frame_ids is None else [capture.frame_id(k) for k in range(n)]  # as the user knows it
+    labels = [f"frame {ids[k]}" + (f" ({names[k]})" if names[k] else "") for k in range(n)]
     report = InputReport(frames=[{"index": frames[k], "file": names[k], "used": True, "reason": None}
                                  for k in range(n)])
     where = where or capture.folder
@@ -255,10 +256,14 @@ def check_frame_quality(capture, labels: list, report: InputReport) -> list:
     warning (their rows in ``report.frames`` say why); a bad reference is a CaptureError."""
     stats = np.array([frame_statistics(capture.color_array(k)) for k in range(capture.n_frames)])
     typical = float(np.median(stats[:, 2]))
+    copies = duplicate_frames(capture, stats)
     usable, dropped = [], []
     for k, (mean, saturated, blur) in enumerate(stats):
         why = None
-        if mean < BLACK:
+        if k in copies:
+            why = (f"a copy of {labels[copies[k]]} (the same colour and depth, so no new view nor light): remove the "
+                   "copy from the capture")
+        elif mean < BLACK:
             why = f"black (mean intensity {mean:.2%})"
         elif saturated > SATURATED:
             why = f"saturated ({saturated:.0%} of the pixels clipped)"
@@ -278,6 +283,21 @@ def check_frame_quality(capture, labels: list, report: InputReport) -> list:
     else:
         report.add("frame quality", "ok", f"{capture.n_frames} frames, none black, saturated or blurred")
     return usable
+
+
+def duplicate_frames(capture, stats: np.ndarray) -> dict:
+    """{k: j} for each frame k whose colour and depth equal an earlier frame j's, exactly (a frame
+    written twice). Only frames with the same :func:`frame_statistics` (``stats``, (n, 3)) are
+    compared pixel for pixel."""
+    copies = {}
+    for k in range(1, len(stats)):
+        for j in range(k):
+            if j not in copies and np.array_equal(stats[j], stats[k]) and np.array_equal(
+                    capture.color_array(j), capture.color_array(k)) and np.array_equal(
+                    capture.depth_array(j), capture.depth_array(k)):
+                copies[k] = j
+                break
+    return copies
 
 
 def alignment(capture, report: InputReport, shift: int = 3) -> None:

@@ -13,10 +13,14 @@ inverse (camera-to-world read as world-to-camera), the other TUM quaternion orde
 rotations, translations in millimetres, and frames listed in text order; the one that fits is
 named with its fix. Every frame must also be *placed* by the given poses: its best agreement
 with the reference or the frames looking its way (nearest optical axes), over the points both
-cameras can see (no silhouettes, no grazing views), near the frames' median; and turned by
-:data:`TURN_DEG` it must not fit clearly better (a relative test: a wide-baseline frame may agree
-little with anything, but its true pose still fits best). Identity poses are checked apart: they
-must fit every frame (a static camera: same pixels, same depth), else the camera moved.
+cameras can see (no silhouettes, no grazing views), near the frames' median; and moved by
+:data:`MOVE_DEG` about an axis of its camera or :data:`MOVE_MM` along one it must not fit clearly
+better (a relative test: a wide-baseline frame may agree little with anything, but its true pose
+still fits best). The moved poses are judged on a finer grid (:data:`MOVE_WIDTH`) with a graded
+measure (:meth:`CoarseDepth.closeness`): a roll about the optical axis slides the points along
+the surface by about a coarse pixel, which the 3x3 agreement cannot see. Identity poses are
+checked apart: they must fit every frame (a static camera: same pixels, same depth), else the
+camera moved.
 Open3D-free: NumPy arrays in, NumPy arrays out.
 """
 
@@ -34,7 +38,7 @@ from ..model.normals import perspective_normals
 from ..model.resampling import resample_valid
 from ..model import se3
 from ..model.se3 import relative_to_reference
-from ..model.warping import in_view
+from ..model.warping import in_view, sample_bilinear
 
 #: Widest grid (pixels) the depth maps are compared on.
 COARSE_WIDTH = 80
@@ -59,11 +63,22 @@ CLOSE_RATIO, CLEAR_MARGIN = 0.9, 0.03
 OUTLIER_RATIO = 0.5
 #: Frames (besides the reference) a frame is also placed on: those looking most nearly its way.
 NEIGHBOURS = 3
-#: A frame's pose is also off when turned by TURN_DEG degrees about an axis of its camera its
-#: agreement is higher by more than TURNED_BETTER_BY, or 2 / sqrt(m) for a frame of m points (4 binomial
-#: sigmas: a 24x18 depth map holds ~15 points of a bunny). Rings at 160-640 px: true poses at most 0.04
-#: better, 5 degrees off 0.19 or more; 96 px: true poses up to 0.18 better, too coarse to judge 5 degrees.
-TURN_DEG, TURNED_BETTER_BY = 3.0, 0.1
+#: A frame's pose is also off when, turned by MOVE_DEG degrees about an axis of its camera or shifted
+#: by MOVE_MM millimetres along one, its :meth:`~CoarseDepth.closeness` to the depth it fits best is
+#: higher by more than MOVED_BETTER_BY. Measured on 13 renders (rings, arcs, 45-degree elevation, D415
+#: noise, armadillo, a table-and-wall scene, an orbit; 255 frames, docs/input-checks.md): true poses at
+#: most 0.007 better (most 0.02-0.1 worse); 5 degrees off about x, y or z (the optical axis) at least
+#: 0.016 better, where a frame has MIN_MOVE_POINTS points.
+MOVE_DEG, MOVE_MM, MOVED_BETTER_BY = 5.0, 10.0, 0.01
+#: Widest grid (pixels) of the moved-pose test (a 5-degree roll moves a point 40 px from the image
+#: centre by 3.5 px on it).
+MOVE_WIDTH = 160
+#: Depth difference (relative to z) at which a point stops counting as close (:meth:`CoarseDepth.closeness`).
+CLOSE_TOLERANCE = 0.01
+#: Fewest points (seen by both cameras) for that margin; a frame of fewer, m, must fit better by 2 / sqrt(m)
+#: (4 binomial sigmas: a 40x30 depth map holds ~20 points of a bunny; its true poses fit up to 0.19 better
+#: moved, so 5 degrees off is caught only now and then).
+MIN_MOVE_POINTS = 50
 #: Most frames (share of those besides the reference) that a check drops for poses that do not place
 #: them; more, and the pose file is refused.
 MAX_DROPPED = 0.25
@@ -125,16 +140,9 @@ class CoarseDepth:
         (module docstring). With normals, only the points whose surface faces the reference camera
         (within :data:`~o3d_mvps.covisibility.MAX_VIEW_ANGLE_DEG`) under the pose are judged: the
         others cannot be seen from it; when fewer than :data:`MIN_JUDGED` of them face it, 0."""
-        points, normals = points
-        if len(points) == 0:
+        q = _judged(points, T)
+        if q is None:
             return 0.0
-        Tinv = np.linalg.inv(T)
-        q = transform(Tinv, points)
-        judged = np.ones(len(q), bool)
-        if normals is not None:
-            n = normals @ Tinv[:3, :3].T
-            judged = -np.einsum("ij,ij->i", n, q) / np.maximum(np.linalg.norm(q, axis=1), 1e-12) >= COS_VIEW
-        q = q[judged]
         u, v, Z = project(q, self.K)
         seen = in_view(u, v, Z, self.depth.shape)
         iu = np.rint(np.where(seen, u, 0)).astype(np.int64)
@@ -143,13 +151,54 @@ class CoarseDepth:
         margin = TOLERANCE * np.abs(Z)
         with np.errstate(invalid="ignore"):
             hit = seen & (lo > 0) & (Z >= lo - margin) & (Z <= hi + margin)
-        return float(hit.mean()) if judged.mean() >= MIN_JUDGED else 0.0
+        return float(hit.mean())
+
+    def closeness(self, points, T: np.ndarray) -> float:
+        """Graded :meth:`agreement`: the mean over ``points`` (judged likewise) of
+        ``max(0, 1 - r^2)``, ``r`` the depth difference to this depth sampled bilinearly, relative to
+        z, over :data:`CLOSE_TOLERANCE` (0 where a point lands off valid depth: outside, or next to
+        a pixel without depth). A shift of a fraction of a pixel already lowers it."""
+        q = _judged(points, T)
+        if q is None:
+            return 0.0
+        u, v, Z = project(q, self.K)
+        seen = in_view(u, v, Z, self.depth.shape)
+        z = sample_bilinear(self.depth[..., None], u, v)[:, 0]
+        on_depth = sample_bilinear((self.depth > 0).astype(np.float64)[..., None], u, v)[:, 0] > 1 - 1e-9
+        r = (Z - z) / np.maximum(Z, 1e-12) / CLOSE_TOLERANCE
+        return float(np.where(seen & on_depth, np.maximum(0.0, 1 - r * r), 0.0).mean())
+
+
+def _judged(points, T: np.ndarray):
+    """``points`` (:meth:`CoarseDepth.points`' pair, in frame i's camera) moved by ``T``^-1 into the
+    reference camera (m', 3): with normals, only those facing the reference camera; None when there
+    are none, or fewer than :data:`MIN_JUDGED` of them face it."""
+    points, normals = points
+    if len(points) == 0:
+        return None
+    Tinv = np.linalg.inv(T)
+    q = transform(Tinv, points)
+    if normals is None:
+        return q
+    n = normals @ Tinv[:3, :3].T
+    judged = -np.einsum("ij,ij->i", n, q) / np.maximum(np.linalg.norm(q, axis=1), 1e-12) >= COS_VIEW
+    return q[judged] if judged.mean() >= MIN_JUDGED else None
 
 
 def frame_agreement(reference: CoarseDepth, frames: list, poses: np.ndarray) -> np.ndarray:
     """Agreement (n,) of each frame's points (``frames``: n (m, 3) arrays, entry 0 unused) under
     ``poses`` (n, 4, 4; reference -> frame i); entry 0 is 1."""
     return np.array([1.0] + [reference.agreement(frames[i], poses[i]) for i in range(1, len(poses))])
+
+
+def _coarser(depth: np.ndarray, fine: CoarseDepth, K: np.ndarray) -> CoarseDepth:
+    """:meth:`CoarseDepth.of` ``depth`` (h, w) at :data:`COARSE_WIDTH`, from its ``fine`` grid where
+    whole blocks nest (the same averages of fully valid blocks: 640x360 gives 4 x 4 and 8 x 8 blocks)."""
+    h, w = depth.shape
+    k_fine, k = -(-w // MOVE_WIDTH), -(-w // COARSE_WIDTH)
+    if h % k == 0 and w % k == 0 and k % k_fine == 0 and -(-fine.depth.shape[1] // COARSE_WIDTH) == k // k_fine:
+        return CoarseDepth.of(fine.depth, fine.K)
+    return CoarseDepth.of(depth, K)
 
 
 @dataclass
@@ -251,7 +300,8 @@ def check_poses(depths: list, depth_K: np.ndarray, given, frames: list, labels: 
     min_frames : int
         Least frames (the reference included) left after dropping.
     """
-    coarse = [CoarseDepth.of(d, depth_K) for d in depths]
+    fine = [CoarseDepth.of(d, depth_K, MOVE_WIDTH) for d in depths]  # for the moved-pose test
+    coarse = [_coarser(d, f, depth_K) for d, f in zip(depths, fine)]
     reference, points = coarse[0], [None] + [c.points() for c in coarse[1:]]
     visible = [None] + [c.points(visible=True) for c in coarse[1:]]
     conventions = {"source": given.where, **{k: v for k, v in given.options.items() if v is not None}}
@@ -294,20 +344,20 @@ def check_poses(depths: list, depth_K: np.ndarray, given, frames: list, labels: 
     placed = np.array([max([scores[0][i - 1], *_neighbour_agreement(coarse, visible, poses, i)])
                        for i in range(1, len(poses))])
     floor = max(MIN_AGREEMENT, OUTLIER_RATIO * float(np.median(placed)))
-    # ... and no better when turned a little: the given pose fits at least as well as its neighbours in SE(3)
-    turned = np.array([_turned_agreement(coarse, points, poses, i) for i in range(1, len(poses))])  # (n - 1, 2)
-    margin = [max(TURNED_BETTER_BY, 2.0 / np.sqrt(max(len(points[i][0]), 1))) for i in range(1, len(poses))]
-    better = [turned[i - 1, 1] > turned[i - 1, 0] + margin[i - 1] for i in range(1, len(poses))]
+    # ... and no better when moved a little: the given pose fits at least as well as its neighbours in SE(3)
+    fine_visible = [None] + [c.points(visible=True) for c in fine[1:]]
+    moved = [_moved_closeness(fine, fine_visible, poses, i) for i in range(1, len(poses))]
+    better = [m.better for m in moved]
     lost = [i for i in range(1, len(poses)) if placed[i - 1] < floor or better[i - 1]]
     if lost and mixup:
         raise mixup_error()
     if lost:
-        why = {i: f"{placed[i - 1]:.0%} agrees" + (
-            f", and turned {TURN_DEG:g} degrees it would agree better ({turned[i - 1, 1]:.0%} against "
-            f"{turned[i - 1, 0]:.0%})" if better[i - 1] else "") for i in lost}
+        why = {i: f"{placed[i - 1]:.0%} agrees" + (f", and {moved[i - 1].describe(labels)}" if better[i - 1] else "")
+               for i in lost}
         message = (
             f"the poses in {given.where} do not place {', '.join(labels[i] for i in lost)}: moved by its pose, "
-            f"its depth does not sit on {labels[0]}'s nor on that of the frames looking its way ("
+            f"its depth does not sit on {labels[0]}'s nor on that of the frames looking its way, or sits on them "
+            f"better with the pose moved a little ("
             f"{'; '.join(f'{labels[i]}: {why[i]}' for i in lost)}; the frames' median {np.median(placed):.0%}), "
             f"and no usual mix-up ({', '.join(c.name for c in candidates[1:])}) fits it. Fix or remove that pose "
             "(and frame), or drop the pose file so registration estimates the poses")
@@ -337,25 +387,57 @@ def _looking_its_way(poses: np.ndarray, i: int) -> list:
     return [0] + [int(j) for j in np.argsort(-(axes @ axes[i])) if j not in (0, i)][:NEIGHBOURS]
 
 
-def _neighbour_agreement(coarse: list, points: list, poses: np.ndarray, i: int, T_i=None) -> list:
+def _neighbour_agreement(coarse: list, points: list, poses: np.ndarray, i: int) -> list:
     """Agreement of frame i's ``points`` with the depth of :func:`_looking_its_way`'s frames j
-    under the relative poses T_i T_j^-1 (frame j -> frame i); ``T_i`` (4, 4) default poses[i]."""
-    T_i = poses[i] if T_i is None else T_i
-    return [coarse[j].agreement(points[i], T_i @ np.linalg.inv(poses[j])) for j in _looking_its_way(poses, i)]
+    under the relative poses T_i T_j^-1 (frame j -> frame i)."""
+    return [coarse[j].agreement(points[i], poses[i] @ np.linalg.inv(poses[j])) for j in _looking_its_way(poses, i)]
 
 
-def _turned_agreement(coarse: list, points: list, poses: np.ndarray, i: int) -> tuple[float, float]:
-    """Frame i's best agreement (:func:`_neighbour_agreement`) under its pose, and the most of it
-    under that pose turned by +-:data:`TURN_DEG` about each of its camera's axes. A right pose
-    fits at least about as well as any turned one (true poses of rings and arcs: at most 0.04
-    better); a pose turned 5 degrees off about the x or y axis fits better turned back (0.22-0.6)."""
-    given = max(_neighbour_agreement(coarse, points, poses, i))
-    best = 0.0
-    for axis in np.eye(3):
-        for sign in (-1.0, 1.0):
-            turn = se3.exp(np.concatenate([np.zeros(3), sign * np.radians(TURN_DEG) * axis]))
-            best = max(best, *_neighbour_agreement(coarse, points, poses, i, turn @ poses[i]))
-    return given, best
+@dataclass
+class Moved:
+    """Frame i's :meth:`CoarseDepth.closeness` to frame j's depth (the best of
+    :func:`_looking_its_way`'s under the given pose), ``given`` under its pose and ``best`` under
+    the best of the moves (``move``, e.g. "turned 5 degrees about its z axis (the optical axis)");
+    ``points``: how many of its points were judged."""
+
+    j: int
+    given: float
+    best: float
+    move: str
+    points: int
+
+    @property
+    def better(self) -> bool:
+        """The pose is off: a move fits clearly better (:data:`MOVED_BETTER_BY`, more for few points)."""
+        margin = MOVED_BETTER_BY if self.points >= MIN_MOVE_POINTS else 2.0 / np.sqrt(max(self.points, 1))
+        return self.best > self.given + margin
+
+    def describe(self, labels: list) -> str:
+        return (f"{self.move} it would fit {labels[self.j]}'s depth better ({self.best:.0%} of its points close "
+                f"against {self.given:.0%})")
+
+
+#: The moves of :func:`_moved_closeness`: (name, twist (6,) translation first, applied on the left of
+#: a pose; the name says how the camera moves: the opposite way to the scene in its coordinates).
+MOVES = [(f"with its camera {'turned' if r else 'shifted'} {MOVE_DEG if r else MOVE_MM:g} "
+          f"{'degrees about' if r else 'mm along'} its {'+' if sign < 0 else '-'}{'xyz'[axis]} axis"
+          + (" (the optical axis)" if r and axis == 2 else ""),
+          np.eye(6)[3 * r + axis] * sign * (np.radians(MOVE_DEG) if r else MOVE_MM * 1e-3))
+         for r in (1, 0) for axis in range(3) for sign in (-1.0, 1.0)]
+
+
+def _moved_closeness(coarse: list, points: list, poses: np.ndarray, i: int) -> Moved:
+    """Frame i's closeness under its pose to the depth of the frame it fits best among
+    :func:`_looking_its_way`'s, and the most of it under that pose moved by each of :data:`MOVES`
+    (turned about the camera's centre, or shifted, in its own axes). A right pose fits better than
+    any moved one; a pose off by about a move fits better moved back."""
+    js = _looking_its_way(poses, i)
+    given = [coarse[j].closeness(points[i], poses[i] @ np.linalg.inv(poses[j])) for j in js]
+    j = js[int(np.argmax(given))]
+    relative = poses[i] @ np.linalg.inv(poses[j])
+    scores = [coarse[j].closeness(points[i], se3.exp(twist) @ relative) for _, twist in MOVES]
+    k = int(np.argmax(scores))
+    return Moved(j, max(given), scores[k], MOVES[k][0], len(points[i][0]))
 
 
 def _check_identity(reference, depths, depth_K, given, labels, conventions) -> PoseCheck:

@@ -53,7 +53,9 @@ class Capture:
     camera: capture.json's "camera": "static" (a fixed camera, a light moved between frames:
     :mod:`o3d_mvps.capture.static`), "moving", or None when the capture does not say.
     frame_names: the colour file of each frame (read from a folder), or None; folder: the
-    capture folder it was read from, or None; both used in messages and reports.
+    capture folder it was read from, or None; both used in messages and reports. frame_ids: each
+    frame's index in the capture the user gave, where this one holds some of its frames (a
+    reconstruction's view), or None (its own indices): messages name frames by it.
     """
 
     color: list
@@ -71,6 +73,7 @@ class Capture:
     camera: str | None = None
     frame_names: list | None = None
     folder: str | None = None
+    frame_ids: list | None = None
 
     # --- sizes -------------------------------------------------------------------------
     @property
@@ -126,11 +129,16 @@ class Capture:
         if gt is not None:
             gt = replace(gt, poses=gt.poses[frames]) if frames[0] == 0 else None
         return replace(self, color=pick(self.color), depth=pick(self.depth), masks=pick(self.masks), groundtruth=gt,
-                       frame_names=pick(self.frame_names))
+                       frame_names=pick(self.frame_names), frame_ids=pick(self.frame_ids))
+
+    def frame_id(self, i: int) -> int:
+        """Frame i's index in the capture the user gave (:attr:`frame_ids`, default i)."""
+        return i if self.frame_ids is None else int(self.frame_ids[i])
 
     def frame_label(self, i: int) -> str:
-        """'frame i' or 'frame i (file)' for messages."""
-        return f"frame {i}" if self.frame_names is None else f"frame {i} ({self.frame_names[i]})"
+        """'frame i' or 'frame i (file)' for messages, i as the user knows it (:meth:`frame_id`)."""
+        name = f"frame {self.frame_id(i)}"
+        return name if self.frame_names is None else f"{name} ({self.frame_names[i]})"
 
 
 def to_host(value):

@@ -156,7 +156,8 @@ def _reconstruct(capture, options: ReconstructOptions, poses, client, scheduler,
 
         registration = register_frames(capture, progress=options.progress)
         kept, dropped = list(registration.frames), registration.dropped
-        capture, poses = capture.select(registration.frames), registration.poses
+        capture, poses = replace(capture.select(registration.frames), frame_ids=[
+            capture.frame_id(i) for i in registration.frames]), registration.poses  # named as given
     poses = np.asarray(poses, dtype=np.float64)
     if poses.shape != (capture.n_frames, 4, 4):
         raise ValueError(f"poses must be ({capture.n_frames}, 4, 4) for the capture's frames, got {poses.shape}")
@@ -210,7 +211,8 @@ def _reconstruct(capture, options: ReconstructOptions, poses, client, scheduler,
     memory["fusion"] = peak_memory_mb()
     textured = options.texture_px > 0 and texture_mesh(mesh, colouring, options.texture_px)
     memory["texture"] = peak_memory_mb()
-    info = {"references": references, "failed": {str(k): e for k, e in failed.items()},
+    info = {"references": [capture.frame_id(k) for k in references],
+            "failed": {str(k): e for k, e in failed.items()},
             "retried": {str(k): e for k, e in retried.items()},
             "views": [{"reference": v.reference, "seconds": round(v.seconds, 3), **v.selection} for v in views],
             "azimuth_span_deg": round(span, 1), "goes_around": goes_around, "depth": options.depth,

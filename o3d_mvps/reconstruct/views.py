@@ -8,7 +8,7 @@ bicubic-upsamples its sensor depth, and returns a :class:`ViewResult` of NumPy a
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -59,28 +59,34 @@ def plan_view(capture, poses: np.ndarray, reference: int, *, min_covisibility: f
               max_frames: int | None, poses_given: bool = True) -> ViewJob:
     """The job of one reference: the frames that see its surface, poses re-based onto it.
 
-    capture: the whole capture; poses: (n, 4, 4) capture frame 0 -> frame i.
+    capture: the whole capture; poses: (n, 4, 4) capture frame 0 -> frame i. The job's reference,
+    frames and selection name the frames as the user knows them (:meth:`~o3d_mvps.Capture.frame_id`:
+    their index in the capture given, also when registration dropped some), and so do the view's
+    messages.
     """
     order = [reference] + [i for i in range(capture.n_frames) if i != reference]
+    ids = [capture.frame_id(i) for i in order]
     rebased = poses[order] @ np.linalg.inv(poses[reference])
     sub = capture.select(order)
     selection = frames_seeing_reference(sub, rebased, min_covisibility=min_covisibility, max_frames=max_frames,
-                                        frame_ids=order)
-    keep = [order.index(i) for i in selection.frames]
-    return ViewJob(reference, selection.frames, capture_arrays(sub.select(keep)), rebased[keep], poses[reference],
+                                        frame_ids=ids)
+    keep = [ids.index(i) for i in selection.frames]
+    view = replace(sub.select(keep), frame_ids=selection.frames)
+    return ViewJob(ids[0], selection.frames, capture_arrays(view), rebased[keep], poses[reference],
                    selection, poses_given)
 
 
 def capture_arrays(capture) -> dict:
     """A capture as a dict of NumPy arrays and plain fields (no ground truth); :func:`capture_from_arrays` inverts it.
-    The frames' file names go with them, so that a view's messages name the capture's files, not
-    only the frames' places in the view."""
+    The frames' file names and ids go with them, so that a view's messages name the frames as the
+    user knows them (their index in the capture given, and file), not by their places in the view."""
     masks = None if capture.masks is None else [capture.mask_array(i) for i in range(capture.n_frames)]
     return {"color": [capture.color_array(i) for i in range(capture.n_frames)],
             "depth": [capture.depth_array(i) for i in range(capture.n_frames)], "masks": masks,
             "color_K": capture.color_K(), "depth_K": capture.depth_K(),
             "fields": {name: getattr(capture, name) for name in ("depth_scale", "depth_trunc", "color_encoding",
-                                                                  "sensor", "light", "metadata", "frame_names")}}
+                                                                  "sensor", "light", "metadata", "frame_names",
+                                                                  "frame_ids")}}
 
 
 def capture_from_arrays(arrays: dict):
