@@ -140,7 +140,8 @@ def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses
     report = {}
     if checks:
         t0 = time.perf_counter()
-        found = check_inputs(capture, given, frames=frames, frames_asked=options.frames is not None)
+        found = check_inputs(capture, given, frames=frames, frames_asked=options.frames is not None,
+                             pose_trust=trust)
         why.update({row["index"]: row["reason"] for row in found.frames if not row["used"]})
         capture, frames = capture.select(found.usable), [frames[k] for k in found.usable]
         report["inputs"] = {**found.to_dict(), "seconds": round(time.perf_counter() - t0, 4)}

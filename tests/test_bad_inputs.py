@@ -262,6 +262,22 @@ def test_a_frame_rolled_turned_or_shifted_a_little_is_named_with_the_move_back(l
     assert "does not fit its depth" in report.frames[3]["reason"]
 
 
+def test_a_frame_off_by_a_move_is_kept_where_the_poses_are_not_trusted_that_close(led):
+    """The same roll with the poses a rough start (``pose_trust=False``: the refinement moves them
+    freely) or trusted only to 20 mm and 10 degrees: the frame is kept, no warning, and the detail
+    says which frame fits better moved and that the refinement may correct it."""
+    spoilt = GivenPoses.from_array(turned(world_to_camera(led.groundtruth.poses), 3, 5, axis=2))
+    for trust in (None, (0.02, np.radians(10.0))):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            report = check_inputs(led, spoilt, pose_trust=trust)
+        assert report.usable == list(range(N))
+        poses = next(c for c in report.checks if c["name"] == "poses")
+        assert poses["status"] == "ok"
+        assert re.search(r"frame 3 \(with its camera turned 5 degrees about its \+z axis .*: off by about that "
+                         r"much, which the refinement may correct", poses["detail"])
+
+
 @pytest.mark.parametrize("degrees", [5, 34])
 def test_a_frame_whose_pose_fits_no_convention_is_dropped_and_named(degrees, folder, tmp_path, capsys):
     """One frame of six placed by no reading of the file: refined without it, with a warning naming

@@ -88,7 +88,7 @@ class InputReport:
 
 
 def check_inputs(capture, given_poses=None, *, frames: list | None = None, frames_asked: bool = False,
-                 where: str | None = None) -> InputReport:
+                 where: str | None = None, pose_trust: tuple | None = (0.0, 0.0)) -> InputReport:
     """Run every check on a capture (its frames ``frames`` of the original capture, the reference first).
 
     Parameters
@@ -104,6 +104,8 @@ def check_inputs(capture, given_poses=None, *, frames: list | None = None, frame
         :data:`MIN_FRAMES` is then allowed (the single-frame baseline).
     where : str or None
         The capture folder, for messages (default: ``capture.folder``).
+    pose_trust : (metres, radians) or None
+        How far the refinement may move ``given_poses`` (None: freely); see :func:`check_poses`.
 
     Returns
     -------
@@ -152,7 +154,7 @@ def check_inputs(capture, given_poses=None, *, frames: list | None = None, frame
     if given_poses is not None:
         picked = [frames[k] for k in usable]
         pose = check_poses([capture.depth_array(k) for k in usable], capture.depth_K(), given_poses, picked,
-                           [labels[k] for k in usable], 1 if frames_asked else MIN_FRAMES)
+                           [labels[k] for k in usable], 1 if frames_asked else MIN_FRAMES, pose_trust)
         report.add("poses", pose.status, pose.detail)
         report.conventions["poses"] = {**pose.conventions,
                                        "frame_agreement": {str(i): a for i, a in zip(picked, pose.agreement)}}

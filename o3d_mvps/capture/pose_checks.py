@@ -279,11 +279,14 @@ class PoseCheck:
 
 
 def check_poses(depths: list, depth_K: np.ndarray, given, frames: list, labels: list,
-                min_frames: int = 1) -> PoseCheck:
+                min_frames: int = 1, trust: tuple | None = (0.0, 0.0)) -> PoseCheck:
     """Check the given poses against the frames' depth; CaptureError naming the mix-up and its fix.
 
     A few frames (at most :data:`MAX_DROPPED` of the others, leaving ``min_frames``) that the
     given poses do not place and no mix-up fits are dropped with a warning; more are an error.
+    A frame that fits better moved by :data:`MOVES` counts as not placed only where the poses are
+    trusted closer than those moves (``trust``); otherwise the refinement is free to move it that
+    far, and the detail only says so.
 
     Parameters
     ----------
@@ -299,6 +302,8 @@ def check_poses(depths: list, depth_K: np.ndarray, given, frames: list, labels: 
         Each frame's name in messages (``frame 3 (frame_3.png)``).
     min_frames : int
         Least frames (the reference included) left after dropping.
+    trust : (metres, radians) or None
+        How far the refinement may move the given poses (``SolverInput.pose_trust``; None: freely).
     """
     fine = [CoarseDepth.of(d, depth_K, MOVE_WIDTH) for d in depths]  # for the moved-pose test
     coarse = [_coarser(d, f, depth_K) for d, f in zip(depths, fine)]
@@ -347,7 +352,8 @@ def check_poses(depths: list, depth_K: np.ndarray, given, frames: list, labels: 
     # ... and no better when moved a little: the given pose fits at least as well as its neighbours in SE(3)
     fine_visible = [None] + [c.points(visible=True) for c in fine[1:]]
     moved = [_moved_closeness(fine, fine_visible, poses, i) for i in range(1, len(poses))]
-    better = [m.better for m in moved]
+    judged = trust is not None and trust[0] < MOVE_MM * 1e-3 and trust[1] < np.radians(MOVE_DEG)
+    better = [m.better and judged for m in moved]
     lost = [i for i in range(1, len(poses)) if placed[i - 1] < floor or better[i - 1]]
     if lost and mixup:
         raise mixup_error()
@@ -371,6 +377,10 @@ def check_poses(depths: list, depth_K: np.ndarray, given, frames: list, labels: 
     conventions["fits"] = "as given"
     detail = (f"every frame's depth agrees with the reference or the frames looking its way under the poses of "
               f"{given.where} (median {np.median(placed):.0%} of its pixels, least {placed.min():.0%})")
+    rough = [i for i in range(1, len(poses)) if moved[i - 1].better and not judged]
+    if rough:
+        detail += (f"; {', '.join(f'{labels[i]} ({moved[i - 1].describe(labels)})' for i in rough)}: off by about "
+                   "that much, which the refinement may correct (the poses are not trusted closer)")
     far = [i for i in range(1, len(poses)) if scores[0][i - 1] < floor]
     if far:
         detail += (f"; {', '.join(labels[i] for i in far)} overlap the reference too little to be checked "
