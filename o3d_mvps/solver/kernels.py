@@ -194,6 +194,24 @@ def accumulate_frame(r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, p
         store_partial_sums(G, b, gram, rhs, chunk)
 
 
+def accumulate_frames(residual, shading, usable, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, poses, K,
+                      images, dshading, albedo, frame_slots, parallax, sums, e, rows, F, gram, rhs) -> None:
+    """:func:`accumulate_frame` of every frame in turn (the GPU's one launch per assembly block;
+    the host's solver calls :func:`accumulate_frame` a frame at a time, with the same result).
+
+    Per frame i: residual[i] (N, 3), shading[i], usable[i], alpha[i], beta[i], gamma[i] (N,),
+    poses[i] (4, 4), images[i] (H, W, 3), dshading[i] (N, 6) or (0, 6) for none;
+    frame_slots (n, 2) int64: with_jacobian (0 or 1) and the twist slot (-1: none); extra_c
+    (N, 3) or (0, 3) is frame 0's only. gram (m + 1, chunks, 6, 6), rhs (m + 1, chunks, 6): the
+    partial sums of slot k in row k, of the frames without a slot in the last row. The other
+    arguments as :func:`accumulate_frame`'s."""
+    for i in range(len(residual)):
+        slot = int(frame_slots[i, 1])
+        accumulate_frame(residual[i], shading[i], usable[i], inv_lam, q, alpha[i], beta[i], gamma[i],
+                         extra_c if i == 0 else extra_c[:0], points_ref, poses[i], K, images[i], dshading[i], albedo,
+                         bool(frame_slots[i, 0]), parallax, sums, e, rows, F, slot, gram[slot], rhs[slot])
+
+
 @numba.njit(inline="always")
 def project_twist_pixel(rows, F, scaled, sqrt_inv_d, f, j, p):  # pragma: no cover - compiled
     """:func:`project_twist_rows` on pixel p of twist component j of frame slot f."""

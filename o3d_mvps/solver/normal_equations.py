@@ -231,7 +231,7 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
     xp, kernels = array_module(points_ref), kernels_for(points_ref)
     B = points_ref.shape[0]
     m = len(candidates)
-    none3, none6, none_e = xp.zeros((0, 3)), xp.zeros((0, 6)), xp.zeros((0, 1, 3))  # the kernel's optional arrays
+    none3, none6, none_e = xp.empty((0, 3)), xp.empty((0, 6)), xp.empty((0, 1, 3))  # the kernel's optional arrays (empty)
     residual, usable, albedo, shading = ev.residual[:, block], ev.usable[:, block], est.albedo[block], ev.shading[:, block]
     normals = ev.normals[block]
     q = albedo / ev.dA[block, None]  # (B, 3)
@@ -252,18 +252,25 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
     _, alpha, beta, gamma = shading_rows(problem, est, normals, points_ref, block)  # (n, B) each
     dshading = model.shading_jacobians(est.lights, normals, points_ref, est.poses) if parallax or m else None
     poses = like(est.poses, points_ref)  # one copy to the GPU for all the frames' kernels
-    for i in range(problem.n_frames):
-        use = usable[i]
-        with_jacobian = i > 0 and (parallax or i in slot)
-        extra_c = none3
-        if i == 0 and parallax and dshading is not None:
-            extra_c = _reference_parallax(albedo, dshading[0], points_ref / points_ref[:, 2:3], use)
+    with_jacobian = [i > 0 and (parallax or i in slot) for i in range(problem.n_frames)]
+    extra_c = none3
+    if parallax and dshading is not None:
+        extra_c = _reference_parallax(albedo, dshading[0], points_ref / points_ref[:, 2:3], usable[0])
+    e = none_e if projection is None else projection.e
+    if problem.level.image_stack is not None:  # on a GPU: every frame in one launch
+        frame_slots = like(np.array([[jac, slot.get(i, -1)] for i, jac in enumerate(with_jacobian)], dtype=np.int64),
+                           points_ref)
+        kernels.accumulate_frames(residual, shading, usable, 1.0 / problem.lam, q, alpha, beta, gamma, extra_c,
+                                  points_ref, poses, problem.device_K, problem.level.image_stack,
+                                  xp.empty((problem.n_frames, 0, 6)) if dshading is None else dshading, albedo,
+                                  frame_slots, parallax, block_sums, e, rows, F, gram, rhs)
+    for i in range(problem.n_frames if problem.level.image_stack is None else 0):
         k = slot.get(i, -1)
-        kernels.accumulate_frame(residual[i], shading[i], use, 1.0 / problem.lam, q, alpha[i], beta[i], gamma[i],
-                                 extra_c, points_ref, poses[i], problem.device_K, problem.level.images[i],
-                                 dshading[i] if dshading is not None and with_jacobian else none6, albedo,
-                                 with_jacobian, parallax, block_sums, none_e if projection is None else projection.e,
-                                 rows, F, k, gram[k], rhs[k])
+        kernels.accumulate_frame(residual[i], shading[i], usable[i], 1.0 / problem.lam, q, alpha[i], beta[i],
+                                 gamma[i], extra_c if i == 0 else none3, points_ref, poses[i], problem.device_K,
+                                 problem.level.images[i],
+                                 dshading[i] if dshading is not None and with_jacobian[i] else none6, albedo,
+                                 with_jacobian[i], parallax, block_sums, e, rows, F, k, gram[k], rhs[k])
     if m:
         grams += to_host(gram[:m].sum(axis=1))
         rhs_xi += to_host(rhs[:m].sum(axis=1)).reshape(-1)
