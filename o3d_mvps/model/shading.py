@@ -57,10 +57,17 @@ def led_irradiances(normals: np.ndarray, points: np.ndarray, light_positions: np
     ``kernels_for`` gives it)."""
     xp = array_module(points)
     out = xp.empty((len(light_positions), len(points)))
-    (kernel or led_irradiances_into)(xp.ascontiguousarray(normals, dtype=np.float64),
-                                     xp.ascontiguousarray(points, dtype=np.float64),
+    (kernel or led_irradiances_into)(_contiguous(normals), _contiguous(points),
                                      like(light_positions, points, dtype=np.float64), out)
     return out
+
+
+def _contiguous(a: np.ndarray) -> np.ndarray:
+    """``a`` as a C-contiguous float64 array: itself where it is one (no copy, and on a GPU no
+    launch: CuPy's ``ascontiguousarray`` returns such an array as it is too)."""
+    if a.dtype == np.float64 and a.flags.c_contiguous:
+        return a
+    return array_module(a).ascontiguousarray(a, dtype=np.float64)
 
 
 @numba.njit(inline="always")

@@ -224,8 +224,9 @@ def _chebyshev_update(A, r, v, d, scale: float, diagonal, x):
     return outputs
 
 
-def _multiply_add(A, alpha: float, v, y):
-    """``y + alpha A v`` (N,), a new array, for A (N, M) sparse CSR, in one kernel on a GPU (by
+def multiply_add(A, alpha: float, v, y):
+    """``y + alpha A v`` (N,), a new array, for A (N, M) sparse CSR (float64 CSR data, int32
+    indices on a GPU), in one kernel on a GPU (by
     SciPy's product on the host, as :func:`_chebyshev_update`)."""
     xp = array_module(y)
     if xp is np:
@@ -323,8 +324,8 @@ class Multigrid:
             return self.coarse_inverse @ b
         level = self.levels[k]
         x = level.smoother(b)
-        coarse = self._cycle(k + 1, level.R @ _multiply_add(level.A, -1.0, x, b))
-        return level.smoother(b, _multiply_add(level.P, 1.0, coarse, x))
+        coarse = self._cycle(k + 1, level.R @ multiply_add(level.A, -1.0, x, b))
+        return level.smoother(b, multiply_add(level.P, 1.0, coarse, x))
 
     @property
     def operator_complexity(self) -> float:

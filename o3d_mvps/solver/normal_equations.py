@@ -33,6 +33,7 @@ import scipy.sparse as sp
 from ..model.arrays import array_module, fused, like, linear_operator, sparse_module
 from . import kernels as host_kernels
 from .device import kernels_for, on_gpu, to_host
+from .krylov import multiply_add
 from .pose import pose_jacobian
 from .problem import Estimate, Evaluation, LevelProblem
 
@@ -62,20 +63,27 @@ class JointSystem:
         """(S, rhs): ``S = M - U H^-1 U^T`` as an operator (:func:`~o3d_mvps.model.arrays.linear_operator`) and
         its right-hand side ``b_z - U H^-1 b_xi``. S is applied as M x - U (H^-1 (U^T x)): two
         passes over U per product, where forming U H^-1 (N, 6m) once cost as much as twenty
-        products. The small solve with H (6m, 6m) runs on the host; on the GPU path H^-1 goes to
-        the device once (no copy per product)."""
+        products. The small solve with H (6m, 6m) runs on the host.
+
+        On the GPU, where the cost is per launch, ``-U H^-1`` (N, 6m) is formed once (one product,
+        H^-1 copied over once; as much memory again as U): a product is then ``U^T x``, that
+        times it, and ``M x`` added in one kernel (:func:`.krylov.multiply_add`), three launches
+        for five."""
         M, U = self.matrix, self.coupling
         if not self.frames:
             return linear_operator(M.shape, lambda x: M @ x.ravel(), self.rhs_z), self.rhs_z
         factor = _cholesky(self.hessian)
-        if on_gpu(U):  # H^-1 on the device, once: no copy either way per product
-            inverse = like(scipy.linalg.cho_solve(factor, np.eye(len(self.hessian))), U)
+        if on_gpu(U):
+            coupled = U @ like(-scipy.linalg.cho_solve(factor, np.eye(len(self.hessian))), U)  # -U H^-1
 
-            def solve_h(y):
-                return inverse @ like(y, inverse)  # rhs_xi comes from the host
-        else:
-            def solve_h(y):
-                return like(scipy.linalg.cho_solve(factor, to_host(y)), self.rhs_z)
+            def schur_product(x):
+                return multiply_add(M, 1.0, x.ravel(), coupled @ (U.T @ x.ravel()))
+
+            rhs = self.rhs_z + coupled @ like(self.rhs_xi, U)
+            return linear_operator(M.shape, schur_product, self.rhs_z), rhs
+
+        def solve_h(y):
+            return like(scipy.linalg.cho_solve(factor, to_host(y)), self.rhs_z)
 
         def matvec(x):
             x = x.ravel()
