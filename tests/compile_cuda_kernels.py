@@ -51,6 +51,12 @@ SIGNATURES = {
                             _array(2, types.boolean)),
     "_chebyshev_update": (_array(1, types.int32), _array(1, types.int32), _F1, _F1, _F1, _F1, types.float64, _F1,
                           _F1, _F1, _F1, _F1),
+    "_chebyshev_start": (_array(1, types.int32), _array(1, types.int32), _F1, _F1, _F1, types.float64, _F1, _F1, _F1,
+                         _F1),
+    "_restrict_residual": (_array(1, types.int32), _array(1, types.int32), _F1, _array(1, types.int32),
+                           _array(1, types.int32), _F1, _F1, _F1, _F1),
+    "_prolong_restart": (_array(1, types.int32), _array(1, types.int32), _F1, _array(1, types.int32),
+                         _array(1, types.int32), _F1, _F1, _F1, _F1, _F1, _F1, _F1, _F1),
     "_csr_multiply_add": (_array(1, types.int32), _array(1, types.int32), _F1, types.float64, _F1, _F1, _F1),
     "_warp_gradients": (_F2, _F2, _F2, _COLOR, _F2, _F2, _F2),
 }

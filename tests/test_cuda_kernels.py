@@ -271,3 +271,35 @@ def test_multigrid_kernels_match_cpu_and_the_sparse_formulas():
     cpu, gpu = run_both("csr_multiply_add", P.indptr, P.indices, P.data, -1.0, c, x, np.zeros(n))
     assert_close(cpu[-1], x - P @ c)
     assert_close(gpu[-1], cpu[-1])
+
+
+def test_fused_multigrid_kernels_match_cpu_and_the_sparse_formulas():
+    """The V-cycle's fused passes: chebyshev_start (the smoother's first two steps from zero),
+    restrict_residual (R (b - A x)) and prolong_restart (x + P c, then the smoother's restart),
+    CUDA against CPU against SciPy's products."""
+    n, n_coarse = 60, 15
+    A = sp.random(n, n, density=0.1, random_state=5, format="csr") + sp.eye(n, format="csr")
+    P = sp.random(n, n_coarse, density=0.2, random_state=6, format="csr")
+    R = P.T.tocsr()
+    for M in (A, P, R):
+        M.indices, M.indptr = M.indices.astype(np.int32), M.indptr.astype(np.int32)
+    b, first, diagonal, x = RNG.normal(size=(4, n))
+    c = RNG.normal(size=n_coarse)
+    cpu, gpu = run_both("chebyshev_start", A.indptr, A.indices, A.data, b, first, 0.7, diagonal, np.zeros(n),
+                        np.zeros(n), np.zeros(n))
+    r_new = b - A @ (first * b)
+    d_new = 0.7 * first * b + diagonal * r_new
+    for k, expected in zip((-3, -2, -1), (r_new, d_new, first * b + d_new)):
+        assert_close(cpu[k], expected)
+        assert_close(gpu[k], cpu[k])
+    cpu, gpu = run_both("restrict_residual", R.indptr, R.indices, R.data, A.indptr, A.indices, A.data, b, x,
+                        np.zeros(n_coarse))
+    assert_close(cpu[-1], R @ (b - A @ x))
+    assert_close(gpu[-1], cpu[-1])
+    cpu, gpu = run_both("prolong_restart", A.indptr, A.indices, A.data, P.indptr, P.indices, P.data, b, x, c, first,
+                        np.zeros(n), np.zeros(n), np.zeros(n))
+    y = x + P @ c
+    r_new = b - A @ y
+    for k, expected in zip((-3, -2, -1), (r_new, first * r_new, y + first * r_new)):
+        assert_close(cpu[k], expected)
+        assert_close(gpu[k], cpu[k])

@@ -35,7 +35,7 @@ from . import kernels
 __all__ = ["chunk_count", "accumulate_frame", "accumulate_frames", "project_twist_rows", "scatter_sparse_transpose_rows",
            "shading_residuals", "weighted_albedo_sums", "weighted_lighting_sums", "log1p_square_sum",
            "led_irradiances_into", "warp_sample", "warp_sample_frames", "warp_gradients", "chebyshev_update",
-           "csr_multiply_add"]
+           "chebyshev_start", "restrict_residual", "prolong_restart", "csr_multiply_add"]
 
 #: Threads per block of every kernel.
 THREADS_PER_BLOCK = 128
@@ -81,6 +81,9 @@ _warp_sample_pixel = _device(kernels.warp_sample_pixel)
 _warp_gradients_pixel = _device(kernels.warp_gradients_pixel)
 _chebyshev_row = _device(kernels.chebyshev_row)
 _csr_row_dot = _device(kernels.csr_row_dot)
+_chebyshev_start_row = _device(kernels.chebyshev_start_row)
+_restrict_residual_row = _device(kernels.restrict_residual_row)
+_prolong_restart_row = _device(kernels.prolong_restart_row)
 
 
 def _blocks(n_threads: int) -> int:
@@ -300,6 +303,47 @@ def chebyshev_update(indptr, indices, data, r, v, d, scale, diagonal, x, r_out, 
     """:func:`.kernels.chebyshev_update` on the GPU (one thread per row)."""
     _chebyshev_update[_blocks(r.shape[0]), THREADS_PER_BLOCK](indptr, indices, data, r, v, d, scale, diagonal, x,
                                                              r_out, d_out, x_out)
+
+
+@cuda.jit(cache=True)
+def _chebyshev_start(indptr, indices, data, b, first, scale, diagonal, r_out, d_out, x_out):  # pragma: no cover
+    row = cuda.grid(1)
+    if row < b.shape[0]:
+        _chebyshev_start_row(indptr, indices, data, b, first, scale, diagonal, r_out, d_out, x_out, row)
+
+
+def chebyshev_start(indptr, indices, data, b, first, scale, diagonal, r_out, d_out, x_out) -> None:
+    """:func:`.kernels.chebyshev_start` on the GPU (one thread per row)."""
+    _chebyshev_start[_blocks(b.shape[0]), THREADS_PER_BLOCK](indptr, indices, data, b, first, scale, diagonal, r_out,
+                                                            d_out, x_out)
+
+
+@cuda.jit(cache=True)
+def _restrict_residual(R_indptr, R_indices, R_data, indptr, indices, data, b, x, coarse):  # pragma: no cover
+    row = cuda.grid(1)
+    if row < coarse.shape[0]:
+        _restrict_residual_row(R_indptr, R_indices, R_data, indptr, indices, data, b, x, coarse, row)
+
+
+def restrict_residual(R_indptr, R_indices, R_data, indptr, indices, data, b, x, coarse) -> None:
+    """:func:`.kernels.restrict_residual` on the GPU (one thread per coarse row)."""
+    _restrict_residual[_blocks(coarse.shape[0]), THREADS_PER_BLOCK](R_indptr, R_indices, R_data, indptr, indices,
+                                                                   data, b, x, coarse)
+
+
+@cuda.jit(cache=True)
+def _prolong_restart(indptr, indices, data, P_indptr, P_indices, P_data, b, x, c, first, r_out, d_out,
+                     x_out):  # pragma: no cover - device
+    row = cuda.grid(1)
+    if row < b.shape[0]:
+        _prolong_restart_row(indptr, indices, data, P_indptr, P_indices, P_data, b, x, c, first, r_out, d_out, x_out,
+                             row)
+
+
+def prolong_restart(indptr, indices, data, P_indptr, P_indices, P_data, b, x, c, first, r_out, d_out, x_out) -> None:
+    """:func:`.kernels.prolong_restart` on the GPU (one thread per row)."""
+    _prolong_restart[_blocks(b.shape[0]), THREADS_PER_BLOCK](indptr, indices, data, P_indptr, P_indices, P_data, b, x,
+                                                            c, first, r_out, d_out, x_out)
 
 
 @cuda.jit(cache=True)

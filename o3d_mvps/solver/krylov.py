@@ -196,16 +196,26 @@ class ChebyshevSmoother:
             self._diagonals.append((2.0 * rho_next / delta) * self.inv_diag)
             rho = rho_next
 
-    def __call__(self, b, x=None):
+    def __call__(self, b, x=None, correction=None):
         """x (N,) after the steps on right-hand side b (N,), from x (N,) or zero (a new array:
-        neither is written). A step is one kernel (:func:`.kernels.chebyshev_update`: the product
-        with A and the vector updates in one pass)."""
-        if x is None:
+        neither is written); with ``correction`` (P (N, n) sparse CSR, c (n,)) from ``x + P c``.
+        A step is one kernel (:func:`.kernels.chebyshev_update`: the product with A and the vector
+        updates in one pass); on a GPU the first two from zero are one
+        (:func:`.kernels.chebyshev_start`), and so are the correction and the restart
+        (:func:`.kernels.prolong_restart`)."""
+        scales, diagonals = self._scales, self._diagonals
+        if x is not None and correction is not None:
+            P, c = correction
+            r, d, x = _prolong_restart(self.A, P, b, x, c, self._first)
+        elif x is not None:  # the restart: r = b - A x, d = first r, x + d
+            r, d, x = _chebyshev_update(self.A, b, x, x, 0.0, self._first, x)
+        elif scales and array_module(b) is not np:  # d = x = first b and the next step in one kernel
+            r, d, x = _chebyshev_start(self.A, b, self._first, scales[0], diagonals[0])
+            scales, diagonals = scales[1:], diagonals[1:]
+        else:
             r = b
             d = x = self._first * r
-        else:  # the restart: r = b - A x, d = first r, x + d
-            r, d, x = _chebyshev_update(self.A, b, x, x, 0.0, self._first, x)
-        for scale, diagonal in zip(self._scales, self._diagonals):
+        for scale, diagonal in zip(scales, diagonals):
             r, d, x = _chebyshev_update(self.A, r, d, d, scale, diagonal, x)
         return x
 
@@ -222,6 +232,38 @@ def _chebyshev_update(A, r, v, d, scale: float, diagonal, x):
     outputs = tuple(xp.empty_like(r) for _ in range(3))
     kernels_for(r).chebyshev_update(A.indptr, A.indices, A.data, r, v, d, float(scale), diagonal, x, *outputs)
     return outputs
+
+
+def _chebyshev_start(A, b, first, scale: float, diagonal):
+    """The Chebyshev smoother's first two steps from zero, (r, d, x) (N,) each, in one kernel
+    (GPU only: :func:`.kernels.chebyshev_start`)."""
+    outputs = tuple(array_module(b).empty_like(b) for _ in range(3))
+    kernels_for(b).chebyshev_start(A.indptr, A.indices, A.data, b, first, float(scale), diagonal, *outputs)
+    return outputs
+
+
+def _prolong_restart(A, P, b, x, c, first):
+    """(r, d, x) (N,) each of the Chebyshev smoother's restart from ``x + P c`` (r = b - A y,
+    d = first r, y + d), in one kernel on a GPU (:func:`.kernels.prolong_restart`); on the host
+    ``y`` by SciPy's product, then the restart."""
+    xp = array_module(b)
+    if xp is np:
+        y = multiply_add(P, 1.0, c, x)
+        return _chebyshev_update(A, b, y, y, 0.0, first, y)
+    outputs = tuple(xp.empty_like(b) for _ in range(3))
+    kernels_for(b).prolong_restart(A.indptr, A.indices, A.data, P.indptr, P.indices, P.data, b, x, c, first, *outputs)
+    return outputs
+
+
+def _restrict_residual(R, A, b, x):
+    """``R (b - A x)`` (n,), a new array, in one kernel on a GPU (:func:`.kernels.restrict_residual`;
+    on the host by SciPy's products)."""
+    xp = array_module(b)
+    if xp is np:
+        return R @ multiply_add(A, -1.0, x, b)
+    out = xp.empty(R.shape[0])
+    kernels_for(b).restrict_residual(R.indptr, R.indices, R.data, A.indptr, A.indices, A.data, b, x, out)
+    return out
 
 
 def multiply_add(A, alpha: float, v, y):
@@ -324,7 +366,9 @@ class Multigrid:
             return self.coarse_inverse @ b
         level = self.levels[k]
         x = level.smoother(b)
-        coarse = self._cycle(k + 1, level.R @ multiply_add(level.A, -1.0, x, b))
+        coarse = self._cycle(k + 1, _restrict_residual(level.R, level.A, b, x))
+        if isinstance(level.smoother, ChebyshevSmoother):  # the correction in the smoother's restart
+            return level.smoother(b, x, (level.P, coarse))
         return level.smoother(b, multiply_add(level.P, 1.0, coarse, x))
 
     @property
