@@ -10,7 +10,7 @@ import math
 import numba
 import numpy as np
 
-from .arrays import array_module, like
+from .arrays import array_module, contiguous, like
 
 #: Pixels per chunk of the compiled loops over frames x pixels arrays (n, N, ...) (here and in
 #: :mod:`o3d_mvps.solver.kernels`): each thread takes a chunk and runs through it frame after
@@ -57,17 +57,9 @@ def led_irradiances(normals: np.ndarray, points: np.ndarray, light_positions: np
     ``kernels_for`` gives it)."""
     xp = array_module(points)
     out = xp.empty((len(light_positions), len(points)))
-    (kernel or led_irradiances_into)(_contiguous(normals), _contiguous(points),
+    (kernel or led_irradiances_into)(contiguous(normals, np.float64), contiguous(points, np.float64),
                                      like(light_positions, points, dtype=np.float64), out)
     return out
-
-
-def _contiguous(a: np.ndarray) -> np.ndarray:
-    """``a`` as a C-contiguous float64 array: itself where it is one (no copy, and on a GPU no
-    launch: CuPy's ``ascontiguousarray`` returns such an array as it is too)."""
-    if a.dtype == np.float64 and a.flags.c_contiguous:
-        return a
-    return array_module(a).ascontiguousarray(a, dtype=np.float64)
 
 
 @numba.njit(inline="always")

@@ -283,8 +283,7 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
         grams += to_host(gram[:m].sum(axis=1))
         rhs_xi += to_host(rhs[:m].sum(axis=1)).reshape(-1)
     if projection is not None:
-        block_sums[:6] -= projection.local()
-        block_sums[6:] -= projection.local_rhs()
+        block_sums -= projection.local()
         if m:
             projection.downdate_twists(F, rows, downdate, rhs_xi)
     sums[:] = block_sums
@@ -324,19 +323,14 @@ class _AlbedoProjection:
         B = residual.shape[1]
         d, self.sWr = xp.empty((B, 3)), xp.empty((B, 3))  # s^T W s, s^T W r
         kernels_for(residual).weighted_albedo_sums(residual, usable, residual, shading, 1.0 / lam, self.sWr, d)
-        self.inv_d = np.where(d > 1e-12, 1.0 / np.where(d > 1e-12, d, 1.0), 0.0)
+        self.inv_d = _safe_inverse(d)
         self.e = xp.zeros((3, B, 3))  # e for the a, b, c rows
 
     def local(self) -> np.ndarray:
-        """Downdates (6, B) of Saa, Sbb, Sgg, Sab, Sag, Sbg."""
-        a, b, c = self.e * self.inv_d
-        ea, eb, ec = self.e
-        return np.stack([_row_dot(a, ea), _row_dot(b, eb), _row_dot(c, ec), _row_dot(a, eb),
-                         _row_dot(a, ec), _row_dot(b, ec)])
-
-    def local_rhs(self) -> np.ndarray:
-        """Downdates (3, B) of Ba, Bb, Bg."""
-        return np.stack([_row_dot(e * self.inv_d, self.sWr) for e in self.e])
+        """Downdates (9, B) of Saa, Sbb, Sgg, Sab, Sag, Sbg, Ba, Bb, Bg (one kernel and a stack on
+        a GPU)."""
+        columns = [e[:, c] for e in self.e for c in range(3)] + [self.inv_d[:, c] for c in range(3)]
+        return array_module(self.e).stack(_projection_downdates(*columns, *(self.sWr[:, c] for c in range(3))))
 
     def downdate_twists(self, F: np.ndarray, rows: np.ndarray, downdate: np.ndarray, rhs_xi: np.ndarray) -> None:
         """Project the block's twist parts: the coupling rows (3, m, 6, B) lose
@@ -348,6 +342,26 @@ class _AlbedoProjection:
         f = F.reshape(6 * len(F), -1)  # (6m, 3B): frame j in rows 6j..
         rhs_xi += to_host(f @ (self.sWr * sqrt_inv_d).reshape(-1))
         downdate += _gram(f)
+
+
+@fused
+def _safe_inverse(d):
+    """1 / d where d > 1e-12, else 0 (any shape)."""
+    where = array_module(d).where
+    return where(d > 1e-12, 1.0 / where(d > 1e-12, d, 1.0), 0.0)
+
+
+@fused
+def _projection_downdates(ea0, ea1, ea2, eb0, eb1, eb2, ec0, ec1, ec2, i0, i1, i2, s0, s1, s2):
+    """The albedo projection's downdates of the per-pixel sums, (B,) each: ``sum_c x_c y_c i_c``
+    of the e columns of rows a, b, c (``ea0`` = e_a channel 0, ...), the inverse d (i) and s^T W r
+    (s): Saa, Sbb, Sgg, Sab, Sag, Sbg, Ba, Bb, Bg."""
+    a0, a1, a2 = ea0 * i0, ea1 * i1, ea2 * i2
+    b0, b1, b2 = eb0 * i0, eb1 * i1, eb2 * i2
+    c0, c1, c2 = ec0 * i0, ec1 * i1, ec2 * i2
+    return (a0 * ea0 + a1 * ea1 + a2 * ea2, b0 * eb0 + b1 * eb1 + b2 * eb2, c0 * ec0 + c1 * ec1 + c2 * ec2,
+            a0 * eb0 + a1 * eb1 + a2 * eb2, a0 * ec0 + a1 * ec1 + a2 * ec2, b0 * ec0 + b1 * ec1 + b2 * ec2,
+            a0 * s0 + a1 * s1 + a2 * s2, b0 * s0 + b1 * s1 + b2 * s2, c0 * s0 + c1 * s1 + c2 * s2)
 
 
 def _gram(A: np.ndarray) -> np.ndarray:

@@ -126,6 +126,7 @@ class LevelProblem:
         self.n_frames = len(level.images)
         self._prolongations = None
         self._pixels = None
+        self._last_points = None  # (z, its points) on a GPU: see points
         self.visibility = like(np.ones((self.n_frames, level.grid.size), dtype=bool), level.grid.u)
         #: the frames' samples (colours, usable) at identity poses, which do not depend on z
         self._static_samples = None
@@ -143,10 +144,17 @@ class LevelProblem:
 
     # geometry ----------------------------------------------------------------------------
     def points(self, z: np.ndarray) -> np.ndarray:
-        """Reference-camera points (N, 3) of the masked depth z (N,)."""
+        """Reference-camera points (N, 3) of the masked depth z (N,). On a GPU those of the last
+        z asked for are kept and given again for that same array (a step asks for the points of
+        one z several times: two launches each); depth arrays are never written in place."""
         if self._pixels is None:  # float64 pixel coordinates, once per level
             self._pixels = (self.level.grid.u.astype(np.float64), self.level.grid.v.astype(np.float64))
-        return backproject(z, self.level.K, *self._pixels)
+        if self._last_points is not None and self._last_points[0] is z:
+            return self._last_points[1]
+        points = backproject(z, self.level.K, *self._pixels)
+        if array_module(z) is not np:
+            self._last_points = (z, points)
+        return points
 
     def normals(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Unit normals (N, 3) and dA (N,) of z."""
