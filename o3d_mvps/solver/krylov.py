@@ -36,8 +36,9 @@ from .device import kernels_for
 MAX_COARSE = 2000
 
 
-#: PCG's convergence test on a device (:func:`pcg`): every this many iterations after the first
-#: test, the host reads the iteration's status (one synchronisation).
+#: PCG's convergence test on a device (:func:`pcg`): after the first test, the host reads the
+#: status again after as many iterations as the residual's mean reduction per iteration so far
+#: needs to reach the tolerance, or, where that cannot be told, after this many.
 CHECK_EVERY = 2
 
 
@@ -53,10 +54,11 @@ def pcg(A, b, x0, rtol: float, maxiter: int, preconditioner: Callable | None = N
     Every scalar stays on the device: an iteration is the preconditioner, one product with A,
     three dot products and three fused kernels (:func:`o3d_mvps.model.arrays.fused`), and the
     residual test is made there too: once it passes, the iterations that follow change nothing
-    (the same x and iteration count as stopping there). The host reads the status (one
-    synchronisation) after ``first_check`` iterations and every ``check_every`` after: a solve
-    expected to take about ``first_check`` iterations synchronises once or twice, for at most
-    ``check_every - 1`` idle iterations.
+    (the same x and iteration count as stopping there). The host reads the status with the
+    squared residuals (one stack and one copy: a synchronisation) after ``first_check``
+    iterations, then after as many more as the mean reduction per iteration so far needs to
+    reach the tolerance (:func:`_iterations_left`; ``check_every`` where that cannot be told): a
+    solve expected to take about ``first_check`` iterations synchronises once or twice.
     """
     xp = array_module(b)
     bb = xp.dot(b, b)
@@ -66,7 +68,8 @@ def pcg(A, b, x0, rtol: float, maxiter: int, preconditioner: Callable | None = N
     else:
         x = _zero_if(bb, x0.astype(b.dtype))  # b = 0: x = 0, as on the host
         r = b - A @ x
-    active, iterations, status = _progress(True, -1, xp.dot(r, r), threshold)  # x0: iteration 0
+    rr_start = rr = xp.dot(r, r)
+    active, iterations, status = _progress(True, -1, rr, threshold)  # x0: iteration 0
     p = rz_previous = None
     next_check = max(1, min(first_check, maxiter))
     with np.errstate(divide="ignore", invalid="ignore"):  # idle iterations may divide by zero
@@ -76,16 +79,38 @@ def pcg(A, b, x0, rtol: float, maxiter: int, preconditioner: Callable | None = N
             p = z if p is None else _cg_direction(active, z, p, rz, rz_previous)
             q = A @ p
             x, r = _cg_step(active, x, r, p, q, rz, xp.dot(p, q))
-            rz_previous = rz
-            active, iterations, status = _progress(active, iterations, xp.dot(r, r), threshold)
+            rz_previous, rr_previous = rz, rr
+            rr = xp.dot(r, r)
+            active, iterations, status = _progress(active, iterations, rr, threshold)
             if iteration == next_check or iteration == maxiter:
-                code = int(status)
+                code, *squares = (float(v) for v in _to_host(xp, status, rr, rr_previous, rr_start, threshold))
+                code = int(code)
                 if not code & 2:
                     break
-                next_check += check_every
+                next_check = iteration + _iterations_left(*squares, code >> 2, check_every)
         else:
             code = int(status)  # maxiter 0
     return x, code >> 2, bool(code & 1)
+
+
+def _to_host(xp, *scalars):
+    """The float64 0-d arrays ``scalars`` on the host, (k,): in one copy from a device (one stack)."""
+    if xp is np:
+        return [float(v) for v in scalars]
+    return xp.stack(scalars).get()
+
+
+def _iterations_left(rr: float, rr_previous: float, rr_start: float, threshold: float, iterations: int,
+                     default: int) -> int:
+    """CG's iterations still to go (at least 1) for the squared residual ``rr`` (``rr_previous``
+    one iteration before) after ``iterations`` active ones from ``rr_start`` to reach
+    ``threshold``, at the slower of the last iteration's reduction and the mean one so far (on
+    the solver's systems the first iterations reduce the residual most: the mean alone
+    foresaw too few); ``default`` where that cannot be told (no reduction, values not finite)."""
+    if not (iterations > 0 and 0.0 < rr < rr_previous <= rr_start and threshold > 0.0 and np.isfinite(rr_start)):
+        return default
+    rate = max(np.log(rr / rr_previous), np.log(rr / rr_start) / iterations)  # < 0
+    return max(1, int(np.ceil(np.log(threshold / rr) / rate)))
 
 
 @fused
@@ -113,12 +138,12 @@ def _cg_step(active, x, r, p, q, rz, pq):
 def _progress(was_active, iterations, rr, threshold):
     """CG's state after an iteration of residual ``rr`` that ``was_active``: (active, iterations,
     status), active while neither converged (rr <= threshold) nor broken down (rr not finite),
-    iterations counting the active ones, status ``4 iterations + 2 active + converged`` (what the host
-    reads, in one copy)."""
+    iterations counting the active ones, status ``4 iterations + 2 active + converged`` (float64:
+    what the host reads, with the residuals, in one copy)."""
     converged = rr <= threshold
     iterations = iterations + was_active
     active = was_active & ~converged & array_module(rr).isfinite(rr)
-    return active, iterations, 4 * iterations + 2 * active + converged
+    return active, iterations, 4.0 * iterations + 2.0 * active + 1.0 * converged
 
 
 def inverse_diagonal(A):
