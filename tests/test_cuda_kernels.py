@@ -81,6 +81,41 @@ def test_accumulate_frame_matches_cpu(case):
         assert not gram_gpu.any() and not rhs_gpu.any()
 
 
+def test_accumulate_frames_matches_cpu_and_the_per_frame_kernel():
+    """Every frame of an assembly block in one launch: the CUDA kernel equals its CPU twin, which
+    equals accumulate_frame called a frame at a time (the host's loop): frame 0 with its extra
+    column and no Jacobian, then frames in twist slots 1 and 0, and one with the parallax only."""
+    N, m, n = N_PIXELS, 2, 4
+    f = lambda *shape: RNG.random(shape)  # noqa: E731
+    K = np.array([[300.0, 0.0, 80.0], [0.0, 310.0, 60.0], [0.0, 0.0, 1.0]])
+    frame_slots = np.array([[0, -1], [1, 1], [1, 0], [1, -1]], dtype=np.int64)
+    poses = np.stack([np.eye(4), POSE, POSE @ POSE, POSE.T @ POSE])
+    poses[3, 3, :3] = 0.0
+    arrays = [f(n, N, 3) - 0.5, f(n, N), RNG.random((n, N)) > 0.2, 1.0 / LAM, f(N, 3), f(n, N) - 0.5,
+              f(n, N) - 0.5, f(n, N), f(N, 3) - 0.5, (f(N, 3) - 0.5) * [0.6, 0.4, 0.2] + [0.0, 0.0, 1.0], poses, K,
+              RNG.random((n, 120, 160, 3)).astype(np.float32), f(n, N, 6), f(N, 3), frame_slots, True,
+              f(9, N), f(3, N, 3), f(3, m, 6, N), f(m, 6, N, 3)]
+    chunks_cpu, chunks_gpu = kernels.chunk_count(N), cuda_kernels.chunk_count(N)
+    cpu, gpu = run_both("accumulate_frames", *arrays, np.zeros((m + 1, chunks_cpu, 6, 6)), np.zeros((m + 1, chunks_cpu, 6)))
+    gpu = [np.copy(a) for a in arrays] + [np.zeros((m + 1, chunks_gpu, 6, 6)), np.zeros((m + 1, chunks_gpu, 6))]
+    cuda_kernels.accumulate_frames(*gpu)
+    loop = [np.copy(a) for a in arrays] + [np.zeros((m + 1, chunks_cpu, 6, 6)), np.zeros((m + 1, chunks_cpu, 6))]
+    (r, shading, usable, inv_lam, q, alpha, beta, gamma, extra_c, points, poses_, K_, images, dshading, albedo, _,
+     parallax, sums, e, rows, F, gram, rhs) = loop
+    for i, (with_jacobian, slot) in enumerate(frame_slots):
+        kernels.accumulate_frame(r[i], shading[i], usable[i], inv_lam, q, alpha[i], beta[i], gamma[i],
+                                 extra_c if i == 0 else np.zeros((0, 3)), points, poses_[i], K_, images[i],
+                                 dshading[i] if with_jacobian else np.zeros((0, 6)), albedo, bool(with_jacobian),
+                                 parallax, sums, e, rows, F, int(slot), gram[slot], rhs[slot])
+    for k in range(17, 21):  # sums, e, rows, F
+        np.testing.assert_array_equal(cpu[k], loop[k])
+        assert_close(gpu[k], cpu[k])
+    for k in (21, 22):  # the partial sums per slot (and of the others), added up
+        np.testing.assert_array_equal(cpu[k], loop[k])
+        assert_close(gpu[k].sum(axis=1), cpu[k].sum(axis=1))
+    assert np.abs(cpu[21][:m].sum(axis=1)).max(axis=(1, 2)).min() > 0.0 and not cpu[21][m].any()  # both slots compared
+
+
 def test_project_twist_rows_matches_cpu():
     m, N = 2, N_PIXELS
     (rows, F, *_), (rows_gpu, F_gpu, *_) = run_both("project_twist_rows", RNG.random((3, m, 6, N)),
@@ -236,3 +271,35 @@ def test_multigrid_kernels_match_cpu_and_the_sparse_formulas():
     cpu, gpu = run_both("csr_multiply_add", P.indptr, P.indices, P.data, -1.0, c, x, np.zeros(n))
     assert_close(cpu[-1], x - P @ c)
     assert_close(gpu[-1], cpu[-1])
+
+
+def test_fused_multigrid_kernels_match_cpu_and_the_sparse_formulas():
+    """The V-cycle's fused passes: chebyshev_start (the smoother's first two steps from zero),
+    restrict_residual (R (b - A x)) and prolong_restart (x + P c, then the smoother's restart),
+    CUDA against CPU against SciPy's products."""
+    n, n_coarse = 60, 15
+    A = sp.random(n, n, density=0.1, random_state=5, format="csr") + sp.eye(n, format="csr")
+    P = sp.random(n, n_coarse, density=0.2, random_state=6, format="csr")
+    R = P.T.tocsr()
+    for M in (A, P, R):
+        M.indices, M.indptr = M.indices.astype(np.int32), M.indptr.astype(np.int32)
+    b, first, diagonal, x = RNG.normal(size=(4, n))
+    c = RNG.normal(size=n_coarse)
+    cpu, gpu = run_both("chebyshev_start", A.indptr, A.indices, A.data, b, first, 0.7, diagonal, np.zeros(n),
+                        np.zeros(n), np.zeros(n))
+    r_new = b - A @ (first * b)
+    d_new = 0.7 * first * b + diagonal * r_new
+    for k, expected in zip((-3, -2, -1), (r_new, d_new, first * b + d_new)):
+        assert_close(cpu[k], expected)
+        assert_close(gpu[k], cpu[k])
+    cpu, gpu = run_both("restrict_residual", R.indptr, R.indices, R.data, A.indptr, A.indices, A.data, b, x,
+                        np.zeros(n_coarse))
+    assert_close(cpu[-1], R @ (b - A @ x))
+    assert_close(gpu[-1], cpu[-1])
+    cpu, gpu = run_both("prolong_restart", A.indptr, A.indices, A.data, P.indptr, P.indices, P.data, b, x, c, first,
+                        np.zeros(n), np.zeros(n), np.zeros(n))
+    y = x + P @ c
+    r_new = b - A @ y
+    for k, expected in zip((-3, -2, -1), (r_new, first * r_new, y + first * r_new)):
+        assert_close(cpu[k], expected)
+        assert_close(gpu[k], cpu[k])

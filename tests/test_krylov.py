@@ -103,6 +103,27 @@ def test_pcg_on_device_arrays_matches_numpy(preconditioner):
     np.testing.assert_allclose(x_device.get(), x, rtol=0, atol=1e-12 * np.abs(x).max())
 
 
+def test_pcg_on_a_device_reads_the_host_twice_however_early_its_first_check():
+    """After its first status read, PCG on device arrays reads again where the residual's
+    reduction so far says it will have converged: two host reads (synchronisations) for a first
+    check 1-8 iterations early on this 9-iteration solve, and the iterations and solution of an
+    exact stop."""
+    import cupy_emulation as cp
+
+    M, b, grid = grid_system(shape=(24, 36))
+    with cp.installed():
+        A, rhs = cp.sparse.csr_matrix(M), cp.asarray(b)
+        P = krylov.multigrid_preconditioner(A, krylov.pixel_prolongations(cp.asarray(grid.u), cp.asarray(grid.v),
+                                                                          max_coarse=100))
+        exact = krylov.pcg(A, rhs, None, 1e-8, 1000, P, first_check=9)
+        for first_check in (1, 2, 5, 8):
+            before = cp.operations["to_host"]
+            x, iterations, converged = krylov.pcg(A, rhs, None, 1e-8, 1000, P, first_check=first_check)
+            assert cp.operations["to_host"] - before == 2, first_check
+            assert (iterations, converged) == exact[1:] == (9, True)
+            np.testing.assert_array_equal(x.get(), exact[0].get())
+
+
 def test_pixel_aggregates_join_2x2_pixels_stride_apart():
     u, v = (c.ravel() for c in np.mgrid[:4, :4][::-1])  # a full 4x4 grid, row-major
     for stride, members in ((1, {(0, 0), (1, 0), (0, 1), (1, 1)}), (2, {(0, 0), (2, 0), (0, 2), (2, 2)})):

@@ -20,7 +20,7 @@ from functools import cached_property
 import numpy as np
 import scipy.sparse as sp
 
-from .arrays import fused
+from .arrays import array_module, fused
 
 SCHEMES = ("central", "forward")
 
@@ -144,6 +144,29 @@ def unnormalised_normals(grid: MaskedGrid, z: np.ndarray, K: np.ndarray) -> np.n
     """ñ (N, 3) of the masked depth vector z (N,) in metres; units metres (pixel-scaled)."""
     z_u, z_v = grid.gradient(z)
     return np.stack(_normal_components(z, z_u, z_v, grid.u, grid.v, K[0, 0], K[1, 1], K[0, 2], K[1, 2]), axis=-1)
+
+
+def unit_normals(grid: MaskedGrid, z: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit normals n = ñ / dA (N, 3) and dA = max(|ñ|, 1e-12) (N,) of the masked depth z (N,)
+    metres. On the host from :func:`unnormalised_normals`; on a GPU the differences are the
+    grid's difference operators' products (``Du z``, ``Dv z``: the same stencil, two launches
+    where the gathers took six) and the rest one fused kernel."""
+    xp = array_module(z)
+    if xp is np:
+        n_tilde = unnormalised_normals(grid, z, K)
+        dA = np.maximum(np.linalg.norm(n_tilde, axis=1), 1e-12)
+        return n_tilde / dA[:, None], dA
+    Du, Dv = grid.difference_operators()
+    *n, dA = _unit_normal_components(z, Du @ z, Dv @ z, grid.u, grid.v, K[0, 0], K[1, 1], K[0, 2], K[1, 2])
+    return xp.stack(n, axis=-1), dA
+
+
+@fused
+def _unit_normal_components(z, z_u, z_v, u, v, fx, fy, cx, cy):
+    """n_x, n_y, n_z and dA, each (N,), of depth z (N,) and its differences at pixels (u, v)."""
+    nx, ny, nz = _normal_components.__wrapped__(z, z_u, z_v, u, v, fx, fy, cx, cy)
+    dA = array_module(z).maximum(array_module(z).sqrt(nx * nx + ny * ny + nz * nz), 1e-12)
+    return nx / dA, ny / dA, nz / dA, dA
 
 
 @fused

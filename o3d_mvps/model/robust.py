@@ -12,7 +12,7 @@ import math
 import numba
 import numpy as np
 
-from .arrays import array_module
+from .arrays import array_module, contiguous
 
 
 def cauchy(r: np.ndarray, lam: float) -> np.ndarray:
@@ -45,7 +45,7 @@ def cauchy_energy(r: np.ndarray, lam: float, kernel=None) -> float:
     different than that. NumPy's version made two temporaries of the solver's (n, N, 3)
     residuals and took most of an evaluation's time.
     """
-    r = array_module(r).ascontiguousarray(r)
+    r = contiguous(r)
     flat = (r if r.dtype in (np.float32, np.float64) else r.astype(np.float64)).reshape(-1)
     return 0.5 * lam * lam * (kernel or log1p_square_sum)(flat, 1.0 / lam)
 

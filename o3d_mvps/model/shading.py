@@ -10,7 +10,7 @@ import math
 import numba
 import numpy as np
 
-from .arrays import array_module, like
+from .arrays import array_module, contiguous, like
 
 #: Pixels per chunk of the compiled loops over frames x pixels arrays (n, N, ...) (here and in
 #: :mod:`o3d_mvps.solver.kernels`): each thread takes a chunk and runs through it frame after
@@ -57,8 +57,7 @@ def led_irradiances(normals: np.ndarray, points: np.ndarray, light_positions: np
     ``kernels_for`` gives it)."""
     xp = array_module(points)
     out = xp.empty((len(light_positions), len(points)))
-    (kernel or led_irradiances_into)(xp.ascontiguousarray(normals, dtype=np.float64),
-                                     xp.ascontiguousarray(points, dtype=np.float64),
+    (kernel or led_irradiances_into)(contiguous(normals, np.float64), contiguous(points, np.float64),
                                      like(light_positions, points, dtype=np.float64), out)
     return out
 

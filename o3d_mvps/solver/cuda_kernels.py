@@ -32,10 +32,10 @@ from ..model.shading import led_irradiance
 from . import kernels
 
 #: the launchers, the same in :mod:`.kernels` (chunk_count is the size of accumulate_frame's partial sums)
-__all__ = ["chunk_count", "accumulate_frame", "project_twist_rows", "scatter_sparse_transpose_rows",
+__all__ = ["chunk_count", "accumulate_frame", "accumulate_frames", "project_twist_rows", "scatter_sparse_transpose_rows",
            "shading_residuals", "weighted_albedo_sums", "weighted_lighting_sums", "log1p_square_sum",
            "led_irradiances_into", "warp_sample", "warp_sample_frames", "warp_gradients", "chebyshev_update",
-           "csr_multiply_add"]
+           "chebyshev_start", "restrict_residual", "prolong_restart", "csr_multiply_add"]
 
 #: Threads per block of every kernel.
 THREADS_PER_BLOCK = 128
@@ -81,6 +81,9 @@ _warp_sample_pixel = _device(kernels.warp_sample_pixel)
 _warp_gradients_pixel = _device(kernels.warp_gradients_pixel)
 _chebyshev_row = _device(kernels.chebyshev_row)
 _csr_row_dot = _device(kernels.csr_row_dot)
+_chebyshev_start_row = _device(kernels.chebyshev_start_row)
+_restrict_residual_row = _device(kernels.restrict_residual_row)
+_prolong_restart_row = _device(kernels.prolong_restart_row)
 
 
 def _blocks(n_threads: int) -> int:
@@ -123,6 +126,47 @@ def accumulate_frame(r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, p
     _accumulate_frame[_blocks(rhs.shape[0]), THREADS_PER_BLOCK](
         r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, pose, K, image, dshading, albedo,
         with_jacobian, parallax, sums, e, rows, F, slot, gram, rhs)
+
+
+@cuda.jit(cache=True)
+def _accumulate_frames(residual, shading, usable, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, poses, K, images,
+                       dshading, albedo, frame_slots, parallax, sums, e, rows, F, gram, rhs):  # pragma: no cover - device
+    t_ = cuda.grid(1)
+    n_threads = rhs.shape[1]
+    if t_ >= n_threads:
+        return
+    J = cuda.local.array((3, 6), numba.float64)
+    G = cuda.local.array((6, 6), numba.float64)
+    b = cuda.local.array(6, numba.float64)
+    wqJ = cuda.local.array(6, numba.float64)
+    wcJ = cuda.local.array(6, numba.float64)
+    others = rhs.shape[0] - 1  # the row of the frames without a slot
+    for i in range(residual.shape[0]):  # in frame order: each pixel's sums add up as the host's loop adds them
+        for j in range(6):
+            b[j] = 0.0
+            for k in range(6):
+                G[j, k] = 0.0
+        with_jacobian = frame_slots[i, 0] != 0
+        slot = frame_slots[i, 1]
+        extra = extra_c[:extra_c.shape[0] if i == 0 else 0]
+        r, shading_i, use, alpha_i, beta_i, gamma_i = residual[i], shading[i], usable[i], alpha[i], beta[i], gamma[i]
+        pose, image, dshading_i = poses[i], images[i], dshading[i]
+        for p in range(t_, r.shape[0], n_threads):
+            _accumulate_pixel(p, r, shading_i, use, inv_lam, q, alpha_i, beta_i, gamma_i, extra, points_ref, pose, K,
+                              image, dshading_i, albedo, with_jacobian, parallax, sums, e, rows, F, slot, J, G, b, wqJ,
+                              wcJ)
+        row = slot if slot >= 0 else others
+        _store_partial_sums(G, b, gram[row], rhs[row], t_)
+
+
+def accumulate_frames(residual, shading, usable, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, poses, K, images,
+                      dshading, albedo, frame_slots, parallax, sums, e, rows, F, gram, rhs) -> None:
+    """:func:`.kernels.accumulate_frames` on the GPU, same arguments: every frame in one launch,
+    each thread taking its pixels (as :func:`accumulate_frame`'s) through the frames in order;
+    gram (m + 1, T, 6, 6) and rhs (m + 1, T, 6), T = :func:`chunk_count` (N)."""
+    _accumulate_frames[_blocks(rhs.shape[1]), THREADS_PER_BLOCK](
+        residual, shading, usable, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, poses, K, images, dshading,
+        albedo, frame_slots, parallax, sums, e, rows, F, gram, rhs)
 
 
 @cuda.jit(cache=True)
@@ -259,6 +303,47 @@ def chebyshev_update(indptr, indices, data, r, v, d, scale, diagonal, x, r_out, 
     """:func:`.kernels.chebyshev_update` on the GPU (one thread per row)."""
     _chebyshev_update[_blocks(r.shape[0]), THREADS_PER_BLOCK](indptr, indices, data, r, v, d, scale, diagonal, x,
                                                              r_out, d_out, x_out)
+
+
+@cuda.jit(cache=True)
+def _chebyshev_start(indptr, indices, data, b, first, scale, diagonal, r_out, d_out, x_out):  # pragma: no cover
+    row = cuda.grid(1)
+    if row < b.shape[0]:
+        _chebyshev_start_row(indptr, indices, data, b, first, scale, diagonal, r_out, d_out, x_out, row)
+
+
+def chebyshev_start(indptr, indices, data, b, first, scale, diagonal, r_out, d_out, x_out) -> None:
+    """:func:`.kernels.chebyshev_start` on the GPU (one thread per row)."""
+    _chebyshev_start[_blocks(b.shape[0]), THREADS_PER_BLOCK](indptr, indices, data, b, first, scale, diagonal, r_out,
+                                                            d_out, x_out)
+
+
+@cuda.jit(cache=True)
+def _restrict_residual(R_indptr, R_indices, R_data, indptr, indices, data, b, x, coarse):  # pragma: no cover
+    row = cuda.grid(1)
+    if row < coarse.shape[0]:
+        _restrict_residual_row(R_indptr, R_indices, R_data, indptr, indices, data, b, x, coarse, row)
+
+
+def restrict_residual(R_indptr, R_indices, R_data, indptr, indices, data, b, x, coarse) -> None:
+    """:func:`.kernels.restrict_residual` on the GPU (one thread per coarse row)."""
+    _restrict_residual[_blocks(coarse.shape[0]), THREADS_PER_BLOCK](R_indptr, R_indices, R_data, indptr, indices,
+                                                                   data, b, x, coarse)
+
+
+@cuda.jit(cache=True)
+def _prolong_restart(indptr, indices, data, P_indptr, P_indices, P_data, b, x, c, first, r_out, d_out,
+                     x_out):  # pragma: no cover - device
+    row = cuda.grid(1)
+    if row < b.shape[0]:
+        _prolong_restart_row(indptr, indices, data, P_indptr, P_indices, P_data, b, x, c, first, r_out, d_out, x_out,
+                             row)
+
+
+def prolong_restart(indptr, indices, data, P_indptr, P_indices, P_data, b, x, c, first, r_out, d_out, x_out) -> None:
+    """:func:`.kernels.prolong_restart` on the GPU (one thread per row)."""
+    _prolong_restart[_blocks(b.shape[0]), THREADS_PER_BLOCK](indptr, indices, data, P_indptr, P_indices, P_data, b, x,
+                                                            c, first, r_out, d_out, x_out)
 
 
 @cuda.jit(cache=True)

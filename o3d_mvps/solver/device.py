@@ -43,7 +43,7 @@ CUDA_RESIDUAL_DTYPE = np.float32
 
 #: :attr:`ArrayDevice.min_level_pixels` on CUDA. A GPU's cost per array operation (a kernel
 #: launch or a small copy, 5-20 us from Python) does not shrink with the level, and a sweep makes
-#: hundreds: on 20-frame LED problems (``python -m benchmarks.gpu count``, docs/gpu.md) 550-850
+#: hundreds: on 20-frame LED problems (``python -m benchmarks.gpu count``, docs/gpu.md) 400-650
 #: launches and 50-80 copies per joint sweep (1600-2300 operations before issue 33's item 4),
 #: i.e. some 5-20 ms. This machine's 2 cores take 0.4 s for a joint sweep of 22400 pixels x 20
 #: frames, so a GPU machine's 16 about 50 ms: below some 20000 pixels the CPU was as fast at the

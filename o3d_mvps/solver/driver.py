@@ -26,7 +26,7 @@ from tqdm.auto import tqdm
 
 from ..errors import CaptureError
 from ..model import se3
-from ..model.arrays import like
+from ..model.arrays import fused, like
 from ..model.resampling import fill_nearest_valid, repeat_pixels, resize
 from ..model.robust import robust_scale
 from .depth import update_depth
@@ -245,11 +245,11 @@ def _extrapolate(problem: LevelProblem, est: Estimate, ev, before: Estimate, anc
     current = anchored(ev.energy, est, ev.usable)
     delta_poses = [se3.log(T @ np.linalg.inv(T0)) for T, T0 in zip(est.poses, before.poses)] if poses_moved else []
     for factor in factors:
-        z = problem.level.prior.clip(est.z + factor * (est.z - before.z))
+        z = problem.level.prior.clip(_extrapolated(est.z, before.z, factor))
         if not np.all(z > 0):
             break
         offset = None if est.led_offset is None else est.led_offset + factor * (est.led_offset - before.led_offset)
-        trial = Estimate(z, est.albedo + factor * (est.albedo - before.albedo),
+        trial = Estimate(z, _extrapolated(est.albedo, before.albedo, factor),
                          est.lights + factor * (est.lights - before.lights),
                          np.stack([se3.exp(factor * d) @ T for d, T in zip(delta_poses, est.poses)])
                          if poses_moved else est.poses, offset)
@@ -265,6 +265,12 @@ def _extrapolate(problem: LevelProblem, est: Estimate, ev, before: Estimate, anc
     est.z, est.albedo, est.lights, est.poses, est.led_offset = (best.z, best.albedo, best.lights, best.poses,
                                                                 best.led_offset)
     return problem.evaluate(est)
+
+
+@fused
+def _extrapolated(x, x0, factor):
+    """``x + factor (x - x0)`` (any shape; one kernel on a GPU)."""
+    return x + factor * (x - x0)
 
 
 def _tie_to_sensor(problem: LevelProblem, g, est: Estimate, z0: np.ndarray, sigma: float) -> None:

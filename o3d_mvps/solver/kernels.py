@@ -194,6 +194,24 @@ def accumulate_frame(r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, p
         store_partial_sums(G, b, gram, rhs, chunk)
 
 
+def accumulate_frames(residual, shading, usable, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, poses, K,
+                      images, dshading, albedo, frame_slots, parallax, sums, e, rows, F, gram, rhs) -> None:
+    """:func:`accumulate_frame` of every frame in turn (the GPU's one launch per assembly block;
+    the host's solver calls :func:`accumulate_frame` a frame at a time, with the same result).
+
+    Per frame i: residual[i] (N, 3), shading[i], usable[i], alpha[i], beta[i], gamma[i] (N,),
+    poses[i] (4, 4), images[i] (H, W, 3), dshading[i] (N, 6) or (0, 6) for none;
+    frame_slots (n, 2) int64: with_jacobian (0 or 1) and the twist slot (-1: none); extra_c
+    (N, 3) or (0, 3) is frame 0's only. gram (m + 1, chunks, 6, 6), rhs (m + 1, chunks, 6): the
+    partial sums of slot k in row k, of the frames without a slot in the last row. The other
+    arguments as :func:`accumulate_frame`'s."""
+    for i in range(len(residual)):
+        slot = int(frame_slots[i, 1])
+        accumulate_frame(residual[i], shading[i], usable[i], inv_lam, q, alpha[i], beta[i], gamma[i],
+                         extra_c if i == 0 else extra_c[:0], points_ref, poses[i], K, images[i], dshading[i], albedo,
+                         bool(frame_slots[i, 0]), parallax, sums, e, rows, F, slot, gram[slot], rhs[slot])
+
+
 @numba.njit(inline="always")
 def project_twist_pixel(rows, F, scaled, sqrt_inv_d, f, j, p):  # pragma: no cover - compiled
     """:func:`project_twist_rows` on pixel p of twist component j of frame slot f."""
@@ -307,6 +325,74 @@ def csr_multiply_add(indptr, indices, data, alpha, v, y, out):  # pragma: no cov
     ``x + P c`` in one pass each."""
     for row in numba.prange(out.shape[0]):
         out[row] = y[row] + alpha * csr_row_dot(indptr, indices, data, v, row)
+
+
+@numba.njit(inline="always")
+def chebyshev_start_row(indptr, indices, data, b, first, scale, diagonal, r_out, d_out, x_out, row):  # pragma: no cover
+    """:func:`chebyshev_start` on one row."""
+    total = 0.0
+    for nz in range(indptr[row], indptr[row + 1]):
+        q = indices[nz]
+        total += data[nz] * (first[q] * b[q])
+    r_new = b[row] - total
+    d = first[row] * b[row]
+    d_new = d * scale + diagonal[row] * r_new
+    r_out[row] = r_new
+    d_out[row] = d_new
+    x_out[row] = d + d_new
+
+
+@numba.njit(parallel=True, cache=True)
+def chebyshev_start(indptr, indices, data, b, first, scale, diagonal, r_out, d_out, x_out):  # pragma: no cover
+    """The Chebyshev smoother's first two steps from zero in one pass: with ``d = x = first b``
+    (the first step), :func:`chebyshev_update` of r = b, v = d (``first b`` formed where it is
+    read: no array of it), vectors (N,)."""
+    for row in numba.prange(b.shape[0]):
+        chebyshev_start_row(indptr, indices, data, b, first, scale, diagonal, r_out, d_out, x_out, row)
+
+
+@numba.njit(inline="always")
+def restrict_residual_row(R_indptr, R_indices, R_data, indptr, indices, data, b, x, coarse, row):  # pragma: no cover
+    """:func:`restrict_residual` on coarse row ``row``."""
+    total = 0.0
+    for nz in range(R_indptr[row], R_indptr[row + 1]):
+        p = R_indices[nz]
+        total += R_data[nz] * (b[p] - csr_row_dot(indptr, indices, data, x, p))
+    coarse[row] = total
+
+
+@numba.njit(parallel=True, cache=True)
+def restrict_residual(R_indptr, R_indices, R_data, indptr, indices, data, b, x, coarse):  # pragma: no cover
+    """The multigrid's restricted residual ``coarse = R (b - A x)`` in one pass (the fine
+    residual formed where it is read) for CSR matrices R (n, N) and A (N, N) given by their
+    arrays, b, x (N,), coarse (n,)."""
+    for row in numba.prange(coarse.shape[0]):
+        restrict_residual_row(R_indptr, R_indices, R_data, indptr, indices, data, b, x, coarse, row)
+
+
+@numba.njit(inline="always")
+def prolong_restart_row(indptr, indices, data, P_indptr, P_indices, P_data, b, x, c, first, r_out, d_out, x_out,
+                        row):  # pragma: no cover - compiled
+    """:func:`prolong_restart` on one row."""
+    total = 0.0
+    for nz in range(indptr[row], indptr[row + 1]):
+        q = indices[nz]
+        total += data[nz] * (x[q] + csr_row_dot(P_indptr, P_indices, P_data, c, q))
+    r_new = b[row] - total
+    d_new = first[row] * r_new
+    r_out[row] = r_new
+    d_out[row] = d_new
+    x_out[row] = (x[row] + csr_row_dot(P_indptr, P_indices, P_data, c, row)) + d_new
+
+
+@numba.njit(parallel=True, cache=True)
+def prolong_restart(indptr, indices, data, P_indptr, P_indices, P_data, b, x, c, first, r_out, d_out, x_out):  # pragma: no cover
+    """The multigrid's coarse correction and the Chebyshev smoother's restart in one pass: with
+    ``y = x + P c`` (formed where it is read) for CSR matrices A (N, N) and P (N, n) given by
+    their arrays, ``r_out = b - A y``, ``d_out = first r_out``, ``x_out = y + d_out`` (N,) each."""
+    for row in numba.prange(b.shape[0]):
+        prolong_restart_row(indptr, indices, data, P_indptr, P_indices, P_data, b, x, c, first, r_out, d_out, x_out,
+                            row)
 
 
 @numba.njit(inline="always")

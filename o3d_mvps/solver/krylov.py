@@ -36,8 +36,9 @@ from .device import kernels_for
 MAX_COARSE = 2000
 
 
-#: PCG's convergence test on a device (:func:`pcg`): every this many iterations after the first
-#: test, the host reads the iteration's status (one synchronisation).
+#: PCG's convergence test on a device (:func:`pcg`): after the first test, the host reads the
+#: status again after as many iterations as the residual's mean reduction per iteration so far
+#: needs to reach the tolerance, or, where that cannot be told, after this many.
 CHECK_EVERY = 2
 
 
@@ -53,10 +54,11 @@ def pcg(A, b, x0, rtol: float, maxiter: int, preconditioner: Callable | None = N
     Every scalar stays on the device: an iteration is the preconditioner, one product with A,
     three dot products and three fused kernels (:func:`o3d_mvps.model.arrays.fused`), and the
     residual test is made there too: once it passes, the iterations that follow change nothing
-    (the same x and iteration count as stopping there). The host reads the status (one
-    synchronisation) after ``first_check`` iterations and every ``check_every`` after: a solve
-    expected to take about ``first_check`` iterations synchronises once or twice, for at most
-    ``check_every - 1`` idle iterations.
+    (the same x and iteration count as stopping there). The host reads the status with the
+    squared residuals (one stack and one copy: a synchronisation) after ``first_check``
+    iterations, then after as many more as the mean reduction per iteration so far needs to
+    reach the tolerance (:func:`_iterations_left`; ``check_every`` where that cannot be told): a
+    solve expected to take about ``first_check`` iterations synchronises once or twice.
     """
     xp = array_module(b)
     bb = xp.dot(b, b)
@@ -66,7 +68,8 @@ def pcg(A, b, x0, rtol: float, maxiter: int, preconditioner: Callable | None = N
     else:
         x = _zero_if(bb, x0.astype(b.dtype))  # b = 0: x = 0, as on the host
         r = b - A @ x
-    active, iterations, status = _progress(True, -1, xp.dot(r, r), threshold)  # x0: iteration 0
+    rr_start = rr = xp.dot(r, r)
+    active, iterations, status = _progress(True, -1, rr, threshold)  # x0: iteration 0
     p = rz_previous = None
     next_check = max(1, min(first_check, maxiter))
     with np.errstate(divide="ignore", invalid="ignore"):  # idle iterations may divide by zero
@@ -76,16 +79,41 @@ def pcg(A, b, x0, rtol: float, maxiter: int, preconditioner: Callable | None = N
             p = z if p is None else _cg_direction(active, z, p, rz, rz_previous)
             q = A @ p
             x, r = _cg_step(active, x, r, p, q, rz, xp.dot(p, q))
-            rz_previous = rz
-            active, iterations, status = _progress(active, iterations, xp.dot(r, r), threshold)
+            rz_previous, rr_previous = rz, rr
+            rr = xp.dot(r, r)
+            active, iterations, status = _progress(active, iterations, rr, threshold)
             if iteration == next_check or iteration == maxiter:
-                code = int(status)
+                code, *squares = (float(v) for v in _to_host(xp, status, rr, rr_previous, rr_start, threshold))
+                code = int(code)
                 if not code & 2:
                     break
-                next_check += check_every
+                next_check = iteration + _iterations_left(*squares, code >> 2, check_every)
         else:
             code = int(status)  # maxiter 0
     return x, code >> 2, bool(code & 1)
+
+
+def _to_host(xp, *scalars):
+    """The float64 0-d arrays ``scalars`` on the host, (k,): in one copy from a device (one stack)."""
+    if xp is np:
+        return [float(v) for v in scalars]
+    return xp.stack(scalars).get()
+
+
+def _iterations_left(rr: float, rr_previous: float, rr_start: float, threshold: float, iterations: int,
+                     default: int) -> int:
+    """CG's iterations still to go (at least 1) for the squared residual ``rr`` (``rr_previous``
+    one iteration before) after ``iterations`` active ones from ``rr_start`` to reach
+    ``threshold``, at the slower of the last iteration's reduction and the mean one so far (on
+    the solver's systems the first iterations reduce the residual most: the mean alone
+    foresaw too few), but no more than twice what the mean foresees (a slow last iteration is
+    often followed by fast ones: alone it foresaw 15 where 4 were left); ``default`` where that
+    cannot be told (no reduction, values not finite)."""
+    if not (iterations > 0 and 0.0 < rr < rr_previous <= rr_start and threshold > 0.0 and np.isfinite(rr_start)):
+        return default
+    left = np.log(threshold / rr)  # < 0 while not converged
+    mean = left / (np.log(rr / rr_start) / iterations)
+    return max(1, int(np.ceil(min(left / np.log(rr / rr_previous), 2.0 * mean))))
 
 
 @fused
@@ -113,12 +141,12 @@ def _cg_step(active, x, r, p, q, rz, pq):
 def _progress(was_active, iterations, rr, threshold):
     """CG's state after an iteration of residual ``rr`` that ``was_active``: (active, iterations,
     status), active while neither converged (rr <= threshold) nor broken down (rr not finite),
-    iterations counting the active ones, status ``4 iterations + 2 active + converged`` (what the host
-    reads, in one copy)."""
+    iterations counting the active ones, status ``4 iterations + 2 active + converged`` (float64:
+    what the host reads, with the residuals, in one copy)."""
     converged = rr <= threshold
     iterations = iterations + was_active
     active = was_active & ~converged & array_module(rr).isfinite(rr)
-    return active, iterations, 4 * iterations + 2 * active + converged
+    return active, iterations, 4.0 * iterations + 2.0 * active + 1.0 * converged
 
 
 def inverse_diagonal(A):
@@ -196,16 +224,26 @@ class ChebyshevSmoother:
             self._diagonals.append((2.0 * rho_next / delta) * self.inv_diag)
             rho = rho_next
 
-    def __call__(self, b, x=None):
+    def __call__(self, b, x=None, correction=None):
         """x (N,) after the steps on right-hand side b (N,), from x (N,) or zero (a new array:
-        neither is written). A step is one kernel (:func:`.kernels.chebyshev_update`: the product
-        with A and the vector updates in one pass)."""
-        if x is None:
+        neither is written); with ``correction`` (P (N, n) sparse CSR, c (n,)) from ``x + P c``.
+        A step is one kernel (:func:`.kernels.chebyshev_update`: the product with A and the vector
+        updates in one pass); on a GPU the first two from zero are one
+        (:func:`.kernels.chebyshev_start`), and so are the correction and the restart
+        (:func:`.kernels.prolong_restart`)."""
+        scales, diagonals = self._scales, self._diagonals
+        if x is not None and correction is not None:
+            P, c = correction
+            r, d, x = _prolong_restart(self.A, P, b, x, c, self._first)
+        elif x is not None:  # the restart: r = b - A x, d = first r, x + d
+            r, d, x = _chebyshev_update(self.A, b, x, x, 0.0, self._first, x)
+        elif scales and array_module(b) is not np:  # d = x = first b and the next step in one kernel
+            r, d, x = _chebyshev_start(self.A, b, self._first, scales[0], diagonals[0])
+            scales, diagonals = scales[1:], diagonals[1:]
+        else:
             r = b
             d = x = self._first * r
-        else:  # the restart: r = b - A x, d = first r, x + d
-            r, d, x = _chebyshev_update(self.A, b, x, x, 0.0, self._first, x)
-        for scale, diagonal in zip(self._scales, self._diagonals):
+        for scale, diagonal in zip(scales, diagonals):
             r, d, x = _chebyshev_update(self.A, r, d, d, scale, diagonal, x)
         return x
 
@@ -224,8 +262,41 @@ def _chebyshev_update(A, r, v, d, scale: float, diagonal, x):
     return outputs
 
 
-def _multiply_add(A, alpha: float, v, y):
-    """``y + alpha A v`` (N,), a new array, for A (N, M) sparse CSR, in one kernel on a GPU (by
+def _chebyshev_start(A, b, first, scale: float, diagonal):
+    """The Chebyshev smoother's first two steps from zero, (r, d, x) (N,) each, in one kernel
+    (GPU only: :func:`.kernels.chebyshev_start`)."""
+    outputs = tuple(array_module(b).empty_like(b) for _ in range(3))
+    kernels_for(b).chebyshev_start(A.indptr, A.indices, A.data, b, first, float(scale), diagonal, *outputs)
+    return outputs
+
+
+def _prolong_restart(A, P, b, x, c, first):
+    """(r, d, x) (N,) each of the Chebyshev smoother's restart from ``x + P c`` (r = b - A y,
+    d = first r, y + d), in one kernel on a GPU (:func:`.kernels.prolong_restart`); on the host
+    ``y`` by SciPy's product, then the restart."""
+    xp = array_module(b)
+    if xp is np:
+        y = multiply_add(P, 1.0, c, x)
+        return _chebyshev_update(A, b, y, y, 0.0, first, y)
+    outputs = tuple(xp.empty_like(b) for _ in range(3))
+    kernels_for(b).prolong_restart(A.indptr, A.indices, A.data, P.indptr, P.indices, P.data, b, x, c, first, *outputs)
+    return outputs
+
+
+def _restrict_residual(R, A, b, x):
+    """``R (b - A x)`` (n,), a new array, in one kernel on a GPU (:func:`.kernels.restrict_residual`;
+    on the host by SciPy's products)."""
+    xp = array_module(b)
+    if xp is np:
+        return R @ multiply_add(A, -1.0, x, b)
+    out = xp.empty(R.shape[0])
+    kernels_for(b).restrict_residual(R.indptr, R.indices, R.data, A.indptr, A.indices, A.data, b, x, out)
+    return out
+
+
+def multiply_add(A, alpha: float, v, y):
+    """``y + alpha A v`` (N,), a new array, for A (N, M) sparse CSR (float64 CSR data, int32
+    indices on a GPU), in one kernel on a GPU (by
     SciPy's product on the host, as :func:`_chebyshev_update`)."""
     xp = array_module(y)
     if xp is np:
@@ -323,8 +394,10 @@ class Multigrid:
             return self.coarse_inverse @ b
         level = self.levels[k]
         x = level.smoother(b)
-        coarse = self._cycle(k + 1, level.R @ _multiply_add(level.A, -1.0, x, b))
-        return level.smoother(b, _multiply_add(level.P, 1.0, coarse, x))
+        coarse = self._cycle(k + 1, _restrict_residual(level.R, level.A, b, x))
+        if isinstance(level.smoother, ChebyshevSmoother):  # the correction in the smoother's restart
+            return level.smoother(b, x, (level.P, coarse))
+        return level.smoother(b, multiply_add(level.P, 1.0, coarse, x))
 
     @property
     def operator_complexity(self) -> float:

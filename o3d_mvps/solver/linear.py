@@ -96,8 +96,9 @@ def pcg(matrix, rhs: np.ndarray, x0: np.ndarray, rtol: float, maxiter: int,
 
 #: The CUDA path's last CG iteration count per kind of system (the joint step's Schur operator,
 #: the depth step's matrix): where :func:`.krylov.pcg` first reads its status back, one iteration
-#: before it (the sweeps, and with the multigrid the levels, take similar counts). A guess of
-#: when to test, which changes the number of host synchronisations and idle iterations, never
+#: before it but not before the second, whose reduction foretells the iterations left better
+#: than the first's (the sweeps, and with the multigrid the levels, take similar counts). A guess
+#: of when to test, which changes the number of host synchronisations and idle iterations, never
 #: the result. FIRST_CHECK: the guess for a kind not solved yet in this process.
 _CG_ITERATIONS: dict[str, int] = {}
 FIRST_CHECK = 6
@@ -126,7 +127,7 @@ def solve_spd(matrix, rhs: np.ndarray, rtol: float, maxiter: int, sparse_part=No
         kind = type(matrix).__name__  # the joint step's Schur operator, or the depth step's matrix
         x, iterations, _ = krylov.pcg(matrix, rhs, None, rtol, maxiter,
                                       krylov.multigrid_preconditioner(sparse, pixel_prolongations()),
-                                      first_check=_CG_ITERATIONS.get(kind, FIRST_CHECK + 1) - 1)
+                                      first_check=max(2, _CG_ITERATIONS.get(kind, FIRST_CHECK + 1) - 1))
         _CG_ITERATIONS[kind] = max(iterations, 1)
         return x, iterations
     x, iterations, _ = pcg(matrix, rhs, np.zeros_like(rhs), rtol, maxiter, amg_preconditioner(sparse))

@@ -33,6 +33,7 @@ import scipy.sparse as sp
 from ..model.arrays import array_module, fused, like, linear_operator, sparse_module
 from . import kernels as host_kernels
 from .device import kernels_for, on_gpu, to_host
+from .krylov import multiply_add
 from .pose import pose_jacobian
 from .problem import Estimate, Evaluation, LevelProblem
 
@@ -62,20 +63,27 @@ class JointSystem:
         """(S, rhs): ``S = M - U H^-1 U^T`` as an operator (:func:`~o3d_mvps.model.arrays.linear_operator`) and
         its right-hand side ``b_z - U H^-1 b_xi``. S is applied as M x - U (H^-1 (U^T x)): two
         passes over U per product, where forming U H^-1 (N, 6m) once cost as much as twenty
-        products. The small solve with H (6m, 6m) runs on the host; on the GPU path H^-1 goes to
-        the device once (no copy per product)."""
+        products. The small solve with H (6m, 6m) runs on the host.
+
+        On the GPU, where the cost is per launch, ``-U H^-1`` (N, 6m) is formed once (one product,
+        H^-1 copied over once; as much memory again as U): a product is then ``U^T x``, that
+        times it, and ``M x`` added in one kernel (:func:`.krylov.multiply_add`), three launches
+        for five."""
         M, U = self.matrix, self.coupling
         if not self.frames:
             return linear_operator(M.shape, lambda x: M @ x.ravel(), self.rhs_z), self.rhs_z
         factor = _cholesky(self.hessian)
-        if on_gpu(U):  # H^-1 on the device, once: no copy either way per product
-            inverse = like(scipy.linalg.cho_solve(factor, np.eye(len(self.hessian))), U)
+        if on_gpu(U):
+            coupled = U @ like(-scipy.linalg.cho_solve(factor, np.eye(len(self.hessian))), U)  # -U H^-1
 
-            def solve_h(y):
-                return inverse @ like(y, inverse)  # rhs_xi comes from the host
-        else:
-            def solve_h(y):
-                return like(scipy.linalg.cho_solve(factor, to_host(y)), self.rhs_z)
+            def schur_product(x):
+                return multiply_add(M, 1.0, x.ravel(), coupled @ (U.T @ x.ravel()))
+
+            rhs = self.rhs_z + coupled @ like(self.rhs_xi, U)
+            return linear_operator(M.shape, schur_product, self.rhs_z), rhs
+
+        def solve_h(y):
+            return like(scipy.linalg.cho_solve(factor, to_host(y)), self.rhs_z)
 
         def matvec(x):
             x = x.ravel()
@@ -231,7 +239,7 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
     xp, kernels = array_module(points_ref), kernels_for(points_ref)
     B = points_ref.shape[0]
     m = len(candidates)
-    none3, none6, none_e = xp.zeros((0, 3)), xp.zeros((0, 6)), xp.zeros((0, 1, 3))  # the kernel's optional arrays
+    none3, none6, none_e = xp.empty((0, 3)), xp.empty((0, 6)), xp.empty((0, 1, 3))  # the kernel's optional arrays (empty)
     residual, usable, albedo, shading = ev.residual[:, block], ev.usable[:, block], est.albedo[block], ev.shading[:, block]
     normals = ev.normals[block]
     q = albedo / ev.dA[block, None]  # (B, 3)
@@ -252,24 +260,30 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
     _, alpha, beta, gamma = shading_rows(problem, est, normals, points_ref, block)  # (n, B) each
     dshading = model.shading_jacobians(est.lights, normals, points_ref, est.poses) if parallax or m else None
     poses = like(est.poses, points_ref)  # one copy to the GPU for all the frames' kernels
-    for i in range(problem.n_frames):
-        use = usable[i]
-        with_jacobian = i > 0 and (parallax or i in slot)
-        extra_c = none3
-        if i == 0 and parallax and dshading is not None:
-            extra_c = _reference_parallax(albedo, dshading[0], points_ref / points_ref[:, 2:3], use)
+    with_jacobian = [i > 0 and (parallax or i in slot) for i in range(problem.n_frames)]
+    extra_c = none3
+    if parallax and dshading is not None:
+        extra_c = _reference_parallax(albedo, dshading[0], points_ref / points_ref[:, 2:3], usable[0])
+    e = none_e if projection is None else projection.e
+    if problem.level.image_stack is not None:  # on a GPU: every frame in one launch
+        frame_slots = like(np.array([[jac, slot.get(i, -1)] for i, jac in enumerate(with_jacobian)], dtype=np.int64),
+                           points_ref)
+        kernels.accumulate_frames(residual, shading, usable, 1.0 / problem.lam, q, alpha, beta, gamma, extra_c,
+                                  points_ref, poses, problem.device_K, problem.level.image_stack,
+                                  xp.empty((problem.n_frames, 0, 6)) if dshading is None else dshading, albedo,
+                                  frame_slots, parallax, block_sums, e, rows, F, gram, rhs)
+    for i in range(problem.n_frames if problem.level.image_stack is None else 0):
         k = slot.get(i, -1)
-        kernels.accumulate_frame(residual[i], shading[i], use, 1.0 / problem.lam, q, alpha[i], beta[i], gamma[i],
-                                 extra_c, points_ref, poses[i], problem.device_K, problem.level.images[i],
-                                 dshading[i] if dshading is not None and with_jacobian else none6, albedo,
-                                 with_jacobian, parallax, block_sums, none_e if projection is None else projection.e,
-                                 rows, F, k, gram[k], rhs[k])
+        kernels.accumulate_frame(residual[i], shading[i], usable[i], 1.0 / problem.lam, q, alpha[i], beta[i],
+                                 gamma[i], extra_c if i == 0 else none3, points_ref, poses[i], problem.device_K,
+                                 problem.level.images[i],
+                                 dshading[i] if dshading is not None and with_jacobian[i] else none6, albedo,
+                                 with_jacobian[i], parallax, block_sums, e, rows, F, k, gram[k], rhs[k])
     if m:
         grams += to_host(gram[:m].sum(axis=1))
         rhs_xi += to_host(rhs[:m].sum(axis=1)).reshape(-1)
     if projection is not None:
-        block_sums[:6] -= projection.local()
-        block_sums[6:] -= projection.local_rhs()
+        block_sums -= projection.local()
         if m:
             projection.downdate_twists(F, rows, downdate, rhs_xi)
     sums[:] = block_sums
@@ -309,19 +323,14 @@ class _AlbedoProjection:
         B = residual.shape[1]
         d, self.sWr = xp.empty((B, 3)), xp.empty((B, 3))  # s^T W s, s^T W r
         kernels_for(residual).weighted_albedo_sums(residual, usable, residual, shading, 1.0 / lam, self.sWr, d)
-        self.inv_d = np.where(d > 1e-12, 1.0 / np.where(d > 1e-12, d, 1.0), 0.0)
+        self.inv_d = _safe_inverse(d)
         self.e = xp.zeros((3, B, 3))  # e for the a, b, c rows
 
     def local(self) -> np.ndarray:
-        """Downdates (6, B) of Saa, Sbb, Sgg, Sab, Sag, Sbg."""
-        a, b, c = self.e * self.inv_d
-        ea, eb, ec = self.e
-        return np.stack([_row_dot(a, ea), _row_dot(b, eb), _row_dot(c, ec), _row_dot(a, eb),
-                         _row_dot(a, ec), _row_dot(b, ec)])
-
-    def local_rhs(self) -> np.ndarray:
-        """Downdates (3, B) of Ba, Bb, Bg."""
-        return np.stack([_row_dot(e * self.inv_d, self.sWr) for e in self.e])
+        """Downdates (9, B) of Saa, Sbb, Sgg, Sab, Sag, Sbg, Ba, Bb, Bg (one kernel and a stack on
+        a GPU)."""
+        columns = [e[:, c] for e in self.e for c in range(3)] + [self.inv_d[:, c] for c in range(3)]
+        return array_module(self.e).stack(_projection_downdates(*columns, *(self.sWr[:, c] for c in range(3))))
 
     def downdate_twists(self, F: np.ndarray, rows: np.ndarray, downdate: np.ndarray, rhs_xi: np.ndarray) -> None:
         """Project the block's twist parts: the coupling rows (3, m, 6, B) lose
@@ -333,6 +342,26 @@ class _AlbedoProjection:
         f = F.reshape(6 * len(F), -1)  # (6m, 3B): frame j in rows 6j..
         rhs_xi += to_host(f @ (self.sWr * sqrt_inv_d).reshape(-1))
         downdate += _gram(f)
+
+
+@fused
+def _safe_inverse(d):
+    """1 / d where d > 1e-12, else 0 (any shape)."""
+    where = array_module(d).where
+    return where(d > 1e-12, 1.0 / where(d > 1e-12, d, 1.0), 0.0)
+
+
+@fused
+def _projection_downdates(ea0, ea1, ea2, eb0, eb1, eb2, ec0, ec1, ec2, i0, i1, i2, s0, s1, s2):
+    """The albedo projection's downdates of the per-pixel sums, (B,) each: ``sum_c x_c y_c i_c``
+    of the e columns of rows a, b, c (``ea0`` = e_a channel 0, ...), the inverse d (i) and s^T W r
+    (s): Saa, Sbb, Sgg, Sab, Sag, Sbg, Ba, Bb, Bg."""
+    a0, a1, a2 = ea0 * i0, ea1 * i1, ea2 * i2
+    b0, b1, b2 = eb0 * i0, eb1 * i1, eb2 * i2
+    c0, c1, c2 = ec0 * i0, ec1 * i1, ec2 * i2
+    return (a0 * ea0 + a1 * ea1 + a2 * ea2, b0 * eb0 + b1 * eb1 + b2 * eb2, c0 * ec0 + c1 * ec1 + c2 * ec2,
+            a0 * eb0 + a1 * eb1 + a2 * eb2, a0 * ec0 + a1 * ec1 + a2 * ec2, b0 * ec0 + b1 * ec1 + b2 * ec2,
+            a0 * s0 + a1 * s1 + a2 * s2, b0 * s0 + b1 * s1 + b2 * s2, c0 * s0 + c1 * s1 + c2 * s2)
 
 
 def _gram(A: np.ndarray) -> np.ndarray:

@@ -13,7 +13,7 @@ import numpy as np
 
 from ..model.arrays import array_module, like
 from ..model.camera import backproject
-from ..model.normals import unnormalised_normals
+from ..model.normals import unit_normals
 from ..model.robust import cauchy_energy
 from ..model.warping import in_view, visible, warp
 from .device import kernels_for, to_host
@@ -87,6 +87,10 @@ class Evaluation:
         pixels and the three channels: (n,) floats, NaN for a frame with no usable pixel. One pass
         over the residuals, a frame at a time (no frames x pixels temporary)."""
         xp = array_module(self.residual)
+        if xp is not np:  # two reductions over all frames and one copy, not a launch and a read per frame
+            squares = xp.einsum("inc,inc->i", self.residual, self.residual, dtype=np.float64)
+            sums = to_host(xp.stack([squares, 3.0 * self.usable.sum(axis=1)]))
+            return [float(np.sqrt(total / count)) if count else float("nan") for total, count in sums.T]
         rms = []
         for i in range(len(self.usable)):
             r = self.residual[i].ravel()
@@ -122,6 +126,7 @@ class LevelProblem:
         self.n_frames = len(level.images)
         self._prolongations = None
         self._pixels = None
+        self._last_points = None  # (z, its points) on a GPU: see points
         self.visibility = like(np.ones((self.n_frames, level.grid.size), dtype=bool), level.grid.u)
         #: the frames' samples (colours, usable) at identity poses, which do not depend on z
         self._static_samples = None
@@ -139,16 +144,21 @@ class LevelProblem:
 
     # geometry ----------------------------------------------------------------------------
     def points(self, z: np.ndarray) -> np.ndarray:
-        """Reference-camera points (N, 3) of the masked depth z (N,)."""
+        """Reference-camera points (N, 3) of the masked depth z (N,). On a GPU those of the last
+        z asked for are kept and given again for that same array (a step asks for the points of
+        one z several times: two launches each); depth arrays are never written in place."""
         if self._pixels is None:  # float64 pixel coordinates, once per level
             self._pixels = (self.level.grid.u.astype(np.float64), self.level.grid.v.astype(np.float64))
-        return backproject(z, self.level.K, *self._pixels)
+        if self._last_points is not None and self._last_points[0] is z:
+            return self._last_points[1]
+        points = backproject(z, self.level.K, *self._pixels)
+        if array_module(z) is not np:
+            self._last_points = (z, points)
+        return points
 
     def normals(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Unit normals (N, 3) and dA (N,) of z."""
-        n_tilde = unnormalised_normals(self.level.grid, z, self.level.K)
-        dA = np.maximum(np.linalg.norm(n_tilde, axis=1), 1e-12)
-        return n_tilde / dA[:, None], dA
+        return unit_normals(self.level.grid, z, self.level.K)
 
     def sample(self, i: int, pose: np.ndarray, points_ref: np.ndarray) -> FrameSample:
         """Frame i under ``pose`` seen from the reference points (N, 3): its colour and usable mask."""
@@ -291,7 +301,10 @@ class LevelProblem:
         """
         return self._evaluation(est, color, usable, normals, dA, self.bases(est, normals))
 
-    def _evaluation(self, est, color, usable, normals, dA, basis, reuse: Evaluation | None = None) -> Evaluation:
+    def _evaluation(self, est, color, usable, normals, dA, basis, reuse: Evaluation | None = None,
+                    prior: float | None = None) -> Evaluation:
+        """The evaluation from the samples; ``prior``: the prior energy of ``est.z`` where the caller
+        has it (None: computed)."""
         n, N = usable.shape
         xp, kernels = array_module(color), kernels_for(color)
         if reuse is None:
@@ -301,11 +314,14 @@ class LevelProblem:
         kernels.shading_residuals(color, est.albedo, basis, like(est.lights, color, dtype=np.float64), usable,
                                   shading, residual)
         data = cauchy_energy(residual, self.lam, kernels.log1p_square_sum)
-        return Evaluation(residual, usable, color, shading, normals, dA, basis, data, self.prior_energy(est.z))
+        return Evaluation(residual, usable, color, shading, normals, dA, basis, data,
+                          self.prior_energy(est.z) if prior is None else prior)
 
     def reevaluate(self, est: Estimate, ev: Evaluation, *, overwrite: bool = False) -> Evaluation:
         """Evaluation of ``est`` whose z, poses and light model are those ``ev`` was computed at.
 
         overwrite: write the new shading and residuals into ``ev``'s arrays (for a caller that
-        gives ``ev`` up: no second frames x pixels x 3 array while the new one is computed)."""
-        return self._evaluation(est, ev.color, ev.usable, ev.normals, ev.dA, ev.basis, ev if overwrite else None)
+        gives ``ev`` up: no second frames x pixels x 3 array while the new one is computed). The
+        prior energy is ``ev``'s (the same z)."""
+        return self._evaluation(est, ev.color, ev.usable, ev.normals, ev.dA, ev.basis, ev if overwrite else None,
+                                ev.prior)

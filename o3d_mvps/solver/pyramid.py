@@ -17,10 +17,11 @@ import cv2
 import numpy as np
 import scipy.sparse as sp
 
-from ..model.arrays import sparse_module
+from ..model.arrays import array_module, fused, sparse_module
 from ..model.camera import scale_intrinsics
 from ..model.normals import MaskedGrid, masked_grid
 from ..model.resampling import fill_nearest_valid, resample_valid, resize
+from .krylov import multiply_add
 from .smoothness import second_differences, smoothness_rows
 
 
@@ -55,12 +56,19 @@ class DepthPrior:
 
     def energy(self, z: np.ndarray, tau: float, mu: float) -> float:
         """tau ||D z - z0||^2 + mu ||S z||^2 of depth z (N,) metres."""
-        d = self.D @ z - self.z0
-        e = tau * (d @ d)
+        if array_module(z) is np:
+            d = self.D @ z - self.z0
+        else:  # D z - z0 in one kernel
+            d = multiply_add(self.D, 1.0, z, self._negative_z0)
         if mu > 0 and self.S is not None:
             s = self.S @ z
-            e = e + mu * (s @ s)
-        return float(e)  # one copy to the host (a synchronisation on a GPU)
+            return float(_weighted_sum(tau, d @ d, mu, s @ s))  # one copy to the host (a synchronisation on a GPU)
+        return float(tau * (d @ d))
+
+    @cached_property
+    def _negative_z0(self) -> np.ndarray:
+        """-z0 (M,), formed once (:meth:`energy` on a GPU)."""
+        return -self.z0
 
     @cached_property
     def DtD(self) -> sp.csr_matrix:
@@ -99,6 +107,12 @@ class DepthPrior:
     @property
     def rows(self) -> int:
         return int(self.z0.size)
+
+
+@fused
+def _weighted_sum(a, x, b, y):
+    """``a x + b y`` (one kernel on a GPU)."""
+    return a * x + b * y
 
 
 def depth_prior(grid: MaskedGrid, z0: np.ndarray, level_factor: float) -> DepthPrior:

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..model.arrays import array_module
+from ..model.arrays import array_module, contiguous, fused
 from .device import kernels_for, on_gpu, to_host
 from .problem import Estimate, Evaluation
 
@@ -18,8 +18,15 @@ def update_albedo(est: Estimate, ev: Evaluation, lam: float) -> np.ndarray:
     IRLS weights of the current residuals."""
     num, den = np.empty_like(est.albedo), np.empty_like(est.albedo)
     kernels_for(num).weighted_albedo_sums(ev.residual, ev.usable, ev.color, ev.shading, 1.0 / lam, num, den)
+    return _ratio_where_defined(num, den, est.albedo)
+
+
+@fused
+def _ratio_where_defined(num, den, fallback):
+    """num / den where den > 1e-8, else ``fallback`` (same shapes; one kernel on a GPU)."""
+    where = array_module(num).where
     ok = den > 1e-8
-    return np.where(ok, num / np.where(ok, den, 1.0), est.albedo)
+    return where(ok, num / where(ok, den, 1.0), fallback)
 
 
 def update_lighting(est: Estimate, ev: Evaluation, lam: float, light) -> np.ndarray:
@@ -28,7 +35,7 @@ def update_lighting(est: Estimate, ev: Evaluation, lam: float, light) -> np.ndar
     all), B_i the light basis; frames with fewer than 8 usable pixels keep their light."""
     xp = array_module(ev.residual)
     wr2, wri = xp.empty(ev.usable.shape), xp.empty(ev.usable.shape)  # sum_c w rho^2, sum_c w rho I~: (n, N)
-    kernels_for(wr2).weighted_lighting_sums(ev.residual, ev.usable, ev.color, xp.ascontiguousarray(est.albedo),
+    kernels_for(wr2).weighted_lighting_sums(ev.residual, ev.usable, ev.color, contiguous(est.albedo),
                                             1.0 / lam, wr2, wri)
     n, k = est.lights.shape
     gram, rhs = np.zeros((n, k, k)), np.zeros((n, k))
