@@ -6,7 +6,9 @@ are the counts measured at this commit, so that a change that adds launches to a
 here. Before issue 33's item 4 (commit 0ece6d0) the same counts were: LED problem 719 launches
 and 108 copies per sweep on its finer level, room problem 722 and 84. The LED's evidence weights (on by default since issue 32's "no grain")
 added 65-69 launches per LED sweep; their closed-form eigenvalue fused into one kernel took 28
-of them back.
+of them back. Counting the albedo's steps on the LED's finest level (issue 32 item 3, where the
+median pixel leans on the smoothness, as this problem's does) added 15 launches and 1 copy
+(the median read) there: 497 -> 512 and 60 -> 61.
 """
 
 import shutil
@@ -16,7 +18,7 @@ import pytest
 from benchmarks import gpu
 
 #: (problem, level) -> (launches per sweep, copies per sweep, host reads per linear solve): at most
-BOUNDS = {("led", 1): (515, 64, 4), ("led", 0): (497, 60, 4), ("room", 0): (565, 71, 1)}
+BOUNDS = {("led", 1): (515, 64, 4), ("led", 0): (512, 61, 4), ("room", 0): (565, 71, 1)}
 
 
 @pytest.fixture(scope="module")
