@@ -12,7 +12,8 @@ Two pieces, both set from the data (README/docs "Fidelity"):
 - :func:`evidence_weights`: per pixel, how well the frames' shading pins the normal down (the
   conditioning of the stacked shading system against the image noise); the smoothness leans in
   where it is weak (dark albedo, few frames, little light diversity), so colour texture and noise
-  do not become relief.
+  do not become relief; with the LED, :func:`albedo_step_weights` also counts the albedo's
+  steps (:func:`albedo_step_factor`), whose pixels each warped frame mixes.
 """
 
 from __future__ import annotations
