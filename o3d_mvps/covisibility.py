@@ -43,7 +43,7 @@ MOST_OF_REFERENCE = 0.6
 MIN_WELL_COVISIBLE = 3
 #: what a refinement with weak coverage leans on (:func:`o3d_mvps.solving.lean_on_sensor`), as
 #: its warning says; ``o3d_mvps.reconstruct`` gathers the views whose warning has it into one
-WEAK_COVERAGE_NOTE = "the sensor's smoothness and low frequencies"
+WEAK_COVERAGE_NOTE = "10 times its weight, its noise's smoothness and its low frequencies"
 #: Widest grid (pixels) the reference surface is taken on. Finite-difference normals of a finer
 #: sensor depth map follow its quantisation steps, not the surface (1 mm steps at 0.6 m are
 #: several pixels apart at 1000 px wide): at 1064 px a bunny's frames 15 degrees away seemed to

@@ -28,6 +28,7 @@ from .solver.driver import solve
 from .solver.options import AUTO, ConvergenceCriteria, RefineOptions
 from .solver.pose_trust import DEFAULT_POSE_TRUST
 from .solver.problem_input import SolverInput, write_problem
+from .solver.smoothness import sensor_noise_smoothness
 from .covisibility import MIN_OTHER_FRAMES, WEAK_COVERAGE_NOTE, ViewSelection, frames_seeing_reference
 
 #: the depth step's CG tolerance for a static camera, where ``cg_tolerance`` is left at its default
@@ -173,7 +174,7 @@ def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses
         why.update({local[int(i)]: reason for i, reason in views.left_out.items()})
         weak = views.weak_coverage()
         if weak is not None:
-            options = lean_on_sensor(options)
+            options = lean_on_sensor(options, capture)
             warnings.warn(f"{weak}: the refinement leans on the sensor depth ({WEAK_COVERAGE_NOTE}); capture more "
                           "frames 15-30 degrees around the reference for photometric detail", stacklevel=3)
     report["frames_report"] = [{"index": i, "file": name, "used": i in frames, "reason": why.get(i)}
@@ -189,13 +190,32 @@ def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses
     ), views
 
 
-def lean_on_sensor(options: RefineOptions) -> RefineOptions:
-    """``options`` for a reference few frames see (:meth:`ViewSelection.weak_coverage`): the
-    smoothness set from the sensor's noise (``"auto"``, room light's rule) and the sensor tie on,
-    unless the caller chose them. With 3 of 8 frames 45 degrees apart seeing an LED-lit bunny's
-    reference (320x240, SF 2, D415-like sensor) the normals were 23.1 deg off with the LED's
-    defaults and are 11.0 so, bicubic upsampling's 9.8 (docs/fidelity.md, tests/test_grain.py)."""
-    return replace(options, smoothness=AUTO if options.smoothness is None else options.smoothness,
+#: how many times the depth prior's weight tau~ a refinement of a reference few frames see
+#: takes (:func:`lean_on_sensor`): on 8 frames 45 degrees apart around a speckled LED-lit bunny
+#: (320x240, SF 2, D415-like sensor) the normals were 11.1 deg off at 1x, 7.6 at 10x and 100x,
+#: 8.6 at 1000x (bicubic 9.8)
+WEAK_COVERAGE_TAU_FACTOR = 10.0
+
+
+def lean_on_sensor(options: RefineOptions, capture: Capture) -> RefineOptions:
+    """``options`` for a reference few frames see (:meth:`ViewSelection.weak_coverage`): the depth
+    prior weighed :data:`WEAK_COVERAGE_TAU_FACTOR` times more, the smoothness the sensor's own
+    noise calls for (:func:`o3d_mvps.solver.smoothness.sensor_noise_smoothness` of ``capture``'s
+    reference depth, at that weight), no evidence weights (they would raise the smoothness to
+    the sensor's with the stereo's floor, 10 x more here) and the sensor tie on; the smoothness,
+    tie and evidence weights only where the caller left them unset. Three frames' shading adds
+    more error than detail: with 3 of 8 frames 45 degrees apart seeing an LED-lit speckled
+    bunny's reference (320x240, SF 2, D415-like sensor) the normals were 23.1 deg off with the
+    LED's defaults, 11.0 with the sensor's smoothness (auto) and tie, and are 7.6 so (bicubic
+    upsampling's 9.8; the darkest albedo quarter 9.3 against 10.3: docs/fidelity.md,
+    tests/test_grain.py)."""
+    tau = options.tau * WEAK_COVERAGE_TAU_FACTOR
+    smoothness = options.smoothness
+    if smoothness is None:
+        smoothness = sensor_noise_smoothness(tau, capture.depth_array(0).astype(np.float64), capture.mask_array(0),
+                                             capture.scale_factor, capture.color_K())
+    return replace(options, tau=tau, smoothness=smoothness,
+                   evidence_weights=False if options.evidence_weights is None else options.evidence_weights,
                    sensor_lowpass=AUTO if options.sensor_lowpass is None else options.sensor_lowpass)
 
 

@@ -9,7 +9,8 @@ added 65-69 launches per LED sweep; their closed-form eigenvalue fused into one 
 of them back. At 8c3d82f: LED 513 / 495 launches per sweep on its two levels, room 562 (3 host
 reads per linear solve at most); issue 33's item 4 continued (batched joint assembly, fused
 multigrid passes and downdates, re-evaluations keeping their prior energy): 346 / 346 and 436,
-2 reads at most.
+2 reads at most. The albedo-step weights on the LED's finest level (issue 32 item 3) are fused
+into these counts (at 8c3d82f they added 15 launches and 1 copy there): 346 / 343 and 440.
 """
 
 import shutil

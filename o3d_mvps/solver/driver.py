@@ -44,8 +44,8 @@ from .pyramid import build_level, level_size
 from .reflectance import update_albedo, update_lighting
 from .smoothness import auto_smoothness
 from .solution import SolverOutput
-from .weighting import (absolute_evidence_weights, evidence_weights, lowpass_sigma, normal_evidence,
-                        tie_low_frequencies)
+from .weighting import (absolute_evidence_weights, albedo_step_factor, albedo_step_weights, evidence_weights,
+                        leans_on_smoothness, lowpass_sigma, normal_evidence, tie_low_frequencies)
 
 
 #: levels with more object pixels than this refit the point lights' positions in their first sweep
@@ -194,8 +194,8 @@ def _weigh_smoothness(problem: LevelProblem, est: Estimate, ev, options: RefineO
                       stats: dict) -> None:
     """Weight each pixel's smoothness by the shading's evidence (:mod:`.weighting`; per-frame SH:
     relative to the median pixel, else against an absolute normal precision up to the sensor's
-    own smoothness) and update ``ev``'s prior energy, where the options ask for it; at the start
-    of every sweep."""
+    own smoothness, and on the finest level of a capture that leans on it the albedo's steps too)
+    and update ``ev``'s prior energy, where the options ask for it; at the start of every sweep."""
     if not (options.model.evidence_weighted() and problem.mu > 0 and problem.level.prior.S is not None):
         return
     t = time.perf_counter()
@@ -203,8 +203,13 @@ def _weigh_smoothness(problem: LevelProblem, est: Estimate, ev, options: RefineO
     if problem.light.name in ("sh", "point"):  # a large smoothness: relative to the median pixel
         weights = evidence_weights(evidence)
     else:  # a small one (LED): where the shading's normal is noisier than the sensor's
-        weights = absolute_evidence_weights(evidence, robust_scale(ev.residual, ev.usable, NOISE_SAMPLES_PER_FRAME),
-                                            stats["sensor_smoothness"] / max(stats["smoothness"], 1e-12))
+        noise = robust_scale(ev.residual, ev.usable, NOISE_SAMPLES_PER_FRAME)
+        ceiling = stats["sensor_smoothness"] / max(stats["smoothness"], 1e-12)
+        weights = absolute_evidence_weights(evidence, noise, ceiling)
+        # the frames themselves on the finest level, point-sampled (coarser levels: area averages)
+        if problem.level.index == 0 and leans_on_smoothness(weights):
+            steps = albedo_step_factor(est.albedo, problem.level.grid, ev.shading, ev.usable, noise)
+            weights = albedo_step_weights(weights, evidence, steps, noise, ceiling)
     problem.level.prior.weigh_smoothness(weights)
     ev.prior = problem.prior_energy(est.z)
     timings["evidence_weights"] += time.perf_counter() - t

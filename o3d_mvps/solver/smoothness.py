@@ -118,8 +118,18 @@ def auto_smoothness(tau_tilde: float, z0: np.ndarray, mask: np.ndarray, scale_fa
     of mu~ (the best lay within 5x of the formula), where a fixed mu~ 240 was 100x too small on
     a noisy 2 MP bunny (28.4 deg normal error; with the formula 12.1).
     """
+    return max(tau_tilde * STEREO_RATIO, sensor_noise_smoothness(tau_tilde, z0, mask, scale_factor, K))
+
+
+def sensor_noise_smoothness(tau_tilde: float, z0: np.ndarray, mask: np.ndarray, scale_factor: int,
+                            K: np.ndarray) -> float:
+    """mu~ the sensor's own noise calls for: ``tau~ 40 (sigma / 1 mm)^2 (1 mm / h)^4``
+    (:func:`auto_smoothness` without its floor for the stereo's noise, :data:`STEREO_RATIO`);
+    same arguments. The smooth fit of the sensor alone (:func:`o3d_mvps.baselines.smooth_fit`)
+    on a D415-like 320x240 bunny (sigma 0.65 mm, h 2 mm: mu~ 11 at tau~ 10) had normals 7.8-8.0
+    deg off at 0.05-0.1 x auto_smoothness's 240, 10.4 at 240 (bicubic 9.8)."""
     sigma = sensor_roughness(z0, mask, scale_factor)
     inside = _object_depth_pixels(z0, mask, scale_factor)
     depth = z0[inside] if inside.any() else z0[z0 > 0]
     footprint = float(np.median(depth)) / float(K[0, 0]) if depth.size else 1e-3
-    return tau_tilde * max(STEREO_RATIO, ROUGHNESS_RATIO * (sigma / 1e-3) ** 2 * (1e-3 / footprint) ** 4)
+    return tau_tilde * ROUGHNESS_RATIO * (sigma / 1e-3) ** 2 * (1e-3 / footprint) ** 4
