@@ -333,7 +333,10 @@ def update_led_offset(problem, est, ev, *, max_halvings: int = 3, max_pixels: in
     cost a kernel launch), the line search on the full energy; the offset is ``est``'s (or the
     light model's) unchanged, with ``ev``, when no step lowers the energy, or when the
     Gauss-Newton model predicts a decrease below ``min_decrease`` (energy units; each line
-    search trial costs a full evaluation, and near convergence they nearly all fail).
+    search trial costs an energy, and near convergence they nearly all fail). The trials are
+    scored by :meth:`.LevelProblem.energy` from ``ev``'s samples (no frames x pixels arrays
+    but a few frames'); the kept offset's evaluation is written into ``ev``'s arrays
+    (:meth:`.LevelProblem.relit`), so ``ev`` is given up when the offset moves.
     """
     light = problem.light_model(est)
     H = np.zeros((3, 3))
@@ -360,9 +363,12 @@ def update_led_offset(problem, est, ev, *, max_halvings: int = 3, max_pixels: in
 
     def trial(t: float):
         moved = dataclasses.replace(est, led_offset=start + t * step)
-        trial_ev = problem.evaluate_samples(moved, ev.color, ev.usable, ev.normals, ev.dA)
-        return (moved.led_offset, trial_ev), trial_ev.energy
+        # scored a few frames at a time from ev's samples; only the kept offset is evaluated
+        return moved, problem.energy(moved, (ev.color, ev.usable), ev.normals)[0]
 
     found = backtrack(trial, ev.energy, max_halvings)
-    return (start, ev) if found is None else found[1]
+    if found is None:
+        return start, ev
+    moved = found[1]
+    return moved.led_offset, problem.relit(moved, ev)
 
