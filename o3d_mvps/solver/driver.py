@@ -413,6 +413,7 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
         est = Estimate(level_device.asarray(level.prior.clip(g.gather(carried.z).astype(np.float64))),
                        level_device.asarray(g.gather(carried.albedo).astype(np.float64)), carried.lights,
                        carried.poses, carried.led_offset)
+        carried = z_full = None  # the full-grid z and albedo are not held through the level (30 MB at D415 size)
         tau = normalised_tau(options.tau, n_frames, mean_I, g.size, mean_z0, level.prior.rows)
         mu = normalised_smoothness(smoothness, n_frames, mean_I, mean_z0, level_index)
         # AUTO: the LED's scale for the level's first albedo fit, then the residuals' (_sweeps)

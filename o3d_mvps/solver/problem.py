@@ -23,10 +23,10 @@ from .pyramid import Level
 
 
 #: Frames x pixels per batch of :meth:`LevelProblem.energy`: all frames at once up to this size (as
-#: many compiled-loop launches as an evaluation; at D415 size and 20 frames one batch), 2 frames
-#: a batch at 2 MP (one launch per frame and kernel cost a loaded 2-core machine several times
-#: the D415 extrapolation's time).
-ENERGY_BATCH_PIXELS = 2**21
+#: many compiled-loop launches as an evaluation), 5 frames a batch at D415 size (90 000 object
+#: pixels: some 30 MB of temporaries instead of 110 MB for all 20), one at 2 MP (the host warps
+#: frame by frame anyway; a batch adds three launches).
+ENERGY_BATCH_PIXELS = 2**19
 
 
 @dataclass
@@ -63,8 +63,9 @@ class FrameGradients:
 @dataclass
 class Evaluation:
     """Residuals r (n, N, 3), usable (n, N), warped colours (n, N, 3) float32, shading (n, N)
-    (r and shading in the problem's residual_dtype), unit normals (N, 3), dA (N,), light bases
-    (m, N, k) (m = 1 when all frames share one), and the energy split into data and prior terms."""
+    and light bases (m, N, k) (m = 1 when all frames share one) (r, shading and bases in the
+    problem's residual_dtype), unit normals (N, 3), dA (N,), and the energy split into data and
+    prior terms."""
 
     residual: np.ndarray
     usable: np.ndarray
@@ -224,7 +225,7 @@ class LevelProblem:
 
     def bases(self, est: Estimate, normals: np.ndarray) -> np.ndarray:
         """Light bases (m, N, k) of every frame, or (1, N, k) when the model shares one."""
-        return self.light_model(est).bases(normals, self.points(est.z), est.poses)
+        return self.light_model(est).bases(normals, self.points(est.z), est.poses, dtype=self.residual_dtype)
 
     def frame_data_energy(self, sample: FrameSample, albedo: np.ndarray, shading: np.ndarray) -> float:
         """Robust data energy of one frame for given shading (N,)."""
@@ -271,7 +272,7 @@ class LevelProblem:
         shading, residual = xp.empty((batch, N), self.residual_dtype), xp.empty((batch, N, 3), self.residual_dtype)
         light = self.light_model(est)
         per_frame = light.bases(normals[:1], P[:1], est.poses).shape[0] > 1  # else one basis for all frames
-        basis = None if per_frame else light.bases(normals, P, est.poses[:1])  # (1, N, k)
+        basis = None if per_frame else light.bases(normals, P, est.poses[:1], dtype=self.residual_dtype)  # (1, N, k)
         static = samples if samples is not None else self._static_samples if self._identity(est) else None
         data = 0.0
         for start in range(0, n, batch):
@@ -284,7 +285,8 @@ class LevelProblem:
                 sampled = static[0][frames]
             else:  # the static samples of every z
                 sampled, usable[frames] = static[0][frames], static[1][frames]
-            kernels.shading_residuals(sampled, est.albedo, light.bases(normals, P, est.poses[start:stop])
+            kernels.shading_residuals(sampled, est.albedo, light.bases(normals, P, est.poses[start:stop],
+                                                                       dtype=self.residual_dtype)
                                       if per_frame else basis, lights[start:stop], usable[start:stop], shading[:m],
                                       residual[:m])
             data += cauchy_energy(residual[:m], self.lam, kernels.log1p_square_sum)
