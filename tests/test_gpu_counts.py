@@ -6,7 +6,9 @@ are the counts measured at this commit, so that a change that adds launches to a
 here. Before issue 33's item 4 (commit 0ece6d0) the same counts were: LED problem 719 launches
 and 108 copies per sweep on its finer level, room problem 722 and 84. The LED's evidence weights (on by default since issue 32's "no grain")
 added 65-69 launches per LED sweep; their closed-form eigenvalue fused into one kernel took 28
-of them back.
+of them back. Issue 31's memory work scores the LED offset's line-search trials by the
+frame-batched energy (no second evaluation held) and evaluates the offset kept once more: +11
+launches and +3 copies on the LED problem's coarser level, where the offset moves.
 """
 
 import shutil
@@ -16,7 +18,7 @@ import pytest
 from benchmarks import gpu
 
 #: (problem, level) -> (launches per sweep, copies per sweep, host reads per linear solve): at most
-BOUNDS = {("led", 1): (515, 64, 4), ("led", 0): (497, 60, 4), ("room", 0): (565, 71, 1)}
+BOUNDS = {("led", 1): (526, 67, 4), ("led", 0): (497, 60, 4), ("room", 0): (565, 71, 1)}
 
 
 @pytest.fixture(scope="module")

@@ -18,7 +18,7 @@ from ..model.robust import cauchy_energy
 from ..model.warping import in_view, visible, warp
 from .device import kernels_for, to_host
 from .krylov import pixel_prolongations
-from .lighting import SHLight
+from .lighting import LEDLight, SHLight
 from .pyramid import Level
 
 
@@ -271,7 +271,7 @@ class LevelProblem:
         color = xp.empty((batch, N, 3), dtype=np.float32) if samples is None else None
         shading, residual = xp.empty((batch, N), self.residual_dtype), xp.empty((batch, N, 3), self.residual_dtype)
         light = self.light_model(est)
-        per_frame = light.bases(normals[:1], P[:1], est.poses).shape[0] > 1  # else one basis for all frames
+        per_frame = isinstance(light, LEDLight)  # a basis per frame (else one for all frames, SH)
         basis = None if per_frame else light.bases(normals, P, est.poses[:1], dtype=self.residual_dtype)  # (1, N, k)
         static = samples if samples is not None else self._static_samples if self._identity(est) else None
         data = 0.0
