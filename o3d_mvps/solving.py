@@ -24,7 +24,7 @@ from .model import se3
 from .refinement import Refinement
 from .run_report import NOT_PICKED, peak_memory_mb, recorded_warnings
 from .solver.device import check_device
-from .solver.driver import solve
+from .solver.driver import return_freed_arrays, solve
 from .solver.options import AUTO, ConvergenceCriteria, RefineOptions
 from .solver.pose_trust import DEFAULT_POSE_TRUST
 from .solver.problem_input import SolverInput, write_problem
@@ -74,6 +74,7 @@ def refine(capture: Capture, options: RefineOptions | None = None, device="auto"
     device = check_device(device)
     if save_problem is not None:
         check_output_files([save_problem], overwrite)
+    return_freed_arrays()  # before the registration too (the solver sets it again)
     t0 = time.perf_counter()
     said, dropped, memory = [], {}, {}
     with recorded_warnings(said):

@@ -40,7 +40,7 @@ SIGNATURES = {
                            _F4, _F4, _F4, _F3),
     "_project_twist_rows": (_F4, _F4, _F3, _F2),
     "_scatter_sparse_transpose_rows": (_array(1, types.int32), _array(1, types.int32), _F1, _F2, _F2),
-    "_shading_residuals": (_COLOR, _F2, _F3, _F2, _array(2, types.boolean), _R2, _R3),
+    "_shading_residuals": (_COLOR, _F2, _R3, _F2, _array(2, types.boolean), _R2, _R3),
     "_weighted_albedo_sums": (_R3, _array(2, types.boolean), _COLOR, _R2, types.float64, _F2, _F2),
     "_weighted_lighting_sums": (_R3, _array(2, types.boolean), _COLOR, _F2, types.float64, _F2, _F2),
     "_led_irradiances_into": (_F2, _F2, _F2, _F2),

@@ -11,6 +11,10 @@ reads per linear solve at most); issue 33's item 4 continued (batched joint asse
 multigrid passes and downdates, re-evaluations keeping their prior energy): 346 / 346 and 436,
 2 reads at most. The albedo-step weights on the LED's finest level (issue 32 item 3) are fused
 into these counts (at 8c3d82f they added 15 launches and 1 copy there): 346 / 343 and 440.
+Issue 31's memory work scores the LED offset's line-search trials by the frame-batched energy
+(no second evaluation held) and evaluates the offset kept once more (at 8c3d82f: +11 launches
+and +3 copies on the LED problem's coarser level, where the offset moves). All merged: 353 / 340
+and 442, 2 reads at most.
 """
 
 import shutil
@@ -20,7 +24,7 @@ import pytest
 from benchmarks import gpu
 
 #: (problem, level) -> (launches per sweep, copies per sweep, host reads per linear solve): at most
-BOUNDS = {("led", 1): (350, 57, 2), ("led", 0): (350, 54, 2), ("room", 0): (445, 67, 1)}
+BOUNDS = {("led", 1): (355, 58, 2), ("led", 0): (345, 54, 2), ("room", 0): (445, 67, 1)}
 
 
 @pytest.fixture(scope="module")

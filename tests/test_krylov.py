@@ -82,6 +82,37 @@ def test_pcg_reports_a_run_out_of_iterations():
     assert np.linalg.norm(b - M @ x) > 1e-8 * np.linalg.norm(b)
 
 
+def test_the_amg_hierarchy_is_freed_with_its_solve_without_the_garbage_collector(monkeypatch):
+    """The AMG preconditioner holds no reference cycle: its hierarchy (and the matrix it was
+    built from) is freed when the solve returns, not at the collector's next pass (a
+    self-calling closure kept 95 MB per sweep alive at D415 size)."""
+    import gc
+    import weakref
+
+    from o3d_mvps.solver import linear
+
+    made = []
+    build = linear.pyamg.smoothed_aggregation_solver
+
+    def recorded(*args, **kwargs):
+        ml = build(*args, **kwargs)
+        made.append(weakref.ref(ml))
+        return ml
+
+    monkeypatch.setattr(linear.pyamg, "smoothed_aggregation_solver", recorded)
+    n = 2000
+    matrix = sp.diags([-np.ones(n - 1), 2.01 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1]).tocsr()
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        x, _ = solve_spd(matrix, np.ones(n), 1e-10, 200)
+        assert len(made) == 1 and made[0]() is None
+    finally:
+        if enabled:
+            gc.enable()
+    np.testing.assert_allclose(matrix @ x, np.ones(n), atol=1e-7)
+
+
 @pytest.mark.parametrize("preconditioner", ["jacobi", "multigrid"])
 def test_pcg_on_device_arrays_matches_numpy(preconditioner):
     """The CUDA path's PCG and preconditioners run on device arrays (the CuPy stand-in of

@@ -382,7 +382,7 @@ def test_auto_smoothness_grows_with_the_sensor_noise_and_with_finer_pixels():
 
 
 def test_a_float32_residual_problem_keeps_its_residuals_in_float32():
-    """residual_dtype (float32 on the CUDA path) is what an evaluation stores its residuals and
+    """residual_dtype (float32 in the solver, CPU and CUDA) is what an evaluation stores its residuals and
     shading in, and the energy moves only by float32 rounding of the residuals (relative 1e-6;
     the energy's logarithms are float32 either way)."""
     from o3d_mvps.solver.problem import LevelProblem

@@ -73,9 +73,9 @@ class SHLight(FrameFields):
         """(N, 4) ``[1, n]``."""
         return sh_basis(normals)
 
-    def bases(self, normals: np.ndarray, points: np.ndarray, poses: np.ndarray) -> np.ndarray:
-        """(1, N, 4): the one basis every frame shares."""
-        return sh_basis(normals)[None]
+    def bases(self, normals: np.ndarray, points: np.ndarray, poses: np.ndarray, dtype=np.float64) -> np.ndarray:
+        """(1, N, 4): the one basis every frame shares (in ``dtype``)."""
+        return sh_basis(normals)[None].astype(dtype, copy=False)
 
     def fields(self, lights: np.ndarray, normals: np.ndarray, points: np.ndarray, poses: np.ndarray):
         """(c, L): frame i's shading is ``c_i + <L_i, n>`` with n in reference coordinates; here
@@ -176,10 +176,12 @@ class LEDLight(FrameFields):
         """(N, 2) ``[1, max(0, <n, v_i>)]``."""
         return self.bases(normals, points, pose[None])[0]
 
-    def bases(self, normals: np.ndarray, points: np.ndarray, poses: np.ndarray) -> np.ndarray:
-        """(m, N, 2) :meth:`basis` of the frames with ``poses`` (m, 4, 4)."""
+    def bases(self, normals: np.ndarray, points: np.ndarray, poses: np.ndarray, dtype=np.float64) -> np.ndarray:
+        """(m, N, 2) :meth:`basis` of the frames with ``poses`` (m, 4, 4), in ``dtype`` (the
+        solver's evaluations keep it in their residuals' float32: 150 MB instead of 300 at 2 MP
+        and 20 frames)."""
         g = self.irradiances(normals, points, poses)
-        out = array_module(g).ones(g.shape + (2,))
+        out = array_module(g).ones(g.shape + (2,), dtype=dtype)
         np.maximum(g, 0.0, out=out[..., 1])
         return out
 
@@ -343,7 +345,10 @@ def update_led_offset(problem, est, ev, *, max_halvings: int = 3, max_pixels: in
     cost a kernel launch), the line search on the full energy; the offset is ``est``'s (or the
     light model's) unchanged, with ``ev``, when no step lowers the energy, or when the
     Gauss-Newton model predicts a decrease below ``min_decrease`` (energy units; each line
-    search trial costs a full evaluation, and near convergence they nearly all fail).
+    search trial costs an energy, and near convergence they nearly all fail). The trials are
+    scored by :meth:`.LevelProblem.energy` from ``ev``'s samples (no frames x pixels arrays
+    but a few frames'); the kept offset's evaluation is written into ``ev``'s arrays
+    (:meth:`.LevelProblem.relit`), so ``ev`` is given up when the offset moves.
     """
     light = problem.light_model(est)
     H = np.zeros((3, 3))
@@ -370,9 +375,12 @@ def update_led_offset(problem, est, ev, *, max_halvings: int = 3, max_pixels: in
 
     def trial(t: float):
         moved = dataclasses.replace(est, led_offset=start + t * step)
-        trial_ev = problem.evaluate_samples(moved, ev.color, ev.usable, ev.normals, ev.dA)
-        return (moved.led_offset, trial_ev), trial_ev.energy
+        # scored a few frames at a time from ev's samples; only the kept offset is evaluated
+        return moved, problem.energy(moved, (ev.color, ev.usable), ev.normals)[0]
 
     found = backtrack(trial, ev.energy, max_halvings)
-    return (start, ev) if found is None else found[1]
+    if found is None:
+        return start, ev
+    moved = found[1]
+    return moved.led_offset, problem.relit(moved, ev)
 

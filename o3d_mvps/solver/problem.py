@@ -18,15 +18,15 @@ from ..model.robust import cauchy_energy
 from ..model.warping import in_view, visible, warp
 from .device import kernels_for, to_host
 from .krylov import pixel_prolongations
-from .lighting import SHLight
+from .lighting import LEDLight, SHLight
 from .pyramid import Level
 
 
 #: Frames x pixels per batch of :meth:`LevelProblem.energy`: all frames at once up to this size (as
-#: many compiled-loop launches as an evaluation; at D415 size and 20 frames one batch), 2 frames
-#: a batch at 2 MP (one launch per frame and kernel cost a loaded 2-core machine several times
-#: the D415 extrapolation's time).
-ENERGY_BATCH_PIXELS = 2**21
+#: many compiled-loop launches as an evaluation), 5 frames a batch at D415 size (90 000 object
+#: pixels: some 30 MB of temporaries instead of 110 MB for all 20), one at 2 MP (the host warps
+#: frame by frame anyway; a batch adds three launches).
+ENERGY_BATCH_PIXELS = 2**19
 
 
 @dataclass
@@ -63,8 +63,9 @@ class FrameGradients:
 @dataclass
 class Evaluation:
     """Residuals r (n, N, 3), usable (n, N), warped colours (n, N, 3) float32, shading (n, N)
-    (r and shading in the problem's residual_dtype), unit normals (N, 3), dA (N,), light bases
-    (m, N, k) (m = 1 when all frames share one), and the energy split into data and prior terms."""
+    and light bases (m, N, k) (m = 1 when all frames share one) (r, shading and bases in the
+    problem's residual_dtype), unit normals (N, 3), dA (N,), and the energy split into data and
+    prior terms."""
 
     residual: np.ndarray
     usable: np.ndarray
@@ -234,7 +235,7 @@ class LevelProblem:
 
     def bases(self, est: Estimate, normals: np.ndarray) -> np.ndarray:
         """Light bases (m, N, k) of every frame, or (1, N, k) when the model shares one."""
-        return self.light_model(est).bases(normals, self.points(est.z), est.poses)
+        return self.light_model(est).bases(normals, self.points(est.z), est.poses, dtype=self.residual_dtype)
 
     def frame_data_energy(self, sample: FrameSample, albedo: np.ndarray, shading: np.ndarray) -> float:
         """Robust data energy of one frame for given shading (N,)."""
@@ -259,24 +260,30 @@ class LevelProblem:
             self._static_samples = (color, usable)
         return self.evaluate_samples(est, color, usable, *self.normals(est.z))
 
-    def energy(self, est: Estimate) -> tuple[float, np.ndarray]:
+    def energy(self, est: Estimate, samples: tuple | None = None, normals: np.ndarray | None = None
+               ) -> tuple[float, np.ndarray]:
         """The energy of :meth:`evaluate` (equal up to the order of the float64 sum) and the usable
         mask (n, N), computed a batch of frames at a time (:data:`ENERGY_BATCH_PIXELS`): no
         frames x pixels arrays but the mask (at 2 MP and 20 frames some 140 MB of temporaries
-        instead of the evaluation's 1.2 GB), for a trial that is kept only if it lowers the energy."""
+        instead of the evaluation's 1.2 GB), for a trial that is kept only if it lowers the energy.
+
+        samples: the warped colours (n, N, 3) and usable (n, N) of ``est``'s z and poses where the
+        caller has them (an evaluation's, for a trial that moves neither, e.g. the LED offset):
+        read instead of warping the frames again; normals (N, 3): ``est``'s unit normals, likewise."""
         n, N = self.n_frames, self.level.grid.size
         P = self.points(est.z)
         xp, kernels = array_module(P), kernels_for(P)
-        normals, _ = self.normals(est.z)
+        if normals is None:
+            normals, _ = self.normals(est.z)
         poses, lights = like(est.poses, P), like(est.lights, P, dtype=np.float64)
         batch = min(n, max(1, ENERGY_BATCH_PIXELS // max(N, 1)))
-        usable = xp.empty((n, N), dtype=bool)
-        color = xp.empty((batch, N, 3), dtype=np.float32)
+        usable = xp.empty((n, N), dtype=bool) if samples is None else samples[1]
+        color = xp.empty((batch, N, 3), dtype=np.float32) if samples is None else None
         shading, residual = xp.empty((batch, N), self.residual_dtype), xp.empty((batch, N, 3), self.residual_dtype)
         light = self.light_model(est)
-        per_frame = light.bases(normals[:1], P[:1], est.poses).shape[0] > 1  # else one basis for all frames
-        basis = None if per_frame else light.bases(normals, P, est.poses[:1])  # (1, N, k)
-        static = self._static_samples if self._identity(est) else None  # the samples of every z
+        per_frame = isinstance(light, LEDLight)  # a basis per frame (else one for all frames, SH)
+        basis = None if per_frame else light.bases(normals, P, est.poses[:1], dtype=self.residual_dtype)  # (1, N, k)
+        static = samples if samples is not None else self._static_samples if self._identity(est) else None
         data = 0.0
         for start in range(0, n, batch):
             stop = min(n, start + batch)
@@ -284,9 +291,12 @@ class LevelProblem:
             if static is None:
                 self._sample_frames(P, poses, frames, color[:m], usable[frames])
                 sampled = color[:m]
-            else:
+            elif samples is not None:
+                sampled = static[0][frames]
+            else:  # the static samples of every z
                 sampled, usable[frames] = static[0][frames], static[1][frames]
-            kernels.shading_residuals(sampled, est.albedo, light.frames(frames).bases(normals, P, est.poses[frames])
+            kernels.shading_residuals(sampled, est.albedo, light.frames(frames).bases(normals, P, est.poses[frames],
+                                                                                      dtype=self.residual_dtype)
                                       if per_frame else basis, lights[start:stop], usable[start:stop], shading[:m],
                                       residual[:m])
             data += cauchy_energy(residual[:m], self.lam, kernels.log1p_square_sum)
@@ -316,6 +326,13 @@ class LevelProblem:
         data = cauchy_energy(residual, self.lam, kernels.log1p_square_sum)
         return Evaluation(residual, usable, color, shading, normals, dA, basis, data,
                           self.prior_energy(est.z) if prior is None else prior)
+
+    def relit(self, est: Estimate, ev: Evaluation) -> Evaluation:
+        """The evaluation of ``est``, whose z and poses are those ``ev`` was computed at but whose
+        light model may differ (a moved LED offset), written into ``ev``'s residuals and shading
+        (``ev`` is given up; its basis is dropped before the new one is made)."""
+        ev.basis = None
+        return self._evaluation(est, ev.color, ev.usable, ev.normals, ev.dA, self.bases(est, ev.normals), ev)
 
     def reevaluate(self, est: Estimate, ev: Evaluation, *, overwrite: bool = False) -> Evaluation:
         """Evaluation of ``est`` whose z, poses and light model are those ``ev`` was computed at.

@@ -200,7 +200,8 @@ def build_level(index: int, colors: list, masks: list, ref_mask: np.ndarray, K: 
     # only read), coarser levels area-averaged copies
     images = [color if color.shape[:2] == tuple(size) and color.dtype == np.float32
               else resize(color, size).astype(np.float32) for color in colors]
-    frame_masks = [None if m is None else resize(m.astype(np.float32), size) > 0.5 for m in masks]
+    frame_masks = [m if m is None or m.shape == tuple(size) else resize(m.astype(np.float32), size) > 0.5
+                   for m in masks]  # the finest level reads the masks themselves
     mask = resize(ref_mask.astype(np.float32), size) > 0.5
     grid = masked_grid(mask, scheme)
     prior = depth_prior(grid, z0, scale_factor / 2**index)

@@ -34,20 +34,26 @@ def update_lighting(est: Estimate, ev: Evaluation, lam: float, light) -> np.ndar
     model ``light``'s constraint (:meth:`~.lighting.SHLight.fit`: per frame, or one light for
     all), B_i the light basis; frames with fewer than 8 usable pixels keep their light."""
     xp = array_module(ev.residual)
-    wr2, wri = xp.empty(ev.usable.shape), xp.empty(ev.usable.shape)  # sum_c w rho^2, sum_c w rho I~: (n, N)
-    kernels_for(wr2).weighted_lighting_sums(ev.residual, ev.usable, ev.color, contiguous(est.albedo),
-                                            1.0 / lam, wr2, wri)
+    albedo = contiguous(est.albedo)
     n, k = est.lights.shape
     gram, rhs = np.zeros((n, k, k)), np.zeros((n, k))
     counts = to_host(ev.usable.sum(axis=1))
-    if on_gpu(wr2):  # every frame's system in three launches and two copies (the host's loop: 5 a frame)
+    if on_gpu(ev.residual):  # every frame's system in three launches and two copies (the host's loop: 5 a frame)
+        wr2, wri = xp.empty(ev.usable.shape), xp.empty(ev.usable.shape)  # sum_c w rho^2, sum_c w rho I~: (n, N)
+        kernels_for(wr2).weighted_lighting_sums(ev.residual, ev.usable, ev.color, albedo, 1.0 / lam, wr2, wri)
         basis = ev.basis  # (n, N, k), or (1, N, k) shared
         gram = to_host(xp.matmul((basis * wr2[:, :, None]).transpose(0, 2, 1), basis))
         rhs = to_host(xp.matmul(wri[:, None, :], basis)[:, 0])
         gram[counts < 8], rhs[counts < 8] = 0.0, 0.0
         return light.fit(gram, rhs, est.lights)
+    # on the host a frame at a time: the sums of one frame (1, N) each, not of all (2 x 160 MB
+    # at 2 MP and 20 frames); the same values
+    wr2, wri = np.empty((1, ev.usable.shape[1])), np.empty((1, ev.usable.shape[1]))
     for i in range(n):
         if counts[i] >= 8:
+            frame = slice(i, i + 1)
+            kernels_for(wr2).weighted_lighting_sums(ev.residual[frame], ev.usable[frame], ev.color[frame], albedo,
+                                                    1.0 / lam, wr2, wri)
             m = ev.frame_basis(i)  # (N, k)
-            gram[i], rhs[i] = to_host((m * wr2[i][:, None]).T @ m), to_host(m.T @ wri[i])
+            gram[i], rhs[i] = (m * wr2[0][:, None]).T @ m, m.T @ wri[0]
     return light.fit(gram, rhs, est.lights)
