@@ -197,6 +197,8 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
     downdate = np.zeros((6 * m, 6 * m))  # the albedo projection's sum f f^T over pixels and channels
     points_ref = problem.points(est.z)
     Du, Dv = grid.difference_operators()
+    if xp is np and m:  # without the stored zeros (the central differences' own pixel): a third fewer scatters into U
+        Du, Dv = _without_zeros(Du), _without_zeros(Dv)
     for start in range(0, N, block_pixels):
         block = slice(start, min(N, start + block_pixels))
         _assemble_block(problem, est, ev, block, points_ref[block], candidates, parallax, project_albedo,
@@ -220,6 +222,13 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
             coupling_t[row] = coupling_t[k]
     coupling = coupling_t[:len(kept)].T  # (N, 6m')
     return JointSystem(sparse_module(matrix).csr_matrix(matrix), rhs_z, coupling, hessian, rhs_xi[kept], frames)
+
+
+def _without_zeros(D: sp.csr_matrix) -> sp.csr_matrix:
+    """A copy of the CSR matrix D without its explicitly stored zeros."""
+    D = D.copy()
+    D.eliminate_zeros()
+    return D
 
 
 def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, project_albedo, sums, grams,
