@@ -252,6 +252,31 @@ def add_stencil_transpose_rows(u_indptr, u_indices, u_data, v_indptr, v_indices,
                 out[j, v_indices[nz]] += v_data[nz] * b
 
 
+@numba.njit(parallel=True, cache=True)
+def project_stencil_rows(rows, F, scaled, sqrt_inv_d, u_indptr, u_indices, u_data, v_indptr, v_indices, v_data, first,
+                         out):  # pragma: no cover - compiled
+    """:func:`project_twist_rows` and then :func:`add_stencil_transpose_rows` of the projected
+    rows in one pass (the host's): rows (3, m, 6, B) are read once and not written back (each
+    projected entry goes straight into out (6m, N)); F (m, 6, B, 3) is scaled in place. The
+    same operations in the same order as the two kernels, so the same values."""
+    m, B = F.shape[0], F.shape[2]
+    for row in numba.prange(6 * m):
+        f, j = row // 6, row % 6
+        for p in range(B):
+            F0, F1, F2 = F[f, j, p, 0], F[f, j, p, 1], F[f, j, p, 2]
+            a = rows[0, f, j, p] - (scaled[0, p, 0] * F0 + scaled[0, p, 1] * F1 + scaled[0, p, 2] * F2)
+            b = rows[1, f, j, p] - (scaled[1, p, 0] * F0 + scaled[1, p, 1] * F1 + scaled[1, p, 2] * F2)
+            c = rows[2, f, j, p] - (scaled[2, p, 0] * F0 + scaled[2, p, 1] * F1 + scaled[2, p, 2] * F2)
+            F[f, j, p, 0] = F0 * sqrt_inv_d[p, 0]
+            F[f, j, p, 1] = F1 * sqrt_inv_d[p, 1]
+            F[f, j, p, 2] = F2 * sqrt_inv_d[p, 2]
+            out[row, first + p] += c
+            for nz in range(u_indptr[p], u_indptr[p + 1]):
+                out[row, u_indices[nz]] += u_data[nz] * a
+            for nz in range(v_indptr[p], v_indptr[p + 1]):
+                out[row, v_indices[nz]] += v_data[nz] * b
+
+
 @numba.njit(parallel=True, cache=True, fastmath={"reassoc"})
 def rows_times(A, x, out):  # pragma: no cover - compiled
     """out (k,) = A x for A (k, N) C-ordered (float32 or float64) and x (N,) float64, each
