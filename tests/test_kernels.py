@@ -9,7 +9,8 @@ import scipy.sparse as sp
 
 from o3d_mvps.model.robust import cauchy, cauchy_energy, cauchy_weights
 from o3d_mvps.model.shading import led_irradiance, led_irradiances, led_irradiances_into, led_vectors
-from o3d_mvps.solver.kernels import (FRAME_CHUNK, add_stencil_transpose_rows, columns_times, rows_times,
+from o3d_mvps.solver.kernels import (FRAME_CHUNK, add_stencil_transpose_rows, columns_times, project_stencil_rows,
+                                     project_twist_rows, rows_times,
                                      scatter_sparse_transpose_rows, shading_residual_pixel, shading_residuals,
                                      weighted_albedo_pixel, weighted_albedo_sums, weighted_lighting_pixel,
                                      weighted_lighting_sums)
@@ -82,6 +83,27 @@ def test_stencil_transpose_rows_are_both_scatters_and_the_identity_part():
         out = start.astype(dtype)
         add_stencil_transpose_rows(Du.indptr, Du.indices, Du.data, Dv.indptr, Dv.indices, Dv.data, rows, 200, out)
         np.testing.assert_allclose(out, expected, rtol=tolerance, atol=tolerance * np.abs(expected).max())
+
+
+def test_fused_projection_and_stencil_equal_the_two_kernels():
+    """project_stencil_rows gives the very values (float32 U, scaled F) of project_twist_rows
+    followed by add_stencil_transpose_rows, and leaves the rows unwritten."""
+    m, B, N = 2, 300, 700
+    Du, Dv = (sp.random(B, N, density=0.01, random_state=seed, format="csr") for seed in (4, 5))
+    rows, F = RNG.normal(size=(3, m, 6, B)), RNG.normal(size=(m, 6, B, 3))
+    scaled, sqrt_inv_d = RNG.normal(size=(3, B, 3)), RNG.random((B, 3))
+    start = RNG.normal(size=(6 * m, N)).astype(np.float32)
+    rows_two, F_two, out_two = rows.copy(), F.copy(), start.copy()
+    project_twist_rows(rows_two, F_two, scaled, sqrt_inv_d)
+    add_stencil_transpose_rows(Du.indptr, Du.indices, Du.data, Dv.indptr, Dv.indices, Dv.data,
+                               rows_two.reshape(3, 6 * m, B), 200, out_two)
+    rows_one, F_one, out_one = rows.copy(), F.copy(), start.copy()
+    project_stencil_rows(rows_one, F_one, scaled, sqrt_inv_d, Du.indptr, Du.indices, Du.data, Dv.indptr, Dv.indices,
+                         Dv.data, 200, out_one)
+    np.testing.assert_array_equal(out_one, out_two)
+    np.testing.assert_array_equal(F_one, F_two)
+    np.testing.assert_array_equal(rows_one, rows)
+    assert not np.array_equal(out_one, start)
 
 
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])

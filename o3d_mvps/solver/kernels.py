@@ -42,10 +42,13 @@ def chunk_count(n_pixels: int) -> int:
 
 @numba.njit(inline="always")
 def accumulate_pixel(p, r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, pose, K, image,
-                     dshading, albedo, with_jacobian, parallax, sums, e, rows, F, slot, J, G, b, wqJ, wcJ):  # pragma: no cover
+                     dshading, albedo, with_jacobian, parallax, sums, e, rows, F, slot, J, G, b, wq, wc):  # pragma: no cover
     """:func:`accumulate_frame`'s work on pixel p: its sums, e, rows and F entries, and its
-    twist Gram and right-hand side added to G (6, 6) and b (6,). Scratch: J (3, 6), wqJ (6,),
-    wcJ (6,)."""
+    twist Gram and right-hand side added to G (6, 6) and b (6,). Scratch: J (3, 6), wq (6,),
+    wc (6,).
+
+    The channels' Jacobian rows J[c] are formed first; the twist sums then take all three
+    channels at once per entry (one update of G, b, rows and F per pixel, not per channel)."""
     project = e.shape[0] > 0
     with_extra = extra_c.shape[0] > 0
     with_dshading = dshading.shape[0] > 0
@@ -68,9 +71,6 @@ def accumulate_pixel(p, r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c
         ray_x = pose[0, 0] * rx + pose[0, 1] * ry + pose[0, 2]
         ray_y = pose[1, 0] * rx + pose[1, 1] * ry + pose[1, 2]
         ray_z = pose[2, 0] * rx + pose[2, 1] * ry + pose[2, 2]
-        for j in range(6):
-            wqJ[j] = 0.0
-            wcJ[j] = 0.0
     for c in range(3):
         wc_ = 0.0
         if use[p]:
@@ -96,10 +96,10 @@ def accumulate_pixel(p, r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c
                     J[c, j] -= albedo[p, c] * dshading[p, j]
             if parallax:
                 cc += J[c, 0] * ray_x + J[c, 1] * ray_y + J[c, 2] * ray_z
-        wq = wc_ * qc
-        W += wq * qc
-        Wqc += wq * cc
-        Wqr += wq * r[p, c]
+        wq_ = wc_ * qc
+        W += wq_ * qc
+        Wqc += wq_ * cc
+        Wqr += wq_ * r[p, c]
         Sgg += wc_ * cc * cc
         Bg += wc_ * cc * r[p, c]
         ws = wc_ * shading[p]
@@ -108,21 +108,11 @@ def accumulate_pixel(p, r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c
             e[0, p, c] -= wsq * al
             e[1, p, c] -= wsq * be
             e[2, p, c] += ws * cc
-        if emit:
-            if jac:
-                for j in range(6):
-                    Jj = J[c, j]
-                    wJj = wc_ * Jj
-                    wqJ[j] += wq * Jj
-                    wcJ[j] += wJj * cc
-                    b[j] -= wJj * r[p, c]
-                    for k in range(j, 6):
-                        G[j, k] += wJj * J[c, k]
-                    if with_F:
-                        F[slot, j, p, c] = ws * Jj
-            elif with_F:
-                for j in range(6):
-                    F[slot, j, p, c] = 0.0
+        # per channel: w, w q, w c, w r for the twist sums below
+        wq[c] = wc_
+        wq[3 + c] = wq_
+        wc[c] = wc_ * cc
+        wc[3 + c] = wc_ * r[p, c]
     sums[0, p] += W * al * al
     sums[1, p] += W * be * be
     sums[2, p] += Sgg
@@ -132,16 +122,33 @@ def accumulate_pixel(p, r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c
     sums[6, p] -= al * Wqr
     sums[7, p] -= be * Wqr
     sums[8, p] += Bg
-    if emit:
+    if not emit:
+        return
+    if not jac:
         for j in range(6):
-            if jac:
-                rows[0, slot, j, p] = -al * wqJ[j]
-                rows[1, slot, j, p] = -be * wqJ[j]
-                rows[2, slot, j, p] = wcJ[j]
-            else:
-                rows[0, slot, j, p] = 0.0
-                rows[1, slot, j, p] = 0.0
-                rows[2, slot, j, p] = 0.0
+            rows[0, slot, j, p] = 0.0
+            rows[1, slot, j, p] = 0.0
+            rows[2, slot, j, p] = 0.0
+            if with_F:
+                for c in range(3):
+                    F[slot, j, p, c] = 0.0
+        return
+    w0, w1, w2 = wq[0], wq[1], wq[2]
+    sh = shading[p]
+    for j in range(6):
+        J0, J1, J2 = J[0, j], J[1, j], J[2, j]
+        wJ0, wJ1, wJ2 = w0 * J0, w1 * J1, w2 * J2
+        for k in range(j, 6):
+            G[j, k] += wJ0 * J[0, k] + wJ1 * J[1, k] + wJ2 * J[2, k]
+        b[j] -= wc[3] * J0 + wc[4] * J1 + wc[5] * J2
+        wqJ = wq[3] * J0 + wq[4] * J1 + wq[5] * J2  # sum_c w q J
+        rows[0, slot, j, p] = -al * wqJ
+        rows[1, slot, j, p] = -be * wqJ
+        rows[2, slot, j, p] = wc[0] * J0 + wc[1] * J1 + wc[2] * J2  # sum_c w c J
+        if with_F:
+            F[slot, j, p, 0] = sh * wJ0
+            F[slot, j, p, 1] = sh * wJ1
+            F[slot, j, p, 2] = sh * wJ2
 
 
 @numba.njit(inline="always")
@@ -261,6 +268,31 @@ def add_stencil_transpose_rows(u_indptr, u_indices, u_data, v_indptr, v_indices,
                 out[j, u_indices[nz]] += u_data[nz] * a
             for nz in range(v_indptr[p], v_indptr[p + 1]):
                 out[j, v_indices[nz]] += v_data[nz] * b
+
+
+@numba.njit(parallel=True, cache=True)
+def project_stencil_rows(rows, F, scaled, sqrt_inv_d, u_indptr, u_indices, u_data, v_indptr, v_indices, v_data, first,
+                         out):  # pragma: no cover - compiled
+    """:func:`project_twist_rows` and then :func:`add_stencil_transpose_rows` of the projected
+    rows in one pass (the host's): rows (3, m, 6, B) are read once and not written back (each
+    projected entry goes straight into out (6m, N)); F (m, 6, B, 3) is scaled in place. The
+    same operations in the same order as the two kernels, so the same values."""
+    m, B = F.shape[0], F.shape[2]
+    for row in numba.prange(6 * m):
+        f, j = row // 6, row % 6
+        for p in range(B):
+            F0, F1, F2 = F[f, j, p, 0], F[f, j, p, 1], F[f, j, p, 2]
+            a = rows[0, f, j, p] - (scaled[0, p, 0] * F0 + scaled[0, p, 1] * F1 + scaled[0, p, 2] * F2)
+            b = rows[1, f, j, p] - (scaled[1, p, 0] * F0 + scaled[1, p, 1] * F1 + scaled[1, p, 2] * F2)
+            c = rows[2, f, j, p] - (scaled[2, p, 0] * F0 + scaled[2, p, 1] * F1 + scaled[2, p, 2] * F2)
+            F[f, j, p, 0] = F0 * sqrt_inv_d[p, 0]
+            F[f, j, p, 1] = F1 * sqrt_inv_d[p, 1]
+            F[f, j, p, 2] = F2 * sqrt_inv_d[p, 2]
+            out[row, first + p] += c
+            for nz in range(u_indptr[p], u_indptr[p + 1]):
+                out[row, u_indices[nz]] += u_data[nz] * a
+            for nz in range(v_indptr[p], v_indptr[p + 1]):
+                out[row, v_indices[nz]] += v_data[nz] * b
 
 
 @numba.njit(parallel=True, cache=True, fastmath={"reassoc"})

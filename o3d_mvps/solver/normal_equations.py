@@ -205,6 +205,8 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
     downdate = np.zeros((6 * m, 6 * m))  # the albedo projection's sum f f^T over pixels and channels
     points_ref = problem.points(est.z)
     Du, Dv = grid.difference_operators()
+    if xp is np and m:  # without the stored zeros (the central differences' own pixel): a third fewer scatters into U
+        Du, Dv = _without_zeros(Du), _without_zeros(Dv)
     for start in range(0, N, block_pixels):
         block = slice(start, min(N, start + block_pixels))
         _assemble_block(problem, est, ev, block, points_ref[block], candidates, parallax, project_albedo,
@@ -228,6 +230,13 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
             coupling_t[row] = coupling_t[k]
     coupling = coupling_t[:len(kept)].T  # (N, 6m')
     return JointSystem(sparse_module(matrix).csr_matrix(matrix), rhs_z, coupling, hessian, rhs_xi[kept], frames)
+
+
+def _without_zeros(D: sp.csr_matrix) -> sp.csr_matrix:
+    """A copy of the CSR matrix D without its explicitly stored zeros."""
+    D = D.copy()
+    D.eliminate_zeros()
+    return D
 
 
 def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, project_albedo, sums, grams,
@@ -284,9 +293,16 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
         rhs_xi += to_host(rhs[:m].sum(axis=1)).reshape(-1)
     if projection is not None:
         block_sums -= projection.local()
-        if m:
-            projection.downdate_twists(F, rows, downdate, rhs_xi)
     sums[:] = block_sums
+    if m and projection is not None and xp is np:
+        # the projection of the rows and their stencil transpose into U^T in one pass on the host
+        scaled, sqrt_inv_d = projection.twist_scalings()
+        kernels.project_stencil_rows(rows, F, scaled, sqrt_inv_d, Du_rows.indptr, Du_rows.indices, Du_rows.data,
+                                     Dv_rows.indptr, Dv_rows.indices, Dv_rows.data, block.start, coupling_t)
+        projection.downdate_scaled(F, downdate, rhs_xi, sqrt_inv_d)
+        return
+    if m and projection is not None:
+        projection.downdate_twists(F, rows, downdate, rhs_xi)
     if m:
         # U^T += the stencil transpose of the rows: Du^T rows_a + Dv^T rows_b + rows_c
         if xp is np:  # one pass on the host
@@ -337,8 +353,17 @@ class _AlbedoProjection:
         ``sum_c (e_k / d) f`` in place, ``downdate`` (6m, 6m) gains ``sum f f^T / d`` (the Gram's
         loss) and the right-hand side (6m,) gains ``sum f (s^T W r) / d`` over the block's pixels
         and channels; F (m, 6, B, 3) = w s J of the m refined frames is scaled in place."""
-        sqrt_inv_d = np.sqrt(self.inv_d)
-        kernels_for(F).project_twist_rows(rows, F, self.e * self.inv_d, sqrt_inv_d)
+        scaled, sqrt_inv_d = self.twist_scalings()
+        kernels_for(F).project_twist_rows(rows, F, scaled, sqrt_inv_d)
+        self.downdate_scaled(F, downdate, rhs_xi, sqrt_inv_d)
+
+    def twist_scalings(self) -> tuple[np.ndarray, np.ndarray]:
+        """(e / d (3, B, 3), 1 / sqrt(d) (B, 3)): what the twist rows lose per unit of F, and F's
+        scaling (:meth:`downdate_twists`)."""
+        return self.e * self.inv_d, np.sqrt(self.inv_d)
+
+    def downdate_scaled(self, F: np.ndarray, downdate: np.ndarray, rhs_xi: np.ndarray, sqrt_inv_d: np.ndarray) -> None:
+        """:meth:`downdate_twists`'s sums over F (m, 6, B, 3) once scaled by ``sqrt_inv_d`` (B, 3)."""
         f = F.reshape(6 * len(F), -1)  # (6m, 3B): frame j in rows 6j..
         rhs_xi += to_host(f @ (self.sWr * sqrt_inv_d).reshape(-1))
         downdate += _gram(f)
