@@ -276,6 +276,9 @@ def test_a_frame_off_by_a_move_is_kept_where_the_poses_are_not_trusted_that_clos
         assert poses["status"] == "ok"
         assert re.search(r"frame 3 \(with its camera turned 5 degrees about its \+z axis .*: off by about that "
                          r"much, which the refinement may correct", poses["detail"])
+    with pytest.warns(UserWarning, match=r"if the poses are only a rough start, let the refinement move them: "
+                                         r"--pose-trust MM DEG \(10 5 or more"):
+        check_inputs(led, spoilt)  # trusted to 2 mm and 0.2 degrees: dropped, and the way to keep it named
 
 
 @pytest.mark.parametrize("degrees", [5, 34])

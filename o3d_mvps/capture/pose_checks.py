@@ -366,7 +366,10 @@ def check_poses(depths: list, depth_K: np.ndarray, given, frames: list, labels: 
             f"better with the pose moved a little ("
             f"{'; '.join(f'{labels[i]}: {why[i]}' for i in lost)}; the frames' median {np.median(placed):.0%}), "
             f"and no usual mix-up ({', '.join(c.name for c in candidates[1:])}) fits it. Fix or remove that pose "
-            "(and frame), or drop the pose file so registration estimates the poses")
+            "(and frame), or drop the pose file so registration estimates the poses"
+            + ("; if the poses are only a rough start, let the refinement move them: --pose-trust MM DEG "
+               f"({MOVE_MM:g} {MOVE_DEG:g} or more; Python: refine(..., pose_trust=(mm, deg)), or False)"
+               if any(better[i - 1] for i in lost) else ""))
         if len(lost) > MAX_DROPPED * (len(poses) - 1) or len(poses) - len(lost) < min_frames:
             raise CaptureError(message)
         conventions["fits"] = "as given"
