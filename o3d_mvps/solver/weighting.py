@@ -190,8 +190,6 @@ def absolute_evidence_weights(evidence: np.ndarray, noise: float, ceiling: float
     return xp.clip(reference / xp.maximum(evidence, reference / ceiling), 1.0, ceiling)
 
 
-
-
 #: the sub-pixel misplacement (pixels) of an albedo step between the frames that
 #: :func:`albedo_step_factor` counts: each frame point-samples the surface at its own points, so
 #: warped to the reference by bilinear sampling a step lands anywhere within a pixel (a uniform

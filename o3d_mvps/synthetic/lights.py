@@ -4,12 +4,17 @@ fixed to the camera, and room light (ambient plus distant lights fixed in the sc
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import open3d as o3d
 
 from ..model.shading import led_vectors
 from .scene import apply_matrix
+
+if TYPE_CHECKING:  # annotations only
+    from .render import FrameRender
+    from .scene import SyntheticScene
 
 LIGHTS = ("led", "directional", "room")
 
