@@ -94,6 +94,34 @@ def test_led_fields_and_jacobians_of_several_frames_are_each_frames_own(rng):
         assert np.abs(J[i] - J[(i + 1) % 3]).max() > 1e-3 * np.abs(J[i]).max()  # the frames differ
 
 
+def test_led_compiled_fields_and_jacobians_equal_the_array_formulas(rng):
+    """The host's one-pass kernels (led_fields_into, led_camera_gradients_into) give the fields,
+    the shading Jacobians and the offset Jacobian of the array formulas the GPU path runs
+    (led_vectors, lit_point_gradients, a rotation and a cross product) to round-off, with points
+    facing away (zero) and more pixels than one chunk of the kernels' loops."""
+    from o3d_mvps.model.shading import FRAME_CHUNK, led_vectors
+    from o3d_mvps.solver.lighting import lit_point_gradients
+
+    points, normals = surface(rng, FRAME_CHUNK + 100)
+    normals[::3] *= -1
+    light = LEDLight(OFFSET)
+    poses = np.stack([a_pose(rng) for _ in range(3)])
+    lights = np.array([[0.1, 0.35], [0.05, 0.3], [0.2, 0.4]])
+    s = light.positions(poses)
+    v = led_vectors(points, s)
+    L_ref = v * (lights[:, 1:] * (np.einsum("...j,...j->...", normals, v) > 0))[..., None]
+    G_ref = np.matmul(lit_point_gradients(lights, normals, points, s), poses[:, :3, :3].transpose(0, 2, 1))
+    J_ref = np.concatenate([G_ref, np.cross(OFFSET, G_ref)], axis=-1)
+    c, L = light.fields(lights, normals, points, poses)
+    J = light.shading_jacobians(lights, normals, points, poses)
+    np.testing.assert_array_equal(c, lights[:, 0])
+    np.testing.assert_allclose(L, L_ref, rtol=1e-14, atol=1e-14 * np.abs(L_ref).max())
+    np.testing.assert_allclose(J, J_ref, rtol=1e-13, atol=1e-14 * np.abs(J_ref).max())
+    assert (L_ref[:, ::3] == 0).all() and (J[:, ::3] == 0).all() and (np.abs(J[:, 1::3]) > 0).any()
+    np.testing.assert_allclose(light.offset_jacobian(lights[1], normals, points, poses[1]), -G_ref[1],
+                               rtol=1e-13, atol=1e-14 * np.abs(G_ref).max())
+
+
 def test_led_field_reproduces_the_basis_and_is_zero_facing_away(rng):
     points, normals = surface(rng, 30)
     normals[::3] *= -1  # every third point faces away from the LED

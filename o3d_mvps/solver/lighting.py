@@ -27,9 +27,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..model.arrays import array_module, like
+from ..model.arrays import array_module, contiguous, like
 from ..model.robust import cauchy_weights
-from ..model.shading import INITIAL_LIGHT, led_irradiances, led_vector_jacobian, led_vectors, sh_basis
+from ..model.shading import (INITIAL_LIGHT, led_camera_gradients_into, led_fields_into, led_irradiances,
+                             led_vector_jacobian, led_vectors, sh_basis)
 from .device import kernels_for, to_host
 from .line_search import backtrack
 from .linear import ridge_solve
@@ -187,13 +188,29 @@ class LEDLight(FrameFields):
 
     def fields(self, lights: np.ndarray, normals: np.ndarray, points: np.ndarray, poses: np.ndarray):
         """(c, L): frame i's shading is ``c_i + <L_i, n>``; c (m,) the ambients of lights (m, 2),
-        L (m, N, 3) the intensity times v_i, zero where the point faces away."""
+        L (m, N, 3) the intensity times v_i, zero where the point faces away (on the host one
+        compiled pass, :func:`~o3d_mvps.model.shading.led_fields_into`)."""
+        if array_module(points) is np:
+            L = np.empty((len(lights), len(points), 3))
+            led_fields_into(np.ascontiguousarray(lights[:, 1], dtype=np.float64), contiguous(normals, np.float64),
+                            contiguous(points, np.float64), np.ascontiguousarray(self.positions(poses)), L)
+            return lights[:, 0], L
         v = led_vectors(points, self.positions(poses))  # (m, N, 3)
         lit = like(lights[:, 1:], points) * (np.einsum("...j,...j->...", normals, v) > 0)
         return lights[:, 0], v * lit[..., None]
 
-    def _camera_gradients(self, lights, normals, points, poses):
-        """d(shading)/d(point) (m, N, 3) in each frame's camera coordinates, zero where unlit."""
+    def _camera_gradients(self, lights, normals, points, poses, width: int = 3):
+        """d(shading)/d(point) G (m, N, 3) in each frame's camera coordinates, zero where unlit;
+        width 6: with ``o x G`` (m, N, 6) (:meth:`shading_jacobians`). On the host one compiled
+        pass (:func:`~o3d_mvps.model.shading.led_camera_gradients_into`)."""
+        if array_module(points) is np:
+            G = np.empty((len(lights), len(points), width))
+            led_camera_gradients_into(np.ascontiguousarray(lights[:, 1], dtype=np.float64),
+                                      contiguous(normals, np.float64), contiguous(points, np.float64),
+                                      np.ascontiguousarray(self.positions(poses)),
+                                      np.ascontiguousarray(poses[:, :3, :3], dtype=np.float64),
+                                      self.offset, G)
+            return G
         J = lit_point_gradients(lights, normals, points, self.positions(poses))
         return np.matmul(J, like(poses[:, :3, :3].transpose(0, 2, 1), points))
 
@@ -204,7 +221,9 @@ class LEDLight(FrameFields):
         Moving the camera moves the LED with it: s_i = T^-1 o, so with G the shading's gradient
         with respect to the point in camera coordinates, ``d/dv = G`` and ``d/dw = o x G``.
         """
-        G = self._camera_gradients(lights, normals, points, poses)
+        G = self._camera_gradients(lights, normals, points, poses, width=6)
+        if G.shape[-1] == 6:
+            return G
         return np.concatenate([G, np.cross(like(self.offset, G), G)], axis=-1)
 
     def offset_jacobian(self, light: np.ndarray, normals: np.ndarray, points: np.ndarray,
