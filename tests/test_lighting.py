@@ -95,12 +95,12 @@ def test_led_fields_and_jacobians_of_several_frames_are_each_frames_own(rng):
 
 
 def test_led_compiled_fields_and_jacobians_equal_the_array_formulas(rng):
-    """The host's one-pass kernels (led_fields_into, led_camera_gradients_into) give the fields,
-    the shading Jacobians and the offset Jacobian of the array formulas the GPU path runs
-    (led_vectors, lit_point_gradients, a rotation and a cross product) to round-off, with points
-    facing away (zero) and more pixels than one chunk of the kernels' loops."""
-    from o3d_mvps.model.shading import FRAME_CHUNK, led_vectors
-    from o3d_mvps.solver.lighting import lit_point_gradients
+    """The host's one-pass kernels (led_fields_into, led_point_gradients_into,
+    led_twist_jacobians_into) give the fields, the shading Jacobians and the offset Jacobian of
+    the array formulas the GPU path runs (led_vectors, led_vector_jacobian, a rotation and a
+    cross product) to round-off (bit for bit where NumPy sums three terms as they do), with
+    points facing away (zero) and more pixels than one chunk of the kernels' loops."""
+    from o3d_mvps.model.shading import FRAME_CHUNK, led_vector_jacobian, led_vectors
 
     points, normals = surface(rng, FRAME_CHUNK + 100)
     normals[::3] *= -1
@@ -110,7 +110,8 @@ def test_led_compiled_fields_and_jacobians_equal_the_array_formulas(rng):
     s = light.positions(poses)
     v = led_vectors(points, s)
     L_ref = v * (lights[:, 1:] * (np.einsum("...j,...j->...", normals, v) > 0))[..., None]
-    G_ref = np.matmul(lit_point_gradients(lights, normals, points, s), poses[:, :3, :3].transpose(0, 2, 1))
+    lit = lights[:, 1:] * (np.einsum("...j,...j->...", normals, s[:, None, :] - points) > 0)
+    G_ref = np.matmul(led_vector_jacobian(points, s, normals) * lit[..., None], poses[:, :3, :3].transpose(0, 2, 1))
     J_ref = np.concatenate([G_ref, np.cross(OFFSET, G_ref)], axis=-1)
     c, L = light.fields(lights, normals, points, poses)
     J = light.shading_jacobians(lights, normals, points, poses)

@@ -97,6 +97,15 @@ def led_vector_jacobian(points: np.ndarray, light_position: np.ndarray, normals:
     return -normals / r3[..., None] + (3.0 * nd / (r3 * r2))[..., None] * d
 
 
+
+@numba.njit(inline="always")
+def dot3(x0, x1, x2, y0, y1, y2):  # pragma: no cover - compiled
+    """<x, y> of two 3-vectors summed as NumPy's ``einsum("...j,...j->...")`` sums them here,
+    ``(x0 y0 + x2 y2) + x1 y1``: the compiled LED fields below equal the array formulas (the
+    GPU path's) bit for bit."""
+    return (x0 * y0 + x2 * y2) + x1 * y1
+
+
 @numba.njit(parallel=True, cache=True)
 def led_fields_into(intensities, normals, points, positions, out):  # pragma: no cover - compiled
     """The lit LED fields ``I_i v_i`` (m, N, 3) of :func:`led_vectors` written into out, zero
@@ -109,24 +118,21 @@ def led_fields_into(intensities, normals, points, positions, out):  # pragma: no
                 d0 = positions[i, 0] - points[p, 0]
                 d1 = positions[i, 1] - points[p, 1]
                 d2 = positions[i, 2] - points[p, 2]
-                r2 = d0 * d0 + d1 * d1 + d2 * d2
+                r2 = dot3(d0, d1, d2, d0, d1, d2)
                 r3 = r2 * math.sqrt(r2)
                 v0, v1, v2 = d0 / r3, d1 / r3, d2 / r3
-                lit = intensities[i] if normals[p, 0] * v0 + normals[p, 1] * v1 + normals[p, 2] * v2 > 0 else 0.0
+                lit = intensities[i] if dot3(normals[p, 0], normals[p, 1], normals[p, 2], v0, v1, v2) > 0 else 0.0
                 out[i, p, 0] = v0 * lit
                 out[i, p, 1] = v1 * lit
                 out[i, p, 2] = v2 * lit
 
 
 @numba.njit(parallel=True, cache=True)
-def led_camera_gradients_into(intensities, normals, points, positions, rotations, offset, out):  # pragma: no cover - compiled
-    """``G_i = R_i (I_i d<n, v_i>/dX)`` of :func:`led_vector_jacobian` in frame i's camera
-    coordinates, zero where ``<n, s_i - X> <= 0``, written into out (m, N, 3); with out
-    (m, N, 6) also ``o x G_i`` in its last three columns. intensities (m,), float64 unit
-    normals and points (N, 3) and light positions (m, 3) in reference coordinates (metres),
-    rotations (m, 3, 3) reference -> frame i, offset (3,) the LED in the camera frame."""
+def led_point_gradients_into(intensities, normals, points, positions, out):  # pragma: no cover - compiled
+    """``I_i d<n, v_i>/dX`` (m, N, 3) of :func:`led_vector_jacobian` written into out, zero
+    where ``<n, s_i - X> <= 0``: intensities (m,), float64 unit normals and points (N, 3),
+    light positions (m, 3), one frame (metres); one pass, no temporaries."""
     N = points.shape[0]
-    with_cross = out.shape[2] == 6
     for k in numba.prange(-(-N // FRAME_CHUNK)):  # chunks of pixels, a frame at a time
         for i in range(positions.shape[0]):
             for p in range(k * FRAME_CHUNK, min(N, (k + 1) * FRAME_CHUNK)):
@@ -134,21 +140,30 @@ def led_camera_gradients_into(intensities, normals, points, positions, rotations
                 d0 = positions[i, 0] - points[p, 0]
                 d1 = positions[i, 1] - points[p, 1]
                 d2 = positions[i, 2] - points[p, 2]
-                r2 = d0 * d0 + d1 * d1 + d2 * d2
+                r2 = dot3(d0, d1, d2, d0, d1, d2)
                 r3 = r2 * math.sqrt(r2)
-                nd = n0 * d0 + n1 * d1 + n2 * d2
+                nd = dot3(n0, n1, n2, d0, d1, d2)
                 lit = intensities[i] if nd > 0 else 0.0
                 s = 3.0 * nd / (r3 * r2)
-                J0 = (-n0 / r3 + s * d0) * lit
-                J1 = (-n1 / r3 + s * d1) * lit
-                J2 = (-n2 / r3 + s * d2) * lit
-                G0 = J0 * rotations[i, 0, 0] + J1 * rotations[i, 0, 1] + J2 * rotations[i, 0, 2]
-                G1 = J0 * rotations[i, 1, 0] + J1 * rotations[i, 1, 1] + J2 * rotations[i, 1, 2]
-                G2 = J0 * rotations[i, 2, 0] + J1 * rotations[i, 2, 1] + J2 * rotations[i, 2, 2]
+                out[i, p, 0] = (-n0 / r3 + s * d0) * lit
+                out[i, p, 1] = (-n1 / r3 + s * d1) * lit
+                out[i, p, 2] = (-n2 / r3 + s * d2) * lit
+
+
+@numba.njit(parallel=True, cache=True)
+def led_twist_jacobians_into(G, offset, out):  # pragma: no cover - compiled
+    """``[G, o x G]`` (m, N, 6) written into out from G (m, N, 3), the shading's gradients with
+    respect to the point in each frame's camera coordinates, and the LED's offset o (3,) in the
+    camera frame (``np.concatenate([G, np.cross(o, G)], axis=-1)`` in one pass, the cross
+    product in NumPy's order of operations: equal bit for bit)."""
+    N = G.shape[1]
+    for k in numba.prange(-(-N // FRAME_CHUNK)):  # chunks of pixels, a frame at a time
+        for i in range(G.shape[0]):
+            for p in range(k * FRAME_CHUNK, min(N, (k + 1) * FRAME_CHUNK)):
+                G0, G1, G2 = G[i, p, 0], G[i, p, 1], G[i, p, 2]
                 out[i, p, 0] = G0
                 out[i, p, 1] = G1
                 out[i, p, 2] = G2
-                if with_cross:
-                    out[i, p, 3] = offset[1] * G2 - offset[2] * G1
-                    out[i, p, 4] = offset[2] * G0 - offset[0] * G2
-                    out[i, p, 5] = offset[0] * G1 - offset[1] * G0
+                out[i, p, 3] = offset[1] * G2 - offset[2] * G1
+                out[i, p, 4] = offset[2] * G0 - offset[0] * G2
+                out[i, p, 5] = offset[0] * G1 - offset[1] * G0

@@ -29,8 +29,8 @@ import numpy as np
 
 from ..model.arrays import array_module, contiguous, like
 from ..model.robust import cauchy_weights
-from ..model.shading import (INITIAL_LIGHT, led_camera_gradients_into, led_fields_into, led_irradiances,
-                             led_vector_jacobian, led_vectors, sh_basis)
+from ..model.shading import (INITIAL_LIGHT, led_fields_into, led_irradiances, led_point_gradients_into,
+                             led_twist_jacobians_into, led_vector_jacobian, led_vectors, sh_basis)
 from .device import kernels_for, to_host
 from .line_search import backtrack
 from .linear import ridge_solve
@@ -192,25 +192,15 @@ class LEDLight(FrameFields):
         compiled pass, :func:`~o3d_mvps.model.shading.led_fields_into`)."""
         if array_module(points) is np:
             L = np.empty((len(lights), len(points), 3))
-            led_fields_into(np.ascontiguousarray(lights[:, 1], dtype=np.float64), contiguous(normals, np.float64),
+            led_fields_into(_intensities(lights, points), contiguous(normals, np.float64),
                             contiguous(points, np.float64), np.ascontiguousarray(self.positions(poses)), L)
             return lights[:, 0], L
         v = led_vectors(points, self.positions(poses))  # (m, N, 3)
         lit = like(lights[:, 1:], points) * (np.einsum("...j,...j->...", normals, v) > 0)
         return lights[:, 0], v * lit[..., None]
 
-    def _camera_gradients(self, lights, normals, points, poses, width: int = 3):
-        """d(shading)/d(point) G (m, N, 3) in each frame's camera coordinates, zero where unlit;
-        width 6: with ``o x G`` (m, N, 6) (:meth:`shading_jacobians`). On the host one compiled
-        pass (:func:`~o3d_mvps.model.shading.led_camera_gradients_into`)."""
-        if array_module(points) is np:
-            G = np.empty((len(lights), len(points), width))
-            led_camera_gradients_into(np.ascontiguousarray(lights[:, 1], dtype=np.float64),
-                                      contiguous(normals, np.float64), contiguous(points, np.float64),
-                                      np.ascontiguousarray(self.positions(poses)),
-                                      np.ascontiguousarray(poses[:, :3, :3], dtype=np.float64),
-                                      self.offset, G)
-            return G
+    def _camera_gradients(self, lights, normals, points, poses):
+        """d(shading)/d(point) (m, N, 3) in each frame's camera coordinates, zero where unlit."""
         J = lit_point_gradients(lights, normals, points, self.positions(poses))
         return np.matmul(J, like(poses[:, :3, :3].transpose(0, 2, 1), points))
 
@@ -221,9 +211,11 @@ class LEDLight(FrameFields):
         Moving the camera moves the LED with it: s_i = T^-1 o, so with G the shading's gradient
         with respect to the point in camera coordinates, ``d/dv = G`` and ``d/dw = o x G``.
         """
-        G = self._camera_gradients(lights, normals, points, poses, width=6)
-        if G.shape[-1] == 6:
-            return G
+        G = self._camera_gradients(lights, normals, points, poses)
+        if array_module(G) is np:  # one compiled pass on the host
+            out = np.empty(G.shape[:-1] + (6,))
+            led_twist_jacobians_into(contiguous(G, np.float64), self.offset, out)
+            return out
         return np.concatenate([G, np.cross(like(self.offset, G), G)], axis=-1)
 
     def offset_jacobian(self, light: np.ndarray, normals: np.ndarray, points: np.ndarray,
@@ -241,12 +233,25 @@ class LEDLight(FrameFields):
                 "parameters": ["ambient", "intensity"], "offset_m": self.offset.tolist()}
 
 
+def _intensities(lights: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """The intensities ``lights[:, 1]`` (m,) in float64 as the array formulas use them: rounded
+    to the points' dtype first."""
+    return lights[:, 1].astype(points.dtype).astype(np.float64)
+
+
 def lit_point_gradients(lights: np.ndarray, normals: np.ndarray, points: np.ndarray,
                         positions: np.ndarray) -> np.ndarray:
     """d(shading)/d(point) (m, N, 3) of m point lights at ``positions`` (m, 3) with intensities
     ``lights[:, 1]`` (m,) on unit normals and points (N, 3), all in one frame (metres): the
     intensity times :func:`~o3d_mvps.model.shading.led_vector_jacobian`, zero where the point
-    faces away. The derivative with respect to the light's position is its negative."""
+    faces away. The derivative with respect to the light's position is its negative. On the
+    host one compiled pass (:func:`~o3d_mvps.model.shading.led_point_gradients_into`, equal
+    bit for bit)."""
+    if array_module(points) is np:
+        J = np.empty((len(positions), len(points), 3))
+        led_point_gradients_into(_intensities(lights, points), contiguous(normals, np.float64),
+                                 contiguous(points, np.float64), np.ascontiguousarray(positions, dtype=np.float64), J)
+        return J
     J = led_vector_jacobian(points, positions, normals)
     lit = like(lights[:, 1:], points) * (np.einsum("...j,...j->...", normals,
                                                    like(positions, points)[:, None, :] - points) > 0)
