@@ -15,7 +15,8 @@ worker is this file run as a script with the tree on the command line (as
 
 Rows of ``speed_stages.json``: {"capture", "version", "run", "cpu_seconds" (the whole
 process), "refine_wall_seconds", "import_seconds", "read_seconds", "timings" (CPU seconds per
-stage), "stage_peak_mb", "peak_mb", "energy", "sweeps"}; ``speed_stages.png`` plots each
+stage), "stage_peak_mb", "peak_mb", "energy", "sweeps", "baseline_revision" (the baseline tree's
+commit), "numba_threads"}; ``speed_stages.png`` plots each
 stage's CPU seconds per version (matplotlib).
 """
 
@@ -61,6 +62,8 @@ def worker(tree: str, folder: str, options: dict) -> dict:
     from o3d_mvps.capture import read_capture
 
     import_seconds = time.perf_counter() - t
+    import numba
+
     cpu_clock = types.SimpleNamespace(perf_counter=time.process_time)
     peaks: dict[str, float] = {}
     for module_name, name, stage in STAGE_FUNCTIONS:
@@ -88,7 +91,8 @@ def worker(tree: str, folder: str, options: dict) -> dict:
     return {"cpu_seconds": usage.ru_utime + usage.ru_stime, "refine_wall_seconds": wall,
             "import_seconds": import_seconds, "read_seconds": read_seconds, "timings": result.timings,
             "stage_peak_mb": peaks, "peak_mb": max(peaks.values()), "energy": result.energy[-1]["energy"],
-            "sweeps": len([row for row in result.energy if row["iteration"] > 0])}
+            "sweeps": len([row for row in result.energy if row["iteration"] > 0]),
+            "numba_threads": numba.get_num_threads()}
 
 
 def run_one(tree: Path, folder: Path, options: dict) -> dict:
@@ -105,12 +109,15 @@ def run(args) -> list[dict]:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     trees = {"baseline": Path(args.baseline_tree).resolve(), "this": Path(__file__).resolve().parent.parent}
+    revision = subprocess.run(["git", "-C", str(trees["baseline"]), "rev-parse", "--short", "HEAD"],
+                              capture_output=True, text=True, check=False).stdout.strip() or None
     rows = []
     for entry in args.captures:
         name, folder = entry.split("=", 1)
         for k in range(args.repeats):
             for version, tree in trees.items():
-                row = {"capture": name, "version": version, "run": k, **run_one(tree, Path(folder), args.options)}
+                row = {"capture": name, "version": version, "run": k, **run_one(tree, Path(folder), args.options),
+                       "baseline_revision": revision}
                 rows.append(row)
                 print(f"{name} [{version}] run {k}: {row['cpu_seconds']:.1f} CPU s, peak {row['peak_mb']:.0f} MB",
                       flush=True)
