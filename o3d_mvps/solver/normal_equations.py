@@ -168,8 +168,11 @@ def _dot3(a0, a1, a2, b0, b1, b2):
 
 #: Reference pixels per block of the joint assembly. Every per-pixel array of the refined
 #: frames' twists ((3, m, 6, B) coupling rows, (m, 6, B, 3) projection rows) exists for one block
-#: at a time: at 2 megapixels and 20 frames the whole-image arrays took 5 GB.
-BLOCK_PIXELS = 32768
+#: at a time: at 2 megapixels and 20 frames the whole-image arrays took 5 GB. With 19 refined
+#: frames a block's temporaries (these two, the light rows, the LED Jacobians) take about 8 kB
+#: per pixel: 260 MB at 32768 pixels, 65 MB at 8192 (the joint step's peak at D415 size fell
+#: from 277 to 105 MB over its entry), for the same assembly time.
+BLOCK_PIXELS = 8192
 
 
 def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parallax: bool = True,
@@ -211,6 +214,7 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
         block = slice(start, min(N, start + block_pixels))
         _assemble_block(problem, est, ev, block, points_ref[block], candidates, parallax, project_albedo,
                         sums[:, block], grams, rhs_xi, downdate, coupling_t, Du[block], Dv[block])
+    del Du, Dv, points_ref  # the zero-free copies (45 MB at 2 megapixels): not held while M is formed
     if release:
         ev.release()
     # frames whose own Gram is not safely invertible keep their depth rows but take no twist
