@@ -226,9 +226,13 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
             frames.append(i)
             kept.extend(range(6 * k, 6 * k + 6))
     hessian = scipy.linalg.block_diag(*hessians) - downdate[np.ix_(kept, kept)] if frames else np.zeros((0, 0))
+    # the prior's matrix formed after the stencil's, and the per-pixel sums dropped before the two are added
+    matrix = stencil_normal_matrix(grid, *sums[:6])
     prior_hessian, prior_rhs = problem.level.prior.normal_equations(est.z, problem.tau, problem.mu)
-    matrix = stencil_normal_matrix(grid, *sums[:6]) + prior_hessian
     rhs_z = -stencil_transpose(grid, *sums[6:]) + prior_rhs
+    del sums
+    matrix = matrix + prior_hessian
+    del prior_hessian
     for row, k in enumerate(kept):  # the kept rows moved up in place (kept is ascending): no second U
         if row != k:
             coupling_t[row] = coupling_t[k]
