@@ -168,8 +168,11 @@ def _dot3(a0, a1, a2, b0, b1, b2):
 
 #: Reference pixels per block of the joint assembly. Every per-pixel array of the refined
 #: frames' twists ((3, m, 6, B) coupling rows, (m, 6, B, 3) projection rows) exists for one block
-#: at a time: at 2 megapixels and 20 frames the whole-image arrays took 5 GB.
-BLOCK_PIXELS = 32768
+#: at a time: at 2 megapixels and 20 frames the whole-image arrays took 5 GB. With 19 refined
+#: frames a block's temporaries (these two, the light rows, the LED Jacobians) take about 8 kB
+#: per pixel: 260 MB at 32768 pixels, 65 MB at 8192 (the joint step's peak at D415 size fell
+#: from 277 to 105 MB over its entry), for the same assembly time.
+BLOCK_PIXELS = 8192
 
 
 def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parallax: bool = True,
@@ -211,6 +214,7 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
         block = slice(start, min(N, start + block_pixels))
         _assemble_block(problem, est, ev, block, points_ref[block], candidates, parallax, project_albedo,
                         sums[:, block], grams, rhs_xi, downdate, coupling_t, Du[block], Dv[block])
+    del Du, Dv, points_ref  # the zero-free copies (45 MB at 2 megapixels): not held while M is formed
     if release:
         ev.release()
     # frames whose own Gram is not safely invertible keep their depth rows but take no twist
@@ -222,9 +226,13 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
             frames.append(i)
             kept.extend(range(6 * k, 6 * k + 6))
     hessian = scipy.linalg.block_diag(*hessians) - downdate[np.ix_(kept, kept)] if frames else np.zeros((0, 0))
+    # the prior's matrix formed after the stencil's, and the per-pixel sums dropped before the two are added
+    matrix = stencil_normal_matrix(grid, *sums[:6])
     prior_hessian, prior_rhs = problem.level.prior.normal_equations(est.z, problem.tau, problem.mu)
-    matrix = stencil_normal_matrix(grid, *sums[:6]) + prior_hessian
     rhs_z = -stencil_transpose(grid, *sums[6:]) + prior_rhs
+    del sums
+    matrix = matrix + prior_hessian
+    del prior_hessian
     for row, k in enumerate(kept):  # the kept rows moved up in place (kept is ascending): no second U
         if row != k:
             coupling_t[row] = coupling_t[k]
