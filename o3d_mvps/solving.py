@@ -25,7 +25,7 @@ from .refinement import Refinement
 from .run_report import NOT_PICKED, peak_memory_mb, recorded_warnings
 from .solver.device import check_device
 from .solver.driver import return_freed_arrays, solve
-from .solver.options import AUTO, ConvergenceCriteria, RefineOptions
+from .solver.options import AUTO, ConvergenceCriteria, ModelOptions, RefineOptions
 from .solver.pose_trust import DEFAULT_POSE_TRUST
 from .solver.problem_input import SolverInput, write_problem
 from .solver.smoothness import sensor_noise_smoothness
@@ -203,14 +203,14 @@ def lean_on_sensor(options: RefineOptions, capture: Capture) -> RefineOptions:
     prior weighed :data:`WEAK_COVERAGE_TAU_FACTOR` times more, the smoothness the sensor's own
     noise calls for (:func:`o3d_mvps.solver.smoothness.sensor_noise_smoothness` of ``capture``'s
     reference depth, at that weight), no evidence weights (they would raise the smoothness to
-    the sensor's with the stereo's floor, 10 x more here) and the sensor tie on; the smoothness,
-    tie and evidence weights only where the caller left them unset. Three frames' shading adds
-    more error than detail: with 3 of 8 frames 45 degrees apart seeing an LED-lit speckled
-    bunny's reference (320x240, SF 2, D415-like sensor) the normals were 23.1 deg off with the
+    the sensor's with the stereo's floor, 10 x more here) and the sensor tie on; tau~ only where
+    left at its default, the smoothness, tie and evidence weights only where the caller left them
+    unset. Three frames' shading adds more error than detail: with 3 of 8 frames 45 degrees
+    apart seeing an LED-lit speckled bunny's reference (320x240, SF 2, D415-like sensor) the normals were 23.1 deg off with the
     LED's defaults, 11.0 with the sensor's smoothness (auto) and tie, and are 7.6 so (bicubic
     upsampling's 9.8; the darkest albedo quarter 9.3 against 10.3: docs/fidelity.md,
     tests/test_grain.py)."""
-    tau = options.tau * WEAK_COVERAGE_TAU_FACTOR
+    tau = options.tau * WEAK_COVERAGE_TAU_FACTOR if options.tau == ModelOptions.tau else options.tau  # unless chosen
     smoothness = options.smoothness
     if smoothness is None:
         smoothness = sensor_noise_smoothness(tau, capture.depth_array(0).astype(np.float64), capture.mask_array(0),

@@ -103,7 +103,7 @@ def test_albedo_steps_count_as_noise_beside_the_step_only():
 
 def test_too_few_frames_weigh_the_sensor_depth_up():
     """lean_on_sensor: tau~ x 10, the smoothness of the sensor's own noise at that tau~, no
-    evidence weights, the tie on; what the caller set is kept (but tau~ is still raised)."""
+    evidence weights, the tie on; what the caller set is kept, tau~ too."""
     capture = synthetic.render_capture("bunny", frames=2, size=(96, 72), scale_factor=SF, sensor="d415")
     leaned = lean_on_sensor(RefineOptions(), capture)
     assert leaned.tau == 10.0 * WEAK_COVERAGE_TAU_FACTOR and leaned.evidence_weights is False
@@ -112,7 +112,7 @@ def test_too_few_frames_weigh_the_sensor_depth_up():
         leaned.tau, capture.depth_array(0).astype(float), capture.mask_array(0), SF, capture.color_K()))
     chosen = lean_on_sensor(RefineOptions(tau=5.0, smoothness=2.0, evidence_weights=True, sensor_lowpass=0), capture)
     assert (chosen.tau, chosen.smoothness, chosen.evidence_weights, chosen.sensor_lowpass) == (
-        5.0 * WEAK_COVERAGE_TAU_FACTOR, 2.0, True, 0)
+        5.0, 2.0, True, 0)
 
 
 def test_weak_coverage_says_how_many_frames_see_how_much():
