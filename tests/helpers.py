@@ -26,6 +26,7 @@ from o3d_mvps.model.shading import led_vectors
 from o3d_mvps.solver.pose import update_pose
 from o3d_mvps.solver.problem import Estimate, LevelProblem
 from o3d_mvps.solver.pyramid import Level, depth_prior
+from o3d_mvps.synthetic import D415Sensor
 
 #: LED offset error handed to the solver by accuracy tests (metres, camera frame): 1.5 cm off.
 LED_OFFSET_ERROR = np.array([0.012, -0.009, 0.0])
@@ -272,7 +273,8 @@ def quilt_albedo(x: np.ndarray, y: np.ndarray, seed: int = 3) -> np.ndarray:
 
 def quilt_scene(frames: int = 12, size=(320, 240), scale_factor: int = 2, light_distance: float = 0.35,
                 light_height: float = 0.65, colour_noise: float = 0.005, depth_noise_mm: float = 1.5,
-                seed: int = 0) -> dict:
+                seed: int = 0, sensor: str | None = None, missing_top: int = 0,
+                dim_corner: float = 0.0) -> dict:
     """A static camera looking at the quilt (:func:`quilt_depth`) under a hand-held point light.
 
     Frame i's light sits on a circle of radius ``light_distance`` around the optical axis,
@@ -280,7 +282,14 @@ def quilt_scene(frames: int = 12, size=(320, 240), scale_factor: int = 2, light_
     ambient 0.05): shading no first-order SH light describes exactly (far away, e.g. 35 and 65,
     it is a distant light, which SH does). Colour: linear float32 with Gaussian noise
     ``colour_noise`` and 8-bit quantisation; depth: the colour-grid depth block-averaged by
-    ``scale_factor``, Gaussian noise of ``depth_noise_mm`` mm and 1 mm quantisation. Returns a
+    ``scale_factor``, Gaussian noise of ``depth_noise_mm`` mm and 1 mm quantisation; or with
+    ``sensor="d415"`` both from :class:`o3d_mvps.synthetic.D415Sensor` (exposure and white-balance
+    drift, shot noise, sRGB 8 bit; disparity terraces, z^2 and low-frequency noise, speckle
+    holes). ``missing_top``: this many depth rows at the top without depth in every frame
+    (as where a registered depth camera's view ends short of the colour camera's). ``dim_corner``:
+    the colour camera's response falls off toward the top left corner, where only ``1 -
+    dim_corner`` of the light is recorded (vignetting off centre, a dark corner: the same in
+    every frame). Returns a
     dict of arrays: colors (n, H, W, 3), depths (n, h, w), K, depth_K, depth (H, W), normals
     (H, W, 3), albedo (H, W, 3) (the truth).
     """
@@ -302,10 +311,21 @@ def quilt_scene(frames: int = 12, size=(320, 240), scale_factor: int = 2, light_
         irradiance = np.einsum("...k,...k->...", normals, to_light)
         intensity = 0.9 * np.sum((light - np.array([0, 0, QUILT_DISTANCE])) ** 2)
         image = albedo * (0.05 + intensity * np.maximum(irradiance, 0.0))[..., None]
+        if dim_corner:
+            v, u = np.mgrid[:H, :W]
+            image = image * (1 - dim_corner * ((u - 0.7 * W) ** 2 + (v - 0.7 * H) ** 2) / (0.49 * (W**2 + H**2)))[..., None]
+        if sensor == "d415":
+            colors.append(D415Sensor().color(image, rng)[0])
+            continue
         image = image + rng.normal(0, colour_noise, image.shape)
         colors.append(np.clip(np.round(image * 255) / 255, 0, 1))
-    sensor = block_average(s, scale_factor)
-    depths = [np.round(sensor * 1000 + rng.normal(0, depth_noise_mm, sensor.shape)) / 1000 for _ in range(frames)]
+    if sensor == "d415":
+        depths = [np.round(D415Sensor().depth(s, scale_factor, rng) * 1000) / 1000 for _ in range(frames)]
+    else:
+        low = block_average(s, scale_factor)
+        depths = [np.round(low * 1000 + rng.normal(0, depth_noise_mm, low.shape)) / 1000 for _ in range(frames)]
+    for d in depths:
+        d[:missing_top] = 0.0
     return {"colors": np.array(colors, np.float32), "depths": np.array(depths, np.float32), "K": K,
             "depth_K": default_depth_intrinsic(K, scale_factor), "depth": s, "normals": normals, "albedo": albedo}
 

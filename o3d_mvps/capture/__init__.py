@@ -34,7 +34,7 @@ from .layout import (
 )
 from .poses import read_capture_poses, read_poses, relative_to_reference
 from .reading import load_json, read_capture, read_intrinsic_json
-from .static import CameraSetting, camera_setting
+from .static import CameraSetting, camera_setting, frame_white_balance
 from .types import Capture, GroundTruth, default_depth_intrinsic, image_from_array, integer_scale_factor, to_host
 from .validation import validate_capture
 from .writing import write_capture
@@ -43,5 +43,5 @@ __all__ = [
     "Capture", "GroundTruth", "default_depth_intrinsic", "image_from_array", "to_host", "read_capture", "write_capture",
     "validate_capture", "integer_scale_factor", "read_capture_poses", "read_poses", "relative_to_reference",
     "load_json", "read_intrinsic_json", "CAPTURE_JSON", "COLOR_DIR", "DEPTH_DIR", "DEPTH_INTRINSIC_JSON",
-    "DEPTH_RANGE_M", "CameraSetting", "camera_setting", "GROUNDTRUTH_DIR", "INTRINSIC_JSON", "MASK_DIR",
+    "DEPTH_RANGE_M", "CameraSetting", "camera_setting", "frame_white_balance", "GROUNDTRUTH_DIR", "INTRINSIC_JSON", "MASK_DIR",
 ]

@@ -134,3 +134,64 @@ def camera_setting(capture: Capture, poses=None, warn: bool = True) -> CameraSet
         detail = f"not static: {figures_text}"
     return CameraSetting(static=static, declared=declared, detected=detected, agreement=agreement, overlap=overlap,
                          worst_frame=worst + 1, detail=detail)
+
+
+#: Pixels whose linear value is below this in any channel, or above :data:`BALANCE_SATURATED`,
+#: are left out of :func:`frame_white_balance` (8-bit sRGB, shot noise: their channel ratios are noisy or clipped).
+BALANCE_DARKEST = 0.02
+BALANCE_SATURATED = 0.98
+#: Fewer pixels usable in a frame and the reference than this: the frame's balance is left at 1.
+BALANCE_MIN_PIXELS = 100
+
+
+def frame_white_balance(colors, masks=None) -> np.ndarray:
+    """Each frame's white balance relative to the frames' mean, (n, 3), green 1, from the images alone.
+
+    A static camera sees each surface point at the same pixel in every frame; with a light whose
+    colour is the same in every frame (a Lambertian surface, any lamp position, intensity and
+    exposure), frame i's pixel is ``rho_c L_i w_ic``, so its log ratio of channel c to green
+    minus the reference frame's is ``log(w_ic / w_ig) - log(w_0c / w_0g)`` at every pixel. Its
+    median over the pixels usable in both frames (every channel in
+    [:data:`BALANCE_DARKEST`, :data:`BALANCE_SATURATED`], inside both masks where given), centred
+    so that each channel's log balance averages 0 over the frames, is returned. Dividing frame i's
+    channel c by it leaves the colour of the mean balance in the albedo (an albedo is known up to
+    the light's colour) and a per-frame gain to the frame's light (the light models have one
+    intensity per frame, not one per channel).
+
+    Parameters
+    ----------
+    colors : sequence of n (H, W, 3) float arrays
+        Linear RGB frames of a static camera.
+    masks : sequence of n (H, W) bool arrays or None, optional
+        Object masks (None: every pixel).
+
+    Returns
+    -------
+    np.ndarray
+        (n, 3) float64 balance factors, column 1 (green) all 1; rows of frames with fewer than
+        :data:`BALANCE_MIN_PIXELS` usable pixels in common with the reference (or the reference
+        itself when it has none) are left out of the centring and set to the mean balance (1).
+    """
+    n = len(colors)
+    logs, usable = [], []
+    for i in range(n):
+        c = np.asarray(colors[i], dtype=np.float32)
+        ok = ((c >= BALANCE_DARKEST) & (c <= BALANCE_SATURATED)).all(axis=2)
+        if masks is not None and masks[i] is not None:
+            ok &= np.asarray(masks[i], dtype=bool)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            logs.append(np.log(np.maximum(c[..., [0, 2]], 1e-6)) - np.log(np.maximum(c[..., 1:2], 1e-6)))
+        usable.append(ok)
+    relative = np.zeros((n, 2))
+    found = np.zeros(n, dtype=bool)
+    found[0] = usable[0].sum() >= BALANCE_MIN_PIXELS
+    for i in range(1, n):
+        both = usable[i] & usable[0]
+        if both.sum() >= BALANCE_MIN_PIXELS:
+            relative[i] = np.median((logs[i] - logs[0])[both], axis=0)
+            found[i] = True
+    balance = np.ones((n, 3))
+    if found[0] and found.sum() >= 2:
+        centred = relative - relative[found].mean(axis=0)
+        balance[np.ix_(found, [0, 2])] = np.exp(centred[found])
+    return balance
