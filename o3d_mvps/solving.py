@@ -15,6 +15,7 @@ from dataclasses import replace
 import numpy as np
 
 from .capture import Capture, CameraSetting, camera_setting, frame_white_balance, to_host
+from .capture.static import MIN_FRAMES_FOR_MEDIAN, reference_depth_outliers
 from .capture.checks import check_inputs
 from .capture.layout import COLOR_DIR
 from .capture.poses import GivenPoses
@@ -191,9 +192,16 @@ def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses
         report["white_balance"] = {"frames": np.round(balance, 6).tolist(),
                                    "detail": "each frame's colour divided by its white balance relative to the "
                                              "frames' mean (o3d_mvps.capture.frame_white_balance)"}
+    depths = np.stack([capture.depth_array(i) for i in range(n)])
+    if camera.static and n >= MIN_FRAMES_FOR_MEDIAN:
+        # flying pixels of the reference (the depth prior's) left out: at the 640x480 D415-like
+        # bunny's silhouette they pulled the rim back and brightened its albedo
+        flying = reference_depth_outliers(depths)
+        depths[0][flying] = 0.0
+        report["reference_depth_outliers"] = {"pixels": int(flying.sum()), "fraction": round(float(flying.mean()), 6)}
     return SolverInput(
         colors=colors,
-        depths=np.stack([capture.depth_array(i) for i in range(n)]),
+        depths=depths,
         masks=masks,
         K=capture.color_K(), depth_K=capture.depth_K(), scale_factor=capture.scale_factor,
         initial_poses=initial_poses, led_offset=_led_offset(options, capture), frames=frames, options=options,

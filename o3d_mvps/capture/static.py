@@ -195,3 +195,31 @@ def frame_white_balance(colors, masks=None) -> np.ndarray:
         centred = relative - relative[found].mean(axis=0)
         balance[np.ix_(found, [0, 2])] = np.exp(centred[found])
     return balance
+
+
+#: A reference depth pixel is a flying pixel when it is farther than max(STATIC_TOLERANCE_M,
+#: STATIC_TOLERANCE_REL z) from the median of the frames' depths there, measured by at least this many frames.
+MIN_FRAMES_FOR_MEDIAN = 3
+
+
+def reference_depth_outliers(depths: np.ndarray) -> np.ndarray:
+    """(h, w) bool: the reference frame's depth pixels that disagree with the other frames of a
+    static camera (flying pixels, mismatches).
+
+    A fixed camera measures the same surface at the same depth pixel in every frame; a sensor's
+    flying pixels along silhouettes and depth edges (a mixture of the near and far depth, up to
+    centimetres off) fall anew in every frame. A pixel of frame 0 is flagged where at least
+    :data:`MIN_FRAMES_FOR_MEDIAN` frames measure it and frame 0's depth is farther than
+    ``max(STATIC_TOLERANCE_M, STATIC_TOLERANCE_REL * z)`` from their median (the depth noise is
+    well inside: D415-like at 0.6 m, about 1 mm).
+
+    depths (n, h, w) metres, 0 = none.
+    """
+    depths = np.asarray(depths, dtype=np.float64)
+    valid = depths > 0
+    counts = valid.sum(axis=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN pixels: no frame measures them
+        median = np.nan_to_num(np.nanmedian(np.where(valid, depths, np.nan), axis=0))
+    tolerance = np.maximum(STATIC_TOLERANCE_M, STATIC_TOLERANCE_REL * median)
+    return valid[0] & (counts >= MIN_FRAMES_FOR_MEDIAN) & (np.abs(depths[0] - median) > tolerance)
