@@ -142,6 +142,10 @@ BALANCE_DARKEST = 0.02
 BALANCE_SATURATED = 0.98
 #: Fewer pixels usable in a frame and the reference than this: the frame's balance is left at 1.
 BALANCE_MIN_PIXELS = 100
+#: :func:`frame_white_balance` reads every k-th pixel of every k-th row, k the least that leaves
+#: at most this many pixels per frame (a 1280x960 frame: every 2nd; 20 frames in 0.3 s, not 1.3 s;
+#: every 2nd of a 640x480 frame took the bunny's error from 0.1 to 0.2 %)
+BALANCE_MAX_PIXELS = 400_000
 
 
 def frame_white_balance(colors, masks=None) -> np.ndarray:
@@ -151,7 +155,8 @@ def frame_white_balance(colors, masks=None) -> np.ndarray:
     colour is the same in every frame (a Lambertian surface, any lamp position, intensity and
     exposure), frame i's pixel is ``rho_c L_i w_ic``, so its log ratio of channel c to green
     minus the reference frame's is ``log(w_ic / w_ig) - log(w_0c / w_0g)`` at every pixel. Its
-    median over the pixels usable in both frames (every channel in
+    median over the pixels usable in both frames (at most :data:`BALANCE_MAX_PIXELS`, evenly
+    spread; every channel in
     [:data:`BALANCE_DARKEST`, :data:`BALANCE_SATURATED`], inside both masks where given), centred
     so that each channel's log balance averages 0 over the frames, is returned. Dividing frame i's
     channel c by it leaves the colour of the mean balance in the albedo (an albedo is known up to
@@ -173,12 +178,14 @@ def frame_white_balance(colors, masks=None) -> np.ndarray:
         itself when it has none) are left out of the centring and set to the mean balance (1).
     """
     n = len(colors)
+    H, W = np.shape(colors[0])[:2]
+    k = max(1, int(np.ceil(np.sqrt(H * W / BALANCE_MAX_PIXELS))))
     logs, usable = [], []
     for i in range(n):
-        c = np.asarray(colors[i], dtype=np.float32)
+        c = np.asarray(colors[i], dtype=np.float32)[::k, ::k]
         ok = ((c >= BALANCE_DARKEST) & (c <= BALANCE_SATURATED)).all(axis=2)
         if masks is not None and masks[i] is not None:
-            ok &= np.asarray(masks[i], dtype=bool)
+            ok &= np.asarray(masks[i], dtype=bool)[::k, ::k]
         with np.errstate(divide="ignore", invalid="ignore"):
             logs.append(np.log(np.maximum(c[..., [0, 2]], 1e-6)) - np.log(np.maximum(c[..., 1:2], 1e-6)))
         usable.append(ok)
