@@ -114,3 +114,20 @@ def test_refine_cli_stops_at_an_empty_auto_mask_before_any_work(tmp_path, capsys
                  "--depth-range", "0.2", "0.4"]) == 1
     assert "0.20-0.40 m); give the object's depth range with --depth-range NEAR FAR" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+def test_a_surface_filling_the_frame_is_said_to_need_mask_none(tmp_path):
+    """A nearly flat surface that fills the frame (the quilt: cushions 2 mm high, D415-like depth)
+    is a background plane to the automatic masks: the error says to use --mask none."""
+    from helpers import quilt_scene
+
+    scene = quilt_scene(frames=2, size=(160, 120), sensor="d415")
+    assert not object_mask(scene["depths"][0], scene["depth_K"]).any()
+    capture = Capture(color=[image_from_array(c) for c in scene["colors"]],
+                      depth=[image_from_array(d[..., None]) for d in scene["depths"]],
+                      color_intrinsic=o3d.core.Tensor(scene["K"]), depth_intrinsic=o3d.core.Tensor(scene["depth_K"]),
+                      depth_scale=1000.0)
+    write_capture(capture, tmp_path / "quilt")
+    with pytest.raises(CaptureError, match=r"frame 0 is empty .*fills the frame .*--mask none"):
+        read_capture(tmp_path / "quilt")
+    assert read_capture(tmp_path / "quilt", mask="none").masks is None

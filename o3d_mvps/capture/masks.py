@@ -148,6 +148,8 @@ def auto_masks(depths: list, K_depth: np.ndarray, scale_factor: int, depth_range
                 f"the automatic object mask of frame {i} is empty ({where}); give the object's depth range "
                 "with --depth-range NEAR FAR (read_capture(..., depth_range=(near, far))), aim the camera at "
                 "the object, or provide masks in mask/"
+                + ("" if used is None else "; a surface that fills the frame (a quilt, a relief) is taken for a "
+                   "background plane: use --mask none (read_capture(..., mask=\"none\")) or masks")
             )
         masks.append(repeat_pixels(mask, scale_factor))
     return masks
