@@ -76,9 +76,9 @@ def log1p_square_sum(x, scale):  # pragma: no cover - compiled
     y = float32(scale x) as in :func:`log1p_square_term` (the GPU's term), but the logarithm of
     the float64 product of :data:`LOG_BLOCK` factors ``1 + y^2`` per block instead of a float32
     logarithm per term: no scalar logarithm per element (numba's are not vectorised without
-    SVML), 3.7x faster on float32 residuals and 2x on float64, more accurate (the product's
-    rounding is ~1e-16; the float32 logarithms' ~1e-7 a term) and equal to the per-term sum to
-    ~1e-10 of it. The product cannot overflow where the per-term sum is finite: each factor is
+    SVML), 1.2-3.5x faster on 5.4 M float32 residuals (3.5x where 30 % are zero: the float32
+    logarithm branches on them), more accurate (the product's rounding is ~1e-16; the float32
+    logarithms' ~1e-7 a term) and equal to the per-term sum to ~1e-10 of it. The product cannot overflow where the per-term sum is finite: each factor is
     then below the float32 maximum 3.4e38, and 8 of them below 1.7e307."""
     blocks = x.size // LOG_BLOCK
     total = 0.0
