@@ -127,8 +127,8 @@ def run(args) -> list[dict]:
 
 
 #: the stages plotted, in pipeline order
-STAGES = ("odometry", "light_selection", "setup", "albedo_lighting", "extrapolation", "poses", "depth",
-          "poses_depth")
+STAGES = ("odometry", "light_selection", "setup", "evidence_weights", "albedo_lighting", "extrapolation", "poses",
+          "depth", "poses_depth")
 
 
 def plot(rows: list[dict], path: Path) -> None:

@@ -224,3 +224,36 @@ def test_static_capture_with_sensor_noise_follows_the_sensors_coarse_shape():
     assert 1000 * np.percentile(low, 95) < 2.0
     truth = capture.groundtruth
     assert evaluate(result, truth)["mae_deg"] < 0.6 * evaluate(bicubic(capture), truth)["mae_deg"]
+
+
+def test_normal_evidence_per_pixel_fields_compiled_sums_equal_the_einsums():
+    """With a field per frame and pixel (the LED's, L (n, N, 3)) the host sums G, v, d in one
+    compiled pass (weighting._evidence_sums): equal to the GPU path's einsums to 1e-12 of the
+    largest evidence (summation order only), unusable frames and a float32 shading included."""
+    from o3d_mvps.solver.weighting import _tangent_min_eigenvalue
+
+    rng = np.random.default_rng(3)
+    n, N = 7, 5003
+    L = rng.normal(size=(n, N, 3))
+    usable = rng.random((n, N)) > 0.3
+    usable[:, 0] = False  # a pixel no frame sees: zero evidence
+    normals = rng.normal(size=(N, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    albedo = rng.random((N, 3))
+    shading = rng.random((n, N)).astype(np.float32)
+
+    class PerPixelFields:
+        def fields(self, lights, normals, points, poses):
+            return lights[:, 0], L
+
+    ev = Evaluation(np.zeros((n, N, 3), np.float32), usable, np.zeros((n, N, 3), np.float32), shading, normals,
+                    np.ones(N), None, 0.0, 0.0)
+    est = Estimate(np.full(N, 0.5), albedo, np.zeros((n, 2)), np.tile(np.eye(4), (n, 1, 1)))
+    got = normal_evidence(PerPixelFields(), est, ev, np.zeros((N, 3)))
+    u = usable * (albedo**2).sum(axis=1)
+    us = u * shading
+    G, v = np.einsum("in,inj,ink->njk", u, L, L), np.einsum("in,inj->nj", us, L)
+    expected = _tangent_min_eigenvalue(*normals.T, G[:, 0, 0], G[:, 0, 1], G[:, 0, 2], G[:, 1, 1], G[:, 1, 2],
+                                       G[:, 2, 2], *v.T, (us * shading).sum(axis=0))
+    assert got[0] == 0.0 and expected.max() > 0
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12 * expected.max())

@@ -216,7 +216,7 @@ def test_depth_rhs_is_minus_the_gradient_of_the_frozen_energy(problem):
     est = kicked_estimate(problem)
     ev = problem.evaluate(est)
     system = joint_system(problem, est, ev, project_albedo=False)
-    # the solver sums float32 logarithms (model.robust.cauchy_energy, ~1e-7 relative); the test's float64
+    # the solver squares float32 residuals (model.robust.cauchy_energy, ~1e-7 relative); the test's float64
     assert frozen_energy(problem, est, ev, est.z) == pytest.approx(ev.energy, rel=1e-7)
 
     directions = smooth_directions(problem.level.grid)

@@ -2,3 +2,7 @@
 
 Pure numpy/scipy functions on arrays; Open3D types stay at the package boundary.
 """
+
+from .parallel import configure_openmp
+
+configure_openmp()  # before the first parallel kernel loads OpenMP (model.parallel)

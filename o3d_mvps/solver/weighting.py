@@ -19,6 +19,7 @@ Two pieces, both set from the data (README/docs "Fidelity"):
 from __future__ import annotations
 
 import cv2
+import numba
 import numpy as np
 
 from ..model.arrays import array_module, fused
@@ -113,9 +114,14 @@ def normal_evidence(light_model, est, ev, points: np.ndarray) -> np.ndarray:
     _, L = light_model.fields(est.lights, normals, points, est.poses)
     rho2 = (est.albedo ** 2).sum(axis=1)
     N = normals.shape[0]
+    L = xp.asarray(L, dtype=np.float64)
+    if L.ndim == 3 and xp is np:  # a field per frame and pixel (LED) on the host: one compiled pass over the pixels
+        G6, v, d = np.empty((6, N)), np.empty((3, N)), np.empty(N)
+        _evidence_sums(np.ascontiguousarray(ev.usable), np.ascontiguousarray(rho2, dtype=np.float64),
+                       np.ascontiguousarray(ev.shading), np.ascontiguousarray(L), G6, v, d)
+        return _tangent_min_eigenvalue(normals[:, 0], normals[:, 1], normals[:, 2], *G6, *v, d)
     u = ev.usable * rho2  # (n, N)
     us = u * ev.shading
-    L = xp.asarray(L, dtype=np.float64)
     if L.ndim == 2:  # one field per frame (SH): sums over the frames as products with (n, 9) and (n, 3)
         G = u.T.astype(np.float64) @ (L[:, :, None] * L[:, None, :]).reshape(-1, 9)
         G, v = G.reshape(N, 3, 3), us.T.astype(np.float64) @ L
@@ -124,6 +130,34 @@ def normal_evidence(light_model, est, ev, points: np.ndarray) -> np.ndarray:
     d = (us * ev.shading).sum(axis=0)
     return _tangent_min_eigenvalue(normals[:, 0], normals[:, 1], normals[:, 2], G[:, 0, 0], G[:, 0, 1], G[:, 0, 2],
                                    G[:, 1, 1], G[:, 1, 2], G[:, 2, 2], v[:, 0], v[:, 1], v[:, 2], d)
+
+
+@numba.njit(parallel=True, cache=True)
+def _evidence_sums(usable, rho2, shading, L, G6, v, d):  # pragma: no cover - compiled
+    """:func:`normal_evidence`'s sums over the frames i, per pixel p, with u = usable rho2 (the
+    einsums of the GPU path): G6 (6, N) the entries 00, 01, 02, 11, 12, 22 of sum u L L^T,
+    v (3, N) sum u s L, d (N,) sum u s^2; usable (n, N) bool, rho2 (N,), shading s (n, N),
+    L (n, N, 3). Written into G6, v, d; frames that do not see p add nothing."""
+    n, N = usable.shape
+    for p in numba.prange(N):
+        g00 = g01 = g02 = g11 = g12 = g22 = v0 = v1 = v2 = dd = 0.0
+        r = rho2[p]
+        for i in range(n):
+            if usable[i, p]:
+                us = r * np.float64(shading[i, p])
+                l0, l1, l2 = L[i, p, 0], L[i, p, 1], L[i, p, 2]
+                g00 += r * l0 * l0
+                g01 += r * l0 * l1
+                g02 += r * l0 * l2
+                g11 += r * l1 * l1
+                g12 += r * l1 * l2
+                g22 += r * l2 * l2
+                v0 += us * l0
+                v1 += us * l1
+                v2 += us * l2
+                dd += us * np.float64(shading[i, p])
+        G6[0, p], G6[1, p], G6[2, p], G6[3, p], G6[4, p], G6[5, p] = g00, g01, g02, g11, g12, g22
+        v[0, p], v[1, p], v[2, p], d[p] = v0, v1, v2, dd
 
 
 @fused
