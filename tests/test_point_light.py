@@ -66,7 +66,8 @@ def test_borders_are_as_good_as_the_interior(quilt):
     """The quilt fills the frame and touches the image border on every side (where a real capture
     showed blocks of wrong normals and albedo): the normals within 2 px of the border are 2.39
     deg off against the interior's (16 px or more from the border) 1.49 (2.17 against 1.66 when
-    the lamps started on a 300-pixel level); bound: the interior's + 1.1 deg. The albedo error there: 4.8 % against 2.9 %; bound: the interior's x 2."""
+    the lamps started on a 300-pixel level); bound: the interior's + 1.1 deg. The albedo error
+    there: 4.8 % against 2.9 %; bound: the interior's x 2."""
     scene, out = quilt
     normals, _ = perspective_normals(out.depth, scene["K"])
     error = np.degrees(np.arccos(np.clip(np.sum(normals * scene["normals"], axis=-1), -1, 1)))
