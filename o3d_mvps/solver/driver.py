@@ -55,8 +55,16 @@ POINT_FIT_MAX_PIXELS = 20000
 #: the point lights start on the first level with at least this many object pixels (or the finest):
 #: 5 parameters a lamp and an albedo per pixel. From a 20-pixel coarsest level (320x240 colour) the
 #: clean bunny's lamps started 450 mm off and never recovered (normals 4.4 deg, albedo error 12 %;
-#: from 300 pixels: 2.0 deg, 0.9 %; at 640x480, D415-like: 2.32 -> 2.29 deg, 1.07 -> 0.83 %)
-POINT_MIN_PIXELS = 300
+#: from 300 pixels: 2.0 deg, 0.9 %). Coarse levels also place a lamp too far from a nearly flat
+#: surface: on the 320x240 D415-like quilt (tests/test_static_camera.py) the 300- and 1200-pixel
+#: levels drove the lamps out to 1.3-1.8 times their distance, which the finer levels only
+#: partly undid (166 mm off at the end, normals 1.61 deg); started at 4000 pixels, 50 mm (1.29 deg)
+POINT_MIN_PIXELS = 4000
+#: on the levels that refit the point lights every sweep (up to :data:`POINT_FIT_MAX_PIXELS`),
+#: this many times ``max_iterations`` sweeps at most: depth and lamps trade off along a valley
+#: (a nearly flat surface: the lamp's distance against the depth's curvature and the albedo),
+#: down which the alternating sweeps creep a few per cent of the lamp's distance a sweep
+POINT_SWEEP_FACTOR = 3
 #: pixels per frame read for the image noise of the LED's evidence weights, every sweep (the
 #: median of 20 x 90 000 x 3 residuals took 1.4 of a D415 refine's 17.6 s; 10 000 a frame give
 #: the noise to well under 1 %)
@@ -160,7 +168,10 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
     parallax_only = problem.light.fixed_in_world
     _weigh_smoothness(problem, est, ev, options, timings, stats)
     rows = [{"level": level.index, "iteration": 0, "energy": ev.energy}]
-    bar = tqdm(range(1, options.max_iterations + 1), desc=f"level {level.index} ({level.size[1]}x{level.size[0]})",
+    sweeps = options.max_iterations
+    if problem.light.name == "point" and level.grid.size <= POINT_FIT_MAX_PIXELS:
+        sweeps *= POINT_SWEEP_FACTOR  # the lamps creep down a valley with the depth
+    bar = tqdm(range(1, sweeps + 1), desc=f"level {level.index} ({level.size[1]}x{level.size[0]})",
                disable=not options.progress, leave=False)
     for iteration in bar:
         # point lights: their per-pixel fields make the evidence cost a frames x pixels x 3 x 3
