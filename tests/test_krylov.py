@@ -288,32 +288,3 @@ def test_schur_operator_with_the_multigrid_of_its_sparse_part(solver_systems):
     assert converged and np.linalg.norm(s["b"] - s["A"] @ x) <= 1.01e-8 * np.linalg.norm(s["b"])
     reference, _ = solve_spd(s["A"], s["b"], 1e-10, 1000, sparse_part=s["M"])
     assert np.linalg.norm(x - reference) <= 1e-5 * np.linalg.norm(reference)
-
-
-def test_compiled_arnoldi_gives_pyamgs_hierarchy(rng):
-    """amg_preconditioner runs pyamg's spectral-radius estimates with the compiled Arnoldi process
-    (linear._approximate_eigenvalues): the same Ritz values as pyamg's own to 1e-12 (sums in
-    another order: measured 3e-13 of the largest), H to 1e-10 (2e-12) and the same V-cycle to
-    1e-10 of its output."""
-    import pyamg.util.linalg as pyamg_linalg
-
-    from o3d_mvps.solver import linear
-
-    A, b, _ = grid_system()
-    D_inv_A = sp.diags(1.0 / A.diagonal()) @ A
-    for _ in range(2):
-        v0 = rng.random((A.shape[0], 1))
-        ours = linear._approximate_eigenvalues(D_inv_A.tocsr(), 15, None, v0.copy())
-        theirs = pyamg_linalg._approximate_eigenvalues(D_inv_A.tocsr(), 15, None, v0.copy())
-        assert np.allclose(np.sort_complex(ours[1]), np.sort_complex(theirs[1]), rtol=1e-12, atol=0)
-        assert np.abs(ours[2] - theirs[2]).max() <= 1e-10 * np.abs(theirs[2]).max()  # measured 2e-12
-        assert len(ours[3]) == len(theirs[3]) and ours[4] == theirs[4]
-    assert pyamg_linalg._approximate_eigenvalues is linear._PYAMG_EIGENVALUES  # restored
-    compiled = linear.amg_preconditioner(A)
-    original = linear._PYAMG_EIGENVALUES
-    try:  # pyamg's own estimate throughout
-        linear._PYAMG_EIGENVALUES = None
-        plain = linear.amg_preconditioner(A)
-    finally:
-        linear._PYAMG_EIGENVALUES = original
-    assert np.abs(compiled @ b - plain @ b).max() <= 1e-10 * np.abs(plain @ b).max()

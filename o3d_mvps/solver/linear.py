@@ -9,15 +9,11 @@ smoothed-aggregation V-cycle (pyamg); the joint step solves the Schur complement
 from __future__ import annotations
 
 from collections.abc import Callable
-from contextlib import contextmanager
 
 import numpy as np
 import pyamg
-import pyamg.util.linalg as pyamg_linalg
-import scipy.linalg
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
-from pyamg.util.params import set_tol
 
 from ..model.arrays import sparse_module
 from . import kernels as host_kernels
@@ -70,53 +66,14 @@ def amg_preconditioner(matrix: sp.csr_matrix) -> spla.LinearOperator:
     state = np.random.get_state()  # pyamg starts its spectral-radius estimates from numpy's global RNG:
     np.random.seed(0)  # seeded here (and restored) so that the same inputs give the same result
     try:
-        with _compiled_arnoldi():
-            ml = pyamg.smoothed_aggregation_solver(matrix, symmetry="symmetric", max_coarse=300,
-                                                   coarse_solver="splu",
-                                                   strength=("symmetric", {"theta": STRENGTH_THETA}))
+        ml = pyamg.smoothed_aggregation_solver(matrix, symmetry="symmetric", max_coarse=300, coarse_solver="splu",
+                                               strength=("symmetric", {"theta": STRENGTH_THETA}))
     finally:
         np.random.set_state(state)
     # a module-level cycle, not a closure that calls itself: that closure is a reference cycle,
     # which kept every hierarchy (and its matrix: 95 MB at D415 size, 20 frames) alive after its
     # solve until the garbage collector's next full pass
     return spla.LinearOperator(matrix.shape, lambda b: _v_cycle(ml, 0, np.ravel(b)), dtype=matrix.dtype)
-
-
-#: pyamg's Arnoldi process (pyamg.util.linalg._approximate_eigenvalues), which its prolongation
-#: smoother's spectral-radius estimate runs once or twice per level of every hierarchy
-_PYAMG_EIGENVALUES = getattr(pyamg_linalg, "_approximate_eigenvalues", None)
-
-
-@contextmanager
-def _compiled_arnoldi():
-    """Within: pyamg's spectral-radius estimates run :func:`_approximate_eigenvalues` (restored
-    after). Its Python loop made a temporary per orthogonalisation (120 of them over the
-    estimate's 15 steps, each as long as the matrix): 15 % of a 2-megapixel solve."""
-    if _PYAMG_EIGENVALUES is None:  # another pyamg: its own
-        yield
-        return
-    pyamg_linalg._approximate_eigenvalues = _approximate_eigenvalues
-    try:
-        yield
-    finally:
-        pyamg_linalg._approximate_eigenvalues = _PYAMG_EIGENVALUES
-
-
-def _approximate_eigenvalues(A, maxiter, symmetric=None, initial_guess=None):
-    """pyamg's ``_approximate_eigenvalues`` (the same arguments and results: (Ritz vectors, Ritz
-    values, H, Krylov basis as a list of (N, 1) columns, broke down)) with its Arnoldi process
-    compiled (:func:`.kernels.arnoldi`) for a float64 CSR matrix and a real start; pyamg's own
-    otherwise. The same arithmetic but for the order of the dot products' sums."""
-    if (symmetric or initial_guess is None or not sp.issparse(A) or A.format != "csr" or A.dtype != np.float64
-            or A.shape[0] != A.shape[1] or np.iscomplexobj(initial_guess)):
-        return _PYAMG_EIGENVALUES(A, maxiter, symmetric, initial_guess)
-    maxiter = min(A.shape[0], maxiter)
-    v0 = initial_guess
-    v0 /= pyamg_linalg.norm(v0)  # in place, as pyamg's
-    H, V, j, broke = host_kernels.arnoldi(A.indptr, A.indices, A.data, np.ascontiguousarray(v0, np.float64).ravel(),
-                                          maxiter, float(set_tol(A.dtype)))
-    eigenvalues, vectors = scipy.linalg.eig(H[:j + 1, :j + 1], left=False, right=True)
-    return vectors, eigenvalues, H, [V[i].reshape(-1, 1) for i in range(j + 2)], bool(broke)
 
 
 def _v_cycle(ml, k: int, b: np.ndarray) -> np.ndarray:

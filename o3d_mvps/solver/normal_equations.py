@@ -433,8 +433,9 @@ def depth_block(problem: LevelProblem, stencil_sums: np.ndarray) -> sp.csr_matri
     (:func:`.kernels.add_stencil_gram`, :func:`.kernels.add_csr_into_pattern`) into a pattern
     built once per level (:func:`depth_block_pattern`, kept on the problem), without the
     explicitly stored zeros. The same entries as the sparse products and sums up to rounding
-    (their order of summation differs), in 1/5 of their time at 2 megapixels (see
-    docs/performance.md)."""
+    (their order of summation differs; measured 2e-16 of the largest), in half their time
+    (1.08 M pixels, damping included: 0.85 against 1.7-2.0 CPU s; the pattern, once per level,
+    about 1 s)."""
     grid, prior = problem.level.grid, problem.level.prior
     terms = prior.hessian_terms(problem.tau, problem.mu)
     for attempt in range(2):
