@@ -31,7 +31,7 @@ def update_depth(problem: LevelProblem, est: Estimate, ev: Evaluation, *, rtol: 
     # ev released once read: not held while the matrices are formed, nor through the solve and line search
     system = joint_system(problem, est, ev, parallax=parallax, twists=False, project_albedo=project_albedo,
                           release=True)
-    step, iterations = solve_spd(levenberg_damped(system.matrix), system.rhs_z, rtol, maxiter,
+    step, iterations = solve_spd(levenberg_damped(system.matrix, overwrite=True), system.rhs_z, rtol, maxiter,
                                  pixel_prolongations=problem.pixel_prolongations)
     del system
 

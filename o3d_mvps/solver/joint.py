@@ -32,7 +32,7 @@ def update_pose_depth(problem: LevelProblem, est: Estimate, ev: Evaluation, *, r
     energy = ev.energy
     # ev released once read: not held while the matrices are formed, nor through the solve and line search
     system = joint_system(problem, est, ev, project_albedo=project_albedo, release=True)
-    system = dataclasses.replace(system, matrix=levenberg_damped(system.matrix))
+    system = dataclasses.replace(system, matrix=levenberg_damped(system.matrix, overwrite=True))
     S, rhs = system.schur_operator()
     dz, iterations = solve_spd(S, rhs, rtol, maxiter, sparse_part=system.matrix, pixel_prolongations=problem.pixel_prolongations)
     xi, frames = system.twists(dz), system.frames

@@ -649,3 +649,79 @@ def warp_gradients(points_ref, pose, K, image, points, grad_u, grad_v):  # pragm
     projection is not finite, at pixel (0, 0)). The same per-pixel function as :func:`accumulate_frame`'s."""
     for p in numba.prange(points_ref.shape[0]):
         warp_gradients_pixel(points_ref, pose, K, image, points, grad_u, grad_v, p)
+
+
+@numba.njit(inline="always")
+def csr_position(indptr, indices, row, column):  # pragma: no cover - compiled
+    """Index into a CSR matrix's data of entry (row, column), its row's columns ascending; -1
+    where the pattern has no such entry (binary search)."""
+    lo, hi = indptr[row], indptr[row + 1]
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if indices[mid] < column:
+            lo = mid + 1
+        else:
+            hi = mid
+    if lo < indptr[row + 1] and indices[lo] == column:
+        return lo
+    return -1
+
+
+@numba.njit(cache=True)
+def add_stencil_gram(indptr, indices, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, Saa, Sbb, Sgg, Sab, Sag,
+                     Sbg, data):  # pragma: no cover - compiled
+    """data (nnz,) += the entries of ``sum_k R_k^T W_k R_k`` on a CSR pattern (indptr, indices,
+    columns ascending per row) that holds them: for pixel k the row ``R_k = a Du_k + b Dv_k + c e_k``
+    of the central-difference stencil (:class:`o3d_mvps.model.normals.MaskedGrid`: Du_k holds
+    wf_u at fwd_u[k], -wb_u at bwd_u[k] and wb_u - wf_u at k), and the per-pixel weighted
+    products Saa = sum w a a, ..., Sbg (N,) each. Returns False (data partly written) where the
+    pattern lacks an entry. One pass over the pixels, adding each one's 5 x 5 block; serial
+    (pixels share entries)."""
+    nodes = np.empty(5, np.int64)
+    cu, cv, ce = np.zeros(5), np.zeros(5), np.zeros(5)
+    ce[0] = 1.0
+    for k in range(fwd_u.shape[0]):
+        nodes[0], nodes[1], nodes[2], nodes[3], nodes[4] = k, fwd_u[k], bwd_u[k], fwd_v[k], bwd_v[k]
+        cu[0], cu[1], cu[2] = wb_u[k] - wf_u[k], wf_u[k], -wb_u[k]
+        cv[0], cv[3], cv[4] = wb_v[k] - wf_v[k], wf_v[k], -wb_v[k]
+        saa, sbb, sgg, sab, sag, sbg = Saa[k], Sbb[k], Sgg[k], Sab[k], Sag[k], Sbg[k]
+        for p in range(5):
+            if cu[p] == 0.0 and cv[p] == 0.0 and ce[p] == 0.0:
+                continue
+            for q in range(5):
+                if cu[q] == 0.0 and cv[q] == 0.0 and ce[q] == 0.0:
+                    continue
+                value = (saa * cu[p] * cu[q] + sbb * cv[p] * cv[q] + sgg * ce[p] * ce[q]
+                         + sab * (cu[p] * cv[q] + cv[p] * cu[q]) + sag * (cu[p] * ce[q] + ce[p] * cu[q])
+                         + sbg * (cv[p] * ce[q] + ce[p] * cv[q]))
+                at = csr_position(indptr, indices, nodes[p], nodes[q])
+                if at < 0:
+                    return False
+                data[at] += value
+    return True
+
+
+@numba.njit(cache=True)
+def add_csr_into_pattern(indptr, indices, data, scale, a_indptr, a_indices, a_data):  # pragma: no cover - compiled
+    """data (nnz,) of a CSR pattern (indptr, indices, columns ascending per row) += ``scale`` times
+    the CSR matrix (a_indptr, a_indices, a_data) of the same shape; returns False (data partly
+    written) where the pattern lacks one of its entries."""
+    for row in range(a_indptr.shape[0] - 1):
+        for nz in range(a_indptr[row], a_indptr[row + 1]):
+            at = csr_position(indptr, indices, row, a_indices[nz])
+            if at < 0:
+                return False
+            data[at] += scale * a_data[nz]
+    return True
+
+
+@numba.njit(cache=True)
+def diagonal_positions(indptr, indices):  # pragma: no cover - compiled
+    """(N,) index into a CSR matrix's data of each diagonal entry (columns ascending per row),
+    -1 where it is not stored."""
+    n = indptr.shape[0] - 1
+    out = np.empty(n, np.int64)
+    for row in range(n):
+        out[row] = csr_position(indptr, indices, row, row)
+    return out
+

@@ -16,6 +16,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from ..model.arrays import sparse_module
+from . import kernels as host_kernels
 from . import krylov
 from .device import on_gpu
 
@@ -28,13 +29,20 @@ from .device import on_gpu
 DAMPING = 1e-4
 
 
-def levenberg_damped(matrix: sp.spmatrix) -> sp.csr_matrix:
+def levenberg_damped(matrix: sp.spmatrix, overwrite: bool = False) -> sp.csr_matrix:
     """``M + DAMPING diag(max(M_pp, mean(M_pp) / 100))`` (N, N) sparse: positive definite for
-    any PSD M, also where a row of M is zero."""
+    any PSD M, also where a row of M is zero. overwrite: damp a host CSR matrix that stores its
+    whole diagonal in place (no sparse sum), and return it."""
     d = matrix.diagonal()
     floor = 0.01 * float(d.mean()) if d.size else 0.0
+    damping = DAMPING * np.maximum(d, max(floor, np.finfo(float).tiny))
+    if overwrite and isinstance(matrix, sp.csr_matrix) and matrix.has_sorted_indices:
+        at = host_kernels.diagonal_positions(matrix.indptr, matrix.indices)
+        if at.size == 0 or at.min() >= 0:
+            matrix.data[at] += damping
+            return matrix
     sparse = sparse_module(matrix)
-    return sparse.csr_matrix(matrix + sparse.diags(DAMPING * np.maximum(d, max(floor, np.finfo(float).tiny))))
+    return sparse.csr_matrix(matrix + sparse.diags(damping))
 
 
 #: pyamg's strength-of-connection threshold: an off-diagonal entry couples pixels i and j in the

@@ -126,6 +126,9 @@ class LevelProblem:
         self.lam = float(cauchy_lambda)
         self.n_frames = len(level.images)
         self._prolongations = None
+        #: (indptr, indices) of the depth block's sparse pattern on the host, built at the first
+        #: joint or depth step (:func:`.normal_equations.depth_block`)
+        self.depth_pattern = None
         self._pixels = None
         self._last_points = None  # (z, its points) on a GPU: see points
         self.visibility = like(np.ones((self.n_frames, level.grid.size), dtype=bool), level.grid.u)

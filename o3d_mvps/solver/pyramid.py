@@ -82,12 +82,31 @@ class DepthPrior:
 
     def normal_equations(self, z: np.ndarray, tau: float, mu: float) -> tuple[sp.csr_matrix, np.ndarray]:
         """The energy's Hessian (N, N) and minus its gradient (N,) at depth z (N,)."""
-        hessian = 2.0 * tau * self.DtD
+        (scale, first), *rest = self.hessian_terms(tau, mu)
+        hessian = scale * first
+        for scale, term in rest:
+            hessian = hessian + scale * term
+        return hessian, self.negative_gradient(z, tau, mu)
+
+    def hessian_terms(self, tau: float, mu: float) -> list:
+        """The energy's Hessian as [(scale, (N, N) sparse)] to add up: 2 tau D^T D, and
+        2 mu S^T S where there is a smoothness term."""
+        terms = [(2.0 * tau, self.DtD)]
+        if mu > 0 and self.S is not None:
+            terms.append((2.0 * mu, self.StS))
+        return terms
+
+    def negative_gradient(self, z: np.ndarray, tau: float, mu: float) -> np.ndarray:
+        """Minus the energy's gradient (N,) at depth z (N,)."""
         rhs = -2.0 * tau * (self.D.T @ (self.D @ z - self.z0))
         if mu > 0 and self.S is not None:
-            hessian = hessian + 2.0 * mu * self.StS
             rhs = rhs - 2.0 * mu * (self.StS @ z)
-        return hessian, rhs
+        return rhs
+
+    @property
+    def smoothness_pattern(self) -> sp.csr_matrix | None:
+        """S before :meth:`weigh_smoothness` (whose weights keep its pattern), or None."""
+        return self.__dict__.get("_S_unweighted", self.S)
 
     def on_device(self, device) -> "DepthPrior":
         """This prior with its arrays and operators on ``device`` (an
