@@ -28,6 +28,10 @@ stand-in of tests/cupy_emulation.py; no memory counted, times meaningless).
   ``gpu_operations.json`` (the counts at aacda76) and their ratio, with ``previous`` the counts
   of the ``gpu_counts.json`` it overwrites (launches and transfers, per sweep of each device
   level) and the ratios to them.
+- ``python -m benchmarks.gpu sites DIR [--level 0] [--out DIR]``: the same count, and a Markdown
+  table of where one level's sweeps spend their launches and copies: per function of o3d_mvps
+  (``file function``, line numbers summed) and kernel (``[name]`` of a fused or compiled kernel),
+  per sweep; with ``--out`` it also writes ``gpu_counts.json``.
 """
 
 from __future__ import annotations
@@ -261,14 +265,14 @@ def breakdown(level: dict) -> list[tuple[str, float, float]]:
                   key=lambda row: (-row[1] - row[2], row[0]))
 
 
-def sites_table(folder, level_index: int = 0) -> str:
+def sites_table(folder, level_index: int = 0, out=None) -> str:
     """A Markdown table of :func:`breakdown` for level ``level_index`` of each saved problem of
-    ``folder`` (counted as :func:`count` does; the JSON goes to a temporary folder)."""
+    ``folder`` (counted as :func:`count` does; its JSON written to ``out``, None: a temporary folder)."""
     import tempfile
 
     lines = []
-    with tempfile.TemporaryDirectory() as out:
-        for row in count(folder, out=out, sites=True):
+    with tempfile.TemporaryDirectory() as temporary:
+        for row in count(folder, out=temporary if out is None else out, sites=True):
             level = next(level for level in row["levels"] if level["level"] == level_index)
             lines += [f"{row['problem']}, level {level_index}: {level['launches_per_sweep']} launches, "
                       f"{level['transfers_per_sweep']} copies per sweep ({level['sweeps']} sweeps)", "",
@@ -346,6 +350,7 @@ def main(argv=None) -> int:
                                          "launches and copies (by call site and kernel)")
     where.add_argument("folder")
     where.add_argument("--level", type=int, default=0)
+    where.add_argument("--out", default=None, help="also write gpu_counts.json there (default: not kept)")
     args = parser.parse_args(argv)
     if args.command == "make":
         for path in make(args.folder):
@@ -353,7 +358,7 @@ def main(argv=None) -> int:
     elif args.command == "run":
         run(args.folder, args.out)
     elif args.command == "sites":
-        print(sites_table(args.folder, args.level))
+        print(sites_table(args.folder, args.level, args.out))
     else:
         count(args.folder, args.out)
     return 0
