@@ -31,7 +31,7 @@ from ..model.arrays import array_module, contiguous, like
 from ..model.robust import cauchy_weights
 from ..model.shading import (INITIAL_LIGHT, led_fields_into, led_irradiances, led_point_gradients_into,
                              led_twist_jacobians_into, led_vector_jacobian, led_vectors, sh_basis)
-from .device import kernels_for, to_host
+from .device import kernels_for, to_host_together
 from .line_search import backtrack
 from .linear import ridge_solve
 
@@ -389,8 +389,7 @@ def update_led_offset(problem, est, ev, *, max_halvings: int = 3, max_pixels: in
         ds = light.offset_jacobians(est.lights, normals, points, est.poses)  # (n, M, 3)
         H, g = _offset_normal_equations(ds, cauchy_weights(residual, problem.lam) * usable[..., None], albedo,
                                         residual)
-        system = to_host(xp.concatenate([H.reshape(-1), g]))
-        H, g = system[:9].reshape(3, 3), system[9:]
+        H, g = to_host_together(H, g)
     else:
         H, g = np.zeros((3, 3)), np.zeros(3)
         for i in range(problem.n_frames):
