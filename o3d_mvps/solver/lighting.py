@@ -29,8 +29,8 @@ import numpy as np
 
 from ..model.arrays import array_module, contiguous, like
 from ..model.robust import cauchy_weights
-from ..model.shading import (INITIAL_LIGHT, led_fields_into, led_irradiances, led_point_gradients_into,
-                             led_twist_jacobians_into, led_vector_jacobian, led_vectors, sh_basis)
+from ..model.shading import (INITIAL_LIGHT, led_fields_into, led_irradiances, led_twist_jacobians_into, led_vectors,
+                             sh_basis)
 from .device import kernels_for, to_host_together
 from .line_search import backtrack
 from .linear import ridge_solve
@@ -249,18 +249,14 @@ def lit_point_gradients(lights: np.ndarray, normals: np.ndarray, points: np.ndar
     """d(shading)/d(point) (m, N, 3) of m point lights at ``positions`` (m, 3) with intensities
     ``lights[:, 1]`` (m,) on unit normals and points (N, 3), all in one frame (metres): the
     intensity times :func:`~o3d_mvps.model.shading.led_vector_jacobian`, zero where the point
-    faces away. The derivative with respect to the light's position is its negative. On the
-    host one compiled pass (:func:`~o3d_mvps.model.shading.led_point_gradients_into`, equal
-    bit for bit)."""
-    if array_module(points) is np:
-        J = np.empty((len(positions), len(points), 3))
-        led_point_gradients_into(_intensities(lights, points), contiguous(normals, np.float64),
-                                 contiguous(points, np.float64), np.ascontiguousarray(positions, dtype=np.float64), J)
-        return J
-    J = led_vector_jacobian(points, positions, normals)
-    lit = like(lights[:, 1:], points) * (np.einsum("...j,...j->...", normals,
-                                                   like(positions, points)[:, None, :] - points) > 0)
-    return J * lit[..., None]
+    faces away. The derivative with respect to the light's position is its negative. One
+    compiled pass (:func:`~o3d_mvps.model.shading.led_point_gradients_into`, equal bit for bit
+    to the array formulas; on a GPU its CUDA twin, one launch)."""
+    J = array_module(points).empty((len(positions), len(points), 3))
+    kernels_for(points).led_point_gradients_into(
+        like(_intensities(lights, points), points), contiguous(normals, np.float64), contiguous(points, np.float64),
+        like(np.ascontiguousarray(positions, dtype=np.float64), points), J)
+    return J
 
 
 @dataclass
