@@ -174,18 +174,25 @@ def _dot3(a0, a1, a2, b0, b1, b2):
 #: from 277 to 105 MB over its entry), for the same assembly time.
 BLOCK_PIXELS = 8192
 
+#: :data:`BLOCK_PIXELS` on a GPU, where each block costs some 45 launches and a few copies
+#: whatever its size (``python -m benchmarks.gpu sites``): the D415's finest level (about 90 000
+#: object pixels) in one block, its temporaries some 0.8 GB of GPU memory at 19 refined frames.
+DEVICE_BLOCK_PIXELS = 98304
+
 
 def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parallax: bool = True,
                  twists: bool = True, project_albedo: bool = True, min_pixels: int = 12,
-                 block_pixels: int = BLOCK_PIXELS, release: bool = False) -> JointSystem:
+                 block_pixels: int | None = None, release: bool = False) -> JointSystem:
     """Assemble the Gauss-Newton normal equations for the increments (dz, twists).
 
     parallax: include the warp's (and the LED position's) dependence on z in the depth rows
     (False: the paper's frozen-warp depth rows). twists: include frames 1..n-1's twists.
     project_albedo: eliminate the albedo (variable projection, see :class:`_AlbedoProjection`).
 
-    The reference pixels are taken in blocks of ``block_pixels`` (the result does not depend on
-    it: every sum over frames is per pixel, every sum over pixels is added up across blocks).
+    The reference pixels are taken in blocks of ``block_pixels`` (None: :data:`BLOCK_PIXELS` on
+    the host, :data:`DEVICE_BLOCK_PIXELS` on a GPU; the result does not depend on it but for the
+    order of sums: every sum over frames is per pixel, every sum over pixels is added up across
+    blocks).
     Per block, one pass over the frames; per frame, one compiled kernel
     (:func:`.kernels.accumulate_frame`) adds its depth rows to per-pixel sums and writes its
     twist rows and w s J; the block's albedo projection and its share of the coupling follow.
@@ -210,6 +217,8 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
     Du, Dv = grid.difference_operators()
     if xp is np and m:  # without the stored zeros (the central differences' own pixel): a third fewer scatters into U
         Du, Dv = _without_zeros(Du), _without_zeros(Dv)
+    if block_pixels is None:
+        block_pixels = BLOCK_PIXELS if xp is np else DEVICE_BLOCK_PIXELS
     starts = range(0, N, block_pixels)
     # on a GPU each block writes its twist sums into its own row, summed and copied to the host
     # once after the pass (not two or four copies per block); the frames' poses and slots copied once
