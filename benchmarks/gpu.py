@@ -28,6 +28,10 @@ stand-in of tests/cupy_emulation.py; no memory counted, times meaningless).
   ``gpu_operations.json`` (the counts at aacda76) and their ratio, with ``previous`` the counts
   of the ``gpu_counts.json`` it overwrites (launches and transfers, per sweep of each device
   level) and the ratios to them.
+- ``python -m benchmarks.gpu sites DIR [--level 0] [--out DIR]``: the same count, and a Markdown
+  table of where one level's sweeps spend their launches and copies: per function of o3d_mvps
+  (``file function``, line numbers summed) and kernel (``[name]`` of a fused or compiled kernel),
+  per sweep; with ``--out`` it also writes ``gpu_counts.json``.
 """
 
 from __future__ import annotations
@@ -38,6 +42,7 @@ import os
 import sys
 import time
 import types
+from collections import Counter
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -143,14 +148,15 @@ def run(folder, out="benchmarks/results", device="cuda:0") -> list[dict]:
     return rows
 
 
-def count(folder, out="benchmarks/results", min_level_pixels: int | None = None) -> list[dict]:
+def count(folder, out="benchmarks/results", min_level_pixels: int | None = None, sites: bool = False) -> list[dict]:
     """Count the CUDA path's device operations on every saved problem of ``folder`` (see the
     module's docstring); writes ``out``/gpu_counts.json and returns its rows: problem,
     object_pixels, operations (total), launches, transfers and by_kind, and per level (coarsest
     first) its pixels, device, sweeps and the operations, launches and transfers of its sweeps,
     in all and per sweep (the levels' set-up and the copies between levels count in the totals
     only). min_level_pixels: the CUDA path's smallest level on the device (None: the product's,
-    CUDA_MIN_LEVEL_PIXELS)."""
+    CUDA_MIN_LEVEL_PIXELS). sites: also count by call site and kernel (slower), each level's
+    sweeps in its ``sites``: {(kind, "file function [kernel]"): operations} (not in the JSON)."""
     tests = str(Path(__file__).resolve().parents[1] / "tests")
     if tests not in sys.path:
         sys.path.insert(0, tests)
@@ -169,10 +175,13 @@ def count(folder, out="benchmarks/results", min_level_pixels: int | None = None)
     def counted_sweeps(problem, *args, **kwargs):
         kinds = cupy_emulation.operations
         before, copies_before = sum(kinds.values()), kinds["to_host"] + kinds["to_device"]
+        sites_before = cupy_emulation.sites.copy()
         rows = solve_level_sweeps(problem, *args, **kwargs)
         operations, transfers = sum(kinds.values()) - before, kinds["to_host"] + kinds["to_device"] - copies_before
         levels.append({"level": problem.level.index, "pixels": problem.level.grid.size, "sweeps": len(rows) - 1,
                        "operations": operations, "launches": operations - transfers, "transfers": transfers})
+        if sites:
+            levels[-1]["sites"] = cupy_emulation.sites - sites_before
         return rows
 
     baseline_file = Path(out) / "gpu_operations.json"
@@ -192,8 +201,9 @@ def count(folder, out="benchmarks/results", min_level_pixels: int | None = None)
 
     results = []
     driver._sweeps, krylov.pcg = counted_sweeps, counted_pcg
+    recording = cupy_emulation.recording_sites() if sites else _nothing()
     try:
-        with cupy_emulation.installed(), _cpu_kernels_as_cuda_kernels(cupy_emulation):
+        with cupy_emulation.installed(), _cpu_kernels_as_cuda_kernels(cupy_emulation), recording:
             for path in paths:
                 levels.clear()
                 solves.clear()
@@ -206,6 +216,7 @@ def count(folder, out="benchmarks/results", min_level_pixels: int | None = None)
                     level["device"] = where
                     for name in ("operations", "launches", "transfers"):
                         level[f"{name}_per_sweep"] = round(level[name] / max(level["sweeps"], 1), 1)
+                cupy_emulation.sites.clear()
                 kinds = cupy_emulation.operations
                 total, transfers = sum(kinds.values()), kinds["to_host"] + kinds["to_device"]
                 results.append({"problem": path.name, "commit": _commit(), "object_pixels": int(solution.mask.sum()),
@@ -220,13 +231,55 @@ def count(folder, out="benchmarks/results", min_level_pixels: int | None = None)
                                    if path.name in baseline else {}),
                                 **({"previous": _compared(previous[path.name], total - transfers, transfers, levels)}
                                    if path.name in previous else {})})
-                print(json.dumps(results[-1]), flush=True)
+                print(json.dumps(_without_sites(results[-1])), flush=True)
     finally:
         driver._sweeps, krylov.pcg = solve_level_sweeps, pcg
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "gpu_counts.json").write_text(json.dumps(results, indent=1))
+    (out / "gpu_counts.json").write_text(json.dumps([_without_sites(row) for row in results], indent=1))
     return results
+
+
+def _without_sites(row: dict) -> dict:
+    """A row of :func:`count` without its levels' ``sites`` (JSON-ready)."""
+    return {**row, "levels": [{k: v for k, v in level.items() if k != "sites"} for level in row["levels"]]}
+
+
+@contextmanager
+def _nothing():
+    yield
+
+
+def breakdown(level: dict) -> list[tuple[str, float, float]]:
+    """Where one level's sweeps (a level row of :func:`count` with ``sites=True``) spent their
+    operations: rows (``file function [kernel]``, launches per sweep, copies per sweep), most
+    first, call sites of one function summed (line numbers dropped)."""
+    launches, copies = Counter(), Counter()
+    for (kind, site), n in level["sites"].items():
+        where, _, kernel = site.partition(" [")
+        path_line, _, function = where.partition(" ")
+        key = f"{path_line.split(':')[0]} {function}" + (f" [{kernel}" if kernel else "")
+        (copies if kind in ("to_host", "to_device") else launches)[key] += n
+    sweeps = max(level["sweeps"], 1)
+    return sorted(((key, launches[key] / sweeps, copies[key] / sweeps) for key in set(launches) | set(copies)),
+                  key=lambda row: (-row[1] - row[2], row[0]))
+
+
+def sites_table(folder, level_index: int = 0, out=None) -> str:
+    """A Markdown table of :func:`breakdown` for level ``level_index`` of each saved problem of
+    ``folder`` (counted as :func:`count` does; its JSON written to ``out``, None: a temporary folder)."""
+    import tempfile
+
+    lines = []
+    with tempfile.TemporaryDirectory() as temporary:
+        for row in count(folder, out=temporary if out is None else out, sites=True):
+            level = next(level for level in row["levels"] if level["level"] == level_index)
+            lines += [f"{row['problem']}, level {level_index}: {level['launches_per_sweep']} launches, "
+                      f"{level['transfers_per_sweep']} copies per sweep ({level['sweeps']} sweeps)", "",
+                      "| where (file function [kernel]) | launches per sweep | copies per sweep |", "|---|---|---|"]
+            lines += [f"| {key} | {n:.1f} | {c:.1f} |" for key, n, c in breakdown(level)]
+            lines.append("")
+    return "\n".join(lines)
 
 
 def _commit() -> str:
@@ -266,14 +319,14 @@ def _cpu_kernels_as_cuda_kernels(stand_in):
     import o3d_mvps.solver
     from o3d_mvps.solver import cuda_kernels, kernels
 
-    def launcher(kernel):
+    def launcher(kernel, name):
         def launch(*args):
-            stand_in.count("kernel")
+            stand_in.count("kernel", name=name)
             return kernel(*(stand_in.host_data(a) for a in args))
         return launch
 
     module = types.ModuleType(cuda_kernels.__name__)
-    module.__dict__.update({name: launcher(getattr(kernels, name)) for name in cuda_kernels.__all__})
+    module.__dict__.update({name: launcher(getattr(kernels, name), name) for name in cuda_kernels.__all__})
     module.chunk_count = kernels.chunk_count  # not a launch
     sys.modules[module.__name__] = o3d_mvps.solver.cuda_kernels = module
     try:
@@ -293,12 +346,19 @@ def main(argv=None) -> int:
     counter = sub.add_parser("count", help="count the CUDA path's device operations on the CuPy stand-in (no GPU)")
     counter.add_argument("folder")
     counter.add_argument("--out", default="benchmarks/results")
+    where = sub.add_parser("sites", help="count as count does, and print where one level's sweeps spend their "
+                                         "launches and copies (by call site and kernel)")
+    where.add_argument("folder")
+    where.add_argument("--level", type=int, default=0)
+    where.add_argument("--out", default=None, help="also write gpu_counts.json there (default: not kept)")
     args = parser.parse_args(argv)
     if args.command == "make":
         for path in make(args.folder):
             print(f"wrote {path} ({os.path.getsize(path) / 2**20:.1f} MB)")
     elif args.command == "run":
         run(args.folder, args.out)
+    elif args.command == "sites":
+        print(sites_table(args.folder, args.level, args.out))
     else:
         count(args.folder, args.out)
     return 0

@@ -44,6 +44,7 @@ SIGNATURES = {
     "_weighted_albedo_sums": (_R3, _array(2, types.boolean), _COLOR, _R2, types.float64, _F2, _F2),
     "_weighted_lighting_sums": (_R3, _array(2, types.boolean), _COLOR, _F2, types.float64, _F2, _F2),
     "_led_irradiances_into": (_F2, _F2, _F2, _F2),
+    "_led_point_gradients_into": (_F1, _F2, _F2, _F2, _F3),
     "_log1p_square_partials": (_R1, types.float64, _F1),
     "_warp_sample": (_F2, _F2, _F2, _COLOR, _array(1, types.boolean), _array(2, types.float32),
                      _array(1, types.boolean)),

@@ -45,7 +45,8 @@ from numpy.lib.mixins import NDArrayOperatorsMixin
 operations = Counter()
 
 #: where the operations were asked for, when :func:`recording_sites` is on: (kind, "file:line
-#: function" of the innermost caller in o3d_mvps) -> count
+#: function" of the innermost caller in o3d_mvps, followed by " [kernel]" for a fused or
+#: counted CUDA kernel) -> count
 sites = Counter()
 _recording = False
 
@@ -57,10 +58,10 @@ _fusing = None
 _FUSABLE = frozenset({"where"})
 
 
-def count(kind: str, n: int = 1) -> None:
-    """Count ``n`` operations of ``kind`` (and their call site, see :data:`sites`); within a
-    fused kernel (:func:`fuse`) nothing is counted, and anything but an elementwise operation
-    raises TypeError."""
+def count(kind: str, n: int = 1, name: str | None = None) -> None:
+    """Count ``n`` operations of ``kind`` (and their call site, see :data:`sites`, with the
+    kernel's ``name`` where given); within a fused kernel (:func:`fuse`) nothing is counted, and
+    anything but an elementwise operation raises TypeError."""
     if _fusing is not None:
         if kind != "elementwise" and n:
             raise TypeError(f"cupy.fuse: kernel {_fusing!r} asks for a {kind} operation; a fused kernel takes "
@@ -68,7 +69,8 @@ def count(kind: str, n: int = 1) -> None:
         return
     operations[kind] += n
     if _recording and n:
-        sites[kind, _call_site()] += n
+        site = _call_site()
+        sites[kind, site if name is None else f"{site} [{name}]"] += n
 
 
 #: o3d_mvps's helpers that only pass arrays on: a call site is their caller
@@ -299,7 +301,7 @@ class _Fused:
             result = self.function(*args)
         finally:
             _fusing = None
-        count("fused")
+        count("fused", name=self.name)
         return result
 
 

@@ -177,6 +177,16 @@ def test_led_irradiances_match_cpu():
     assert_close(gpu[-1], cpu[-1])
 
 
+def test_led_point_gradients_match_cpu():
+    points = RNG.normal(size=(N_PIXELS, 3)) * 0.05 + [0.0, 0.0, 0.6]
+    normals = RNG.normal(size=(N_PIXELS, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    cpu, gpu = run_both("led_point_gradients_into", RNG.random(4) + 0.1, normals, points,
+                        RNG.normal(size=(4, 3)) * 0.05, np.full((4, N_PIXELS, 3), np.nan))
+    assert np.isfinite(cpu[-1]).all() and (cpu[-1] == 0).any() and (cpu[-1] != 0).any()  # lit and unlit points
+    assert_close(gpu[-1], cpu[-1])
+
+
 @pytest.mark.parametrize("size", [1, 5000])
 def test_log1p_square_sum_matches_cpu(size):
     """Float32 logarithms on both (the CPU's vectorised, the GPU's libdevice): 1e-6 relative."""

@@ -145,6 +145,22 @@ def test_fuse_is_one_launch_with_numpys_results(device):
     assert isinstance(cp.fuse(lambda x: x + 1.0)(HOST), np.ndarray)
 
 
+def test_sites_name_the_fused_kernel_and_the_caller():
+    """With recording_sites on, a fused kernel's launch is counted at its caller in o3d_mvps with
+    the kernel's name (what ``python -m benchmarks.gpu sites`` groups by)."""
+    from o3d_mvps.model.camera import backproject
+
+    cp.sites.clear()
+    K = np.array([[300.0, 0.0, 80.0], [0.0, 310.0, 60.0], [0.0, 0.0, 1.0]])
+    z, u, v = (cp.asarray(np.linspace(0.5, 0.6, 4)) for _ in range(3))
+    with cp.installed(), cp.recording_sites():
+        backproject(z, K, u, v)
+    fused = [site for (kind, site), n in cp.sites.items() if kind == "fused"]
+    assert fused and all(site.startswith("model/camera.py:") and site.endswith("backproject [_backproject_xy]")
+                         for site in fused), dict(cp.sites)
+    cp.sites.clear()
+
+
 @pytest.mark.parametrize("body, message", [
     (lambda x, y: x.sum() + y, "asks for a reduction operation"),
     (lambda x, y: x + float(y.max()), "asks for a reduction operation"),

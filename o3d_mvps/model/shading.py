@@ -127,6 +127,24 @@ def led_fields_into(intensities, normals, points, positions, out):  # pragma: no
                 out[i, p, 2] = v2 * lit
 
 
+@numba.njit(inline="always")
+def led_point_gradient(intensities, normals, points, positions, out, i, p):  # pragma: no cover - compiled
+    """:func:`led_point_gradients_into`'s element: out[i, p] (3,) for light i and point p (the
+    CUDA twin in :mod:`o3d_mvps.solver.cuda_kernels` calls it too)."""
+    n0, n1, n2 = normals[p, 0], normals[p, 1], normals[p, 2]
+    d0 = positions[i, 0] - points[p, 0]
+    d1 = positions[i, 1] - points[p, 1]
+    d2 = positions[i, 2] - points[p, 2]
+    r2 = dot3(d0, d1, d2, d0, d1, d2)
+    r3 = r2 * math.sqrt(r2)
+    nd = dot3(n0, n1, n2, d0, d1, d2)
+    lit = intensities[i] if nd > 0 else 0.0
+    s = 3.0 * nd / (r3 * r2)
+    out[i, p, 0] = (-n0 / r3 + s * d0) * lit
+    out[i, p, 1] = (-n1 / r3 + s * d1) * lit
+    out[i, p, 2] = (-n2 / r3 + s * d2) * lit
+
+
 @numba.njit(parallel=True, cache=True)
 def led_point_gradients_into(intensities, normals, points, positions, out):  # pragma: no cover - compiled
     """``I_i d<n, v_i>/dX`` (m, N, 3) of :func:`led_vector_jacobian` written into out, zero
@@ -136,18 +154,7 @@ def led_point_gradients_into(intensities, normals, points, positions, out):  # p
     for k in numba.prange(-(-N // FRAME_CHUNK)):  # chunks of pixels, a frame at a time
         for i in range(positions.shape[0]):
             for p in range(k * FRAME_CHUNK, min(N, (k + 1) * FRAME_CHUNK)):
-                n0, n1, n2 = normals[p, 0], normals[p, 1], normals[p, 2]
-                d0 = positions[i, 0] - points[p, 0]
-                d1 = positions[i, 1] - points[p, 1]
-                d2 = positions[i, 2] - points[p, 2]
-                r2 = dot3(d0, d1, d2, d0, d1, d2)
-                r3 = r2 * math.sqrt(r2)
-                nd = dot3(n0, n1, n2, d0, d1, d2)
-                lit = intensities[i] if nd > 0 else 0.0
-                s = 3.0 * nd / (r3 * r2)
-                out[i, p, 0] = (-n0 / r3 + s * d0) * lit
-                out[i, p, 1] = (-n1 / r3 + s * d1) * lit
-                out[i, p, 2] = (-n2 / r3 + s * d2) * lit
+                led_point_gradient(intensities, normals, points, positions, out, i, p)
 
 
 @numba.njit(parallel=True, cache=True)

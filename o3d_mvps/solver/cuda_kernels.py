@@ -28,13 +28,13 @@ import numpy as np
 from numba import cuda
 
 from ..model.robust import log1p_square_term
-from ..model.shading import led_irradiance
+from ..model.shading import led_irradiance, led_point_gradient
 from . import kernels
 
 #: the launchers, the same in :mod:`.kernels` (chunk_count is the size of accumulate_frame's partial sums)
 __all__ = ["chunk_count", "accumulate_frame", "accumulate_frames", "project_twist_rows", "scatter_sparse_transpose_rows",
            "shading_residuals", "weighted_albedo_sums", "weighted_lighting_sums", "log1p_square_sum",
-           "led_irradiances_into", "warp_sample", "warp_sample_frames", "warp_gradients", "chebyshev_update",
+           "led_irradiances_into", "led_point_gradients_into", "warp_sample", "warp_sample_frames", "warp_gradients", "chebyshev_update",
            "chebyshev_start", "restrict_residual", "prolong_restart", "csr_multiply_add"]
 
 #: Threads per block of every kernel.
@@ -77,6 +77,7 @@ _weighted_albedo_pixel = _device(kernels.weighted_albedo_pixel)
 _weighted_lighting_pixel = _device(kernels.weighted_lighting_pixel)
 _log1p_square_term = _device(log1p_square_term)
 _led_irradiance = _device(led_irradiance)
+_led_point_gradient = _device(led_point_gradient)
 _warp_sample_pixel = _device(kernels.warp_sample_pixel)
 _warp_gradients_pixel = _device(kernels.warp_gradients_pixel)
 _chebyshev_row = _device(kernels.chebyshev_row)
@@ -263,6 +264,22 @@ def led_irradiances_into(normals, points, positions, out) -> None:
     """:func:`o3d_mvps.model.shading.led_irradiances_into` on the GPU: out (m, N) = <n, v> of
     float64 normals, points (N, 3) under light positions (m, 3); one thread per light and point."""
     _led_irradiances_into[_blocks(out.size), THREADS_PER_BLOCK](normals, points, positions, out)
+
+
+@cuda.jit(cache=True)
+def _led_point_gradients_into(intensities, normals, points, positions, out):  # pragma: no cover - device
+    index = cuda.grid(1)
+    N = points.shape[0]
+    if index < positions.shape[0] * N:
+        _led_point_gradient(intensities, normals, points, positions, out, index // N, index % N)
+
+
+def led_point_gradients_into(intensities, normals, points, positions, out) -> None:
+    """:func:`o3d_mvps.model.shading.led_point_gradients_into` on the GPU: out (m, N, 3), the
+    lit intensities (m,) times d<n, v>/dX of float64 normals, points (N, 3) under light positions
+    (m, 3); one thread per light and point."""
+    _led_point_gradients_into[_blocks(positions.shape[0] * points.shape[0]), THREADS_PER_BLOCK](
+        intensities, normals, points, positions, out)
 
 
 @cuda.jit(cache=True)

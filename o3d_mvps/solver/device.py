@@ -106,6 +106,17 @@ def to_host(a):
     return a if a is None or array_module(a) is np else a.get()
 
 
+def to_host_together(*arrays) -> list:
+    """``arrays`` (float64, any shapes) as NumPy arrays of the same shapes; from the GPU in one
+    copy (one synchronisation; raveled, concatenated, copied and split), on the host themselves."""
+    if all(array_module(a) is np for a in arrays):
+        return list(arrays)
+    xp = array_module(arrays[0])
+    flat = to_host(xp.concatenate([a.reshape(-1) for a in arrays]))
+    ends = np.cumsum([a.size for a in arrays])
+    return [part.reshape(a.shape) for part, a in zip(np.split(flat, ends[:-1]), arrays)]
+
+
 def check_device_name(device) -> str:
     """The device's name spelled ``"auto"``, ``"cpu"`` or ``"cuda:N"``, without asking whether it
     can run (options check names when made); ValueError for a name that is none of these."""

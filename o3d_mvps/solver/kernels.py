@@ -23,7 +23,7 @@ import numba
 import numpy as np
 
 from ..model.robust import log1p_square_sum  # noqa: F401 - re-exported: the same names as .cuda_kernels
-from ..model.shading import FRAME_CHUNK, led_irradiances_into  # noqa: F401
+from ..model.shading import FRAME_CHUNK, led_irradiances_into, led_point_gradients_into  # noqa: F401
 
 # OpenMP first: the TBB that Open3D's wheels may put on the path can be too old for numba,
 # which then warns on every first parallel call.

@@ -29,9 +29,9 @@ import numpy as np
 
 from ..model.arrays import array_module, contiguous, like
 from ..model.robust import cauchy_weights
-from ..model.shading import (INITIAL_LIGHT, led_fields_into, led_irradiances, led_point_gradients_into,
-                             led_twist_jacobians_into, led_vector_jacobian, led_vectors, sh_basis)
-from .device import kernels_for, to_host
+from ..model.shading import (INITIAL_LIGHT, led_fields_into, led_irradiances, led_twist_jacobians_into, led_vectors,
+                             sh_basis)
+from .device import kernels_for, to_host_together
 from .line_search import backtrack
 from .linear import ridge_solve
 
@@ -221,7 +221,12 @@ class LEDLight(FrameFields):
     def offset_jacobian(self, light: np.ndarray, normals: np.ndarray, points: np.ndarray,
                         pose: np.ndarray) -> np.ndarray:
         """d(shading)/d(offset) (N, 3) of one frame."""
-        return -self._camera_gradients(light[None], normals, points, pose[None])[0]
+        return self.offset_jacobians(light[None], normals, points, pose[None])[0]
+
+    def offset_jacobians(self, lights: np.ndarray, normals: np.ndarray, points: np.ndarray,
+                         poses: np.ndarray) -> np.ndarray:
+        """d(shading)/d(offset) (m, N, 3) of the frames with lights (m, 2) and poses (m, 4, 4)."""
+        return -self._camera_gradients(lights, normals, points, poses)
 
     def fit(self, gram: np.ndarray, rhs: np.ndarray, lights: np.ndarray) -> np.ndarray:
         """Per-frame lights (n, 2): :func:`fit_per_frame`."""
@@ -244,18 +249,14 @@ def lit_point_gradients(lights: np.ndarray, normals: np.ndarray, points: np.ndar
     """d(shading)/d(point) (m, N, 3) of m point lights at ``positions`` (m, 3) with intensities
     ``lights[:, 1]`` (m,) on unit normals and points (N, 3), all in one frame (metres): the
     intensity times :func:`~o3d_mvps.model.shading.led_vector_jacobian`, zero where the point
-    faces away. The derivative with respect to the light's position is its negative. On the
-    host one compiled pass (:func:`~o3d_mvps.model.shading.led_point_gradients_into`, equal
-    bit for bit)."""
-    if array_module(points) is np:
-        J = np.empty((len(positions), len(points), 3))
-        led_point_gradients_into(_intensities(lights, points), contiguous(normals, np.float64),
-                                 contiguous(points, np.float64), np.ascontiguousarray(positions, dtype=np.float64), J)
-        return J
-    J = led_vector_jacobian(points, positions, normals)
-    lit = like(lights[:, 1:], points) * (np.einsum("...j,...j->...", normals,
-                                                   like(positions, points)[:, None, :] - points) > 0)
-    return J * lit[..., None]
+    faces away. The derivative with respect to the light's position is its negative. One
+    compiled pass (:func:`~o3d_mvps.model.shading.led_point_gradients_into`, equal bit for bit
+    to the array formulas; on a GPU its CUDA twin, one launch)."""
+    J = array_module(points).empty((len(positions), len(points), 3))
+    kernels_for(points).led_point_gradients_into(
+        like(_intensities(lights, points), points), contiguous(normals, np.float64), contiguous(points, np.float64),
+        like(np.ascontiguousarray(positions, dtype=np.float64), points), J)
+    return J
 
 
 @dataclass
@@ -375,22 +376,27 @@ def update_led_offset(problem, est, ev, *, max_halvings: int = 3, max_pixels: in
     (:meth:`.LevelProblem.relit`), so ``ev`` is given up when the offset moves.
     """
     light = problem.light_model(est)
-    H = np.zeros((3, 3))
-    g = np.zeros(3)
     stride = max(1, ev.usable.shape[1] // max_pixels)
     spread = slice(None, None, stride)
-    usable, residual = to_host(ev.usable[:, spread]), to_host(ev.residual[:, spread])
-    normals, points, albedo = (to_host(a[spread]) for a in (ev.normals, problem.points(est.z), est.albedo))
-    for i in range(problem.n_frames):
-        use = usable[i]
-        if not use.any():
-            continue
-        ds = light.offset_jacobian(est.lights[i], normals[use], points[use], est.poses[i])  # (M, 3)
-        w = cauchy_weights(residual[i, use], problem.lam)  # (M, 3)
-        rho_w = albedo[use] ** 2 * w
-        H += (ds * rho_w.sum(axis=1)[:, None]).T @ ds
-        # residual r = I - rho s: dr/do = -rho ds
-        g -= ds.T @ np.sum(w * albedo[use] * residual[i, use], axis=1)
+    usable, residual = ev.usable[:, spread], ev.residual[:, spread]
+    normals, points, albedo = (a[spread] for a in (ev.normals, problem.points(est.z), est.albedo))
+    xp = array_module(residual)
+    if xp is not np:  # every frame at once, unusable pixels weighted 0 (their residuals are 0); one read
+        ds = light.offset_jacobians(est.lights, normals, points, est.poses)  # (n, M, 3)
+        H, g = _offset_normal_equations(ds, cauchy_weights(residual, problem.lam) * usable[..., None], albedo,
+                                        residual)
+        H, g = to_host_together(H, g)
+    else:
+        H, g = np.zeros((3, 3)), np.zeros(3)
+        for i in range(problem.n_frames):
+            use = usable[i]
+            if not use.any():
+                continue
+            ds = light.offset_jacobian(est.lights[i], normals[use], points[use], est.poses[i])  # (M, 3)
+            H_i, g_i = _offset_normal_equations(ds, cauchy_weights(residual[i, use], problem.lam), albedo[use],
+                                                residual[i, use])
+            H += H_i
+            g += g_i
     start = light.offset
     step = ridge_solve(H, -g) if np.trace(H) > 0 else None
     # the IRLS model's decrease -g.step / 2 on the spread pixels, scaled to all of them
@@ -400,7 +406,7 @@ def update_led_offset(problem, est, ev, *, max_halvings: int = 3, max_pixels: in
     def trial(t: float):
         moved = dataclasses.replace(est, led_offset=start + t * step)
         # scored a few frames at a time from ev's samples; only the kept offset is evaluated
-        return moved, problem.energy(moved, (ev.color, ev.usable), ev.normals)[0]
+        return moved, problem.energy(moved, (ev.color, ev.usable), ev.normals, prior=ev.prior)[0]
 
     found = backtrack(trial, ev.energy, max_halvings)
     if found is None:
@@ -408,3 +414,13 @@ def update_led_offset(problem, est, ev, *, max_halvings: int = 3, max_pixels: in
     moved = found[1]
     return moved.led_offset, problem.relit(moved, ev)
 
+
+
+def _offset_normal_equations(ds: np.ndarray, w: np.ndarray, albedo: np.ndarray, residual: np.ndarray):
+    """The LED offset's Gauss-Newton Gram H (3, 3) and gradient g (3,) summed over pixels (and
+    frames): ds (..., M, 3) d(shading)/d(offset), w (..., M, 3) IRLS weights, albedo (M, 3),
+    residual (..., M, 3) ``I - rho s``, so dr/do = -rho ds."""
+    rho_w = albedo ** 2 * w
+    ds_flat = ds.reshape(-1, 3)
+    H = (ds * rho_w.sum(axis=-1)[..., None]).reshape(-1, 3).T @ ds_flat
+    return H, -(ds_flat.T @ np.sum(w * albedo * residual, axis=-1).reshape(-1))

@@ -174,18 +174,25 @@ def _dot3(a0, a1, a2, b0, b1, b2):
 #: from 277 to 105 MB over its entry), for the same assembly time.
 BLOCK_PIXELS = 8192
 
+#: :data:`BLOCK_PIXELS` on a GPU, where each block costs some 45 launches and a few copies
+#: whatever its size (``python -m benchmarks.gpu sites``): the D415's finest level (about 90 000
+#: object pixels) in one block, its temporaries some 0.8 GB of GPU memory at 19 refined frames.
+DEVICE_BLOCK_PIXELS = 98304
+
 
 def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parallax: bool = True,
                  twists: bool = True, project_albedo: bool = True, min_pixels: int = 12,
-                 block_pixels: int = BLOCK_PIXELS, release: bool = False) -> JointSystem:
+                 block_pixels: int | None = None, release: bool = False) -> JointSystem:
     """Assemble the Gauss-Newton normal equations for the increments (dz, twists).
 
     parallax: include the warp's (and the LED position's) dependence on z in the depth rows
     (False: the paper's frozen-warp depth rows). twists: include frames 1..n-1's twists.
     project_albedo: eliminate the albedo (variable projection, see :class:`_AlbedoProjection`).
 
-    The reference pixels are taken in blocks of ``block_pixels`` (the result does not depend on
-    it: every sum over frames is per pixel, every sum over pixels is added up across blocks).
+    The reference pixels are taken in blocks of ``block_pixels`` (None: :data:`BLOCK_PIXELS` on
+    the host, :data:`DEVICE_BLOCK_PIXELS` on a GPU; the result does not depend on it but for the
+    order of sums: every sum over frames is per pixel, every sum over pixels is added up across
+    blocks).
     Per block, one pass over the frames; per frame, one compiled kernel
     (:func:`.kernels.accumulate_frame`) adds its depth rows to per-pixel sums and writes its
     twist rows and w s J; the block's albedo projection and its share of the coupling follow.
@@ -210,11 +217,27 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
     Du, Dv = grid.difference_operators()
     if xp is np and m:  # without the stored zeros (the central differences' own pixel): a third fewer scatters into U
         Du, Dv = _without_zeros(Du), _without_zeros(Dv)
-    for start in range(0, N, block_pixels):
+    if block_pixels is None:
+        block_pixels = BLOCK_PIXELS if xp is np else DEVICE_BLOCK_PIXELS
+    starts = range(0, N, block_pixels)
+    # on a GPU each block writes its twist sums into its own row, summed and copied to the host
+    # once after the pass (not two or four copies per block); the frames' poses and slots copied once
+    partials = xp.zeros((len(starts), _twist_sums_size(m))) if xp is not np and m else None
+    poses = like(est.poses, points_ref)
+    slot = {i: k for k, i in enumerate(candidates)}
+    with_jacobian = [i > 0 and (parallax or i in slot) for i in range(problem.n_frames)]
+    frame_slots = (like(np.array([[jac, slot.get(i, -1)] for i, jac in enumerate(with_jacobian)], dtype=np.int64),
+                        points_ref) if problem.level.image_stack is not None else None)
+    for b, start in enumerate(starts):
         block = slice(start, min(N, start + block_pixels))
+        twist_sums = (grams, rhs_xi, rhs_xi, downdate) if partials is None else _twist_sums(partials[b], m)
         _assemble_block(problem, est, ev, block, points_ref[block], candidates, parallax, project_albedo,
-                        sums[:, block], grams, rhs_xi, downdate, coupling_t, Du[block], Dv[block])
-    del Du, Dv, points_ref  # the zero-free copies (45 MB at 2 megapixels): not held while M is formed
+                        sums[:, block], *twist_sums, coupling_t, Du[block], Dv[block], poses, with_jacobian,
+                        frame_slots)
+    if partials is not None:
+        grams, rhs_frames, rhs_projection, downdate = _twist_sums(to_host(partials.sum(axis=0)), m)
+        rhs_xi = rhs_frames + rhs_projection
+    del Du, Dv, points_ref, partials  # the zero-free copies (45 MB at 2 megapixels): not held while M is formed
     if release:
         ev.release()
     # frames whose own Gram is not safely invertible keep their depth rows but take no twist
@@ -244,6 +267,19 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
     return JointSystem(sparse_module(matrix).csr_matrix(matrix), rhs_z, coupling, hessian, rhs_xi[kept], frames)
 
 
+def _twist_sums_size(m: int) -> int:
+    """The length of one block's twist sums (:func:`_twist_sums`) for m refined frames."""
+    return 36 * m + 12 * m + 36 * m * m
+
+
+def _twist_sums(row: np.ndarray, m: int) -> tuple:
+    """Views of one block's twist sums in ``row`` (:func:`_twist_sums_size`,): the frames' Grams
+    (m, 6, 6), right-hand sides from the frames (6m,) and from the albedo projection (6m,), and
+    the projection's downdate (6m, 6m)."""
+    a, b, c = 36 * m, 42 * m, 48 * m
+    return row[:a].reshape(m, 6, 6), row[a:b], row[b:c], row[c:].reshape(6 * m, 6 * m)
+
+
 def _without_zeros(D: sp.csr_matrix) -> sp.csr_matrix:
     """A copy of the CSR matrix D without its explicitly stored zeros."""
     D = D.copy()
@@ -252,11 +288,16 @@ def _without_zeros(D: sp.csr_matrix) -> sp.csr_matrix:
 
 
 def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, project_albedo, sums, grams,
-                    rhs_xi, downdate, coupling_t, Du_rows, Dv_rows) -> None:
+                    rhs_xi, rhs_projection, downdate, coupling_t, Du_rows, Dv_rows, poses, with_jacobian,
+                    frame_slots) -> None:
     """One block of :func:`joint_system`'s pass: the block's pixels' per-pixel sums (9, B)
-    written into ``sums``; its share of the frames' Grams (m, 6, 6), rhs_xi (6m,), the projection's
-    downdate (6m, 6m) and the transposed coupling (6m, N) added in place. Du_rows, Dv_rows: the
-    block's rows (B, N) of the difference operators."""
+    written into ``sums``; its share of the frames' Grams (m, 6, 6), their right-hand sides rhs_xi
+    (6m,), the projection's rhs_projection (6m,) and downdate (6m, 6m) added in place on the host
+    (where rhs_xi and rhs_projection are one array), written into the block's own slots on a GPU
+    (:func:`_twist_sums`); the transposed coupling (6m, N) added in place. Du_rows, Dv_rows: the
+    block's rows (B, N) of the difference operators; poses (n, 4, 4) where the points are;
+    with_jacobian (n,) bools: the frames whose twist or parallax rows are formed; frame_slots
+    (n, 2) int64 on the GPU (with a frame stack): with_jacobian and the refined frame's slot (or -1)."""
     xp, kernels = array_module(points_ref), kernels_for(points_ref)
     B = points_ref.shape[0]
     m = len(candidates)
@@ -280,15 +321,11 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
     # operations per block rather than per frame
     _, alpha, beta, gamma = shading_rows(problem, est, normals, points_ref, block)  # (n, B) each
     dshading = model.shading_jacobians(est.lights, normals, points_ref, est.poses) if parallax or m else None
-    poses = like(est.poses, points_ref)  # one copy to the GPU for all the frames' kernels
-    with_jacobian = [i > 0 and (parallax or i in slot) for i in range(problem.n_frames)]
     extra_c = none3
     if parallax and dshading is not None:
         extra_c = _reference_parallax(albedo, dshading[0], points_ref / points_ref[:, 2:3], usable[0])
     e = none_e if projection is None else projection.e
     if problem.level.image_stack is not None:  # on a GPU: every frame in one launch
-        frame_slots = like(np.array([[jac, slot.get(i, -1)] for i, jac in enumerate(with_jacobian)], dtype=np.int64),
-                           points_ref)
         kernels.accumulate_frames(residual, shading, usable, 1.0 / problem.lam, q, alpha, beta, gamma, extra_c,
                                   points_ref, poses, problem.device_K, problem.level.image_stack,
                                   xp.empty((problem.n_frames, 0, 6)) if dshading is None else dshading, albedo,
@@ -300,9 +337,12 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
                                  problem.level.images[i],
                                  dshading[i] if dshading is not None and with_jacobian[i] else none6, albedo,
                                  with_jacobian[i], parallax, block_sums, e, rows, F, k, gram[k], rhs[k])
-    if m:
-        grams += to_host(gram[:m].sum(axis=1))
-        rhs_xi += to_host(rhs[:m].sum(axis=1)).reshape(-1)
+    if m and xp is np:
+        grams += gram[:m].sum(axis=1)
+        rhs_xi += rhs[:m].sum(axis=1).reshape(-1)
+    elif m:
+        gram[:m].sum(axis=1, out=grams)
+        rhs[:m].sum(axis=1, out=rhs_xi.reshape(m, 6))
     if projection is not None:
         block_sums -= projection.local()
     sums[:] = block_sums
@@ -314,7 +354,7 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
         projection.downdate_scaled(F, downdate, rhs_xi, sqrt_inv_d)
         return
     if m and projection is not None:
-        projection.downdate_twists(F, rows, downdate, rhs_xi)
+        projection.downdate_twists(F, rows, downdate, rhs_projection)
     if m:
         # U^T += the stencil transpose of the rows: Du^T rows_a + Dv^T rows_b + rows_c
         if xp is np:  # one pass on the host
@@ -364,7 +404,8 @@ class _AlbedoProjection:
         """Project the block's twist parts: the coupling rows (3, m, 6, B) lose
         ``sum_c (e_k / d) f`` in place, ``downdate`` (6m, 6m) gains ``sum f f^T / d`` (the Gram's
         loss) and the right-hand side (6m,) gains ``sum f (s^T W r) / d`` over the block's pixels
-        and channels; F (m, 6, B, 3) = w s J of the m refined frames is scaled in place."""
+        and channels (on a GPU: the block's sums are written into them, see
+        :meth:`downdate_scaled`); F (m, 6, B, 3) = w s J of the m refined frames is scaled in place."""
         scaled, sqrt_inv_d = self.twist_scalings()
         kernels_for(F).project_twist_rows(rows, F, scaled, sqrt_inv_d)
         self.downdate_scaled(F, downdate, rhs_xi, sqrt_inv_d)
@@ -375,10 +416,17 @@ class _AlbedoProjection:
         return self.e * self.inv_d, np.sqrt(self.inv_d)
 
     def downdate_scaled(self, F: np.ndarray, downdate: np.ndarray, rhs_xi: np.ndarray, sqrt_inv_d: np.ndarray) -> None:
-        """:meth:`downdate_twists`'s sums over F (m, 6, B, 3) once scaled by ``sqrt_inv_d`` (B, 3)."""
+        """:meth:`downdate_twists`'s sums over F (m, 6, B, 3) once scaled by ``sqrt_inv_d`` (B, 3):
+        added to ``downdate`` and ``rhs_xi`` on the host, written into them (the block's slots,
+        :func:`_twist_sums`) on a GPU."""
         f = F.reshape(6 * len(F), -1)  # (6m, 3B): frame j in rows 6j..
-        rhs_xi += to_host(f @ (self.sWr * sqrt_inv_d).reshape(-1))
-        downdate += _gram(f)
+        xp = array_module(f)
+        if xp is np:
+            rhs_xi += f @ (self.sWr * sqrt_inv_d).reshape(-1)
+            downdate += _gram(f)
+        else:
+            xp.matmul(f, (self.sWr * sqrt_inv_d).reshape(-1), out=rhs_xi)
+            xp.matmul(f, f.T, out=downdate)
 
 
 @fused
@@ -402,10 +450,8 @@ def _projection_downdates(ea0, ea1, ea2, eb0, eb1, eb2, ec0, ec1, ec2, i0, i1, i
 
 
 def _gram(A: np.ndarray) -> np.ndarray:
-    """A A^T (k, k, host) of a wide C-ordered (k, R) array: on the host by BLAS's symmetric
-    rank-k update (half a product), on the GPU by one product."""
-    if array_module(A) is not np:
-        return to_host(A @ A.T)
+    """A A^T (k, k) of a wide C-ordered (k, R) host array by BLAS's symmetric rank-k update (half
+    a product)."""
     upper = scipy.linalg.blas.dsyrk(1.0, A.T, trans=1)  # A.T is Fortran-ordered: no copy
     return np.triu(upper) + np.triu(upper, 1).T
 

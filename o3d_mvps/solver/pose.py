@@ -7,7 +7,7 @@ import numpy as np
 from ..model import se3
 from ..model.arrays import array_module, like
 from ..model.robust import cauchy_weights
-from .device import to_host
+from .device import to_host_together
 from .line_search import backtrack
 from .linear import ridge_solve
 from .pose_trust import PoseAnchors, PoseLog
@@ -79,8 +79,7 @@ def refine_pose(problem: LevelProblem, est: Estimate, i: int, points_ref: np.nda
             J -= albedo[use][:, :, None] * dshading[:, None, :]
         J = J.reshape(-1, 6)
         wJ = J * w.reshape(-1, 1)
-        H = to_host(wJ.T @ J)
-        g = to_host(wJ.T @ r.reshape(-1))
+        H, g = to_host_together(wJ.T @ J, wJ.T @ r.reshape(-1))  # on a GPU one copy for both
         prior = None if anchors is None else anchors.prior_system(i, pose)
         if prior is not None:
             H, g = H + prior[0], g + prior[1]

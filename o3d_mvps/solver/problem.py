@@ -263,8 +263,8 @@ class LevelProblem:
             self._static_samples = (color, usable)
         return self.evaluate_samples(est, color, usable, *self.normals(est.z))
 
-    def energy(self, est: Estimate, samples: tuple | None = None, normals: np.ndarray | None = None
-               ) -> tuple[float, np.ndarray]:
+    def energy(self, est: Estimate, samples: tuple | None = None, normals: np.ndarray | None = None,
+               prior: float | None = None) -> tuple[float, np.ndarray]:
         """The energy of :meth:`evaluate` (equal up to the order of the float64 sum) and the usable
         mask (n, N), computed a batch of frames at a time (:data:`ENERGY_BATCH_PIXELS`): no
         frames x pixels arrays but the mask (at 2 MP and 20 frames some 140 MB of temporaries
@@ -272,7 +272,8 @@ class LevelProblem:
 
         samples: the warped colours (n, N, 3) and usable (n, N) of ``est``'s z and poses where the
         caller has them (an evaluation's, for a trial that moves neither, e.g. the LED offset):
-        read instead of warping the frames again; normals (N, 3): ``est``'s unit normals, likewise."""
+        read instead of warping the frames again; normals (N, 3): ``est``'s unit normals, likewise;
+        prior: the prior energy of ``est.z`` where the caller has it (None: computed)."""
         n, N = self.n_frames, self.level.grid.size
         P = self.points(est.z)
         xp, kernels = array_module(P), kernels_for(P)
@@ -303,7 +304,7 @@ class LevelProblem:
                                       if per_frame else basis, lights[start:stop], usable[start:stop], shading[:m],
                                       residual[:m])
             data += cauchy_energy(residual[:m], self.lam, kernels.log1p_square_sum)
-        return data + self.prior_energy(est.z), usable
+        return data + (self.prior_energy(est.z) if prior is None else prior), usable
 
     def evaluate_samples(self, est: Estimate, color: np.ndarray, usable: np.ndarray, normals: np.ndarray,
                          dA: np.ndarray) -> Evaluation:
