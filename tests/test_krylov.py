@@ -155,6 +155,37 @@ def test_pcg_on_a_device_reads_the_host_twice_however_early_its_first_check():
             np.testing.assert_array_equal(x.get(), exact[0].get())
 
 
+def test_pcg_on_a_device_reads_the_host_at_most_twice_and_honours_maxiter():
+    """Whatever the first check and the cap, PCG on device arrays reads its state back at most
+    twice per solve (the second read is the last: unconverged there, it says so), never runs
+    past maxiter, and where it says converged the residual meets the tolerance; plain CG (no
+    preconditioner: ~50 iterations, a residual that does not fall at every step) too. The
+    multigrid's set-up reads nothing back (its spectral bounds stay on the device)."""
+    import cupy_emulation as cp
+
+    M, b, grid = grid_system(shape=(24, 36))
+    with cp.installed():
+        A, rhs = cp.sparse.csr_matrix(M), cp.asarray(b)
+        prolongations = krylov.pixel_prolongations(cp.asarray(grid.u), cp.asarray(grid.v), max_coarse=100)
+        before = cp.operations["to_host"]
+        P = krylov.multigrid_preconditioner(A, prolongations)  # once per grid: the aggregates read their sizes
+        assert cp.operations["to_host"] == before
+        for preconditioner in (P, None):
+            for first_check, maxiter in ((1, 1000), (2, 1000), (3, 7), (1, 4), (40, 1000), (1, 1)):
+                before = cp.operations["to_host"]
+                x, iterations, converged = krylov.pcg(A, rhs, None, 1e-8, maxiter, preconditioner,
+                                                      first_check=first_check)
+                assert 1 <= cp.operations["to_host"] - before <= 2, (first_check, maxiter)
+                assert iterations <= maxiter
+                residual = np.linalg.norm(b - M @ x.get())
+                # the recurrence's residual against the true one: 1 % apart at most
+                bound = 1e-8 * np.linalg.norm(b) * (1.01 if converged else 0.99)
+                assert (residual <= bound) == converged, (first_check, maxiter, residual / bound)
+        # generous first checks: converged (the cap of 1000 is never reached)
+        assert krylov.pcg(A, rhs, None, 1e-8, 1000, None, first_check=40)[2]
+        assert krylov.pcg(A, rhs, None, 1e-8, 1000, P, first_check=3)[2]
+
+
 def test_pixel_aggregates_join_2x2_pixels_stride_apart():
     u, v = (c.ravel() for c in np.mgrid[:4, :4][::-1])  # a full 4x4 grid, row-major
     for stride, members in ((1, {(0, 0), (1, 0), (0, 1), (1, 1)}), (2, {(0, 0), (2, 0), (0, 2), (2, 2)})):
