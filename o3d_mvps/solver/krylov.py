@@ -90,7 +90,8 @@ def pcg(A, b, x0, rtol: float, maxiter: int, preconditioner: Callable | None = N
         x = _zero_if(xp.dot(b, b), x0.astype(b.dtype))  # b = 0: x = 0, as on the host
         r = b - A @ x
     kernels.cg_start(b, x, r, p, s, x0 is None, rtol * rtol, state, partial, counter)
-    matrix = getattr(A, "indptr", None) is not None  # a CSR matrix: w = A z in the pass of the dot products
+    # a CSR matrix (CuPy's have no format attribute): w = A z in the pass of the dot products
+    matrix = getattr(A, "indptr", None) is not None and getattr(A, "format", "csr") == "csr"
     csr = (A.indptr, A.indices, A.data) if matrix else (counter, counter, state)
     w = xp.empty_like(b) if matrix else None
     next_check, reads = max(1, min(first_check, maxiter)), 0
