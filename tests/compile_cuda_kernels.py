@@ -59,6 +59,8 @@ SIGNATURES = {
     "_prolong_restart": (_array(1, types.int32), _array(1, types.int32), _F1, _array(1, types.int32),
                          _array(1, types.int32), _F1, _F1, _F1, _F1, _F1, _F1, _F1, _F1),
     "_csr_multiply_add": (_array(1, types.int32), _array(1, types.int32), _F1, types.float64, _F1, _F1, _F1),
+    "_cg_pass": (types.int64, _array(1, types.int32), _array(1, types.int32), _F1, types.boolean, types.boolean, _F1,
+                 _F1, _F1, _F1, _F1, _F1, _F1, types.float64, _F1, _F2, _array(1, types.int32)),
     "_warp_gradients": (_F2, _F2, _F2, _COLOR, _F2, _F2, _F2),
 }
 

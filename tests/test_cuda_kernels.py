@@ -313,3 +313,78 @@ def test_fused_multigrid_kernels_match_cpu_and_the_sparse_formulas():
     for k, expected in zip((-3, -2, -1), (r_new, first * r_new, y + first * r_new)):
         assert_close(cpu[k], expected)
         assert_close(gpu[k], cpu[k])
+
+
+def test_cg_passes_match_cpu_and_textbook_cg():
+    """The CG passes (cg_start, cg_scalars, cg_update: Chronopoulos and Gear's recurrences, the
+    dot products of a pass summed by the blocks and the last block to finish) on 300 rows (3
+    blocks on the GPU): CUDA against CPU to round-off, state included, after 1-4 iterations, and
+    the iterates against textbook CG (s = A p formed, two separate dot products) to 1e-10; the
+    block counter back at zero after each pass, w = A z formed in the pass or given."""
+    n = N_PIXELS
+    B = sp.random(n, n, density=0.02, random_state=7, format="csr")
+    A = (B @ B.T + sp.eye(n)).tocsr()
+    A.indices, A.indptr = A.indices.astype(np.int32), A.indptr.astype(np.int32)
+    b, inv_diag = RNG.normal(size=n), 1.0 / A.diagonal()
+    runs = {}
+    for name, module in (("cpu", kernels), ("cuda", cuda_kernels)):
+        for with_matrix in (True, False):
+            state, partial = np.zeros(kernels.CG_STATE), np.zeros((kernels.REDUCTION_BLOCKS, 2))
+            counter = np.zeros(1, np.int32)
+            x, r, p, s, w = (np.full(n, np.nan) for _ in range(5))
+            module.cg_start(b, x, r, p, s, True, 1e-20, state, partial, counter)
+            iterates = []
+            for _ in range(4):
+                z = inv_diag * r
+                if not with_matrix:
+                    w = A @ z
+                module.cg_scalars(A.indptr, A.indices, A.data, with_matrix, z, r, w, state, partial, counter)
+                module.cg_update(z, w, p, s, x, r, state, partial, counter)
+                assert counter[0] == 0
+                iterates.append((x.copy(), r.copy(), state.copy()))
+            runs[name, with_matrix] = iterates
+    # textbook PCG (Jacobi), the same iterations
+    x, r = np.zeros(n), b.copy()
+    z = inv_diag * r
+    p, rz = z.copy(), r @ z
+    for k in range(4):
+        q = A @ p
+        alpha = rz / (p @ q)
+        x, r = x + alpha * p, r - alpha * q
+        for (name, with_matrix), iterates in runs.items():
+            x_k, r_k, state_k = iterates[k]
+            assert_close(x_k, x, rtol=1e-10)
+            assert state_k[kernels.CG_ITERATIONS] == k + 1 and state_k[kernels.CG_ACTIVE] == 1.0
+            assert state_k[kernels.CG_RR] == pytest.approx(r @ r, rel=1e-9)
+            assert state_k[kernels.CG_THRESHOLD] == pytest.approx(1e-20 * (b @ b), rel=1e-12)
+            cpu_x, cpu_r, cpu_state = runs["cpu", with_matrix][k]
+            assert_close(x_k, cpu_x)
+            assert_close(r_k, cpu_r)
+            assert_close(state_k, cpu_state)
+        z = inv_diag * r
+        rz, rz_previous = r @ z, rz
+        p = z + (rz / rz_previous) * p
+
+
+def test_cg_passes_stop_at_convergence_and_idle_after():
+    """Once the residual passes the threshold the state says converged and inactive, and the
+    passes that follow change nothing (nor count an iteration)."""
+    n = 200
+    A = sp.diags(RNG.uniform(1.0, 2.0, size=n), format="csr")
+    A.indices, A.indptr = A.indices.astype(np.int32), A.indptr.astype(np.int32)
+    b = RNG.normal(size=n)
+    for module in (kernels, cuda_kernels):
+        state, partial, counter = np.zeros(kernels.CG_STATE), np.zeros((kernels.REDUCTION_BLOCKS, 2)), np.zeros(1, np.int32)
+        x, r, p, s, w = (np.zeros(n) for _ in range(5))
+        module.cg_start(b, x, r, p, s, True, 1e-16, state, partial, counter)
+        for step in range(3):  # Jacobi on a diagonal matrix: exact after one iteration
+            z = r / A.diagonal()
+            module.cg_scalars(A.indptr, A.indices, A.data, True, z, r, w, state, partial, counter)
+            module.cg_update(z, w, p, s, x, r, state, partial, counter)
+            if step == 0:
+                after_one = (x.copy(), state.copy())
+        assert state[kernels.CG_ACTIVE] == 0.0 and state[kernels.CG_ITERATIONS] == 1
+        assert state[kernels.CG_STATUS] == 4 + 1  # one iteration, converged
+        np.testing.assert_array_equal(x, after_one[0])
+        np.testing.assert_array_equal(state, after_one[1])
+        assert_close(x, b / A.diagonal())

@@ -14,10 +14,13 @@ into these counts (at 8c3d82f they added 15 launches and 1 copy there): 346 / 34
 Issue 31's memory work scores the LED offset's line-search trials by the frame-batched energy
 (no second evaluation held) and evaluates the offset kept once more (at 8c3d82f: +11 launches
 and +3 copies on the LED problem's coarser level, where the offset moves). All merged: 353 / 340
-and 442, 2 reads at most. Issue 33's per-frame items (the joint assembly's twist sums read once
-per step, the LED offset's system on the device with one read, its point gradients one kernel, a
-pose system one read): 353 / 345 and 446 launches (the room's pose systems: a concatenation for a
-copy), 52 / 47 and 60.5 copies (were 58 / 52 and 65).
+and 442, 2 reads at most (7a62d00: 353 / 340 and 441.5). Issue 33's per-frame items (the joint
+assembly's twist sums read once per step, the LED offset's system on the device with one read, its
+point gradients one kernel, a pose system one read): 353 / 345 and 446 launches (the room's pose
+systems: a concatenation for a copy), 52 / 47 and 60.5 copies (were 58 / 52 and 65). Issue 33's
+linear solves (CG in two numba-cuda passes per iteration, Chronopoulos-Gear recurrences; 2 host
+reads per solve at most in every case), merged with those: 315 / 311 and 423 launches, 52 / 47
+and 60.5 copies.
 """
 
 import shutil
@@ -27,7 +30,7 @@ import pytest
 from benchmarks import gpu
 
 #: (problem, level) -> (launches per sweep, copies per sweep, host reads per linear solve): at most
-BOUNDS = {("led", 1): (355, 52, 2), ("led", 0): (345, 47, 2), ("room", 0): (446, 61, 1)}
+BOUNDS = {("led", 1): (318, 52, 2), ("led", 0): (314, 47, 2), ("room", 0): (426, 61, 1)}
 
 
 @pytest.fixture(scope="module")

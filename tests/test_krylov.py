@@ -4,6 +4,8 @@ stencil of random rows, SF-block prior, second differences, Levenberg damping), 
 systems the solver itself solves on a small rendered LED scene.
 """
 
+from contextlib import contextmanager, nullcontext
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -113,21 +115,35 @@ def test_the_amg_hierarchy_is_freed_with_its_solve_without_the_garbage_collector
     np.testing.assert_allclose(matrix @ x, np.ones(n), atol=1e-7)
 
 
+@contextmanager
+def on_stand_in(simulated: bool):
+    """Within: the CuPy stand-in (tests/cupy_emulation.py, yielded), the CUDA kernels run by
+    numba's CUDA simulator (``simulated``) or, as ``python -m benchmarks.gpu count`` runs them,
+    by their CPU twins (tests/test_cuda_kernels.py holds the two equal): the simulator runs a
+    launch's threads as Python threads, too slow for solves of a hundred iterations."""
+    import cupy_emulation as cp
+    from benchmarks.gpu import _cpu_kernels_as_cuda_kernels
+
+    with cp.installed(), nullcontext() if simulated else _cpu_kernels_as_cuda_kernels(cp):
+        yield cp
+
+
 @pytest.mark.parametrize("preconditioner", ["jacobi", "multigrid"])
 def test_pcg_on_device_arrays_matches_numpy(preconditioner):
     """The CUDA path's PCG and preconditioners run on device arrays (the CuPy stand-in of
     tests/cupy_emulation.py, which refuses host arrays as CuPy does): the same iterations and,
     to round-off (1e-12 relative; the same arithmetic), the same solution as on NumPy."""
-    import cupy_emulation as cp
-
     M, b, grid = grid_system(shape=(24, 36))
-    with cp.installed():
+    with on_stand_in(simulated=preconditioner == "multigrid") as cp:
         results = []
         for A, rhs, u, v in ((M, b, grid.u, grid.v), (cp.sparse.csr_matrix(M), cp.asarray(b), cp.asarray(grid.u),
                                                       cp.asarray(grid.v))):
             P = (krylov.jacobi_preconditioner(A) if preconditioner == "jacobi" else
                  krylov.multigrid_preconditioner(A, krylov.pixel_prolongations(u, v, max_coarse=100)))
-            results.append(krylov.pcg(A, rhs, None, 1e-8, 1000, P))
+            # the device's first read one iteration before the host's count, as linear.solve_spd guesses it from
+            # the last solve (from the first iteration's reduction alone the second, last read came too early)
+            results.append(krylov.pcg(A, rhs, None, 1e-8, 1000, P, first_check=max(2, results[0][1] - 1) if results
+                                      else 1))
     (x, iterations, converged), (x_device, iterations_device, converged_device) = results
     assert isinstance(x_device, cp.ndarray) and converged and converged_device
     assert iterations_device == iterations > 1
@@ -139,10 +155,8 @@ def test_pcg_on_a_device_reads_the_host_twice_however_early_its_first_check():
     reduction so far says it will have converged: two host reads (synchronisations) for a first
     check 1-8 iterations early on this 9-iteration solve, and the iterations and solution of an
     exact stop."""
-    import cupy_emulation as cp
-
     M, b, grid = grid_system(shape=(24, 36))
-    with cp.installed():
+    with on_stand_in(simulated=False) as cp:
         A, rhs = cp.sparse.csr_matrix(M), cp.asarray(b)
         P = krylov.multigrid_preconditioner(A, krylov.pixel_prolongations(cp.asarray(grid.u), cp.asarray(grid.v),
                                                                           max_coarse=100))
@@ -153,6 +167,35 @@ def test_pcg_on_a_device_reads_the_host_twice_however_early_its_first_check():
             assert cp.operations["to_host"] - before == 2, first_check
             assert (iterations, converged) == exact[1:] == (9, True)
             np.testing.assert_array_equal(x.get(), exact[0].get())
+
+
+def test_pcg_on_a_device_reads_the_host_at_most_twice_and_honours_maxiter():
+    """Whatever the first check and the cap, PCG on device arrays reads its state back at most
+    twice per solve (the second read is the last: unconverged there, it says so), never runs
+    past maxiter, and where it says converged the residual meets the tolerance; plain CG (no
+    preconditioner: ~50 iterations, a residual that does not fall at every step) too. The
+    multigrid's set-up reads nothing back (its spectral bounds stay on the device)."""
+    M, b, grid = grid_system(shape=(24, 36))
+    with on_stand_in(simulated=False) as cp:
+        A, rhs = cp.sparse.csr_matrix(M), cp.asarray(b)
+        prolongations = krylov.pixel_prolongations(cp.asarray(grid.u), cp.asarray(grid.v), max_coarse=100)
+        before = cp.operations["to_host"]
+        P = krylov.multigrid_preconditioner(A, prolongations)  # once per grid: the aggregates read their sizes
+        assert cp.operations["to_host"] == before
+        for preconditioner in (P, None):
+            for first_check, maxiter in ((1, 1000), (2, 1000), (3, 7), (1, 4), (40, 1000), (1, 1)):
+                before = cp.operations["to_host"]
+                x, iterations, converged = krylov.pcg(A, rhs, None, 1e-8, maxiter, preconditioner,
+                                                      first_check=first_check)
+                assert 1 <= cp.operations["to_host"] - before <= 2, (first_check, maxiter)
+                assert iterations <= maxiter
+                residual = np.linalg.norm(b - M @ x.get())
+                # the recurrence's residual against the true one: 1 % apart at most
+                bound = 1e-8 * np.linalg.norm(b) * (1.01 if converged else 0.99)
+                assert (residual <= bound) == converged, (first_check, maxiter, residual / bound)
+        # generous first checks: converged (the cap of 1000 is never reached)
+        assert krylov.pcg(A, rhs, None, 1e-8, 1000, None, first_check=40)[2]
+        assert krylov.pcg(A, rhs, None, 1e-8, 1000, P, first_check=3)[2]
 
 
 def test_pixel_aggregates_join_2x2_pixels_stride_apart():

@@ -34,8 +34,9 @@ from . import kernels
 #: the launchers, the same in :mod:`.kernels` (chunk_count is the size of accumulate_frame's partial sums)
 __all__ = ["chunk_count", "accumulate_frame", "accumulate_frames", "project_twist_rows", "scatter_sparse_transpose_rows",
            "shading_residuals", "weighted_albedo_sums", "weighted_lighting_sums", "log1p_square_sum",
-           "led_irradiances_into", "led_point_gradients_into", "warp_sample", "warp_sample_frames", "warp_gradients", "chebyshev_update",
-           "chebyshev_start", "restrict_residual", "prolong_restart", "csr_multiply_add"]
+           "led_irradiances_into", "led_point_gradients_into", "warp_sample", "warp_sample_frames", "warp_gradients",
+           "chebyshev_update", "chebyshev_start", "restrict_residual", "prolong_restart", "csr_multiply_add", "cg_start",
+           "cg_scalars", "cg_update"]
 
 #: Threads per block of every kernel.
 THREADS_PER_BLOCK = 128
@@ -85,6 +86,8 @@ _csr_row_dot = _device(kernels.csr_row_dot)
 _chebyshev_start_row = _device(kernels.chebyshev_start_row)
 _restrict_residual_row = _device(kernels.restrict_residual_row)
 _prolong_restart_row = _device(kernels.prolong_restart_row)
+_cg_row = _device(kernels.cg_row)
+_cg_finish = _device(kernels.cg_finish)
 
 
 def _blocks(n_threads: int) -> int:
@@ -373,6 +376,80 @@ def _csr_multiply_add(indptr, indices, data, alpha, v, y, out):  # pragma: no co
 def csr_multiply_add(indptr, indices, data, alpha, v, y, out) -> None:
     """:func:`.kernels.csr_multiply_add` on the GPU (one thread per row)."""
     _csr_multiply_add[_blocks(out.shape[0]), THREADS_PER_BLOCK](indptr, indices, data, alpha, v, y, out)
+
+
+@cuda.jit(cache=True)
+def _cg_pass(mode, indptr, indices, data, with_matrix, from_zero, b, z, w, p, s, x, r, rtol2, state, partial,
+             counter):  # pragma: no cover - device
+    """:func:`.kernels.cg_pass` in one launch: each thread sums its strided rows' terms, each
+    block adds its threads' sums in shared memory (a tree in a fixed order) into ``partial``;
+    the block that finishes last (an atomic count of the finished blocks, after a memory fence)
+    adds the blocks' sums in a fixed order, sets the scalars and resets the count: the same
+    sums, so the same results, every run."""
+    share = cuda.shared.array((THREADS_PER_BLOCK, 2), numba.float64)
+    last = cuda.shared.array(1, numba.int32)
+    t = cuda.threadIdx.x
+    if mode != kernels.CG_START and state[kernels.CG_ACTIVE] == 0.0:
+        return  # every thread of every block: the state changes only after all have read it
+    alpha, beta = state[kernels.CG_ALPHA], state[kernels.CG_BETA]
+    first = second = 0.0
+    for row in range(cuda.grid(1), b.shape[0], cuda.gridsize(1)):
+        a, c = _cg_row(mode, indptr, indices, data, with_matrix, from_zero, b, z, w, p, s, x, r, alpha, beta, row)
+        first += a
+        second += c
+    for phase in range(2):  # 0: this block's rows; 1 (the last block only): the blocks' sums
+        share[t, 0] = first
+        share[t, 1] = second
+        cuda.syncthreads()
+        step = THREADS_PER_BLOCK // 2
+        while step > 0:
+            if t < step:
+                share[t, 0] += share[t + step, 0]
+                share[t, 1] += share[t + step, 1]
+            cuda.syncthreads()
+            step //= 2
+        if phase == 1:
+            if t == 0:
+                counter[0] = 0
+                _cg_finish(mode, state, share[0, 0], share[0, 1], rtol2)
+            return
+        if t == 0:
+            partial[cuda.blockIdx.x, 0] = share[0, 0]
+            partial[cuda.blockIdx.x, 1] = share[0, 1]
+            cuda.threadfence()
+            last[0] = 1 if cuda.atomic.add(counter, 0, 1) == cuda.gridDim.x - 1 else 0
+        cuda.syncthreads()
+        if last[0] == 0:
+            return
+        first = second = 0.0
+        for k in range(t, cuda.gridDim.x, THREADS_PER_BLOCK):
+            first += partial[k, 0]
+            second += partial[k, 1]
+
+
+def _cg_launch(mode, indptr, indices, data, with_matrix, from_zero, b, z, w, p, s, x, r, rtol2, state, partial,
+               counter) -> None:
+    blocks = min(kernels.REDUCTION_BLOCKS, _blocks(b.shape[0]))
+    _cg_pass[blocks, THREADS_PER_BLOCK](mode, indptr, indices, data, with_matrix, from_zero, b, z, w, p, s, x, r,
+                                        float(rtol2), state, partial, counter)
+
+
+def cg_start(b, x, r, p, s, from_zero, rtol2, state, partial, counter) -> None:
+    """:func:`.kernels.cg_start` on the GPU (one launch of :func:`_cg_pass`)."""
+    _cg_launch(kernels.CG_START, counter, counter, state, False, bool(from_zero), b, b, b, p, s, x, r, rtol2, state,
+               partial, counter)
+
+
+def cg_scalars(indptr, indices, data, with_matrix, z, r, w, state, partial, counter) -> None:
+    """:func:`.kernels.cg_scalars` on the GPU (one launch of :func:`_cg_pass`)."""
+    _cg_launch(kernels.CG_SCALARS, indptr, indices, data, bool(with_matrix), False, z, z, w, z, z, z, r, 0.0, state,
+               partial, counter)
+
+
+def cg_update(z, w, p, s, x, r, state, partial, counter) -> None:
+    """:func:`.kernels.cg_update` on the GPU (one launch of :func:`_cg_pass`)."""
+    _cg_launch(kernels.CG_UPDATE, counter, counter, state, False, False, z, z, w, p, s, x, r, 0.0, state, partial,
+               counter)
 
 
 @cuda.jit(cache=True)

@@ -427,6 +427,122 @@ def prolong_restart(indptr, indices, data, P_indptr, P_indices, P_data, b, x, c,
                             row)
 
 
+#: Slots of the preconditioned CG's state (float64 (CG_STATE,), on the device with the vectors:
+#: :func:`.krylov.pcg`): gamma = r.z and its previous value, delta = w.z (w = A z), the step
+#: alpha and direction scale beta, the squared residual rr, its previous and starting values,
+#: the threshold rtol^2 b.b, active (1/0), the active iterations and the status
+#: ``4 iterations + 2 active + converged`` (what the host reads).
+(CG_GAMMA, CG_GAMMA_OLD, CG_DELTA, CG_ALPHA, CG_BETA, CG_RR, CG_RR_OLD, CG_RR_START, CG_THRESHOLD, CG_ACTIVE,
+ CG_ITERATIONS, CG_STATUS) = range(12)
+CG_STATE = 12
+#: :func:`cg_start`, :func:`cg_scalars`, :func:`cg_update`: which pass of CG a call makes
+CG_START, CG_SCALARS, CG_UPDATE = range(3)
+#: Blocks of the GPU's CG passes at most (grid-stride loops; the rows of their partial sums)
+REDUCTION_BLOCKS = 256
+
+
+@numba.njit(inline="always")
+def cg_row(mode, indptr, indices, data, with_matrix, from_zero, b, z, w, p, s, x, r, alpha, beta, row):  # pragma: no cover
+    """One row of a CG pass (``mode``, see :func:`cg_start`, :func:`cg_scalars`,
+    :func:`cg_update`): the row's two terms of the pass's dot products."""
+    if mode == CG_START:
+        p[row] = 0.0
+        s[row] = 0.0
+        if from_zero:
+            x[row] = 0.0
+            r[row] = b[row]
+        return b[row] * b[row], r[row] * r[row]
+    if mode == CG_SCALARS:
+        if with_matrix:
+            w[row] = csr_row_dot(indptr, indices, data, z, row)
+        return r[row] * z[row], w[row] * z[row]
+    p_new = z[row] + beta * p[row]
+    s_new = w[row] + beta * s[row]
+    p[row] = p_new
+    s[row] = s_new
+    x[row] = x[row] + alpha * p_new
+    r_new = r[row] - alpha * s_new
+    r[row] = r_new
+    return r_new * r_new, 0.0
+
+
+@numba.njit(inline="always")
+def cg_finish(mode, state, first, second, rtol2):  # pragma: no cover - compiled
+    """A CG pass's scalars in ``state`` from its dot products (first, second): the start's
+    threshold and squared residual (b.b, r.r); the coefficients of Chronopoulos and Gear's CG
+    (gamma, delta: beta = gamma / gamma_old, alpha = gamma / (delta - beta gamma / alpha_old),
+    at the first iteration beta = 0, alpha = gamma / delta; NaN where a divisor is zero); the
+    update's squared residual rr and the progress: active while neither converged
+    (rr <= threshold) nor broken down (rr not finite)."""
+    if mode == CG_SCALARS:
+        gamma, delta = first, second
+        if state[CG_ITERATIONS] == 0.0:
+            beta = 0.0
+            alpha = gamma / delta if delta != 0.0 else math.nan
+        else:
+            beta = gamma / state[CG_GAMMA] if state[CG_GAMMA] != 0.0 else math.nan
+            divisor = delta - beta * gamma / state[CG_ALPHA] if state[CG_ALPHA] != 0.0 else math.nan
+            alpha = gamma / divisor if divisor != 0.0 else math.nan
+        state[CG_GAMMA_OLD] = state[CG_GAMMA]
+        state[CG_GAMMA] = gamma
+        state[CG_DELTA] = delta
+        state[CG_ALPHA] = alpha
+        state[CG_BETA] = beta
+        return
+    rr = first
+    if mode == CG_START:
+        for k in range(CG_STATE):
+            state[k] = 0.0
+        rr = second
+        state[CG_THRESHOLD] = rtol2 * first
+        state[CG_RR_START] = rr
+        state[CG_ITERATIONS] = -1.0  # the start counts as iteration 0
+    state[CG_RR_OLD] = state[CG_RR]
+    state[CG_RR] = rr
+    state[CG_ITERATIONS] += 1.0
+    converged = rr <= state[CG_THRESHOLD]
+    state[CG_ACTIVE] = 0.0 if converged or not math.isfinite(rr) else 1.0
+    state[CG_STATUS] = 4.0 * state[CG_ITERATIONS] + 2.0 * state[CG_ACTIVE] + (1.0 if converged else 0.0)
+
+
+@numba.njit(cache=True)
+def cg_pass(mode, indptr, indices, data, with_matrix, from_zero, b, z, w, p, s, x, r, rtol2, state, partial,
+            counter):  # pragma: no cover - compiled
+    """A CG pass over the rows in one loop (:func:`cg_row`), then its scalars (:func:`cg_finish`);
+    nothing once CG is inactive (but for the start). partial, counter: the CUDA kernel's
+    scratch (unused here)."""
+    if mode != CG_START and state[CG_ACTIVE] == 0.0:
+        return
+    alpha, beta = state[CG_ALPHA], state[CG_BETA]
+    first = second = 0.0
+    for row in range(b.shape[0]):
+        a, c = cg_row(mode, indptr, indices, data, with_matrix, from_zero, b, z, w, p, s, x, r, alpha, beta, row)
+        first += a
+        second += c
+    cg_finish(mode, state, first, second, rtol2)
+
+
+def cg_start(b, x, r, p, s, from_zero, rtol2, state, partial, counter) -> None:
+    """CG's start on ``A x = b`` (vectors (N,)): p = s = 0, with ``from_zero`` x = 0 and r = b
+    (else r = b - A x already), the state (:data:`CG_STATE`) from b.b and r.r for the tolerance
+    rtol2 = rtol^2. partial (:data:`REDUCTION_BLOCKS`, 2) float64 and counter (1,) int32 zero:
+    scratch of the GPU's reduction."""
+    cg_pass(CG_START, counter, counter, state, False, from_zero, b, b, b, p, s, x, r, rtol2, state, partial, counter)
+
+
+def cg_scalars(indptr, indices, data, with_matrix, z, r, w, state, partial, counter) -> None:
+    """CG's coefficients (:func:`cg_finish`) from gamma = r.z and delta = w.z, with
+    ``with_matrix`` w = A z (CSR arrays of A (N, N)) formed here (else w given; the CSR arrays
+    are then not read)."""
+    cg_pass(CG_SCALARS, indptr, indices, data, with_matrix, False, z, z, w, z, z, z, r, 0.0, state, partial, counter)
+
+
+def cg_update(z, w, p, s, x, r, state, partial, counter) -> None:
+    """CG's step in place: p = z + beta p, s = w + beta s (= A p), x += alpha p, r -= alpha s,
+    then rr = r.r and the progress (:func:`cg_finish`)."""
+    cg_pass(CG_UPDATE, counter, counter, state, False, False, z, z, w, p, s, x, r, 0.0, state, partial, counter)
+
+
 @numba.njit(inline="always")
 def shading_residual_pixel(color, albedo, basis, lights, usable, shading, residual, i, p):  # pragma: no cover
     """:func:`shading_residuals` on pixel p of frame i."""

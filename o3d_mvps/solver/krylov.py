@@ -27,6 +27,7 @@ import numpy as np
 
 from ..model.arrays import array_module, fused, sparse_module
 from .device import kernels_for
+from .kernels import CG_RR, CG_RR_OLD, CG_RR_START, CG_STATE, CG_STATUS, CG_THRESHOLD, REDUCTION_BLOCKS
 
 #: Multigrid: the hierarchy ends at a level of at most this many unknowns, solved there by a
 #: dense inverse (one matrix-vector product). pyamg's ``max_coarse`` on the CPU
@@ -36,10 +37,20 @@ from .device import kernels_for
 MAX_COARSE = 2000
 
 
-#: PCG's convergence test on a device (:func:`pcg`): after the first test, the host reads the
-#: status again after as many iterations as the residual's mean reduction per iteration so far
-#: needs to reach the tolerance, or, where that cannot be told, after this many.
+#: PCG's convergence test on a device (:func:`pcg`): where the residual's reduction after the
+#: first test cannot tell the iterations left, the second (and last) test comes after
+#: ``max(CHECK_EVERY, 2 iterations so far)`` more.
 CHECK_EVERY = 2
+
+#: PCG on a device reads its state at most this often (each read a synchronisation): after the
+#: first read, the second is the solve's last (:func:`pcg`).
+MAX_READS = 2
+
+#: The second read's margin over the iterations foreseen left (:func:`_iterations_left`): it
+#: comes after ``ceil(READ_MARGIN left) + 1`` more iterations (those after convergence change
+#: nothing, but cost their launches: on the 640x480 LED problem's finest level a margin of 1.5
+#: ran 75 iterations where 63 were needed, 1.0 ran 67; no solve there ended unconverged).
+READ_MARGIN = 1.0
 
 
 def pcg(A, b, x0, rtol: float, maxiter: int, preconditioner: Callable | None = None, first_check: int = 1,
@@ -47,72 +58,85 @@ def pcg(A, b, x0, rtol: float, maxiter: int, preconditioner: Callable | None = N
     """Preconditioned CG on ``A x = b`` from x0 (None: zero) until the residual is at most
     ``rtol * |b|`` (as :func:`.linear.pcg`); returns (x, iterations, converged).
 
-    A: (N, N) SPD, a sparse matrix or anything with ``A @ x`` (the Schur operator);
+    A: (N, N) SPD, a sparse CSR matrix or anything with ``A @ x`` (the Schur operator);
     b, x0: (N,) arrays of one module (NumPy or CuPy); preconditioner: SPD callable r -> z, None
     for plain CG. Stops early, unconverged, where the residual is no longer finite.
 
-    Every scalar stays on the device: an iteration is the preconditioner, one product with A,
-    three dot products and three fused kernels (:func:`o3d_mvps.model.arrays.fused`), and the
-    residual test is made there too: once it passes, the iterations that follow change nothing
-    (the same x and iteration count as stopping there). The host reads the status with the
-    squared residuals (one stack and one copy: a synchronisation) after ``first_check``
-    iterations, then after as many more as the mean reduction per iteration so far needs to
-    reach the tolerance (:func:`_iterations_left`; ``check_every`` where that cannot be told): a
-    solve expected to take about ``first_check`` iterations synchronises once or twice.
+    The recurrences are Chronopoulos and Gear's (SIAM J. Comput. Appl. Math. 1989; equal to
+    CG's in exact arithmetic): with w = A z, both dot products (r.z, w.z) of an iteration in one
+    pass, and s = A p by its recurrence, so that an iteration is the preconditioner and two
+    kernels (:func:`.kernels.cg_scalars`: w = A z for a CSR matrix and the dot products;
+    :func:`.kernels.cg_update`: p, s, x, r in place and r.r), plus the product with A where A
+    is an operator. The scalars stay on the device (a state vector, :data:`.kernels.CG_STATE`),
+    and so does the residual test: once it passes, the iterations that follow change nothing
+    (the same x and iteration count as stopping there).
+
+    On the host the state is tested after every iteration. On a device the host reads it (one
+    copy: a synchronisation) at most :data:`MAX_READS` times: after ``first_check`` iterations,
+    then after :data:`READ_MARGIN` times as many more as the residual's reduction so far says
+    are left (:func:`_iterations_left`), the solve's last read: where CG has not converged by
+    then, it returns unconverged (as at ``maxiter``, which no read passes).
     """
     xp = array_module(b)
-    bb = xp.dot(b, b)
-    threshold = (rtol * rtol) * bb
+    kernels = kernels_for(b)
+    on_host = xp is np
+    state = xp.empty(CG_STATE)
+    partial = xp.empty((REDUCTION_BLOCKS, 2))
+    counter = xp.zeros(1, dtype=np.int32)
+    p, s = xp.empty_like(b), xp.empty_like(b)
     if x0 is None:
-        x, r = xp.zeros_like(b), b
+        x, r = xp.empty_like(b), xp.empty_like(b)
     else:
-        x = _zero_if(bb, x0.astype(b.dtype))  # b = 0: x = 0, as on the host
+        x = _zero_if(xp.dot(b, b), x0.astype(b.dtype))  # b = 0: x = 0, as on the host
         r = b - A @ x
-    rr_start = rr = xp.dot(r, r)
-    active, iterations, status = _progress(True, -1, rr, threshold)  # x0: iteration 0
-    p = rz_previous = None
-    next_check = max(1, min(first_check, maxiter))
-    with np.errstate(divide="ignore", invalid="ignore"):  # idle iterations may divide by zero
-        for iteration in range(1, maxiter + 1):
-            z = r if preconditioner is None else preconditioner(r)
-            rz = xp.dot(r, z)
-            p = z if p is None else _cg_direction(active, z, p, rz, rz_previous)
-            q = A @ p
-            x, r = _cg_step(active, x, r, p, q, rz, xp.dot(p, q))
-            rz_previous, rr_previous = rz, rr
-            rr = xp.dot(r, r)
-            active, iterations, status = _progress(active, iterations, rr, threshold)
-            if iteration == next_check or iteration == maxiter:
-                code, *squares = (float(v) for v in _to_host(xp, status, rr, rr_previous, rr_start, threshold))
-                code = int(code)
-                if not code & 2:
-                    break
-                next_check = iteration + _iterations_left(*squares, code >> 2, check_every)
-        else:
-            code = int(status)  # maxiter 0
+    kernels.cg_start(b, x, r, p, s, x0 is None, rtol * rtol, state, partial, counter)
+    # a CSR matrix (CuPy's have no format attribute): w = A z in the pass of the dot products
+    matrix = getattr(A, "indptr", None) is not None and getattr(A, "format", "csr") == "csr"
+    csr = (A.indptr, A.indices, A.data) if matrix else (counter, counter, state)
+    w = xp.empty_like(b) if matrix else None
+    next_check, reads = max(1, min(first_check, maxiter)), 0
+    code = None
+    for iteration in range(1, maxiter + 1):
+        z = r if preconditioner is None else preconditioner(r)
+        if not matrix:
+            w = A @ z
+        kernels.cg_scalars(*csr, matrix, z, r, w, state, partial, counter)
+        kernels.cg_update(z, w, p, s, x, r, state, partial, counter)
+        if on_host or iteration == next_check:
+            code, rr, rr_previous, rr_start, threshold = _read_state(state)
+            reads += 1
+            if not code & 2 or (not on_host and reads == MAX_READS):
+                break
+            left = _iterations_left(rr, rr_previous, rr_start, threshold, code >> 2)
+            left = max(check_every, 2 * iteration) if left is None else int(np.ceil(READ_MARGIN * left)) + 1
+            next_check = min(maxiter, iteration + left)
+    if code is None:  # maxiter 0
+        code = _read_state(state)[0]
     return x, code >> 2, bool(code & 1)
 
 
-def _to_host(xp, *scalars):
-    """The float64 0-d arrays ``scalars`` on the host, (k,): in one copy from a device (one stack)."""
-    if xp is np:
-        return [float(v) for v in scalars]
-    return xp.stack(scalars).get()
+def _read_state(state) -> tuple:
+    """(status code, rr, rr_previous, rr_start, threshold) of CG's state (:data:`.kernels.CG_STATE`)
+    on the host: one copy from a device."""
+    values = state if array_module(state) is np else state.get()
+    return (int(values[CG_STATUS]), *(float(values[k]) for k in (CG_RR, CG_RR_OLD, CG_RR_START, CG_THRESHOLD)))
 
 
-def _iterations_left(rr: float, rr_previous: float, rr_start: float, threshold: float, iterations: int,
-                     default: int) -> int:
+def _iterations_left(rr: float, rr_previous: float, rr_start: float, threshold: float, iterations: int) -> int | None:
     """CG's iterations still to go (at least 1) for the squared residual ``rr`` (``rr_previous``
     one iteration before) after ``iterations`` active ones from ``rr_start`` to reach
     ``threshold``, at the slower of the last iteration's reduction and the mean one so far (on
     the solver's systems the first iterations reduce the residual most: the mean alone
     foresaw too few), but no more than twice what the mean foresees (a slow last iteration is
-    often followed by fast ones: alone it foresaw 15 where 4 were left); ``default`` where that
-    cannot be told (no reduction, values not finite)."""
-    if not (iterations > 0 and 0.0 < rr < rr_previous <= rr_start and threshold > 0.0 and np.isfinite(rr_start)):
-        return default
+    often followed by fast ones: alone it foresaw 15 where 4 were left); twice the mean's alone
+    where the last iteration did not reduce the residual (CG's residual need not fall at every
+    step); None where neither can be told (no reduction, values not finite)."""
+    if not (iterations > 0 and 0.0 < rr < rr_start and threshold > 0.0 and np.isfinite(rr_start)):
+        return None
     left = np.log(threshold / rr)  # < 0 while not converged
     mean = left / (np.log(rr / rr_start) / iterations)
+    if not rr < rr_previous:
+        return max(1, int(np.ceil(2.0 * mean)))
     return max(1, int(np.ceil(min(left / np.log(rr / rr_previous), 2.0 * mean))))
 
 
@@ -120,33 +144,6 @@ def _iterations_left(rr: float, rr_previous: float, rr_start: float, threshold: 
 def _zero_if(bb, x):
     """x (N,), or zeros where ``bb`` (0-d) is zero."""
     return array_module(x).where(bb == 0, 0.0, x)
-
-
-@fused
-def _cg_direction(active, z, p, rz, rz_previous):
-    """CG's next direction ``z + (rz / rz_previous) p`` (N,), p itself once ``active`` is False."""
-    return array_module(z).where(active, z + (rz / rz_previous) * p, p)
-
-
-@fused
-def _cg_step(active, x, r, p, q, rz, pq):
-    """CG's step ``x + alpha p``, ``r - alpha q`` (alpha = rz / pq), x and r themselves once
-    ``active`` is False."""
-    xp = array_module(x)
-    alpha = rz / pq
-    return xp.where(active, x + alpha * p, x), xp.where(active, r - alpha * q, r)
-
-
-@fused
-def _progress(was_active, iterations, rr, threshold):
-    """CG's state after an iteration of residual ``rr`` that ``was_active``: (active, iterations,
-    status), active while neither converged (rr <= threshold) nor broken down (rr not finite),
-    iterations counting the active ones, status ``4 iterations + 2 active + converged`` (float64:
-    what the host reads, with the residuals, in one copy)."""
-    converged = rr <= threshold
-    iterations = iterations + was_active
-    active = was_active & ~converged & array_module(rr).isfinite(rr)
-    return active, iterations, 4.0 * iterations + 2.0 * active + 1.0 * converged
 
 
 def inverse_diagonal(A):
@@ -163,9 +160,15 @@ def spectral_bound(A, inv_diag) -> float:
     isolated largest eigenvalue); a Chebyshev polynomial whose interval ends below the spectrum
     grows there, and can make the preconditioner indefinite.
     """
+    return float(spectral_bound_array(A, inv_diag))
+
+
+def spectral_bound_array(A, inv_diag):
+    """:func:`spectral_bound` as a 0-d array of inv_diag's module: on a device it stays there
+    (the multigrid's set-up reads nothing back)."""
     xp = array_module(inv_diag)
     scale = xp.sqrt(inv_diag)
-    return float(xp.max(scale * (abs(A) @ scale)))
+    return xp.max(scale * (abs(A) @ scale))
 
 
 @dataclass
@@ -333,13 +336,17 @@ def chebyshev_preconditioner(A, degree: int, lower_fraction: float = CHEBYSHEV_L
 SMOOTHERS = ("jacobi", "chebyshev")
 
 
-def make_smoother(A, inv_diag, upper: float, kind: str, steps: int):
+def make_smoother(A, inv_diag, upper, kind: str, steps: int):
     """A multigrid smoother of ``kind`` (:data:`SMOOTHERS`) taking ``steps`` steps on A (N, N)
-    sparse SPD, inv_diag (N,) = 1 / diag(A), ``upper`` bounding the spectrum of D^-1 A."""
+    sparse SPD, inv_diag (N,) = 1 / diag(A), ``upper`` (a float or a 0-d array of inv_diag's
+    module: read by no host) bounding the spectrum of D^-1 A. Both smoothers are made for
+    ``(D^-1 / upper) A``, whose spectrum lies in (0, 1]: the same iterations (damped Jacobi
+    with omega 4/3, Chebyshev on [:data:`CHEBYSHEV_LOWER_FRACTION`, 1]), their scalars
+    independent of ``upper``."""
     if kind == "jacobi":
-        return JacobiSmoother(A, inv_diag, 4.0 / (3.0 * upper), steps)
+        return JacobiSmoother(A, inv_diag / upper, 4.0 / 3.0, steps)
     if kind == "chebyshev":
-        return ChebyshevSmoother(A, inv_diag, CHEBYSHEV_LOWER_FRACTION * upper, upper, steps)
+        return ChebyshevSmoother(A, inv_diag / upper, CHEBYSHEV_LOWER_FRACTION, 1.0, steps)
     raise ValueError(f"unknown smoother {kind!r}; use one of {SMOOTHERS}")
 
 
@@ -454,9 +461,9 @@ def multigrid_preconditioner(A, prolongations: list, *, smoother: str = "chebysh
     levels = []
     for P in prolongations:
         inv_diag = inverse_diagonal(A)
-        upper = spectral_bound(A, inv_diag)
+        upper = spectral_bound_array(A, inv_diag)  # on a device: not read back
         if smoothed_prolongation:
-            P = (P - (4.0 / (3.0 * upper)) * (sparse.diags(inv_diag, format="csr") @ (A @ P))).tocsr()
+            P = (P - (4.0 / (3.0 * float(upper))) * (sparse.diags(inv_diag, format="csr") @ (A @ P))).tocsr()
         R = P.T.tocsr()
         levels.append(MultigridLevel(A, make_smoother(A, inv_diag, upper, smoother, smoothing_steps), P, R))
         A = (R @ (A @ P)).tocsr()
