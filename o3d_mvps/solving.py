@@ -75,7 +75,7 @@ def refine(capture: Capture, options: RefineOptions | None = None, device="auto"
     device = check_device(device)
     if save_problem is not None:
         check_output_files([save_problem], overwrite)
-    return_freed_arrays()  # before the registration too (the solver sets it again)
+    return_freed_arrays(int(np.prod(capture.color_size)))  # before the registration too (the solver sets it again)
     t0 = time.perf_counter()
     said, dropped, memory = [], {}, {}
     with recorded_warnings(said):

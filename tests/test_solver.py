@@ -229,13 +229,13 @@ def test_return_freed_arrays_gives_freed_megabyte_arrays_back_to_the_system():
     resident size (with glibc's default, once a 16 MB block has been freed, they stay in the
     heap, resident); 48 MB freed must lower it by at least 36 MB (a 25 % margin for other
     threads of the test process)."""
-    from o3d_mvps.solver.driver import return_freed_arrays
+    from o3d_mvps.solver.driver import MMAP_MIN_PIXELS, return_freed_arrays
 
     def resident_mb() -> float:
         with open("/proc/self/status") as status:
             return next(int(line.split()[1]) / 1024 for line in status if line.startswith("VmRSS:"))
 
-    assert return_freed_arrays()
+    assert return_freed_arrays(MMAP_MIN_PIXELS) and return_freed_arrays()
     big = np.ones(2 << 20)  # 16 MB freed: glibc's default would raise its threshold to it
     del big
     arrays = [np.ones(2 << 18) for _ in range(48)]  # 48 x 2 MB, touched

@@ -71,19 +71,28 @@ POINT_SWEEP_FACTOR = 3
 NOISE_SAMPLES_PER_FRAME = 10_000
 
 
-#: glibc's M_MMAP_THRESHOLD (bytes) that :func:`return_freed_arrays` sets
+#: glibc's M_MMAP_THRESHOLD (bytes) that :func:`return_freed_arrays` sets for frames of at least
+#: :data:`MMAP_MIN_PIXELS` colour pixels, and below that size
 MMAP_THRESHOLD = 1 << 20
+SMALL_MMAP_THRESHOLD = 8 << 20
+#: D415 x 20 (0.92 M pixels), whole process: peak 938 MB at 1 MB and at 8 MB, 962 MB with glibc's
+#: default; system CPU 4.4, 2.1 and 1.7 s of ~24 s (1.03 M, 0.22 M, 0.17 M page faults). At 2 MP
+#: (1.94 M) 1 MB lowered the stage peaks by 50-190 MB (8 MB not measured there).
+MMAP_MIN_PIXELS = 1_500_000
 
 
-def return_freed_arrays() -> bool:
-    """Have glibc's malloc give every block of at least :data:`MMAP_THRESHOLD` (1 MB) its own
-    mapping, returned to the system when freed (``mallopt(M_MMAP_THRESHOLD)``, process-wide).
+def return_freed_arrays(pixels: int | None = None) -> bool:
+    """Have glibc's malloc give every block of at least :data:`MMAP_THRESHOLD` (1 MB; 8 MB,
+    :data:`SMALL_MMAP_THRESHOLD`, for frames of fewer than :data:`MMAP_MIN_PIXELS` colour
+    pixels ``pixels``) its own mapping, returned to the system when freed
+    (``mallopt(M_MMAP_THRESHOLD)``, process-wide).
 
     By default glibc raises that threshold up to 32 MB as large blocks are freed, and the
     solver's per-level arrays of 1-32 MB then stay in the heap when freed, resident and
-    fragmented: at D415 size and 20 frames 190 MB of the peak outside the joint step (1051 ->
-    858 MB) and 200 MB of the joint step's. A no-op returning False where the C library is not
-    glibc, or where the user set ``MALLOC_MMAP_THRESHOLD_`` (theirs is kept)."""
+    fragmented: 24 MB of the D415 process's peak, 50-190 MB of the stage peaks at 2 MP. Each
+    mapped array costs page faults when it is allocated: at D415 size the 1 MB threshold cost
+    2.7 s of system CPU, 8 MB 0.4 s, for the same peak. A no-op returning False where the C
+    library is not glibc, or where the user set ``MALLOC_MMAP_THRESHOLD_`` (theirs is kept)."""
     import ctypes
     import os
     import sys
@@ -95,7 +104,8 @@ def return_freed_arrays() -> bool:
     except (OSError, AttributeError):
         return False
     M_MMAP_THRESHOLD = -3
-    return bool(mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD))
+    small = pixels is not None and pixels < MMAP_MIN_PIXELS
+    return bool(mallopt(M_MMAP_THRESHOLD, SMALL_MMAP_THRESHOLD if small else MMAP_THRESHOLD))
 
 
 def normalised_tau(tau_tilde: float, n_frames: int, mean_intensity: float, n_hr: int, mean_z0: float, n_lr: int,
@@ -374,11 +384,12 @@ def solve(problem_input: SolverInput, options: RefineOptions | None = None, devi
     that fits clearly worse than another is kept with a warning): ``info["light_selection"]``.
     ``info["pose_updates"]`` says how far each frame's pose moved and how many of its updates
     were rejected (:mod:`.pose_trust`). On Linux with glibc the process's malloc is set to
-    return freed arrays of 1 MB and more to the system (:func:`return_freed_arrays`).
+    return freed arrays of 1 MB and more (8 MB for frames under 1.5 megapixels) to the system
+    (:func:`return_freed_arrays`).
     """
     options = problem_input.options if options is None else options
     device = array_device(device)
-    return_freed_arrays()
+    return_freed_arrays(int(np.prod(np.shape(problem_input.colors[0])[:2])))
     if options.progress and (notice := compile_notice(device)):
         print(notice, flush=True)
     # The solver's BLAS calls are vector dots/norms (CG, AMG) and thin products: on a loaded

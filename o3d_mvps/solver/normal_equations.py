@@ -171,8 +171,9 @@ def _dot3(a0, a1, a2, b0, b1, b2):
 #: at a time: at 2 megapixels and 20 frames the whole-image arrays took 5 GB. With 19 refined
 #: frames a block's temporaries (these two, the light rows, the LED Jacobians) take about 8 kB
 #: per pixel: 260 MB at 32768 pixels, 65 MB at 8192 (the joint step's peak at D415 size fell
-#: from 277 to 105 MB over its entry), for the same assembly time.
-BLOCK_PIXELS = 8192
+#: from 277 to 105 MB over its entry), 32 MB at 4096 (the D415 process's peak, set in this step,
+#: 963-975 -> 938 MB), for the same assembly time.
+BLOCK_PIXELS = 4096
 
 #: :data:`BLOCK_PIXELS` on a GPU, where each block costs some 45 launches and a few copies
 #: whatever its size (``python -m benchmarks.gpu sites``): the D415's finest level (about 90 000
