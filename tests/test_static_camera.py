@@ -129,6 +129,26 @@ def test_problem_without_registration(static, monkeypatch):
     assert given.options.cg_tolerance == 1e-5
 
 
+def test_a_static_capture_keeps_the_masks_as_given(static, monkeypatch):
+    """Masks in the capture (``mask/``) reach the solver unchanged for every frame of a static
+    capture (detected, not declared): here each the object's left half only, which the depth
+    would never give."""
+    from o3d_mvps.capture import image_from_array
+
+    monkeypatch.setattr("o3d_mvps.odometry.register_frames", lambda *a, **k: pytest.fail("registered"))
+    cut = []
+    for i in range(static.n_frames):
+        m = static.mask_array(i).copy()
+        m[:, SIZE[0] // 2:] = False
+        cut.append(m)
+    given = replace(static, masks=[image_from_array((m * np.uint8(255))[:, :, None]) for m in cut])
+    problem, views = problem_from_capture(given, RefineOptions(progress=False))
+    assert views is None and problem.options.refine_poses is False
+    assert len(problem.masks) == static.n_frames
+    for m, expected in zip(problem.masks, cut):
+        np.testing.assert_array_equal(m, expected)
+
+
 def test_refine_a_static_capture(monkeypatch):
     """The undeclared D415-like static capture (320x240, SF 2, 12 frames), refined with the
     defaults through ``python -m benchmarks static``'s measure: detected, no registration, poses
