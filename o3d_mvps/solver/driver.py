@@ -35,7 +35,7 @@ from .joint import update_pose_depth
 from .light_selection import select_light_model
 from .lighting import make_light_model, update_led_offset
 from .options import AUTO, DEFAULT_CAUCHY_LAMBDA, RefineOptions
-from .pose import keep_agreeing_poses, update_poses
+from .pose import keep_agreeing_poses, pose_information, update_poses
 from .point_light import fit_point_lights, initial_point_lights
 from .pose_trust import PoseAnchors, PoseLog
 from .problem import Estimate, LevelProblem
@@ -163,6 +163,7 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
     if refine_poses and anchors is not None:
         t = time.perf_counter()
         anchors.calibrate(problem.lam, est.poses, problem.points(est.z), ev.usable,
+                          pose_information(problem, est, ev) if anchors.trust is not None else None,
                           footprint=(anchors.scale_factor / 2**level.index) ** 2)
         timings["pose_anchors"] += time.perf_counter() - t
     else:
@@ -195,7 +196,7 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
             t = time.perf_counter()
             stepped, ev, cg_iterations = update_pose_depth(problem, est, ev, rtol=options.joint_cg_tolerance,
                                                            maxiter=options.cg_max_iterations,
-                                                           project_albedo=project_albedo)
+                                                           project_albedo=project_albedo, anchors=anchors)
             poses_before, (est.z, est.albedo, est.poses) = est.poses, (stepped.z, stepped.albedo, stepped.poses)
             timings["poses_depth"] += time.perf_counter() - t
             if anchors is not None:

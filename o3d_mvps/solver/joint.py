@@ -20,19 +20,29 @@ from ..model import se3
 from .depth import search_estimates
 from .linear import levenberg_damped, solve_spd
 from .normal_equations import joint_system
+from .pose_trust import PoseAnchors
 from .problem import Estimate, Evaluation, LevelProblem
 
 
 def update_pose_depth(problem: LevelProblem, est: Estimate, ev: Evaluation, *, rtol: float, maxiter: int,
-                      project_albedo: bool = True, max_halvings: int = 5) -> tuple[Estimate, Evaluation, int]:
+                      project_albedo: bool = True, max_halvings: int = 5,
+                      anchors: PoseAnchors | None = None) -> tuple[Estimate, Evaluation, int]:
     """One joint step on z and the twists (and, with ``project_albedo``, the albedo refitted at
     every trial): returns (estimate, its evaluation, CG iterations); never raises the energy
     (returns ``est`` unchanged when no step length lowers it). ``ev``, the evaluation of
-    ``est``, is released once read (:meth:`.Evaluation.release`)."""
+    ``est``, is released once read (:meth:`.Evaluation.release`). anchors: with given poses,
+    their prior enters the twists' block (:meth:`.pose_trust.PoseAnchors.prior_system`), so the
+    step does not slide a frame along the images' weak directions."""
     energy = ev.energy
     # ev released once read: not held while the matrices are formed, nor through the solve and line search
     system = joint_system(problem, est, ev, project_albedo=project_albedo, release=True)
     system = dataclasses.replace(system, matrix=levenberg_damped(system.matrix, overwrite=True))
+    if anchors is not None:
+        for k, i in enumerate(system.frames):
+            prior = anchors.prior_system(i, est.poses[i])
+            if prior is not None:
+                system.hessian[6 * k:6 * k + 6, 6 * k:6 * k + 6] += prior[0]
+                system.rhs_xi[6 * k:6 * k + 6] -= prior[1]
     S, rhs = system.schur_operator()
     dz, iterations = solve_spd(S, rhs, rtol, maxiter, sparse_part=system.matrix, pixel_prolongations=problem.pixel_prolongations)
     xi, frames = system.twists(dz), system.frames

@@ -38,6 +38,45 @@ def update_pose(problem: LevelProblem, est: Estimate, i: int, points_ref: np.nda
     return refine_pose(problem, est, i, points_ref, normals, iterations, max_halvings, tolerance)[0]
 
 
+def pose_system(problem: LevelProblem, est: Estimate, i: int, pose: np.ndarray, sample: FrameSample,
+                points_ref: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """(H (6, 6), g (6,)) on the host: frame i's robust (IRLS) Gauss-Newton terms of its
+    photometric energy for a left update exp(xi) ``pose``, from its ``sample`` (the frame seen
+    from the reference points (N, 3) with unit normals (N, 3)); None under 12 usable pixels.
+    With a light model whose shading depends on the pose (the LED), the shading's derivative
+    enters the Jacobian."""
+    use = sample.usable
+    if use.sum() < 12:
+        return None
+    model, light, albedo = problem.light_model(est), est.lights[i], est.albedo
+    points = points_ref[use]
+    shading = model.basis(normals[use], points, pose) @ like(light, points)
+    r = sample.color[use] - albedo[use] * shading[:, None]
+    w = cauchy_weights(r, problem.lam)
+    J = pose_jacobian(problem.warped_gradients(i, pose, points), problem.level.K)
+    dshading = model.shading_jacobian(light, normals[use], points, pose)
+    if dshading is not None:
+        J -= albedo[use][:, :, None] * dshading[:, None, :]
+    J = J.reshape(-1, 6)
+    wJ = J * w.reshape(-1, 1)
+    return to_host_together(wJ.T @ J, wJ.T @ r.reshape(-1))  # on a GPU one copy for both
+
+
+def pose_information(problem: LevelProblem, est: Estimate, ev: Evaluation) -> np.ndarray:
+    """(n, 6): each frame's photometric curvature along the six twist axes (the diagonal of
+    :func:`pose_system`'s H, energy per (metre or radian)^2) at its current pose; frame 0 and
+    frames with under 12 usable pixels: 0. What a frame's images say about its pose, the scale
+    a prior towards given poses is measured against (:meth:`.pose_trust.PoseAnchors.calibrate`)."""
+    points_ref = problem.points(est.z)
+    information = np.zeros((problem.n_frames, 6))
+    for i in range(1, problem.n_frames):
+        system = pose_system(problem, est, i, est.poses[i], FrameSample(ev.color[i], ev.usable[i]), points_ref,
+                             ev.normals)
+        if system is not None:
+            information[i] = np.diag(system[0])
+    return information
+
+
 def refine_pose(problem: LevelProblem, est: Estimate, i: int, points_ref: np.ndarray, normals: np.ndarray,
                 iterations: int, max_halvings: int = 4, tolerance: float = 0.0, anchors: PoseAnchors | None = None,
                 log: PoseLog | None = None) -> tuple[np.ndarray, FrameSample]:
@@ -50,7 +89,6 @@ def refine_pose(problem: LevelProblem, est: Estimate, i: int, points_ref: np.nda
     Gauss-Newton system); an iteration that finds no such step although the photometric
     energy alone fell (at the shortest step tried) is counted in ``log``.
     """
-    K = problem.level.K
     model, light, albedo = problem.light_model(est), est.lights[i], est.albedo
     last = {}
 
@@ -66,20 +104,10 @@ def refine_pose(problem: LevelProblem, est: Estimate, i: int, points_ref: np.nda
     energy = energy_of(sample, pose)
     photometric = last["photometric"]
     for _ in range(iterations):
-        use = sample.usable
-        if use.sum() < 12:
+        system = pose_system(problem, est, i, pose, sample, points_ref, normals)
+        if system is None:
             break
-        points = points_ref[use]
-        shading = model.basis(normals[use], points, pose) @ like(light, points)
-        r = sample.color[use] - albedo[use] * shading[:, None]
-        w = cauchy_weights(r, problem.lam)
-        J = pose_jacobian(problem.warped_gradients(i, pose, points), K)
-        dshading = model.shading_jacobian(light, normals[use], points, pose)
-        if dshading is not None:
-            J -= albedo[use][:, :, None] * dshading[:, None, :]
-        J = J.reshape(-1, 6)
-        wJ = J * w.reshape(-1, 1)
-        H, g = to_host_together(wJ.T @ J, wJ.T @ r.reshape(-1))  # on a GPU one copy for both
+        H, g = system
         prior = None if anchors is None else anchors.prior_system(i, pose)
         if prior is not None:
             H, g = H + prior[0], g + prior[1]

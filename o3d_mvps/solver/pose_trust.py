@@ -18,8 +18,13 @@ round:
 A pose update is accepted only if the frame's photometric energy plus these terms
 (:meth:`PoseAnchors.frame_energy`) does not rise; :class:`PoseLog` counts what was rejected and
 why. Both terms are in the photometric energy's units: a depth residual of one ``depth_scale``
-costs what a colour pixel at one Cauchy scale does (three channels), and one standard deviation
-of the prior costs :data:`PRIOR_PIXELS` such pixels. A depth pixel counts once however many
+costs what a colour pixel at one Cauchy scale does (three channels), and a move of one standard
+deviation of the prior costs :data:`PRIOR_SHARE` of what the frame's own images charge for it
+(their Gauss-Newton curvature along the six twist axes at the trust radius, averaged): a prior
+in proportion to the evidence, which holds the directions the images barely see (a rotation
+about the object with the matching translation) and yields along those they do. The prior also
+enters the pose step's and the joint step's Gauss-Newton systems, so neither proposes a slide
+along the weak directions that the acceptance would then refuse whole. A depth pixel counts once however many
 colour pixels sample it (on the 640x480 bunny, counted at every colour pixel, the depth check held
 odometry poses 3.5 mm from the truth, mean, where the images alone take them to 0.64 mm).
 """
@@ -40,8 +45,9 @@ from .device import to_host
 DEFAULT_POSE_TRUST = (0.002, float(np.radians(0.2)))
 #: the smallest Cauchy scale of the depth residuals (metres): 1 mm sensor quantisation
 MIN_DEPTH_SCALE = 0.001
-#: a one-sigma move of a given pose costs as much as this many colour pixels at one Cauchy scale
-PRIOR_PIXELS = 100.0
+#: a one-sigma move of a given pose costs this share of what the frame's images charge for it
+#: (their curvature along the six twist axes, averaged at the trust radius)
+PRIOR_SHARE = 0.1
 
 
 @dataclass
@@ -58,7 +64,7 @@ class PoseAnchors:
     scale_factor: int = 1
     depth_scale: float = MIN_DEPTH_SCALE
     depth_weight: float = 0.0
-    prior_weight: float = 0.0
+    prior_weight: float | np.ndarray = 0.0
 
     def __post_init__(self):
         self.sensor_depths = np.asarray(self.sensor_depths, dtype=np.float32)
@@ -92,16 +98,21 @@ class PoseAnchors:
         """(6,) the twist xi = (v, w) with ``pose = exp(xi) given_i``."""
         return se3.log(pose @ np.linalg.inv(self.given[i]))
 
-    def prior_precision(self) -> np.ndarray:
-        """(6,) the prior's diagonal curvature in energy units (0 without given poses)."""
-        if self.given is None or self.trust is None or self.prior_weight == 0.0:
-            return np.zeros(6)
+    def trust_radius(self) -> np.ndarray:
+        """(6,) the trust along the twist axes (metres x 3, radians x 3)."""
         s_t, s_r = self.trust
-        return self.prior_weight * np.array([1 / s_t**2] * 3 + [1 / s_r**2] * 3)
+        return np.array([s_t] * 3 + [s_r] * 3)
+
+    def prior_precision(self, i: int) -> np.ndarray:
+        """(6,) frame i's prior's diagonal curvature in energy units (0 without given poses)."""
+        weight = float(np.asarray(self.prior_weight)[i] if np.ndim(self.prior_weight) else self.prior_weight)
+        if self.given is None or self.trust is None or weight == 0.0:
+            return np.zeros(6)
+        return weight / self.trust_radius() ** 2
 
     def prior_energy(self, i: int, pose: np.ndarray) -> float:
         """The prior's energy of frame i at ``pose`` (0 without given poses)."""
-        precision = self.prior_precision()
+        precision = self.prior_precision(i)
         if not precision.any() or i == 0:
             return 0.0
         xi = self.twist_from_given(i, pose)
@@ -109,7 +120,7 @@ class PoseAnchors:
 
     def prior_system(self, i: int, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
         """(H (6, 6), g (6,)): the prior's Gauss-Newton terms for a left update exp(xi) pose, or None."""
-        precision = self.prior_precision()
+        precision = self.prior_precision(i)
         if not precision.any() or i == 0:
             return None
         return np.diag(precision), precision * self.twist_from_given(i, pose)
@@ -119,19 +130,22 @@ class PoseAnchors:
         return self.depth_energy(i, pose, points_ref, usable) + self.prior_energy(i, pose)
 
     def calibrate(self, photometric_scale: float, poses: np.ndarray, points_ref: np.ndarray,
-                  usable: np.ndarray, footprint: float = 1.0) -> None:
+                  usable: np.ndarray, information: np.ndarray, footprint: float = 1.0) -> None:
         """Set the level's weights: the depth residuals' scale from those of the current ``poses``
         (n, 4, 4) (1.4826 MAD over frames 1.., at least :data:`MIN_DEPTH_SCALE`), a depth
         measurement at that scale weighing like a colour pixel (3 channels) at
         ``photometric_scale`` -- spread over the ``footprint`` level pixels that sample one depth
-        pixel ((SF / 2^level)^2, at least 1) -- and the prior's one-sigma cost
-        :data:`PRIOR_PIXELS` such pixels. usable (n, N)."""
+        pixel ((SF / 2^level)^2, at least 1) -- and, per frame, the prior's one-sigma cost
+        :data:`PRIOR_SHARE` x what the frame's images charge for a move of one trust radius,
+        averaged over the six twist axes: ``information`` (n, 6), their curvature along the
+        axes (:func:`o3d_mvps.solver.pose.pose_information`). usable (n, N)."""
         residuals = [self.depth_residuals(i, poses[i], points_ref, usable[i]) for i in range(1, len(poses))]
         r = np.concatenate(residuals) if residuals else np.zeros(0)
         self.depth_scale = max(MIN_DEPTH_SCALE, robust_scale(r[None, :, None], np.ones((1, r.size), bool))
                                if r.size else MIN_DEPTH_SCALE)
         self.depth_weight = 3.0 * photometric_scale**2 / self.depth_scale**2 / max(1.0, footprint)
-        self.prior_weight = PRIOR_PIXELS * 3.0 * photometric_scale**2
+        if self.trust is not None:
+            self.prior_weight = PRIOR_SHARE * (np.asarray(information) * self.trust_radius() ** 2).mean(axis=1)
 
 
 @dataclass
