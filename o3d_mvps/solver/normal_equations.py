@@ -197,12 +197,15 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
     Per block, one pass over the frames; per frame, one compiled kernel
     (:func:`.kernels.accumulate_frame`) adds its depth rows to per-pixel sums and writes its
     twist rows and w s J; the block's albedo projection and its share of the coupling follow.
-    release: release ``ev`` (:meth:`.Evaluation.release`) once the pass has read it, before the
-    matrices are formed.
+    release: release ``ev`` (:meth:`.Evaluation.release`): its warped colours and light bases
+    (which the pass does not read: 0.3-0.5 GB at 2 megapixels and 20 frames) before the coupling
+    is allocated, the rest once the pass has read it, before the matrices are formed.
     """
     if ev.residual is None:
         raise ValueError("joint_system: the evaluation was released by an earlier step (Evaluation.release); "
                          "evaluate the estimate again (LevelProblem.evaluate)")
+    if release:  # the warped colours and light bases are not read here: dropped before U is allocated
+        ev.release(keep=("residual", "usable", "shading", "normals", "dA"))
     grid = problem.level.grid
     N = grid.size
     xp = array_module(ev.residual)
@@ -471,6 +474,20 @@ def shading_rows(problem: LevelProblem, est: Estimate, normals: np.ndarray, poin
     alpha = K[0, 0] * L[..., 0] - (u - K[0, 2]) * L[..., 2]
     beta = K[1, 1] * L[..., 1] - (v - K[1, 2]) * L[..., 2]
     return c, alpha, beta, -L[..., 2]
+
+
+def prepare_depth_block(problem: LevelProblem) -> None:
+    """Build the level's depth-block pattern (:func:`depth_block_pattern`, kept on the problem)
+    and the prior's D^T D (kept on the prior) on the host now, as the level starts: both last
+    the level anyway, but built inside its first joint step, next to the coupling U, their
+    sparse products' temporaries (some 0.5 GB at 2 megapixels) set that step's peak. Nothing
+    is done on a GPU, where :func:`joint_system` forms M by sparse products."""
+    if array_module(problem.level.grid.u) is not np:
+        return
+    prior = problem.level.prior
+    if problem.depth_pattern is None:
+        problem.depth_pattern = depth_block_pattern(problem.level.grid, prior)
+    prior.DtD  # noqa: B018 - a cached property, built here
 
 
 def depth_block(problem: LevelProblem, stencil_sums: np.ndarray) -> sp.csr_matrix:
