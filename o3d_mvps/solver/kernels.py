@@ -832,6 +832,23 @@ def add_csr_into_pattern(indptr, indices, data, scale, a_indptr, a_indices, a_da
 
 
 @numba.njit(cache=True)
+def add_row_gram_into_pattern(indptr, indices, data, scale, a_indptr, a_indices, a_data):  # pragma: no cover - compiled
+    """data (nnz,) of a CSR pattern (columns ascending per row) += ``scale`` times A^T A of the
+    CSR matrix A (M, N) (a_indptr, a_indices, a_data), without forming A^T A: each row's outer
+    product added. Where every column of A holds at most one entry, each entry of A^T A is one
+    product, and the sums equal :func:`add_csr_into_pattern` of ``A.T @ A`` bit for bit. Returns
+    False (data partly written) where the pattern lacks one of its entries."""
+    for r in range(a_indptr.shape[0] - 1):
+        for x in range(a_indptr[r], a_indptr[r + 1]):
+            for y in range(a_indptr[r], a_indptr[r + 1]):
+                at = csr_position(indptr, indices, a_indices[x], a_indices[y])
+                if at < 0:
+                    return False
+                data[at] += scale * (a_data[x] * a_data[y])
+    return True
+
+
+@numba.njit(cache=True)
 def strong_connections(indptr, indices, data, theta):  # pragma: no cover - compiled
     """The pattern (indptr (N+1,), indices (nnz',)) of pyamg's symmetric strength of connection
     of a CSR matrix (N, N) with float64 ``data``: the diagonal, and every (i, j) with
