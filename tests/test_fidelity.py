@@ -226,10 +226,12 @@ def test_static_capture_with_sensor_noise_follows_the_sensors_coarse_shape():
     assert evaluate(result, truth)["mae_deg"] < 0.6 * evaluate(bicubic(capture), truth)["mae_deg"]
 
 
-def test_normal_evidence_per_pixel_fields_compiled_sums_equal_the_einsums():
-    """With a field per frame and pixel (the LED's, L (n, N, 3)) the host sums G, v, d in one
-    compiled pass (weighting._evidence_sums): equal to the GPU path's einsums to 1e-12 of the
-    largest evidence (summation order only), unusable frames and a float32 shading included."""
+def test_normal_evidence_per_pixel_fields_compiled_sums_equal_the_einsums(monkeypatch):
+    """With a field per frame and pixel (the LED's, L (n, N, 3)) the host sums G, v, d in
+    compiled passes over chunks of pixels (weighting._evidence_sums): equal to the GPU path's
+    einsums to 1e-12 of the largest evidence (summation order only), unusable frames and a
+    float32 shading included; chunks of 1000 pixels give the one-chunk result bit for bit."""
+    from o3d_mvps.solver import weighting
     from o3d_mvps.solver.weighting import _tangent_min_eigenvalue
 
     rng = np.random.default_rng(3)
@@ -242,14 +244,18 @@ def test_normal_evidence_per_pixel_fields_compiled_sums_equal_the_einsums():
     albedo = rng.random((N, 3))
     shading = rng.random((n, N)).astype(np.float32)
 
-    class PerPixelFields:
+    class PerPixelFields:  # the fields of the pixels asked for (their index in points[:, 0])
         def fields(self, lights, normals, points, poses):
-            return lights[:, 0], L
+            return lights[:, 0], L[:, points[:, 0].astype(int)]
 
     ev = Evaluation(np.zeros((n, N, 3), np.float32), usable, np.zeros((n, N, 3), np.float32), shading, normals,
                     np.ones(N), None, 0.0, 0.0)
     est = Estimate(np.full(N, 0.5), albedo, np.zeros((n, 2)), np.tile(np.eye(4), (n, 1, 1)))
-    got = normal_evidence(PerPixelFields(), est, ev, np.zeros((N, 3)))
+    points = np.zeros((N, 3))
+    points[:, 0] = np.arange(N)
+    got = normal_evidence(PerPixelFields(), est, ev, points)
+    monkeypatch.setattr(weighting, "EVIDENCE_CHUNK_PIXELS", 1000)
+    np.testing.assert_array_equal(normal_evidence(PerPixelFields(), est, ev, points), got)
     u = usable * (albedo**2).sum(axis=1)
     us = u * shading
     G, v = np.einsum("in,inj,ink->njk", u, L, L), np.einsum("in,inj->nj", us, L)

@@ -554,5 +554,50 @@ def test_depth_block_equals_the_sparse_products(level, rng):
         scale = np.abs(expected).max()
         assert np.abs((actual - expected).toarray()).max() <= 1e-13 * scale
         assert np.shares_memory(actual.indices, problem.depth_pattern[1])  # the pattern's arrays, not a copy
+        # 2 tau D^T D added from D's rows (a block average: one entry per column) equals adding D^T D bit for bit
+        from o3d_mvps.solver import kernels
+        indptr, indices = problem.depth_pattern
+        data = np.zeros(indices.size)
+        kernels.add_stencil_gram(indptr, indices, grid.fwd_u, grid.bwd_u, grid.wf_u, grid.wb_u, grid.fwd_v,
+                                 grid.bwd_v, grid.wf_v, grid.wb_v, *sums, data)
+        for scale, term in prior.hessian_terms(0.7, 0.3):
+            kernels.add_csr_into_pattern(indptr, indices, data, scale, term.indptr, term.indices, term.data)
+        assert np.bincount(prior.D.indices).max() == 1 and np.array_equal(actual.data, data)
         damped = levenberg_damped(actual.copy(), overwrite=True)
         assert np.abs((damped - levenberg_damped(expected)).toarray()).max() <= 1e-13 * scale
+
+
+def test_released_early_the_system_is_the_same_and_colours_go_before_the_coupling(problem, monkeypatch):
+    """joint_system(release=True) drops the warped colours and light bases, which it does not
+    read, before it allocates the coupling U (their memory is not held beside U), the rest once
+    read, and forms the same system bit for bit as without release; prepare_depth_block builds the
+    level's pattern and D^T D up front (depth_block then reuses them: the same matrix bit for bit)."""
+    from o3d_mvps.solver import normal_equations
+    from o3d_mvps.solver.normal_equations import depth_block_pattern, prepare_depth_block
+
+    est = kicked_estimate(problem)
+    kept = joint_system(problem, est, problem.evaluate(est))
+    seen = []
+    assemble = normal_equations._assemble_block
+
+    def recorded(problem, est, ev, *args, **kwargs):
+        seen.append((ev.color is None, ev.basis is None, ev.residual is not None))
+        return assemble(problem, est, ev, *args, **kwargs)
+
+    monkeypatch.setattr(normal_equations, "_assemble_block", recorded)
+    fresh = LevelProblem(problem.level, problem.tau, problem.lam)
+    prepare_depth_block(fresh)
+    indptr, indices = depth_block_pattern(fresh.level.grid, fresh.level.prior)
+    assert np.array_equal(fresh.depth_pattern[0], indptr) and np.array_equal(fresh.depth_pattern[1], indices)
+    pattern = fresh.depth_pattern
+    ev = fresh.evaluate(est)
+    released = joint_system(fresh, est, ev, release=True)
+    assert seen and all(s == (True, True, True) for s in seen)
+    assert all(getattr(ev, name) is None for name in ev.ARRAYS)
+    assert fresh.depth_pattern is pattern  # reused, not rebuilt
+    for a, b in ((kept.matrix, released.matrix),):
+        assert np.array_equal(a.indptr, b.indptr) and np.array_equal(a.indices, b.indices)
+        assert np.array_equal(a.data, b.data)
+    for name in ("rhs_z", "coupling", "hessian", "rhs_xi"):
+        assert np.array_equal(getattr(kept, name), getattr(released, name)), name
+    assert kept.frames == released.frames

@@ -115,6 +115,45 @@ def test_the_amg_hierarchy_is_freed_with_its_solve_without_the_garbage_collector
     np.testing.assert_allclose(matrix @ x, np.ones(n), atol=1e-7)
 
 
+def test_the_finest_strength_pattern_gives_pyamgs_hierarchy_bit_for_bit():
+    """The finest level's strength, passed to pyamg as a pattern (:func:`.linear.strength_options`),
+    is pyamg's own symmetric strength at STRENGTH_THETA (stored zeros and rounding residues
+    dropped, the diagonal kept), and the V-cycle built from it equals pyamg's default-strength
+    cycle bit for bit; where every entry is strong the pattern shares the matrix's arrays."""
+    import pyamg
+
+    from o3d_mvps.solver import linear
+
+    M, b, _ = grid_system()
+    M = sp.csr_matrix(M)
+    rows = np.repeat(np.arange(M.shape[0]), np.diff(M.indptr))
+    off = np.flatnonzero(rows != M.indices)
+    M.data[off[::11]] *= 1e-20  # rounding residues (weak) and stored zeros: dropped
+    M.data[off[5::13]] = 0.0
+    M.data[np.flatnonzero(rows == M.indices)[::17]] = 0.0  # a stored zero diagonal: kept
+    options = linear.strength_options(M)
+    pattern = options[0][1]["C"]
+    reference = pyamg.strength.symmetric_strength_of_connection(M, linear.STRENGTH_THETA)
+    assert pattern.nnz < M.nnz
+    np.testing.assert_array_equal(pattern.indptr, reference.indptr)
+    np.testing.assert_array_equal(pattern.indices, reference.indices)
+
+    def cycle(strength):
+        np.random.seed(0)
+        ml = pyamg.smoothed_aggregation_solver(M, symmetry="symmetric", max_coarse=300, coarse_solver="splu",
+                                               strength=strength)
+        return [level.A.shape[0] for level in ml.levels], linear._v_cycle(ml, 0, b)
+
+    sizes, ours = cycle(options)
+    ref_sizes, theirs = cycle(("symmetric", {"theta": linear.STRENGTH_THETA}))
+    assert sizes == ref_sizes and len(sizes) >= 2
+    np.testing.assert_array_equal(ours, theirs)
+    strong = sp.csr_matrix(sp.diags([-np.ones(499), 2.01 * np.ones(500), -np.ones(499)], [-1, 0, 1]))
+    pattern = linear.strength_options(strong)[0][1]["C"]
+    assert np.shares_memory(pattern.indices, strong.indices) and np.shares_memory(pattern.indptr, strong.indptr)
+    assert linear.strength_options(strong.astype(np.float32)) == ("symmetric", {"theta": linear.STRENGTH_THETA})
+
+
 @contextmanager
 def on_stand_in(simulated: bool):
     """Within: the CuPy stand-in (tests/cupy_emulation.py, yielded), the CUDA kernels run by

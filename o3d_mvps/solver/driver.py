@@ -34,6 +34,7 @@ from .device import CPU, ArrayDevice, array_device, compile_notice, to_host
 from .joint import update_pose_depth
 from .light_selection import select_light_model
 from .lighting import make_light_model, update_led_offset
+from .normal_equations import prepare_depth_block
 from .options import AUTO, DEFAULT_CAUCHY_LAMBDA, RefineOptions
 from .pose import keep_agreeing_poses, pose_information, update_poses
 from .point_light import fit_point_lights, initial_point_lights
@@ -144,6 +145,7 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
     """
     level = problem.level
     t = time.perf_counter()
+    prepare_depth_block(problem)  # its sparse products made before any evaluation or coupling is held
     ev = problem.evaluate(est)
     # fit the albedo to this level's images under the current lighting before the sweeps: the
     # coarse (or, on the first level, the reference image's) albedo lacks the detail the pose

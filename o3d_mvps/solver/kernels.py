@@ -832,6 +832,61 @@ def add_csr_into_pattern(indptr, indices, data, scale, a_indptr, a_indices, a_da
 
 
 @numba.njit(cache=True)
+def add_row_gram_into_pattern(indptr, indices, data, scale, a_indptr, a_indices, a_data):  # pragma: no cover - compiled
+    """data (nnz,) of a CSR pattern (columns ascending per row) += ``scale`` times A^T A of the
+    CSR matrix A (M, N) (a_indptr, a_indices, a_data), without forming A^T A: each row's outer
+    product added. Where every column of A holds at most one entry, each entry of A^T A is one
+    product, and the sums equal :func:`add_csr_into_pattern` of ``A.T @ A`` bit for bit. Returns
+    False (data partly written) where the pattern lacks one of its entries."""
+    for r in range(a_indptr.shape[0] - 1):
+        for x in range(a_indptr[r], a_indptr[r + 1]):
+            for y in range(a_indptr[r], a_indptr[r + 1]):
+                at = csr_position(indptr, indices, a_indices[x], a_indices[y])
+                if at < 0:
+                    return False
+                data[at] += scale * (a_data[x] * a_data[y])
+    return True
+
+
+@numba.njit(cache=True)
+def strong_connections(indptr, indices, data, theta):  # pragma: no cover - compiled
+    """The pattern (indptr (N+1,), indices (nnz',)) of pyamg's symmetric strength of connection
+    of a CSR matrix (N, N) with float64 ``data``: the diagonal, and every (i, j) with
+    ``a_ij^2 >= theta^2 |a_ii| |a_jj|``, in pyamg's order of operations (``amg_core``'s
+    ``symmetric_strength_of_connection``, whose values smoothed aggregation does not read).
+    Returns the input arrays themselves where every stored entry is kept."""
+    n = indptr.shape[0] - 1
+    diags = np.zeros(n)
+    for i in range(n):
+        d = 0.0
+        for jj in range(indptr[i], indptr[i + 1]):
+            if indices[jj] == i:
+                d += data[jj]
+        diags[i] = abs(d)
+    counts = np.zeros(n + 1, indptr.dtype)
+    for i in range(n):
+        eps = theta * theta * diags[i]
+        c = 0
+        for jj in range(indptr[i], indptr[i + 1]):
+            j = indices[jj]
+            if j == i or data[jj] * data[jj] >= eps * diags[j]:
+                c += 1
+        counts[i + 1] = counts[i] + c
+    if counts[n] == indptr[n]:
+        return indptr, indices
+    kept = np.empty(counts[n], indices.dtype)
+    k = 0
+    for i in range(n):
+        eps = theta * theta * diags[i]
+        for jj in range(indptr[i], indptr[i + 1]):
+            j = indices[jj]
+            if j == i or data[jj] * data[jj] >= eps * diags[j]:
+                kept[k] = j
+                k += 1
+    return counts, kept
+
+
+@numba.njit(cache=True)
 def diagonal_positions(indptr, indices):  # pragma: no cover - compiled
     """(N,) index into a CSR matrix's data of each diagonal entry (columns ascending per row),
     -1 where it is not stored."""

@@ -197,12 +197,15 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
     Per block, one pass over the frames; per frame, one compiled kernel
     (:func:`.kernels.accumulate_frame`) adds its depth rows to per-pixel sums and writes its
     twist rows and w s J; the block's albedo projection and its share of the coupling follow.
-    release: release ``ev`` (:meth:`.Evaluation.release`) once the pass has read it, before the
-    matrices are formed.
+    release: release ``ev`` (:meth:`.Evaluation.release`): its warped colours and light bases
+    (which the pass does not read: 0.3-0.5 GB at 2 megapixels and 20 frames) before the coupling
+    is allocated, the rest once the pass has read it, before the matrices are formed.
     """
     if ev.residual is None:
         raise ValueError("joint_system: the evaluation was released by an earlier step (Evaluation.release); "
                          "evaluate the estimate again (LevelProblem.evaluate)")
+    if release:  # the warped colours and light bases are not read here: dropped before U is allocated
+        ev.release(keep=("residual", "usable", "shading", "normals", "dA"))
     grid = problem.level.grid
     N = grid.size
     xp = array_module(ev.residual)
@@ -473,6 +476,18 @@ def shading_rows(problem: LevelProblem, est: Estimate, normals: np.ndarray, poin
     return c, alpha, beta, -L[..., 2]
 
 
+def prepare_depth_block(problem: LevelProblem) -> None:
+    """Build the level's depth-block pattern (:func:`depth_block_pattern`, kept on the problem)
+    on the host now, as the level starts: it lasts the level anyway, but built inside its first
+    joint step, next to the coupling U, its sparse products' temporaries (some 0.5 GB at 2
+    megapixels, with the prior's D^T D it formed then) set that step's peak. Nothing is done
+    on a GPU, where :func:`joint_system` forms M by sparse products."""
+    if array_module(problem.level.grid.u) is not np:
+        return
+    if problem.depth_pattern is None:
+        problem.depth_pattern = depth_block_pattern(problem.level.grid, problem.level.prior)
+
+
 def depth_block(problem: LevelProblem, stencil_sums: np.ndarray) -> sp.csr_matrix:
     """The depth block M (N, N) on the host: :func:`stencil_normal_matrix` of the per-pixel sums
     ``stencil_sums`` (6, N) (Saa, Sbb, Sgg, Sab, Sag, Sbg) plus the prior's Hessian
@@ -484,7 +499,10 @@ def depth_block(problem: LevelProblem, stencil_sums: np.ndarray) -> sp.csr_matri
     (1.08 M pixels, damping included: 0.85 against 1.7-2.0 CPU s; the pattern, once per level,
     about 1 s)."""
     grid, prior = problem.level.grid, problem.level.prior
-    terms = prior.hessian_terms(problem.tau, problem.mu)
+    # a block-average D (each pixel in at most one block): 2 tau D^T D added from D's rows, the
+    # same sums bit for bit, without D^T D (184 MB at 2 megapixels and SF 4) kept for the level
+    rows = prior.D.nnz == 0 or np.bincount(prior.D.indices, minlength=grid.size).max() <= 1
+    terms = prior.hessian_terms(problem.tau, problem.mu, rows=rows)
     for attempt in range(2):
         if problem.depth_pattern is None or attempt:  # a second try: the prior's pattern changed
             problem.depth_pattern = depth_block_pattern(grid, prior)
@@ -492,9 +510,9 @@ def depth_block(problem: LevelProblem, stencil_sums: np.ndarray) -> sp.csr_matri
         data = np.zeros(indices.size)
         filled = host_kernels.add_stencil_gram(indptr, indices, grid.fwd_u, grid.bwd_u, grid.wf_u, grid.wb_u,
                                                grid.fwd_v, grid.bwd_v, grid.wf_v, grid.wb_v, *stencil_sums, data)
-        for scale, term in terms:
-            filled = filled and host_kernels.add_csr_into_pattern(indptr, indices, data, scale, term.indptr,
-                                                                  term.indices, term.data)
+        for k, (scale, term) in enumerate(terms):
+            add = host_kernels.add_row_gram_into_pattern if rows and k == 0 else host_kernels.add_csr_into_pattern
+            filled = filled and add(indptr, indices, data, scale, term.indptr, term.indices, term.data)
         if filled:
             break
     else:
@@ -513,7 +531,8 @@ def depth_block_pattern(grid, prior) -> tuple[np.ndarray, np.ndarray]:
     Du, Dv = grid.difference_operators()
     touched = abs(Du) + abs(Dv) + sp.identity(grid.size, format="csr")
     touched.eliminate_zeros()
-    pattern = touched.T @ touched + abs(prior.DtD)
+    D = abs(prior.D)
+    pattern = touched.T @ touched + D.T @ D  # D^T D's pattern, not kept
     S = prior.smoothness_pattern
     if S is not None:
         pattern = pattern + abs(S).T @ abs(S)

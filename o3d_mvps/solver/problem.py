@@ -77,11 +77,18 @@ class Evaluation:
     data: float
     prior: float
 
-    def release(self) -> None:
+    #: The per-pixel arrays of an evaluation (what :meth:`release` drops).
+    ARRAYS = ("residual", "usable", "color", "shading", "normals", "dA", "basis")
+
+    def release(self, keep: tuple[str, ...] = ()) -> None:
         """Drop the per-pixel arrays, keeping the energy: for a step that has read them and
         evaluates its result anew, so that they are not held through its solve and line search
-        (1.2 GB at 1M object pixels and 20 frames). A released evaluation is not read again."""
-        self.residual = self.usable = self.color = self.shading = self.normals = self.dA = self.basis = None
+        (1.2 GB at 1M object pixels and 20 frames). A released evaluation is not read again.
+        keep: names of :data:`ARRAYS` kept for now (a step that reads only those drops the others
+        before it allocates its own arrays, and the rest once read)."""
+        for name in self.ARRAYS:
+            if name not in keep:
+                setattr(self, name, None)
 
     def frame_rms(self) -> list[float]:
         """Per frame, the RMS of the data term's residuals (linear intensity) over its usable

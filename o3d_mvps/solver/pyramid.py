@@ -88,10 +88,11 @@ class DepthPrior:
             hessian = hessian + scale * term
         return hessian, self.negative_gradient(z, tau, mu)
 
-    def hessian_terms(self, tau: float, mu: float) -> list:
+    def hessian_terms(self, tau: float, mu: float, rows: bool = False) -> list:
         """The energy's Hessian as [(scale, (N, N) sparse)] to add up: 2 tau D^T D, and
-        2 mu S^T S where there is a smoothness term."""
-        terms = [(2.0 * tau, self.DtD)]
+        2 mu S^T S where there is a smoothness term. rows: the first term as (2 tau, D) (M, N),
+        for a caller that adds the Gram of D's rows itself (D^T D not formed nor kept)."""
+        terms = [(2.0 * tau, self.D if rows else self.DtD)]
         if mu > 0 and self.S is not None:
             terms.append((2.0 * mu, self.StS))
         return terms

@@ -97,6 +97,12 @@ def tie_low_frequencies(z: np.ndarray, mask: np.ndarray, z0: np.ndarray, sigma: 
 EVIDENCE_MAX_WEIGHT = 100.0
 
 
+#: :func:`normal_evidence` on the host forms the LED fields (n, B, 3) float64 for this many
+#: pixels at a time (each pixel's sums do not depend on the chunks): all at once they were
+#: 460 MB at 2 megapixels and 20 frames, the process's peak, beside the sweep's evaluation.
+EVIDENCE_CHUNK_PIXELS = 65536
+
+
 def normal_evidence(light_model, est, ev, points: np.ndarray) -> np.ndarray:
     """How well the frames' shading determines each pixel's normal: (N,) the smaller eigenvalue
     (intensity^2 per radian^2) of the shading system's information on the normal's two tangent
@@ -111,15 +117,24 @@ def normal_evidence(light_model, est, ev, points: np.ndarray) -> np.ndarray:
     est: the :class:`~.problem.Estimate`; ev its :class:`~.problem.Evaluation`; points (N, 3)."""
     xp = array_module(ev.normals)
     normals = ev.normals
-    _, L = light_model.fields(est.lights, normals, points, est.poses)
     rho2 = (est.albedo ** 2).sum(axis=1)
     N = normals.shape[0]
+    if xp is np:
+        first = slice(0, min(N, EVIDENCE_CHUNK_PIXELS))
+        _, L = light_model.fields(est.lights, normals[first], points[first], est.poses)
+        if np.ndim(L) == 3:  # a field per frame and pixel (LED) on the host: compiled passes over chunks of pixels
+            G6, v, d = np.empty((6, N)), np.empty((3, N)), np.empty(N)
+            for start in range(0, N, EVIDENCE_CHUNK_PIXELS):
+                c = slice(start, min(N, start + EVIDENCE_CHUNK_PIXELS))
+                if start:
+                    _, L = light_model.fields(est.lights, normals[c], points[c], est.poses)
+                sums = np.empty((6, c.stop - start)), np.empty((3, c.stop - start)), np.empty(c.stop - start)
+                _evidence_sums(np.ascontiguousarray(ev.usable[:, c]), np.ascontiguousarray(rho2[c], dtype=np.float64),
+                               np.ascontiguousarray(ev.shading[:, c]), np.ascontiguousarray(L, dtype=np.float64), *sums)
+                G6[:, c], v[:, c], d[c] = sums
+            return _tangent_min_eigenvalue(normals[:, 0], normals[:, 1], normals[:, 2], *G6, *v, d)
+    _, L = light_model.fields(est.lights, normals, points, est.poses)
     L = xp.asarray(L, dtype=np.float64)
-    if L.ndim == 3 and xp is np:  # a field per frame and pixel (LED) on the host: one compiled pass over the pixels
-        G6, v, d = np.empty((6, N)), np.empty((3, N)), np.empty(N)
-        _evidence_sums(np.ascontiguousarray(ev.usable), np.ascontiguousarray(rho2, dtype=np.float64),
-                       np.ascontiguousarray(ev.shading), np.ascontiguousarray(L), G6, v, d)
-        return _tangent_min_eigenvalue(normals[:, 0], normals[:, 1], normals[:, 2], *G6, *v, d)
     u = ev.usable * rho2  # (n, N)
     us = u * ev.shading
     if L.ndim == 2:  # one field per frame (SH): sums over the frames as products with (n, 9) and (n, 3)
