@@ -206,3 +206,28 @@ def test_render_command_draws_the_speckled_stone(tmp_path, capsys):
     assert main(["--quiet", "render", "bunny", str(tmp_path / "s"), "--static-camera", "--albedo", "speckled"]) != 0
     assert "--albedo speckled is not available with --static-camera" in capsys.readouterr().err
     assert not (tmp_path / "s").exists()
+
+
+def test_evidence_weights_are_held_within_a_level_so_its_energy_only_falls(monkeypatch):
+    """The evidence weights are set at the start of a level's first driver.EVIDENCE_SWEEPS (3)
+    sweeps, then held: reweighted every sweep, pixels seen by one frame alone (no evidence)
+    switched between weight ~10 and the LED's ceiling (1.7e6 at 2 MP), the level's energy jumped
+    10-60x between sweeps and every level hit the sweep cap. Held, each level's energy rows fall
+    from the last reweighting on (the steps and extrapolation only lower a fixed energy; a 1e-9
+    relative slack for round-off)."""
+    from o3d_mvps.solver import driver
+
+    weighed = []
+    original = driver._weigh_smoothness
+    monkeypatch.setattr(driver, "_weigh_smoothness",
+                        lambda problem, *args: weighed.append(problem.level.index) or original(problem, *args))
+    capture = synthetic.render_capture("bunny", frames=4, size=(160, 120), scale_factor=SF, light="led",
+                                       sensor="d415", albedo="speckled")
+    result, _ = _refine(capture)
+    levels = sorted({row["level"] for row in result.energy})
+    assert driver.EVIDENCE_SWEEPS == 3
+    for level in levels:
+        energies = [row["energy"] for row in result.energy if row["level"] == level]
+        assert weighed.count(level) == min(3, len(energies) - 1), (level, weighed)
+        held = energies[3:]  # from the end of the third sweep on, one energy
+        assert all(b <= a * (1 + 1e-9) for a, b in zip(held, held[1:])), (level, energies)

@@ -70,6 +70,16 @@ POINT_SWEEP_FACTOR = 3
 #: median of 20 x 90 000 x 3 residuals took 1.4 of a D415 refine's 17.6 s; 10 000 a frame give
 #: the noise to well under 1 %)
 NOISE_SAMPLES_PER_FRAME = 10_000
+#: a level's smoothness is weighted by the evidence (:func:`_weigh_smoothness`) at the start of
+#: its first this-many sweeps only, then held, so the rest of the level minimises one energy.
+#: Reweighted every sweep, the energy was a moving target: pixels that one frame alone sees (no
+#: evidence) take the LED's ceiling weight, the sensor's smoothness over the LED's (1.7e6 at 2 MP,
+#: 0.18 mm pixels), and as such pixels came and went with the visibility the prior energy jumped
+#: 10-60x between sweeps, so no level reached the relative tolerance (2 MP, 20 frames: 50 sweeps,
+#: every level at the cap). 3, not 1: on the speckled LED bunny (tests/test_grain.py) the finest
+#: level's albedo-step weights follow the albedo's first sweeps (darkest quarter 10.39 deg at 3,
+#: 10.43 at 2, 10.64 at 1, 10.35 reweighting every sweep)
+EVIDENCE_SWEEPS = 3
 
 
 #: glibc's M_MMAP_THRESHOLD (bytes) that :func:`return_freed_arrays` sets for frames of at least
@@ -190,7 +200,9 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
         # point lights: their per-pixel fields make the evidence cost a frames x pixels x 3 x 3
         # sum; weighed once per level where the lamps are no longer refitted every sweep
         settled = problem.light.name == "point" and level.grid.size > POINT_FIT_MAX_PIXELS
-        if iteration > 1 and not settled:  # the first sweep's weights are set before the level's first energy
+        # the first sweep's weights are set before the level's first energy; then held after
+        # EVIDENCE_SWEEPS sweeps, so the rest of the level minimises one energy
+        if 1 < iteration <= EVIDENCE_SWEEPS and not settled:
             _weigh_smoothness(problem, est, ev, options, timings, stats)
         previous = ev.energy
         start = _snapshot(est)
