@@ -415,7 +415,6 @@ def update_led_offset(problem, est, ev, *, max_halvings: int = 3, max_pixels: in
     return moved.led_offset, problem.relit(moved, ev)
 
 
-
 def _offset_normal_equations(ds: np.ndarray, w: np.ndarray, albedo: np.ndarray, residual: np.ndarray):
     """The LED offset's Gauss-Newton Gram H (3, 3) and gradient g (3,) summed over pixels (and
     frames): ds (..., M, 3) d(shading)/d(offset), w (..., M, 3) IRLS weights, albedo (M, 3),
