@@ -13,6 +13,10 @@ from __future__ import annotations
 
 import importlib
 
+from .lazy_imports import defer_open3d_plotly
+
+defer_open3d_plotly()  # before any submodule imports Open3D: plotly and Dash load only if their viewer is used
+
 __version__ = "0.1.0"
 
 #: Public name -> submodule that defines it.

@@ -15,7 +15,7 @@ import open3d as o3d
 
 from .capture import Capture, default_depth_intrinsic, image_from_array, to_host, validate_capture
 from .capture.validation import check_light
-from .colour import srgb_to_linear
+from .colour import codes_to_linear
 from .errors import CaptureError
 from .model.camera import as_intrinsic_matrix
 from .model.resampling import resample_valid
@@ -257,7 +257,7 @@ def _linear_colour(colour: np.ndarray, i: int) -> np.ndarray:
         raise CaptureError(f"colour of rgbd_images[{i}] has shape {colour.shape}; colour must be (H, W, 3) RGB")
     rgb = colour[..., :3]
     if rgb.dtype in (np.uint8, np.uint16):
-        return srgb_to_linear(rgb / float(np.iinfo(rgb.dtype).max))
+        return codes_to_linear(rgb)
     if rgb.dtype in (np.float32, np.float64):
         return rgb.astype(np.float32)  # range checked by validate_capture
     raise CaptureError(f"colour of rgbd_images[{i}] is {rgb.dtype}; use uint8 sRGB or float32 linear RGB in [0, 1]")

@@ -559,3 +559,11 @@ def test_failed_swap_restores_old_output(folder, monkeypatch):
         write_capture(make_capture("linear", seed=1), folder, overwrite=True)
     assert snapshot(folder) == before
     assert siblings(folder) == ["capture"]
+
+
+def test_read_reports_the_first_corrupt_frame(folder):
+    """Frames are decoded on several threads; the error still names the first bad file in frame order."""
+    for name in ("000001.png", "000002.png"):
+        (folder / "color" / name).write_bytes(b"\x89PNG not really")
+    with pytest.raises(CaptureError, match=r"cannot read image .*color/000001.png \(corrupt"):
+        read_capture(folder)

