@@ -5,7 +5,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-from o3d_mvps.model.parallel import WAIT_POLICY, configure_openmp
+from o3d_mvps.model.parallel import (PIXELS_PER_THREAD, WAIT_POLICY, configure_openmp, current_kernel_threads,
+                                     kernel_threads, set_kernel_threads)
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -33,3 +34,20 @@ def test_set_before_openmp_loads():
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=ROOT)
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.strip() == "omp"
+
+
+def test_kernel_threads_by_size():
+    """The D415 render's levels (object pixels 340, 1 300, 5 400, 21 000, 86 000) on 2 threads: the
+    three coarse ones on one, the two fine ones on both; never more than available, never 0."""
+    assert [kernel_threads(p, 2) for p in (0, 340, 1300, 5400, 21000, 86000)] == [1, 1, 1, 1, 2, 2]
+    assert kernel_threads(86000, 1) == 1 and kernel_threads(100 * PIXELS_PER_THREAD, 16) == 16
+    assert kernel_threads(3 * PIXELS_PER_THREAD, 16) == 3
+
+
+def test_set_kernel_threads_returns_the_count_before():
+    before = current_kernel_threads()
+    try:
+        assert set_kernel_threads(1) == before and current_kernel_threads() == 1
+    finally:
+        set_kernel_threads(before)
+    assert current_kernel_threads() == before

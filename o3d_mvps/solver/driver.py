@@ -27,6 +27,7 @@ from tqdm.auto import tqdm
 from ..errors import CaptureError
 from ..model import se3
 from ..model.arrays import fused, like
+from ..model.parallel import current_kernel_threads, kernel_threads, set_kernel_threads
 from ..model.resampling import fill_nearest_valid, repeat_pixels, resize
 from ..model.robust import robust_scale
 from .depth import update_depth
@@ -470,6 +471,15 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
              "level_devices": [], "sensor_lowpass_sigma": tie_sigma}
 
     def solve_level(level_index: int, carried: Carried | None) -> Carried | None:
+        """:func:`level_solve`, its compiled kernels on as many threads as its size earns
+        (:func:`~o3d_mvps.model.parallel.kernel_threads`; the count is restored after)."""
+        previous = current_kernel_threads()
+        try:
+            return level_solve(level_index, carried)
+        finally:
+            set_kernel_threads(previous)
+
+    def level_solve(level_index: int, carried: Carried | None) -> Carried | None:
         """One level: the level's problem, the unknowns gathered from ``carried`` (None on the
         first level: the sensor depth, the reference image, the initial lights and poses), the
         initial albedo fit and the sweeps; returns the unknowns on the level's full grid (None
@@ -480,6 +490,7 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
         g = level.grid
         if g.size < 16 or (light.name == "point" and g.size < POINT_MIN_PIXELS and level_index > 0):
             return None
+        set_kernel_threads(kernel_threads(g.size, current_kernel_threads()))  # a coarse level: too short to share
         first = carried is None
         if first:
             z_full = resize(fill_nearest_valid(z0, z0 > 0), level.size, interpolation=cv2.INTER_LINEAR)
