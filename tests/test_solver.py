@@ -242,3 +242,32 @@ def test_return_freed_arrays_gives_freed_megabyte_arrays_back_to_the_system():
     before = resident_mb()
     del arrays[::2]
     assert before - resident_mb() >= 36.0
+
+
+def test_kernel_threads_follow_the_level_size_and_are_restored(capture, monkeypatch):
+    """Each level sets its kernels' thread count by its object pixels (model.parallel.kernel_threads);
+    the caller's count is back after the solve. With 2000 pixels a thread, the 320x240 render's
+    finest level (about 5 000 object pixels) gets both threads, its coarser levels one."""
+    import numba
+
+    from o3d_mvps.model import parallel
+    from o3d_mvps.solver import driver
+
+    n = min(2, numba.config.NUMBA_NUM_THREADS)  # 2 on any machine of 2 cores or more
+    monkeypatch.setattr(parallel, "PIXELS_PER_THREAD", 2000)
+    counts = []
+
+    def recording(threads):
+        counts.append(threads)
+        return parallel.set_kernel_threads(threads)
+
+    monkeypatch.setattr(driver, "set_kernel_threads", recording)
+    before = numba.get_num_threads()
+    numba.set_num_threads(n)
+    try:
+        refine(capture, RefineOptions(**{**FAST, "max_iterations": 1}), initial_poses=capture.groundtruth.poses)
+        assert numba.get_num_threads() == n
+    finally:
+        numba.set_num_threads(before)
+    per_level, restored = counts[0::2], counts[1::2]
+    assert per_level[-1] == n and per_level[0] == 1 and restored == [n] * len(restored), counts
