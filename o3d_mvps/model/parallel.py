@@ -34,9 +34,9 @@ def configure_openmp(environ=os.environ) -> bool:
 
 
 #: Grid pixels per compiled-kernel thread: a level with fewer object pixels than twice this runs its
-#: kernels on one thread. On the D415 render's coarse levels (340, 1 300 and 5 400 pixels, 23 of
-#: the 40 sweeps, about half the 17 700 launches) a launch lasts tens of microseconds, about what
-#: waking and joining a second thread costs, so the second thread only added CPU time.
+#: kernels on one thread. On the D415 render's coarse levels (about 340, 1 300 and 5 400 pixels,
+#: 23 of its 40 sweeps) a launch lasts tens of microseconds to a few hundred, and waking and
+#: joining a second thread costs tens of microseconds (docs/performance.md, "D415 in seconds").
 PIXELS_PER_THREAD = 8192
 
 
