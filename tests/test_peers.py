@@ -7,14 +7,15 @@ import warnings
 import numpy as np
 import open3d as o3d
 import pytest
+from scipy import ndimage
 
 from o3d_mvps import RefineOptions, refine
 from o3d_mvps.baselines import bicubic, tsdf_fusion
 from o3d_mvps.capture import Capture, default_depth_intrinsic
-from o3d_mvps.model.camera import backproject, transform
+from o3d_mvps.covisibility import reference_depth_outliers
 from o3d_mvps.synthetic.camera import look_at_pose, synthetic_intrinsics
 
-from benchmarks.peers import ORBIT_DEG, render, scores, sensor_like_normals
+from benchmarks.peers import render, scores, sensor_like_normals
 
 
 def _plane_capture(size=(320, 240), sf=2):
@@ -76,7 +77,6 @@ def room_case():
     pixels = truth > 0
     for r in methods.values():
         pixels &= r.mask_array() & (r.depth_array() > 0)
-    from scipy import ndimage
     pixels = ndimage.binary_erosion(pixels, iterations=4)
     albedo = np.asarray(gt.albedo, np.float64).mean(axis=2)
     dark = pixels & (albedo <= np.percentile(albedo[pixels], 25))
@@ -86,5 +86,29 @@ def room_case():
 
 
 def test_ours_beats_bicubic_and_fusion_on_a_noisy_speckled_room_lit_capture(room_case):
-    print(room_case)
-    assert False
+    """Measured (object 4 px inside, true poses): ours 2.76 mm / 10.2 deg (dark quarter 10.1,
+    against the true depth smoothed by 4 px 10.8); TSDF 4 mm 4.17 / 17.0 (16.9, 14.7); bicubic
+    8.19 / 23.1. Before the reference's flying pixels were left out of the prior ours was 7.38 mm /
+    16.8 deg: worse than the fusion in depth."""
+    ours, fusion, cubic = room_case["ours"], room_case["tsdf"], room_case["bicubic"]
+    assert ours["rmse_mm"] < 0.8 * fusion["rmse_mm"], room_case
+    assert ours["mae_deg"] < 0.75 * fusion["mae_deg"], room_case
+    assert ours["mae_dark_deg"] < 0.8 * fusion["mae_dark_deg"], room_case
+    assert ours["mae_sensor_like_deg"] < 0.85 * fusion["mae_sensor_like_deg"], room_case
+    assert ours["rmse_mm"] < 0.5 * cubic["rmse_mm"] and ours["mae_deg"] < 0.6 * cubic["mae_deg"], room_case
+    assert fusion["rmse_mm"] < 0.6 * cubic["rmse_mm"], room_case  # the fusion does average the frames' noise
+
+
+def test_the_reference_s_flying_pixels_are_found_by_the_other_frames():
+    """Exact plane depth in 5 frames; 40 reference pixels moved 3 cm back (flying pixels) are
+    flagged and nothing else; a 2 mm error (sensor noise) is not."""
+    capture, poses, _ = _plane_capture()
+    depths = np.stack([capture.depth_array(i) for i in range(capture.n_frames)]).astype(np.float64)
+    rng = np.random.default_rng(0)
+    h, w = depths.shape[1:]
+    flat = rng.choice(np.arange(h * w).reshape(h, w)[10:-10, 10:-10].ravel(), 80, replace=False)
+    flying, noisy = flat[:40], flat[40:]
+    depths[0].ravel()[flying] += 0.03
+    depths[0].ravel()[noisy] += 0.002
+    found = reference_depth_outliers(depths, poses, capture.depth_K())
+    assert set(np.flatnonzero(found)) == set(flying)
