@@ -116,8 +116,9 @@ def reference_depth_outliers(depths: np.ndarray, poses: np.ndarray, K: np.ndarra
     depth, centimetres off) fall anew in every frame; depth fusion averages them away, a prior on
     the reference frame's depth alone keeps them. Each valid reference pixel's point is moved into
     every other frame (``poses``: (n, 4, 4) reference -> frame i) and compared with that frame's
-    depth at the nearest pixel; it is flagged where at least :data:`OUTLIER_MIN_FRAMES` frames
-    measure it and the median difference exceeds ``max(OUTLIER_TOLERANCE_M, OUTLIER_TOLERANCE_REL
+    depth: its distance outside the least and greatest of the four depth pixels around it (valid
+    ones; 0 inside, so steep slopes pass). It is flagged where at least :data:`OUTLIER_MIN_FRAMES`
+    frames measure it and the median distance exceeds ``max(OUTLIER_TOLERANCE_M, OUTLIER_TOLERANCE_REL
     z)`` (D415-like noise at 0.6 m: about 1 mm). The static camera's rule
     (:func:`o3d_mvps.capture.static.reference_depth_outliers`) is this one with identity poses.
 
@@ -132,9 +133,16 @@ def reference_depth_outliers(depths: np.ndarray, poses: np.ndarray, K: np.ndarra
     for k, (T, depth) in enumerate(zip(poses[1:], depths[1:])):
         pu, pv, Z = project(transform(T, points), K)
         seen = in_view(pu, pv, Z, size)
-        measured = depth[np.rint(np.where(seen, pv, 0)).astype(np.int64), np.rint(np.where(seen, pu, 0)).astype(np.int64)]
-        seen &= measured > 0
-        differences[k, seen] = (measured - Z)[seen]
+        # the frame's surface there lies between its four surrounding depth pixels (valid ones):
+        # a point on a steep slope is inside that envelope, a flying pixel centimetres outside
+        iu = np.clip(np.floor(np.where(seen, pu, 0)).astype(np.int64), 0, size[1] - 2)
+        iv = np.clip(np.floor(np.where(seen, pv, 0)).astype(np.int64), 0, size[0] - 2)
+        corners = np.stack([depth[iv, iu], depth[iv, iu + 1], depth[iv + 1, iu], depth[iv + 1, iu + 1]])
+        valid = corners > 0
+        seen &= valid.any(axis=0)
+        low = np.where(valid, corners, np.inf).min(axis=0)
+        high = np.where(valid, corners, -np.inf).max(axis=0)
+        differences[k, seen] = (np.clip(Z, low, high) - Z)[seen]
     counts = np.isfinite(differences).sum(axis=0)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # pixels no other frame measures

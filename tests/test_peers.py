@@ -86,8 +86,8 @@ def room_case():
 
 
 def test_ours_beats_bicubic_and_fusion_on_a_noisy_speckled_room_lit_capture(room_case):
-    """Measured (object 4 px inside, true poses): ours 2.76 mm / 10.2 deg (dark quarter 10.1,
-    against the true depth smoothed by 4 px 10.8); TSDF 4 mm 4.17 / 17.0 (16.9, 14.7); bicubic
+    """Measured (object 4 px inside, true poses): ours 2.20 mm / 11.6 deg (dark quarter 10.2,
+    against the true depth smoothed by 4 px 12.0); TSDF 4 mm 4.17 / 17.0 (16.9, 14.7); bicubic
     8.19 / 23.1. Before the reference's flying pixels were left out of the prior ours was 7.38 mm /
     16.8 deg: worse than the fusion in depth."""
     ours, fusion, cubic = room_case["ours"], room_case["tsdf"], room_case["bicubic"]
