@@ -7,6 +7,8 @@ and 1708x1136 / 427x284 with 1M object pixels (about 2.5 min and 6 GB on two cor
 object: reconstruct rendered 360-degree rings with raw and refined depth; Chamfer, normals, 1/2 workers.
 static: a static-camera, moving-light capture with the D415-like sensor: ours vs bicubic, normal MAE,
 depth RMSE and the low-pass shape difference from the sensor depth (p95, per mille).
+peers: a wide-baseline, dark-speckled, D415-like capture (room light and LED): ours against TSDF depth
+fusion (4 and 2 mm voxels) and bicubic, scored as issue #32 item 7 scores (not part of 'all').
 room: a table-and-wall scene (automatic masks), room-lit and LED-lit (--light): error and banding along
 the 1 mm depth steps.
 scaling: time, memory, sweeps and CG iterations against object pixels x frames (--baseline REV
@@ -26,7 +28,7 @@ from __future__ import annotations
 
 import argparse
 
-from . import accuracy, figures, object as object_study, room, scaling, speed, static, studies
+from . import accuracy, figures, object as object_study, peers, room, scaling, speed, static, studies
 from .summary import write_summary
 
 STUDIES = ("accuracy", "frames", "tau", "speed", "room", "figures")
@@ -47,6 +49,8 @@ def _run(name: str, args) -> None:
         room.run(args)
     elif name == "static":
         static.run(args)
+    elif name == "peers":
+        peers.run(args)
     else:
         studies.run(args, name)
 
@@ -70,6 +74,8 @@ def main(argv=None) -> int:
                                       help="a scene under room light and the LED: error and banding along the 1 mm depth steps"))
     static.add_arguments(sub.add_parser("static", parents=[common],
                                         help="static camera, moving light, D415-like sensor: ours vs bicubic"))
+    peers.add_arguments(sub.add_parser("peers", parents=[common],
+                                       help="wide-baseline noisy speckled capture: ours vs TSDF fusion and bicubic"))
     figures.add_arguments(sub.add_parser("figures", parents=[common], help="README and docs pictures (normals, preview)"))
     sub.add_parser("all", parents=[common], help="every benchmark with its defaults")
     sub.add_parser("summary", parents=[common], help="no run: rebuild summary.md and the plots from the results in --out")

@@ -15,6 +15,7 @@ reference, with pixels 83 %). Open3D-free: NumPy arrays in, NumPy arrays out.
 from __future__ import annotations
 
 import logging
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -98,6 +99,59 @@ def covisibility(points: np.ndarray, normals: np.ndarray, poses: np.ndarray, K: 
             seen &= ~((measured > 0) & (measured < Z * (1 - occlusion_tolerance)))
         fractions[i] = float(seen.mean())
     return fractions
+
+
+#: A moving camera's reference depth pixel is an outlier (a flying pixel) when the frames that see
+#: it measure, by their median, a surface more than max(OUTLIER_TOLERANCE_M, OUTLIER_TOLERANCE_REL z)
+#: in front of or behind it, at least :data:`OUTLIER_MIN_FRAMES` of them.
+OUTLIER_TOLERANCE_M = 0.005
+OUTLIER_TOLERANCE_REL = 0.01
+OUTLIER_MIN_FRAMES = 3
+
+
+def reference_depth_outliers(depths: np.ndarray, poses: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """(h, w) bool: reference depth pixels the other frames' depth contradicts (flying pixels).
+
+    A sensor's flying pixels along silhouettes and depth edges (a mixture of the near and far
+    depth, centimetres off) fall anew in every frame; depth fusion averages them away, a prior on
+    the reference frame's depth alone keeps them. Each valid reference pixel's point is moved into
+    every other frame (``poses``: (n, 4, 4) reference -> frame i) and compared with that frame's
+    depth: its distance outside the least and greatest of the four depth pixels around it (valid
+    ones; 0 inside, so steep slopes pass). It is flagged where at least :data:`OUTLIER_MIN_FRAMES`
+    frames measure it and the median distance exceeds ``max(OUTLIER_TOLERANCE_M, OUTLIER_TOLERANCE_REL
+    z)`` (D415-like noise at 0.6 m: about 1 mm). The static camera's rule
+    (:func:`o3d_mvps.capture.static.reference_depth_outliers`) is this one with identity poses.
+
+    depths: (n, h, w) metres on the depth grid (0 = missing); K: (3, 3) its intrinsics.
+    """
+    depths = np.asarray(depths, dtype=np.float64)
+    z0 = depths[0]
+    v, u = np.nonzero(z0 > 0)
+    points = backproject(z0[v, u], K, u.astype(np.float64), v.astype(np.float64))
+    size = z0.shape
+    differences = np.full((len(depths) - 1, len(points)), np.nan)
+    for k, (T, depth) in enumerate(zip(poses[1:], depths[1:])):
+        pu, pv, Z = project(transform(T, points), K)
+        seen = in_view(pu, pv, Z, size)
+        # the frame's surface there lies between its four surrounding depth pixels (valid ones):
+        # a point on a steep slope is inside that envelope, a flying pixel centimetres outside
+        iu = np.clip(np.floor(np.where(seen, pu, 0)).astype(np.int64), 0, size[1] - 2)
+        iv = np.clip(np.floor(np.where(seen, pv, 0)).astype(np.int64), 0, size[0] - 2)
+        corners = np.stack([depth[iv, iu], depth[iv, iu + 1], depth[iv + 1, iu], depth[iv + 1, iu + 1]])
+        valid = corners > 0
+        seen &= valid.any(axis=0)
+        low = np.where(valid, corners, np.inf).min(axis=0)
+        high = np.where(valid, corners, -np.inf).max(axis=0)
+        differences[k, seen] = (np.clip(Z, low, high) - Z)[seen]
+    counts = np.isfinite(differences).sum(axis=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # pixels no other frame measures
+        median = np.nanmedian(differences, axis=0)
+    tolerance = np.maximum(OUTLIER_TOLERANCE_M, OUTLIER_TOLERANCE_REL * z0[v, u])
+    flagged = (counts >= OUTLIER_MIN_FRAMES) & (np.abs(np.nan_to_num(median)) > tolerance)
+    out = np.zeros(z0.shape, dtype=bool)
+    out[v[flagged], u[flagged]] = True
+    return out
 
 
 @dataclass

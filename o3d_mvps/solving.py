@@ -30,7 +30,9 @@ from .solver.options import AUTO, ConvergenceCriteria, ModelOptions, RefineOptio
 from .solver.pose_trust import DEFAULT_POSE_TRUST
 from .solver.problem_input import SolverInput, write_problem
 from .solver.smoothness import sensor_noise_smoothness
-from .covisibility import MIN_OTHER_FRAMES, WEAK_COVERAGE_NOTE, ViewSelection, frames_seeing_reference
+from .covisibility import (MIN_OTHER_FRAMES, OUTLIER_MIN_FRAMES, WEAK_COVERAGE_NOTE, ViewSelection,
+                           frames_seeing_reference)
+from .covisibility import reference_depth_outliers as moving_reference_outliers
 
 #: the depth step's CG tolerance for a static camera, where ``cg_tolerance`` is left at its default
 #: (1e-4): each depth step of the reweighted least squares is a linearisation anyway, and on the
@@ -197,6 +199,13 @@ def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses
         # flying pixels of the reference (the depth prior's) left out: at the 640x480 D415-like
         # bunny's silhouette they pulled the rim back and brightened its albedo
         flying = reference_depth_outliers(depths)
+        depths[0][flying] = 0.0
+        report["reference_depth_outliers"] = {"pixels": int(flying.sum()), "fraction": round(float(flying.mean()), 6)}
+    elif not camera.static and n > OUTLIER_MIN_FRAMES and options.drop_depth_outliers:
+        # a moving camera's the same way, the frames' depth moved into the reference by the initial
+        # poses: at the speckled, room-lit bunny's rim they held the depth centimetres back, where
+        # depth fusion averages them away (docs/fidelity.md, "Against depth fusion")
+        flying = moving_reference_outliers(depths, initial_poses, capture.depth_K())
         depths[0][flying] = 0.0
         report["reference_depth_outliers"] = {"pixels": int(flying.sum()), "fraction": round(float(flying.mean()), 6)}
     return SolverInput(

@@ -15,7 +15,7 @@ import numpy as np
 import open3d as o3d
 import scipy.ndimage as ndi
 
-from ..model.camera import project, transform
+from ..model.camera import backproject, project, transform
 from ..model.normals import perspective_normals
 
 #: Truncation distance in voxels.
@@ -62,10 +62,13 @@ class TSDFVolume:
         depth = np.where(weights > 0, depth, 0.0).astype(np.float32)
         if not (depth > 0).any():
             return
-        image = o3d.t.geometry.Image(o3d.core.Tensor(np.ascontiguousarray(depth)[..., None]))
-        extrinsic = o3d.core.Tensor(np.asarray(world_to_camera, dtype=np.float64))
-        coords = self.grid.compute_unique_block_coordinates(image, o3d.core.Tensor(K), extrinsic, 1.0, DEPTH_MAX_M,
-                                                            TRUNCATION_VOXELS)
+        # the blocks within the truncation of every pixel's point (the depth-image overload samples
+        # every 4th pixel: on a low-resolution depth map it left whole blocks of the surface out)
+        v, u = np.nonzero((depth > 0) & (depth <= DEPTH_MAX_M))
+        points = transform(np.linalg.inv(np.asarray(world_to_camera, dtype=np.float64)),
+                           backproject(depth[v, u].astype(np.float64), K, u.astype(np.float64), v.astype(np.float64)))
+        cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(points.astype(np.float32)))
+        coords = self.grid.compute_unique_block_coordinates(cloud, TRUNCATION_VOXELS)
         hashmap = self.grid.hashmap()
         created, is_new = hashmap.activate(coords)
         created = created.numpy()[is_new.numpy()]

@@ -172,6 +172,9 @@ class ModelOptions:
         about its normal (:func:`o3d_mvps.solver.weighting.evidence_weights`: dark albedo, few
         frames, little light diversity lean on the smoothness); False: one weight everywhere;
         None: :data:`DEFAULT_EVIDENCE_WEIGHTS` of the light model.
+    drop_depth_outliers: leave out of the depth prior the reference depth pixels the other frames'
+        depth contradicts (flying pixels; :func:`o3d_mvps.covisibility.reference_depth_outliers`;
+        moving camera, 4 frames or more; a static camera's are always left out).
     """
 
     tau: float = 10.0
@@ -187,6 +190,7 @@ class ModelOptions:
     occlusion_tolerance: float = 0.02
     sensor_lowpass: float | str | None = None
     evidence_weights: bool | None = None
+    drop_depth_outliers: bool = True
 
     def smoothness_weight(self) -> float | str:
         """mu~, or :data:`AUTO`: ``smoothness``, else the light model's default (the light model
@@ -232,7 +236,8 @@ class ModelOptions:
              sensor_lowpass=self.sensor_lowpass if self.sensor_lowpass in (None, AUTO) else _number(
                  "sensor_lowpass", self.sensor_lowpass, 0, math.inf, high_open=True, auto_ok=True),
              evidence_weights=None if self.evidence_weights is None else _flag("evidence_weights",
-                                                                                self.evidence_weights))
+                                                                                self.evidence_weights),
+             drop_depth_outliers=_flag("drop_depth_outliers", self.drop_depth_outliers))
 
 
 @dataclass(frozen=True)

@@ -8,7 +8,7 @@ import numpy as np
 import open3d as o3d
 
 from ..capture import Capture, default_depth_intrinsic
-from .camera import TRAJECTORIES, orbit_trajectory
+from .camera import MAX_ORBIT_DEG, TRAJECTORIES, orbit_trajectory
 from .lights import LIGHTS, PointLight, make_light
 from .render import render_sensor_frames
 from .scene import build_scene
@@ -76,6 +76,7 @@ def render_capture(
     distance: float = 0.6,
     progress: bool = False,
     albedo: str = "patches",
+    orbit_deg: float = MAX_ORBIT_DEG,
 ) -> Capture:
     """Render a synthetic LED-lit RGB-D capture of ``mesh`` with ground truth.
 
@@ -110,6 +111,8 @@ def render_capture(
     albedo : {"patches", "speckled"}
         The surface texture: coloured patches, or a pale stone with dark speckles
         (:class:`~o3d_mvps.synthetic.scene.SpeckledAlbedo`).
+    orbit_deg : float
+        The orbit's largest angle from the reference (degrees, 15 by default; 30: a wide baseline).
 
     Returns
     -------
@@ -119,7 +122,9 @@ def render_capture(
     """
     W, H = check_render_arguments(frames, scale_factor, size, trajectory, light, object_size, distance)
     scene = build_scene(mesh, size=(W, H), object_size=object_size, distance=distance, seed=seed, albedo=albedo)
-    poses = orbit_trajectory(int(frames), distance, trajectory)
+    if not (np.isfinite(orbit_deg) and 0 <= orbit_deg < 90):
+        raise ValueError(f"orbit_deg must be an angle in [0, 90) degrees, got {orbit_deg!r}; e.g. 15 or 30")
+    poses = orbit_trajectory(int(frames), distance, trajectory, float(orbit_deg))
     lighting = make_light(light, distance)
     rendered = render_sensor_frames(scene, poses, lighting, scale_factor, seed=seed, noise=noise, sensor=sensor,
                                     progress=progress)
@@ -152,6 +157,7 @@ def render_capture(
                 "object_size": float(object_size),
                 "distance": float(distance),
                 "albedo": albedo,
+                "orbit_deg": float(orbit_deg),
                 **rendered.sensor_metadata(),
             }
         },
