@@ -485,11 +485,22 @@ class PackedHierarchy:
 COARSE_SEGMENT = 32
 
 
-def pack_hierarchy(levels: list, coarse_inverse, steps: int) -> PackedHierarchy | None:
+def pack_transfers(levels: list, xp) -> tuple:
+    """The prolongations and restrictions of a V-cycle's ``levels`` (:class:`MultigridLevel`)
+    packed as :func:`.kernels.multigrid_cg` takes them: (P indptr, indices, data, R indptr,
+    indices, data), each the levels' arrays end to end (:func:`pack_hierarchy`), arrays of
+    module ``xp``."""
+    return tuple(_joined(xp, [getattr(getattr(level, kind), name) for level in levels], dtype)
+                 for kind in ("P", "R") for name, dtype in (("indptr", np.int32), ("indices", np.int32),
+                                                             ("data", np.float64)))
+
+
+def pack_hierarchy(levels: list, coarse_inverse, steps: int, transfers: tuple | None = None) -> PackedHierarchy | None:
     """The :class:`PackedHierarchy` of a V-cycle's ``levels`` (:class:`MultigridLevel`, Chebyshev
     smoothers of ``steps`` steps on [CHEBYSHEV_LOWER_FRACTION, 1]) and its coarsest inverse (n, n)
     on a device; None for more than :data:`.kernels.MG_MAX_LEVELS` levels. A list of one array is
-    that array itself, so the packing costs a concatenation per kind of array of two levels or more."""
+    that array itself, so the packing costs a concatenation per kind of array of two levels or more;
+    ``transfers``: the levels' :func:`pack_transfers` where kept (they depend on the grid alone)."""
     if len(levels) + 1 > MG_MAX_LEVELS:
         return None
     xp = array_module(coarse_inverse)
@@ -511,10 +522,9 @@ def pack_hierarchy(levels: list, coarse_inverse, steps: int) -> PackedHierarchy 
                 offsets[f"{name}_nz"] += matrix.data.size
     theta, scales, factors = chebyshev_scalars(CHEBYSHEV_LOWER_FRACTION, 1.0, steps)
     n_coarse = coarse_inverse.shape[0]
-    arrays = []
-    for matrices in ([level.A for level in levels[1:]], [level.P for level in levels], [level.R for level in levels]):
-        for name, dtype in (("indptr", np.int32), ("indices", np.int32), ("data", np.float64)):
-            arrays.append(_joined(xp, [getattr(m, name) for m in matrices], dtype))
+    arrays = [_joined(xp, [getattr(level.A, name) for level in levels[1:]], dtype)
+              for name, dtype in (("indptr", np.int32), ("indices", np.int32), ("data", np.float64))]
+    arrays += pack_transfers(levels, xp) if transfers is None else transfers
     arrays.append(_joined(xp, [level.smoother.inv_diag for level in levels], np.float64))
     arrays += [coarse_inverse, xp.empty((-(-n_coarse // COARSE_SEGMENT), n_coarse))]
     return PackedHierarchy(levels[0].A if levels else None, tuple(arrays), tuple(layout), len(levels),
@@ -578,7 +588,7 @@ def pixel_prolongations(u, v, stride: int = 2, max_coarse: int = MAX_COARSE) -> 
     system: 11 against 58). Under room light (large smoothness weight) stride 1 did better:
     1.12 against 1.25 times pyamg's (a 73k-pixel joint system: 20 against 33).
     """
-    prolongations = []
+    prolongations = Prolongations()
     while u.size > max_coarse:
         aggregate, cu, cv = pixel_aggregates(u, v, stride)
         if cu.size == u.size:
@@ -586,6 +596,15 @@ def pixel_prolongations(u, v, stride: int = 2, max_coarse: int = MAX_COARSE) -> 
         prolongations.append(tentative_prolongation(aggregate, cu.size))
         u, v = cu, cv
     return prolongations
+
+
+class Prolongations(list):
+    """:func:`pixel_prolongations`' list, with what depends on the grid alone, made at its first
+    use by :func:`multigrid_preconditioner` and kept for the next solves on the grid:
+    ``restrictions`` (R = P^T per level) and ``packed`` (:func:`pack_transfers`), else None."""
+
+    restrictions: list | None = None
+    packed: tuple | None = None
 
 
 def multigrid_preconditioner(A, prolongations: list, *, smoother: str = "chebyshev", smoothing_steps: int = 3,
@@ -607,20 +626,25 @@ def multigrid_preconditioner(A, prolongations: list, *, smoother: str = "chebysh
     """
     xp = array_module(A.diagonal())
     sparse = sparse_module(A)
+    kept = not smoothed_prolongation and isinstance(prolongations, Prolongations)  # R and their packing per grid
+    if kept and prolongations.restrictions is None:
+        prolongations.restrictions = [P.T.tocsr() for P in prolongations]
     levels = []
-    for P in prolongations:
+    for k, P in enumerate(prolongations):
         inv_diag = inverse_diagonal(A)
         upper = spectral_bound_array(A, inv_diag)  # on a device: not read back
         if smoothed_prolongation:
             P = (P - (4.0 / (3.0 * float(upper))) * (sparse.diags(inv_diag, format="csr") @ (A @ P))).tocsr()
-        R = P.T.tocsr()
+        R = prolongations.restrictions[k] if kept else P.T.tocsr()
         levels.append(MultigridLevel(A, make_smoother(A, inv_diag, upper, smoother, smoothing_steps), P, R))
         A = (R @ (A @ P)).tocsr()
     inverse = xp.linalg.inv(A.toarray())
     inverse = (inverse + inverse.T) / 2
     packed = None
     if xp is not np and smoother == "chebyshev":
-        packed = pack_hierarchy(levels, inverse, smoothing_steps)
+        if kept and prolongations.packed is None:
+            prolongations.packed = pack_transfers(levels, xp)
+        packed = pack_hierarchy(levels, inverse, smoothing_steps, prolongations.packed if kept else None)
         if packed is not None and packed.source is None:  # no level above the coarsest: the matrix itself
             packed.source = A
     return Multigrid(levels, inverse, packed)
