@@ -63,7 +63,8 @@ SIGNATURES = {
                  _F1, _F1, _F1, _F1, _F1, _F1, types.float64, _F1, _F2, _array(1, types.int32)),
     "_warp_gradients": (_F2, _F2, _F2, _COLOR, _F2, _F2, _F2),
     "_multigrid_cg": (types.int64, types.boolean, types.boolean, *(_array(1, types.int32), _array(1, types.int32), _F1) * 4,
-                      _F1, _F2, _F2, _F2, _F1, _F1, _F1, _F1, types.UniTuple(types.int64, 8 * 12), types.int64,
+                      _F1, _F2, _F2, _F2, _F1, _F1, _F1, _F1, _F2, _F2, _F2, _F1, types.UniTuple(types.int64, 8 * 12),
+                      types.int64,
                       types.UniTuple(types.float64, 5), _F1, _F2),
 }
 

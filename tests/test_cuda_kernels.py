@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import scipy.sparse as sp
+import scipy.sparse.linalg as spla
 
 import compile_cuda_kernels
 from o3d_mvps.solver import cuda_kernels, kernels
@@ -425,7 +426,8 @@ def test_multigrid_cg_matches_cpu_the_host_cycle_and_host_pcg():
     """multigrid_cg (the V-cycle and CG in one cooperative launch; the simulator runs one block):
     CUDA against CPU to round-off; its V-cycle alone (no CG step) against the host's
     :class:`krylov.Multigrid` (SciPy's products) and its CG iterations, from one launch or two,
-    with w = A z in the kernel or given, against the host's :func:`krylov.pcg` after as many."""
+    with w = A z in the kernel (also for A + C U^T, a Schur complement's low-rank term) or given,
+    against the host's :func:`krylov.pcg` after as many."""
     from o3d_mvps.solver import krylov
 
     A, hierarchy = multigrid_system()
@@ -434,7 +436,13 @@ def test_multigrid_cg_matches_cpu_the_host_cycle_and_host_pcg():
     n = A.shape[0]
     b = RNG.normal(size=n)
     expected_z = hierarchy(b)
-    for steps, with_matrix in (((0,), True), ((3,), True), ((1, 2), True), ((0, 1, 1, 1), False)):
+    K = 5  # the low-rank term of a Schur complement A + C U^T (C = -U H^-1: SPD for H = 4 I, U U^T small)
+    U = RNG.normal(size=(n, K)) * 0.05
+    C = -U / 4.0
+    S = A.toarray() + C @ U.T
+    for steps, with_matrix, low_rank in (((0,), True, False), ((3,), True, False), ((1, 2), True, False),
+                                         ((0, 1, 1, 1), False, False), ((2, 1), True, True)):
+        u_t, coupled = (np.ascontiguousarray(U.T), np.ascontiguousarray(C)) if low_rank else (np.zeros((0, 0)),) * 2
         results = {}
         for name, module in (("cpu", kernels), ("cuda", cuda_kernels)):
             arrays = [np.copy(a) for a in packed.arrays]
@@ -446,8 +454,9 @@ def test_multigrid_cg_matches_cpu_the_host_cycle_and_host_pcg():
             for k, n_steps in enumerate(steps):
                 if not with_matrix:
                     w = A @ z  # the operator's product between launches
+                t_partial, t = np.zeros((-(-n // kernels.LOW_RANK_CHUNK), u_t.shape[0])), np.zeros(u_t.shape[0])
                 module.multigrid_cg(n_steps, k == 0, with_matrix, A.indptr, A.indices, A.data, *arrays, work, x, p, s, w,
-                                    packed.layout, packed.levels, packed.cheb, state,
+                                    u_t, coupled, t_partial, t, packed.layout, packed.levels, packed.cheb, state,
                                     np.zeros((kernels.COOPERATIVE_BLOCKS, 4)))
             results[name] = (x.copy(), z.copy(), state.copy())
         (x, z, state), (x_gpu, z_gpu, state_gpu) = results["cpu"], results["cuda"]
@@ -458,6 +467,7 @@ def test_multigrid_cg_matches_cpu_the_host_cycle_and_host_pcg():
             assert state[kernels.CG_ITERATIONS] == 0
             continue
         assert_close(x_gpu, x)
-        host_x, iterations, _ = krylov.pcg(A, b, None, 1e-15, 3, hierarchy)
+        system = spla.aslinearoperator(S) if low_rank else A
+        host_x, iterations, _ = krylov.pcg(system, b, None, 1e-15, 3, hierarchy)
         assert iterations == 3 == state[kernels.CG_ITERATIONS]
         assert_close(x, host_x, rtol=1e-11)

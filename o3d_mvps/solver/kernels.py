@@ -680,11 +680,38 @@ def multigrid_cycle(m_indptr, m_indices, m_data, a_indptr, a_indices, a_data, p_
             grid_barrier()
 
 
+#: Rows per chunk of :func:`low_rank_product`'s partial sums
+LOW_RANK_CHUNK = 256
+
+
+@numba.njit(inline="always")
+def low_rank_product(u_t, z, t_partial, t, start, stride):  # pragma: no cover - compiled
+    """``t = U^T z`` (K,) for u_t = U^T (K, N) C-ordered, z (N,), by the launch's threads: item
+    (chunk c, column j) sums rows c :data:`LOW_RANK_CHUNK` ... of column j into
+    ``t_partial[c, j]`` (t_partial (chunks, K)), then each t[j] its chunks in order; each pass
+    followed by :func:`grid_barrier`."""
+    K, N = u_t.shape
+    chunks = t_partial.shape[0]
+    for item in range(start, chunks * K, stride):
+        c, j = item // K, item % K
+        total = 0.0
+        for i in range(c * LOW_RANK_CHUNK, min(N, (c + 1) * LOW_RANK_CHUNK)):
+            total += u_t[j, i] * z[i]
+        t_partial[c, j] = total
+    grid_barrier()
+    for j in range(start, K, stride):
+        total = 0.0
+        for c in range(chunks):
+            total += t_partial[c, j]
+        t[j] = total
+    grid_barrier()
+
+
 @numba.njit
 def multigrid_cg_steps(n_steps, cycle_first, with_matrix, m_indptr, m_indices, m_data, a_indptr, a_indices, a_data,
                        p_indptr, p_indices, p_data, r_indptr, r_indices, r_data, inv_diag, coarse_inverse,
-                       coarse_partial, work, x, p, s, w, layout, levels, cheb, state, partial, local, start,
-                       stride):  # pragma: no cover - compiled
+                       coarse_partial, work, x, p, s, w, u_t, coupled, t_partial, t, layout, levels, cheb, state,
+                       partial, local, start, stride):  # pragma: no cover - compiled
     """:func:`multigrid_cg` by one thread of ``start, start + stride, ...`` rows, its scalars in
     ``local`` (:data:`CG_STATE`, each thread's copy of the state: every thread sums the same
     partial sums in the same order, so all hold the same; the thread of ``start`` 0 writes them
@@ -699,11 +726,19 @@ def multigrid_cg_steps(n_steps, cycle_first, with_matrix, m_indptr, m_indices, m
         multigrid_cycle(m_indptr, m_indices, m_data, a_indptr, a_indices, a_data, p_indptr, p_indices, p_data,
                         r_indptr, r_indices, r_data, inv_diag, coarse_inverse, coarse_partial, work, layout, levels,
                         cheb, start, stride)
+    low_rank = with_matrix and u_t.shape[0] > 0
     for _ in range(n_steps):
+        if low_rank:  # t = U^T z: the rows' partial sums by chunks, then the chunks' sums
+            low_rank_product(u_t, z, t_partial, t, start, stride)
         first = second = 0.0
         for row in range(start, n, stride):
-            a, b = cg_row(CG_SCALARS, m_indptr, m_indices, m_data, with_matrix, False, z, z, w, p, s, x, r, 0.0, 0.0,
-                          row)
+            if low_rank:  # w = C t + M z, added as krylov.multiply_add adds them
+                total = 0.0
+                for j in range(t.shape[0]):
+                    total += coupled[row, j] * t[j]
+                w[row] = total + 1.0 * csr_row_dot(m_indptr, m_indices, m_data, z, row)
+            a, b = cg_row(CG_SCALARS, m_indptr, m_indices, m_data, with_matrix and not low_rank, False, z, z, w, p, s,
+                          x, r, 0.0, 0.0, row)
             first += a
             second += b
         first, second = grid_sum2(first, second, partial, 0)
@@ -728,10 +763,10 @@ def multigrid_cg_steps(n_steps, cycle_first, with_matrix, m_indptr, m_indices, m
 @numba.njit(cache=True)
 def multigrid_cg(n_steps, cycle_first, with_matrix, m_indptr, m_indices, m_data, a_indptr, a_indices, a_data, p_indptr,
                  p_indices, p_data, r_indptr, r_indices, r_data, inv_diag, coarse_inverse, coarse_partial, work, x, p,
-                 s, w, layout, levels, cheb, state, partial):  # pragma: no cover - compiled
+                 s, w, u_t, coupled, t_partial, t, layout, levels, cheb, state, partial):  # pragma: no cover - compiled
     """Up to ``n_steps`` iterations of multigrid-preconditioned CG (:func:`.krylov.pcg` with a
     :class:`.krylov.Multigrid` of Chebyshev smoothers) in one launch: per iteration the dot
-    products (:func:`cg_row`: w = A z for CSR arrays of A where ``with_matrix``, else w given), the
+    products (:func:`cg_row`: w = A z where ``with_matrix``, else w given), the
     step (x, r, p, s in place) and, while CG goes on, the V-cycle z = M r (:func:`multigrid_cycle`)
     for the next; first the V-cycle alone where ``cycle_first``; nothing once CG is inactive.
 
@@ -740,12 +775,17 @@ def multigrid_cg(n_steps, cycle_first, with_matrix, m_indptr, m_indices, m_data,
     prolongation and restriction, packed (``layout``, :data:`MG_FIELDS`), ``levels`` levels above
     the coarsest; inv_diag: every level's D^-1 / bound, packed like the vectors; work
     (:data:`MG_ROWS`, unknowns of all levels): r and z are level 0's rows :data:`MG_B` and
-    :data:`MG_XU`; x, p, s, w (N,); state (:data:`CG_STATE`) after :func:`cg_start`; partial
-    (blocks, 4): the CUDA kernel's scratch. The operator's case (the Schur complement) launches
-    ``n_steps`` 0 (the first cycle) and 1 (with w = A z given)."""
+    :data:`MG_XU`; x, p, s, w (N,); u_t (K, N), coupled (N, K): with K > 0, A is the Schur
+    complement ``M + coupled U^T`` (:meth:`.normal_equations.JointSystem.schur_operator`,
+    coupled = -U H^-1), its product formed here too where ``with_matrix``
+    (:func:`low_rank_product`; t_partial (chunks, K), t (K,) its scratch); state
+    (:data:`CG_STATE`) after :func:`cg_start`; partial
+    (blocks, 4): the CUDA kernel's scratch. Another operator's case launches ``n_steps`` 0 (the
+    first cycle), then 1 per iteration (with w = A z given)."""
     multigrid_cg_steps(n_steps, cycle_first, with_matrix, m_indptr, m_indices, m_data, a_indptr, a_indices, a_data,
                        p_indptr, p_indices, p_data, r_indptr, r_indices, r_data, inv_diag, coarse_inverse,
-                       coarse_partial, work, x, p, s, w, layout, levels, cheb, state, partial, np.empty(CG_STATE), 0, 1)
+                       coarse_partial, work, x, p, s, w, u_t, coupled, t_partial, t, layout, levels, cheb, state, partial,
+                       np.empty(CG_STATE), 0, 1)
 
 
 @numba.njit(inline="always")

@@ -29,7 +29,7 @@ from ..model.arrays import array_module, fused, sparse_module
 from .device import kernels_for
 from .kernels import (CG_RR, CG_RR_OLD, CG_RR_START, CG_STATE, CG_STATUS, CG_THRESHOLD, MG_A_NZ, MG_A_PTR, MG_B,
                       MG_FIELDS, MG_MAX_LEVELS, MG_N, MG_P_NZ, MG_P_PTR, MG_R_NZ, MG_R_PTR, MG_ROWS, MG_VEC, MG_XU,
-                      COOPERATIVE_BLOCKS, REDUCTION_BLOCKS)
+                      COOPERATIVE_BLOCKS, LOW_RANK_CHUNK, REDUCTION_BLOCKS)
 
 #: Multigrid: the hierarchy ends at a level of at most this many unknowns, solved there by a
 #: dense inverse (one matrix-vector product). pyamg's ``max_coarse`` on the CPU
@@ -138,22 +138,35 @@ def _checks_apart(rr: float, rr_previous: float, rr_start: float, threshold: flo
 
 def _pcg_multigrid(A, matrix: bool, x, p, s, w, work, state, packed, maxiter: int, next_check: int, check_every: int):
     """:func:`pcg`'s iterations on a device with a packed multigrid (:attr:`Multigrid.packed`):
-    with a CSR matrix A all iterations up to a read of the state in one launch of
-    :func:`.kernels.multigrid_cg` (the V-cycles, products, dot products and steps), else per
-    iteration the operator's product and one launch (the dot products and step, then the next
-    V-cycle); the same reads as :func:`pcg`'s. Returns (x, iterations, converged)."""
+    where A is the hierarchy's own CSR matrix M, or ``M + C U^T`` (an operator with
+    ``low_rank_parts`` (M, C (N, K), U^T (K, N)): the joint step's Schur complement), all
+    iterations up to a read of the state in one launch of :func:`.kernels.multigrid_cg` (the
+    V-cycles, products, dot products and steps), else per iteration the operator's product and
+    one launch (the dot products and step, then the next V-cycle); the same reads as
+    :func:`pcg`'s. Returns (x, iterations, converged)."""
+    xp = array_module(x)
     kernels = kernels_for(x)
-    partial = array_module(x).empty((COOPERATIVE_BLOCKS, 4))
+    partial = xp.empty((COOPERATIVE_BLOCKS, 4))
     z = work[MG_XU, :x.shape[0]]
     M = packed.source
-    matrix = matrix and A is M  # CG's product in the kernel where A is the hierarchy's own matrix
+    parts = getattr(A, "low_rank_parts", None)
+    # CG's product in the kernel where A is the hierarchy's own matrix, or M + C U^T with M that matrix
+    low_rank = not matrix and parts is not None and parts[0] is M
+    matrix = (matrix and A is M) or low_rank
     csr = (M.indptr, M.indices, M.data)
+    if low_rank:
+        u_t, coupled = parts[2], parts[1]
+        t_partial, t = xp.empty((-(-x.shape[0] // LOW_RANK_CHUNK), u_t.shape[0])), xp.empty(u_t.shape[0])
+    else:
+        u_t = coupled = t_partial = xp.empty((0, 0))
+        t = xp.empty(0)
 
     def launch(n_steps: int, cycle_first: bool, w):
-        kernels.multigrid_cg(n_steps, cycle_first, matrix, *csr, *packed.arrays, work, x, p, s, w, packed.layout,
-                             packed.levels, packed.cheb, state, partial)
+        kernels.multigrid_cg(n_steps, cycle_first, matrix, *csr, *packed.arrays, work, x, p, s, w, u_t, coupled,
+                             t_partial, t, packed.layout, packed.levels, packed.cheb, state, partial)
 
     iteration, reads, code = 0, 0, None
+    w = xp.empty_like(x) if w is None else w
     if not matrix:
         launch(0, True, x)  # z = M r (w unread)
     while iteration < maxiter:
