@@ -78,6 +78,11 @@ def pcg(A, b, x0, rtol: float, maxiter: int, preconditioner: Callable | None = N
     then after :data:`READ_MARGIN` times as many more as the residual's reduction so far says
     are left (:func:`_iterations_left`), the solve's last read: where CG has not converged by
     then, it returns unconverged (as at ``maxiter``, which no read passes).
+
+    On a device with a :class:`Multigrid` packed for one kernel (:attr:`Multigrid.packed`) the
+    V-cycles and CG's passes run in :func:`.kernels.multigrid_cg` (:func:`_pcg_multigrid`):
+    every iteration up to a read in one launch, where A is the hierarchy's own CSR matrix or an
+    operator that names its parts (``low_rank_parts``: the Schur complement).
     """
     xp = array_module(b)
     kernels = kernels_for(b)
@@ -168,7 +173,7 @@ def _pcg_multigrid(A, matrix: bool, x, p, s, w, work, state, packed, maxiter: in
     iteration, reads, code = 0, 0, None
     w = xp.empty_like(x) if w is None else w
     if not matrix:
-        launch(0, True, x)  # z = M r (w unread)
+        launch(0, True, x)  # the first cycle, z from r (w unread)
     while iteration < maxiter:
         if matrix:
             launch(next_check - iteration, iteration == 0, w)
