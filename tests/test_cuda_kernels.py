@@ -455,8 +455,8 @@ def test_multigrid_cg_matches_cpu_the_host_cycle_and_host_pcg():
                 if not with_matrix:
                     w = A @ z  # the operator's product between launches
                 t_partial, t = np.zeros((-(-n // kernels.LOW_RANK_CHUNK), u_t.shape[0])), np.zeros(u_t.shape[0])
-                module.multigrid_cg(n_steps, k == 0, with_matrix, A.indptr, A.indices, A.data, *arrays, work, x, p, s, w,
-                                    u_t, coupled, t_partial, t, packed.layout, packed.levels, packed.cheb, state,
+                module.multigrid_cg(n_steps, k == 0, with_matrix, A.indptr, A.indices, A.data, *arrays, work, x, p, s,
+                                    w, u_t, coupled, t_partial, t, packed.layout, packed.levels, packed.cheb, state,
                                     np.zeros((kernels.COOPERATIVE_BLOCKS, 4)))
             results[name] = (x.copy(), z.copy(), state.copy())
         (x, z, state), (x_gpu, z_gpu, state_gpu) = results["cpu"], results["cuda"]

@@ -617,19 +617,22 @@ def multigrid_cycle(m_indptr, m_indices, m_data, a_indptr, a_indices, a_data, p_
             indptr, indices, data = _mg_csr(a_indptr, a_indices, a_data, layout, k, MG_A_PTR, n)
         offset = layout[MG_FIELDS * k + MG_VEC]
         diagonal = inv_diag[offset:offset + n]
-        b, x, r = _mg_vector(work, MG_B, layout, k), _mg_vector(work, MG_X, layout, k), _mg_vector(work, MG_RES, layout, k)
+        b, x = _mg_vector(work, MG_B, layout, k), _mg_vector(work, MG_X, layout, k)
+        r = _mg_vector(work, MG_RES, layout, k)
         d0, d1 = _mg_vector(work, MG_D0, layout, k), _mg_vector(work, MG_D1, layout, k)
         if steps == 1:
             for row in range(start, n, stride):
                 x[row] = (diagonal[row] / theta) * b[row]
         else:
             for row in range(start, n, stride):
-                chebyshev_start_row(indptr, indices, data, b, diagonal, theta, cheb[1], diagonal, cheb[2], r, d1, x, row)
+                chebyshev_start_row(indptr, indices, data, b, diagonal, theta, cheb[1], diagonal, cheb[2], r, d1, x,
+                                    row)
         grid_barrier()
         for j in range(2, steps):
             d, d_out = (d1, d0) if j % 2 == 0 else (d0, d1)
             for row in range(start, n, stride):
-                chebyshev_row(indptr, indices, data, r, d, d, cheb[2 * j - 1], diagonal, cheb[2 * j], x, r, d_out, x, row)
+                chebyshev_row(indptr, indices, data, r, d, d, cheb[2 * j - 1], diagonal, cheb[2 * j], x, r, d_out, x,
+                              row)
             grid_barrier()
         R_indptr, R_indices, R_data = _mg_csr(r_indptr, r_indices, r_data, layout, k, MG_R_PTR,
                                               layout[MG_FIELDS * (k + 1) + MG_N])
@@ -665,8 +668,9 @@ def multigrid_cycle(m_indptr, m_indices, m_data, a_indptr, a_indices, a_data, p_
         offset = layout[MG_FIELDS * k + MG_VEC]
         diagonal = inv_diag[offset:offset + n]
         P_indptr, P_indices, P_data = _mg_csr(p_indptr, p_indices, p_data, layout, k, MG_P_PTR, n)
-        b, x, xu = _mg_vector(work, MG_B, layout, k), _mg_vector(work, MG_X, layout, k), _mg_vector(work, MG_XU, layout, k)
-        r, d0, d1 = _mg_vector(work, MG_RES, layout, k), _mg_vector(work, MG_D0, layout, k), _mg_vector(work, MG_D1, layout, k)
+        b, x = _mg_vector(work, MG_B, layout, k), _mg_vector(work, MG_X, layout, k)
+        xu, r = _mg_vector(work, MG_XU, layout, k), _mg_vector(work, MG_RES, layout, k)
+        d0, d1 = _mg_vector(work, MG_D0, layout, k), _mg_vector(work, MG_D1, layout, k)
         c = _mg_vector(work, MG_XU, layout, k + 1)
         for row in range(start, n, stride):
             prolong_restart_row(indptr, indices, data, P_indptr, P_indices, P_data, b, x, c, diagonal, theta, r, d0, xu,
@@ -784,8 +788,8 @@ def multigrid_cg(n_steps, cycle_first, with_matrix, m_indptr, m_indices, m_data,
     first cycle), then 1 per iteration (with w = A z given)."""
     multigrid_cg_steps(n_steps, cycle_first, with_matrix, m_indptr, m_indices, m_data, a_indptr, a_indices, a_data,
                        p_indptr, p_indices, p_data, r_indptr, r_indices, r_data, inv_diag, coarse_inverse,
-                       coarse_partial, work, x, p, s, w, u_t, coupled, t_partial, t, layout, levels, cheb, state, partial,
-                       np.empty(CG_STATE), 0, 1)
+                       coarse_partial, work, x, p, s, w, u_t, coupled, t_partial, t, layout, levels, cheb, state,
+                       partial, np.empty(CG_STATE), 0, 1)
 
 
 @numba.njit(inline="always")

@@ -27,9 +27,9 @@ import numpy as np
 
 from ..model.arrays import array_module, fused, sparse_module
 from .device import kernels_for
-from .kernels import (CG_RR, CG_RR_OLD, CG_RR_START, CG_STATE, CG_STATUS, CG_THRESHOLD, MG_A_NZ, MG_A_PTR, MG_B,
-                      MG_FIELDS, MG_MAX_LEVELS, MG_N, MG_P_NZ, MG_P_PTR, MG_R_NZ, MG_R_PTR, MG_ROWS, MG_VEC, MG_XU,
-                      COOPERATIVE_BLOCKS, LOW_RANK_CHUNK, REDUCTION_BLOCKS)
+from .kernels import (COOPERATIVE_BLOCKS, CG_RR, CG_RR_OLD, CG_RR_START, CG_STATE, CG_STATUS, CG_THRESHOLD,
+                      LOW_RANK_CHUNK, MG_A_PTR, MG_B, MG_FIELDS, MG_MAX_LEVELS, MG_N, MG_P_PTR, MG_R_PTR, MG_ROWS,
+                      MG_VEC, MG_XU, REDUCTION_BLOCKS)
 
 #: Multigrid: the hierarchy ends at a level of at most this many unknowns, solved there by a
 #: dense inverse (one matrix-vector product). pyamg's ``max_coarse`` on the CPU
