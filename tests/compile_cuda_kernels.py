@@ -62,7 +62,23 @@ SIGNATURES = {
     "_cg_pass": (types.int64, _array(1, types.int32), _array(1, types.int32), _F1, types.boolean, types.boolean, _F1,
                  _F1, _F1, _F1, _F1, _F1, _F1, types.float64, _F1, _F2, _array(1, types.int32)),
     "_warp_gradients": (_F2, _F2, _F2, _COLOR, _F2, _F2, _F2),
+    "_multigrid_cg": (types.int64, types.boolean, types.boolean,
+                      *(_array(1, types.int32), _array(1, types.int32), _F1) * 4,
+                      _F1, _F2, _F2, _F2, _F1, _F1, _F1, _F1, _F2, _F2, _F2, _F1, types.UniTuple(types.int64, 8 * 12),
+                      types.int64,
+                      types.UniTuple(types.float64, 5), _F1, _F2),
 }
+
+
+def _compiling_for(cc: tuple):
+    """numba-cuda compiles the functions behind an ``overload`` (``cuda.cg.this_grid()``: the
+    cooperative kernels' grid sync) for the current device's compute capability, which needs a
+    GPU: here it is ``cc`` instead (the kernel's own compile_ptx takes cc as given)."""
+    import types as pytypes
+
+    from numba.cuda import dispatcher
+
+    dispatcher.get_current_device = lambda: pytypes.SimpleNamespace(compute_capability=cc)
 
 
 def main(argv: list[str]) -> int:
@@ -78,6 +94,7 @@ def main(argv: list[str]) -> int:
     from o3d_mvps.solver import cuda_kernels
 
     cc = tuple(int(v) for v in (argv[0] if argv and not argv[0].startswith("-") else "9.0").split("."))
+    _compiling_for(cc)
     ptx_dir = argv[argv.index("--ptx-dir") + 1] if "--ptx-dir" in argv else None
     found = {name for name, obj in vars(cuda_kernels).items()
              if isinstance(obj, cuda.dispatcher.CUDADispatcher) and not obj.targetoptions["device"]}

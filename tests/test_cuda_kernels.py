@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import scipy.sparse as sp
+import scipy.sparse.linalg as spla
 
 import compile_cuda_kernels
 from o3d_mvps.solver import cuda_kernels, kernels
@@ -388,3 +389,85 @@ def test_cg_passes_stop_at_convergence_and_idle_after():
         np.testing.assert_array_equal(x, after_one[0])
         np.testing.assert_array_equal(state, after_one[1])
         assert_close(x, b / A.diagonal())
+
+
+def multigrid_system(shape=(22, 26)):
+    """(A, hierarchy): an SPD matrix on a disc of pixels (a 5-point Laplacian plus a random
+    positive diagonal) and its multigrid (:func:`krylov.multigrid_preconditioner`, host) of three
+    levels (305, 87, 36 unknowns) above a dense coarsest of 16."""
+    from o3d_mvps.model.normals import masked_grid
+    from o3d_mvps.solver import krylov
+
+    H, W = shape
+    v, u = np.mgrid[:H, :W]
+    grid = masked_grid((u - W / 2) ** 2 + (v - H / 2) ** 2 < (0.45 * min(H, W)) ** 2)
+    index = -np.ones(shape, int)
+    index[grid.v, grid.u] = np.arange(grid.size)
+    rows, cols = [], []
+    for du, dv in ((1, 0), (0, 1)):
+        inside = (grid.u + du < W) & (grid.v + dv < H)
+        j = index[np.minimum(grid.v + dv, H - 1), np.minimum(grid.u + du, W - 1)]
+        keep = inside & (j >= 0)
+        rows.append(np.arange(grid.size)[keep])
+        cols.append(j[keep])
+    i, j = np.concatenate(rows), np.concatenate(cols)
+    L = sp.coo_matrix((np.ones(i.size), (i, j)), shape=(grid.size, grid.size))
+    L = L + L.T
+    A = (sp.diags(np.asarray(L.sum(axis=1)).ravel() + RNG.uniform(0.01, 0.1, grid.size)) - L).tocsr()
+    A.indices, A.indptr = A.indices.astype(np.int32), A.indptr.astype(np.int32)
+    hierarchy = krylov.multigrid_preconditioner(A, krylov.pixel_prolongations(grid.u, grid.v, max_coarse=30))
+    for level in hierarchy.levels:
+        for m in (level.A, level.P, level.R):
+            m.indices, m.indptr = m.indices.astype(np.int32), m.indptr.astype(np.int32)
+    return A, hierarchy
+
+
+def test_multigrid_cg_matches_cpu_the_host_cycle_and_host_pcg():
+    """multigrid_cg (the V-cycle and CG in one cooperative launch; the simulator runs one block):
+    CUDA against CPU to round-off; its V-cycle alone (no CG step) against the host's
+    :class:`krylov.Multigrid` (SciPy's products) and its CG iterations, from one launch or two,
+    with w = A z in the kernel (also for A + C U^T, a Schur complement's low-rank term) or given,
+    against the host's :func:`krylov.pcg` after as many."""
+    from o3d_mvps.solver import krylov
+
+    A, hierarchy = multigrid_system()
+    assert len(hierarchy.levels) == 3
+    packed = krylov.pack_hierarchy(hierarchy.levels, hierarchy.coarse_inverse, 3)
+    n = A.shape[0]
+    b = RNG.normal(size=n)
+    expected_z = hierarchy(b)
+    K = 5  # the low-rank term of a Schur complement A + C U^T (C = -U H^-1: SPD for H = 4 I, U U^T small)
+    U = RNG.normal(size=(n, K)) * 0.05
+    C = -U / 4.0
+    S = A.toarray() + C @ U.T
+    for steps, with_matrix, low_rank in (((0,), True, False), ((3,), True, False), ((1, 2), True, False),
+                                         ((0, 1, 1, 1), False, False), ((2, 1), True, True)):
+        u_t, coupled = (np.ascontiguousarray(U.T), np.ascontiguousarray(C)) if low_rank else (np.zeros((0, 0)),) * 2
+        results = {}
+        for name, module in (("cpu", kernels), ("cuda", cuda_kernels)):
+            arrays = [np.copy(a) for a in packed.arrays]
+            work = np.full((kernels.MG_ROWS, packed.unknowns), np.nan)
+            r, z = work[kernels.MG_B, :n], work[kernels.MG_XU, :n]
+            state, partial = np.zeros(kernels.CG_STATE), np.zeros((kernels.REDUCTION_BLOCKS, 2))
+            x, p, s, w = (np.full(n, np.nan) for _ in range(4))
+            module.cg_start(b, x, r, p, s, True, 1e-30, state, partial, np.zeros(1, np.int32))
+            for k, n_steps in enumerate(steps):
+                if not with_matrix:
+                    w = A @ z  # the operator's product between launches
+                t_partial, t = np.zeros((-(-n // kernels.LOW_RANK_CHUNK), u_t.shape[0])), np.zeros(u_t.shape[0])
+                module.multigrid_cg(n_steps, k == 0, with_matrix, A.indptr, A.indices, A.data, *arrays, work, x, p, s,
+                                    w, u_t, coupled, t_partial, t, packed.layout, packed.levels, packed.cheb, state,
+                                    np.zeros((kernels.COOPERATIVE_BLOCKS, 4)))
+            results[name] = (x.copy(), z.copy(), state.copy())
+        (x, z, state), (x_gpu, z_gpu, state_gpu) = results["cpu"], results["cuda"]
+        assert_close(z_gpu, z)
+        assert_close(state_gpu, state)
+        if steps == (0,):
+            assert_close(z, expected_z)  # the cycle, not yet a CG step
+            assert state[kernels.CG_ITERATIONS] == 0
+            continue
+        assert_close(x_gpu, x)
+        system = spla.aslinearoperator(S) if low_rank else A
+        host_x, iterations, _ = krylov.pcg(system, b, None, 1e-15, 3, hierarchy)
+        assert iterations == 3 == state[kernels.CG_ITERATIONS]
+        assert_close(x, host_x, rtol=1e-11)

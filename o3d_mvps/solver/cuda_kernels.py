@@ -36,7 +36,7 @@ __all__ = ["chunk_count", "accumulate_frame", "accumulate_frames", "project_twis
            "shading_residuals", "weighted_albedo_sums", "weighted_lighting_sums", "log1p_square_sum",
            "led_irradiances_into", "led_point_gradients_into", "warp_sample", "warp_sample_frames", "warp_gradients",
            "chebyshev_update", "chebyshev_start", "restrict_residual", "prolong_restart", "csr_multiply_add", "cg_start",
-           "cg_scalars", "cg_update"]
+           "cg_scalars", "cg_update", "multigrid_cg"]
 
 #: Threads per block of every kernel.
 THREADS_PER_BLOCK = 128
@@ -88,6 +88,79 @@ _restrict_residual_row = _device(kernels.restrict_residual_row)
 _prolong_restart_row = _device(kernels.prolong_restart_row)
 _cg_row = _device(kernels.cg_row)
 _cg_finish = _device(kernels.cg_finish)
+
+
+def _grid_barrier():  # pragma: no cover - device
+    """:func:`.kernels.grid_barrier` in a CUDA kernel: the grid's sync (a cooperative launch)."""
+    cuda.cg.this_grid().sync()
+
+
+def _grid_sum2(first, second, partial, slot):  # pragma: no cover - device
+    """:func:`.kernels.grid_sum2` in a CUDA kernel: each block adds its threads' terms in shared
+    memory (a tree, in a fixed order) into ``partial[block, slot:slot + 2]``; after the grid's
+    sync every block adds all blocks' sums in the same fixed order, so that every thread gets the
+    same totals (the same every run)."""
+    share = cuda.shared.array((THREADS_PER_BLOCK, 2), numba.float64)
+    t = cuda.threadIdx.x
+    for phase in range(2):  # 0: this block's threads; 1: the blocks' sums
+        share[t, 0] = first
+        share[t, 1] = second
+        cuda.syncthreads()
+        step = THREADS_PER_BLOCK // 2
+        while step > 0:
+            if t < step:
+                share[t, 0] += share[t + step, 0]
+                share[t, 1] += share[t + step, 1]
+            cuda.syncthreads()
+            step //= 2
+        first, second = share[0, 0], share[0, 1]
+        cuda.syncthreads()  # every thread has read the tree's root before the next writes
+        if phase == 0:
+            if t == 0:
+                partial[cuda.blockIdx.x, slot] = first
+                partial[cuda.blockIdx.x, slot + 1] = second
+            cuda.cg.this_grid().sync()
+            first = second = 0.0
+            for k in range(t, cuda.gridDim.x, THREADS_PER_BLOCK):
+                first += partial[k, slot]
+                second += partial[k, slot + 1]
+    return first, second
+
+
+#: the grid-wide functions of kernels' shared code, for the CUDA target
+_GRID = {"grid_barrier": _grid_barrier, "grid_sum2": _grid_sum2}
+if not cuda.config.ENABLE_CUDASIM:
+    _GRID = {name: numba.njit(inline="always")(function) for name, function in _GRID.items()}
+
+
+def _uses_grid(function) -> bool:
+    """Whether a ``numba.njit`` function of :mod:`.kernels` calls one of :data:`_GRID`'s, itself or
+    through the njit functions it calls."""
+    py = function.py_func
+    return any(name in _GRID or (isinstance(callee, numba.core.registry.CPUDispatcher) and _uses_grid(callee))
+               for name in py.__code__.co_names if (callee := py.__globals__.get(name)) is not None)
+
+
+def _on_grid(function):
+    """:func:`_device` of a ``numba.njit`` function of :mod:`.kernels` that waits for or sums over
+    the whole launch: its calls to :func:`.kernels.grid_barrier` and :func:`.kernels.grid_sum2`
+    (also those of the njit functions it calls) go to :data:`_GRID`'s (the same Python source
+    otherwise, compiled for the device, or run as Python under the simulator)."""
+    py = function.py_func
+    calls = {}
+    for name in py.__code__.co_names:
+        callee = py.__globals__.get(name)
+        if name in _GRID:
+            calls[name] = _GRID[name]
+        elif isinstance(callee, numba.core.registry.CPUDispatcher):
+            calls[name] = _on_grid(callee) if _uses_grid(callee) else _device(callee)
+    rebound = types.FunctionType(py.__code__, {**py.__globals__, **calls}, py.__name__, py.__defaults__,
+                                 py.__closure__)
+    return rebound if cuda.config.ENABLE_CUDASIM else numba.njit(rebound)
+
+
+_multigrid_cg_steps = _on_grid(kernels.multigrid_cg_steps)
+_CG_STATE = kernels.CG_STATE  # a global: a constant where a kernel sizes a local array
 
 
 def _blocks(n_threads: int) -> int:
@@ -316,7 +389,7 @@ def warp_sample_frames(points_ref, poses, K, images, visible, color, usable) -> 
 def _chebyshev_update(indptr, indices, data, r, v, d, scale, diagonal, x, r_out, d_out, x_out):  # pragma: no cover
     row = cuda.grid(1)
     if row < r.shape[0]:
-        _chebyshev_row(indptr, indices, data, r, v, d, scale, diagonal, x, r_out, d_out, x_out, row)
+        _chebyshev_row(indptr, indices, data, r, v, d, scale, diagonal, 1.0, x, r_out, d_out, x_out, row)
 
 
 def chebyshev_update(indptr, indices, data, r, v, d, scale, diagonal, x, r_out, d_out, x_out) -> None:
@@ -329,7 +402,7 @@ def chebyshev_update(indptr, indices, data, r, v, d, scale, diagonal, x, r_out, 
 def _chebyshev_start(indptr, indices, data, b, first, scale, diagonal, r_out, d_out, x_out):  # pragma: no cover
     row = cuda.grid(1)
     if row < b.shape[0]:
-        _chebyshev_start_row(indptr, indices, data, b, first, scale, diagonal, r_out, d_out, x_out, row)
+        _chebyshev_start_row(indptr, indices, data, b, first, 1.0, scale, diagonal, 1.0, r_out, d_out, x_out, row)
 
 
 def chebyshev_start(indptr, indices, data, b, first, scale, diagonal, r_out, d_out, x_out) -> None:
@@ -356,8 +429,8 @@ def _prolong_restart(indptr, indices, data, P_indptr, P_indices, P_data, b, x, c
                      x_out):  # pragma: no cover - device
     row = cuda.grid(1)
     if row < b.shape[0]:
-        _prolong_restart_row(indptr, indices, data, P_indptr, P_indices, P_data, b, x, c, first, r_out, d_out, x_out,
-                             row)
+        _prolong_restart_row(indptr, indices, data, P_indptr, P_indices, P_data, b, x, c, first, 1.0, r_out, d_out,
+                             x_out, row)
 
 
 def prolong_restart(indptr, indices, data, P_indptr, P_indices, P_data, b, x, c, first, r_out, d_out, x_out) -> None:
@@ -494,3 +567,46 @@ def log1p_square_sum(x, scale: float) -> float:
     partial = cuda.device_array(blocks, dtype=np.float64)
     _log1p_square_partials[blocks, THREADS_PER_BLOCK](x, scale, partial)
     return float(partial.copy_to_host().sum())
+
+
+@cuda.jit(cache=True)
+def _multigrid_cg(n_steps, cycle_first, with_matrix, m_indptr, m_indices, m_data, a_indptr, a_indices, a_data, p_indptr,
+                  p_indices, p_data, r_indptr, r_indices, r_data, inv_diag, coarse_inverse, coarse_partial, work, x, p,
+                  s, w, u_t, coupled, t_partial, t, layout, levels, cheb, state, partial):  # pragma: no cover - device
+    local = cuda.local.array(_CG_STATE, numba.float64)
+    _multigrid_cg_steps(n_steps, cycle_first, with_matrix, m_indptr, m_indices, m_data, a_indptr, a_indices, a_data,
+                        p_indptr, p_indices, p_data, r_indptr, r_indices, r_data, inv_diag, coarse_inverse,
+                        coarse_partial, work, x, p, s, w, u_t, coupled, t_partial, t, layout, levels, cheb, state,
+                        partial, local, cuda.grid(1), cuda.gridsize(1))
+
+
+#: (device, argument types) -> the most blocks of :func:`_multigrid_cg` resident at once
+_RESIDENT_BLOCKS: dict = {}
+
+
+def _cooperative_blocks(kernel, args, wanted: int) -> int:
+    """Blocks for a cooperative launch of ``kernel`` on ``args``: ``wanted``, but no more than
+    :data:`.kernels.COOPERATIVE_BLOCKS` and than the device holds at once (compiling the kernel first
+    where needed); 1 under numba's simulator (which runs one block of a cooperative grid)."""
+    if cuda.config.ENABLE_CUDASIM:
+        return 1
+    argtypes = tuple(kernel.typeof_pyval(a) for a in args)
+    key = (cuda.get_current_device().id, argtypes)
+    if key not in _RESIDENT_BLOCKS:
+        _RESIDENT_BLOCKS[key] = kernel.compile(argtypes).max_cooperative_grid_blocks(THREADS_PER_BLOCK)
+    return max(1, min(wanted, kernels.COOPERATIVE_BLOCKS, _RESIDENT_BLOCKS[key]))
+
+
+def multigrid_cg(n_steps, cycle_first, with_matrix, m_indptr, m_indices, m_data, a_indptr, a_indices, a_data, p_indptr,
+                 p_indices, p_data, r_indptr, r_indices, r_data, inv_diag, coarse_inverse, coarse_partial, work, x, p,
+                 s, w, u_t, coupled, t_partial, t, layout, levels, cheb, state, partial) -> None:
+    """:func:`.kernels.multigrid_cg` on the GPU in one cooperative launch (its passes separated by
+    the grid's sync; rows in grid-stride loops over at most :data:`.kernels.COOPERATIVE_BLOCKS` blocks,
+    the rows of ``partial`` (blocks, 4))."""
+    args = (int(n_steps), bool(cycle_first), bool(with_matrix), m_indptr, m_indices, m_data, a_indptr, a_indices,
+            a_data, p_indptr, p_indices, p_data, r_indptr, r_indices, r_data, inv_diag, coarse_inverse,
+            coarse_partial, work, x, p, s, w, u_t, coupled, t_partial, t, tuple(int(v) for v in layout), int(levels),
+            tuple(float(v) for v in cheb), state, partial)
+    wanted = _blocks(max(x.shape[0], coarse_partial.size, t_partial.size))
+    blocks = min(_cooperative_blocks(_multigrid_cg, args, wanted), partial.shape[0])
+    _multigrid_cg[blocks, THREADS_PER_BLOCK](*args)

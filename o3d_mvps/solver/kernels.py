@@ -331,10 +331,11 @@ def csr_row_dot(indptr, indices, data, v, row):  # pragma: no cover - compiled
 
 
 @numba.njit(inline="always")
-def chebyshev_row(indptr, indices, data, r, v, d, scale, diagonal, x, r_out, d_out, x_out, row):  # pragma: no cover
-    """:func:`chebyshev_update` on one row."""
+def chebyshev_row(indptr, indices, data, r, v, d, scale, diagonal, factor, x, r_out, d_out, x_out, row):  # pragma: no cover
+    """:func:`chebyshev_update` on one row, its diagonal ``factor diagonal`` (:func:`multigrid_cg`:
+    a step's scalar times the level's scaled D^-1; 1 elsewhere). r_out, x_out may be r, x."""
     r_new = r[row] - csr_row_dot(indptr, indices, data, v, row)
-    d_new = d[row] * scale + diagonal[row] * r_new
+    d_new = d[row] * scale + (factor * diagonal[row]) * r_new
     r_out[row] = r_new
     d_out[row] = d_new
     x_out[row] = x[row] + d_new
@@ -347,7 +348,7 @@ def chebyshev_update(indptr, indices, data, r, v, d, scale, diagonal, x, r_out, 
     + diagonal r_out``, ``x_out = x + d_out`` (the outputs are other arrays than the inputs: A v
     reads v's neighbours). A step is v = d; the restart from x is r = b, v = x, scale 0."""
     for row in numba.prange(r.shape[0]):
-        chebyshev_row(indptr, indices, data, r, v, d, scale, diagonal, x, r_out, d_out, x_out, row)
+        chebyshev_row(indptr, indices, data, r, v, d, scale, diagonal, 1.0, x, r_out, d_out, x_out, row)
 
 
 @numba.njit(parallel=True, cache=True)
@@ -360,15 +361,17 @@ def csr_multiply_add(indptr, indices, data, alpha, v, y, out):  # pragma: no cov
 
 
 @numba.njit(inline="always")
-def chebyshev_start_row(indptr, indices, data, b, first, scale, diagonal, r_out, d_out, x_out, row):  # pragma: no cover
-    """:func:`chebyshev_start` on one row."""
+def chebyshev_start_row(indptr, indices, data, b, first, theta, scale, diagonal, factor, r_out, d_out, x_out,
+                        row):  # pragma: no cover - compiled
+    """:func:`chebyshev_start` on one row, its first step ``first / theta`` and its diagonal
+    ``factor diagonal`` (:func:`multigrid_cg`: the level's scaled D^-1 for both; 1 elsewhere)."""
     total = 0.0
     for nz in range(indptr[row], indptr[row + 1]):
         q = indices[nz]
-        total += data[nz] * (first[q] * b[q])
+        total += data[nz] * ((first[q] / theta) * b[q])
     r_new = b[row] - total
-    d = first[row] * b[row]
-    d_new = d * scale + diagonal[row] * r_new
+    d = (first[row] / theta) * b[row]
+    d_new = d * scale + (factor * diagonal[row]) * r_new
     r_out[row] = r_new
     d_out[row] = d_new
     x_out[row] = d + d_new
@@ -380,7 +383,7 @@ def chebyshev_start(indptr, indices, data, b, first, scale, diagonal, r_out, d_o
     (the first step), :func:`chebyshev_update` of r = b, v = d (``first b`` formed where it is
     read: no array of it), vectors (N,)."""
     for row in numba.prange(b.shape[0]):
-        chebyshev_start_row(indptr, indices, data, b, first, scale, diagonal, r_out, d_out, x_out, row)
+        chebyshev_start_row(indptr, indices, data, b, first, 1.0, scale, diagonal, 1.0, r_out, d_out, x_out, row)
 
 
 @numba.njit(inline="always")
@@ -403,15 +406,16 @@ def restrict_residual(R_indptr, R_indices, R_data, indptr, indices, data, b, x, 
 
 
 @numba.njit(inline="always")
-def prolong_restart_row(indptr, indices, data, P_indptr, P_indices, P_data, b, x, c, first, r_out, d_out, x_out,
+def prolong_restart_row(indptr, indices, data, P_indptr, P_indices, P_data, b, x, c, first, theta, r_out, d_out, x_out,
                         row):  # pragma: no cover - compiled
-    """:func:`prolong_restart` on one row."""
+    """:func:`prolong_restart` on one row, its first step ``first / theta`` (1 but in
+    :func:`multigrid_cg`)."""
     total = 0.0
     for nz in range(indptr[row], indptr[row + 1]):
         q = indices[nz]
         total += data[nz] * (x[q] + csr_row_dot(P_indptr, P_indices, P_data, c, q))
     r_new = b[row] - total
-    d_new = first[row] * r_new
+    d_new = (first[row] / theta) * r_new
     r_out[row] = r_new
     d_out[row] = d_new
     x_out[row] = (x[row] + csr_row_dot(P_indptr, P_indices, P_data, c, row)) + d_new
@@ -423,8 +427,8 @@ def prolong_restart(indptr, indices, data, P_indptr, P_indices, P_data, b, x, c,
     ``y = x + P c`` (formed where it is read) for CSR matrices A (N, N) and P (N, n) given by
     their arrays, ``r_out = b - A y``, ``d_out = first r_out``, ``x_out = y + d_out`` (N,) each."""
     for row in numba.prange(b.shape[0]):
-        prolong_restart_row(indptr, indices, data, P_indptr, P_indices, P_data, b, x, c, first, r_out, d_out, x_out,
-                            row)
+        prolong_restart_row(indptr, indices, data, P_indptr, P_indices, P_data, b, x, c, first, 1.0, r_out, d_out,
+                            x_out, row)
 
 
 #: Slots of the preconditioned CG's state (float64 (CG_STATE,), on the device with the vectors:
@@ -439,6 +443,9 @@ CG_STATE = 12
 CG_START, CG_SCALARS, CG_UPDATE = range(3)
 #: Blocks of the GPU's CG passes at most (grid-stride loops; the rows of their partial sums)
 REDUCTION_BLOCKS = 256
+#: Blocks of the GPU's cooperative :func:`multigrid_cg` at most (the rows of its partial sums):
+#: fewer where the device holds fewer at once (a grid that syncs must be resident as a whole)
+COOPERATIVE_BLOCKS = 1024
 
 
 @numba.njit(inline="always")
@@ -541,6 +548,248 @@ def cg_update(z, w, p, s, x, r, state, partial, counter) -> None:
     """CG's step in place: p = z + beta p, s = w + beta s (= A p), x += alpha p, r -= alpha s,
     then rr = r.r and the progress (:func:`cg_finish`)."""
     cg_pass(CG_UPDATE, counter, counter, state, False, False, z, z, w, p, s, x, r, 0.0, state, partial, counter)
+
+
+#: The multigrid V-cycle and CG in one launch (:func:`multigrid_cg`). Its hierarchy's layout, a
+#: tuple of :data:`MG_FIELDS` ints per level (:data:`MG_MAX_LEVELS` levels, the coarsest
+#: included; unused levels zero): the level's offset in the vector workspace and its unknowns,
+#: then the offsets of its operator A (not read on level 0: the system's own matrix), of its
+#: prolongation P and of its restriction R in the packed CSR arrays: indptr offset, data offset
+#: each (every level's indptr counts from 0 in its own data).
+MG_VEC, MG_N, MG_A_PTR, MG_A_NZ, MG_P_PTR, MG_P_NZ, MG_R_PTR, MG_R_NZ = range(8)
+MG_FIELDS = 8
+MG_MAX_LEVELS = 12
+#: rows of :func:`multigrid_cg`'s vector workspace (6, unknowns of all levels): per level the
+#: right-hand side (level 0: CG's residual r), the smoother's result before the coarse
+#: correction, its result after it (level 0: CG's z), the smoother's residual and two direction
+#: buffers (a step reads the last direction at the neighbours and writes the other)
+MG_B, MG_X, MG_XU, MG_RES, MG_D0, MG_D1 = range(6)
+MG_ROWS = 6
+
+
+@numba.njit(inline="always")
+def grid_barrier():  # pragma: no cover - compiled
+    """Where :func:`multigrid_cg_steps` waits for every thread of its launch: nothing on the host
+    (one thread); the grid's sync in the CUDA kernel (:mod:`.cuda_kernels` puts it here)."""
+    return
+
+
+@numba.njit(inline="always")
+def grid_sum2(first, second, partial, slot):  # pragma: no cover - compiled
+    """Two sums over every thread of the launch: on the host (one thread) the terms themselves;
+    the CUDA kernel's sums the blocks' shares through ``partial[:, slot:slot + 2]`` in a fixed
+    order, the same totals in every thread (:mod:`.cuda_kernels`)."""
+    return first, second
+
+
+@numba.njit(inline="always")
+def _mg_vector(work, which, layout, k):  # pragma: no cover - compiled
+    """Row ``which`` of the workspace on level k's unknowns."""
+    offset = layout[MG_FIELDS * k + MG_VEC]
+    return work[which, offset:offset + layout[MG_FIELDS * k + MG_N]]
+
+
+@numba.njit(inline="always")
+def _mg_csr(indptr, indices, data, layout, k, field, rows):  # pragma: no cover - compiled
+    """Level k's CSR matrix of ``rows`` rows in packed arrays (its offsets at ``field``)."""
+    start, nz = layout[MG_FIELDS * k + field], layout[MG_FIELDS * k + field + 1]
+    return indptr[start:start + rows + 1], indices[nz:], data[nz:]
+
+
+@numba.njit
+def multigrid_cycle(m_indptr, m_indices, m_data, a_indptr, a_indices, a_data, p_indptr, p_indices, p_data, r_indptr,
+                    r_indices, r_data, inv_diag, coarse_inverse, coarse_partial, work, layout, levels, cheb, start,
+                    stride):  # pragma: no cover - compiled
+    """The V-cycle of :class:`.krylov.Multigrid` (Chebyshev smoothers) on level 0's right-hand
+    side ``work[MG_B]`` into ``work[MG_XU]`` (level 0's slices), the rows of each pass taken
+    ``start, start + stride, ...`` by this thread, every pass followed by :func:`grid_barrier`.
+    cheb: (theta, scale_1, factor_1, ..., scale_{s-1}, factor_{s-1}) of an s-step smoother on
+    (D^-1 / bound) A (:class:`.krylov.ChebyshevSmoother`: its first step ``inv_diag / theta``,
+    step j's diagonal ``factor_j inv_diag``); coarse_inverse (n, n) symmetric, coarse_partial
+    (segments, n) scratch of its product."""
+    steps = (len(cheb) + 1) // 2
+    theta = cheb[0]
+    for k in range(levels):  # down: smooth from zero, restrict the residual
+        n = layout[MG_FIELDS * k + MG_N]
+        if k == 0:
+            indptr, indices, data = m_indptr, m_indices, m_data
+        else:
+            indptr, indices, data = _mg_csr(a_indptr, a_indices, a_data, layout, k, MG_A_PTR, n)
+        offset = layout[MG_FIELDS * k + MG_VEC]
+        diagonal = inv_diag[offset:offset + n]
+        b, x = _mg_vector(work, MG_B, layout, k), _mg_vector(work, MG_X, layout, k)
+        r = _mg_vector(work, MG_RES, layout, k)
+        d0, d1 = _mg_vector(work, MG_D0, layout, k), _mg_vector(work, MG_D1, layout, k)
+        if steps == 1:
+            for row in range(start, n, stride):
+                x[row] = (diagonal[row] / theta) * b[row]
+        else:
+            for row in range(start, n, stride):
+                chebyshev_start_row(indptr, indices, data, b, diagonal, theta, cheb[1], diagonal, cheb[2], r, d1, x,
+                                    row)
+        grid_barrier()
+        for j in range(2, steps):
+            d, d_out = (d1, d0) if j % 2 == 0 else (d0, d1)
+            for row in range(start, n, stride):
+                chebyshev_row(indptr, indices, data, r, d, d, cheb[2 * j - 1], diagonal, cheb[2 * j], x, r, d_out, x,
+                              row)
+            grid_barrier()
+        R_indptr, R_indices, R_data = _mg_csr(r_indptr, r_indices, r_data, layout, k, MG_R_PTR,
+                                              layout[MG_FIELDS * (k + 1) + MG_N])
+        coarse = _mg_vector(work, MG_B, layout, k + 1)
+        for row in range(start, coarse.shape[0], stride):
+            restrict_residual_row(R_indptr, R_indices, R_data, indptr, indices, data, b, x, coarse, row)
+        grid_barrier()
+    # the coarsest level: its dense inverse's product, by column segments (the inverse is
+    # symmetric: thread i reads column i, neighbouring threads neighbouring memory), then their sum
+    b, out = _mg_vector(work, MG_B, layout, levels), _mg_vector(work, MG_XU, layout, levels)
+    n = b.shape[0]
+    segments = coarse_partial.shape[0]
+    length = -(-n // segments)
+    for item in range(start, segments * n, stride):
+        segment, i = item // n, item % n
+        total = 0.0
+        for j in range(segment * length, min(n, (segment + 1) * length)):
+            total += coarse_inverse[j, i] * b[j]
+        coarse_partial[segment, i] = total
+    grid_barrier()
+    for i in range(start, n, stride):
+        total = 0.0
+        for segment in range(segments):
+            total += coarse_partial[segment, i]
+        out[i] = total
+    grid_barrier()
+    for k in range(levels - 1, -1, -1):  # up: correct from the coarse level, smooth again
+        n = layout[MG_FIELDS * k + MG_N]
+        if k == 0:
+            indptr, indices, data = m_indptr, m_indices, m_data
+        else:
+            indptr, indices, data = _mg_csr(a_indptr, a_indices, a_data, layout, k, MG_A_PTR, n)
+        offset = layout[MG_FIELDS * k + MG_VEC]
+        diagonal = inv_diag[offset:offset + n]
+        P_indptr, P_indices, P_data = _mg_csr(p_indptr, p_indices, p_data, layout, k, MG_P_PTR, n)
+        b, x = _mg_vector(work, MG_B, layout, k), _mg_vector(work, MG_X, layout, k)
+        xu, r = _mg_vector(work, MG_XU, layout, k), _mg_vector(work, MG_RES, layout, k)
+        d0, d1 = _mg_vector(work, MG_D0, layout, k), _mg_vector(work, MG_D1, layout, k)
+        c = _mg_vector(work, MG_XU, layout, k + 1)
+        for row in range(start, n, stride):
+            prolong_restart_row(indptr, indices, data, P_indptr, P_indices, P_data, b, x, c, diagonal, theta, r, d0, xu,
+                                row)
+        grid_barrier()
+        for j in range(1, steps):
+            d, d_out = (d0, d1) if j % 2 == 1 else (d1, d0)
+            for row in range(start, n, stride):
+                chebyshev_row(indptr, indices, data, r, d, d, cheb[2 * j - 1], diagonal, cheb[2 * j], xu, r, d_out, xu,
+                              row)
+            grid_barrier()
+
+
+#: Rows per chunk of :func:`low_rank_product`'s partial sums
+LOW_RANK_CHUNK = 256
+
+
+@numba.njit(inline="always")
+def low_rank_product(u_t, z, t_partial, t, start, stride):  # pragma: no cover - compiled
+    """``t = U^T z`` (K,) for u_t = U^T (K, N) C-ordered, z (N,), by the launch's threads: item
+    (chunk c, column j) sums rows c :data:`LOW_RANK_CHUNK` ... of column j into
+    ``t_partial[c, j]`` (t_partial (chunks, K)), then each t[j] its chunks in order; each pass
+    followed by :func:`grid_barrier`."""
+    K, N = u_t.shape
+    chunks = t_partial.shape[0]
+    for item in range(start, chunks * K, stride):
+        c, j = item // K, item % K
+        total = 0.0
+        for i in range(c * LOW_RANK_CHUNK, min(N, (c + 1) * LOW_RANK_CHUNK)):
+            total += u_t[j, i] * z[i]
+        t_partial[c, j] = total
+    grid_barrier()
+    for j in range(start, K, stride):
+        total = 0.0
+        for c in range(chunks):
+            total += t_partial[c, j]
+        t[j] = total
+    grid_barrier()
+
+
+@numba.njit
+def multigrid_cg_steps(n_steps, cycle_first, with_matrix, m_indptr, m_indices, m_data, a_indptr, a_indices, a_data,
+                       p_indptr, p_indices, p_data, r_indptr, r_indices, r_data, inv_diag, coarse_inverse,
+                       coarse_partial, work, x, p, s, w, u_t, coupled, t_partial, t, layout, levels, cheb, state,
+                       partial, local, start, stride):  # pragma: no cover - compiled
+    """:func:`multigrid_cg` by one thread of ``start, start + stride, ...`` rows, its scalars in
+    ``local`` (:data:`CG_STATE`, each thread's copy of the state: every thread sums the same
+    partial sums in the same order, so all hold the same; the thread of ``start`` 0 writes them
+    back)."""
+    for k in range(CG_STATE):
+        local[k] = state[k]
+    if local[CG_ACTIVE] == 0.0:  # every thread read the state before any writes it (after a barrier)
+        return
+    n = x.shape[0]
+    r, z = work[MG_B, :n], work[MG_XU, :n]
+    if cycle_first:
+        multigrid_cycle(m_indptr, m_indices, m_data, a_indptr, a_indices, a_data, p_indptr, p_indices, p_data,
+                        r_indptr, r_indices, r_data, inv_diag, coarse_inverse, coarse_partial, work, layout, levels,
+                        cheb, start, stride)
+    low_rank = with_matrix and u_t.shape[0] > 0
+    for _ in range(n_steps):
+        if low_rank:  # t = U^T z: the rows' partial sums by chunks, then the chunks' sums
+            low_rank_product(u_t, z, t_partial, t, start, stride)
+        first = second = 0.0
+        for row in range(start, n, stride):
+            if low_rank:  # w = C t + M z, added as krylov.multiply_add adds them
+                total = 0.0
+                for j in range(t.shape[0]):
+                    total += coupled[row, j] * t[j]
+                w[row] = total + 1.0 * csr_row_dot(m_indptr, m_indices, m_data, z, row)
+            a, b = cg_row(CG_SCALARS, m_indptr, m_indices, m_data, with_matrix and not low_rank, False, z, z, w, p, s,
+                          x, r, 0.0, 0.0, row)
+            first += a
+            second += b
+        first, second = grid_sum2(first, second, partial, 0)
+        cg_finish(CG_SCALARS, local, first, second, 0.0)
+        alpha, beta = local[CG_ALPHA], local[CG_BETA]
+        first = 0.0
+        for row in range(start, n, stride):
+            a, b = cg_row(CG_UPDATE, m_indptr, m_indices, m_data, False, False, z, z, w, p, s, x, r, alpha, beta, row)
+            first += a
+        first, second = grid_sum2(first, 0.0, partial, 2)
+        cg_finish(CG_UPDATE, local, first, 0.0, 0.0)
+        if start == 0:
+            for k in range(CG_STATE):
+                state[k] = local[k]
+        if local[CG_ACTIVE] == 0.0:
+            return
+        multigrid_cycle(m_indptr, m_indices, m_data, a_indptr, a_indices, a_data, p_indptr, p_indices, p_data,
+                        r_indptr, r_indices, r_data, inv_diag, coarse_inverse, coarse_partial, work, layout, levels,
+                        cheb, start, stride)
+
+
+@numba.njit(cache=True)
+def multigrid_cg(n_steps, cycle_first, with_matrix, m_indptr, m_indices, m_data, a_indptr, a_indices, a_data, p_indptr,
+                 p_indices, p_data, r_indptr, r_indices, r_data, inv_diag, coarse_inverse, coarse_partial, work, x, p,
+                 s, w, u_t, coupled, t_partial, t, layout, levels, cheb, state, partial):  # pragma: no cover - compiled
+    """Up to ``n_steps`` iterations of multigrid-preconditioned CG (:func:`.krylov.pcg` with a
+    :class:`.krylov.Multigrid` of Chebyshev smoothers) in one launch: per iteration the dot
+    products (:func:`cg_row`: w = A z where ``with_matrix``, else w given), the
+    step (x, r, p, s in place) and, while CG goes on, the V-cycle z = M r (:func:`multigrid_cycle`)
+    for the next; first the V-cycle alone where ``cycle_first``; nothing once CG is inactive.
+
+    m_*: CSR arrays of the system's sparse matrix (the hierarchy's level 0, and CG's A where
+    ``with_matrix``); a_*, p_*, r_*: the coarser levels' operators and every level's
+    prolongation and restriction, packed (``layout``, :data:`MG_FIELDS`), ``levels`` levels above
+    the coarsest; inv_diag: every level's D^-1 / bound, packed like the vectors; work
+    (:data:`MG_ROWS`, unknowns of all levels): r and z are level 0's rows :data:`MG_B` and
+    :data:`MG_XU`; x, p, s, w (N,); u_t (K, N), coupled (N, K): with K > 0, A is the Schur
+    complement ``M + coupled U^T`` (:meth:`.normal_equations.JointSystem.schur_operator`,
+    coupled = -U H^-1), its product formed here too where ``with_matrix``
+    (:func:`low_rank_product`; t_partial (chunks, K), t (K,) its scratch); state
+    (:data:`CG_STATE`) after :func:`cg_start`; partial
+    (blocks, 4): the CUDA kernel's scratch. Another operator's case launches ``n_steps`` 0 (the
+    first cycle), then 1 per iteration (with w = A z given)."""
+    multigrid_cg_steps(n_steps, cycle_first, with_matrix, m_indptr, m_indices, m_data, a_indptr, a_indices, a_data,
+                       p_indptr, p_indices, p_data, r_indptr, r_indices, r_data, inv_diag, coarse_inverse,
+                       coarse_partial, work, x, p, s, w, u_t, coupled, t_partial, t, layout, levels, cheb, state,
+                       partial, np.empty(CG_STATE), 0, 1)
 
 
 @numba.njit(inline="always")

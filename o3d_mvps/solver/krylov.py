@@ -27,7 +27,9 @@ import numpy as np
 
 from ..model.arrays import array_module, fused, sparse_module
 from .device import kernels_for
-from .kernels import CG_RR, CG_RR_OLD, CG_RR_START, CG_STATE, CG_STATUS, CG_THRESHOLD, REDUCTION_BLOCKS
+from .kernels import (COOPERATIVE_BLOCKS, CG_RR, CG_RR_OLD, CG_RR_START, CG_STATE, CG_STATUS, CG_THRESHOLD,
+                      LOW_RANK_CHUNK, MG_A_PTR, MG_B, MG_FIELDS, MG_MAX_LEVELS, MG_N, MG_P_PTR, MG_R_PTR, MG_ROWS,
+                      MG_VEC, MG_XU, REDUCTION_BLOCKS)
 
 #: Multigrid: the hierarchy ends at a level of at most this many unknowns, solved there by a
 #: dense inverse (one matrix-vector product). pyamg's ``max_coarse`` on the CPU
@@ -76,19 +78,33 @@ def pcg(A, b, x0, rtol: float, maxiter: int, preconditioner: Callable | None = N
     then after :data:`READ_MARGIN` times as many more as the residual's reduction so far says
     are left (:func:`_iterations_left`), the solve's last read: where CG has not converged by
     then, it returns unconverged (as at ``maxiter``, which no read passes).
+
+    On a device with a :class:`Multigrid` packed for one kernel (:attr:`Multigrid.packed`) the
+    V-cycles and CG's passes run in :func:`.kernels.multigrid_cg` (:func:`_pcg_multigrid`):
+    every iteration up to a read in one launch, where A is the hierarchy's own CSR matrix or an
+    operator that names its parts (``low_rank_parts``: the Schur complement).
     """
     xp = array_module(b)
     kernels = kernels_for(b)
     on_host = xp is np
+    packed = None if on_host else getattr(preconditioner, "packed", None)
     state = xp.empty(CG_STATE)
     partial = xp.empty((REDUCTION_BLOCKS, 2))
     counter = xp.zeros(1, dtype=np.int32)
     p, s = xp.empty_like(b), xp.empty_like(b)
-    if x0 is None:
+    if packed is not None:  # r and z in the V-cycle's workspace: its level 0's right-hand side and result
+        work = xp.empty((MG_ROWS, packed.unknowns))
+        r, z = work[MG_B, :b.shape[0]], work[MG_XU, :b.shape[0]]
+        x = xp.empty_like(b)
+    elif x0 is None:
         x, r = xp.empty_like(b), xp.empty_like(b)
-    else:
+    if x0 is not None:
         x = _zero_if(xp.dot(b, b), x0.astype(b.dtype))  # b = 0: x = 0, as on the host
-        r = b - A @ x
+        residual = b - A @ x
+        if packed is None:
+            r = residual
+        else:
+            r[...] = residual
     kernels.cg_start(b, x, r, p, s, x0 is None, rtol * rtol, state, partial, counter)
     # a CSR matrix (CuPy's have no format attribute): w = A z in the pass of the dot products
     matrix = getattr(A, "indptr", None) is not None and getattr(A, "format", "csr") == "csr"
@@ -96,6 +112,8 @@ def pcg(A, b, x0, rtol: float, maxiter: int, preconditioner: Callable | None = N
     w = xp.empty_like(b) if matrix else None
     next_check, reads = max(1, min(first_check, maxiter)), 0
     code = None
+    if packed is not None:
+        return _pcg_multigrid(A, matrix, x, p, s, w, work, state, packed, maxiter, next_check, check_every)
     for iteration in range(1, maxiter + 1):
         z = r if preconditioner is None else preconditioner(r)
         if not matrix:
@@ -107,9 +125,70 @@ def pcg(A, b, x0, rtol: float, maxiter: int, preconditioner: Callable | None = N
             reads += 1
             if not code & 2 or (not on_host and reads == MAX_READS):
                 break
-            left = _iterations_left(rr, rr_previous, rr_start, threshold, code >> 2)
-            left = max(check_every, 2 * iteration) if left is None else int(np.ceil(READ_MARGIN * left)) + 1
-            next_check = min(maxiter, iteration + left)
+            next_check = min(maxiter, iteration + _checks_apart(rr, rr_previous, rr_start, threshold, code, iteration,
+                                                                check_every))
+    if code is None:  # maxiter 0
+        code = _read_state(state)[0]
+    return x, code >> 2, bool(code & 1)
+
+
+def _checks_apart(rr: float, rr_previous: float, rr_start: float, threshold: float, code: int, iteration: int,
+                  check_every: int) -> int:
+    """Iterations from a read of CG's state after ``iteration`` to the next (and last) on a device:
+    :data:`READ_MARGIN` times the iterations foreseen left (:func:`_iterations_left`), plus one,
+    or ``max(check_every, 2 iteration)`` where they cannot be foreseen."""
+    left = _iterations_left(rr, rr_previous, rr_start, threshold, code >> 2)
+    return max(check_every, 2 * iteration) if left is None else int(np.ceil(READ_MARGIN * left)) + 1
+
+
+def _pcg_multigrid(A, matrix: bool, x, p, s, w, work, state, packed, maxiter: int, next_check: int, check_every: int):
+    """:func:`pcg`'s iterations on a device with a packed multigrid (:attr:`Multigrid.packed`):
+    where A is the hierarchy's own CSR matrix M, or ``M + C U^T`` (an operator with
+    ``low_rank_parts`` (M, C (N, K), U^T (K, N)): the joint step's Schur complement), all
+    iterations up to a read of the state in one launch of :func:`.kernels.multigrid_cg` (the
+    V-cycles, products, dot products and steps), else per iteration the operator's product and
+    one launch (the dot products and step, then the next V-cycle); the same reads as
+    :func:`pcg`'s. Returns (x, iterations, converged)."""
+    xp = array_module(x)
+    kernels = kernels_for(x)
+    partial = xp.empty((COOPERATIVE_BLOCKS, 4))
+    z = work[MG_XU, :x.shape[0]]
+    M = packed.source
+    parts = getattr(A, "low_rank_parts", None)
+    # CG's product in the kernel where A is the hierarchy's own matrix, or M + C U^T with M that matrix
+    low_rank = not matrix and parts is not None and parts[0] is M
+    matrix = (matrix and A is M) or low_rank
+    csr = (M.indptr, M.indices, M.data)
+    if low_rank:
+        u_t, coupled = parts[2], parts[1]
+        t_partial, t = xp.empty((-(-x.shape[0] // LOW_RANK_CHUNK), u_t.shape[0])), xp.empty(u_t.shape[0])
+    else:
+        u_t = coupled = t_partial = xp.empty((0, 0))
+        t = xp.empty(0)
+
+    def launch(n_steps: int, cycle_first: bool, w):
+        kernels.multigrid_cg(n_steps, cycle_first, matrix, *csr, *packed.arrays, work, x, p, s, w, u_t, coupled,
+                             t_partial, t, packed.layout, packed.levels, packed.cheb, state, partial)
+
+    iteration, reads, code = 0, 0, None
+    w = xp.empty_like(x) if w is None else w
+    if not matrix:
+        launch(0, True, x)  # the first cycle, z from r (w unread)
+    while iteration < maxiter:
+        if matrix:
+            launch(next_check - iteration, iteration == 0, w)
+            iteration = next_check
+        else:
+            iteration += 1
+            launch(1, False, A @ z)
+            if iteration < next_check:
+                continue
+        code, rr, rr_previous, rr_start, threshold = _read_state(state)
+        reads += 1
+        if not code & 2 or reads == MAX_READS:
+            break
+        next_check = min(maxiter, iteration + _checks_apart(rr, rr_previous, rr_start, threshold, code, iteration,
+                                                            check_every))
     if code is None:  # maxiter 0
         code = _read_state(state)[0]
     return x, code >> 2, bool(code & 1)
@@ -199,6 +278,22 @@ def _jacobi_sweep(x, scaled, b, Ax):
     return x + scaled * (b - Ax)
 
 
+def chebyshev_scalars(lower: float, upper: float, steps: int) -> tuple[float, list, list]:
+    """The scalars of ``steps`` Chebyshev steps for the spectrum of D^-1 A in [lower, upper]
+    (Saad, algorithm 12.1): (theta, scales, factors): the first step ``x = d = D^-1 b / theta``,
+    step j (j = 1 .. steps - 1) ``d = scales[j-1] d + factors[j-1] D^-1 r``."""
+    theta, delta = (upper + lower) / 2, (upper - lower) / 2
+    sigma = theta / delta
+    rho = 1.0 / sigma
+    scales, factors = [], []
+    for _ in range(steps - 1):
+        rho_next = 1.0 / (2.0 * sigma - rho)
+        scales.append(rho_next * rho)
+        factors.append(2.0 * rho_next / delta)
+        rho = rho_next
+    return theta, scales, factors
+
+
 @dataclass
 class ChebyshevSmoother:
     """``steps`` steps of the Chebyshev iteration on A (N, N) sparse SPD, preconditioned by its
@@ -214,18 +309,19 @@ class ChebyshevSmoother:
     steps: int
 
     def __post_init__(self):
-        # the iteration's scalars do not depend on b: its diagonal scalings are formed once, so
+        # the iteration's scalars do not depend on b: its diagonal scalings are formed once (at
+        # the first call: the packed V-cycle of a GPU, :attr:`Multigrid.packed`, needs none), so
         # that a step is a product and four vector operations (a GPU's cost is per operation)
-        theta, delta = (self.upper + self.lower) / 2, (self.upper - self.lower) / 2
-        sigma = theta / delta
-        rho = 1.0 / sigma
-        self._first = self.inv_diag / theta
-        self._scales, self._diagonals = [], []
-        for _ in range(self.steps - 1):
-            rho_next = 1.0 / (2.0 * sigma - rho)
-            self._scales.append(rho_next * rho)
-            self._diagonals.append((2.0 * rho_next / delta) * self.inv_diag)
-            rho = rho_next
+        self.theta, self.scales, self.factors = chebyshev_scalars(self.lower, self.upper, self.steps)
+        self._first = None
+
+    def _scalings(self):
+        """(first, scales, diagonals): the first step's D^-1 / theta and each later step's
+        scale and factor D^-1 (formed at the first call)."""
+        if self._first is None:
+            self._first = self.inv_diag / self.theta
+            self._diagonals = [factor * self.inv_diag for factor in self.factors]
+        return self._first, self.scales, self._diagonals
 
     def __call__(self, b, x=None, correction=None):
         """x (N,) after the steps on right-hand side b (N,), from x (N,) or zero (a new array:
@@ -234,18 +330,18 @@ class ChebyshevSmoother:
         updates in one pass); on a GPU the first two from zero are one
         (:func:`.kernels.chebyshev_start`), and so are the correction and the restart
         (:func:`.kernels.prolong_restart`)."""
-        scales, diagonals = self._scales, self._diagonals
+        first, scales, diagonals = self._scalings()
         if x is not None and correction is not None:
             P, c = correction
-            r, d, x = _prolong_restart(self.A, P, b, x, c, self._first)
+            r, d, x = _prolong_restart(self.A, P, b, x, c, first)
         elif x is not None:  # the restart: r = b - A x, d = first r, x + d
-            r, d, x = _chebyshev_update(self.A, b, x, x, 0.0, self._first, x)
+            r, d, x = _chebyshev_update(self.A, b, x, x, 0.0, first, x)
         elif scales and array_module(b) is not np:  # d = x = first b and the next step in one kernel
-            r, d, x = _chebyshev_start(self.A, b, self._first, scales[0], diagonals[0])
+            r, d, x = _chebyshev_start(self.A, b, first, scales[0], diagonals[0])
             scales, diagonals = scales[1:], diagonals[1:]
         else:
             r = b
-            d = x = self._first * r
+            d = x = first * r
         for scale, diagonal in zip(scales, diagonals):
             r, d, x = _chebyshev_update(self.A, r, d, d, scale, diagonal, x)
         return x
@@ -385,12 +481,93 @@ class MultigridLevel:
 
 
 @dataclass
+class PackedHierarchy:
+    """A :class:`Multigrid` of Chebyshev smoothers as :func:`.kernels.multigrid_cg` takes it (one
+    launch for a whole V-cycle): source, level 0's operator (sparse CSR); arrays, the
+    coarser levels' operators and every level's prolongation and restriction (CSR arrays each,
+    concatenated), every level's D^-1 / bound (concatenated), the coarsest level's inverse and
+    its product's scratch (segments, n); layout (:data:`.kernels.MG_FIELDS` ints per level, see
+    there), levels (above the coarsest), cheb (theta, then each later step's scale and factor:
+    :func:`chebyshev_scalars`), unknowns (of all levels: the workspace's columns)."""
+
+    source: object
+    arrays: tuple
+    layout: tuple
+    levels: int
+    cheb: tuple
+    unknowns: int
+
+
+#: Columns of the coarsest inverse per segment of its product in :func:`.kernels.multigrid_cycle`
+#: (a GPU's threads take a segment of a column each: 2000 unknowns, 63 segments, 126 000 threads)
+COARSE_SEGMENT = 32
+
+
+def pack_transfers(levels: list, xp) -> tuple:
+    """The prolongations and restrictions of a V-cycle's ``levels`` (:class:`MultigridLevel`)
+    packed as :func:`.kernels.multigrid_cg` takes them: (P indptr, indices, data, R indptr,
+    indices, data), each the levels' arrays end to end (:func:`pack_hierarchy`), arrays of
+    module ``xp``."""
+    return tuple(_joined(xp, [getattr(getattr(level, kind), name) for level in levels], dtype)
+                 for kind in ("P", "R") for name, dtype in (("indptr", np.int32), ("indices", np.int32),
+                                                             ("data", np.float64)))
+
+
+def pack_hierarchy(levels: list, coarse_inverse, steps: int, transfers: tuple | None = None) -> PackedHierarchy | None:
+    """The :class:`PackedHierarchy` of a V-cycle's ``levels`` (:class:`MultigridLevel`, Chebyshev
+    smoothers of ``steps`` steps on [CHEBYSHEV_LOWER_FRACTION, 1]) and its coarsest inverse (n, n)
+    on a device; None for more than :data:`.kernels.MG_MAX_LEVELS` levels. A list of one array is
+    that array itself, so the packing costs a concatenation per kind of array of two levels or more;
+    ``transfers``: the levels' :func:`pack_transfers` where kept (they depend on the grid alone)."""
+    if len(levels) + 1 > MG_MAX_LEVELS:
+        return None
+    xp = array_module(coarse_inverse)
+    sizes = [level.A.shape[0] for level in levels] + [coarse_inverse.shape[0]]
+    layout = [0] * (MG_FIELDS * MG_MAX_LEVELS)
+    offsets = dict.fromkeys(("vec", "A_ptr", "A_nz", "P_ptr", "P_nz", "R_ptr", "R_nz"), 0)
+    for k, n in enumerate(sizes):
+        base = MG_FIELDS * k
+        layout[base + MG_VEC], layout[base + MG_N] = offsets["vec"], n
+        offsets["vec"] += n
+        if k == len(levels):
+            break
+        level = levels[k]
+        for name, field, matrix in (("A", MG_A_PTR, level.A if k else None), ("P", MG_P_PTR, level.P),
+                                    ("R", MG_R_PTR, level.R)):
+            if matrix is not None:
+                layout[base + field], layout[base + field + 1] = offsets[f"{name}_ptr"], offsets[f"{name}_nz"]
+                offsets[f"{name}_ptr"] += matrix.shape[0] + 1
+                offsets[f"{name}_nz"] += matrix.data.size
+    theta, scales, factors = chebyshev_scalars(CHEBYSHEV_LOWER_FRACTION, 1.0, steps)
+    n_coarse = coarse_inverse.shape[0]
+    arrays = [_joined(xp, [getattr(level.A, name) for level in levels[1:]], dtype)
+              for name, dtype in (("indptr", np.int32), ("indices", np.int32), ("data", np.float64))]
+    arrays += pack_transfers(levels, xp) if transfers is None else transfers
+    arrays.append(_joined(xp, [level.smoother.inv_diag for level in levels], np.float64))
+    arrays += [coarse_inverse, xp.empty((-(-n_coarse // COARSE_SEGMENT), n_coarse))]
+    return PackedHierarchy(levels[0].A if levels else None, tuple(arrays), tuple(layout), len(levels),
+                           (theta, *(v for pair in zip(scales, factors) for v in pair)), offsets["vec"])
+
+
+def _joined(xp, parts: list, dtype):
+    """``parts`` (1-D arrays) end to end: an empty array of ``dtype`` for none, the array itself
+    for one."""
+    if not parts:
+        return xp.empty(0, dtype=dtype)
+    return parts[0] if len(parts) == 1 else xp.concatenate(parts)
+
+
+@dataclass
 class Multigrid:
     """A symmetric V-cycle: per level, the smoother from zero, the coarse correction of the
-    residual, the same smoother again; ``coarse_inverse`` (n, n) dense at the coarsest."""
+    residual, the same smoother again; ``coarse_inverse`` (n, n) dense at the coarsest.
+    ``packed``: on a device, with Chebyshev smoothers, the same cycle for
+    :func:`.kernels.multigrid_cg` (:func:`pack_hierarchy`; :func:`pcg` then runs the cycle and CG
+    in one launch), else None."""
 
     levels: list
     coarse_inverse: object
+    packed: PackedHierarchy | None = None
 
     def __call__(self, r):
         """The cycle applied to r (N,): z (N,)."""
@@ -429,7 +606,7 @@ def pixel_prolongations(u, v, stride: int = 2, max_coarse: int = MAX_COARSE) -> 
     system: 11 against 58). Under room light (large smoothness weight) stride 1 did better:
     1.12 against 1.25 times pyamg's (a 73k-pixel joint system: 20 against 33).
     """
-    prolongations = []
+    prolongations = Prolongations()
     while u.size > max_coarse:
         aggregate, cu, cv = pixel_aggregates(u, v, stride)
         if cu.size == u.size:
@@ -437,6 +614,15 @@ def pixel_prolongations(u, v, stride: int = 2, max_coarse: int = MAX_COARSE) -> 
         prolongations.append(tentative_prolongation(aggregate, cu.size))
         u, v = cu, cv
     return prolongations
+
+
+class Prolongations(list):
+    """:func:`pixel_prolongations`' list, with what depends on the grid alone, made at its first
+    use by :func:`multigrid_preconditioner` and kept for the next solves on the grid:
+    ``restrictions`` (R = P^T per level) and ``packed`` (:func:`pack_transfers`), else None."""
+
+    restrictions: list | None = None
+    packed: tuple | None = None
 
 
 def multigrid_preconditioner(A, prolongations: list, *, smoother: str = "chebyshev", smoothing_steps: int = 3,
@@ -458,14 +644,25 @@ def multigrid_preconditioner(A, prolongations: list, *, smoother: str = "chebysh
     """
     xp = array_module(A.diagonal())
     sparse = sparse_module(A)
+    kept = not smoothed_prolongation and isinstance(prolongations, Prolongations)  # R and their packing per grid
+    if kept and prolongations.restrictions is None:
+        prolongations.restrictions = [P.T.tocsr() for P in prolongations]
     levels = []
-    for P in prolongations:
+    for k, P in enumerate(prolongations):
         inv_diag = inverse_diagonal(A)
         upper = spectral_bound_array(A, inv_diag)  # on a device: not read back
         if smoothed_prolongation:
             P = (P - (4.0 / (3.0 * float(upper))) * (sparse.diags(inv_diag, format="csr") @ (A @ P))).tocsr()
-        R = P.T.tocsr()
+        R = prolongations.restrictions[k] if kept else P.T.tocsr()
         levels.append(MultigridLevel(A, make_smoother(A, inv_diag, upper, smoother, smoothing_steps), P, R))
         A = (R @ (A @ P)).tocsr()
     inverse = xp.linalg.inv(A.toarray())
-    return Multigrid(levels, (inverse + inverse.T) / 2)
+    inverse = (inverse + inverse.T) / 2
+    packed = None
+    if xp is not np and smoother == "chebyshev":
+        if kept and prolongations.packed is None:
+            prolongations.packed = pack_transfers(levels, xp)
+        packed = pack_hierarchy(levels, inverse, smoothing_steps, prolongations.packed if kept else None)
+        if packed is not None and packed.source is None:  # no level above the coarsest: the matrix itself
+            packed.source = A
+    return Multigrid(levels, inverse, packed)

@@ -68,7 +68,8 @@ class JointSystem:
         On the GPU, where the cost is per launch, ``-U H^-1`` (N, 6m) is formed once (one product,
         H^-1 copied over once; as much memory again as U): a product is then ``U^T x``, that
         times it, and ``M x`` added in one kernel (:func:`.krylov.multiply_add`), three launches
-        for five."""
+        for five; the operator's ``low_rank_parts`` (M, -U H^-1, U^T) let :func:`.krylov.pcg` form
+        the product inside its multigrid kernel instead (none of these launches)."""
         M, U = self.matrix, self.coupling
         if not self.frames:
             return linear_operator(M.shape, lambda x: M @ x.ravel(), self.rhs_z), self.rhs_z
@@ -80,7 +81,9 @@ class JointSystem:
                 return multiply_add(M, 1.0, x.ravel(), coupled @ (U.T @ x.ravel()))
 
             rhs = self.rhs_z + coupled @ like(self.rhs_xi, U)
-            return linear_operator(M.shape, schur_product, self.rhs_z), rhs
+            operator = linear_operator(M.shape, schur_product, self.rhs_z)
+            operator.low_rank_parts = (M, coupled, U.T)  # krylov.pcg forms the product in its kernel
+            return operator, rhs
 
         def solve_h(y):
             return like(scipy.linalg.cho_solve(factor, to_host(y)), self.rhs_z)
