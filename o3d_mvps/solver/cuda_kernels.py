@@ -15,7 +15,7 @@ per-pixel functions in :mod:`.kernels` or :mod:`o3d_mvps.model`, clear the cache
 
 Threads take adjacent pixels (the fastest-varying index of the per-pixel arrays), so that
 neighbouring threads read neighbouring memory. Reductions over pixels go to per-thread
-(:func:`accumulate_frame`) or per-block (:func:`log1p_square_sum`) partial sums added up
+(:func:`accumulate_frames`) or per-block (:func:`log1p_square_sum`) partial sums added up
 afterwards, never to one shared accumulator; float64 throughout, as on the CPU.
 """
 
@@ -101,35 +101,17 @@ def chunk_count(n_pixels: int) -> int:
     return _blocks(-(-n_pixels // PIXELS_PER_THREAD)) * THREADS_PER_BLOCK
 
 
-@cuda.jit(cache=True)
-def _accumulate_frame(r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, pose, K, image, dshading,
-                      albedo, with_jacobian, parallax, sums, e, rows, F, slot, gram, rhs):  # pragma: no cover - device
-    t_ = cuda.grid(1)
-    n_threads = rhs.shape[0]
-    if t_ >= n_threads:
-        return
-    J = cuda.local.array((3, 6), numba.float64)
-    G = cuda.local.array((6, 6), numba.float64)
-    b = cuda.local.array(6, numba.float64)
-    wqJ = cuda.local.array(6, numba.float64)
-    wcJ = cuda.local.array(6, numba.float64)
-    for j in range(6):
-        b[j] = 0.0
-        for k in range(6):
-            G[j, k] = 0.0
-    for p in range(t_, r.shape[0], n_threads):
-        _accumulate_pixel(p, r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, pose, K, image,
-                          dshading, albedo, with_jacobian, parallax, sums, e, rows, F, slot, J, G, b, wqJ, wcJ)
-    _store_partial_sums(G, b, gram, rhs, t_)
-
-
 def accumulate_frame(r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, pose, K, image, dshading,
                      albedo, with_jacobian, parallax, sums, e, rows, F, slot, gram, rhs) -> None:
     """:func:`.kernels.accumulate_frame` on the GPU, same arguments; gram (T, 6, 6) and rhs (T, 6)
-    get one row per thread, T = :func:`chunk_count` (N)."""
-    _accumulate_frame[_blocks(rhs.shape[0]), THREADS_PER_BLOCK](
-        r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, pose, K, image, dshading, albedo,
-        with_jacobian, parallax, sums, e, rows, F, slot, gram, rhs)
+    get one row per thread, T = :func:`chunk_count` (N). One frame through
+    :func:`_accumulate_frames` (its arrays as views with a leading axis of one, its Jacobian flag
+    and slot in a (1, 2) array, the partial sums in that one row): one kernel for both."""
+    frame_slots = np.array([[1 if with_jacobian else 0, slot]], dtype=np.int64)
+    _accumulate_frames[_blocks(rhs.shape[0]), THREADS_PER_BLOCK](
+        r[None], shading[None], use[None], inv_lam, q, alpha[None], beta[None], gamma[None], extra_c, points_ref,
+        pose[None], K, image[None], dshading[None], albedo, frame_slots, parallax, sums, e, rows, F, gram[None],
+        rhs[None])
 
 
 @cuda.jit(cache=True)
@@ -159,15 +141,16 @@ def _accumulate_frames(residual, shading, usable, inv_lam, q, alpha, beta, gamma
             _accumulate_pixel(p, r, shading_i, use, inv_lam, q, alpha_i, beta_i, gamma_i, extra, points_ref, pose, K,
                               image, dshading_i, albedo, with_jacobian, parallax, sums, e, rows, F, slot, J, G, b, wqJ,
                               wcJ)
-        row = slot if slot >= 0 else others
+        row = others if slot < 0 else min(slot, others)  # accumulate_frame: one row for its one frame
         _store_partial_sums(G, b, gram[row], rhs[row], t_)
 
 
 def accumulate_frames(residual, shading, usable, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, poses, K, images,
                       dshading, albedo, frame_slots, parallax, sums, e, rows, F, gram, rhs) -> None:
     """:func:`.kernels.accumulate_frames` on the GPU, same arguments: every frame in one launch,
-    each thread taking its pixels (as :func:`accumulate_frame`'s) through the frames in order;
-    gram (m + 1, T, 6, 6) and rhs (m + 1, T, 6), T = :func:`chunk_count` (N)."""
+    each thread taking its pixels (thread t: pixels t, t + T, t + 2T, ...) through the frames in
+    order; gram (m + 1, T, 6, 6) and rhs (m + 1, T, 6), T = :func:`chunk_count` (N) (a slot past
+    the last row writes into the last row: :func:`accumulate_frame`'s one)."""
     _accumulate_frames[_blocks(rhs.shape[1]), THREADS_PER_BLOCK](
         residual, shading, usable, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, poses, K, images, dshading,
         albedo, frame_slots, parallax, sums, e, rows, F, gram, rhs)
