@@ -388,3 +388,62 @@ def test_cg_passes_stop_at_convergence_and_idle_after():
         np.testing.assert_array_equal(x, after_one[0])
         np.testing.assert_array_equal(state, after_one[1])
         assert_close(x, b / A.diagonal())
+
+
+def test_ridge_solves_match_numpy_and_cpu():
+    """The batched small SPD solves (one thread per system on a GPU): each system equals NumPy's
+    solve of ``A + ridge trace(A) I``; a zero, a non-finite and an indefinite system are not
+    solved (NaN, solved 0), and with a fallback a semidefinite one takes its diagonal shift."""
+    k, ridge = 6, 1e-9
+    M = RNG.normal(size=(5, k, k))
+    A = M @ M.transpose(0, 2, 1)
+    A[2], A[3] = 0.0, np.nan
+    A[4] = np.diag([1.0, -1.0, 1.0, 1.0, 1.0, 1.0])
+    B = RNG.normal(size=(5, k, 2))
+    cpu, gpu = run_both("ridge_solves", A, B, ridge, 0.0, np.zeros_like(A), np.zeros_like(B), np.zeros(5))
+    for i in (0, 1):
+        expected = np.linalg.solve(A[i] + ridge * np.trace(A[i]) * np.eye(k), B[i])
+        assert_close(cpu[5][i], expected, rtol=1e-10)
+    np.testing.assert_array_equal(cpu[6], [1.0, 1.0, 0.0, 0.0, 0.0])
+    assert np.isnan(cpu[5][2:]).all()
+    np.testing.assert_array_equal(gpu[6], cpu[6])
+    assert_close(gpu[5][:2], cpu[5][:2])
+    assert np.isnan(gpu[5][2:]).all()
+    # semidefinite: not positive definite without a ridge, solved with the fallback shift 1e-6 max|diag|
+    S = np.diag([4.0, 0.0, 1.0])[None]
+    _, (_, _, _, _, _, X, solved) = run_both("ridge_solves", S, np.ones((1, 3, 1)), 0.0, 1e-6, np.zeros_like(S),
+                                            np.zeros((1, 3, 1)), np.zeros(1))
+    assert solved[0] == 1.0
+    assert_close(X[0, :, 0], 1.0 / (np.diag(S[0]) + 4e-6))
+
+
+def test_led_trial_sums_match_the_formula_and_cpu():
+    """Every trial LED position's data terms in one pass: the rows of the partial sums add up to
+    ``sum log(1 + (r / lam)^2)`` of the residuals ``I - rho (l_0 + l_1 max(0, <n, v>))`` over
+    usable pixels (float32 logarithms, as the GPU's energy), CPU and CUDA alike."""
+    n, N, K = 3, N_PIXELS, 4
+    normals = RNG.normal(size=(N, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    points = RNG.normal(size=(N, 3)) * 0.1 + [0.0, 0.0, 0.6]
+    positions = RNG.normal(size=(K, n, 3)) * 0.05
+    color = RNG.random((n, N, 3)).astype(np.float32)
+    usable = RNG.random((n, N)) > 0.2
+    albedo, lights = RNG.random((N, 3)), np.abs(RNG.normal(size=(n, 2))) * [0.2, 0.3]
+    args = (color, usable, albedo, normals, points, positions, lights, 1.0 / LAM)
+    for single in (False, True):
+        cpu = np.zeros((K, kernels.trial_blocks(n, N)))
+        gpu = np.zeros((K, cuda_kernels.trial_blocks(n, N)))
+        kernels.led_trial_sums(*args, single, cpu)
+        cuda_kernels.led_trial_sums(*args, single, gpu)
+        for k in range(K):
+            d = positions[k][:, None, :] - points  # (n, N, 3)
+            r2 = (d * d).sum(axis=-1)
+            basis = np.maximum((normals * d).sum(axis=-1) / (r2 * np.sqrt(r2)), 0.0)
+            residual = color - albedo * (lights[:, :1] + basis * lights[:, 1:])[..., None]
+            if single:
+                residual = residual.astype(np.float32)
+            y = (residual[usable] / LAM).astype(np.float32)
+            expected = np.log(np.float32(1.0) + y * y).astype(np.float64).sum()
+            assert_close(cpu[k].sum(), expected, rtol=1e-6)
+        # the simulator takes Python's float64 logarithm of each float32 term: ~1e-9 of the sums
+        assert_close(gpu.sum(axis=1), cpu.sum(axis=1), rtol=1e-8)

@@ -36,7 +36,7 @@ __all__ = ["chunk_count", "accumulate_frame", "accumulate_frames", "project_twis
            "shading_residuals", "weighted_albedo_sums", "weighted_lighting_sums", "log1p_square_sum",
            "led_irradiances_into", "led_point_gradients_into", "warp_sample", "warp_sample_frames", "warp_gradients",
            "chebyshev_update", "chebyshev_start", "restrict_residual", "prolong_restart", "csr_multiply_add", "cg_start",
-           "cg_scalars", "cg_update"]
+           "cg_scalars", "cg_update", "ridge_solves", "led_trial_sums"]
 
 #: Threads per block of every kernel.
 THREADS_PER_BLOCK = 128
@@ -477,3 +477,59 @@ def log1p_square_sum(x, scale: float) -> float:
     partial = cuda.device_array(blocks, dtype=np.float64)
     _log1p_square_partials[blocks, THREADS_PER_BLOCK](x, scale, partial)
     return float(partial.copy_to_host().sum())
+
+
+_ridge_solve_system = _device(kernels.ridge_solve_system)
+_led_trial_term = _device(kernels.led_trial_term)
+
+
+@cuda.jit(cache=True)
+def _ridge_solves(A, B, ridge, fallback, L, X, solved):  # pragma: no cover - device
+    i = cuda.grid(1)
+    if i < A.shape[0]:
+        _ridge_solve_system(A, B, ridge, fallback, L, X, solved, i)
+
+
+def ridge_solves(A, B, ridge, fallback, L, X, solved) -> None:
+    """:func:`.kernels.ridge_solves` on the GPU: one thread per system (a 6x6 Cholesky and its
+    substitutions are some 150 operations: a warp's worth of frames in one launch)."""
+    _ridge_solves[_blocks(A.shape[0]), THREADS_PER_BLOCK](A, B, float(ridge), float(fallback), L, X, solved)
+
+
+@cuda.jit(cache=True)
+def _led_trial_partials(color, usable, albedo, normals, points, positions, lights, scale, single,
+                        partial):  # pragma: no cover - device
+    """partial[k, block] = the block's share of trial k's sum (grid: blocks x trials): each
+    thread sums a strided share of the frames' pixels, then the block adds its threads' sums in
+    shared memory (a tree, in a fixed order)."""
+    share = cuda.shared.array(THREADS_PER_BLOCK, numba.float64)
+    t = cuda.threadIdx.x
+    k = cuda.blockIdx.y
+    n, N = usable.shape
+    total = 0.0
+    for index in range(cuda.blockIdx.x * THREADS_PER_BLOCK + t, n * N, cuda.gridDim.x * THREADS_PER_BLOCK):
+        total += _led_trial_term(color, usable, albedo, normals, points, positions[k], lights, scale, single,
+                                 index // N, index % N)
+    share[t] = total
+    cuda.syncthreads()
+    step = THREADS_PER_BLOCK // 2
+    while step > 0:
+        if t < step:
+            share[t] += share[t + step]
+        cuda.syncthreads()
+        step //= 2
+    if t == 0:
+        partial[k, cuda.blockIdx.x] = share[0]
+
+
+def trial_blocks(n_frames: int, n_pixels: int) -> int:
+    """Columns of :func:`led_trial_sums`' partial sums (its blocks per trial, at most
+    :data:`.kernels.REDUCTION_BLOCKS`; not a launch)."""
+    return min(kernels.REDUCTION_BLOCKS, _blocks(-(-n_frames * n_pixels // TERMS_PER_THREAD)))
+
+
+def led_trial_sums(color, usable, albedo, normals, points, positions, lights, scale, single, partial) -> None:
+    """:func:`.kernels.led_trial_sums` on the GPU: every trial in one launch (grid: blocks x
+    trials), partial (K, :func:`trial_blocks`) one sum per block."""
+    _led_trial_partials[(partial.shape[1], partial.shape[0]), THREADS_PER_BLOCK](
+        color, usable, albedo, normals, points, positions, lights, float(scale), bool(single), partial)

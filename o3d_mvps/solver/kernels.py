@@ -22,8 +22,8 @@ import math
 import numba
 import numpy as np
 
-from ..model.robust import log1p_square_sum  # noqa: F401 - re-exported: the same names as .cuda_kernels
-from ..model.shading import FRAME_CHUNK, led_irradiances_into, led_point_gradients_into  # noqa: F401
+from ..model.robust import log1p_square_sum, log1p_square_term  # noqa: F401 - log1p_square_sum re-exported: the same names as .cuda_kernels
+from ..model.shading import FRAME_CHUNK, led_irradiance, led_irradiances_into, led_point_gradients_into  # noqa: F401
 
 # OpenMP first: the TBB that Open3D's wheels may put on the path can be too old for numba,
 # which then warns on every first parallel call.
@@ -896,3 +896,121 @@ def diagonal_positions(indptr, indices):  # pragma: no cover - compiled
         out[row] = csr_position(indptr, indices, row, row)
     return out
 
+
+
+@numba.njit(inline="always")
+def _cholesky_shifted(A, shift, L, i):  # pragma: no cover - compiled
+    """L[i] (k, k) lower, ``L L^T = A[i] + shift I`` (A[i]'s lower triangle read); False at the
+    first pivot that is not positive."""
+    k = A.shape[1]
+    for j in range(k):
+        for c in range(j + 1):
+            s = A[i, j, c] + (shift if j == c else 0.0)
+            for m in range(c):
+                s -= L[i, j, m] * L[i, c, m]
+            if j == c:
+                if not s > 0.0:
+                    return False
+                L[i, j, j] = math.sqrt(s)
+            else:
+                L[i, j, c] = s / L[i, c, c]
+    return True
+
+
+@numba.njit(inline="always")
+def ridge_solve_system(A, B, ridge, fallback, L, X, solved, i):  # pragma: no cover - compiled
+    """System i of a batch of small SPD systems: ``X[i] = (A[i] + ridge trace(A[i]) I)^-1 B[i]``
+    by Cholesky (L[i] its factor, scratch); where that is not positive definite and ``fallback``
+    > 0, with ``fallback max|diag A[i]|`` on the diagonal instead. solved[i] = 1.0, or 0.0 (X[i]
+    NaN) where A[i] is not finite or neither shift makes it positive definite. A (n, k, k)
+    symmetric, B and X (n, k, r), L (n, k, k), solved (n,) float64. The formula of
+    :func:`.linear.ridge_solve` (the host's pose, LED offset and lighting steps) and of the
+    GPU's batched solves (:func:`ridge_solves`, and :mod:`.cuda_kernels`' twin: one thread per
+    system)."""
+    k = A.shape[1]
+    trace = 0.0
+    largest = 0.0
+    ok = True
+    for j in range(k):
+        trace += A[i, j, j]
+        largest = max(largest, abs(A[i, j, j]))
+        for c in range(j + 1):
+            if not math.isfinite(A[i, j, c]):
+                ok = False
+    if ok and not _cholesky_shifted(A, ridge * trace, L, i):
+        ok = fallback > 0.0 and _cholesky_shifted(A, fallback * largest, L, i)
+    solved[i] = 1.0 if ok else 0.0
+    for c in range(B.shape[2]):
+        for j in range(k):  # forward: L y = b
+            s = B[i, j, c]
+            if ok:
+                for m in range(j):
+                    s -= L[i, j, m] * X[i, m, c]
+                X[i, j, c] = s / L[i, j, j]
+            else:
+                X[i, j, c] = math.nan
+        if ok:
+            for j in range(k - 1, -1, -1):  # back: L^T x = y
+                s = X[i, j, c]
+                for m in range(j + 1, k):
+                    s -= L[i, m, j] * X[i, m, c]
+                X[i, j, c] = s / L[i, j, j]
+
+
+@numba.njit(cache=True)
+def ridge_solves(A, B, ridge, fallback, L, X, solved):  # pragma: no cover - compiled
+    """:func:`ridge_solve_system` of every system of the batch A (n, k, k), B (n, k, r) in
+    turn: X (n, k, r), solved (n,) written, L (n, k, k) scratch."""
+    for i in range(A.shape[0]):
+        ridge_solve_system(A, B, ridge, fallback, L, X, solved, i)
+
+
+@numba.njit(inline="always")
+def led_trial_term(color, usable, albedo, normals, points, positions, lights, scale, single, i, p):  # pragma: no cover
+    """Pixel p of frame i under the LED at positions[i] (3,): ``sum_c log(1 + (scale r_c)^2)``
+    of its residuals ``r_c = I~_c - rho_c (l_0 + l_1 max(0, <n, v>))`` (0 where not usable), as
+    :meth:`.LevelProblem.energy` forms them (:func:`shading_residual_pixel` on the LED basis
+    of :func:`~o3d_mvps.model.shading.led_irradiance`); single: the basis and residual rounded
+    to float32 as the GPU's evaluations store them."""
+    if not usable[i, p]:
+        return 0.0
+    g = led_irradiance(normals, points, positions, i, p)
+    b = g if g > 0.0 else 0.0
+    if single:
+        b = np.float64(np.float32(b))
+    s = 0.0
+    s += 1.0 * lights[i, 0]
+    s += b * lights[i, 1]
+    total = 0.0
+    for c in range(3):
+        r = color[i, p, c] - albedo[p, c] * s
+        if single:
+            r = np.float64(np.float32(r))
+        total += log1p_square_term(r, scale)
+    return total
+
+
+@numba.njit(parallel=True, cache=True)
+def _led_trial_sums(color, usable, albedo, normals, points, positions, lights, scale, single, out):  # pragma: no cover
+    K, n = out.shape
+    N = usable.shape[1]
+    for ki in numba.prange(K * n):
+        k, i = ki // n, ki % n
+        total = 0.0
+        for p in range(N):
+            total += led_trial_term(color, usable, albedo, normals, points, positions[k], lights, scale, single, i, p)
+        out[k, i] = total
+
+
+def trial_blocks(n_frames: int, n_pixels: int) -> int:
+    """Columns B of :func:`led_trial_sums`' partial sums: here one per frame (not a launch)."""
+    return n_frames
+
+
+def led_trial_sums(color, usable, albedo, normals, points, positions, lights, scale, single, partial) -> None:
+    """The data terms of K trial LED positions in one pass: partial (K, B) = partial sums whose
+    rows add up to ``sum_{i,p,c} log(1 + (scale r)^2)`` of trial k (:func:`led_trial_term`),
+    B = :func:`trial_blocks` (n, N) (here one sum per frame; on a GPU one launch, B its blocks);
+    color (n, N, 3), usable (n, N), albedo, normals, points (N, 3) float64, positions (K, n, 3),
+    lights (n, 2) float64; single: float32 residuals."""
+    _led_trial_sums(color, usable, albedo, normals, points, positions, lights, float(scale), bool(single), partial)

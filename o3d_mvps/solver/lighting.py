@@ -33,7 +33,7 @@ from ..model.shading import (INITIAL_LIGHT, led_fields_into, led_irradiances, le
                              sh_basis)
 from .device import kernels_for, to_host_together
 from .line_search import backtrack
-from .linear import ridge_solve
+from .linear import ridge_solve, ridge_solves
 
 
 class FrameFields:
@@ -163,7 +163,7 @@ class LEDLight(FrameFields):
 
     def positions(self, poses: np.ndarray) -> np.ndarray:
         """:meth:`position` (m, 3) of the frames with ``poses`` (m, 4, 4)."""
-        return np.einsum("mji,mj->mi", poses[:, :3, :3], self.offset - poses[:, :3, 3])
+        return led_positions(poses, self.offset)
 
     def irradiance(self, normals: np.ndarray, points: np.ndarray, pose: np.ndarray) -> np.ndarray:
         """<n, v_i> (N,) per unit intensity, unclamped (negative where the point faces away)."""
@@ -236,6 +236,12 @@ class LEDLight(FrameFields):
         return {"model": "led",
                 "formula": "shading = ambient + intensity * max(0, n . (o - X)) / |o - X|^3, camera frame",
                 "parameters": ["ambient", "intensity"], "offset_m": self.offset.tolist()}
+
+
+def led_positions(poses: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """The LED at ``offsets`` (..., 3) metres in the camera frame, in reference coordinates
+    ``R_i^T (o - t_i)`` for the frames with ``poses`` (m, 4, 4): (..., m, 3) (NumPy or CuPy)."""
+    return np.einsum("mji,...mj->...mi", poses[:, :3, :3], offsets[..., None, :] - poses[:, :3, 3])
 
 
 def _intensities(lights: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -366,8 +372,9 @@ def update_led_offset(problem, est, ev, *, max_halvings: int = 3, max_pixels: in
     """One IRLS Gauss-Newton step on the LED offset (all frames): returns (offset (3,), evaluation).
 
     The step is computed from at most ``max_pixels`` evenly spread pixels per frame (three
-    unknowns need few), on the host (on the GPU path a few hundred small operations would each
-    cost a kernel launch), the line search on the full energy; the offset is ``est``'s (or the
+    unknowns need few), the line search on the full energy (on a GPU every frame's system summed,
+    solved and every trial scored on the device, one read: :func:`_device_offset_search`); the
+    offset is ``est``'s (or the
     light model's) unchanged, with ``ev``, when no step lowers the energy, or when the
     Gauss-Newton model predicts a decrease below ``min_decrease`` (energy units; each line
     search trial costs an energy, and near convergence they nearly all fail). The trials are
@@ -381,22 +388,21 @@ def update_led_offset(problem, est, ev, *, max_halvings: int = 3, max_pixels: in
     usable, residual = ev.usable[:, spread], ev.residual[:, spread]
     normals, points, albedo = (a[spread] for a in (ev.normals, problem.points(est.z), est.albedo))
     xp = array_module(residual)
-    if xp is not np:  # every frame at once, unusable pixels weighted 0 (their residuals are 0); one read
+    if xp is not np:  # every frame at once, unusable pixels weighted 0 (their residuals are 0)
         ds = light.offset_jacobians(est.lights, normals, points, est.poses)  # (n, M, 3)
         H, g = _offset_normal_equations(ds, cauchy_weights(residual, problem.lam) * usable[..., None], albedo,
                                         residual)
-        H, g = to_host_together(H, g)
-    else:
-        H, g = np.zeros((3, 3)), np.zeros(3)
-        for i in range(problem.n_frames):
-            use = usable[i]
-            if not use.any():
-                continue
-            ds = light.offset_jacobian(est.lights[i], normals[use], points[use], est.poses[i])  # (M, 3)
-            H_i, g_i = _offset_normal_equations(ds, cauchy_weights(residual[i, use], problem.lam), albedo[use],
-                                                residual[i, use])
-            H += H_i
-            g += g_i
+        return _device_offset_search(problem, est, ev, light, H, g, stride, max_halvings, min_decrease)
+    H, g = np.zeros((3, 3)), np.zeros(3)
+    for i in range(problem.n_frames):
+        use = usable[i]
+        if not use.any():
+            continue
+        ds = light.offset_jacobian(est.lights[i], normals[use], points[use], est.poses[i])  # (M, 3)
+        H_i, g_i = _offset_normal_equations(ds, cauchy_weights(residual[i, use], problem.lam), albedo[use],
+                                            residual[i, use])
+        H += H_i
+        g += g_i
     start = light.offset
     step = ridge_solve(H, -g) if np.trace(H) > 0 else None
     # the IRLS model's decrease -g.step / 2 on the spread pixels, scaled to all of them
@@ -413,6 +419,42 @@ def update_led_offset(problem, est, ev, *, max_halvings: int = 3, max_pixels: in
         return start, ev
     moved = found[1]
     return moved.led_offset, problem.relit(moved, ev)
+
+
+def _device_offset_search(problem, est, ev, light, H, g, stride, max_halvings, min_decrease):
+    """:func:`update_led_offset`'s step and line search on a GPU from its system H (3, 3), g (3,)
+    on the device: the step solved there (:func:`.linear.ridge_solves`), every trial length 1,
+    1/2, ..., 2^-max_halvings scored in one launch (:func:`.kernels.led_trial_sums`: the data
+    energy of :meth:`.LevelProblem.energy` from ``ev``'s samples, plus ``ev``'s prior), and one
+    read for the step, g and the trials' energies (was a read for the system and one per trial);
+    then the longest trial whose energy is not above ``ev``'s, as :func:`.line_search.backtrack`
+    takes it."""
+    xp, P = array_module(ev.residual), problem.points(est.z)
+    lengths = 0.5 ** np.arange(max_halvings + 1)
+    start, n = light.offset, problem.n_frames
+    # the lengths, start, lights and poses in one copy
+    packed = like(np.concatenate([lengths, start, est.lights.astype(np.float64).ravel(), est.poses.ravel()]), P)
+    K = len(lengths)
+    t, start_d = packed[:K], packed[K:K + 3]
+    lights = packed[K + 3:K + 3 + 2 * n].reshape(n, 2)
+    poses = packed[K + 3 + 2 * n:].reshape(n, 4, 4)
+    x, solved = ridge_solves(H[None], g.reshape(1, 3, 1))  # x = H^-1 g: the step is -x
+    positions = contiguous(led_positions(poses, start_d - t[:, None] * x[0, :, 0]), np.float64)  # (K, n, 3)
+    kernels = kernels_for(P)
+    partial = xp.empty((K, kernels.trial_blocks(*ev.usable.shape)))
+    kernels.led_trial_sums(ev.color, ev.usable, contiguous(est.albedo, np.float64), contiguous(ev.normals, np.float64),
+                           contiguous(P, np.float64), positions, lights, 1.0 / problem.lam,
+                           problem.residual_dtype == np.float32, partial)
+    sums, step, g, solved = to_host_together(partial, -x[0, :, 0], g, solved)
+    # the IRLS model's decrease -g.step / 2 on the spread pixels, scaled to all of them
+    if not solved[0] or -0.5 * float(g @ step) * stride < min_decrease:
+        return start, ev
+    energies = 0.5 * problem.lam ** 2 * sums.sum(axis=1) + ev.prior
+    for length, energy in zip(lengths, energies):
+        if energy <= ev.energy:
+            moved = dataclasses.replace(est, led_offset=start + length * step)
+            return moved.led_offset, problem.relit(moved, ev)
+    return start, ev
 
 
 def _offset_normal_equations(ds: np.ndarray, w: np.ndarray, albedo: np.ndarray, residual: np.ndarray):
