@@ -418,25 +418,32 @@ def test_ridge_solves_match_numpy_and_cpu():
 
 
 def test_led_trial_sums_match_the_formula_and_cpu():
-    """Every trial LED position's data terms in one pass: the rows of the partial sums add up to
+    """The LED offset's line-search trials in one pass: row k of the partial sums adds up to
     ``sum log(1 + (r / lam)^2)`` of the residuals ``I - rho (l_0 + l_1 max(0, <n, v>))`` over
-    usable pixels (float32 logarithms, as the GPU's energy), CPU and CUDA alike."""
+    usable pixels, the LED at offset ``start - 2^-k x`` (float32 logarithms, as the GPU's
+    energy), CPU and CUDA alike; the LED's positions as LEDLight.positions gives them."""
+    from o3d_mvps.solver.lighting import LEDLight
+
     n, N, K = 3, N_PIXELS, 4
     normals = RNG.normal(size=(N, 3))
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
     points = RNG.normal(size=(N, 3)) * 0.1 + [0.0, 0.0, 0.6]
-    positions = RNG.normal(size=(K, n, 3)) * 0.05
+    poses = np.stack([np.eye(4), POSE, POSE @ POSE])
+    start, x = np.array([0.02, -0.01, 0.005]), RNG.normal(size=(1, 3, 1)) * 0.01
     color = RNG.random((n, N, 3)).astype(np.float32)
     usable = RNG.random((n, N)) > 0.2
-    albedo, lights = RNG.random((N, 3)), np.abs(RNG.normal(size=(n, 2))) * [0.2, 0.3]
-    args = (color, usable, albedo, normals, points, positions, lights, 1.0 / LAM)
+    albedo, lights = RNG.random((N, 3)), np.abs(RNG.normal(size=(n, 2))) * [0.2, 0.03]
+    args = (color, usable, albedo, normals, points, poses, start, x, lights, 1.0 / LAM)
     for single in (False, True):
         cpu = np.zeros((K, kernels.trial_blocks(n, N)))
         gpu = np.zeros((K, cuda_kernels.trial_blocks(n, N)))
         kernels.led_trial_sums(*args, single, cpu)
         cuda_kernels.led_trial_sums(*args, single, gpu)
         for k in range(K):
-            d = positions[k][:, None, :] - points  # (n, N, 3)
+            positions = LEDLight(start - 0.5**k * x[0, :, 0]).positions(poses)
+            np.testing.assert_array_equal(positions, np.einsum("mji,mj->mi", poses[:, :3, :3],
+                                                               start - 0.5**k * x[0, :, 0] - poses[:, :3, 3]))
+            d = positions[:, None, :] - points  # (n, N, 3)
             r2 = (d * d).sum(axis=-1)
             basis = np.maximum((normals * d).sum(axis=-1) / (r2 * np.sqrt(r2)), 0.0)
             residual = color - albedo * (lights[:, :1] + basis * lights[:, 1:])[..., None]
@@ -445,5 +452,33 @@ def test_led_trial_sums_match_the_formula_and_cpu():
             y = (residual[usable] / LAM).astype(np.float32)
             expected = np.log(np.float32(1.0) + y * y).astype(np.float64).sum()
             assert_close(cpu[k].sum(), expected, rtol=1e-6)
+        assert len(set(cpu.sum(axis=1))) == K  # the trials differ
         # the simulator takes Python's float64 logarithm of each float32 term: ~1e-9 of the sums
         assert_close(gpu.sum(axis=1), cpu.sum(axis=1), rtol=1e-8)
+
+
+def test_twist_system_matches_numpy_and_cpu():
+    """The joint step's twist matrix from its sums: a frame is kept where its Gram's condition
+    number (Jacobi eigenvalues) is at most 1e12 as NumPy's ``cond`` says (here 1e3 and 1e15
+    apart from it, and a singular one), H = blockdiag(Grams) - downdate over the kept frames,
+    identity rows and zero right-hand sides for the others; CPU and CUDA alike."""
+    m = 3
+    grams = np.zeros((m, 6, 6))
+    for f, spread in enumerate((-1.5, -7.5)):
+        M = RNG.normal(size=(6, 6)) * np.logspace(0, spread, 6)
+        grams[f] = np.triu(M @ M.T)
+    grams[2] = np.diag([1.0, 1.0, 1.0, 1.0, 1.0, 0.0])
+    conditions = [np.linalg.cond(g + np.triu(g, 1).T) for g in grams]
+    assert conditions[0] < 1e9 and conditions[1] > 1e14
+    D = RNG.normal(size=(6 * m, 6 * m)) * 1e-3
+    rhs_frames, rhs_projection = RNG.normal(size=6 * m), RNG.normal(size=6 * m)
+    args = (grams, rhs_frames, rhs_projection, D @ D.T, kernels.MAX_TWIST_CONDITION, np.zeros((m, 6, 6)),
+            np.zeros(m), np.zeros((6 * m, 6 * m)), np.zeros(6 * m))
+    cpu, gpu = run_both("twist_system", *args)
+    np.testing.assert_array_equal(cpu[6], [1.0, 0.0, 0.0])
+    expected = np.eye(6 * m)
+    expected[:6, :6] = grams[0] + np.triu(grams[0], 1).T - (D @ D.T)[:6, :6]
+    np.testing.assert_array_equal(cpu[7], expected)
+    np.testing.assert_array_equal(cpu[8], np.r_[(rhs_frames + rhs_projection)[:6], np.zeros(12)])
+    for k in (6, 7, 8):
+        np.testing.assert_array_equal(gpu[k], cpu[k])

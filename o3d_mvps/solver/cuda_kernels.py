@@ -36,7 +36,7 @@ __all__ = ["chunk_count", "accumulate_frame", "accumulate_frames", "project_twis
            "shading_residuals", "weighted_albedo_sums", "weighted_lighting_sums", "log1p_square_sum",
            "led_irradiances_into", "led_point_gradients_into", "warp_sample", "warp_sample_frames", "warp_gradients",
            "chebyshev_update", "chebyshev_start", "restrict_residual", "prolong_restart", "csr_multiply_add", "cg_start",
-           "cg_scalars", "cg_update", "ridge_solves", "led_trial_sums"]
+           "cg_scalars", "cg_update", "ridge_solves", "led_trial_sums", "twist_system"]
 
 #: Threads per block of every kernel.
 THREADS_PER_BLOCK = 128
@@ -497,7 +497,7 @@ def ridge_solves(A, B, ridge, fallback, L, X, solved) -> None:
 
 
 @cuda.jit(cache=True)
-def _led_trial_partials(color, usable, albedo, normals, points, positions, lights, scale, single,
+def _led_trial_partials(color, usable, albedo, normals, points, poses, start, x, lights, scale, single,
                         partial):  # pragma: no cover - device
     """partial[k, block] = the block's share of trial k's sum (grid: blocks x trials): each
     thread sums a strided share of the frames' pixels, then the block adds its threads' sums in
@@ -508,7 +508,7 @@ def _led_trial_partials(color, usable, albedo, normals, points, positions, light
     n, N = usable.shape
     total = 0.0
     for index in range(cuda.blockIdx.x * THREADS_PER_BLOCK + t, n * N, cuda.gridDim.x * THREADS_PER_BLOCK):
-        total += _led_trial_term(color, usable, albedo, normals, points, positions[k], lights, scale, single,
+        total += _led_trial_term(color, usable, albedo, normals, points, poses, start, x, lights, scale, single, k,
                                  index // N, index % N)
     share[t] = total
     cuda.syncthreads()
@@ -528,8 +528,35 @@ def trial_blocks(n_frames: int, n_pixels: int) -> int:
     return min(kernels.REDUCTION_BLOCKS, _blocks(-(-n_frames * n_pixels // TERMS_PER_THREAD)))
 
 
-def led_trial_sums(color, usable, albedo, normals, points, positions, lights, scale, single, partial) -> None:
+def led_trial_sums(color, usable, albedo, normals, points, poses, start, x, lights, scale, single, partial) -> None:
     """:func:`.kernels.led_trial_sums` on the GPU: every trial in one launch (grid: blocks x
     trials), partial (K, :func:`trial_blocks`) one sum per block."""
     _led_trial_partials[(partial.shape[1], partial.shape[0]), THREADS_PER_BLOCK](
-        color, usable, albedo, normals, points, positions, lights, float(scale), bool(single), partial)
+        color, usable, albedo, normals, points, poses, start, x, lights, float(scale), bool(single), partial)
+
+
+_twist_frame_kept = _device(kernels.twist_frame_kept)
+_twist_entry = _device(kernels.twist_entry)
+
+
+@cuda.jit(cache=True)
+def _twist_kept(grams, limit, W, kept):  # pragma: no cover - device
+    f = cuda.grid(1)
+    if f < grams.shape[0]:
+        _twist_frame_kept(grams, limit, W, kept, f)
+
+
+@cuda.jit(cache=True)
+def _twist_entries(grams, rhs_frames, rhs_projection, downdate, kept, hessian, rhs):  # pragma: no cover - device
+    index = cuda.grid(1)
+    k = hessian.shape[0]
+    if index < k * k:
+        _twist_entry(grams, rhs_frames, rhs_projection, downdate, kept, hessian, rhs, index // k, index % k)
+
+
+def twist_system(grams, rhs_frames, rhs_projection, downdate, limit, W, kept, hessian, rhs) -> None:
+    """:func:`.kernels.twist_system` on the GPU: two launches, one thread per frame slot (its
+    Gram's condition number), then one per entry of the matrix."""
+    _twist_kept[_blocks(grams.shape[0]), THREADS_PER_BLOCK](grams, float(limit), W, kept)
+    _twist_entries[_blocks(hessian.size), THREADS_PER_BLOCK](grams, rhs_frames, rhs_projection, downdate, kept,
+                                                             hessian, rhs)

@@ -23,7 +23,8 @@ import numba
 import numpy as np
 
 from ..model.robust import log1p_square_sum, log1p_square_term  # noqa: F401 - log1p_square_sum re-exported: the same names as .cuda_kernels
-from ..model.shading import FRAME_CHUNK, led_irradiance, led_irradiances_into, led_point_gradients_into  # noqa: F401
+from ..model.shading import (FRAME_CHUNK, led_irradiance_at, led_irradiances_into,  # noqa: F401
+                             led_point_gradients_into, led_position)
 
 # OpenMP first: the TBB that Open3D's wheels may put on the path can be too old for numba,
 # which then warns on every first parallel call.
@@ -966,15 +967,25 @@ def ridge_solves(A, B, ridge, fallback, L, X, solved):  # pragma: no cover - com
 
 
 @numba.njit(inline="always")
-def led_trial_term(color, usable, albedo, normals, points, positions, lights, scale, single, i, p):  # pragma: no cover
-    """Pixel p of frame i under the LED at positions[i] (3,): ``sum_c log(1 + (scale r_c)^2)``
-    of its residuals ``r_c = I~_c - rho_c (l_0 + l_1 max(0, <n, v>))`` (0 where not usable), as
-    :meth:`.LevelProblem.energy` forms them (:func:`shading_residual_pixel` on the LED basis
-    of :func:`~o3d_mvps.model.shading.led_irradiance`); single: the basis and residual rounded
-    to float32 as the GPU's evaluations store them."""
+def led_trial_term(color, usable, albedo, normals, points, poses, start, x, lights, scale, single, k, i,
+                   p):  # pragma: no cover - compiled
+    """Pixel p of frame i with the LED at trial k's offset ``start - 2^-k x`` (x (1, 3, 1): the
+    step's negative, as :func:`ridge_solves` gives it): ``sum_c log(1 + (scale r_c)^2)`` of its
+    residuals ``r_c = I~_c - rho_c (l_0 + l_1 max(0, <n, v>))`` (0 where not usable), as
+    :meth:`.LevelProblem.energy` forms them (:func:`shading_residual_pixel` on the LED basis of
+    :func:`~o3d_mvps.model.shading.led_irradiance`, the LED's position
+    :func:`~o3d_mvps.model.shading.led_position`); single: the basis and residual rounded to
+    float32 as the GPU's evaluations store them."""
     if not usable[i, p]:
         return 0.0
-    g = led_irradiance(normals, points, positions, i, p)
+    length = 1.0
+    for _ in range(k):
+        length *= 0.5
+    o0 = start[0] - length * x[0, 0, 0]
+    o1 = start[1] - length * x[0, 1, 0]
+    o2 = start[2] - length * x[0, 2, 0]
+    g = led_irradiance_at(normals, points, led_position(poses, o0, o1, o2, i, 0), led_position(poses, o0, o1, o2, i, 1),
+                          led_position(poses, o0, o1, o2, i, 2), p)
     b = g if g > 0.0 else 0.0
     if single:
         b = np.float64(np.float32(b))
@@ -991,14 +1002,16 @@ def led_trial_term(color, usable, albedo, normals, points, positions, lights, sc
 
 
 @numba.njit(parallel=True, cache=True)
-def _led_trial_sums(color, usable, albedo, normals, points, positions, lights, scale, single, out):  # pragma: no cover
+def _led_trial_sums(color, usable, albedo, normals, points, poses, start, x, lights, scale, single,
+                    out):  # pragma: no cover - compiled
     K, n = out.shape
     N = usable.shape[1]
     for ki in numba.prange(K * n):
         k, i = ki // n, ki % n
         total = 0.0
         for p in range(N):
-            total += led_trial_term(color, usable, albedo, normals, points, positions[k], lights, scale, single, i, p)
+            total += led_trial_term(color, usable, albedo, normals, points, poses, start, x, lights, scale, single, k,
+                                    i, p)
         out[k, i] = total
 
 
@@ -1007,10 +1020,107 @@ def trial_blocks(n_frames: int, n_pixels: int) -> int:
     return n_frames
 
 
-def led_trial_sums(color, usable, albedo, normals, points, positions, lights, scale, single, partial) -> None:
-    """The data terms of K trial LED positions in one pass: partial (K, B) = partial sums whose
-    rows add up to ``sum_{i,p,c} log(1 + (scale r)^2)`` of trial k (:func:`led_trial_term`),
-    B = :func:`trial_blocks` (n, N) (here one sum per frame; on a GPU one launch, B its blocks);
-    color (n, N, 3), usable (n, N), albedo, normals, points (N, 3) float64, positions (K, n, 3),
-    lights (n, 2) float64; single: float32 residuals."""
-    _led_trial_sums(color, usable, albedo, normals, points, positions, lights, float(scale), bool(single), partial)
+def led_trial_sums(color, usable, albedo, normals, points, poses, start, x, lights, scale, single, partial) -> None:
+    """The data terms of the LED offset's K line-search trials in one pass: partial (K, B) =
+    partial sums whose rows add up to ``sum_{i,p,c} log(1 + (scale r)^2)`` of trial k, the LED
+    at ``start - 2^-k x`` (:func:`led_trial_term`), B = :func:`trial_blocks` (n, N) (here one
+    sum per frame; on a GPU one launch, B its blocks). color (n, N, 3), usable (n, N), albedo,
+    normals, points (N, 3) float64, poses (n, 4, 4), start (3,), x (1, 3, 1), lights (n, 2)
+    float64; single: float32 residuals."""
+    _led_trial_sums(color, usable, albedo, normals, points, poses, start, x, lights, float(scale), bool(single),
+                    partial)
+
+
+#: The joint step's refined frames: one whose own twist Gram (6, 6) has a condition number
+#: above this takes no twist (its depth rows stay): :func:`twist_system`.
+MAX_TWIST_CONDITION = 1e12
+
+
+@numba.njit(inline="always")
+def symmetric_condition(A, W, i):  # pragma: no cover - compiled
+    """The 2-norm condition number ``max|lambda| / min|lambda|`` of the symmetric matrix whose
+    upper triangle is A[i]'s (k, k) (its lower triangle not read): cyclic Jacobi rotations in
+    the scratch W[i] (k, k) until the off-diagonal part is below 1e-16 of the diagonal (the
+    eigenvalues then carry an absolute error of ~1e-16 |A|, as LAPACK's do); inf where an entry
+    is not finite or an eigenvalue is 0."""
+    k = A.shape[1]
+    for j in range(k):
+        for c in range(j, k):
+            if not math.isfinite(A[i, j, c]):
+                return math.inf
+            W[i, j, c] = A[i, j, c]
+            W[i, c, j] = A[i, j, c]
+    for _ in range(100):
+        off = 0.0
+        diagonal = 0.0
+        for j in range(k):
+            diagonal += W[i, j, j] * W[i, j, j]
+            for c in range(j + 1, k):
+                off += W[i, j, c] * W[i, j, c]
+        if off <= 1e-32 * diagonal:
+            break
+        for p in range(k - 1):
+            for q in range(p + 1, k):
+                apq = W[i, p, q]
+                if apq == 0.0:
+                    continue
+                theta = (W[i, q, q] - W[i, p, p]) / (2.0 * apq)
+                t = 0.5 / abs(theta) if abs(theta) > 1e150 else 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
+                if theta < 0.0:
+                    t = -t
+                cos = 1.0 / math.sqrt(t * t + 1.0)
+                sin = t * cos
+                W[i, p, p] -= t * apq
+                W[i, q, q] += t * apq
+                W[i, p, q] = 0.0
+                W[i, q, p] = 0.0
+                for r in range(k):
+                    if r != p and r != q:
+                        arp, arq = W[i, r, p], W[i, r, q]
+                        W[i, r, p] = cos * arp - sin * arq
+                        W[i, p, r] = W[i, r, p]
+                        W[i, r, q] = sin * arp + cos * arq
+                        W[i, q, r] = W[i, r, q]
+    largest, smallest = 0.0, math.inf
+    for j in range(k):
+        largest = max(largest, abs(W[i, j, j]))
+        smallest = min(smallest, abs(W[i, j, j]))
+    return largest / smallest if smallest > 0.0 else math.inf
+
+
+@numba.njit(inline="always")
+def twist_frame_kept(grams, limit, W, kept, f):  # pragma: no cover - compiled
+    """kept[f] = 1.0 where frame slot f's twist Gram (upper triangle of grams[f] (6, 6)) has a
+    condition number (:func:`symmetric_condition`) of at most ``limit``, else 0.0."""
+    kept[f] = 1.0 if symmetric_condition(grams, W, f) <= limit else 0.0
+
+
+@numba.njit(inline="always")
+def twist_entry(grams, rhs_frames, rhs_projection, downdate, kept, hessian, rhs, j, c):  # pragma: no cover - compiled
+    """Entry (j, c) of the joint step's twist matrix: ``H = blockdiag(G_f) - downdate`` (6m, 6m)
+    over the kept frames (G_f the symmetric Gram whose upper triangle grams[f] holds), an
+    identity row and column for a frame not kept; for c = 0 also rhs[j] = rhs_frames[j] +
+    rhs_projection[j] (0 for a frame not kept)."""
+    fj, fc = j // 6, c // 6
+    if kept[fj] == 0.0 or kept[fc] == 0.0:
+        hessian[j, c] = 1.0 if j == c else 0.0
+    else:
+        a, b = j % 6, c % 6
+        g = 0.0
+        if fj == fc:
+            g = grams[fj, a, b] + 0.0 if a <= b else grams[fj, b, a] + 0.0
+        hessian[j, c] = g - downdate[j, c]
+    if c == 0:
+        rhs[j] = rhs_frames[j] + rhs_projection[j] if kept[fj] != 0.0 else 0.0
+
+
+@numba.njit(cache=True)
+def twist_system(grams, rhs_frames, rhs_projection, downdate, limit, W, kept, hessian, rhs):  # pragma: no cover
+    """The joint step's twist system from its sums over pixels: kept (m,) (:func:`twist_frame_kept`
+    of every frame slot), hessian (6m, 6m) and rhs (6m,) (:func:`twist_entry`). grams (m, 6, 6)
+    upper triangles, rhs_frames, rhs_projection (6m,), downdate (6m, 6m); W (m, 6, 6) scratch."""
+    for f in range(grams.shape[0]):
+        twist_frame_kept(grams, limit, W, kept, f)
+    for j in range(hessian.shape[0]):
+        for c in range(hessian.shape[1]):
+            twist_entry(grams, rhs_frames, rhs_projection, downdate, kept, hessian, rhs, j, c)

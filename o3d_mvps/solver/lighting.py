@@ -29,7 +29,7 @@ import numpy as np
 
 from ..model.arrays import array_module, contiguous, like
 from ..model.robust import cauchy_weights
-from ..model.shading import (INITIAL_LIGHT, led_fields_into, led_irradiances, led_twist_jacobians_into, led_vectors,
+from ..model.shading import (INITIAL_LIGHT, led_positions_into, led_fields_into, led_irradiances, led_twist_jacobians_into, led_vectors,
                              sh_basis)
 from .device import kernels_for, to_host_together
 from .line_search import backtrack
@@ -163,7 +163,9 @@ class LEDLight(FrameFields):
 
     def positions(self, poses: np.ndarray) -> np.ndarray:
         """:meth:`position` (m, 3) of the frames with ``poses`` (m, 4, 4)."""
-        return led_positions(poses, self.offset)
+        out = np.empty((len(poses), 3))
+        led_positions_into(np.ascontiguousarray(poses, dtype=np.float64), self.offset, out)
+        return out
 
     def irradiance(self, normals: np.ndarray, points: np.ndarray, pose: np.ndarray) -> np.ndarray:
         """<n, v_i> (N,) per unit intensity, unclamped (negative where the point faces away)."""
@@ -236,12 +238,6 @@ class LEDLight(FrameFields):
         return {"model": "led",
                 "formula": "shading = ambient + intensity * max(0, n . (o - X)) / |o - X|^3, camera frame",
                 "parameters": ["ambient", "intensity"], "offset_m": self.offset.tolist()}
-
-
-def led_positions(poses: np.ndarray, offsets: np.ndarray) -> np.ndarray:
-    """The LED at ``offsets`` (..., 3) metres in the camera frame, in reference coordinates
-    ``R_i^T (o - t_i)`` for the frames with ``poses`` (m, 4, 4): (..., m, 3) (NumPy or CuPy)."""
-    return np.einsum("mji,...mj->...mi", poses[:, :3, :3], offsets[..., None, :] - poses[:, :3, 3])
 
 
 def _intensities(lights: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -425,34 +421,29 @@ def _device_offset_search(problem, est, ev, light, H, g, stride, max_halvings, m
     """:func:`update_led_offset`'s step and line search on a GPU from its system H (3, 3), g (3,)
     on the device: the step solved there (:func:`.linear.ridge_solves`), every trial length 1,
     1/2, ..., 2^-max_halvings scored in one launch (:func:`.kernels.led_trial_sums`: the data
-    energy of :meth:`.LevelProblem.energy` from ``ev``'s samples, plus ``ev``'s prior), and one
-    read for the step, g and the trials' energies (was a read for the system and one per trial);
-    then the longest trial whose energy is not above ``ev``'s, as :func:`.line_search.backtrack`
-    takes it."""
+    energy of :meth:`.LevelProblem.energy` from ``ev``'s samples, plus ``ev``'s prior), one copy
+    in (the offset, lights and poses) and one read (the step, g and the trials' sums), where the
+    host's line search reads a system and then an energy per trial; then the longest trial
+    whose energy is not above ``ev``'s, as :func:`.line_search.backtrack` takes it."""
     xp, P = array_module(ev.residual), problem.points(est.z)
-    lengths = 0.5 ** np.arange(max_halvings + 1)
-    start, n = light.offset, problem.n_frames
-    # the lengths, start, lights and poses in one copy
-    packed = like(np.concatenate([lengths, start, est.lights.astype(np.float64).ravel(), est.poses.ravel()]), P)
-    K = len(lengths)
-    t, start_d = packed[:K], packed[K:K + 3]
-    lights = packed[K + 3:K + 3 + 2 * n].reshape(n, 2)
-    poses = packed[K + 3 + 2 * n:].reshape(n, 4, 4)
+    start, n, K = light.offset, problem.n_frames, max_halvings + 1
+    packed = like(np.concatenate([start, est.lights.astype(np.float64).ravel(), est.poses.ravel()]), P)
+    lights, poses = packed[3:3 + 2 * n].reshape(n, 2), packed[3 + 2 * n:].reshape(n, 4, 4)
     x, solved = ridge_solves(H[None], g.reshape(1, 3, 1))  # x = H^-1 g: the step is -x
-    positions = contiguous(led_positions(poses, start_d - t[:, None] * x[0, :, 0]), np.float64)  # (K, n, 3)
     kernels = kernels_for(P)
     partial = xp.empty((K, kernels.trial_blocks(*ev.usable.shape)))
     kernels.led_trial_sums(ev.color, ev.usable, contiguous(est.albedo, np.float64), contiguous(ev.normals, np.float64),
-                           contiguous(P, np.float64), positions, lights, 1.0 / problem.lam,
+                           contiguous(P, np.float64), poses, packed[:3], x, lights, 1.0 / problem.lam,
                            problem.residual_dtype == np.float32, partial)
-    sums, step, g, solved = to_host_together(partial, -x[0, :, 0], g, solved)
+    sums, x, g, solved = to_host_together(partial, x, g, solved)
+    step = -x[0, :, 0]
     # the IRLS model's decrease -g.step / 2 on the spread pixels, scaled to all of them
     if not solved[0] or -0.5 * float(g @ step) * stride < min_decrease:
         return start, ev
     energies = 0.5 * problem.lam ** 2 * sums.sum(axis=1) + ev.prior
-    for length, energy in zip(lengths, energies):
+    for k, energy in enumerate(energies):
         if energy <= ev.energy:
-            moved = dataclasses.replace(est, led_offset=start + length * step)
+            moved = dataclasses.replace(est, led_offset=start + 0.5 ** k * step)
             return moved.led_offset, problem.relit(moved, ev)
     return start, ev
 

@@ -15,7 +15,7 @@ import pyamg
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from ..model.arrays import array_module, sparse_module
+from ..model.arrays import array_module, contiguous, sparse_module
 from . import kernels as host_kernels
 from . import krylov
 from .device import kernels_for, on_gpu
@@ -180,8 +180,7 @@ def ridge_solves(A: np.ndarray, B: np.ndarray, ridge: float = 1e-9, fallback: fl
     where A lives. fallback > 0: a system that fails takes ``fallback max|diag A_i|`` on its
     diagonal instead (:func:`.kernels.ridge_solve_system`)."""
     xp = array_module(A)
-    A = xp.ascontiguousarray(A, dtype=np.float64)
-    B = xp.ascontiguousarray(B, dtype=np.float64)
+    A, B = contiguous(A, np.float64), contiguous(B, np.float64)
     X, L, solved = xp.empty(B.shape), xp.empty(A.shape), xp.empty(A.shape[0])
     kernels_for(A).ridge_solves(A, B, float(ridge), float(fallback), L, X, solved)
     return X, solved

@@ -32,7 +32,7 @@ import scipy.sparse as sp
 
 from ..model.arrays import array_module, fused, like, linear_operator, sparse_module
 from . import kernels as host_kernels
-from .device import kernels_for, on_gpu, to_host
+from .device import kernels_for, on_gpu, to_host, to_host_together
 from .krylov import multiply_add
 from .pose import pose_jacobian
 from .problem import Estimate, Evaluation, LevelProblem
@@ -49,7 +49,10 @@ class JointSystem:
     matrix (N, N) sparse: the depth block M; rhs_z (N,); coupling (N, 6m): U, the transpose
     (a view) of a C-ordered (6m, N) array, float32 on the host (:data:`COUPLING_DTYPE`); hessian
     (6m, 6m): H (block-diagonal per frame unless the albedo is projected out); rhs_xi (6m,);
-    frames (m,): the refined frames' indices.
+    frames (m,): the refined frames' indices. On a GPU H and rhs_xi stay there, with every
+    candidate frame's rows: kept (m,) 1.0 or 0.0 on the device, a frame not kept an identity
+    block with zero coupling and right-hand side (so a zero twist); :meth:`twists` reads the
+    twists and the flags together and drops such frames from ``frames``.
     """
 
     matrix: sp.csr_matrix
@@ -58,6 +61,8 @@ class JointSystem:
     hessian: np.ndarray
     rhs_xi: np.ndarray
     frames: list
+    kept: np.ndarray | None = None
+    _inverse: np.ndarray | None = None  # H^-1 on a GPU, formed by schur_operator
 
     def schur_operator(self):
         """(S, rhs): ``S = M - U H^-1 U^T`` as an operator (:func:`~o3d_mvps.model.arrays.linear_operator`) and
@@ -65,22 +70,27 @@ class JointSystem:
         passes over U per product, where forming U H^-1 (N, 6m) once cost as much as twenty
         products. The small solve with H (6m, 6m) runs on the host.
 
-        On the GPU, where the cost is per launch, ``-U H^-1`` (N, 6m) is formed once (one product,
-        H^-1 copied over once; as much memory again as U): a product is then ``U^T x``, that
-        times it, and ``M x`` added in one kernel (:func:`.krylov.multiply_add`), three launches
-        for five."""
+        On the GPU, where the cost is per launch, H^-1 is formed there (:func:`.linear.ridge_solves`:
+        the Cholesky formula of the host's small systems, with :func:`_cholesky`'s fallback) and
+        ``-U H^-1`` (N, 6m) once (one product; as much memory again as U): a product is then
+        ``U^T x``, that times it, and ``M x`` added in one kernel (:func:`.krylov.multiply_add`),
+        three launches for five; no copy either way."""
         M, U = self.matrix, self.coupling
         if not self.frames:
             return linear_operator(M.shape, lambda x: M @ x.ravel(), self.rhs_z), self.rhs_z
-        factor = _cholesky(self.hessian)
         if on_gpu(U):
-            coupled = U @ like(-scipy.linalg.cho_solve(factor, np.eye(len(self.hessian))), U)  # -U H^-1
+            from .linear import ridge_solves  # linear imports krylov, which this module imports too
+
+            xp = array_module(U)
+            self._inverse = ridge_solves(self.hessian[None], xp.eye(len(self.hessian))[None], 0.0, CHOLESKY_FALLBACK)[0][0]
+            coupled = U @ -self._inverse  # -U H^-1
 
             def schur_product(x):
                 return multiply_add(M, 1.0, x.ravel(), coupled @ (U.T @ x.ravel()))
 
-            rhs = self.rhs_z + coupled @ like(self.rhs_xi, U)
+            rhs = self.rhs_z + coupled @ self.rhs_xi
             return linear_operator(M.shape, schur_product, self.rhs_z), rhs
+        factor = _cholesky(self.hessian)
 
         def solve_h(y):
             return like(scipy.linalg.cho_solve(factor, to_host(y)), self.rhs_z)
@@ -90,6 +100,27 @@ class JointSystem:
             return M @ x - self.couple(solve_h(self.couple_t(x)))
 
         return linear_operator(M.shape, matvec, self.rhs_z), self.rhs_z - self.couple(solve_h(self.rhs_xi))
+
+    def add_priors(self, priors: list) -> None:
+        """Add each refined frame's pose prior: ``priors`` [(slot k, H_k (6, 6), g_k (6,))] on the
+        host, H_k added to H's block k and g_k taken from rhs_xi's (on a GPU in one copy, a
+        frame not kept left out)."""
+        if not priors:
+            return
+        if self.kept is None:
+            for k, H_k, g_k in priors:
+                self.hessian[6 * k:6 * k + 6, 6 * k:6 * k + 6] += H_k
+                self.rhs_xi[6 * k:6 * k + 6] -= g_k
+            return
+        n = len(self.rhs_xi)
+        packed = np.zeros((n + 1, n))  # the blocks, then the right-hand side's row
+        for k, H_k, g_k in priors:
+            packed[6 * k:6 * k + 6, 6 * k:6 * k + 6] = H_k
+            packed[n, 6 * k:6 * k + 6] = g_k
+        # the prior's columns of a frame not kept zeroed: its blocks lie in its own columns only
+        packed = like(packed, self.hessian) * array_module(self.hessian).repeat(self.kept, 6)
+        self.hessian += packed[:n]
+        self.rhs_xi -= packed[n]
 
     def couple(self, y: np.ndarray) -> np.ndarray:
         """U y (N,) float64 for y (6m,)."""
@@ -110,10 +141,20 @@ class JointSystem:
         return out
 
     def twists(self, dz: np.ndarray) -> np.ndarray:
-        """The twists (m, 6) that go with the depth increment dz (N,)."""
+        """The twists (m, 6) that go with the depth increment dz (N,), on the host (on a GPU
+        H^-1 (rhs_xi - U^T dz) there, read with the frames' kept flags in one copy; ``frames``
+        then lists the kept frames only)."""
         if not self.frames:
             return np.zeros((0, 6))
+        if self._inverse is not None:
+            xi, kept = to_host_together(self._inverse @ (self.rhs_xi - self.couple_t(dz)), self.kept)
+            self.frames = [i for i, k in zip(self.frames, kept) if k]
+            return xi.reshape(-1, 6)[kept != 0]
         return scipy.linalg.cho_solve(_cholesky(self.hessian), self.rhs_xi - to_host(self.couple_t(dz))).reshape(-1, 6)
+
+
+#: The relative diagonal shift of a twist matrix H that rounding left semidefinite (:func:`_cholesky`).
+CHOLESKY_FALLBACK = 1e-12
 
 
 def _cholesky(H: np.ndarray):
@@ -122,7 +163,7 @@ def _cholesky(H: np.ndarray):
     try:
         return scipy.linalg.cho_factor(H)
     except np.linalg.LinAlgError:
-        return scipy.linalg.cho_factor(H + 1e-12 * np.abs(np.diag(H)).max() * np.eye(len(H)))
+        return scipy.linalg.cho_factor(H + CHOLESKY_FALLBACK * np.abs(np.diag(H)).max() * np.eye(len(H)))
 
 
 def residual_jacobians(problem: LevelProblem, est: Estimate, ev: Evaluation, i: int, points_ref: np.ndarray):
@@ -238,21 +279,28 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
         _assemble_block(problem, est, ev, block, points_ref[block], candidates, parallax, project_albedo,
                         sums[:, block], *twist_sums, coupling_t, Du[block], Dv[block], poses, with_jacobian,
                         frame_slots)
-    if partials is not None:
-        grams, rhs_frames, rhs_projection, downdate = _twist_sums(to_host(partials.sum(axis=0)), m)
-        rhs_xi = rhs_frames + rhs_projection
+    # frames whose own Gram is not safely invertible keep their depth rows but take no twist
+    # (kernels.twist_system: the frames' condition numbers and H = blockdiag(Grams) - downdate)
+    hessian, twist_rhs, frame_kept = xp.empty((6 * m, 6 * m)), xp.empty(6 * m), xp.empty(m)
+    if partials is not None:  # on a GPU the block's sums added and the system formed there: no copy
+        grams, rhs_frames, rhs_projection, downdate = _twist_sums(partials.sum(axis=0), m)
+    else:
+        rhs_frames, rhs_projection = rhs_xi, np.zeros_like(rhs_xi)
+    if m:
+        kernels_for(hessian).twist_system(grams, rhs_frames, rhs_projection, downdate, host_kernels.MAX_TWIST_CONDITION,
+                                          xp.empty((m, 6, 6)), frame_kept, hessian, twist_rhs)
     del Du, Dv, points_ref, partials  # the zero-free copies (45 MB at 2 megapixels): not held while M is formed
     if release:
         ev.release()
-    # frames whose own Gram is not safely invertible keep their depth rows but take no twist
-    hessians, frames, kept = [], [], []
-    for k, i in enumerate(candidates):
-        H = grams[k] + np.triu(grams[k], 1).T
-        if np.isfinite(H).all() and np.linalg.cond(H) <= 1e12:
-            hessians.append(H)
-            frames.append(i)
-            kept.extend(range(6 * k, 6 * k + 6))
-    hessian = scipy.linalg.block_diag(*hessians) - downdate[np.ix_(kept, kept)] if frames else np.zeros((0, 0))
+    if xp is np:  # the kept frames' rows and columns
+        kept_slots = np.flatnonzero(frame_kept)
+        frames = [candidates[k] for k in kept_slots]
+        kept = [6 * k + a for k in kept_slots for a in range(6)]
+        hessian, rhs_xi = hessian[np.ix_(kept, kept)], twist_rhs[kept]
+    else:  # every candidate's rows, a frame not kept an identity block with no coupling (its twist 0)
+        frames, kept, rhs_xi = candidates, list(range(6 * m)), twist_rhs
+        if m:
+            coupling_t *= xp.repeat(frame_kept, 6)[:, None]
     prior = problem.level.prior
     rhs_z = -stencil_transpose(grid, *sums[6:]) + prior.negative_gradient(est.z, problem.tau, problem.mu)
     if xp is np:  # filled into the level's pattern: no sparse products or sums
@@ -268,7 +316,8 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
         if row != k:
             coupling_t[row] = coupling_t[k]
     coupling = coupling_t[:len(kept)].T  # (N, 6m')
-    return JointSystem(sparse_module(matrix).csr_matrix(matrix), rhs_z, coupling, hessian, rhs_xi[kept], frames)
+    return JointSystem(sparse_module(matrix).csr_matrix(matrix), rhs_z, coupling, hessian, rhs_xi, frames,
+                       None if xp is np else frame_kept)
 
 
 def _twist_sums_size(m: int) -> int:
