@@ -473,12 +473,13 @@ def test_twist_system_matches_numpy_and_cpu():
     D = RNG.normal(size=(6 * m, 6 * m)) * 1e-3
     rhs_frames, rhs_projection = RNG.normal(size=6 * m), RNG.normal(size=6 * m)
     args = (grams, rhs_frames, rhs_projection, D @ D.T, kernels.MAX_TWIST_CONDITION, np.zeros((m, 6, 6)),
-            np.zeros(m), np.zeros((6 * m, 6 * m)), np.zeros(6 * m))
+            np.zeros(m), np.zeros((6 * m, 6 * m)), np.zeros(6 * m), np.ones((6 * m, 6 * m)))
     cpu, gpu = run_both("twist_system", *args)
     np.testing.assert_array_equal(cpu[6], [1.0, 0.0, 0.0])
     expected = np.eye(6 * m)
     expected[:6, :6] = grams[0] + np.triu(grams[0], 1).T - (D @ D.T)[:6, :6]
     np.testing.assert_array_equal(cpu[7], expected)
     np.testing.assert_array_equal(cpu[8], np.r_[(rhs_frames + rhs_projection)[:6], np.zeros(12)])
-    for k in (6, 7, 8):
+    np.testing.assert_array_equal(cpu[9], -np.diag(np.r_[np.ones(6), np.zeros(12)]))
+    for k in (6, 7, 8, 9):
         np.testing.assert_array_equal(gpu[k], cpu[k])

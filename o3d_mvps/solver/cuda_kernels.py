@@ -547,16 +547,16 @@ def _twist_kept(grams, limit, W, kept):  # pragma: no cover - device
 
 
 @cuda.jit(cache=True)
-def _twist_entries(grams, rhs_frames, rhs_projection, downdate, kept, hessian, rhs):  # pragma: no cover - device
+def _twist_entries(grams, rhs_frames, rhs_projection, downdate, kept, hessian, rhs, selection):  # pragma: no cover
     index = cuda.grid(1)
     k = hessian.shape[0]
     if index < k * k:
-        _twist_entry(grams, rhs_frames, rhs_projection, downdate, kept, hessian, rhs, index // k, index % k)
+        _twist_entry(grams, rhs_frames, rhs_projection, downdate, kept, hessian, rhs, selection, index // k, index % k)
 
 
-def twist_system(grams, rhs_frames, rhs_projection, downdate, limit, W, kept, hessian, rhs) -> None:
+def twist_system(grams, rhs_frames, rhs_projection, downdate, limit, W, kept, hessian, rhs, selection) -> None:
     """:func:`.kernels.twist_system` on the GPU: two launches, one thread per frame slot (its
     Gram's condition number), then one per entry of the matrix."""
     _twist_kept[_blocks(grams.shape[0]), THREADS_PER_BLOCK](grams, float(limit), W, kept)
     _twist_entries[_blocks(hessian.size), THREADS_PER_BLOCK](grams, rhs_frames, rhs_projection, downdate, kept,
-                                                             hessian, rhs)
+                                                             hessian, rhs, selection)

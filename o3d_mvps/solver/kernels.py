@@ -1096,11 +1096,14 @@ def twist_frame_kept(grams, limit, W, kept, f):  # pragma: no cover - compiled
 
 
 @numba.njit(inline="always")
-def twist_entry(grams, rhs_frames, rhs_projection, downdate, kept, hessian, rhs, j, c):  # pragma: no cover - compiled
+def twist_entry(grams, rhs_frames, rhs_projection, downdate, kept, hessian, rhs, selection, j,
+                c):  # pragma: no cover - compiled
     """Entry (j, c) of the joint step's twist matrix: ``H = blockdiag(G_f) - downdate`` (6m, 6m)
     over the kept frames (G_f the symmetric Gram whose upper triangle grams[f] holds), an
-    identity row and column for a frame not kept; for c = 0 also rhs[j] = rhs_frames[j] +
-    rhs_projection[j] (0 for a frame not kept)."""
+    identity row and column for a frame not kept; of ``selection`` (6m, 6m): ``-diag(kept)``
+    per twist row (the right-hand sides that make ``-H^-1 diag(kept)``, whose columns of a frame
+    not kept are 0); for c = 0 also rhs[j] = rhs_frames[j] + rhs_projection[j] (0 for a frame
+    not kept)."""
     fj, fc = j // 6, c // 6
     if kept[fj] == 0.0 or kept[fc] == 0.0:
         hessian[j, c] = 1.0 if j == c else 0.0
@@ -1110,17 +1113,20 @@ def twist_entry(grams, rhs_frames, rhs_projection, downdate, kept, hessian, rhs,
         if fj == fc:
             g = grams[fj, a, b] + 0.0 if a <= b else grams[fj, b, a] + 0.0
         hessian[j, c] = g - downdate[j, c]
+    selection[j, c] = -1.0 if j == c and kept[fj] != 0.0 else 0.0
     if c == 0:
         rhs[j] = rhs_frames[j] + rhs_projection[j] if kept[fj] != 0.0 else 0.0
 
 
 @numba.njit(cache=True)
-def twist_system(grams, rhs_frames, rhs_projection, downdate, limit, W, kept, hessian, rhs):  # pragma: no cover
+def twist_system(grams, rhs_frames, rhs_projection, downdate, limit, W, kept, hessian, rhs,
+                 selection):  # pragma: no cover - compiled
     """The joint step's twist system from its sums over pixels: kept (m,) (:func:`twist_frame_kept`
-    of every frame slot), hessian (6m, 6m) and rhs (6m,) (:func:`twist_entry`). grams (m, 6, 6)
-    upper triangles, rhs_frames, rhs_projection (6m,), downdate (6m, 6m); W (m, 6, 6) scratch."""
+    of every frame slot), hessian (6m, 6m), rhs (6m,) and selection (6m, 6m)
+    (:func:`twist_entry`). grams (m, 6, 6) upper triangles, rhs_frames, rhs_projection (6m,),
+    downdate (6m, 6m); W (m, 6, 6) scratch."""
     for f in range(grams.shape[0]):
         twist_frame_kept(grams, limit, W, kept, f)
     for j in range(hessian.shape[0]):
         for c in range(hessian.shape[1]):
-            twist_entry(grams, rhs_frames, rhs_projection, downdate, kept, hessian, rhs, j, c)
+            twist_entry(grams, rhs_frames, rhs_projection, downdate, kept, hessian, rhs, selection, j, c)

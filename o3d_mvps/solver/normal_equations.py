@@ -51,8 +51,10 @@ class JointSystem:
     (6m, 6m): H (block-diagonal per frame unless the albedo is projected out); rhs_xi (6m,);
     frames (m,): the refined frames' indices. On a GPU H and rhs_xi stay there, with every
     candidate frame's rows: kept (m,) 1.0 or 0.0 on the device, a frame not kept an identity
-    block with zero coupling and right-hand side (so a zero twist); :meth:`twists` reads the
-    twists and the flags together and drops such frames from ``frames``.
+    block with a zero right-hand side, and selection (6m, 6m) ``-diag(kept)`` per twist row, so
+    that ``-H^-1 selection`` drops such a frame's columns (its coupling and twist 0);
+    :meth:`twists` reads the twists and the flags together and drops such frames from
+    ``frames``.
     """
 
     matrix: sp.csr_matrix
@@ -62,7 +64,8 @@ class JointSystem:
     rhs_xi: np.ndarray
     frames: list
     kept: np.ndarray | None = None
-    _inverse: np.ndarray | None = None  # H^-1 on a GPU, formed by schur_operator
+    selection: np.ndarray | None = None
+    _inverse: np.ndarray | None = None  # -H^-1 diag(kept) on a GPU, formed by schur_operator
 
     def schur_operator(self):
         """(S, rhs): ``S = M - U H^-1 U^T`` as an operator (:func:`~o3d_mvps.model.arrays.linear_operator`) and
@@ -81,9 +84,9 @@ class JointSystem:
         if on_gpu(U):
             from .linear import ridge_solves  # linear imports krylov, which this module imports too
 
-            xp = array_module(U)
-            self._inverse = ridge_solves(self.hessian[None], xp.eye(len(self.hessian))[None], 0.0, CHOLESKY_FALLBACK)[0][0]
-            coupled = U @ -self._inverse  # -U H^-1
+            # -H^-1 diag(kept): the columns of a frame not kept 0
+            self._inverse = ridge_solves(self.hessian[None], self.selection[None], 0.0, CHOLESKY_FALLBACK)[0][0]
+            coupled = U @ self._inverse  # -U H^-1
 
             def schur_product(x):
                 return multiply_add(M, 1.0, x.ravel(), coupled @ (U.T @ x.ravel()))
@@ -142,12 +145,12 @@ class JointSystem:
 
     def twists(self, dz: np.ndarray) -> np.ndarray:
         """The twists (m, 6) that go with the depth increment dz (N,), on the host (on a GPU
-        H^-1 (rhs_xi - U^T dz) there, read with the frames' kept flags in one copy; ``frames``
-        then lists the kept frames only)."""
+        H^-1 (rhs_xi - U^T dz) there, as ``-H^-1 diag(kept) (U^T dz - rhs_xi)``, read with the
+        frames' kept flags in one copy; ``frames`` then lists the kept frames only)."""
         if not self.frames:
             return np.zeros((0, 6))
         if self._inverse is not None:
-            xi, kept = to_host_together(self._inverse @ (self.rhs_xi - self.couple_t(dz)), self.kept)
+            xi, kept = to_host_together(self._inverse @ (self.couple_t(dz) - self.rhs_xi), self.kept)
             self.frames = [i for i, k in zip(self.frames, kept) if k]
             return xi.reshape(-1, 6)[kept != 0]
         return scipy.linalg.cho_solve(_cholesky(self.hessian), self.rhs_xi - to_host(self.couple_t(dz))).reshape(-1, 6)
@@ -282,13 +285,14 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
     # frames whose own Gram is not safely invertible keep their depth rows but take no twist
     # (kernels.twist_system: the frames' condition numbers and H = blockdiag(Grams) - downdate)
     hessian, twist_rhs, frame_kept = xp.empty((6 * m, 6 * m)), xp.empty(6 * m), xp.empty(m)
+    selection = xp.empty((6 * m, 6 * m))  # -diag(kept) per twist row
     if partials is not None:  # on a GPU the block's sums added and the system formed there: no copy
         grams, rhs_frames, rhs_projection, downdate = _twist_sums(partials.sum(axis=0), m)
     else:
         rhs_frames, rhs_projection = rhs_xi, np.zeros_like(rhs_xi)
     if m:
         kernels_for(hessian).twist_system(grams, rhs_frames, rhs_projection, downdate, host_kernels.MAX_TWIST_CONDITION,
-                                          xp.empty((m, 6, 6)), frame_kept, hessian, twist_rhs)
+                                          xp.empty((m, 6, 6)), frame_kept, hessian, twist_rhs, selection)
     del Du, Dv, points_ref, partials  # the zero-free copies (45 MB at 2 megapixels): not held while M is formed
     if release:
         ev.release()
@@ -297,10 +301,8 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
         frames = [candidates[k] for k in kept_slots]
         kept = [6 * k + a for k in kept_slots for a in range(6)]
         hessian, rhs_xi = hessian[np.ix_(kept, kept)], twist_rhs[kept]
-    else:  # every candidate's rows, a frame not kept an identity block with no coupling (its twist 0)
+    else:  # every candidate's rows, a frame not kept an identity block (its twist 0: JointSystem.selection)
         frames, kept, rhs_xi = candidates, list(range(6 * m)), twist_rhs
-        if m:
-            coupling_t *= xp.repeat(frame_kept, 6)[:, None]
     prior = problem.level.prior
     rhs_z = -stencil_transpose(grid, *sums[6:]) + prior.negative_gradient(est.z, problem.tau, problem.mu)
     if xp is np:  # filled into the level's pattern: no sparse products or sums
@@ -317,7 +319,7 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
             coupling_t[row] = coupling_t[k]
     coupling = coupling_t[:len(kept)].T  # (N, 6m')
     return JointSystem(sparse_module(matrix).csr_matrix(matrix), rhs_z, coupling, hessian, rhs_xi, frames,
-                       None if xp is np else frame_kept)
+                       *((None, None) if xp is np else (frame_kept, selection)))
 
 
 def _twist_sums_size(m: int) -> int:
