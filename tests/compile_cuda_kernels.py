@@ -62,8 +62,8 @@ SIGNATURES = {
     "_twist_kept": (_F3, types.float64, _F3, _F1),
     "_twist_entries": (_F3, _F1, _F1, _F2, _F1, _F2, _F1, _F2),
     "_ridge_solves": (_F3, _F3, types.float64, types.float64, _F3, _F3, _F1),
-    "_led_trial_partials": (_COLOR, _array(2, types.boolean), _F2, _F2, _F2, _F3, _F1, _F3, _F2, types.float64,
-                            types.boolean, _F2),
+    "_led_trial_partials": (_COLOR, _array(2, types.boolean), _F2, _F2, _F2, _F3, _F1, _F3, _F3, _F2,
+                            types.float64, types.boolean, _F2),
 }
 
 

@@ -418,31 +418,38 @@ def test_ridge_solves_match_numpy_and_cpu():
 
 
 def test_led_trial_sums_match_the_formula_and_cpu():
-    """The LED offset's line-search trials in one pass: row k of the partial sums adds up to
-    ``sum log(1 + (r / lam)^2)`` of the residuals ``I - rho (l_0 + l_1 max(0, <n, v>))`` over
-    usable pixels, the LED at offset ``start - 2^-k x`` (float32 logarithms, as the GPU's
-    energy), CPU and CUDA alike; the LED's positions as LEDLight.positions gives them."""
+    """The LED offset's step and line-search trials in one pass: the step's negative x solves
+    (H + 1e-9 trace(H) I) x = g as the host's ridge_solve does (last row, with g), and row k of
+    the sums adds up to ``sum log(1 + (r / lam)^2)`` of the residuals ``I - rho (l_0 + l_1
+    max(0, <n, v>))`` over usable pixels, the LED at offset ``start - 2^-k x`` (float32
+    logarithms, as the GPU's energy), CPU and CUDA alike; the LED's positions as
+    LEDLight.positions gives them."""
     from o3d_mvps.solver.lighting import LEDLight
+    from o3d_mvps.solver.linear import ridge_solve
 
     n, N, K = 3, N_PIXELS, 4
     normals = RNG.normal(size=(N, 3))
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
     points = RNG.normal(size=(N, 3)) * 0.1 + [0.0, 0.0, 0.6]
     poses = np.stack([np.eye(4), POSE, POSE @ POSE])
-    start, x = np.array([0.02, -0.01, 0.005]), RNG.normal(size=(1, 3, 1)) * 0.01
+    M = RNG.normal(size=(3, 3))
+    H, g = (M @ M.T)[None] * 1e4, RNG.normal(size=(1, 3, 1)) * 1e2
+    start, x = np.array([0.02, -0.01, 0.005]), -ridge_solve(H[0], -g[0, :, 0])
     color = RNG.random((n, N, 3)).astype(np.float32)
     usable = RNG.random((n, N)) > 0.2
     albedo, lights = RNG.random((N, 3)), np.abs(RNG.normal(size=(n, 2))) * [0.2, 0.03]
-    args = (color, usable, albedo, normals, points, poses, start, x, lights, 1.0 / LAM)
+    args = (color, usable, albedo, normals, points, poses, start, H, g, lights, 1.0 / LAM)
     for single in (False, True):
-        cpu = np.zeros((K, kernels.trial_blocks(n, N)))
-        gpu = np.zeros((K, cuda_kernels.trial_blocks(n, N)))
+        cpu = np.zeros((K + 1, kernels.trial_blocks(n, N)))
+        gpu = np.zeros((K + 1, cuda_kernels.trial_blocks(n, N)))
         kernels.led_trial_sums(*args, single, cpu)
         cuda_kernels.led_trial_sums(*args, single, gpu)
+        np.testing.assert_array_equal(cpu[K, :7], np.r_[x, 1.0, g[0, :, 0]])
+        np.testing.assert_array_equal(gpu[K, :7], cpu[K, :7])
         for k in range(K):
-            positions = LEDLight(start - 0.5**k * x[0, :, 0]).positions(poses)
+            positions = LEDLight(start - 0.5**k * x).positions(poses)
             np.testing.assert_array_equal(positions, np.einsum("mji,mj->mi", poses[:, :3, :3],
-                                                               start - 0.5**k * x[0, :, 0] - poses[:, :3, 3]))
+                                                               start - 0.5**k * x - poses[:, :3, 3]))
             d = positions[:, None, :] - points  # (n, N, 3)
             r2 = (d * d).sum(axis=-1)
             basis = np.maximum((normals * d).sum(axis=-1) / (r2 * np.sqrt(r2)), 0.0)
@@ -452,9 +459,9 @@ def test_led_trial_sums_match_the_formula_and_cpu():
             y = (residual[usable] / LAM).astype(np.float32)
             expected = np.log(np.float32(1.0) + y * y).astype(np.float64).sum()
             assert_close(cpu[k].sum(), expected, rtol=1e-6)
-        assert len(set(cpu.sum(axis=1))) == K  # the trials differ
+        assert len(set(cpu[:K].sum(axis=1))) == K  # the trials differ
         # the simulator takes Python's float64 logarithm of each float32 term: ~1e-9 of the sums
-        assert_close(gpu.sum(axis=1), cpu.sum(axis=1), rtol=1e-8)
+        assert_close(gpu[:K].sum(axis=1), cpu[:K].sum(axis=1), rtol=1e-8)
 
 
 def test_twist_system_matches_numpy_and_cpu():

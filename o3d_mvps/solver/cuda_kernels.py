@@ -481,6 +481,8 @@ def log1p_square_sum(x, scale: float) -> float:
 
 _ridge_solve_system = _device(kernels.ridge_solve_system)
 _led_trial_term = _device(kernels.led_trial_term)
+_led_offset_step = _device(kernels.led_offset_step)
+_store_offset_step = _device(kernels.store_offset_step)
 
 
 @cuda.jit(cache=True)
@@ -497,19 +499,26 @@ def ridge_solves(A, B, ridge, fallback, L, X, solved) -> None:
 
 
 @cuda.jit(cache=True)
-def _led_trial_partials(color, usable, albedo, normals, points, poses, start, x, lights, scale, single,
-                        partial):  # pragma: no cover - device
-    """partial[k, block] = the block's share of trial k's sum (grid: blocks x trials): each
-    thread sums a strided share of the frames' pixels, then the block adds its threads' sums in
-    shared memory (a tree, in a fixed order)."""
+def _led_trial_partials(color, usable, albedo, normals, points, poses, start, H, g, lights, scale, single,
+                        out):  # pragma: no cover - device
+    """out[k, block] = the block's share of trial k's sum (grid: blocks x trials): every thread
+    solves the offset's 3x3 system (some 50 operations; no launch of its own), sums a strided
+    share of the frames' pixels, then the block adds its threads' sums in shared memory (a tree,
+    in a fixed order); block (0, 0) also writes the step into the last row."""
     share = cuda.shared.array(THREADS_PER_BLOCK, numba.float64)
+    L = cuda.local.array((1, 3, 3), numba.float64)
+    X = cuda.local.array((1, 3, 1), numba.float64)
+    solved = cuda.local.array(1, numba.float64)
     t = cuda.threadIdx.x
     k = cuda.blockIdx.y
     n, N = usable.shape
+    _led_offset_step(H, g, L, X, solved)
+    if k == 0 and cuda.blockIdx.x == 0 and t == 0:
+        _store_offset_step(X, solved, g, out)
     total = 0.0
     for index in range(cuda.blockIdx.x * THREADS_PER_BLOCK + t, n * N, cuda.gridDim.x * THREADS_PER_BLOCK):
-        total += _led_trial_term(color, usable, albedo, normals, points, poses, start, x, lights, scale, single, k,
-                                 index // N, index % N)
+        total += _led_trial_term(color, usable, albedo, normals, points, poses, start, X[0, 0, 0], X[0, 1, 0],
+                                 X[0, 2, 0], lights, scale, single, k, index // N, index % N)
     share[t] = total
     cuda.syncthreads()
     step = THREADS_PER_BLOCK // 2
@@ -519,20 +528,20 @@ def _led_trial_partials(color, usable, albedo, normals, points, poses, start, x,
         cuda.syncthreads()
         step //= 2
     if t == 0:
-        partial[k, cuda.blockIdx.x] = share[0]
+        out[k, cuda.blockIdx.x] = share[0]
 
 
 def trial_blocks(n_frames: int, n_pixels: int) -> int:
-    """Columns of :func:`led_trial_sums`' partial sums (its blocks per trial, at most
+    """Columns of :func:`led_trial_sums`' out (its blocks per trial, at least 7 and at most
     :data:`.kernels.REDUCTION_BLOCKS`; not a launch)."""
-    return min(kernels.REDUCTION_BLOCKS, _blocks(-(-n_frames * n_pixels // TERMS_PER_THREAD)))
+    return min(kernels.REDUCTION_BLOCKS, max(7, _blocks(-(-n_frames * n_pixels // TERMS_PER_THREAD))))
 
 
-def led_trial_sums(color, usable, albedo, normals, points, poses, start, x, lights, scale, single, partial) -> None:
-    """:func:`.kernels.led_trial_sums` on the GPU: every trial in one launch (grid: blocks x
-    trials), partial (K, :func:`trial_blocks`) one sum per block."""
-    _led_trial_partials[(partial.shape[1], partial.shape[0]), THREADS_PER_BLOCK](
-        color, usable, albedo, normals, points, poses, start, x, lights, float(scale), bool(single), partial)
+def led_trial_sums(color, usable, albedo, normals, points, poses, start, H, g, lights, scale, single, out) -> None:
+    """:func:`.kernels.led_trial_sums` on the GPU: the step and every trial in one launch (grid:
+    blocks x trials), out (K + 1, :func:`trial_blocks`) one sum per block, the step's row."""
+    _led_trial_partials[(out.shape[1], out.shape[0] - 1), THREADS_PER_BLOCK](
+        color, usable, albedo, normals, points, poses, start, H, g, lights, float(scale), bool(single), out)
 
 
 _twist_frame_kept = _device(kernels.twist_frame_kept)

@@ -967,11 +967,11 @@ def ridge_solves(A, B, ridge, fallback, L, X, solved):  # pragma: no cover - com
 
 
 @numba.njit(inline="always")
-def led_trial_term(color, usable, albedo, normals, points, poses, start, x, lights, scale, single, k, i,
+def led_trial_term(color, usable, albedo, normals, points, poses, start, x0, x1, x2, lights, scale, single, k, i,
                    p):  # pragma: no cover - compiled
-    """Pixel p of frame i with the LED at trial k's offset ``start - 2^-k x`` (x (1, 3, 1): the
-    step's negative, as :func:`ridge_solves` gives it): ``sum_c log(1 + (scale r_c)^2)`` of its
-    residuals ``r_c = I~_c - rho_c (l_0 + l_1 max(0, <n, v>))`` (0 where not usable), as
+    """Pixel p of frame i with the LED at trial k's offset ``start - 2^-k x`` (x = (x0, x1, x2):
+    the step's negative): ``sum_c log(1 + (scale r_c)^2)`` of its residuals
+    ``r_c = I~_c - rho_c (l_0 + l_1 max(0, <n, v>))`` (0 where not usable), as
     :meth:`.LevelProblem.energy` forms them (:func:`shading_residual_pixel` on the LED basis of
     :func:`~o3d_mvps.model.shading.led_irradiance`, the LED's position
     :func:`~o3d_mvps.model.shading.led_position`); single: the basis and residual rounded to
@@ -981,9 +981,9 @@ def led_trial_term(color, usable, albedo, normals, points, poses, start, x, ligh
     length = 1.0
     for _ in range(k):
         length *= 0.5
-    o0 = start[0] - length * x[0, 0, 0]
-    o1 = start[1] - length * x[0, 1, 0]
-    o2 = start[2] - length * x[0, 2, 0]
+    o0 = start[0] - length * x0
+    o1 = start[1] - length * x1
+    o2 = start[2] - length * x2
     g = led_irradiance_at(normals, points, led_position(poses, o0, o1, o2, i, 0), led_position(poses, o0, o1, o2, i, 1),
                           led_position(poses, o0, o1, o2, i, 2), p)
     b = g if g > 0.0 else 0.0
@@ -1001,34 +1001,59 @@ def led_trial_term(color, usable, albedo, normals, points, poses, start, x, ligh
     return total
 
 
+@numba.njit(inline="always")
+def led_offset_step(H, g, L, X, solved):  # pragma: no cover - compiled
+    """The LED offset's Gauss-Newton step's negative ``x = (H + 1e-9 trace(H) I)^-1 g`` into
+    X (1, 3, 1), solved (1,) (:func:`ridge_solve_system`, the host's :func:`.linear.ridge_solve`);
+    H (1, 3, 3), g (1, 3, 1), L (1, 3, 3) scratch."""
+    ridge_solve_system(H, g, 1e-9, 0.0, L, X, solved, 0)
+
+
+@numba.njit(inline="always")
+def store_offset_step(X, solved, g, out):  # pragma: no cover - compiled
+    """The last row of :func:`led_trial_sums`' out: x (3,), solved, g (3,)."""
+    K = out.shape[0] - 1
+    for j in range(3):
+        out[K, j] = X[0, j, 0]
+        out[K, 4 + j] = g[0, j, 0]
+    out[K, 3] = solved[0]
+
+
 @numba.njit(parallel=True, cache=True)
-def _led_trial_sums(color, usable, albedo, normals, points, poses, start, x, lights, scale, single,
+def _led_trial_sums(color, usable, albedo, normals, points, poses, start, H, g, lights, scale, single,
                     out):  # pragma: no cover - compiled
-    K, n = out.shape
+    K, n = out.shape[0] - 1, usable.shape[0]
     N = usable.shape[1]
+    L, X, solved = np.empty((1, 3, 3)), np.empty((1, 3, 1)), np.empty(1)
+    led_offset_step(H, g, L, X, solved)
+    out[:] = 0.0
+    store_offset_step(X, solved, g, out)
+    x0, x1, x2 = X[0, 0, 0], X[0, 1, 0], X[0, 2, 0]
     for ki in numba.prange(K * n):
         k, i = ki // n, ki % n
         total = 0.0
         for p in range(N):
-            total += led_trial_term(color, usable, albedo, normals, points, poses, start, x, lights, scale, single, k,
-                                    i, p)
+            total += led_trial_term(color, usable, albedo, normals, points, poses, start, x0, x1, x2, lights, scale,
+                                    single, k, i, p)
         out[k, i] = total
 
 
 def trial_blocks(n_frames: int, n_pixels: int) -> int:
-    """Columns B of :func:`led_trial_sums`' partial sums: here one per frame (not a launch)."""
-    return n_frames
+    """Columns B of :func:`led_trial_sums`' out: here one per frame, at least 7 (not a launch)."""
+    return max(7, n_frames)
 
 
-def led_trial_sums(color, usable, albedo, normals, points, poses, start, x, lights, scale, single, partial) -> None:
-    """The data terms of the LED offset's K line-search trials in one pass: partial (K, B) =
-    partial sums whose rows add up to ``sum_{i,p,c} log(1 + (scale r)^2)`` of trial k, the LED
-    at ``start - 2^-k x`` (:func:`led_trial_term`), B = :func:`trial_blocks` (n, N) (here one
-    sum per frame; on a GPU one launch, B its blocks). color (n, N, 3), usable (n, N), albedo,
-    normals, points (N, 3) float64, poses (n, 4, 4), start (3,), x (1, 3, 1), lights (n, 2)
-    float64; single: float32 residuals."""
-    _led_trial_sums(color, usable, albedo, normals, points, poses, start, x, lights, float(scale), bool(single),
-                    partial)
+def led_trial_sums(color, usable, albedo, normals, points, poses, start, H, g, lights, scale, single, out) -> None:
+    """The LED offset's step and its K line-search trials in one pass. The step's negative x
+    from its Gauss-Newton system H (1, 3, 3), g (1, 3, 1) (:func:`led_offset_step`); out (K + 1,
+    B): rows k < K partial sums adding up to ``sum_{i,p,c} log(1 + (scale r)^2)`` of trial k,
+    the LED at ``start - 2^-k x`` (:func:`led_trial_term`), row K = x (3), solved (1.0 or 0.0),
+    g (3) (:func:`store_offset_step`), B = :func:`trial_blocks` (n, N) (here one sum per frame;
+    on a GPU one launch, B its blocks). color (n, N, 3), usable (n, N), albedo, normals, points
+    (N, 3) float64, poses (n, 4, 4), start (3,), lights (n, 2) float64; single: float32
+    residuals."""
+    _led_trial_sums(color, usable, albedo, normals, points, poses, start, H, g, lights, float(scale), bool(single),
+                    out)
 
 
 #: The joint step's refined frames: one whose own twist Gram (6, 6) has a condition number

@@ -31,9 +31,9 @@ from ..model.arrays import array_module, contiguous, like
 from ..model.robust import cauchy_weights
 from ..model.shading import (INITIAL_LIGHT, led_positions_into, led_fields_into, led_irradiances, led_twist_jacobians_into, led_vectors,
                              sh_basis)
-from .device import kernels_for, to_host_together
+from .device import kernels_for, to_host
 from .line_search import backtrack
-from .linear import ridge_solve, ridge_solves
+from .linear import ridge_solve
 
 
 class FrameFields:
@@ -419,24 +419,23 @@ def update_led_offset(problem, est, ev, *, max_halvings: int = 3, max_pixels: in
 
 def _device_offset_search(problem, est, ev, light, H, g, stride, max_halvings, min_decrease):
     """:func:`update_led_offset`'s step and line search on a GPU from its system H (3, 3), g (3,)
-    on the device: the step solved there (:func:`.linear.ridge_solves`), every trial length 1,
-    1/2, ..., 2^-max_halvings scored in one launch (:func:`.kernels.led_trial_sums`: the data
-    energy of :meth:`.LevelProblem.energy` from ``ev``'s samples, plus ``ev``'s prior), one copy
-    in (the offset, lights and poses) and one read (the step, g and the trials' sums), where the
-    host's line search reads a system and then an energy per trial; then the longest trial
-    whose energy is not above ``ev``'s, as :func:`.line_search.backtrack` takes it."""
+    on the device: the step solved and every trial length 1, 1/2, ..., 2^-max_halvings scored
+    in one launch (:func:`.kernels.led_trial_sums`: the step by the host's ridge_solve formula,
+    the data energy of :meth:`.LevelProblem.energy` from ``ev``'s samples, plus ``ev``'s prior),
+    one copy in (the offset, lights and poses) and one read (the trials' sums, the step, g),
+    where the host's line search reads a system and then an energy per trial; then the longest
+    trial whose energy is not above ``ev``'s, as :func:`.line_search.backtrack` takes it."""
     xp, P = array_module(ev.residual), problem.points(est.z)
     start, n, K = light.offset, problem.n_frames, max_halvings + 1
     packed = like(np.concatenate([start, est.lights.astype(np.float64).ravel(), est.poses.ravel()]), P)
     lights, poses = packed[3:3 + 2 * n].reshape(n, 2), packed[3 + 2 * n:].reshape(n, 4, 4)
-    x, solved = ridge_solves(H[None], g.reshape(1, 3, 1))  # x = H^-1 g: the step is -x
     kernels = kernels_for(P)
-    partial = xp.empty((K, kernels.trial_blocks(*ev.usable.shape)))
+    out = xp.empty((K + 1, kernels.trial_blocks(*ev.usable.shape)))  # the trials' sums, then x, solved, g
     kernels.led_trial_sums(ev.color, ev.usable, contiguous(est.albedo, np.float64), contiguous(ev.normals, np.float64),
-                           contiguous(P, np.float64), poses, packed[:3], x, lights, 1.0 / problem.lam,
-                           problem.residual_dtype == np.float32, partial)
-    sums, x, g, solved = to_host_together(partial, x, g, solved)
-    step = -x[0, :, 0]
+                           contiguous(P, np.float64), poses, packed[:3], H[None], g.reshape(1, 3, 1), lights,
+                           1.0 / problem.lam, problem.residual_dtype == np.float32, out)
+    out = to_host(out)
+    sums, step, solved, g = out[:K], -out[K, :3], out[K, 3:4], out[K, 4:7]
     # the IRLS model's decrease -g.step / 2 on the spread pixels, scaled to all of them
     if not solved[0] or -0.5 * float(g @ step) * stride < min_decrease:
         return start, ev

@@ -32,7 +32,7 @@ import scipy.sparse as sp
 
 from ..model.arrays import array_module, fused, like, linear_operator, sparse_module
 from . import kernels as host_kernels
-from .device import kernels_for, on_gpu, to_host, to_host_together
+from .device import kernels_for, on_gpu, to_host
 from .krylov import multiply_add
 from .pose import pose_jacobian
 from .problem import Estimate, Evaluation, LevelProblem
@@ -52,9 +52,8 @@ class JointSystem:
     frames (m,): the refined frames' indices. On a GPU H and rhs_xi stay there, with every
     candidate frame's rows: kept (m,) 1.0 or 0.0 on the device, a frame not kept an identity
     block with a zero right-hand side, and selection (6m, 6m) ``-diag(kept)`` per twist row, so
-    that ``-H^-1 selection`` drops such a frame's columns (its coupling and twist 0);
-    :meth:`twists` reads the twists and the flags together and drops such frames from
-    ``frames``.
+    that ``-H^-1 selection`` drops such a frame's columns (its coupling and twist 0, so
+    ``exp(t xi)`` leaves its pose as it is, bit for bit).
     """
 
     matrix: sp.csr_matrix
@@ -145,14 +144,12 @@ class JointSystem:
 
     def twists(self, dz: np.ndarray) -> np.ndarray:
         """The twists (m, 6) that go with the depth increment dz (N,), on the host (on a GPU
-        H^-1 (rhs_xi - U^T dz) there, as ``-H^-1 diag(kept) (U^T dz - rhs_xi)``, read with the
-        frames' kept flags in one copy; ``frames`` then lists the kept frames only)."""
+        H^-1 (rhs_xi - U^T dz) there, as ``-H^-1 diag(kept) (U^T dz - rhs_xi)``, one read: a
+        frame not kept gets a zero twist, exactly)."""
         if not self.frames:
             return np.zeros((0, 6))
-        if self._inverse is not None:
-            xi, kept = to_host_together(self._inverse @ (self.couple_t(dz) - self.rhs_xi), self.kept)
-            self.frames = [i for i, k in zip(self.frames, kept) if k]
-            return xi.reshape(-1, 6)[kept != 0]
+        if self._inverse is not None:  # a frame not kept gets exactly 0: its pose stays
+            return to_host(self._inverse @ (self.couple_t(dz) - self.rhs_xi)).reshape(-1, 6)
         return scipy.linalg.cho_solve(_cholesky(self.hessian), self.rhs_xi - to_host(self.couple_t(dz))).reshape(-1, 6)
 
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..model.arrays import array_module, contiguous, fused
-from .device import kernels_for, on_gpu, to_host_together
+from .device import kernels_for, on_gpu, to_host
 from .problem import Estimate, Evaluation
 
 
@@ -41,10 +41,15 @@ def update_lighting(est: Estimate, ev: Evaluation, lam: float, light) -> np.ndar
         wr2, wri = xp.empty(ev.usable.shape), xp.empty(ev.usable.shape)  # sum_c w rho^2, sum_c w rho I~: (n, N)
         kernels_for(wr2).weighted_lighting_sums(ev.residual, ev.usable, ev.color, albedo, 1.0 / lam, wr2, wri)
         basis = ev.basis  # (n, N, k), or (1, N, k) shared
-        # the Grams, right-hand sides and usable counts read together
-        gram, rhs, counts = to_host_together(xp.matmul((basis * wr2[:, :, None]).transpose(0, 2, 1), basis),
-                                             xp.matmul(wri[:, None, :], basis)[:, 0],
-                                             ev.usable.sum(axis=1, dtype=np.float64))
+        # the Grams, right-hand sides and usable counts written into one array, read in one copy
+        sizes = np.cumsum([n * k * k, n * k, n])
+        both = xp.empty(int(sizes[-1]))
+        gram, rhs, counts = both[:sizes[0]].reshape(n, k, k), both[sizes[0]:sizes[1]].reshape(n, 1, k), both[sizes[1]:]
+        xp.matmul((basis * wr2[:, :, None]).transpose(0, 2, 1), basis, out=gram)
+        xp.matmul(wri[:, None, :], basis, out=rhs)
+        ev.usable.sum(axis=1, dtype=np.float64, out=counts)
+        both = to_host(both)
+        gram, rhs, counts = both[:sizes[0]].reshape(n, k, k), both[sizes[0]:sizes[1]].reshape(n, k), both[sizes[1]:]
         gram[counts < 8], rhs[counts < 8] = 0.0, 0.0
         return light.fit(gram, rhs, est.lights)
     # on the host a frame at a time: the sums of one frame (1, N) each, not of all (2 x 160 MB
