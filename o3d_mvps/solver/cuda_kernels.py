@@ -549,23 +549,22 @@ _twist_entry = _device(kernels.twist_entry)
 
 
 @cuda.jit(cache=True)
-def _twist_kept(grams, limit, W, kept):  # pragma: no cover - device
-    f = cuda.grid(1)
-    if f < grams.shape[0]:
+def _twist_system(grams, rhs_frames, rhs_projection, downdate, limit, W, kept, hessian, rhs,
+                  selection):  # pragma: no cover - device
+    """One block: its threads take the frame slots (their Grams' condition numbers), then, after
+    the block's barrier, the matrix's entries."""
+    t = cuda.threadIdx.x
+    for f in range(t, grams.shape[0], THREADS_PER_BLOCK):
         _twist_frame_kept(grams, limit, W, kept, f)
-
-
-@cuda.jit(cache=True)
-def _twist_entries(grams, rhs_frames, rhs_projection, downdate, kept, hessian, rhs, selection):  # pragma: no cover
-    index = cuda.grid(1)
+    cuda.syncthreads()
     k = hessian.shape[0]
-    if index < k * k:
+    for index in range(t, k * k, THREADS_PER_BLOCK):
         _twist_entry(grams, rhs_frames, rhs_projection, downdate, kept, hessian, rhs, selection, index // k, index % k)
 
 
 def twist_system(grams, rhs_frames, rhs_projection, downdate, limit, W, kept, hessian, rhs, selection) -> None:
-    """:func:`.kernels.twist_system` on the GPU: two launches, one thread per frame slot (its
-    Gram's condition number), then one per entry of the matrix."""
-    _twist_kept[_blocks(grams.shape[0]), THREADS_PER_BLOCK](grams, float(limit), W, kept)
-    _twist_entries[_blocks(hessian.size), THREADS_PER_BLOCK](grams, rhs_frames, rhs_projection, downdate, kept,
-                                                             hessian, rhs, selection)
+    """:func:`.kernels.twist_system` on the GPU: one launch of one block (a few thousand
+    entries), its threads one per frame slot (its Gram's condition number), then, after a
+    barrier, strided over the matrix's entries."""
+    _twist_system[1, THREADS_PER_BLOCK](grams, rhs_frames, rhs_projection, downdate, float(limit), W, kept, hessian,
+                                        rhs, selection)
