@@ -60,6 +60,7 @@ SIGNATURES = {
                  _F1, _F1, _F1, _F1, _F1, _F1, types.float64, _F1, _F2, _array(1, types.int32)),
     "_warp_gradients": (_F2, _F2, _F2, _COLOR, _F2, _F2, _F2),
     "_twist_system": (_F3, _F1, _F1, _F2, types.float64, _F3, _F1, _F2, _F1, _F2),
+    "_twist_inverse": (_F3, _F3, _F1, types.float64, _F3, _F3, _F1, _F1),
     "_ridge_solves": (_F3, _F3, types.float64, types.float64, _F3, _F3, _F1),
     "_led_trial_partials": (_COLOR, _array(2, types.boolean), _F2, _F2, _F2, _F3, _F1, _F3, _F3, _F2,
                             types.float64, types.boolean, _F2),

@@ -490,3 +490,26 @@ def test_twist_system_matches_numpy_and_cpu():
     np.testing.assert_array_equal(cpu[9], -np.diag(np.r_[np.ones(6), np.zeros(12)]))
     for k in (6, 7, 8, 9):
         np.testing.assert_array_equal(gpu[k], cpu[k])
+
+
+def test_twist_inverse_matches_numpy_and_cpu():
+    """The joint step's X = H^-1 selection and X b in one launch (thread 0 factors, the block's
+    threads substitute the columns): NumPy's solve, CPU and CUDA alike; a semidefinite H takes
+    the fallback shift."""
+    K = 12
+    M = RNG.normal(size=(K, K))
+    H = (M @ M.T)[None]
+    selection = -np.diag(np.r_[np.ones(6), np.zeros(6)])[None]
+    b = RNG.normal(size=K)
+    args = (H, selection, b, 1e-12, np.zeros((1, K, K)), np.zeros((1, K, K)), np.zeros(K), np.zeros(1))
+    cpu, gpu = run_both("twist_inverse", *args)
+    X = np.linalg.solve(H[0], selection[0])
+    assert_close(cpu[5][0], X, rtol=1e-9)
+    assert_close(cpu[6], X @ b, rtol=1e-9)
+    assert cpu[7][0] == 1.0 and not cpu[5][0][:, 6:].any()
+    for k in (5, 6, 7):
+        assert_close(gpu[k], cpu[k])
+    S = np.diag(np.r_[np.ones(K - 1), 0.0])[None]
+    cpu, _ = run_both("twist_inverse", S, -np.eye(K)[None], b, 1e-12, np.zeros((1, K, K)), np.zeros((1, K, K)),
+                      np.zeros(K), np.zeros(1))
+    assert cpu[7][0] == 1.0 and np.isclose(cpu[5][0][-1, -1], -1e12)

@@ -36,7 +36,8 @@ __all__ = ["chunk_count", "accumulate_frame", "accumulate_frames", "project_twis
            "shading_residuals", "weighted_albedo_sums", "weighted_lighting_sums", "log1p_square_sum",
            "led_irradiances_into", "led_point_gradients_into", "warp_sample", "warp_sample_frames", "warp_gradients",
            "chebyshev_update", "chebyshev_start", "restrict_residual", "prolong_restart", "csr_multiply_add", "cg_start",
-           "cg_scalars", "cg_update", "ridge_solves", "led_trial_sums", "twist_system"]
+           "cg_scalars", "cg_update", "ridge_solves", "led_trial_sums", "twist_system",
+           "twist_inverse"]
 
 #: Threads per block of every kernel.
 THREADS_PER_BLOCK = 128
@@ -480,6 +481,9 @@ def log1p_square_sum(x, scale: float) -> float:
 
 
 _ridge_solve_system = _device(kernels.ridge_solve_system)
+_ridge_cholesky = _device(kernels.ridge_cholesky)
+_cholesky_column = _device(kernels.cholesky_column)
+_matrix_vector_row = _device(kernels.matrix_vector_row)
 _led_trial_term = _device(kernels.led_trial_term)
 _led_offset_step = _device(kernels.led_offset_step)
 _store_offset_step = _device(kernels.store_offset_step)
@@ -568,3 +572,28 @@ def twist_system(grams, rhs_frames, rhs_projection, downdate, limit, W, kept, he
     barrier, strided over the matrix's entries."""
     _twist_system[1, THREADS_PER_BLOCK](grams, rhs_frames, rhs_projection, downdate, float(limit), W, kept, hessian,
                                         rhs, selection)
+
+
+@cuda.jit(cache=True)
+def _twist_inverse(hessian, selection, rhs, fallback, L, X, Xb, solved):  # pragma: no cover - device
+    """One block: thread 0 factors, then (after the barrier) the threads take X's columns, then
+    Xb's rows."""
+    t = cuda.threadIdx.x
+    ok = cuda.shared.array(1, numba.int32)
+    if t == 0:
+        done = _ridge_cholesky(hessian, 0.0, fallback, L, 0)
+        solved[0] = 1.0 if done else 0.0
+        ok[0] = 1 if done else 0
+    cuda.syncthreads()
+    K = hessian.shape[1]
+    for c in range(t, K, THREADS_PER_BLOCK):
+        _cholesky_column(L, selection, X, ok[0] != 0, 0, c)
+    cuda.syncthreads()
+    for j in range(t, K, THREADS_PER_BLOCK):
+        _matrix_vector_row(X, rhs, Xb, j)
+
+
+def twist_inverse(hessian, selection, rhs, fallback, L, X, Xb, solved) -> None:
+    """:func:`.kernels.twist_inverse` on the GPU: one launch of one block (thread 0 factors, the
+    block's threads take the columns' substitutions, then Xb's rows)."""
+    _twist_inverse[1, THREADS_PER_BLOCK](hessian, selection, rhs, float(fallback), L, X, Xb, solved)

@@ -919,43 +919,61 @@ def _cholesky_shifted(A, shift, L, i):  # pragma: no cover - compiled
 
 
 @numba.njit(inline="always")
-def ridge_solve_system(A, B, ridge, fallback, L, X, solved, i):  # pragma: no cover - compiled
-    """System i of a batch of small SPD systems: ``X[i] = (A[i] + ridge trace(A[i]) I)^-1 B[i]``
-    by Cholesky (L[i] its factor, scratch); where that is not positive definite and ``fallback``
-    > 0, with ``fallback max|diag A[i]|`` on the diagonal instead. solved[i] = 1.0, or 0.0 (X[i]
-    NaN) where A[i] is not finite or neither shift makes it positive definite. A (n, k, k)
-    symmetric, B and X (n, k, r), L (n, k, k), solved (n,) float64. The formula of
-    :func:`.linear.ridge_solve` (the host's pose, LED offset and lighting steps) and of the
-    GPU's batched solves (:func:`ridge_solves`, and :mod:`.cuda_kernels`' twin: one thread per
-    system)."""
+def ridge_cholesky(A, ridge, fallback, L, i):  # pragma: no cover - compiled
+    """The Cholesky factor L[i] of ``A[i] + ridge trace(A[i]) I`` (A (n, k, k) symmetric, its lower
+    triangle read), or where that is not positive definite and ``fallback`` > 0, of
+    ``A[i] + fallback max|diag A[i]| I``; False where A[i] is not finite or neither is positive
+    definite."""
     k = A.shape[1]
     trace = 0.0
     largest = 0.0
-    ok = True
     for j in range(k):
         trace += A[i, j, j]
         largest = max(largest, abs(A[i, j, j]))
         for c in range(j + 1):
             if not math.isfinite(A[i, j, c]):
-                ok = False
-    if ok and not _cholesky_shifted(A, ridge * trace, L, i):
-        ok = fallback > 0.0 and _cholesky_shifted(A, fallback * largest, L, i)
+                return False
+    if _cholesky_shifted(A, ridge * trace, L, i):
+        return True
+    return fallback > 0.0 and _cholesky_shifted(A, fallback * largest, L, i)
+
+
+@numba.njit(inline="always")
+def cholesky_column(L, B, X, ok, i, c):  # pragma: no cover - compiled
+    """Column c of X[i] = (L[i] L[i]^T)^-1 B[i] by forward and back substitution (NaN where not
+    ``ok``): B, X (n, k, r)."""
+    k = L.shape[1]
+    for j in range(k):  # forward: L y = b
+        s = B[i, j, c]
+        if ok:
+            for m in range(j):
+                s -= L[i, j, m] * X[i, m, c]
+            X[i, j, c] = s / L[i, j, j]
+        else:
+            X[i, j, c] = math.nan
+    if ok:
+        for j in range(k - 1, -1, -1):  # back: L^T x = y
+            s = X[i, j, c]
+            for m in range(j + 1, k):
+                s -= L[i, m, j] * X[i, m, c]
+            X[i, j, c] = s / L[i, j, j]
+
+
+@numba.njit(inline="always")
+def ridge_solve_system(A, B, ridge, fallback, L, X, solved, i):  # pragma: no cover - compiled
+    """System i of a batch of small SPD systems: ``X[i] = (A[i] + ridge trace(A[i]) I)^-1 B[i]``
+    by Cholesky (L[i] its factor, scratch); where that is not positive definite and ``fallback``
+    > 0, with ``fallback max|diag A[i]|`` on the diagonal instead (:func:`ridge_cholesky`).
+    solved[i] = 1.0, or 0.0 (X[i] NaN) where A[i] is not finite or neither shift makes it
+    positive definite. A (n, k, k) symmetric, B and X (n, k, r), L (n, k, k), solved (n,)
+    float64. The formula of :func:`.linear.ridge_solve` (the host's pose, LED offset and
+    lighting steps) and of the GPU's batched solves (:func:`ridge_solves`, and
+    :mod:`.cuda_kernels`' twin: one thread per system), the LED offset's step
+    (:func:`led_offset_step`) and the joint step's twist inverse (:func:`twist_inverse`)."""
+    ok = ridge_cholesky(A, ridge, fallback, L, i)
     solved[i] = 1.0 if ok else 0.0
     for c in range(B.shape[2]):
-        for j in range(k):  # forward: L y = b
-            s = B[i, j, c]
-            if ok:
-                for m in range(j):
-                    s -= L[i, j, m] * X[i, m, c]
-                X[i, j, c] = s / L[i, j, j]
-            else:
-                X[i, j, c] = math.nan
-        if ok:
-            for j in range(k - 1, -1, -1):  # back: L^T x = y
-                s = X[i, j, c]
-                for m in range(j + 1, k):
-                    s -= L[i, m, j] * X[i, m, c]
-                X[i, j, c] = s / L[i, j, j]
+        cholesky_column(L, B, X, ok, i, c)
 
 
 @numba.njit(cache=True)
@@ -1155,3 +1173,22 @@ def twist_system(grams, rhs_frames, rhs_projection, downdate, limit, W, kept, he
     for j in range(hessian.shape[0]):
         for c in range(hessian.shape[1]):
             twist_entry(grams, rhs_frames, rhs_projection, downdate, kept, hessian, rhs, selection, j, c)
+
+
+@numba.njit(inline="always")
+def matrix_vector_row(X, v, out, j):  # pragma: no cover - compiled
+    """out[j] = X[0, j] . v: X (1, k, k), v (k,)."""
+    total = 0.0
+    for c in range(v.shape[0]):
+        total += X[0, j, c] * v[c]
+    out[j] = total
+
+
+@numba.njit(cache=True)
+def twist_inverse(hessian, selection, rhs, fallback, L, X, Xb, solved):  # pragma: no cover - compiled
+    """The joint step's ``X = H^-1 selection`` (:func:`ridge_solve_system` without a ridge,
+    :func:`.normal_equations._cholesky`'s ``fallback``) and ``Xb = X rhs``: hessian, selection,
+    L, X (1, K, K), rhs, Xb (K,), solved (1,)."""
+    ridge_solve_system(hessian, selection, 0.0, fallback, L, X, solved, 0)
+    for j in range(Xb.shape[0]):
+        matrix_vector_row(X, rhs, Xb, j)

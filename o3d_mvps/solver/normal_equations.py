@@ -64,7 +64,7 @@ class JointSystem:
     frames: list
     kept: np.ndarray | None = None
     selection: np.ndarray | None = None
-    _inverse: np.ndarray | None = None  # -H^-1 diag(kept) on a GPU, formed by schur_operator
+    _inverse: tuple | None = None  # on a GPU (-U H^-1 diag(kept), -H^-1 diag(kept) rhs_xi), by schur_operator
 
     def schur_operator(self):
         """(S, rhs): ``S = M - U H^-1 U^T`` as an operator (:func:`~o3d_mvps.model.arrays.linear_operator`) and
@@ -72,26 +72,28 @@ class JointSystem:
         passes over U per product, where forming U H^-1 (N, 6m) once cost as much as twenty
         products. The small solve with H (6m, 6m) runs on the host.
 
-        On the GPU, where the cost is per launch, H^-1 is formed there (:func:`.linear.ridge_solves`:
-        the Cholesky formula of the host's small systems, with :func:`_cholesky`'s fallback) and
-        ``-U H^-1`` (N, 6m) once (one product; as much memory again as U): a product is then
-        ``U^T x``, that times it, and ``M x`` added in one kernel (:func:`.krylov.multiply_add`),
-        three launches for five; no copy either way."""
+        On the GPU, where the cost is per launch, ``X = -H^-1 diag(kept)`` and ``X b_xi`` are
+        formed there in one launch (:func:`.kernels.twist_inverse`: the Cholesky formula of the
+        host's small systems, with :func:`_cholesky`'s fallback; the substitutions one thread
+        per column) and ``-U H^-1`` (N, 6m) once (one product; as much memory again as U): a
+        product is then ``U^T x``, that times it, and ``M x`` added in one kernel
+        (:func:`.krylov.multiply_add`), three launches for five; no copy either way."""
         M, U = self.matrix, self.coupling
         if not self.frames:
             return linear_operator(M.shape, lambda x: M @ x.ravel(), self.rhs_z), self.rhs_z
         if on_gpu(U):
-            from .linear import ridge_solves  # linear imports krylov, which this module imports too
-
-            # -H^-1 diag(kept): the columns of a frame not kept 0
-            self._inverse = ridge_solves(self.hessian[None], self.selection[None], 0.0, CHOLESKY_FALLBACK)[0][0]
-            coupled = U @ self._inverse  # -U H^-1
+            xp, K = array_module(U), len(self.hessian)
+            # X = -H^-1 diag(kept) (the columns of a frame not kept 0) and X rhs_xi in one launch
+            X, Xb = xp.empty((1, K, K)), xp.empty(K)
+            kernels_for(U).twist_inverse(self.hessian[None], self.selection[None], self.rhs_xi, CHOLESKY_FALLBACK,
+                                         xp.empty((1, K, K)), X, Xb, xp.empty(1))
+            coupled = U @ X[0]  # -U H^-1
+            self._inverse = (coupled, Xb)
 
             def schur_product(x):
                 return multiply_add(M, 1.0, x.ravel(), coupled @ (U.T @ x.ravel()))
 
-            rhs = self.rhs_z + coupled @ self.rhs_xi
-            return linear_operator(M.shape, schur_product, self.rhs_z), rhs
+            return linear_operator(M.shape, schur_product, self.rhs_z), self.rhs_z + U @ Xb
         factor = _cholesky(self.hessian)
 
         def solve_h(y):
@@ -144,12 +146,14 @@ class JointSystem:
 
     def twists(self, dz: np.ndarray) -> np.ndarray:
         """The twists (m, 6) that go with the depth increment dz (N,), on the host (on a GPU
-        H^-1 (rhs_xi - U^T dz) there, as ``-H^-1 diag(kept) (U^T dz - rhs_xi)``, one read: a
-        frame not kept gets a zero twist, exactly)."""
+        H^-1 (rhs_xi - U^T dz) there, as ``(-U H^-1 diag(kept))^T dz + H^-1 diag(kept) rhs_xi``
+        from :meth:`schur_operator`'s products, two launches and one read: a frame not kept gets
+        a zero twist, exactly)."""
         if not self.frames:
             return np.zeros((0, 6))
         if self._inverse is not None:  # a frame not kept gets exactly 0: its pose stays
-            return to_host(self._inverse @ (self.couple_t(dz) - self.rhs_xi)).reshape(-1, 6)
+            coupled, Xb = self._inverse  # H^-1 symmetric: (U X)^T dz = X U^T dz up to rounding
+            return to_host(coupled.T @ dz - Xb).reshape(-1, 6)
         return scipy.linalg.cho_solve(_cholesky(self.hessian), self.rhs_xi - to_host(self.couple_t(dz))).reshape(-1, 6)
 
 
