@@ -32,9 +32,6 @@ _R1, _R2, _R3 = (_array(d, types.float32) for d in (1, 2, 3))
 
 #: kernel name in cuda_kernels -> argument types
 SIGNATURES = {
-    "_accumulate_frame": (_R2, _R1, _array(1, types.boolean), types.float64, _F2, _F1, _F1, _F1, _F2, _F2, _F2,
-                          _F2, _COLOR, _F2, _F2, types.boolean, types.boolean, _F2, _F3, _F4, _F4, types.int64, _F3,
-                          _F2),
     "_accumulate_frames": (_R3, _R2, _array(2, types.boolean), types.float64, _F2, _F2, _F2, _F2, _F2, _F2, _F3,
                            _F2, _array(4, types.float32), _F3, _F2, _array(2, types.int64), types.boolean, _F2, _F3,
                            _F4, _F4, _F4, _F3),
@@ -67,6 +64,11 @@ SIGNATURES = {
                       _F1, _F2, _F2, _F2, _F1, _F1, _F1, _F1, _F2, _F2, _F2, _F1, types.UniTuple(types.int64, 8 * 12),
                       types.int64,
                       types.UniTuple(types.float64, 5), _F1, _F2),
+    "_twist_system": (_F3, _F1, _F1, _F2, types.float64, _F3, _F1, _F2, _F1, _F2),
+    "_twist_inverse": (_F3, _F3, _F1, types.float64, _F3, _F3, _F1, _F1),
+    "_ridge_solves": (_F3, _F3, types.float64, types.float64, _F3, _F3, _F1),
+    "_led_trial_partials": (_COLOR, _array(2, types.boolean), _F2, _F2, _F2, _F3, _F1, _F3, _F3, _F2,
+                            types.float64, types.boolean, _F2),
 }
 
 

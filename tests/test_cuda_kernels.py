@@ -471,3 +471,126 @@ def test_multigrid_cg_matches_cpu_the_host_cycle_and_host_pcg():
         host_x, iterations, _ = krylov.pcg(system, b, None, 1e-15, 3, hierarchy)
         assert iterations == 3 == state[kernels.CG_ITERATIONS]
         assert_close(x, host_x, rtol=1e-11)
+def test_ridge_solves_match_numpy_and_cpu():
+    """The batched small SPD solves (one thread per system on a GPU): each system equals NumPy's
+    solve of ``A + ridge trace(A) I``; a zero, a non-finite and an indefinite system are not
+    solved (NaN, solved 0), and with a fallback a semidefinite one takes its diagonal shift."""
+    k, ridge = 6, 1e-9
+    M = RNG.normal(size=(5, k, k))
+    A = M @ M.transpose(0, 2, 1)
+    A[2], A[3] = 0.0, np.nan
+    A[4] = np.diag([1.0, -1.0, 1.0, 1.0, 1.0, 1.0])
+    B = RNG.normal(size=(5, k, 2))
+    cpu, gpu = run_both("ridge_solves", A, B, ridge, 0.0, np.zeros_like(A), np.zeros_like(B), np.zeros(5))
+    for i in (0, 1):
+        expected = np.linalg.solve(A[i] + ridge * np.trace(A[i]) * np.eye(k), B[i])
+        assert_close(cpu[5][i], expected, rtol=1e-10)
+    np.testing.assert_array_equal(cpu[6], [1.0, 1.0, 0.0, 0.0, 0.0])
+    assert np.isnan(cpu[5][2:]).all()
+    np.testing.assert_array_equal(gpu[6], cpu[6])
+    assert_close(gpu[5][:2], cpu[5][:2])
+    assert np.isnan(gpu[5][2:]).all()
+    # semidefinite: not positive definite without a ridge, solved with the fallback shift 1e-6 max|diag|
+    S = np.diag([4.0, 0.0, 1.0])[None]
+    _, (_, _, _, _, _, X, solved) = run_both("ridge_solves", S, np.ones((1, 3, 1)), 0.0, 1e-6, np.zeros_like(S),
+                                            np.zeros((1, 3, 1)), np.zeros(1))
+    assert solved[0] == 1.0
+    assert_close(X[0, :, 0], 1.0 / (np.diag(S[0]) + 4e-6))
+
+
+def test_led_trial_sums_match_the_formula_and_cpu():
+    """The LED offset's step and line-search trials in one pass: the step's negative x solves
+    (H + 1e-9 trace(H) I) x = g as the host's ridge_solve does (last row, with g), and row k of
+    the sums adds up to ``sum log(1 + (r / lam)^2)`` of the residuals ``I - rho (l_0 + l_1
+    max(0, <n, v>))`` over usable pixels, the LED at offset ``start - 2^-k x`` (float32
+    logarithms, as the GPU's energy), CPU and CUDA alike; the LED's positions as
+    LEDLight.positions gives them."""
+    from o3d_mvps.solver.lighting import LEDLight
+    from o3d_mvps.solver.linear import ridge_solve
+
+    n, N, K = 3, N_PIXELS, 4
+    normals = RNG.normal(size=(N, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    points = RNG.normal(size=(N, 3)) * 0.1 + [0.0, 0.0, 0.6]
+    poses = np.stack([np.eye(4), POSE, POSE @ POSE])
+    M = RNG.normal(size=(3, 3))
+    H, g = (M @ M.T)[None] * 1e4, RNG.normal(size=(1, 3, 1)) * 1e2
+    start, x = np.array([0.02, -0.01, 0.005]), -ridge_solve(H[0], -g[0, :, 0])
+    color = RNG.random((n, N, 3)).astype(np.float32)
+    usable = RNG.random((n, N)) > 0.2
+    albedo, lights = RNG.random((N, 3)), np.abs(RNG.normal(size=(n, 2))) * [0.2, 0.03]
+    args = (color, usable, albedo, normals, points, poses, start, H, g, lights, 1.0 / LAM)
+    for single in (False, True):
+        cpu = np.zeros((K + 1, kernels.trial_blocks(n, N)))
+        gpu = np.zeros((K + 1, cuda_kernels.trial_blocks(n, N)))
+        kernels.led_trial_sums(*args, single, cpu)
+        cuda_kernels.led_trial_sums(*args, single, gpu)
+        np.testing.assert_array_equal(cpu[K, :7], np.r_[x, 1.0, g[0, :, 0]])
+        np.testing.assert_array_equal(gpu[K, :7], cpu[K, :7])
+        for k in range(K):
+            positions = LEDLight(start - 0.5**k * x).positions(poses)
+            np.testing.assert_array_equal(positions, np.einsum("mji,mj->mi", poses[:, :3, :3],
+                                                               start - 0.5**k * x - poses[:, :3, 3]))
+            d = positions[:, None, :] - points  # (n, N, 3)
+            r2 = (d * d).sum(axis=-1)
+            basis = np.maximum((normals * d).sum(axis=-1) / (r2 * np.sqrt(r2)), 0.0)
+            residual = color - albedo * (lights[:, :1] + basis * lights[:, 1:])[..., None]
+            if single:
+                residual = residual.astype(np.float32)
+            y = (residual[usable] / LAM).astype(np.float32)
+            expected = np.log(np.float32(1.0) + y * y).astype(np.float64).sum()
+            assert_close(cpu[k].sum(), expected, rtol=1e-6)
+        assert len(set(cpu[:K].sum(axis=1))) == K  # the trials differ
+        # the simulator takes Python's float64 logarithm of each float32 term: ~1e-9 of the sums
+        assert_close(gpu[:K].sum(axis=1), cpu[:K].sum(axis=1), rtol=1e-8)
+
+
+def test_twist_system_matches_numpy_and_cpu():
+    """The joint step's twist matrix from its sums: a frame is kept where its Gram's condition
+    number (Jacobi eigenvalues) is at most 1e12 as NumPy's ``cond`` says (here 1e3 and 1e15
+    apart from it, and a singular one), H = blockdiag(Grams) - downdate over the kept frames,
+    identity rows and zero right-hand sides for the others; CPU and CUDA alike."""
+    m = 3
+    grams = np.zeros((m, 6, 6))
+    for f, spread in enumerate((-1.5, -7.5)):
+        M = RNG.normal(size=(6, 6)) * np.logspace(0, spread, 6)
+        grams[f] = np.triu(M @ M.T)
+    grams[2] = np.diag([1.0, 1.0, 1.0, 1.0, 1.0, 0.0])
+    conditions = [np.linalg.cond(g + np.triu(g, 1).T) for g in grams]
+    assert conditions[0] < 1e9 and conditions[1] > 1e14
+    D = RNG.normal(size=(6 * m, 6 * m)) * 1e-3
+    rhs_frames, rhs_projection = RNG.normal(size=6 * m), RNG.normal(size=6 * m)
+    args = (grams, rhs_frames, rhs_projection, D @ D.T, kernels.MAX_TWIST_CONDITION, np.zeros((m, 6, 6)),
+            np.zeros(m), np.zeros((6 * m, 6 * m)), np.zeros(6 * m), np.ones((6 * m, 6 * m)))
+    cpu, gpu = run_both("twist_system", *args)
+    np.testing.assert_array_equal(cpu[6], [1.0, 0.0, 0.0])
+    expected = np.eye(6 * m)
+    expected[:6, :6] = grams[0] + np.triu(grams[0], 1).T - (D @ D.T)[:6, :6]
+    np.testing.assert_array_equal(cpu[7], expected)
+    np.testing.assert_array_equal(cpu[8], np.r_[(rhs_frames + rhs_projection)[:6], np.zeros(12)])
+    np.testing.assert_array_equal(cpu[9], -np.diag(np.r_[np.ones(6), np.zeros(12)]))
+    for k in (6, 7, 8, 9):
+        np.testing.assert_array_equal(gpu[k], cpu[k])
+
+
+def test_twist_inverse_matches_numpy_and_cpu():
+    """The joint step's X = H^-1 selection and X b in one launch (thread 0 factors, the block's
+    threads substitute the columns): NumPy's solve, CPU and CUDA alike; a semidefinite H takes
+    the fallback shift."""
+    K = 12
+    M = RNG.normal(size=(K, K))
+    H = (M @ M.T)[None]
+    selection = -np.diag(np.r_[np.ones(6), np.zeros(6)])[None]
+    b = RNG.normal(size=K)
+    args = (H, selection, b, 1e-12, np.zeros((1, K, K)), np.zeros((1, K, K)), np.zeros(K), np.zeros(1))
+    cpu, gpu = run_both("twist_inverse", *args)
+    X = np.linalg.solve(H[0], selection[0])
+    assert_close(cpu[5][0], X, rtol=1e-9)
+    assert_close(cpu[6], X @ b, rtol=1e-9)
+    assert cpu[7][0] == 1.0 and not cpu[5][0][:, 6:].any()
+    for k in (5, 6, 7):
+        assert_close(gpu[k], cpu[k])
+    S = np.diag(np.r_[np.ones(K - 1), 0.0])[None]
+    cpu, _ = run_both("twist_inverse", S, -np.eye(K)[None], b, 1e-12, np.zeros((1, K, K)), np.zeros((1, K, K)),
+                      np.zeros(K), np.zeros(1))
+    assert cpu[7][0] == 1.0 and np.isclose(cpu[5][0][-1, -1], -1e12)

@@ -66,11 +66,35 @@ def led_irradiances(normals: np.ndarray, points: np.ndarray, light_positions: np
 def led_irradiance(normals, points, positions, i, p):  # pragma: no cover - compiled
     """<n, v> of point p under light position i: :func:`led_irradiances_into`'s element (the
     CUDA twin in :mod:`o3d_mvps.solver.cuda_kernels` calls it too)."""
-    d0 = positions[i, 0] - points[p, 0]
-    d1 = positions[i, 1] - points[p, 1]
-    d2 = positions[i, 2] - points[p, 2]
+    return led_irradiance_at(normals, points, positions[i, 0], positions[i, 1], positions[i, 2], p)
+
+
+@numba.njit(inline="always")
+def led_irradiance_at(normals, points, s0, s1, s2, p):  # pragma: no cover - compiled
+    """<n, v> of point p under a light at (s0, s1, s2): :func:`led_irradiance` of one position."""
+    d0 = s0 - points[p, 0]
+    d1 = s1 - points[p, 1]
+    d2 = s2 - points[p, 2]
     r2 = d0 * d0 + d1 * d1 + d2 * d2
     return (normals[p, 0] * d0 + normals[p, 1] * d1 + normals[p, 2] * d2) / (r2 * math.sqrt(r2))
+
+
+@numba.njit(inline="always")
+def led_position(poses, o0, o1, o2, i, c):  # pragma: no cover - compiled
+    """Component c of ``R_i^T (o - t_i)``: an LED at o (camera frame, metres) in reference
+    coordinates for the frame with poses[i] (4, 4) (summed as NumPy's einsum sums it, so
+    :func:`led_positions_into` equals the array formula bit for bit)."""
+    return ((poses[i, 0, c] * (o0 - poses[i, 0, 3]) + poses[i, 1, c] * (o1 - poses[i, 1, 3]))
+            + poses[i, 2, c] * (o2 - poses[i, 2, 3]))
+
+
+@numba.njit(cache=True)
+def led_positions_into(poses, offset, out):  # pragma: no cover - compiled
+    """out (m, 3): :func:`led_position` of every frame with poses (m, 4, 4) for the LED at
+    ``offset`` (3,)."""
+    for i in range(poses.shape[0]):
+        for c in range(3):
+            out[i, c] = led_position(poses, offset[0], offset[1], offset[2], i, c)
 
 
 @numba.njit(parallel=True, cache=True)

@@ -15,7 +15,7 @@ per-pixel functions in :mod:`.kernels` or :mod:`o3d_mvps.model`, clear the cache
 
 Threads take adjacent pixels (the fastest-varying index of the per-pixel arrays), so that
 neighbouring threads read neighbouring memory. Reductions over pixels go to per-thread
-(:func:`accumulate_frame`) or per-block (:func:`log1p_square_sum`) partial sums added up
+(:func:`accumulate_frames`) or per-block (:func:`log1p_square_sum`) partial sums added up
 afterwards, never to one shared accumulator; float64 throughout, as on the CPU.
 """
 
@@ -36,7 +36,8 @@ __all__ = ["chunk_count", "accumulate_frame", "accumulate_frames", "project_twis
            "shading_residuals", "weighted_albedo_sums", "weighted_lighting_sums", "log1p_square_sum",
            "led_irradiances_into", "led_point_gradients_into", "warp_sample", "warp_sample_frames", "warp_gradients",
            "chebyshev_update", "chebyshev_start", "restrict_residual", "prolong_restart", "csr_multiply_add", "cg_start",
-           "cg_scalars", "cg_update", "multigrid_cg"]
+           "cg_scalars", "cg_update", "multigrid_cg", "ridge_solves", "led_trial_sums", "twist_system",
+           "twist_inverse"]
 
 #: Threads per block of every kernel.
 THREADS_PER_BLOCK = 128
@@ -174,35 +175,17 @@ def chunk_count(n_pixels: int) -> int:
     return _blocks(-(-n_pixels // PIXELS_PER_THREAD)) * THREADS_PER_BLOCK
 
 
-@cuda.jit(cache=True)
-def _accumulate_frame(r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, pose, K, image, dshading,
-                      albedo, with_jacobian, parallax, sums, e, rows, F, slot, gram, rhs):  # pragma: no cover - device
-    t_ = cuda.grid(1)
-    n_threads = rhs.shape[0]
-    if t_ >= n_threads:
-        return
-    J = cuda.local.array((3, 6), numba.float64)
-    G = cuda.local.array((6, 6), numba.float64)
-    b = cuda.local.array(6, numba.float64)
-    wqJ = cuda.local.array(6, numba.float64)
-    wcJ = cuda.local.array(6, numba.float64)
-    for j in range(6):
-        b[j] = 0.0
-        for k in range(6):
-            G[j, k] = 0.0
-    for p in range(t_, r.shape[0], n_threads):
-        _accumulate_pixel(p, r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, pose, K, image,
-                          dshading, albedo, with_jacobian, parallax, sums, e, rows, F, slot, J, G, b, wqJ, wcJ)
-    _store_partial_sums(G, b, gram, rhs, t_)
-
-
 def accumulate_frame(r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, pose, K, image, dshading,
                      albedo, with_jacobian, parallax, sums, e, rows, F, slot, gram, rhs) -> None:
     """:func:`.kernels.accumulate_frame` on the GPU, same arguments; gram (T, 6, 6) and rhs (T, 6)
-    get one row per thread, T = :func:`chunk_count` (N)."""
-    _accumulate_frame[_blocks(rhs.shape[0]), THREADS_PER_BLOCK](
-        r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, pose, K, image, dshading, albedo,
-        with_jacobian, parallax, sums, e, rows, F, slot, gram, rhs)
+    get one row per thread, T = :func:`chunk_count` (N). One frame through
+    :func:`_accumulate_frames` (its arrays as views with a leading axis of one, its Jacobian flag
+    and slot in a (1, 2) array, the partial sums in that one row): one kernel for both."""
+    frame_slots = np.array([[1 if with_jacobian else 0, slot]], dtype=np.int64)
+    _accumulate_frames[_blocks(rhs.shape[0]), THREADS_PER_BLOCK](
+        r[None], shading[None], use[None], inv_lam, q, alpha[None], beta[None], gamma[None], extra_c, points_ref,
+        pose[None], K, image[None], dshading[None], albedo, frame_slots, parallax, sums, e, rows, F, gram[None],
+        rhs[None])
 
 
 @cuda.jit(cache=True)
@@ -232,15 +215,16 @@ def _accumulate_frames(residual, shading, usable, inv_lam, q, alpha, beta, gamma
             _accumulate_pixel(p, r, shading_i, use, inv_lam, q, alpha_i, beta_i, gamma_i, extra, points_ref, pose, K,
                               image, dshading_i, albedo, with_jacobian, parallax, sums, e, rows, F, slot, J, G, b, wqJ,
                               wcJ)
-        row = slot if slot >= 0 else others
+        row = others if slot < 0 else min(slot, others)  # accumulate_frame: one row for its one frame
         _store_partial_sums(G, b, gram[row], rhs[row], t_)
 
 
 def accumulate_frames(residual, shading, usable, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, poses, K, images,
                       dshading, albedo, frame_slots, parallax, sums, e, rows, F, gram, rhs) -> None:
     """:func:`.kernels.accumulate_frames` on the GPU, same arguments: every frame in one launch,
-    each thread taking its pixels (as :func:`accumulate_frame`'s) through the frames in order;
-    gram (m + 1, T, 6, 6) and rhs (m + 1, T, 6), T = :func:`chunk_count` (N)."""
+    each thread taking its pixels (thread t: pixels t, t + T, t + 2T, ...) through the frames in
+    order; gram (m + 1, T, 6, 6) and rhs (m + 1, T, 6), T = :func:`chunk_count` (N) (a slot past
+    the last row writes into the last row: :func:`accumulate_frame`'s one)."""
     _accumulate_frames[_blocks(rhs.shape[1]), THREADS_PER_BLOCK](
         residual, shading, usable, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, poses, K, images, dshading,
         albedo, frame_slots, parallax, sums, e, rows, F, gram, rhs)
@@ -610,3 +594,120 @@ def multigrid_cg(n_steps, cycle_first, with_matrix, m_indptr, m_indices, m_data,
     wanted = _blocks(max(x.shape[0], coarse_partial.size, t_partial.size))
     blocks = min(_cooperative_blocks(_multigrid_cg, args, wanted), partial.shape[0])
     _multigrid_cg[blocks, THREADS_PER_BLOCK](*args)
+_ridge_solve_system = _device(kernels.ridge_solve_system)
+_ridge_cholesky = _device(kernels.ridge_cholesky)
+_cholesky_column = _device(kernels.cholesky_column)
+_matrix_vector_row = _device(kernels.matrix_vector_row)
+_led_trial_term = _device(kernels.led_trial_term)
+_led_offset_step = _device(kernels.led_offset_step)
+_store_offset_step = _device(kernels.store_offset_step)
+
+
+@cuda.jit(cache=True)
+def _ridge_solves(A, B, ridge, fallback, L, X, solved):  # pragma: no cover - device
+    i = cuda.grid(1)
+    if i < A.shape[0]:
+        _ridge_solve_system(A, B, ridge, fallback, L, X, solved, i)
+
+
+def ridge_solves(A, B, ridge, fallback, L, X, solved) -> None:
+    """:func:`.kernels.ridge_solves` on the GPU: one thread per system (a 6x6 Cholesky and its
+    substitutions are some 150 operations: a warp's worth of frames in one launch)."""
+    _ridge_solves[_blocks(A.shape[0]), THREADS_PER_BLOCK](A, B, float(ridge), float(fallback), L, X, solved)
+
+
+@cuda.jit(cache=True)
+def _led_trial_partials(color, usable, albedo, normals, points, poses, start, H, g, lights, scale, single,
+                        out):  # pragma: no cover - device
+    """out[k, block] = the block's share of trial k's sum (grid: blocks x trials): every thread
+    solves the offset's 3x3 system (some 50 operations; no launch of its own), sums a strided
+    share of the frames' pixels, then the block adds its threads' sums in shared memory (a tree,
+    in a fixed order); block (0, 0) also writes the step into the last row."""
+    share = cuda.shared.array(THREADS_PER_BLOCK, numba.float64)
+    L = cuda.local.array((1, 3, 3), numba.float64)
+    X = cuda.local.array((1, 3, 1), numba.float64)
+    solved = cuda.local.array(1, numba.float64)
+    t = cuda.threadIdx.x
+    k = cuda.blockIdx.y
+    n, N = usable.shape
+    _led_offset_step(H, g, L, X, solved)
+    if k == 0 and cuda.blockIdx.x == 0 and t == 0:
+        _store_offset_step(X, solved, g, out)
+    total = 0.0
+    for index in range(cuda.blockIdx.x * THREADS_PER_BLOCK + t, n * N, cuda.gridDim.x * THREADS_PER_BLOCK):
+        total += _led_trial_term(color, usable, albedo, normals, points, poses, start, X[0, 0, 0], X[0, 1, 0],
+                                 X[0, 2, 0], lights, scale, single, k, index // N, index % N)
+    share[t] = total
+    cuda.syncthreads()
+    step = THREADS_PER_BLOCK // 2
+    while step > 0:
+        if t < step:
+            share[t] += share[t + step]
+        cuda.syncthreads()
+        step //= 2
+    if t == 0:
+        out[k, cuda.blockIdx.x] = share[0]
+
+
+def trial_blocks(n_frames: int, n_pixels: int) -> int:
+    """Columns of :func:`led_trial_sums`' out (its blocks per trial, at least 7 and at most
+    :data:`.kernels.REDUCTION_BLOCKS`; not a launch)."""
+    return min(kernels.REDUCTION_BLOCKS, max(7, _blocks(-(-n_frames * n_pixels // TERMS_PER_THREAD))))
+
+
+def led_trial_sums(color, usable, albedo, normals, points, poses, start, H, g, lights, scale, single, out) -> None:
+    """:func:`.kernels.led_trial_sums` on the GPU: the step and every trial in one launch (grid:
+    blocks x trials), out (K + 1, :func:`trial_blocks`) one sum per block, the step's row."""
+    _led_trial_partials[(out.shape[1], out.shape[0] - 1), THREADS_PER_BLOCK](
+        color, usable, albedo, normals, points, poses, start, H, g, lights, float(scale), bool(single), out)
+
+
+_twist_frame_kept = _device(kernels.twist_frame_kept)
+_twist_entry = _device(kernels.twist_entry)
+
+
+@cuda.jit(cache=True)
+def _twist_system(grams, rhs_frames, rhs_projection, downdate, limit, W, kept, hessian, rhs,
+                  selection):  # pragma: no cover - device
+    """One block: its threads take the frame slots (their Grams' condition numbers), then, after
+    the block's barrier, the matrix's entries."""
+    t = cuda.threadIdx.x
+    for f in range(t, grams.shape[0], THREADS_PER_BLOCK):
+        _twist_frame_kept(grams, limit, W, kept, f)
+    cuda.syncthreads()
+    k = hessian.shape[0]
+    for index in range(t, k * k, THREADS_PER_BLOCK):
+        _twist_entry(grams, rhs_frames, rhs_projection, downdate, kept, hessian, rhs, selection, index // k, index % k)
+
+
+def twist_system(grams, rhs_frames, rhs_projection, downdate, limit, W, kept, hessian, rhs, selection) -> None:
+    """:func:`.kernels.twist_system` on the GPU: one launch of one block (a few thousand
+    entries), its threads one per frame slot (its Gram's condition number), then, after a
+    barrier, strided over the matrix's entries."""
+    _twist_system[1, THREADS_PER_BLOCK](grams, rhs_frames, rhs_projection, downdate, float(limit), W, kept, hessian,
+                                        rhs, selection)
+
+
+@cuda.jit(cache=True)
+def _twist_inverse(hessian, selection, rhs, fallback, L, X, Xb, solved):  # pragma: no cover - device
+    """One block: thread 0 factors, then (after the barrier) the threads take X's columns, then
+    Xb's rows."""
+    t = cuda.threadIdx.x
+    ok = cuda.shared.array(1, numba.int32)
+    if t == 0:
+        done = _ridge_cholesky(hessian, 0.0, fallback, L, 0)
+        solved[0] = 1.0 if done else 0.0
+        ok[0] = 1 if done else 0
+    cuda.syncthreads()
+    K = hessian.shape[1]
+    for c in range(t, K, THREADS_PER_BLOCK):
+        _cholesky_column(L, selection, X, ok[0] != 0, 0, c)
+    cuda.syncthreads()
+    for j in range(t, K, THREADS_PER_BLOCK):
+        _matrix_vector_row(X, rhs, Xb, j)
+
+
+def twist_inverse(hessian, selection, rhs, fallback, L, X, Xb, solved) -> None:
+    """:func:`.kernels.twist_inverse` on the GPU: one launch of one block (thread 0 factors, the
+    block's threads take the columns' substitutions, then Xb's rows)."""
+    _twist_inverse[1, THREADS_PER_BLOCK](hessian, selection, rhs, float(fallback), L, X, Xb, solved)

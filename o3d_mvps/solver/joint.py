@@ -38,11 +38,8 @@ def update_pose_depth(problem: LevelProblem, est: Estimate, ev: Evaluation, *, r
     system = joint_system(problem, est, ev, project_albedo=project_albedo, release=True)
     system = dataclasses.replace(system, matrix=levenberg_damped(system.matrix, overwrite=True))
     if anchors is not None:
-        for k, i in enumerate(system.frames):
-            prior = anchors.prior_system(i, est.poses[i])
-            if prior is not None:
-                system.hessian[6 * k:6 * k + 6, 6 * k:6 * k + 6] += prior[0]
-                system.rhs_xi[6 * k:6 * k + 6] -= prior[1]
+        priors = ((k, anchors.prior_system(i, est.poses[i])) for k, i in enumerate(system.frames))
+        system.add_priors([(k, *prior) for k, prior in priors if prior is not None])
     S, rhs = system.schur_operator()
     dz, iterations = solve_spd(S, rhs, rtol, maxiter, sparse_part=system.matrix, pixel_prolongations=problem.pixel_prolongations)
     xi, frames = system.twists(dz), system.frames

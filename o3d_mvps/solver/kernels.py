@@ -22,8 +22,9 @@ import math
 import numba
 import numpy as np
 
-from ..model.robust import log1p_square_sum  # noqa: F401 - re-exported: the same names as .cuda_kernels
-from ..model.shading import FRAME_CHUNK, led_irradiances_into, led_point_gradients_into  # noqa: F401
+from ..model.robust import log1p_square_sum, log1p_square_term  # noqa: F401 - log1p_square_sum re-exported: the same names as .cuda_kernels
+from ..model.shading import (FRAME_CHUNK, led_irradiance_at, led_irradiances_into,  # noqa: F401
+                             led_point_gradients_into, led_position)
 
 # OpenMP first: the TBB that Open3D's wheels may put on the path can be too old for numba,
 # which then warns on every first parallel call.
@@ -1145,3 +1146,298 @@ def diagonal_positions(indptr, indices):  # pragma: no cover - compiled
         out[row] = csr_position(indptr, indices, row, row)
     return out
 
+
+
+@numba.njit(inline="always")
+def _cholesky_shifted(A, shift, L, i):  # pragma: no cover - compiled
+    """L[i] (k, k) lower, ``L L^T = A[i] + shift I`` (A[i]'s lower triangle read); False at the
+    first pivot that is not positive."""
+    k = A.shape[1]
+    for j in range(k):
+        for c in range(j + 1):
+            s = A[i, j, c] + (shift if j == c else 0.0)
+            for m in range(c):
+                s -= L[i, j, m] * L[i, c, m]
+            if j == c:
+                if not s > 0.0:
+                    return False
+                L[i, j, j] = math.sqrt(s)
+            else:
+                L[i, j, c] = s / L[i, c, c]
+    return True
+
+
+@numba.njit(inline="always")
+def ridge_cholesky(A, ridge, fallback, L, i):  # pragma: no cover - compiled
+    """The Cholesky factor L[i] of ``A[i] + ridge trace(A[i]) I`` (A (n, k, k) symmetric, its lower
+    triangle read), or where that is not positive definite and ``fallback`` > 0, of
+    ``A[i] + fallback max|diag A[i]| I``; False where A[i] is not finite or neither is positive
+    definite."""
+    k = A.shape[1]
+    trace = 0.0
+    largest = 0.0
+    for j in range(k):
+        trace += A[i, j, j]
+        largest = max(largest, abs(A[i, j, j]))
+        for c in range(j + 1):
+            if not math.isfinite(A[i, j, c]):
+                return False
+    if _cholesky_shifted(A, ridge * trace, L, i):
+        return True
+    return fallback > 0.0 and _cholesky_shifted(A, fallback * largest, L, i)
+
+
+@numba.njit(inline="always")
+def cholesky_column(L, B, X, ok, i, c):  # pragma: no cover - compiled
+    """Column c of X[i] = (L[i] L[i]^T)^-1 B[i] by forward and back substitution (NaN where not
+    ``ok``): B, X (n, k, r)."""
+    k = L.shape[1]
+    for j in range(k):  # forward: L y = b
+        s = B[i, j, c]
+        if ok:
+            for m in range(j):
+                s -= L[i, j, m] * X[i, m, c]
+            X[i, j, c] = s / L[i, j, j]
+        else:
+            X[i, j, c] = math.nan
+    if ok:
+        for j in range(k - 1, -1, -1):  # back: L^T x = y
+            s = X[i, j, c]
+            for m in range(j + 1, k):
+                s -= L[i, m, j] * X[i, m, c]
+            X[i, j, c] = s / L[i, j, j]
+
+
+@numba.njit(inline="always")
+def ridge_solve_system(A, B, ridge, fallback, L, X, solved, i):  # pragma: no cover - compiled
+    """System i of a batch of small SPD systems: ``X[i] = (A[i] + ridge trace(A[i]) I)^-1 B[i]``
+    by Cholesky (L[i] its factor, scratch); where that is not positive definite and ``fallback``
+    > 0, with ``fallback max|diag A[i]|`` on the diagonal instead (:func:`ridge_cholesky`).
+    solved[i] = 1.0, or 0.0 (X[i] NaN) where A[i] is not finite or neither shift makes it
+    positive definite. A (n, k, k) symmetric, B and X (n, k, r), L (n, k, k), solved (n,)
+    float64. The formula of :func:`.linear.ridge_solve` (the host's pose, LED offset and
+    lighting steps) and of the GPU's batched solves (:func:`ridge_solves`, and
+    :mod:`.cuda_kernels`' twin: one thread per system), the LED offset's step
+    (:func:`led_offset_step`) and the joint step's twist inverse (:func:`twist_inverse`)."""
+    ok = ridge_cholesky(A, ridge, fallback, L, i)
+    solved[i] = 1.0 if ok else 0.0
+    for c in range(B.shape[2]):
+        cholesky_column(L, B, X, ok, i, c)
+
+
+@numba.njit(cache=True)
+def ridge_solves(A, B, ridge, fallback, L, X, solved):  # pragma: no cover - compiled
+    """:func:`ridge_solve_system` of every system of the batch A (n, k, k), B (n, k, r) in
+    turn: X (n, k, r), solved (n,) written, L (n, k, k) scratch."""
+    for i in range(A.shape[0]):
+        ridge_solve_system(A, B, ridge, fallback, L, X, solved, i)
+
+
+@numba.njit(inline="always")
+def led_trial_term(color, usable, albedo, normals, points, poses, start, x0, x1, x2, lights, scale, single, k, i,
+                   p):  # pragma: no cover - compiled
+    """Pixel p of frame i with the LED at trial k's offset ``start - 2^-k x`` (x = (x0, x1, x2):
+    the step's negative): ``sum_c log(1 + (scale r_c)^2)`` of its residuals
+    ``r_c = I~_c - rho_c (l_0 + l_1 max(0, <n, v>))`` (0 where not usable), as
+    :meth:`.LevelProblem.energy` forms them (:func:`shading_residual_pixel` on the LED basis of
+    :func:`~o3d_mvps.model.shading.led_irradiance`, the LED's position
+    :func:`~o3d_mvps.model.shading.led_position`); single: the basis and residual rounded to
+    float32 as the GPU's evaluations store them."""
+    if not usable[i, p]:
+        return 0.0
+    length = 1.0
+    for _ in range(k):
+        length *= 0.5
+    o0 = start[0] - length * x0
+    o1 = start[1] - length * x1
+    o2 = start[2] - length * x2
+    g = led_irradiance_at(normals, points, led_position(poses, o0, o1, o2, i, 0), led_position(poses, o0, o1, o2, i, 1),
+                          led_position(poses, o0, o1, o2, i, 2), p)
+    b = g if g > 0.0 else 0.0
+    if single:
+        b = np.float64(np.float32(b))
+    s = 0.0
+    s += 1.0 * lights[i, 0]
+    s += b * lights[i, 1]
+    total = 0.0
+    for c in range(3):
+        r = color[i, p, c] - albedo[p, c] * s
+        if single:
+            r = np.float64(np.float32(r))
+        total += log1p_square_term(r, scale)
+    return total
+
+
+@numba.njit(inline="always")
+def led_offset_step(H, g, L, X, solved):  # pragma: no cover - compiled
+    """The LED offset's Gauss-Newton step's negative ``x = (H + 1e-9 trace(H) I)^-1 g`` into
+    X (1, 3, 1), solved (1,) (:func:`ridge_solve_system`, the host's :func:`.linear.ridge_solve`);
+    H (1, 3, 3), g (1, 3, 1), L (1, 3, 3) scratch."""
+    ridge_solve_system(H, g, 1e-9, 0.0, L, X, solved, 0)
+
+
+@numba.njit(inline="always")
+def store_offset_step(X, solved, g, out):  # pragma: no cover - compiled
+    """The last row of :func:`led_trial_sums`' out: x (3,), solved, g (3,)."""
+    K = out.shape[0] - 1
+    for j in range(3):
+        out[K, j] = X[0, j, 0]
+        out[K, 4 + j] = g[0, j, 0]
+    out[K, 3] = solved[0]
+
+
+@numba.njit(parallel=True, cache=True)
+def _led_trial_sums(color, usable, albedo, normals, points, poses, start, H, g, lights, scale, single,
+                    out):  # pragma: no cover - compiled
+    K, n = out.shape[0] - 1, usable.shape[0]
+    N = usable.shape[1]
+    L, X, solved = np.empty((1, 3, 3)), np.empty((1, 3, 1)), np.empty(1)
+    led_offset_step(H, g, L, X, solved)
+    out[:] = 0.0
+    store_offset_step(X, solved, g, out)
+    x0, x1, x2 = X[0, 0, 0], X[0, 1, 0], X[0, 2, 0]
+    for ki in numba.prange(K * n):
+        k, i = ki // n, ki % n
+        total = 0.0
+        for p in range(N):
+            total += led_trial_term(color, usable, albedo, normals, points, poses, start, x0, x1, x2, lights, scale,
+                                    single, k, i, p)
+        out[k, i] = total
+
+
+def trial_blocks(n_frames: int, n_pixels: int) -> int:
+    """Columns B of :func:`led_trial_sums`' out: here one per frame, at least 7 (not a launch)."""
+    return max(7, n_frames)
+
+
+def led_trial_sums(color, usable, albedo, normals, points, poses, start, H, g, lights, scale, single, out) -> None:
+    """The LED offset's step and its K line-search trials in one pass. The step's negative x
+    from its Gauss-Newton system H (1, 3, 3), g (1, 3, 1) (:func:`led_offset_step`); out (K + 1,
+    B): rows k < K partial sums adding up to ``sum_{i,p,c} log(1 + (scale r)^2)`` of trial k,
+    the LED at ``start - 2^-k x`` (:func:`led_trial_term`), row K = x (3), solved (1.0 or 0.0),
+    g (3) (:func:`store_offset_step`), B = :func:`trial_blocks` (n, N) (here one sum per frame;
+    on a GPU one launch, B its blocks). color (n, N, 3), usable (n, N), albedo, normals, points
+    (N, 3) float64, poses (n, 4, 4), start (3,), lights (n, 2) float64; single: float32
+    residuals."""
+    _led_trial_sums(color, usable, albedo, normals, points, poses, start, H, g, lights, float(scale), bool(single),
+                    out)
+
+
+#: The joint step's refined frames: one whose own twist Gram (6, 6) has a condition number
+#: above this takes no twist (its depth rows stay): :func:`twist_system`.
+MAX_TWIST_CONDITION = 1e12
+
+
+@numba.njit(inline="always")
+def symmetric_condition(A, W, i):  # pragma: no cover - compiled
+    """The 2-norm condition number ``max|lambda| / min|lambda|`` of the symmetric matrix whose
+    upper triangle is A[i]'s (k, k) (its lower triangle not read): cyclic Jacobi rotations in
+    the scratch W[i] (k, k) until the off-diagonal part is below 1e-16 of the diagonal (the
+    eigenvalues then carry an absolute error of ~1e-16 |A|, as LAPACK's do); inf where an entry
+    is not finite or an eigenvalue is 0."""
+    k = A.shape[1]
+    for j in range(k):
+        for c in range(j, k):
+            if not math.isfinite(A[i, j, c]):
+                return math.inf
+            W[i, j, c] = A[i, j, c]
+            W[i, c, j] = A[i, j, c]
+    for _ in range(100):
+        off = 0.0
+        diagonal = 0.0
+        for j in range(k):
+            diagonal += W[i, j, j] * W[i, j, j]
+            for c in range(j + 1, k):
+                off += W[i, j, c] * W[i, j, c]
+        if off <= 1e-32 * diagonal:
+            break
+        for p in range(k - 1):
+            for q in range(p + 1, k):
+                apq = W[i, p, q]
+                if apq == 0.0:
+                    continue
+                theta = (W[i, q, q] - W[i, p, p]) / (2.0 * apq)
+                t = 0.5 / abs(theta) if abs(theta) > 1e150 else 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
+                if theta < 0.0:
+                    t = -t
+                cos = 1.0 / math.sqrt(t * t + 1.0)
+                sin = t * cos
+                W[i, p, p] -= t * apq
+                W[i, q, q] += t * apq
+                W[i, p, q] = 0.0
+                W[i, q, p] = 0.0
+                for r in range(k):
+                    if r != p and r != q:
+                        arp, arq = W[i, r, p], W[i, r, q]
+                        W[i, r, p] = cos * arp - sin * arq
+                        W[i, p, r] = W[i, r, p]
+                        W[i, r, q] = sin * arp + cos * arq
+                        W[i, q, r] = W[i, r, q]
+    largest, smallest = 0.0, math.inf
+    for j in range(k):
+        largest = max(largest, abs(W[i, j, j]))
+        smallest = min(smallest, abs(W[i, j, j]))
+    return largest / smallest if smallest > 0.0 else math.inf
+
+
+@numba.njit(inline="always")
+def twist_frame_kept(grams, limit, W, kept, f):  # pragma: no cover - compiled
+    """kept[f] = 1.0 where frame slot f's twist Gram (upper triangle of grams[f] (6, 6)) has a
+    condition number (:func:`symmetric_condition`) of at most ``limit``, else 0.0."""
+    kept[f] = 1.0 if symmetric_condition(grams, W, f) <= limit else 0.0
+
+
+@numba.njit(inline="always")
+def twist_entry(grams, rhs_frames, rhs_projection, downdate, kept, hessian, rhs, selection, j,
+                c):  # pragma: no cover - compiled
+    """Entry (j, c) of the joint step's twist matrix: ``H = blockdiag(G_f) - downdate`` (6m, 6m)
+    over the kept frames (G_f the symmetric Gram whose upper triangle grams[f] holds), an
+    identity row and column for a frame not kept; of ``selection`` (6m, 6m): ``-diag(kept)``
+    per twist row (the right-hand sides that make ``-H^-1 diag(kept)``, whose columns of a frame
+    not kept are 0); for c = 0 also rhs[j] = rhs_frames[j] + rhs_projection[j] (0 for a frame
+    not kept)."""
+    fj, fc = j // 6, c // 6
+    if kept[fj] == 0.0 or kept[fc] == 0.0:
+        hessian[j, c] = 1.0 if j == c else 0.0
+    else:
+        a, b = j % 6, c % 6
+        g = 0.0
+        if fj == fc:
+            g = grams[fj, a, b] + 0.0 if a <= b else grams[fj, b, a] + 0.0
+        hessian[j, c] = g - downdate[j, c]
+    selection[j, c] = -1.0 if j == c and kept[fj] != 0.0 else 0.0
+    if c == 0:
+        rhs[j] = rhs_frames[j] + rhs_projection[j] if kept[fj] != 0.0 else 0.0
+
+
+@numba.njit(cache=True)
+def twist_system(grams, rhs_frames, rhs_projection, downdate, limit, W, kept, hessian, rhs,
+                 selection):  # pragma: no cover - compiled
+    """The joint step's twist system from its sums over pixels: kept (m,) (:func:`twist_frame_kept`
+    of every frame slot), hessian (6m, 6m), rhs (6m,) and selection (6m, 6m)
+    (:func:`twist_entry`). grams (m, 6, 6) upper triangles, rhs_frames, rhs_projection (6m,),
+    downdate (6m, 6m); W (m, 6, 6) scratch."""
+    for f in range(grams.shape[0]):
+        twist_frame_kept(grams, limit, W, kept, f)
+    for j in range(hessian.shape[0]):
+        for c in range(hessian.shape[1]):
+            twist_entry(grams, rhs_frames, rhs_projection, downdate, kept, hessian, rhs, selection, j, c)
+
+
+@numba.njit(inline="always")
+def matrix_vector_row(X, v, out, j):  # pragma: no cover - compiled
+    """out[j] = X[0, j] . v: X (1, k, k), v (k,)."""
+    total = 0.0
+    for c in range(v.shape[0]):
+        total += X[0, j, c] * v[c]
+    out[j] = total
+
+
+@numba.njit(cache=True)
+def twist_inverse(hessian, selection, rhs, fallback, L, X, Xb, solved):  # pragma: no cover - compiled
+    """The joint step's ``X = H^-1 selection`` (:func:`ridge_solve_system` without a ridge,
+    :func:`.normal_equations._cholesky`'s ``fallback``) and ``Xb = X rhs``: hessian, selection,
+    L, X (1, K, K), rhs, Xb (K,), solved (1,)."""
+    ridge_solve_system(hessian, selection, 0.0, fallback, L, X, solved, 0)
+    for j in range(Xb.shape[0]):
+        matrix_vector_row(X, rhs, Xb, j)

@@ -29,9 +29,9 @@ import numpy as np
 
 from ..model.arrays import array_module, contiguous, like
 from ..model.robust import cauchy_weights
-from ..model.shading import (INITIAL_LIGHT, led_fields_into, led_irradiances, led_twist_jacobians_into, led_vectors,
+from ..model.shading import (INITIAL_LIGHT, led_positions_into, led_fields_into, led_irradiances, led_twist_jacobians_into, led_vectors,
                              sh_basis)
-from .device import kernels_for, to_host_together
+from .device import kernels_for, to_host
 from .line_search import backtrack
 from .linear import ridge_solve
 
@@ -163,7 +163,9 @@ class LEDLight(FrameFields):
 
     def positions(self, poses: np.ndarray) -> np.ndarray:
         """:meth:`position` (m, 3) of the frames with ``poses`` (m, 4, 4)."""
-        return np.einsum("mji,mj->mi", poses[:, :3, :3], self.offset - poses[:, :3, 3])
+        out = np.empty((len(poses), 3))
+        led_positions_into(np.ascontiguousarray(poses, dtype=np.float64), self.offset, out)
+        return out
 
     def irradiance(self, normals: np.ndarray, points: np.ndarray, pose: np.ndarray) -> np.ndarray:
         """<n, v_i> (N,) per unit intensity, unclamped (negative where the point faces away)."""
@@ -366,8 +368,9 @@ def update_led_offset(problem, est, ev, *, max_halvings: int = 3, max_pixels: in
     """One IRLS Gauss-Newton step on the LED offset (all frames): returns (offset (3,), evaluation).
 
     The step is computed from at most ``max_pixels`` evenly spread pixels per frame (three
-    unknowns need few), on the host (on the GPU path a few hundred small operations would each
-    cost a kernel launch), the line search on the full energy; the offset is ``est``'s (or the
+    unknowns need few), the line search on the full energy (on a GPU every frame's system summed,
+    solved and every trial scored on the device, one read: :func:`_device_offset_search`); the
+    offset is ``est``'s (or the
     light model's) unchanged, with ``ev``, when no step lowers the energy, or when the
     Gauss-Newton model predicts a decrease below ``min_decrease`` (energy units; each line
     search trial costs an energy, and near convergence they nearly all fail). The trials are
@@ -381,22 +384,21 @@ def update_led_offset(problem, est, ev, *, max_halvings: int = 3, max_pixels: in
     usable, residual = ev.usable[:, spread], ev.residual[:, spread]
     normals, points, albedo = (a[spread] for a in (ev.normals, problem.points(est.z), est.albedo))
     xp = array_module(residual)
-    if xp is not np:  # every frame at once, unusable pixels weighted 0 (their residuals are 0); one read
+    if xp is not np:  # every frame at once, unusable pixels weighted 0 (their residuals are 0)
         ds = light.offset_jacobians(est.lights, normals, points, est.poses)  # (n, M, 3)
         H, g = _offset_normal_equations(ds, cauchy_weights(residual, problem.lam) * usable[..., None], albedo,
                                         residual)
-        H, g = to_host_together(H, g)
-    else:
-        H, g = np.zeros((3, 3)), np.zeros(3)
-        for i in range(problem.n_frames):
-            use = usable[i]
-            if not use.any():
-                continue
-            ds = light.offset_jacobian(est.lights[i], normals[use], points[use], est.poses[i])  # (M, 3)
-            H_i, g_i = _offset_normal_equations(ds, cauchy_weights(residual[i, use], problem.lam), albedo[use],
-                                                residual[i, use])
-            H += H_i
-            g += g_i
+        return _device_offset_search(problem, est, ev, light, H, g, stride, max_halvings, min_decrease)
+    H, g = np.zeros((3, 3)), np.zeros(3)
+    for i in range(problem.n_frames):
+        use = usable[i]
+        if not use.any():
+            continue
+        ds = light.offset_jacobian(est.lights[i], normals[use], points[use], est.poses[i])  # (M, 3)
+        H_i, g_i = _offset_normal_equations(ds, cauchy_weights(residual[i, use], problem.lam), albedo[use],
+                                            residual[i, use])
+        H += H_i
+        g += g_i
     start = light.offset
     step = ridge_solve(H, -g) if np.trace(H) > 0 else None
     # the IRLS model's decrease -g.step / 2 on the spread pixels, scaled to all of them
@@ -413,6 +415,36 @@ def update_led_offset(problem, est, ev, *, max_halvings: int = 3, max_pixels: in
         return start, ev
     moved = found[1]
     return moved.led_offset, problem.relit(moved, ev)
+
+
+def _device_offset_search(problem, est, ev, light, H, g, stride, max_halvings, min_decrease):
+    """:func:`update_led_offset`'s step and line search on a GPU from its system H (3, 3), g (3,)
+    on the device: the step solved and every trial length 1, 1/2, ..., 2^-max_halvings scored
+    in one launch (:func:`.kernels.led_trial_sums`: the step by the host's ridge_solve formula,
+    the data energy of :meth:`.LevelProblem.energy` from ``ev``'s samples, plus ``ev``'s prior),
+    one copy in (the offset, lights and poses) and one read (the trials' sums, the step, g),
+    where the host's line search reads a system and then an energy per trial; then the longest
+    trial whose energy is not above ``ev``'s, as :func:`.line_search.backtrack` takes it."""
+    xp, P = array_module(ev.residual), problem.points(est.z)
+    start, n, K = light.offset, problem.n_frames, max_halvings + 1
+    packed = like(np.concatenate([start, est.lights.astype(np.float64).ravel(), est.poses.ravel()]), P)
+    lights, poses = packed[3:3 + 2 * n].reshape(n, 2), packed[3 + 2 * n:].reshape(n, 4, 4)
+    kernels = kernels_for(P)
+    out = xp.empty((K + 1, kernels.trial_blocks(*ev.usable.shape)))  # the trials' sums, then x, solved, g
+    kernels.led_trial_sums(ev.color, ev.usable, contiguous(est.albedo, np.float64), contiguous(ev.normals, np.float64),
+                           contiguous(P, np.float64), poses, packed[:3], H[None], g.reshape(1, 3, 1), lights,
+                           1.0 / problem.lam, problem.residual_dtype == np.float32, out)
+    out = to_host(out)
+    sums, step, solved, g = out[:K], -out[K, :3], out[K, 3:4], out[K, 4:7]
+    # the IRLS model's decrease -g.step / 2 on the spread pixels, scaled to all of them
+    if not solved[0] or -0.5 * float(g @ step) * stride < min_decrease:
+        return start, ev
+    energies = 0.5 * problem.lam ** 2 * sums.sum(axis=1) + ev.prior
+    for k, energy in enumerate(energies):
+        if energy <= ev.energy:
+            moved = dataclasses.replace(est, led_offset=start + 0.5 ** k * step)
+            return moved.led_offset, problem.relit(moved, ev)
+    return start, ev
 
 
 def _offset_normal_equations(ds: np.ndarray, w: np.ndarray, albedo: np.ndarray, residual: np.ndarray):

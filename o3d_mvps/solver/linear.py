@@ -15,10 +15,10 @@ import pyamg
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from ..model.arrays import sparse_module
+from ..model.arrays import array_module, contiguous, sparse_module
 from . import kernels as host_kernels
 from . import krylov
-from .device import on_gpu
+from .device import kernels_for, on_gpu
 
 
 #: Levenberg-Marquardt damping of the depth block M, relative to its diagonal. Pixels that only
@@ -164,10 +164,23 @@ def solve_spd(matrix, rhs: np.ndarray, rtol: float, maxiter: int, sparse_part=No
 
 def ridge_solve(A: np.ndarray, b: np.ndarray, ridge: float = 1e-9) -> np.ndarray | None:
     """Solution of the small SPD system ``(A + ridge trace(A) I) x = b`` (k,), or None where
-    it is singular or not finite: the Gauss-Newton steps of the pose, LED offset and lighting."""
-    if not np.isfinite(A).all():
-        return None
-    try:
-        return np.linalg.solve(A + ridge * np.trace(A) * np.eye(len(A)), b)
-    except np.linalg.LinAlgError:
-        return None
+    it is not positive definite or not finite: the Gauss-Newton steps of the pose, LED offset and
+    lighting on the host. One system of :func:`ridge_solves` (the formula of the GPU's batched
+    solves)."""
+    x, solved = ridge_solves(np.asarray(A, dtype=np.float64)[None], np.asarray(b, dtype=np.float64).reshape(1, -1, 1),
+                             ridge)
+    return x[0, :, 0] if solved[0] else None
+
+
+def ridge_solves(A: np.ndarray, B: np.ndarray, ridge: float = 1e-9, fallback: float = 0.0) -> tuple:
+    """A batch of small SPD systems ``(A_i + ridge trace(A_i) I) X_i = B_i`` by Cholesky, where
+    the arrays live (on a GPU one launch, one thread per system: the frames' 6x6 pose systems,
+    the LED offset's 3x3): A (n, k, k), B (n, k, r); returns X (n, k, r) (NaN for a system
+    that is not positive definite or not finite) and solved (n,) float64, 1.0 or 0.0, both
+    where A lives. fallback > 0: a system that fails takes ``fallback max|diag A_i|`` on its
+    diagonal instead (:func:`.kernels.ridge_solve_system`)."""
+    xp = array_module(A)
+    A, B = contiguous(A, np.float64), contiguous(B, np.float64)
+    X, L, solved = xp.empty(B.shape), xp.empty(A.shape), xp.empty(A.shape[0])
+    kernels_for(A).ridge_solves(A, B, float(ridge), float(fallback), L, X, solved)
+    return X, solved

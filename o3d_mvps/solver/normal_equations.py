@@ -49,7 +49,11 @@ class JointSystem:
     matrix (N, N) sparse: the depth block M; rhs_z (N,); coupling (N, 6m): U, the transpose
     (a view) of a C-ordered (6m, N) array, float32 on the host (:data:`COUPLING_DTYPE`); hessian
     (6m, 6m): H (block-diagonal per frame unless the albedo is projected out); rhs_xi (6m,);
-    frames (m,): the refined frames' indices.
+    frames (m,): the refined frames' indices. On a GPU H and rhs_xi stay there, with every
+    candidate frame's rows: kept (m,) 1.0 or 0.0 on the device, a frame not kept an identity
+    block with a zero right-hand side, and selection (6m, 6m) ``-diag(kept)`` per twist row, so
+    that ``-H^-1 selection`` drops such a frame's columns (its coupling and twist 0, so
+    ``exp(t xi)`` leaves its pose as it is, bit for bit).
     """
 
     matrix: sp.csr_matrix
@@ -58,6 +62,9 @@ class JointSystem:
     hessian: np.ndarray
     rhs_xi: np.ndarray
     frames: list
+    kept: np.ndarray | None = None
+    selection: np.ndarray | None = None
+    _inverse: tuple | None = None  # on a GPU (-U H^-1 diag(kept), -H^-1 diag(kept) rhs_xi), by schur_operator
 
     def schur_operator(self):
         """(S, rhs): ``S = M - U H^-1 U^T`` as an operator (:func:`~o3d_mvps.model.arrays.linear_operator`) and
@@ -65,25 +72,33 @@ class JointSystem:
         passes over U per product, where forming U H^-1 (N, 6m) once cost as much as twenty
         products. The small solve with H (6m, 6m) runs on the host.
 
-        On the GPU, where the cost is per launch, ``-U H^-1`` (N, 6m) is formed once (one product,
-        H^-1 copied over once; as much memory again as U): a product is then ``U^T x``, that
-        times it, and ``M x`` added in one kernel (:func:`.krylov.multiply_add`), three launches
-        for five; the operator's ``low_rank_parts`` (M, -U H^-1, U^T) let :func:`.krylov.pcg` form
-        the product inside its multigrid kernel instead (none of these launches)."""
+        On the GPU, where the cost is per launch, ``X = -H^-1 diag(kept)`` and ``X b_xi`` are
+        formed there in one launch (:func:`.kernels.twist_inverse`: the Cholesky formula of the
+        host's small systems, with :func:`_cholesky`'s fallback; the substitutions one thread
+        per column) and ``-U H^-1`` (N, 6m) once (one product; as much memory again as U): a
+        product is then ``U^T x``, that times it, and ``M x`` added in one kernel
+        (:func:`.krylov.multiply_add`), three launches for five, no copy either way; the
+        operator's ``low_rank_parts`` (M, -U H^-1, U^T) let :func:`.krylov.pcg` form the product
+        inside its multigrid kernel instead (none of these launches)."""
         M, U = self.matrix, self.coupling
         if not self.frames:
             return linear_operator(M.shape, lambda x: M @ x.ravel(), self.rhs_z), self.rhs_z
-        factor = _cholesky(self.hessian)
         if on_gpu(U):
-            coupled = U @ like(-scipy.linalg.cho_solve(factor, np.eye(len(self.hessian))), U)  # -U H^-1
+            xp, K = array_module(U), len(self.hessian)
+            # X = -H^-1 diag(kept) (the columns of a frame not kept 0) and X rhs_xi in one launch
+            X, Xb = xp.empty((1, K, K)), xp.empty(K)
+            kernels_for(U).twist_inverse(self.hessian[None], self.selection[None], self.rhs_xi, CHOLESKY_FALLBACK,
+                                         xp.empty((1, K, K)), X, Xb, xp.empty(1))
+            coupled = U @ X[0]  # -U H^-1
+            self._inverse = (coupled, Xb)
 
             def schur_product(x):
                 return multiply_add(M, 1.0, x.ravel(), coupled @ (U.T @ x.ravel()))
 
-            rhs = self.rhs_z + coupled @ like(self.rhs_xi, U)
             operator = linear_operator(M.shape, schur_product, self.rhs_z)
             operator.low_rank_parts = (M, coupled, U.T)  # krylov.pcg forms the product in its kernel
-            return operator, rhs
+            return operator, self.rhs_z + U @ Xb
+        factor = _cholesky(self.hessian)
 
         def solve_h(y):
             return like(scipy.linalg.cho_solve(factor, to_host(y)), self.rhs_z)
@@ -93,6 +108,27 @@ class JointSystem:
             return M @ x - self.couple(solve_h(self.couple_t(x)))
 
         return linear_operator(M.shape, matvec, self.rhs_z), self.rhs_z - self.couple(solve_h(self.rhs_xi))
+
+    def add_priors(self, priors: list) -> None:
+        """Add each refined frame's pose prior: ``priors`` [(slot k, H_k (6, 6), g_k (6,))] on the
+        host, H_k added to H's block k and g_k taken from rhs_xi's (on a GPU in one copy, a
+        frame not kept left out)."""
+        if not priors:
+            return
+        if self.kept is None:
+            for k, H_k, g_k in priors:
+                self.hessian[6 * k:6 * k + 6, 6 * k:6 * k + 6] += H_k
+                self.rhs_xi[6 * k:6 * k + 6] -= g_k
+            return
+        n = len(self.rhs_xi)
+        packed = np.zeros((n + 1, n))  # the blocks, then the right-hand side's row
+        for k, H_k, g_k in priors:
+            packed[6 * k:6 * k + 6, 6 * k:6 * k + 6] = H_k
+            packed[n, 6 * k:6 * k + 6] = g_k
+        # the prior's columns of a frame not kept zeroed: its blocks lie in its own columns only
+        packed = like(packed, self.hessian) * array_module(self.hessian).repeat(self.kept, 6)
+        self.hessian += packed[:n]
+        self.rhs_xi -= packed[n]
 
     def couple(self, y: np.ndarray) -> np.ndarray:
         """U y (N,) float64 for y (6m,)."""
@@ -113,10 +149,20 @@ class JointSystem:
         return out
 
     def twists(self, dz: np.ndarray) -> np.ndarray:
-        """The twists (m, 6) that go with the depth increment dz (N,)."""
+        """The twists (m, 6) that go with the depth increment dz (N,), on the host (on a GPU
+        H^-1 (rhs_xi - U^T dz) there, as ``(-U H^-1 diag(kept))^T dz + H^-1 diag(kept) rhs_xi``
+        from :meth:`schur_operator`'s products, two launches and one read: a frame not kept gets
+        a zero twist, exactly)."""
         if not self.frames:
             return np.zeros((0, 6))
+        if self._inverse is not None:  # a frame not kept gets exactly 0: its pose stays
+            coupled, Xb = self._inverse  # H^-1 symmetric: (U X)^T dz = X U^T dz up to rounding
+            return to_host(coupled.T @ dz - Xb).reshape(-1, 6)
         return scipy.linalg.cho_solve(_cholesky(self.hessian), self.rhs_xi - to_host(self.couple_t(dz))).reshape(-1, 6)
+
+
+#: The relative diagonal shift of a twist matrix H that rounding left semidefinite (:func:`_cholesky`).
+CHOLESKY_FALLBACK = 1e-12
 
 
 def _cholesky(H: np.ndarray):
@@ -125,7 +171,7 @@ def _cholesky(H: np.ndarray):
     try:
         return scipy.linalg.cho_factor(H)
     except np.linalg.LinAlgError:
-        return scipy.linalg.cho_factor(H + 1e-12 * np.abs(np.diag(H)).max() * np.eye(len(H)))
+        return scipy.linalg.cho_factor(H + CHOLESKY_FALLBACK * np.abs(np.diag(H)).max() * np.eye(len(H)))
 
 
 def residual_jacobians(problem: LevelProblem, est: Estimate, ev: Evaluation, i: int, points_ref: np.ndarray):
@@ -241,21 +287,27 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
         _assemble_block(problem, est, ev, block, points_ref[block], candidates, parallax, project_albedo,
                         sums[:, block], *twist_sums, coupling_t, Du[block], Dv[block], poses, with_jacobian,
                         frame_slots)
-    if partials is not None:
-        grams, rhs_frames, rhs_projection, downdate = _twist_sums(to_host(partials.sum(axis=0)), m)
-        rhs_xi = rhs_frames + rhs_projection
+    # frames whose own Gram is not safely invertible keep their depth rows but take no twist
+    # (kernels.twist_system: the frames' condition numbers and H = blockdiag(Grams) - downdate)
+    hessian, twist_rhs, frame_kept = xp.empty((6 * m, 6 * m)), xp.empty(6 * m), xp.empty(m)
+    selection = xp.empty((6 * m, 6 * m))  # -diag(kept) per twist row
+    if partials is not None:  # on a GPU the block's sums added and the system formed there: no copy
+        grams, rhs_frames, rhs_projection, downdate = _twist_sums(partials.sum(axis=0), m)
+    else:
+        rhs_frames, rhs_projection = rhs_xi, np.zeros_like(rhs_xi)
+    if m:
+        kernels_for(hessian).twist_system(grams, rhs_frames, rhs_projection, downdate, host_kernels.MAX_TWIST_CONDITION,
+                                          xp.empty((m, 6, 6)), frame_kept, hessian, twist_rhs, selection)
     del Du, Dv, points_ref, partials  # the zero-free copies (45 MB at 2 megapixels): not held while M is formed
     if release:
         ev.release()
-    # frames whose own Gram is not safely invertible keep their depth rows but take no twist
-    hessians, frames, kept = [], [], []
-    for k, i in enumerate(candidates):
-        H = grams[k] + np.triu(grams[k], 1).T
-        if np.isfinite(H).all() and np.linalg.cond(H) <= 1e12:
-            hessians.append(H)
-            frames.append(i)
-            kept.extend(range(6 * k, 6 * k + 6))
-    hessian = scipy.linalg.block_diag(*hessians) - downdate[np.ix_(kept, kept)] if frames else np.zeros((0, 0))
+    if xp is np:  # the kept frames' rows and columns
+        kept_slots = np.flatnonzero(frame_kept)
+        frames = [candidates[k] for k in kept_slots]
+        kept = [6 * k + a for k in kept_slots for a in range(6)]
+        hessian, rhs_xi = hessian[np.ix_(kept, kept)], twist_rhs[kept]
+    else:  # every candidate's rows, a frame not kept an identity block (its twist 0: JointSystem.selection)
+        frames, kept, rhs_xi = candidates, list(range(6 * m)), twist_rhs
     prior = problem.level.prior
     rhs_z = -stencil_transpose(grid, *sums[6:]) + prior.negative_gradient(est.z, problem.tau, problem.mu)
     if xp is np:  # filled into the level's pattern: no sparse products or sums
@@ -271,7 +323,8 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
         if row != k:
             coupling_t[row] = coupling_t[k]
     coupling = coupling_t[:len(kept)].T  # (N, 6m')
-    return JointSystem(sparse_module(matrix).csr_matrix(matrix), rhs_z, coupling, hessian, rhs_xi[kept], frames)
+    return JointSystem(sparse_module(matrix).csr_matrix(matrix), rhs_z, coupling, hessian, rhs_xi, frames,
+                       *((None, None) if xp is np else (frame_kept, selection)))
 
 
 def _twist_sums_size(m: int) -> int:

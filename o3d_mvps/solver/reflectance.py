@@ -37,18 +37,25 @@ def update_lighting(est: Estimate, ev: Evaluation, lam: float, light) -> np.ndar
     albedo = contiguous(est.albedo)
     n, k = est.lights.shape
     gram, rhs = np.zeros((n, k, k)), np.zeros((n, k))
-    counts = to_host(ev.usable.sum(axis=1))
-    if on_gpu(ev.residual):  # every frame's system in three launches and two copies (the host's loop: 5 a frame)
+    if on_gpu(ev.residual):  # every frame's system in a few launches and one copy (the host's loop: 5 a frame)
         wr2, wri = xp.empty(ev.usable.shape), xp.empty(ev.usable.shape)  # sum_c w rho^2, sum_c w rho I~: (n, N)
         kernels_for(wr2).weighted_lighting_sums(ev.residual, ev.usable, ev.color, albedo, 1.0 / lam, wr2, wri)
         basis = ev.basis  # (n, N, k), or (1, N, k) shared
-        gram = to_host(xp.matmul((basis * wr2[:, :, None]).transpose(0, 2, 1), basis))
-        rhs = to_host(xp.matmul(wri[:, None, :], basis)[:, 0])
+        # the Grams, right-hand sides and usable counts written into one array, read in one copy
+        sizes = np.cumsum([n * k * k, n * k, n])
+        both = xp.empty(int(sizes[-1]))
+        gram, rhs, counts = both[:sizes[0]].reshape(n, k, k), both[sizes[0]:sizes[1]].reshape(n, 1, k), both[sizes[1]:]
+        xp.matmul((basis * wr2[:, :, None]).transpose(0, 2, 1), basis, out=gram)
+        xp.matmul(wri[:, None, :], basis, out=rhs)
+        ev.usable.sum(axis=1, dtype=np.float64, out=counts)
+        both = to_host(both)
+        gram, rhs, counts = both[:sizes[0]].reshape(n, k, k), both[sizes[0]:sizes[1]].reshape(n, k), both[sizes[1]:]
         gram[counts < 8], rhs[counts < 8] = 0.0, 0.0
         return light.fit(gram, rhs, est.lights)
     # on the host a frame at a time: the sums of one frame (1, N) each, not of all (2 x 160 MB
     # at 2 MP and 20 frames); the same values
     wr2, wri = np.empty((1, ev.usable.shape[1])), np.empty((1, ev.usable.shape[1]))
+    counts = ev.usable.sum(axis=1)
     for i in range(n):
         if counts[i] >= 8:
             frame = slice(i, i + 1)
