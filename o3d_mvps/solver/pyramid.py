@@ -77,8 +77,16 @@ class DepthPrior:
 
     @cached_property
     def StS(self) -> sp.csr_matrix:
-        """S^T S (N, N), built once per level (S is set when the level is built, before any use)."""
+        """S^T S (N, N), built at its first use after S is set or weighted (S is set when the
+        level is built, before any use); :meth:`release_products` drops it."""
         return (self.S.T @ self.S).tocsr()
+
+    def release_products(self) -> None:
+        """Drop S^T S (:attr:`StS`) until it is asked for again: a step that has formed its
+        system from it (:func:`.normal_equations.joint_system` on the host) does not hold it
+        through its solve (9 entries a pixel: 107 MB at 2 megapixels, beside the AMG set-up).
+        Formed again by the same product, it is the same bit for bit."""
+        self.__dict__.pop("StS", None)
 
     def normal_equations(self, z: np.ndarray, tau: float, mu: float) -> tuple[sp.csr_matrix, np.ndarray]:
         """The energy's Hessian (N, N) and minus its gradient (N,) at depth z (N,)."""
