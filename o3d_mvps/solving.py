@@ -82,6 +82,10 @@ def refine(capture: Capture, options: RefineOptions | None = None, device="auto"
         camera = camera_setting(capture, _host_poses(initial_poses))
         problem_input, views = problem_from_capture(capture, options, initial_poses, camera=camera, dropped=dropped,
                                                     checks=checks, pose_trust=pose_trust)
+        # the solver's input holds what the solve reads of the capture (its colour frames, not
+        # copied): where the caller lets go of the capture too (the command line), its masks,
+        # depth images and ground truth are freed before the solve
+        capture_frames, capture = capture.n_frames, None
         odometry = time.perf_counter() - t0
         memory["odometry"] = peak_memory_mb()
         if save_problem is not None:
@@ -89,7 +93,7 @@ def refine(capture: Capture, options: RefineOptions | None = None, device="auto"
         output = solve(problem_input, problem_input.options, device)
         memory["solve"] = peak_memory_mb()
     info = {**output.info, **({"views": views.to_dict()} if views else {}), **problem_input.report,
-            "camera": camera.to_dict(), "capture_frames": capture.n_frames,
+            "camera": camera.to_dict(), "capture_frames": capture_frames,
             "dropped_frames": {str(i): why for i, why in dropped.items()}, "stage_peak_memory_mb": memory,
             "warnings": said}
     return Refinement.from_arrays(
