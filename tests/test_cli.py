@@ -256,7 +256,9 @@ def test_refine_frees_the_frames_it_no_longer_reads(capture_dir, tmp_path, monke
     def reading(*args, **kwargs):
         capture = read_capture(*args, **kwargs)
         held.update(color=[weakref.ref(c) for c in capture.color], depth=[weakref.ref(d) for d in capture.depth],
-                    masks=[weakref.ref(m) for m in capture.masks], n=capture.n_frames)
+                    masks=[weakref.ref(m) for m in capture.masks], n=capture.n_frames,
+                    truth=[weakref.ref(capture.groundtruth.normals)])
+        assert capture.groundtruth is not None
         return capture
 
     def alive(name):
@@ -266,7 +268,7 @@ def test_refine_frees_the_frames_it_no_longer_reads(capture_dir, tmp_path, monke
     solve, at_solve = o3d_mvps.solving.solve, {}
 
     def solving(problem_input, *args, **kwargs):
-        at_solve.update(depth=alive("depth"), masks=alive("masks"), color=alive("color"))
+        at_solve.update(depth=alive("depth"), masks=alive("masks"), color=alive("color"), truth=alive("truth"))
         held["views"] = [weakref.ref(c) for c in problem_input.colors]  # the solver's views of the colour frames
         return solve(problem_input, *args, **kwargs)
 
@@ -283,7 +285,9 @@ def test_refine_frees_the_frames_it_no_longer_reads(capture_dir, tmp_path, monke
     assert main(["--quiet", "refine", str(capture_dir), str(tmp_path / "out"), *TINY_SOLVER]) == 0
     assert held["n"] > 1
     # at the solve, only the reference frame's images (kept for after it) are still referenced
-    assert at_solve == {"depth": [0], "masks": [0], "color": [0]}
+    assert at_solve == {"depth": [0], "masks": [0], "color": [0], "truth": []}  # the ground truth is read again after
     assert after == {"color": [0], "depth": [0], "views": []}
     report = json.loads((tmp_path / "out" / "report.json").read_text())
     assert report["info"]["capture_frames"] == held["n"]
+    # the ground truth read again after the solve: the accuracy table of every method
+    assert [row["method"] for row in report["accuracy"]] == ["bicubic", "guided", "ours"]
