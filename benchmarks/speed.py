@@ -62,8 +62,8 @@ def measure(capture_folder: str, options: dict) -> dict:
     from o3d_mvps.capture import read_capture
 
     t = time.perf_counter()
-    capture = read_capture(capture_folder)
-    result = refine(capture, RefineOptions(progress=False, **options))
+    # handed over as the command line does: refine lets go of it once the solver's input is made
+    result = refine(read_capture(capture_folder), RefineOptions(progress=False, **options))
     seconds = time.perf_counter() - t
     usage = resource.getrusage(resource.RUSAGE_SELF)
     # cpu_seconds (user + system, this process) is what the wall time would be without other load

@@ -124,8 +124,9 @@ def trim_heap() -> bool:
     the blocks below the mmap threshold (:func:`return_freed_arrays`) that a stage freed lie
     between blocks still in use, so that they stop counting in the resident set. A no-op
     returning False where the C library is not glibc. Called as each pyramid level starts,
-    when the previous level's arrays are gone, and once the last level is solved; the values
-    computed do not change."""
+    when the previous level's arrays are gone, once the last level is solved, and by
+    :func:`o3d_mvps.solving.refine` once the solver's input is gone; the values computed do not
+    change."""
     import ctypes
     import sys
 
