@@ -630,3 +630,27 @@ def test_the_smoothness_hessian_is_not_held_through_the_solve_and_comes_back_the
         for name in ("rhs_z", "coupling", "hessian", "rhs_xi"):
             assert np.array_equal(getattr(a, name), getattr(b, name)), name
     assert np.array_equal(prior.StS.toarray(), (prior.S.T @ prior.S).toarray())
+
+
+def test_weighing_a_rebuildable_smoothness_keeps_no_copy_and_gives_the_same_rows(level, rng):
+    """build_level's prior makes its unweighted S anew for each weighing (rebuild_smoothness_with)
+    instead of keeping a copy beside the weighted one: the weighted S, its S^T S and the
+    smoothness pattern are the same bit for bit as with the copy kept, and no unweighted copy is held."""
+    from o3d_mvps.solver.pyramid import build_level
+    from o3d_mvps.solver.smoothness import second_differences
+
+    z0 = bump_depth().reshape(SIZE[0] // 2, 2, SIZE[1] // 2, 2).mean(axis=(1, 3))
+    built = build_level(0, level.images, [None] * len(level.images), level.grid.mask, level.K, z0, 2)
+    kept = dataclasses.replace(built.prior, S=second_differences(built.grid))  # no way to rebuild: a copy kept
+    kept.__dict__.pop("_S_build", None)
+    assert np.array_equal(kept.S.toarray(), built.prior.S.toarray())
+    for sweep in range(3):
+        weights = rng.uniform(0.1, 1.0, built.grid.size)
+        built.prior.weigh_smoothness(weights)
+        kept.weigh_smoothness(weights)
+        for a, b in ((built.prior.S, kept.S), (built.prior.StS, kept.StS)):
+            assert np.array_equal(a.indptr, b.indptr) and np.array_equal(a.indices, b.indices)
+            assert np.array_equal(a.data, b.data)
+        assert "_S_unweighted" not in built.prior.__dict__ and "_S_unweighted" in kept.__dict__
+        pattern = built.prior.smoothness_pattern
+        assert np.array_equal(pattern.toarray(), kept.smoothness_pattern.toarray())
