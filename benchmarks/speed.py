@@ -62,8 +62,8 @@ def measure(capture_folder: str, options: dict) -> dict:
     from o3d_mvps.capture import read_capture
 
     t = time.perf_counter()
-    capture = read_capture(capture_folder)
-    result = refine(capture, RefineOptions(progress=False, **options))
+    # handed over as the command line does: refine lets go of it once the solver's input is made
+    result = refine(read_capture(capture_folder), RefineOptions(progress=False, **options))
     seconds = time.perf_counter() - t
     usage = resource.getrusage(resource.RUSAGE_SELF)
     # cpu_seconds (user + system, this process) is what the wall time would be without other load
@@ -247,15 +247,17 @@ def run_memory_curve(args) -> list[dict]:
     """Peak memory (and time) of odometry + refine for every ``--cases`` size x ``--memory-curve``
     frame count, capped at one sweep per level (``max_iterations=1``, to keep the curve cheap: a
     lower bound, as the resident size of a full run keeps growing over the finest level's sweeps,
-    docs/performance.md); rows as :func:`run_case`'s in ``memory_curve.json``, plotted by
-    :func:`memory_curve_plot`."""
+    docs/performance.md); rows as :func:`run_case`'s plus "revision" (this tree's commit) in
+    ``memory_curve.json``, plotted by :func:`memory_curve_plot`."""
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     warm_up([Path(__file__).resolve().parent.parent])
     rows = []
+    revision = subprocess.run(["git", "-C", str(Path(__file__).resolve().parent), "rev-parse", "--short", "HEAD"],
+                              capture_output=True, text=True, check=False).stdout.strip() or None
     for size, sf, distance in (parse_case(c) for c in args.cases):
         for frames in args.memory_curve:
-            row = run_case(args.mesh, size, sf, frames, {"max_iterations": 1}, distance)
+            row = {**run_case(args.mesh, size, sf, frames, {"max_iterations": 1}, distance), "revision": revision}
             rows.append(row)
             print(f"memory: {row['color']}, {frames} frames: peak {row['peak_mb']:.0f} MB, {row['seconds']:.1f} s",
                   flush=True)
@@ -265,16 +267,22 @@ def run_memory_curve(args) -> list[dict]:
 
 
 def memory_curve_plot(rows: list[dict], path: Path) -> None:
-    """Peak MB against frames, one line per colour size (matplotlib, PNG)."""
+    """Peak MB against frames, one line per colour size and revision (rows' ``"revision"``, where
+    given: the tree's commit; the newest solid, older ones dashed) (matplotlib, PNG)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6, 4))
+    revisions = list(dict.fromkeys(r.get("revision") for r in rows))
     for color in dict.fromkeys(r["color"] for r in rows):
-        mine = sorted((r["frames"], r["peak_mb"]) for r in rows if r["color"] == color)
-        ax.plot(*zip(*mine), marker="o", label=f"{color} colour")
+        for k, revision in enumerate(revisions):
+            mine = sorted((r["frames"], r["peak_mb"]) for r in rows if r["color"] == color
+                          and r.get("revision") == revision)
+            if mine:
+                ax.plot(*zip(*mine), marker="o", linestyle="-" if k == 0 else "--",
+                        label=f"{color} colour" + ("" if revision is None else f" ({revision})"))
     ax.set_xlabel("frames")
     ax.set_ylabel("peak resident memory (MB)")
     ax.set_title("odometry + refine, one sweep per level")

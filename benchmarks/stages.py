@@ -87,7 +87,9 @@ def worker(tree: str, folder: str, options: dict) -> dict:
     read_seconds = time.perf_counter() - t
     peaks["read"] = _status_mb("VmRSS:")
     t = time.perf_counter()
-    result = refine(capture, RefineOptions(progress=False, **options))
+    handed = [capture]  # handed over as the command line does: refine lets go of it once the solver's input is made
+    del capture
+    result = refine(handed.pop(), RefineOptions(progress=False, **options))
     wall = time.perf_counter() - t
     usage = resource.getrusage(resource.RUSAGE_SELF)
     return {"cpu_seconds": usage.ru_utime + usage.ru_stime, "refine_wall_seconds": wall,

@@ -213,3 +213,26 @@ def test_pose_check_benchmark_counts_frames_named_and_true_poses_refused(tmp_pat
         assert "orbit" not in result["missed"][key], key
     assert set(result["missed"]["rz5"]) <= {"ring12_160"} and result["caught"]["rz5"] >= 5
     assert f"| rz5 | {result['caught']['rz5']} of 22 |" in (tmp_path / "pose_checks.md").read_text()
+
+
+def test_memory_curve_plot_marks_older_revisions(tmp_path, monkeypatch):
+    """speed.memory_curve_plot draws a line per colour size and revision, the rows' first
+    revision solid and older ones dashed, each labelled with its commit."""
+    import matplotlib.axes
+
+    from benchmarks.speed import memory_curve_plot
+
+    drawn = []
+    plot = matplotlib.axes.Axes.plot
+
+    def recorded(self, *args, **kwargs):
+        drawn.append((kwargs.get("label"), kwargs.get("linestyle"), list(args[1])))
+        return plot(self, *args, **kwargs)
+
+    monkeypatch.setattr(matplotlib.axes.Axes, "plot", recorded)
+    rows = [{"color": "640x480", "frames": f, "peak_mb": 400.0 + f, "revision": "new1234"} for f in (5, 10)]
+    rows += [{"color": "1708x1136", "frames": f, "peak_mb": 2000.0 + f, "revision": "old5678"} for f in (10, 5)]
+    memory_curve_plot(rows, tmp_path / "curve.png")
+    assert drawn == [("640x480 colour (new1234)", "-", [405.0, 410.0]),
+                     ("1708x1136 colour (old5678)", "--", [2005.0, 2010.0])]
+    assert (tmp_path / "curve.png").stat().st_size > 1000

@@ -159,6 +159,24 @@ def test_single_frame_capture_round_trips(tmp_path):
     assert read_capture(tmp_path / "one").n_frames == 1
 
 
+def test_reference_only_keeps_frame_0_and_the_whole_ground_truth(capture_dir):
+    """Capture.reference_only: frame 0's images (the same objects, not copies), names and ids,
+    and the ground truth untouched (its poses still index every frame); read_groundtruth reads
+    the same ground truth as read_capture, and None from a folder without one."""
+    from o3d_mvps.capture.reading import read_groundtruth
+
+    capture = read_capture(capture_dir)
+    one = capture.reference_only()
+    assert capture.n_frames > 1 and one.n_frames == 1
+    assert one.color[0] is capture.color[0] and one.depth[0] is capture.depth[0] and one.masks[0] is capture.masks[0]
+    assert one.frame_names == capture.frame_names[:1] and one.groundtruth is capture.groundtruth
+    assert len(one.groundtruth.poses) == capture.n_frames
+    again = read_groundtruth(capture_dir, capture.n_frames, capture.color_size)
+    for name in ("depth", "normals", "albedo", "poses"):
+        assert np.array_equal(getattr(again, name), getattr(capture.groundtruth, name)), name
+    assert read_groundtruth(capture_dir / "color", capture.n_frames, capture.color_size) is None
+
+
 # --- bad folders -------------------------------------------------------------------------
 
 

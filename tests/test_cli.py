@@ -238,3 +238,56 @@ def test_pipelines_use_the_same_vocabulary(capsys):
     assert "print_scan.py: warning: --size-mm is deprecated; use --print MM" in capsys.readouterr().err
     args = record_and_refine.build_parser().parse_args(["out", "--record-frames", "30", "--frames", "10"])
     assert (args.record_frames, args.frames) == (30, 10)  # recorded, then the first 10 refined
+
+
+def test_refine_frees_the_frames_it_no_longer_reads(capture_dir, tmp_path, monkeypatch):
+    """`o3d-mvps refine` hands the capture over to refine(): when the solve starts, the capture's
+    depth images and masks are freed (the solver's input holds its own), its colour frames only
+    by the solver's views of them; once refine returns, the colour frames of every frame but the
+    reference are freed (the accuracy table and report page read frame 0 and the ground truth)."""
+    import gc
+    import weakref
+
+    import o3d_mvps.solving
+    from o3d_mvps.capture import read_capture
+
+    held = {}
+
+    def reading(*args, **kwargs):
+        capture = read_capture(*args, **kwargs)
+        held.update(color=[weakref.ref(c) for c in capture.color], depth=[weakref.ref(d) for d in capture.depth],
+                    masks=[weakref.ref(m) for m in capture.masks], n=capture.n_frames,
+                    truth=[weakref.ref(capture.groundtruth.normals)])
+        assert capture.groundtruth is not None
+        return capture
+
+    def alive(name):
+        gc.collect()
+        return [i for i, ref in enumerate(held[name]) if ref() is not None]
+
+    solve, at_solve = o3d_mvps.solving.solve, {}
+
+    def solving(problem_input, *args, **kwargs):
+        at_solve.update(depth=alive("depth"), masks=alive("masks"), color=alive("color"), truth=alive("truth"))
+        held["views"] = [weakref.ref(c) for c in problem_input.colors]  # the solver's views of the colour frames
+        return solve(problem_input, *args, **kwargs)
+
+    after = {}
+    log_energy = refine_cli.log_energy
+
+    def logged(refinement, quiet):
+        after.update(color=alive("color"), depth=alive("depth"), views=alive("views"))
+        return log_energy(refinement, quiet)
+
+    monkeypatch.setattr(refine_cli, "read_capture", reading)
+    monkeypatch.setattr(o3d_mvps.solving, "solve", solving)
+    monkeypatch.setattr(refine_cli, "log_energy", logged)
+    assert main(["--quiet", "refine", str(capture_dir), str(tmp_path / "out"), *TINY_SOLVER]) == 0
+    assert held["n"] > 1
+    # at the solve, only the reference frame's images (kept for after it) are still referenced
+    assert at_solve == {"depth": [0], "masks": [0], "color": [0], "truth": []}  # the ground truth is read again after
+    assert after == {"color": [0], "depth": [0], "views": []}
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert report["info"]["capture_frames"] == held["n"]
+    # the ground truth read again after the solve: the accuracy table of every method
+    assert [row["method"] for row in report["accuracy"]] == ["bicubic", "guided", "ours"]

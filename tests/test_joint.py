@@ -601,3 +601,56 @@ def test_released_early_the_system_is_the_same_and_colours_go_before_the_couplin
     for name in ("rhs_z", "coupling", "hessian", "rhs_xi"):
         assert np.array_equal(getattr(kept, name), getattr(released, name)), name
     assert kept.frames == released.frames
+
+
+def test_the_smoothness_hessian_is_not_held_through_the_solve_and_comes_back_the_same(level):
+    """joint_system on the host forms M and its right-hand side from the prior's S^T S, then
+    drops it (DepthPrior.release_products: 107 MB at 2 megapixels, not held beside the AMG
+    set-up): no reference to that matrix is left once the system is formed, and the next system,
+    which forms S^T S again, is the same bit for bit as one formed with S^T S kept."""
+    import gc
+    import weakref
+
+    from o3d_mvps.solver.smoothness import second_differences
+
+    prior = dataclasses.replace(level.prior, S=second_differences(level.grid))
+    problem = LevelProblem(dataclasses.replace(level, prior=prior), 1.0, 0.04, smoothness=0.3)
+    est = kicked_estimate(problem)
+    first = joint_system(problem, est, problem.evaluate(est), release=True)
+    assert "StS" not in prior.__dict__
+    gone = weakref.ref(prior.StS)  # formed again on demand (the next step's product)
+    kept = prior.StS
+    expected = joint_system(problem, est, problem.evaluate(est))  # with S^T S held by `kept` throughout
+    assert "StS" not in prior.__dict__
+    del kept
+    gc.collect()
+    assert gone() is None  # nothing in the system or the problem holds it
+    for a, b in ((first, expected),):
+        assert np.array_equal(a.matrix.data, b.matrix.data) and np.array_equal(a.matrix.indices, b.matrix.indices)
+        for name in ("rhs_z", "coupling", "hessian", "rhs_xi"):
+            assert np.array_equal(getattr(a, name), getattr(b, name)), name
+    assert np.array_equal(prior.StS.toarray(), (prior.S.T @ prior.S).toarray())
+
+
+def test_weighing_a_rebuildable_smoothness_keeps_no_copy_and_gives_the_same_rows(level, rng):
+    """build_level's prior makes its unweighted S anew for each weighing (rebuild_smoothness_with)
+    instead of keeping a copy beside the weighted one: the weighted S, its S^T S and the
+    smoothness pattern are the same bit for bit as with the copy kept, and no unweighted copy is held."""
+    from o3d_mvps.solver.pyramid import build_level
+    from o3d_mvps.solver.smoothness import second_differences
+
+    z0 = bump_depth().reshape(SIZE[0] // 2, 2, SIZE[1] // 2, 2).mean(axis=(1, 3))
+    built = build_level(0, level.images, [None] * len(level.images), level.grid.mask, level.K, z0, 2)
+    kept = dataclasses.replace(built.prior, S=second_differences(built.grid))  # no way to rebuild: a copy kept
+    kept.__dict__.pop("_S_build", None)
+    assert np.array_equal(kept.S.toarray(), built.prior.S.toarray())
+    for sweep in range(3):
+        weights = rng.uniform(0.1, 1.0, built.grid.size)
+        built.prior.weigh_smoothness(weights)
+        kept.weigh_smoothness(weights)
+        for a, b in ((built.prior.S, kept.S), (built.prior.StS, kept.StS)):
+            assert np.array_equal(a.indptr, b.indptr) and np.array_equal(a.indices, b.indices)
+            assert np.array_equal(a.data, b.data)
+        assert "_S_unweighted" not in built.prior.__dict__ and "_S_unweighted" in kept.__dict__
+        pattern = built.prior.smoothness_pattern
+        assert np.array_equal(pattern.toarray(), kept.smoothness_pattern.toarray())

@@ -399,6 +399,14 @@ def _check_intrinsic_size(path: Path, size, image_size, images: str) -> None:
     )
 
 
+def read_groundtruth(path, n_frames: int, color_size) -> GroundTruth | None:
+    """The ground truth of the capture folder ``path`` as :func:`read_capture` reads it (for
+    ``n_frames`` frames of ``color_size`` (H, W)), or None where it has none (or, with a warning,
+    an incomplete or foreign one): for a caller that does not hold it through a refinement."""
+    folder = capture_root(path) / GROUNDTRUTH_DIR
+    return _read_groundtruth(folder, n_frames, color_size) if folder.is_dir() else None
+
+
 def _read_groundtruth(folder: Path, n_frames: int, color_size) -> GroundTruth | None:
     """The ground truth of a synthetic capture, or None (with a warning) when incomplete or foreign."""
     arrays = {}

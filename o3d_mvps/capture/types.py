@@ -131,6 +131,15 @@ class Capture:
         return replace(self, color=pick(self.color), depth=pick(self.depth), masks=pick(self.masks), groundtruth=gt,
                        frame_names=pick(self.frame_names), frame_ids=pick(self.frame_ids))
 
+    def reference_only(self) -> "Capture":
+        """This capture with the reference frame's images only (colour, depth, mask, name, id):
+        for what reads frame 0 alone once the frames are solved (baselines, report figures), so
+        that the other frames' arrays can be freed. Unlike ``select([0])`` the ground truth is kept
+        whole (its poses still index every frame of this capture)."""
+        first = lambda seq: None if seq is None else list(seq[:1])  # noqa: E731
+        return replace(self, color=first(self.color), depth=first(self.depth), masks=first(self.masks),
+                       frame_names=first(self.frame_names), frame_ids=first(self.frame_ids))
+
     def frame_id(self, i: int) -> int:
         """Frame i's index in the capture the user gave (:attr:`frame_ids`, default i)."""
         return i if self.frame_ids is None else int(self.frame_ids[i])

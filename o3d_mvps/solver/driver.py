@@ -120,6 +120,26 @@ def return_freed_arrays(pixels: int | None = None) -> bool:
     return bool(mallopt(M_MMAP_THRESHOLD, SMALL_MMAP_THRESHOLD if small else MMAP_THRESHOLD))
 
 
+def trim_heap() -> bool:
+    """Give the freed pages inside glibc's heap back to the system (``malloc_trim(0)``), where
+    the blocks below the mmap threshold (:func:`return_freed_arrays`) that a stage freed lie
+    between blocks still in use, so that they stop counting in the resident set. A no-op
+    returning False where the C library is not glibc. Called as each pyramid level starts,
+    when the previous level's arrays are gone, once the last level is solved, and by
+    :func:`o3d_mvps.solving.refine` once the solver's input is gone; the values computed do not
+    change."""
+    import ctypes
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        malloc_trim = ctypes.CDLL("libc.so.6").malloc_trim
+    except (OSError, AttributeError):
+        return False
+    return bool(malloc_trim(0))
+
+
 def normalised_tau(tau_tilde: float, n_frames: int, mean_intensity: float, n_hr: int, mean_z0: float, n_lr: int,
                    channels: int = 3) -> float:
     """tau = tau~ n mean(I)^2 |Omega_HR| |C| / (mean(z0)^2 |Omega_LR|) (paper section 5.1)."""
@@ -485,6 +505,7 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
         initial albedo fit and the sweeps; returns the unknowns on the level's full grid (None
         for a level too small to solve, which passes ``carried`` on)."""
         t = time.perf_counter()
+        trim_heap()  # the previous level's freed arrays out of the resident set before this level's are made
         level = build_level(level_index, colors, masks, ref_mask, K, z0, sf, options.difference_scheme,
                             options.depth_envelope, options.model.slope_weighted())
         g = level.grid
@@ -530,6 +551,7 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
                        fill_nearest_valid(g.scatter(to_host(est.albedo)), g.mask), est.lights, est.poses, est.led_offset)
 
     result = coarse_to_fine(n_levels, solve_level)
+    trim_heap()  # the finest level's freed arrays: not resident through what the caller does next (report, export)
     z_full, albedo_full, lights, poses, led_offset = (result.z, result.albedo, result.lights, result.poses,
                                                       result.led_offset)
     depth = np.where(ref_mask, z_full, 0.0)

@@ -313,6 +313,7 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
     if xp is np:  # filled into the level's pattern: no sparse products or sums
         matrix = depth_block(problem, sums[:6])
         del sums
+        prior.release_products()  # S^T S not held through the solve (formed again by the next step)
     else:
         # the prior's matrix formed after the stencil's, and the per-pixel sums dropped before the two are added
         matrix = stencil_normal_matrix(grid, *sums[:6])

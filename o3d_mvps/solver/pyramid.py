@@ -46,13 +46,30 @@ class DepthPrior:
     def weigh_smoothness(self, pixel_weights: np.ndarray) -> None:
         """Weight each smoothness row of the unweighted S by ``pixel_weights`` (N,) at its centre
         pixel (the energy's mu ||S z||^2 becomes mu sum_k w_k (S z)_k^2); replaces the last
-        weights."""
+        weights. Where the prior can make its unweighted S again (:meth:`rebuild_smoothness_with`)
+        it does so for each weighing instead of holding it beside the weighted one (77 MB at 2
+        megapixels, through the level's joint steps)."""
         if self.S is None:
             return
-        base = self.__dict__.setdefault("_S_unweighted", self.S)
+        base = self._unweighted_smoothness()
+        if self.__dict__.get("_S_build") is None:
+            self.__dict__.setdefault("_S_unweighted", base)
         centre = base.indices[base.data < 0]  # each row's -2 entry, in row order
         self.S = sparse_module(base).csr_matrix(sparse_module(base).diags(pixel_weights[centre] ** 0.5) @ base)
+        self.__dict__["_weighted"] = True
         self.__dict__.pop("StS", None)
+
+    def rebuild_smoothness_with(self, build) -> None:
+        """Give the prior ``build()``, which returns its unweighted S anew (the same matrix bit for
+        bit: a pure function of the level), so that weighing it does not keep a copy."""
+        self.__dict__["_S_build"] = build
+
+    def _unweighted_smoothness(self) -> sp.csr_matrix:
+        """S before any weights: S itself until weighed, then the copy kept or made anew."""
+        if not self.__dict__.get("_weighted"):
+            return self.S
+        build = self.__dict__.get("_S_build")
+        return build() if build is not None else self.__dict__["_S_unweighted"]
 
     def energy(self, z: np.ndarray, tau: float, mu: float) -> float:
         """tau ||D z - z0||^2 + mu ||S z||^2 of depth z (N,) metres."""
@@ -77,8 +94,16 @@ class DepthPrior:
 
     @cached_property
     def StS(self) -> sp.csr_matrix:
-        """S^T S (N, N), built once per level (S is set when the level is built, before any use)."""
+        """S^T S (N, N), built at its first use after S is set or weighted (S is set when the
+        level is built, before any use); :meth:`release_products` drops it."""
         return (self.S.T @ self.S).tocsr()
+
+    def release_products(self) -> None:
+        """Drop S^T S (:attr:`StS`) until it is asked for again: a step that has formed its
+        system from it (:func:`.normal_equations.joint_system` on the host) does not hold it
+        through its solve (9 entries a pixel: 107 MB at 2 megapixels, beside the AMG set-up).
+        Formed again by the same product, it is the same bit for bit."""
+        self.__dict__.pop("StS", None)
 
     def normal_equations(self, z: np.ndarray, tau: float, mu: float) -> tuple[sp.csr_matrix, np.ndarray]:
         """The energy's Hessian (N, N) and minus its gradient (N,) at depth z (N,)."""
@@ -107,7 +132,7 @@ class DepthPrior:
     @property
     def smoothness_pattern(self) -> sp.csr_matrix | None:
         """S before :meth:`weigh_smoothness` (whose weights keep its pattern), or None."""
-        return self.__dict__.get("_S_unweighted", self.S)
+        return None if self.S is None else self._unweighted_smoothness()
 
     def on_device(self, device) -> "DepthPrior":
         """This prior with its arrays and operators on ``device`` (an
@@ -225,8 +250,12 @@ def build_level(index: int, colors: list, masks: list, ref_mask: np.ndarray, K: 
     mask = resize(ref_mask.astype(np.float32), size) > 0.5
     grid = masked_grid(mask, scheme)
     prior = depth_prior(grid, z0, scale_factor / 2**index)
-    prior.S = (smoothness_rows(grid, z0, K_level, scale_factor / 2**index) if slope_weighted
-               else second_differences(grid))
+    def smoothness():
+        return (smoothness_rows(grid, z0, K_level, scale_factor / 2**index) if slope_weighted
+                else second_differences(grid))
+
+    prior.S = smoothness()
+    prior.rebuild_smoothness_with(smoothness)  # weighed without a copy of the unweighted S kept
     if envelope_margin is not None:
         prior.lower, prior.upper = (grid.gather(b) for b in depth_envelope(z0, size, envelope_margin))
     return Level(index, grid, K_level, size, images, frame_masks, prior)
