@@ -92,7 +92,8 @@ def _scores(result, capture, cubic) -> dict:
     # the object's pixels there, its silhouette's 2 px left out (as evaluate does): holes cut into the output
     seen = ndimage.binary_erosion(gt.depth > 0, np.ones((3, 3), bool), SILHOUETTE_MARGIN_PX, border_value=1)
     scores["coverage"] = float((result.mask_array() & seen).sum() / max(seen.sum(), 1))
-    scores["border_coverage"] = float((result.mask_array() & seen & band).sum() / max((seen & band).sum(), 1))
+    scores["border_coverage"] = (float((result.mask_array() & seen & band).sum() / (seen & band).sum())
+                                 if (seen & band).any() else None)  # None: the object does not reach the edge
     if result.albedo is not None:
         scores["albedo_error"] = albedo_error(result.albedo_array(), gt.albedo, mask)
         scores["albedo_shading_error"] = albedo_shading_error(result.albedo_array(), gt.albedo, mask)
