@@ -15,10 +15,20 @@ p95 in per mille of depth; issue 32's target <= 2) and the albedo error
 :func:`o3d_mvps.metrics.albedo_shading_error`: its low-passed part, the shading left in the
 albedo), also of ours on the same scene rendered without noise, and the images' noise floor
 (:func:`albedo_noise_floor`: the albedo of the noisy frames under the true shading).
-Writes ``static.json`` and ``static.md``.
+Near the image border (issue 32's jagged blocks on a real quilt): the normal MAE and albedo error
+within 2 px of the image's edge and 16 px or more inside it (:func:`o3d_mvps.metrics.border_bands`),
+and how much of the object (its silhouette's 2 px left out), and of the object within 2 px of the edge,
+the output covers (holes in the output are issue 32's jagged blocks).
 
-    python -m benchmarks static            # 640x480 colour, 320x240 depth, 20 frames
-    python -m benchmarks static --size 1280x960
+``--mesh quilt``: the setting of issue 32's real capture, a quilted sheet
+(:func:`o3d_mvps.synthetic.quilt_mesh`, 0.8 x 0.44 m, cushions 2 mm high, tilted 10 degrees,
+a speckled albedo) at 0.55 m that fills the frame's width, its top and bottom edges inside the
+frame (flying pixels there), without masks (``--mask none``).
+
+Each run adds its case (mesh and size) to ``static.json`` and rewrites ``static.md`` with every case.
+
+    python -m benchmarks static            # bunny, 640x480 colour, 320x240 depth, 20 frames
+    python -m benchmarks static --mesh quilt --size 1280x960 --no-sh   # Peng et al.'s sizes
     python -m benchmarks static --quick    # 320x240, 12 frames
 """
 
@@ -32,13 +42,14 @@ from pathlib import Path
 
 import numba
 import numpy as np
+from scipy import ndimage
 
 from o3d_mvps import RefineOptions, refine
 from o3d_mvps.baselines import bicubic
 from o3d_mvps.fileio import json_text
-from o3d_mvps.metrics import (albedo_error, albedo_shading_error, evaluate, evaluation_mask,
-                              lowpass_difference_permille)
-from o3d_mvps.synthetic import render_static_capture
+from o3d_mvps.metrics import (SILHOUETTE_MARGIN_PX, albedo_error, albedo_shading_error, border_bands, evaluate,
+                              evaluation_mask, lowpass_difference_permille)
+from o3d_mvps.synthetic import QUILT_DISTANCE, QUILT_SIZE, quilt_mesh, render_static_capture
 
 FULL = {"size": (640, 480), "scale_factor": 2, "frames": 20}
 QUICK = {"size": (320, 240), "scale_factor": 2, "frames": 12}
@@ -46,10 +57,23 @@ DARK_PERCENT = 25  # the darkest quarter of the object's albedo: where grain sho
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("--mesh", default="bunny", choices=("bunny", "armadillo"))
+    parser.add_argument("--mesh", default="bunny", choices=("bunny", "armadillo", "quilt"))
     parser.add_argument("--size", default=None, help="colour WxH (default 640x480; --quick 320x240)")
     parser.add_argument("--sensor", default="d415", choices=("d415", "gaussian", "none"))
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--no-sh", action="store_true", help="leave out the row with per-frame SH declared")
+
+
+def render(mesh: str, **kwargs):
+    """The static capture of ``mesh`` ("quilt": :func:`quilt_mesh` at :data:`QUILT_DISTANCE`, speckled
+    albedo, no masks; else the named mesh at 0.6 m with masks), camera undeclared (the depth must tell).
+    ``kwargs``: frames, size, scale_factor, sensor, seed of :func:`render_static_capture`."""
+    if mesh == "quilt":
+        capture = render_static_capture(quilt_mesh(), object_size=QUILT_SIZE[0], distance=QUILT_DISTANCE,
+                                        albedo="speckled", masks=False, **kwargs)
+    else:
+        capture = render_static_capture(mesh, **kwargs)
+    return replace(capture, camera=None)
 
 
 def _scores(result, capture, cubic) -> dict:
@@ -62,9 +86,23 @@ def _scores(result, capture, cubic) -> dict:
     scores["mae_dark_deg"] = evaluate(result, gt, dark)["mae_deg"]
     mask = evaluation_mask(result, gt) & cubic.mask_array()
     scores["lowpass_p95_permille"] = lowpass_difference_permille(result.depth_array(), cubic.depth_array(), mask)
+    band, interior = border_bands(mask.shape)
+    scores["border_mae_deg"] = evaluate(result, gt, band)["mae_deg"] if (mask & band).any() else None
+    scores["interior_mae_deg"] = evaluate(result, gt, interior)["mae_deg"]
+    # the object's pixels there, its silhouette's 2 px left out (as evaluate does): holes cut into the output
+    seen = ndimage.binary_erosion(gt.depth > 0, np.ones((3, 3), bool), SILHOUETTE_MARGIN_PX, border_value=1)
+    scores["coverage"] = float((result.mask_array() & seen).sum() / max(seen.sum(), 1))
+    scores["border_coverage"] = (float((result.mask_array() & seen & band).sum() / (seen & band).sum())
+                                 if (seen & band).any() else None)  # None: the object does not reach the edge
     if result.albedo is not None:
         scores["albedo_error"] = albedo_error(result.albedo_array(), gt.albedo, mask)
         scores["albedo_shading_error"] = albedo_shading_error(result.albedo_array(), gt.albedo, mask)
+        if (mask & band).any():
+            scores["border_albedo_error"] = albedo_error(result.albedo_array(), gt.albedo, mask & band)
+        scores["interior_albedo_error"] = albedo_error(result.albedo_array(), gt.albedo, mask & interior)
+    if result.info.get("light_model", {}).get("positions_m") is not None and gt.light.get("positions") is not None:
+        found, truth = np.asarray(result.info["light_model"]["positions_m"]), np.asarray(gt.light["positions"])
+        scores["lamps_off_mm"] = float(1000 * np.linalg.norm(found - truth, axis=1).mean())
     return scores
 
 
@@ -97,26 +135,24 @@ def _refine(capture, options: RefineOptions) -> tuple:
 
 
 def measure(mesh: str = "bunny", size=(640, 480), scale_factor: int = 2, frames: int = 20, sensor: str = "d415",
-            seed: int = 0, options: RefineOptions | None = None, compare: bool = False) -> dict:
+            seed: int = 0, options: RefineOptions | None = None, compare: bool = False, sh: bool = True) -> dict:
     """Render, refine and score one static-camera capture; a JSON-ready dict. compare: also
     refine it with per-frame SH declared (row "ours, sh") and refine the same scene rendered
     without sensor noise (row "ours, clean render": the albedo error a noisy capture should not
-    exceed)."""
+    exceed). sh: False leaves the SH row out."""
     options = options or RefineOptions(progress=False)
-    capture = replace(render_static_capture(mesh, frames=frames, size=size, scale_factor=scale_factor, sensor=sensor,
-                                            seed=seed), camera=None)  # undeclared: the depth must tell
+    capture = render(mesh, frames=frames, size=size, scale_factor=scale_factor, sensor=sensor, seed=seed)
     ours, seconds, cpu_seconds, caught = _refine(capture, options)
     cubic = bicubic(capture)
     rows = {"ours": {**_scores(ours, capture, cubic), "seconds": seconds, "cpu_seconds": cpu_seconds,
                      "light_model": ours.info["light_selection"]["chosen"]}}
-    if compare:
+    if compare and sh:
         sh, sh_seconds, sh_cpu, _ = _refine(capture, replace(options, light_model="sh"))
         rows["ours, sh"] = {**_scores(sh, capture, cubic), "seconds": sh_seconds, "cpu_seconds": sh_cpu,
                             "light_model": "sh"}
     rows["bicubic"] = _scores(cubic, capture, cubic)
     if compare and sensor != "none":
-        clean = replace(render_static_capture(mesh, frames=frames, size=size, scale_factor=scale_factor,
-                                              sensor="none", seed=seed), camera=None)
+        clean = render(mesh, frames=frames, size=size, scale_factor=scale_factor, sensor="none", seed=seed)
         result, clean_seconds, clean_cpu, _ = _refine(clean, options)
         rows["ours, clean render"] = {**_scores(result, clean, bicubic(clean)), "seconds": clean_seconds,
                                       "cpu_seconds": clean_cpu,
@@ -138,9 +174,20 @@ def measure(mesh: str = "bunny", size=(640, 480), scale_factor: int = 2, frames:
     }
 
 
-def markdown(result: dict) -> str:
+def _case_key(result: dict) -> str:
+    """The key of a case in static.json: mesh and colour size, e.g. "quilt 1280x960"."""
+    return f"{result['mesh']} {result['size'][0]}x{result['size'][1]}"
+
+
+def _number(r: dict, key: str, scale: float = 1.0, digits: int = 2) -> str:
+    value = r.get(key)
+    return "" if value is None else f"{scale * value:.{digits}f}"
+
+
+def markdown_case(result: dict) -> str:
+    """The Markdown section of one case."""
     W, H = result["size"]
-    lines = [f"# Static camera, moving light: {result['mesh']}, {W}x{H} colour, SF {result['scale_factor']}, "
+    lines = [f"## {result['mesh']}, {W}x{H} colour, SF {result['scale_factor']}, "
              f"{result['frames']} frames, sensor {result['sensor']}", "",
              f"Camera: {result['camera']['detail']}; poses moved {result['max_pose_deviation']:.2g} from the "
              f"identity; refine {result['seconds']:.1f} s, {result.get('cpu_seconds', float('nan')):.1f} CPU s "
@@ -154,14 +201,28 @@ def markdown(result: dict) -> str:
              "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for name, r in result["methods"].items():
         label = f"{name} ({r['light_model']})" if name == "ours" else name
-        albedo = f"{100 * r['albedo_error']:.2f}" if "albedo_error" in r else ""
-        shading = f"{100 * r['albedo_shading_error']:.2f}" if "albedo_shading_error" in r else ""
-        seconds = f"{r['seconds']:.1f}" if "seconds" in r else ""
-        cpu = f"{r['cpu_seconds']:.1f}" if "cpu_seconds" in r else ""
         geometry = (f"{r['mae_deg']:.2f} | {r['mae_dark_deg']:.2f} | {r['rmse_mm']:.2f} | {r['lowpass_p95_permille']:.2f}"
                     if "mae_deg" in r else " | | | ")
-        lines.append(f"| {label} | {geometry} | {albedo} | {shading} | {seconds} | {cpu} |")
+        lines.append(f"| {label} | {geometry} | {_number(r, 'albedo_error', 100)} | "
+                     f"{_number(r, 'albedo_shading_error', 100)} | {_number(r, 'seconds', digits=1)} | "
+                     f"{_number(r, 'cpu_seconds', digits=1)} |")
+    lines += ["", "Image border (within 2 px of the image's edge) against the interior (16 px or more inside):", "",
+              "| method | normal MAE border / interior (deg) | albedo error border / interior (%) "
+              "| object covered: all / within 2 px of the edge | lamps off (mm) |", "|---|---:|---:|---:|---:|"]
+    for name, r in result["methods"].items():
+        if "interior_mae_deg" not in r:
+            continue
+        albedo = (f"{_number(r, 'border_albedo_error', 100)} / {_number(r, 'interior_albedo_error', 100)}"
+                  if "interior_albedo_error" in r else "")
+        lines.append(f"| {name} | {_number(r, 'border_mae_deg')} / {_number(r, 'interior_mae_deg')} | {albedo} | "
+                     f"{_number(r, 'coverage', 100, 1)} / {_number(r, 'border_coverage', 100, 1)} % | "
+                     f"{_number(r, 'lamps_off_mm', digits=0)} |")
     return "\n".join(lines) + "\n"
+
+
+def markdown(results: dict) -> str:
+    """static.md: every case of static.json ({key: case})."""
+    return "# Static camera, moving light\n\n" + "\n".join(markdown_case(r) for r in results.values())
 
 
 def run(args) -> None:
@@ -170,7 +231,15 @@ def run(args) -> None:
         case["size"] = tuple(int(v) for v in args.size.lower().split("x"))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    result = measure(args.mesh, sensor=args.sensor, seed=args.seed, compare=True, **case)
-    (out / "static.json").write_text(json_text(result, "static study"))
-    (out / "static.md").write_text(markdown(result))
-    print(markdown(result))
+    result = measure(args.mesh, sensor=args.sensor, seed=args.seed, compare=True, sh=not args.no_sh, **case)
+    path = out / "static.json"
+    results = {}
+    if path.exists():
+        import json
+
+        results = json.loads(path.read_text())
+        results = results.get("cases", {_case_key(results): results} if "mesh" in results else {})
+    results[_case_key(result)] = result
+    path.write_text(json_text({"cases": results}, "static study"))
+    (out / "static.md").write_text(markdown(results))
+    print(markdown_case(result))

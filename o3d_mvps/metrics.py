@@ -242,6 +242,22 @@ def albedo_error(albedo: np.ndarray, albedo_true: np.ndarray, mask: np.ndarray) 
     return float(np.median(np.abs(error[use])))
 
 
+#: the image-border band of :func:`border_bands` (pixels from the image's edge) and where its interior starts
+BORDER_BAND_PX, BORDER_INTERIOR_PX = 2, 16
+
+
+def border_bands(shape: tuple[int, int], band_px: int = BORDER_BAND_PX,
+                 interior_px: int = BORDER_INTERIOR_PX) -> tuple[np.ndarray, np.ndarray]:
+    """(band, interior), both (H, W) bool for an image of ``shape`` (H, W): the pixels less than
+    ``band_px`` from the image's edge and those ``interior_px`` or more from it (pixel rows and
+    columns counted: the chessboard distance). Issue 32's measure of bad borders compares a
+    metric (:func:`evaluate`, :func:`albedo_error`) over the band with the interior's."""
+    H, W = (int(v) for v in shape)
+    v, u = np.mgrid[:H, :W]
+    distance = np.minimum(np.minimum(u, W - 1 - u), np.minimum(v, H - 1 - v))
+    return distance < band_px, distance >= interior_px
+
+
 #: Gaussian (pixels) of :func:`albedo_shading_error`
 ALBEDO_SHADING_SIGMA_PX = 8.0
 

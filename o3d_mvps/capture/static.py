@@ -14,6 +14,7 @@ import warnings
 from dataclasses import asdict, dataclass
 
 import numpy as np
+from scipy import ndimage as ndi
 
 from ..model.resampling import resample_valid
 from .types import Capture
@@ -209,6 +210,17 @@ def frame_white_balance(colors, masks=None) -> np.ndarray:
 MIN_FRAMES_FOR_MEDIAN = 3
 
 
+def _frames_median(depths: np.ndarray) -> tuple:
+    """(valid (n, h, w) bool, counts (h, w) int, median (h, w) m, 0 where no frame measures) of
+    the frames' depths (n, h, w) metres, 0 = none."""
+    depths = np.asarray(depths, dtype=np.float64)
+    valid = depths > 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN pixels: no frame measures them
+        median = np.nan_to_num(np.nanmedian(np.where(valid, depths, np.nan), axis=0))
+    return valid, valid.sum(axis=0), median
+
+
 def reference_depth_outliers(depths: np.ndarray) -> np.ndarray:
     """(h, w) bool: the reference frame's depth pixels that disagree with the other frames of a
     static camera (flying pixels, mismatches).
@@ -222,11 +234,43 @@ def reference_depth_outliers(depths: np.ndarray) -> np.ndarray:
 
     depths (n, h, w) metres, 0 = none.
     """
-    depths = np.asarray(depths, dtype=np.float64)
-    valid = depths > 0
-    counts = valid.sum(axis=0)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN pixels: no frame measures them
-        median = np.nan_to_num(np.nanmedian(np.where(valid, depths, np.nan), axis=0))
+    valid, counts, median = _frames_median(depths)
     tolerance = np.maximum(STATIC_TOLERANCE_M, STATIC_TOLERANCE_REL * median)
-    return valid[0] & (counts >= MIN_FRAMES_FOR_MEDIAN) & (np.abs(depths[0] - median) > tolerance)
+    return valid[0] & (counts >= MIN_FRAMES_FOR_MEDIAN) & (np.abs(np.asarray(depths[0], np.float64) - median) > tolerance)
+
+
+#: a pixel the reference frame does not measure is filled where at least this fraction of the
+#: frames measures it alike: a sensor's speckle holes (D415-like: 3 % of the pixels, new in every frame)
+#: are measured by nearly every other frame; past a silhouette, where a frame's flying pixels fall
+#: about every other frame (D415-like: 50 %), the pixel stays empty
+FILL_MIN_FRACTION = 0.75
+#: the Gaussian (depth pixels) over which frame 0's offset from the frames' median is carried into a hole
+FILL_OFFSET_SIGMA_PX = 4.0
+
+
+def reference_depth_fill(depths: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The reference frame's depth holes a static camera's other frames measure: (fill (h, w)
+    bool, values (h, w) metres, their median depth there).
+
+    With ``--mask none`` (no object masks) the refined surface is where the reference has depth:
+    its speckle holes would be cut out of the output as jagged blocks, and along an image border
+    where the sensor loses depth the surface would end in steps. A pixel is filled where frame 0
+    has no depth and at least :data:`FILL_MIN_FRACTION` of the frames (and
+    :data:`MIN_FRAMES_FOR_MEDIAN`) measure it within ``max(STATIC_TOLERANCE_M, STATIC_TOLERANCE_REL
+    * z)`` of their median (near a silhouette the frames' flying pixels disagree: left empty).
+
+    depths (n, h, w) metres, 0 = none.
+    """
+    valid, counts, median = _frames_median(depths)
+    n = valid.shape[0]
+    tolerance = np.maximum(STATIC_TOLERANCE_M, STATIC_TOLERANCE_REL * median)
+    agree = (valid & (np.abs(np.asarray(depths, np.float64) - median) <= tolerance)).sum(axis=0)
+    missing = ~valid[0]
+    fill = missing & (agree >= max(MIN_FRAMES_FOR_MEDIAN, FILL_MIN_FRACTION * n))
+    # frame 0's own low-frequency error (D415-like: ~1 mm at 0.6 m, new each frame) carried into
+    # the hole: the median there plus frame 0's offset from the median around it
+    both = valid[0] & ~missing & (median > 0)
+    offset = np.where(both, np.asarray(depths[0], np.float64) - median, 0.0)
+    weight = ndi.gaussian_filter(both.astype(np.float64), FILL_OFFSET_SIGMA_PX, mode="constant")
+    offset = ndi.gaussian_filter(offset, FILL_OFFSET_SIGMA_PX, mode="constant") / np.maximum(weight, 1e-12)
+    return fill, np.where(fill, median + np.where(weight > 1e-3, offset, 0.0), 0.0)

@@ -67,6 +67,13 @@ POINT_MIN_PIXELS = 4000
 #: (a nearly flat surface: the lamp's distance against the depth's curvature and the albedo),
 #: down which the alternating sweeps creep a few per cent of the lamp's distance a sweep
 POINT_SWEEP_FACTOR = 3
+#: on the finer levels (the lamps placed, refitted in the first sweep only) this many sweeps at most
+#: (None: ``max_iterations``). The rendered D415-like quilt (20 frames) took up to 8 there to the
+#: energy's tolerance; 640x480: none 27.8, 4 19.7, 3 17.9 CPU s for normals 0.922-0.923 deg and
+#: albedo 1.60 %; 1280x960: sweeps 4/8/3 66.1 CPU s, 4/4/4 73.6, 3/3/3 56.4 (loaded machine),
+#: normals 1.037-1.038 deg, albedo 0.99 % in all. Fewer sweeps on the lamps' levels cost the
+#: albedo instead (10 -> 5 sweeps everywhere: 1.60 -> 2.17 % at 640x480)
+POINT_SETTLED_SWEEPS = 3
 #: pixels per frame read for the image noise of the LED's evidence weights, every sweep (the
 #: median of 20 x 90 000 x 3 residuals took 1.4 of a D415 refine's 17.6 s; 10 000 a frame give
 #: the noise to well under 1 %)
@@ -215,6 +222,8 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
     sweeps = options.max_iterations
     if problem.light.name == "point" and level.grid.size <= POINT_FIT_MAX_PIXELS:
         sweeps *= POINT_SWEEP_FACTOR  # the lamps creep down a valley with the depth
+    elif problem.light.name == "point" and POINT_SETTLED_SWEEPS is not None:
+        sweeps = min(sweeps, POINT_SETTLED_SWEEPS)  # the lamps placed: the depth's detail settles in a few
     bar = tqdm(range(1, sweeps + 1), desc=f"level {level.index} ({level.size[1]}x{level.size[0]})",
                disable=not options.progress, leave=False)
     for iteration in bar:

@@ -45,13 +45,13 @@ from .lights import (LED_AMBIENT, LED_FRONTAL_IRRADIANCE, LED_OFFSET, LIGHTS, SH
                      DirectionalLight, PointLight, RoomLight, make_light)
 from .render import FrameRender, SensorFrames, render_frame, render_sensor_frames
 from .ring import render_ring
-from .static import render_static_capture
+from .static import QUILT_DISTANCE, QUILT_SIZE, quilt_mesh, render_static_capture
 from .scene import ProceduralAlbedo, SyntheticScene, build_scene, placement_transform, random_stream
 from .sensor import (COLOR_NOISE_SIGMA, DEPTH_SCALE, SENSORS, SRGB8_TO_LINEAR, D415Sensor, GaussianSensor,
                      depth_noise_sigma, make_sensor, quantise_srgb8, simulate_depth_sensor)
 
 __all__ = [
-    "render_capture", "render_ring", "render_static_capture", "SENSORS", "make_sensor", "GaussianSensor",
+    "render_capture", "render_ring", "render_static_capture", "quilt_mesh", "QUILT_SIZE", "QUILT_DISTANCE", "SENSORS", "make_sensor", "GaussianSensor",
     "D415Sensor", "build_scene", "render_frame", "render_sensor_frames", "SensorFrames", "make_light",
     "PointLight", "DirectionalLight", "RoomLight", "FrameRender",
     "SyntheticScene", "ProceduralAlbedo", "placement_transform", "random_stream", "synthetic_intrinsics",

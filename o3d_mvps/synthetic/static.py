@@ -27,7 +27,7 @@ from .sensor import DEPTH_SCALE
 def render_static_capture(mesh="bunny", *, frames: int = 20, scale_factor: int = 2, size=(1280, 960),
                           light_radius=HANDHELD_RADIUS, seed: int = 0, sensor: str | None = None, noise: bool = True,
                           object_size: float = 0.2, distance: float = 0.6, shadows: bool = True,
-                          progress: bool = False) -> Capture:
+                          albedo: str = "patches", masks: bool = True, progress: bool = False) -> Capture:
     """Render a static-camera capture of ``mesh`` lit by a hand-held light, with ground truth.
 
     Parameters
@@ -54,6 +54,10 @@ def render_static_capture(mesh="bunny", *, frames: int = 20, scale_factor: int =
     shadows : bool
         Cast shadows (a shadow ray toward the light per pixel; False: every surface facing the
         light is lit, as the ``point`` light model assumes).
+    albedo : {"patches", "speckled"}
+        The surface texture (:data:`~o3d_mvps.synthetic.scene.ALBEDOS`).
+    masks : bool
+        False: no object masks (a user's capture without ``mask/``, refined as ``--mask none``).
     progress : bool
         Show a progress bar over frames.
 
@@ -63,16 +67,19 @@ def render_static_capture(mesh="bunny", *, frames: int = 20, scale_factor: int =
         ``camera == "static"``, ``light`` None; ground truth poses all the identity and
         ``light["positions"]`` the n light positions (reference frame, m).
     """
-    W, H = check_render_arguments(frames, scale_factor, size, None, "led", object_size, distance)
+    # the camera stands still in front of the object: a sheet wider than its distance (a quilt) is fine
+    W, H = check_render_arguments(frames, scale_factor, size, None, "led", object_size, 2 * object_size + 1)
+    if not (np.isfinite(distance) and distance > 0):
+        raise ValueError(f"distance must be a positive length in metres, got {distance!r}; e.g. 0.6")
     radius = tuple(float(r) for r in light_radius)
     if len(radius) != 2 or not 0 <= radius[0] <= radius[1] or not np.isfinite(radius).all():
         raise ValueError(f"light_radius must be (near, far) metres with 0 <= near <= far, got {light_radius!r}; "
                          "e.g. (0.3, 0.5)")
-    scene = build_scene(mesh, size=(W, H), object_size=object_size, distance=distance, seed=seed)
+    scene = build_scene(mesh, size=(W, H), object_size=object_size, distance=distance, seed=seed, albedo=albedo)
     poses = np.tile(np.eye(4), (int(frames), 1, 1))
     lights = handheld_lights(int(frames), distance, radius, shadows)
     rendered = render_sensor_frames(scene, poses, lights, scale_factor, seed=seed, noise=noise, sensor=sensor,
-                                    progress=progress)
+                                    masks=masks, progress=progress)
     gt = rendered.groundtruth(poses, handheld_parameters(lights), scene.mesh_to_reference)
     K = scene.K
     return Capture(
@@ -86,3 +93,31 @@ def render_static_capture(mesh="bunny", *, frames: int = 20, scale_factor: int =
             "light_radius": list(radius), "seed": int(seed), "object_size": float(object_size),
             "distance": float(distance), **rendered.sensor_metadata()}},
     )
+
+
+#: the quilt's size (m): wider than a 60-degree camera's view at 0.55 m (0.64 m), a little
+#: shorter than its height (0.48 m), so the sheet's top and bottom edges lie inside the frame
+QUILT_SIZE = (0.8, 0.44)
+#: the quilt's distance from the camera (m): the real quilt capture of issue 32
+QUILT_DISTANCE = 0.55
+
+
+def quilt_mesh(size=QUILT_SIZE, cushion_m: float = 0.04, height_m: float = 0.002, tilt_deg: float = 10.0,
+               step_m: float = 0.002) -> o3d.geometry.TriangleMesh:
+    """A quilted sheet (the predecessor's quilt captures): a grid mesh ``size`` (width, height) m
+    with sin^2 cushions ``cushion_m`` wide and ``height_m`` high toward +z, tilted by ``tilt_deg``
+    about the vertical axis, vertices every ``step_m``; y up, +z toward the camera, as
+    :func:`~o3d_mvps.synthetic.scene.placement_transform` expects. Give
+    :func:`render_static_capture` ``object_size=size[0]`` to keep it at these metres."""
+    w, h = (float(v) for v in size)
+    x, y = np.meshgrid(np.linspace(-w / 2, w / 2, int(round(w / step_m)) + 1),
+                       np.linspace(-h / 2, h / 2, int(round(h / step_m)) + 1))
+    k = np.pi / cushion_m
+    z = height_m * (np.sin(k * x) * np.sin(k * y)) ** 2 - np.tan(np.radians(tilt_deg)) * x
+    rows, cols = x.shape
+    index = np.arange(rows * cols).reshape(rows, cols)
+    a, b, c, d = index[:-1, :-1].ravel(), index[:-1, 1:].ravel(), index[1:, :-1].ravel(), index[1:, 1:].ravel()
+    triangles = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])  # counter-clockwise seen from +z
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.stack([x, y, z], -1).reshape(-1, 3)),
+                                     o3d.utility.Vector3iVector(triangles.astype(np.int32)))
+    return mesh
