@@ -2,7 +2,7 @@
 small ridge-regularised systems of the pose, LED-offset and lighting steps.
 
 The depth block M (7-point stencil plus 2 tau D^T D, sparse SPD) is preconditioned by one
-smoothed-aggregation V-cycle (pyamg); the joint step solves the Schur complement
+aggregation-AMG V-cycle (pyamg); the joint step solves the Schur complement
 ``M - U H^-1 U^T`` with the cycle of M.
 """
 
@@ -55,21 +55,27 @@ def levenberg_damped(matrix: sp.spmatrix, overwrite: bool = False) -> sp.csr_mat
 STRENGTH_THETA = 1e-12
 
 
+#: pyamg's options for :func:`amg_preconditioner` (all but ``strength``): plain aggregation, the
+#: tentative prolongation unsmoothed (``smooth=None``), pyamg's symmetric Gauss-Seidel sweeps. Its
+#: default Jacobi-smoothed prolongation estimates the spectral radius of D^-1 A on every level by
+#: restarted Arnoldi: at 2 megapixels (958k unknowns, a saved joint system) 3.8 of the set-up's
+#: 5.3 s. Gershgorin weights (``weighting="local"``) took 1.5 s for the same CG iterations (rtol
+#: 1e-2: 10, 1e-4: 75); plain aggregation 0.37 s for 11 and 88 in the same CG time (fewer levels'
+#: work per cycle). Two Gauss-Seidel sweeps took 7 and 61 in that time again, but amplified
+#: rounding tenfold (1e-13 m pose moves: energy 9e-10 apart, tests/test_determinism.py). Nothing
+#: in this set-up is random.
+AMG_OPTIONS = dict(symmetry="symmetric", max_coarse=300, coarse_solver="splu", smooth=None)
+
+
 def amg_preconditioner(matrix: sp.csr_matrix) -> spla.LinearOperator:
-    """One smoothed-aggregation AMG V-cycle (pyamg hierarchy) as an SPD preconditioner.
+    """One aggregation AMG V-cycle (pyamg hierarchy, :data:`AMG_OPTIONS`) as an SPD preconditioner.
 
     The cycle is run here rather than through ``MultilevelSolver.aspreconditioner``, whose
     ``solve`` also computes two residuals and three norms per application (two extra
     fine-level products per CG iteration, about a quarter of the depth step's time).
     Aggregation ignores couplings weaker than :data:`STRENGTH_THETA` (rounding residues).
     """
-    state = np.random.get_state()  # pyamg starts its spectral-radius estimates from numpy's global RNG:
-    np.random.seed(0)  # seeded here (and restored) so that the same inputs give the same result
-    try:
-        ml = pyamg.smoothed_aggregation_solver(matrix, symmetry="symmetric", max_coarse=300, coarse_solver="splu",
-                                               strength=strength_options(matrix))
-    finally:
-        np.random.set_state(state)
+    ml = pyamg.smoothed_aggregation_solver(matrix, strength=strength_options(matrix), **AMG_OPTIONS)
     # a module-level cycle, not a closure that calls itself: that closure is a reference cycle,
     # which kept every hierarchy (and its matrix: 95 MB at D415 size, 20 frames) alive after its
     # solve until the garbage collector's next full pass
