@@ -373,11 +373,11 @@ def test_schur_operator_with_the_multigrid_of_its_sparse_part(solver_systems):
 
 
 def test_the_amg_set_up_estimates_no_spectral_radius_and_preconditions_as_well(monkeypatch):
-    """:func:`.linear.amg_preconditioner` aggregates without smoothing the prolongation
-    (:data:`.linear.AMG_OPTIONS`): no spectral-radius estimate (pyamg's restarted Arnoldi in the
-    Jacobi prolongation smoother was 3.8 of the set-up's 5.3 s at 2 megapixels), nothing random
-    (the global RNG's state does not matter), and CG takes about as many iterations as with
-    pyamg's smoothed prolongation."""
+    """:func:`.linear.amg_preconditioner` weights its Jacobi prolongation smoother row by row
+    (:data:`.linear.AMG_OPTIONS`, pyamg's ``weighting="local"``): no spectral-radius estimate
+    (pyamg's restarted Arnoldi was 3.8 of the set-up's 5.3 s at 2 megapixels), nothing random
+    (the global RNG's state does not matter), and CG takes as many iterations as with the
+    estimate."""
     import pyamg
 
     from o3d_mvps.solver import linear
@@ -389,9 +389,9 @@ def test_the_amg_set_up_estimates_no_spectral_radius_and_preconditions_as_well(m
         return linear.pcg(M, b, np.zeros_like(b), 1e-8, 500, preconditioner)[1]
 
     np.random.seed(0)
-    smoothed = pyamg.smoothed_aggregation_solver(M, strength=linear.strength_options(M),
+    estimated = pyamg.smoothed_aggregation_solver(M, strength=linear.strength_options(M),
                                                  **{**linear.AMG_OPTIONS, "smooth": ("jacobi", {"omega": 4.0 / 3.0})})
-    with_estimate = iterations(spla.LinearOperator(M.shape, lambda x: linear._v_cycle(smoothed, 0, x), dtype=float))
+    with_estimate = iterations(spla.LinearOperator(M.shape, lambda x: linear._v_cycle(estimated, 0, x), dtype=float))
 
     def refuse(*args, **kwargs):
         raise AssertionError("spectral radius estimated")
@@ -402,4 +402,4 @@ def test_the_amg_set_up_estimates_no_spectral_radius_and_preconditions_as_well(m
     first = linear.amg_preconditioner(M)
     np.random.seed(2)
     assert np.array_equal(first @ b, linear.amg_preconditioner(M) @ b)
-    assert 5 <= iterations(first) <= 1.25 * with_estimate + 1  # measured: 8 and 8
+    assert 5 <= iterations(first) <= with_estimate + 1  # measured: 8 and 8

@@ -2,7 +2,7 @@
 small ridge-regularised systems of the pose, LED-offset and lighting steps.
 
 The depth block M (7-point stencil plus 2 tau D^T D, sparse SPD) is preconditioned by one
-aggregation-AMG V-cycle (pyamg); the joint step solves the Schur complement
+smoothed-aggregation V-cycle (pyamg); the joint step solves the Schur complement
 ``M - U H^-1 U^T`` with the cycle of M.
 """
 
@@ -55,20 +55,21 @@ def levenberg_damped(matrix: sp.spmatrix, overwrite: bool = False) -> sp.csr_mat
 STRENGTH_THETA = 1e-12
 
 
-#: pyamg's options for :func:`amg_preconditioner` (all but ``strength``): plain aggregation, the
-#: tentative prolongation unsmoothed (``smooth=None``), pyamg's symmetric Gauss-Seidel sweeps. Its
-#: default Jacobi-smoothed prolongation estimates the spectral radius of D^-1 A on every level by
-#: restarted Arnoldi: at 2 megapixels (958k unknowns, a saved joint system) 3.8 of the set-up's
-#: 5.3 s. Gershgorin weights (``weighting="local"``) took 1.5 s for the same CG iterations (rtol
-#: 1e-2: 10, 1e-4: 75); plain aggregation 0.37 s for 11 and 88 in the same CG time (fewer levels'
-#: work per cycle). Two Gauss-Seidel sweeps took 7 and 61 in that time again, but amplified
-#: rounding tenfold (1e-13 m pose moves: energy 9e-10 apart, tests/test_determinism.py). Nothing
-#: in this set-up is random.
-AMG_OPTIONS = dict(symmetry="symmetric", max_coarse=300, coarse_solver="splu", smooth=None)
+#: pyamg's options for :func:`amg_preconditioner` (all but ``strength``): its smoothed
+#: aggregation with the Jacobi prolongation smoother weighted row by row (``weighting="local"``,
+#: Gershgorin) instead of by an estimate of the spectral radius of D^-1 A, which pyamg computes
+#: on every level by restarted Arnoldi: at 2 megapixels (958k unknowns, a saved joint system) 3.8
+#: of the set-up's 5.3 s. Local weights: 1.5 s, the same CG iterations (rtol 1e-2: 10, 1e-4: 75),
+#: and on the D415 capture the same refine (40 sweeps, energy and accuracy to 1e-5). Plain
+#: aggregation (``smooth=None``) set up in 0.4 s for 10-11 and 87 iterations in the same CG time,
+#: but its joint steps ended the D415 refine 1 % less accurate (1.353 deg, 0.521 mm against 1.337,
+#: 0.516). Nothing in this set-up is random.
+AMG_OPTIONS = dict(symmetry="symmetric", max_coarse=300, coarse_solver="splu",
+                   smooth=("jacobi", {"omega": 4.0 / 3.0, "weighting": "local"}))
 
 
 def amg_preconditioner(matrix: sp.csr_matrix) -> spla.LinearOperator:
-    """One aggregation AMG V-cycle (pyamg hierarchy, :data:`AMG_OPTIONS`) as an SPD preconditioner.
+    """One smoothed-aggregation AMG V-cycle (pyamg hierarchy, :data:`AMG_OPTIONS`) as an SPD preconditioner.
 
     The cycle is run here rather than through ``MultilevelSolver.aspreconditioner``, whose
     ``solve`` also computes two residuals and three norms per application (two extra
