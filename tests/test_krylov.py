@@ -390,7 +390,7 @@ def test_the_amg_set_up_estimates_no_spectral_radius_and_preconditions_as_well(m
 
     np.random.seed(0)
     estimated = pyamg.smoothed_aggregation_solver(M, strength=linear.strength_options(M),
-                                                 **{**linear.AMG_OPTIONS, "smooth": ("jacobi", {"omega": 4.0 / 3.0})})
+                                                  **{**linear.AMG_OPTIONS, "smooth": ("jacobi", {"omega": 4.0 / 3.0})})
     with_estimate = iterations(spla.LinearOperator(M.shape, lambda x: linear._v_cycle(estimated, 0, x), dtype=float))
 
     def refuse(*args, **kwargs):
