@@ -60,7 +60,7 @@ def test_model_and_solver_import_without_open3d(tmp_path, without_open3d):
 
 def test_saved_problem_solves_to_refines_depth_without_open3d(capture_dir, tmp_path, without_open3d):
     """`refine --save-problem` then `python -m o3d_mvps.solver` (Open3D unimportable) gives the
-    refinement's depth, poses and lighting bit for bit (same code, same seeded AMG)."""
+    refinement's depth, poses and lighting bit for bit (same code, same deterministic AMG set-up)."""
     problem, out = tmp_path / "problem.npz", tmp_path / "refined"
     assert main(["--quiet", "refine", str(capture_dir), str(out), "--save-problem", str(problem),
                  *TINY_SOLVER]) == 0
