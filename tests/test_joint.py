@@ -350,6 +350,39 @@ def test_blocks_of_pixels_give_the_same_system(problem, project_albedo):
                                        atol=tolerance * np.abs(expected).max(), err_msg=part)
 
 
+@pytest.mark.parametrize("parallax, project_albedo", [(True, True), (True, False), (False, True)])
+def test_one_launch_per_block_gives_the_per_frame_system_bit_for_bit(problem, monkeypatch, parallax, project_albedo):
+    """The host's assembly with every frame of a block in one kernel launch
+    (kernels.accumulate_block) and with one launch per frame (kernels.accumulate_frame, taken
+    when the images differ in type) give the same system bit for bit, in one block and in blocks
+    of 700 pixels (the sums take the frames and pixels in the same order); one launch per block
+    is what runs."""
+    from o3d_mvps.solver import kernels, normal_equations
+
+    est = kicked_estimate(problem)
+    ev = problem.evaluate(est)
+    launches = {"block": 0, "frame": 0}
+    for name, key in (("accumulate_block", "block"), ("accumulate_frame", "frame")):
+        def counted(*args, _kernel=getattr(kernels, name), _key=key):
+            launches[_key] += 1
+            return _kernel(*args)
+        monkeypatch.setattr(kernels, name, counted)
+    for block_pixels in (None, 700):
+        launches.update(block=0, frame=0)
+        one = joint_system(problem, est, ev, parallax=parallax, project_albedo=project_albedo, block_pixels=block_pixels)
+        blocks = -(-problem.level.grid.size // (block_pixels or normal_equations.BLOCK_PIXELS))
+        assert launches == {"block": blocks, "frame": 0}
+        with monkeypatch.context() as patch:
+            patch.setattr(normal_equations, "_same_types", lambda images: False)
+            per_frame = joint_system(problem, est, ev, parallax=parallax, project_albedo=project_albedo,
+                                     block_pixels=block_pixels)
+        assert launches == {"block": blocks, "frame": blocks * problem.n_frames}
+        assert one.frames == per_frame.frames == [1, 2]
+        assert (one.matrix != per_frame.matrix).nnz == 0
+        for part in ("rhs_z", "coupling", "hessian", "rhs_xi"):
+            np.testing.assert_array_equal(getattr(one, part), getattr(per_frame, part), err_msg=part)
+
+
 # ---------------------------------------------------------------------------------------------
 # update_pose_depth
 

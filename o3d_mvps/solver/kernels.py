@@ -201,6 +201,44 @@ def accumulate_frame(r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, p
         store_partial_sums(G, b, gram, rhs, chunk)
 
 
+@numba.njit(parallel=True, cache=True)
+def accumulate_block(residual, shading, usable, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, poses, K, images,
+                     dshading, albedo, frame_slots, parallax, sums, e, rows, F, gram, rhs):  # pragma: no cover - compiled
+    """:func:`accumulate_frame` of every frame in one launch (the host's assembly block): per
+    pixel chunk, the frames in turn, so each pixel's sums take the frames in the same order and
+    each (frame, chunk)'s twist sums the pixels in the same order as one launch per frame: the
+    same values bit for bit, without a parallel launch per frame.
+
+    images: a tuple of the frames' (H, W, 3) images; dshading (n, N, 6) or (n, 0, 6) for none
+    (frames without a Jacobian ignore theirs). The other arguments as
+    :func:`accumulate_frames`'s."""
+    n, N = residual.shape[0], residual.shape[1]
+    for chunk in numba.prange(rhs.shape[1]):
+        J = np.zeros((3, 6))
+        G = np.zeros((6, 6))
+        b = np.zeros(6)
+        wqJ = np.zeros(6)
+        wcJ = np.zeros(6)
+        for i in range(n):
+            slot = frame_slots[i, 1]
+            jac = frame_slots[i, 0] != 0
+            ds = dshading[i]
+            if not jac:
+                ds = dshading[i, :0]
+            ex = extra_c
+            if i > 0:
+                ex = extra_c[:0]
+            G[:] = 0.0
+            b[:] = 0.0
+            r_i, sh_i, use_i = residual[i], shading[i], usable[i]
+            al_i, be_i, ga_i = alpha[i], beta[i], gamma[i]
+            pose, image = poses[i], images[i]
+            for p in range(chunk * CHUNK, min(N, (chunk + 1) * CHUNK)):
+                accumulate_pixel(p, r_i, sh_i, use_i, inv_lam, q, al_i, be_i, ga_i, ex, points_ref, pose, K, image,
+                                 ds, albedo, jac, parallax, sums, e, rows, F, slot, J, G, b, wqJ, wcJ)
+            store_partial_sums(G, b, gram[slot], rhs[slot], chunk)
+
+
 def accumulate_frames(residual, shading, usable, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, poses, K,
                       images, dshading, albedo, frame_slots, parallax, sums, e, rows, F, gram, rhs) -> None:
     """:func:`accumulate_frame` of every frame in turn (the GPU's one launch per assembly block;

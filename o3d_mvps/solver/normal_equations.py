@@ -230,8 +230,8 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
     poses = like(est.poses, points_ref)
     slot = {i: k for k, i in enumerate(candidates)}
     with_jacobian = [i > 0 and (parallax or i in slot) for i in range(problem.n_frames)]
-    frame_slots = (like(np.array([[jac, slot.get(i, -1)] for i, jac in enumerate(with_jacobian)], dtype=np.int64),
-                        points_ref) if problem.level.image_stack is not None else None)
+    frame_slots = like(np.array([[jac, slot.get(i, -1)] for i, jac in enumerate(with_jacobian)], dtype=np.int64),
+                       points_ref)
     for b, start in enumerate(starts):
         block = slice(start, min(N, start + block_pixels))
         twist_sums = (grams, rhs_xi, rhs_xi, downdate) if partials is None else _twist_sums(partials[b], m)
@@ -284,6 +284,29 @@ def _twist_sums(row: np.ndarray, m: int) -> tuple:
     return row[:a].reshape(m, 6, 6), row[a:b], row[b:c], row[c:].reshape(6 * m, 6 * m)
 
 
+def _same_types(images: list) -> bool:
+    """Whether the host images (H, W, 3) share shape class, dtype and memory layout, so that
+    :func:`.kernels.accumulate_block` takes them as one tuple."""
+    first = images[0]
+    return all(a.dtype == first.dtype and a.ndim == 3 and a.flags.c_contiguous
+               and a.flags.writeable == first.flags.writeable for a in images)
+
+
+def _accumulate_frames(kernels, problem, residual, shading, usable, q, alpha, beta, gamma, extra_c, points_ref, poses,
+                       dshading, albedo, with_jacobian, parallax, block_sums, e, rows, F, slot, gram, rhs) -> None:
+    """:func:`.kernels.accumulate_frame` a frame at a time (images of mixed types on the host):
+    the same values as :func:`.kernels.accumulate_block`."""
+    xp = array_module(points_ref)
+    none3, none6 = xp.empty((0, 3)), xp.empty((0, 6))
+    for i in range(problem.n_frames):
+        k = slot.get(i, -1)
+        kernels.accumulate_frame(residual[i], shading[i], usable[i], 1.0 / problem.lam, q, alpha[i], beta[i],
+                                 gamma[i], extra_c if i == 0 else none3, points_ref, poses[i], problem.device_K,
+                                 problem.level.images[i],
+                                 dshading[i] if dshading is not None and with_jacobian[i] else none6, albedo,
+                                 with_jacobian[i], parallax, block_sums, e, rows, F, k, gram[k], rhs[k])
+
+
 def _without_zeros(D: sp.csr_matrix) -> sp.csr_matrix:
     """A copy of the CSR matrix D without its explicitly stored zeros."""
     D = D.copy()
@@ -305,7 +328,7 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
     xp, kernels = array_module(points_ref), kernels_for(points_ref)
     B = points_ref.shape[0]
     m = len(candidates)
-    none3, none6, none_e = xp.empty((0, 3)), xp.empty((0, 6)), xp.empty((0, 1, 3))  # the kernel's optional arrays (empty)
+    none3, none_e = xp.empty((0, 3)), xp.empty((0, 1, 3))  # the kernel's optional arrays (empty)
     residual, usable, albedo, shading = ev.residual[:, block], ev.usable[:, block], est.albedo[block], ev.shading[:, block]
     normals = ev.normals[block]
     q = albedo / ev.dA[block, None]  # (B, 3)
@@ -334,13 +357,14 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
                                   points_ref, poses, problem.device_K, problem.level.image_stack,
                                   xp.empty((problem.n_frames, 0, 6)) if dshading is None else dshading, albedo,
                                   frame_slots, parallax, block_sums, e, rows, F, gram, rhs)
-    for i in range(problem.n_frames if problem.level.image_stack is None else 0):
-        k = slot.get(i, -1)
-        kernels.accumulate_frame(residual[i], shading[i], usable[i], 1.0 / problem.lam, q, alpha[i], beta[i],
-                                 gamma[i], extra_c if i == 0 else none3, points_ref, poses[i], problem.device_K,
-                                 problem.level.images[i],
-                                 dshading[i] if dshading is not None and with_jacobian[i] else none6, albedo,
-                                 with_jacobian[i], parallax, block_sums, e, rows, F, k, gram[k], rhs[k])
+    elif xp is np and _same_types(problem.level.images):  # on the host: every frame in one launch too
+        kernels.accumulate_block(residual, shading, usable, 1.0 / problem.lam, q, alpha, beta, gamma, extra_c,
+                                 points_ref, poses, problem.device_K, tuple(problem.level.images),
+                                 np.empty((problem.n_frames, 0, 6)) if dshading is None else dshading, albedo,
+                                 frame_slots, parallax, block_sums, e, rows, F, gram, rhs)
+    else:
+        _accumulate_frames(kernels, problem, residual, shading, usable, q, alpha, beta, gamma, extra_c, points_ref,
+                           poses, dshading, albedo, with_jacobian, parallax, block_sums, e, rows, F, slot, gram, rhs)
     if m and xp is np:
         grams += gram[:m].sum(axis=1)
         rhs_xi += rhs[:m].sum(axis=1).reshape(-1)
