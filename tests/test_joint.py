@@ -353,10 +353,11 @@ def test_blocks_of_pixels_give_the_same_system(problem, project_albedo):
 @pytest.mark.parametrize("parallax, project_albedo", [(True, True), (True, False), (False, True)])
 def test_one_launch_per_block_gives_the_per_frame_system_bit_for_bit(problem, monkeypatch, parallax, project_albedo):
     """The host's assembly with every frame of a block in one kernel launch
-    (kernels.accumulate_block) and with one launch per frame (kernels.accumulate_frame, taken
-    when the images differ in type) give the same system bit for bit, in one block and in blocks
-    of 700 pixels (the sums take the frames and pixels in the same order); one launch per block
-    is what runs."""
+    (kernels.accumulate_block, in parallel over the frames) and with one launch per frame
+    (kernels.accumulate_frame, taken when the images differ in type) give the same system bit for
+    bit, in one block and in blocks of 700 pixels (each frame's terms are added to the per-pixel
+    sums in frame order, its twist sums take the pixels in order); one launch per block is what
+    runs."""
     from o3d_mvps.solver import kernels, normal_equations
 
     est = kicked_estimate(problem)

@@ -361,7 +361,8 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
         kernels.accumulate_block(residual, shading, usable, 1.0 / problem.lam, q, alpha, beta, gamma, extra_c,
                                  points_ref, poses, problem.device_K, tuple(problem.level.images),
                                  np.empty((problem.n_frames, 0, 6)) if dshading is None else dshading, albedo,
-                                 frame_slots, parallax, block_sums, e, rows, F, gram, rhs)
+                                 frame_slots, parallax, block_sums, e, rows, F, gram, rhs,
+                                 np.empty((problem.n_frames, 9, B)), np.empty((problem.n_frames, *e.shape)))
     else:
         _accumulate_frames(kernels, problem, residual, shading, usable, q, alpha, beta, gamma, extra_c, points_ref,
                            poses, dshading, albedo, with_jacobian, parallax, block_sums, e, rows, F, slot, gram, rhs)
