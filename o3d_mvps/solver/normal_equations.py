@@ -172,7 +172,9 @@ def _dot3(a0, a1, a2, b0, b1, b2):
 #: frames a block's temporaries (these two, the light rows, the LED Jacobians) take about 8 kB
 #: per pixel: 260 MB at 32768 pixels, 65 MB at 8192 (the joint step's peak at D415 size fell
 #: from 277 to 105 MB over its entry), 32 MB at 4096 (the D415 process's peak, set in this step,
-#: 963-975 -> 938 MB), for the same assembly time.
+#: 963-975 -> 938 MB), for the same assembly time. The host's one launch per block
+#: (:func:`.kernels.accumulate_block`) adds each frame's per-pixel terms ((n, 18) floats per
+#: pixel: 12 MB at 4096 pixels and 20 frames).
 BLOCK_PIXELS = 4096
 
 #: :data:`BLOCK_PIXELS` on a GPU, where each block costs some 45 launches and a few copies
@@ -194,9 +196,11 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
     the host, :data:`DEVICE_BLOCK_PIXELS` on a GPU; the result does not depend on it but for the
     order of sums: every sum over frames is per pixel, every sum over pixels is added up across
     blocks).
-    Per block, one pass over the frames; per frame, one compiled kernel
-    (:func:`.kernels.accumulate_frame`) adds its depth rows to per-pixel sums and writes its
-    twist rows and w s J; the block's albedo projection and its share of the coupling follow.
+    Per block, one compiled launch over every frame (:func:`.kernels.accumulate_block` on the
+    host, in parallel over the frames; :func:`.kernels.accumulate_frames` on a GPU): each frame
+    adds its depth rows to per-pixel sums and writes its twist rows and w s J, as
+    :func:`.kernels.accumulate_frame` does a frame at a time; the block's albedo projection and
+    its share of the coupling follow.
     release: release ``ev`` (:meth:`.Evaluation.release`): its warped colours and light bases
     (which the pass does not read: 0.3-0.5 GB at 2 megapixels and 20 frames) before the coupling
     is allocated, the rest once the pass has read it, before the matrices are formed.
@@ -324,7 +328,7 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
     (:func:`_twist_sums`); the transposed coupling (6m, N) added in place. Du_rows, Dv_rows: the
     block's rows (B, N) of the difference operators; poses (n, 4, 4) where the points are;
     with_jacobian (n,) bools: the frames whose twist or parallax rows are formed; frame_slots
-    (n, 2) int64 on the GPU (with a frame stack): with_jacobian and the refined frame's slot (or -1)."""
+    (n, 2) int64 where the points are: with_jacobian and the refined frame's slot (or -1)."""
     xp, kernels = array_module(points_ref), kernels_for(points_ref)
     B = points_ref.shape[0]
     m = len(candidates)
