@@ -384,6 +384,49 @@ def test_one_launch_per_block_gives_the_per_frame_system_bit_for_bit(problem, mo
             np.testing.assert_array_equal(getattr(one, part), getattr(per_frame, part), err_msg=part)
 
 
+@pytest.mark.parametrize("led, project", [(True, True), (False, False)])
+def test_accumulate_block_equals_accumulate_frame_in_turn_over_several_chunks(led, project):
+    """kernels.accumulate_block (every frame in one launch, in parallel over the frames) equals
+    kernels.accumulate_frame called a frame at a time, bit for bit, on 2 pixel chunks and a bit
+    (kernels.CHUNK): frame 0 with its extra column and no Jacobian, frames in twist slots 1 and
+    0, one with the parallax only; with and without the LED's shading Jacobians and the albedo
+    projection's e."""
+    from o3d_mvps.solver import kernels
+
+    rng = np.random.default_rng(4)
+    N, m, n = 2 * kernels.CHUNK + 77, 2, 4
+    f = lambda *shape: rng.random(shape)  # noqa: E731
+    frame_slots = np.array([[0, -1], [1, 1], [1, 0], [1, -1]], dtype=np.int64)
+    poses = np.stack([np.eye(4)] + [orbit(d, s) for d, s in (([2, 5, 1], [0.01, 0, 0]), ([-3, 2, 0], [0, 0.01, 0]),
+                                                                ([1, -4, 2], [0, 0, 0.01]))])
+    points = np.column_stack([(f(N, 2) - 0.5) * 0.2, 0.6 + 0.05 * f(N)])
+    images = [f(SIZE[0], SIZE[1], 3).astype(np.float32) for _ in range(n)]
+    r, shading, usable, q = f(n, N, 3) - 0.5, f(n, N), rng.random((n, N)) > 0.2, f(N, 3)
+    alpha, beta, gamma, extra_c, albedo = f(n, N) - 0.5, f(n, N) - 0.5, f(n, N), f(N, 3) - 0.5, f(N, 3)
+    dshading = f(n, N, 6) - 0.5 if led else np.zeros((n, 0, 6))
+    chunks = kernels.chunk_count(N)
+    assert chunks == 3
+    start = [f(9, N), f(3, N, 3) if project else np.zeros((0, 1, 3)), f(3, m, 6, N),
+             f(m, 6, N, 3) if project else np.zeros((0, 6, 1, 3)), np.zeros((m + 1, chunks, 6, 6)),
+             np.zeros((m + 1, chunks, 6))]
+    block, loop = [a.copy() for a in start], [a.copy() for a in start]
+    kernels.accumulate_block(r, shading, usable, 1.0 / 0.04, q, alpha, beta, gamma, extra_c, points, poses, K,
+                             tuple(images), dshading, albedo, frame_slots, True, *block, np.empty((n, 9, N)),
+                             np.empty((n, *start[1].shape)))
+    sums, e, rows, F, gram, rhs = loop
+    for i, (with_jacobian, slot) in enumerate(frame_slots):
+        kernels.accumulate_frame(r[i], shading[i], usable[i], 1.0 / 0.04, q, alpha[i], beta[i], gamma[i],
+                                 extra_c if i == 0 else np.zeros((0, 3)), points, poses[i], K, images[i],
+                                 dshading[i] if with_jacobian else np.zeros((0, 6)), albedo, bool(with_jacobian),
+                                 True, sums, e, rows, F, int(slot), gram[slot], rhs[slot])
+    for name, got, expected in zip(("sums", "e", "rows", "F"), block, loop):
+        assert got.size == 0 or not np.array_equal(got, start[("sums", "e", "rows", "F").index(name)]), name
+        np.testing.assert_array_equal(got, expected, err_msg=name)
+    for name, k in (("gram", 4), ("rhs", 5)):  # the refined frames' slots (the last row: nobody's)
+        assert np.abs(block[k][:m]).sum(axis=-1).min() > 0.0, name  # every slot and chunk filled
+        np.testing.assert_array_equal(block[k][:m], loop[k][:m], err_msg=name)
+
+
 # ---------------------------------------------------------------------------------------------
 # update_pose_depth
 
