@@ -575,9 +575,10 @@ def frames_problem(level, n):
 
 def test_the_assembly_memory_grows_linearly_with_the_frames(level):
     """tracemalloc's peak of the joint assembly for 3, 5 and 7 frames grows by the same amount
-    per frame (within 15 %), and by at most 50 float64 numbers per pixel and frame (measured: 42,
-    where one block holds all the pixels: the float32 coupling's 3, the block's twist rows 18 and
-    w s J 18 (normal_equations.BLOCK_PIXELS bounds these at 2 megapixels), light rows and LED
+    per frame (within 15 %), and by at most 68 float64 numbers per pixel and frame (measured: 60,
+    where one block holds all the pixels: the float32 coupling's 3, the block's twist rows 18,
+    w s J 18 and the frame's per-pixel terms 18 of the one launch per block
+    (normal_equations.BLOCK_PIXELS bounds these at 2 megapixels), light rows and LED
     Jacobians)."""
     import tracemalloc
 
@@ -596,7 +597,7 @@ def test_the_assembly_memory_grows_linearly_with_the_frames(level):
     N = level.grid.size
     first, second = (peaks[1] - peaks[0]) / 2, (peaks[2] - peaks[1]) / 2
     assert first > 0 and abs(second - first) <= 0.15 * first, peaks
-    assert second / (8 * N) <= 50, second / (8 * N)
+    assert second / (8 * N) <= 68, second / (8 * N)
 
 
 # ---------------------------------------------------------------------------------------------
