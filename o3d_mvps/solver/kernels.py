@@ -203,57 +203,42 @@ def accumulate_frame(r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, p
 
 @numba.njit(parallel=True, cache=True)
 def accumulate_block(residual, shading, usable, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, poses, K, images,
-                     dshading, albedo, frame_slots, parallax, sums, e, rows, F, gram, rhs, frame_sums, frame_e):  # pragma: no cover
+                     dshading, albedo, frame_slots, parallax, sums, e, rows, F, gram, rhs, chunk_pixels):  # pragma: no cover
     """:func:`accumulate_frame` of every frame in one launch (the host's assembly block), in
-    parallel over the frames: the same values bit for bit as one launch per frame in turn.
+    parallel over chunks of ``chunk_pixels`` pixels, each taking the frames in turn: each
+    pixel's sums take the frames in the same order as one launch per frame, so sums, e, rows and
+    F are the same bit for bit; the twist sums are per (frame, chunk), so with
+    ``chunk_pixels`` = :data:`CHUNK` they are too (smaller chunks add the pixels' terms in another
+    order: the same to rounding).
 
-    Each frame adds its per-pixel sums and e into its own zeroed slices of ``frame_sums``
-    (n, 9, N) and ``frame_e`` (n, 3, N, 3) (so they hold its terms exactly), which are then
-    added into ``sums`` and ``e`` frame by frame in order, as the per-frame launches add them;
-    its twist rows, F and twist sums (per pixel chunk, pixels in order) are its own. images: a
-    tuple of the frames' (H, W, 3) images; dshading (n, N, 6) or (n, 0, 6) for none (frames
-    without a Jacobian ignore theirs); frames without a slot write no twist sums. The other
-    arguments as :func:`accumulate_frames`'s; ``e`` (0, 1, 3) and ``frame_e`` (n, 0, 1, 3): no
-    albedo projection."""
+    images: a tuple of the frames' (H, W, 3) images; dshading (n, N, 6) or (n, 0, 6) for none
+    (frames without a Jacobian do not read theirs); gram (m + 1, chunks, 6, 6) and rhs
+    (m + 1, chunks, 6) with chunks = ceil(N / chunk_pixels); frames without a slot write no
+    twist sums. The other arguments as :func:`accumulate_frames`'s."""
     n, N = residual.shape[0], residual.shape[1]
-    project = e.shape[0] > 0
-    for i in numba.prange(n):
+    for chunk in numba.prange(rhs.shape[1]):
         J = np.zeros((3, 6))
         G = np.zeros((6, 6))
         b = np.zeros(6)
         wqJ = np.zeros(6)
         wcJ = np.zeros(6)
-        slot = frame_slots[i, 1]
-        jac = frame_slots[i, 0] != 0
-        ds = dshading[i]
-        if not jac:
-            ds = dshading[i, :0]
-        ex = extra_c
-        if i > 0:
-            ex = extra_c[:0]
-        s_i, e_i = frame_sums[i], frame_e[i]
-        s_i[:] = 0.0
-        if project:
-            e_i[:] = 0.0
-        r_i, sh_i, use_i = residual[i], shading[i], usable[i]
-        al_i, be_i, ga_i = alpha[i], beta[i], gamma[i]
-        pose, image = poses[i], images[i]
-        for chunk in range(rhs.shape[1]):
+        first, last = chunk * chunk_pixels, min(N, (chunk + 1) * chunk_pixels)
+        for i in range(n):
+            slot = frame_slots[i, 1]
+            jac = frame_slots[i, 0] != 0
+            ex = extra_c
+            if i > 0:
+                ex = extra_c[:0]
             G[:] = 0.0
             b[:] = 0.0
-            for p in range(chunk * CHUNK, min(N, (chunk + 1) * CHUNK)):
+            r_i, sh_i, use_i = residual[i], shading[i], usable[i]
+            al_i, be_i, ga_i = alpha[i], beta[i], gamma[i]
+            pose, image, ds = poses[i], images[i], dshading[i]
+            for p in range(first, last):
                 accumulate_pixel(p, r_i, sh_i, use_i, inv_lam, q, al_i, be_i, ga_i, ex, points_ref, pose, K, image,
-                                 ds, albedo, jac, parallax, s_i, e_i, rows, F, slot, J, G, b, wqJ, wcJ)
+                                 ds, albedo, jac, parallax, sums, e, rows, F, slot, J, G, b, wqJ, wcJ)
             if slot >= 0:
                 store_partial_sums(G, b, gram[slot], rhs[slot], chunk)
-    for p in numba.prange(N):
-        for i in range(n):
-            for k in range(9):
-                sums[k, p] += frame_sums[i, k, p]
-            if project:
-                for k in range(3):
-                    for c in range(3):
-                        e[k, p, c] += frame_e[i, k, p, c]
 
 
 def accumulate_frames(residual, shading, usable, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, poses, K,

@@ -172,10 +172,14 @@ def _dot3(a0, a1, a2, b0, b1, b2):
 #: frames a block's temporaries (these two, the light rows, the LED Jacobians) take about 8 kB
 #: per pixel: 260 MB at 32768 pixels, 65 MB at 8192 (the joint step's peak at D415 size fell
 #: from 277 to 105 MB over its entry), 32 MB at 4096 (the D415 process's peak, set in this step,
-#: 963-975 -> 938 MB), for the same assembly time. The host's one launch per block
-#: (:func:`.kernels.accumulate_block`) adds each frame's per-pixel terms ((n, 18) floats per
-#: pixel: 12 MB at 4096 pixels and 20 frames).
+#: 963-975 -> 938 MB), for the same assembly time.
 BLOCK_PIXELS = 4096
+
+#: Pixels per parallel chunk of the host's one launch per block (:func:`.kernels.accumulate_block`):
+#: a block of :data:`BLOCK_PIXELS` in 4 chunks, so 2 threads share it (one chunk of 16384 pixels,
+#: :data:`.kernels.CHUNK`, left the second idle); the twist Grams are summed per chunk, so they
+#: equal those of one chunk to rounding.
+HOST_CHUNK_PIXELS = 1024
 
 #: :data:`BLOCK_PIXELS` on a GPU, where each block costs some 45 launches and a few copies
 #: whatever its size (``python -m benchmarks.gpu sites``): the D415's finest level (about 90 000
@@ -197,7 +201,7 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
     order of sums: every sum over frames is per pixel, every sum over pixels is added up across
     blocks).
     Per block, one compiled launch over every frame (:func:`.kernels.accumulate_block` on the
-    host, in parallel over the frames; :func:`.kernels.accumulate_frames` on a GPU): each frame
+    host, in parallel over pixel chunks; :func:`.kernels.accumulate_frames` on a GPU): each frame
     adds its depth rows to per-pixel sums and writes its twist rows and w s J, as
     :func:`.kernels.accumulate_frame` does a frame at a time; the block's albedo projection and
     its share of the coupling follow.
@@ -344,7 +348,8 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
     # (6m, 3B) are views
     rows = xp.empty((3, m, 6, B))
     F = xp.empty((m, 6, B, 3)) if projection is not None else xp.empty((0, 6, 1, 3))
-    chunks = kernels.chunk_count(B)
+    host_block = xp is np and problem.level.image_stack is None and _same_types(problem.level.images)
+    chunks = -(-B // HOST_CHUNK_PIXELS) if host_block else kernels.chunk_count(B)
     # per refined frame its partial sums of the twist Gram and right-hand side, and one more for
     # the other frames (whose kernel writes them too)
     gram, rhs = xp.empty((m + 1, chunks, 6, 6)), xp.empty((m + 1, chunks, 6))
@@ -361,12 +366,11 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
                                   points_ref, poses, problem.device_K, problem.level.image_stack,
                                   xp.empty((problem.n_frames, 0, 6)) if dshading is None else dshading, albedo,
                                   frame_slots, parallax, block_sums, e, rows, F, gram, rhs)
-    elif xp is np and _same_types(problem.level.images):  # on the host: every frame in one launch too
+    elif host_block:  # on the host: every frame in one launch too, in parallel over pixel chunks
         kernels.accumulate_block(residual, shading, usable, 1.0 / problem.lam, q, alpha, beta, gamma, extra_c,
                                  points_ref, poses, problem.device_K, tuple(problem.level.images),
                                  np.empty((problem.n_frames, 0, 6)) if dshading is None else dshading, albedo,
-                                 frame_slots, parallax, block_sums, e, rows, F, gram, rhs,
-                                 np.empty((problem.n_frames, 9, B)), np.empty((problem.n_frames, *e.shape)))
+                                 frame_slots, parallax, block_sums, e, rows, F, gram, rhs, HOST_CHUNK_PIXELS)
     else:
         _accumulate_frames(kernels, problem, residual, shading, usable, q, alpha, beta, gamma, extra_c, points_ref,
                            poses, dshading, albedo, with_jacobian, parallax, block_sums, e, rows, F, slot, gram, rhs)
