@@ -358,7 +358,8 @@ def test_one_launch_per_block_gives_the_per_frame_system(problem, monkeypatch, p
     block and in blocks of 700 pixels: bit for bit with chunks of kernels.CHUNK pixels; with the
     default 1024-pixel chunks (2 on this level) the depth block, its right-hand side and the
     coupling still bit for bit (per-pixel sums, frames in order), the twist Grams and right-hand
-    sides (summed per chunk) to 1e-13 (measured: 1e-16). One launch per block is what runs."""
+    sides (summed per chunk) to 1e-13 (measured: 1e-16). One launch per block is what runs on
+    more than one kernel thread."""
     from o3d_mvps.solver import kernels, normal_equations
 
     est = kicked_estimate(problem)
@@ -371,6 +372,7 @@ def test_one_launch_per_block_gives_the_per_frame_system(problem, monkeypatch, p
         monkeypatch.setattr(kernels, name, counted)
     N = problem.level.grid.size
     assert normal_equations.HOST_CHUNK_PIXELS < N <= kernels.CHUNK
+    monkeypatch.setattr(normal_equations, "current_kernel_threads", lambda: 2)  # one launch per frame on one
     for chunk_pixels in (kernels.CHUNK, normal_equations.HOST_CHUNK_PIXELS):
         for block_pixels in (None, 700):
             launches.update(block=0, frame=0)
@@ -394,6 +396,10 @@ def test_one_launch_per_block_gives_the_per_frame_system(problem, monkeypatch, p
                 else:
                     np.testing.assert_allclose(got, expected, rtol=0, atol=1e-13 * np.abs(expected).max(),
                                                err_msg=part)
+    monkeypatch.setattr(normal_equations, "current_kernel_threads", lambda: 1)
+    launches.update(block=0, frame=0)
+    joint_system(problem, est, ev, parallax=parallax, project_albedo=project_albedo)
+    assert launches == {"block": 0, "frame": problem.n_frames}  # on one thread: a launch per frame
 
 
 @pytest.mark.parametrize("led, project", [(True, True), (False, False)])
