@@ -406,9 +406,9 @@ def test_one_launch_per_block_gives_the_per_frame_system(problem, monkeypatch, p
 def test_accumulate_block_equals_accumulate_frame_in_turn_over_several_chunks(led, project):
     """kernels.accumulate_block (every frame in one launch, in parallel over pixel chunks) equals
     kernels.accumulate_frame called a frame at a time, bit for bit, on 2 pixel chunks and a bit
-    of kernels.CHUNK pixels, and to rounding in the twist sums on 1000-pixel chunks: frame 0 with its extra column and no Jacobian, frames in twist slots 1 and
-    0, one with the parallax only; with and without the LED's shading Jacobians and the albedo
-    projection's e."""
+    of kernels.CHUNK pixels, and to rounding in the twist sums on 1000-pixel chunks: frame 0
+    with its extra column and no Jacobian, frames in twist slots 1 and 0, one with the parallax
+    only; with and without the LED's shading Jacobians and the albedo projection's e."""
     from o3d_mvps.solver import kernels
 
     rng = np.random.default_rng(4)
