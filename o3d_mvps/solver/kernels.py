@@ -152,6 +152,12 @@ def accumulate_pixel(p, r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c
 
 
 @numba.njit(inline="always")
+def pixel_scratch():  # pragma: no cover - compiled
+    """A thread's scratch for :func:`accumulate_pixel`: J (3, 6), G (6, 6), b, wqJ, wcJ (6,), zeros."""
+    return np.zeros((3, 6)), np.zeros((6, 6)), np.zeros(6), np.zeros(6), np.zeros(6)
+
+
+@numba.njit(inline="always")
 def store_partial_sums(G, b, gram, rhs, k):  # pragma: no cover - compiled
     """Row k of the partial sums: gram[k] (6, 6) = G, rhs[k] (6,) = b."""
     for j in range(6):
@@ -190,11 +196,7 @@ def accumulate_frame(r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, p
     """
     n = r.shape[0]
     for chunk in numba.prange(rhs.shape[0]):
-        J = np.zeros((3, 6))
-        G = np.zeros((6, 6))
-        b = np.zeros(6)
-        wqJ = np.zeros(6)
-        wcJ = np.zeros(6)
+        J, G, b, wqJ, wcJ = pixel_scratch()
         for p in range(chunk * CHUNK, min(n, (chunk + 1) * CHUNK)):
             accumulate_pixel(p, r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, pose, K, image,
                              dshading, albedo, with_jacobian, parallax, sums, e, rows, F, slot, J, G, b, wqJ, wcJ)
@@ -217,11 +219,7 @@ def accumulate_block(residual, shading, usable, inv_lam, q, alpha, beta, gamma, 
     twist sums. The other arguments as :func:`accumulate_frames`'s."""
     n, N = residual.shape[0], residual.shape[1]
     for chunk in numba.prange(rhs.shape[1]):
-        J = np.zeros((3, 6))
-        G = np.zeros((6, 6))
-        b = np.zeros(6)
-        wqJ = np.zeros(6)
-        wcJ = np.zeros(6)
+        J, G, b, wqJ, wcJ = pixel_scratch()
         first, last = chunk * chunk_pixels, min(N, (chunk + 1) * chunk_pixels)
         for i in range(n):
             slot = frame_slots[i, 1]
