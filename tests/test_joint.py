@@ -350,6 +350,109 @@ def test_blocks_of_pixels_give_the_same_system(problem, project_albedo):
                                        atol=tolerance * np.abs(expected).max(), err_msg=part)
 
 
+@pytest.mark.parametrize("parallax, project_albedo", [(True, True), (True, False), (False, True)])
+def test_one_launch_per_block_gives_the_per_frame_system(problem, monkeypatch, parallax, project_albedo):
+    """The host's assembly with every frame of a block in one kernel launch
+    (kernels.accumulate_block, in parallel over pixel chunks) and with one launch per frame
+    (kernels.accumulate_frame, taken when the images differ in type) give the same system, in one
+    block and in blocks of 700 pixels: bit for bit with chunks of kernels.CHUNK pixels; with the
+    default 1024-pixel chunks (2 on this level) the depth block, its right-hand side and the
+    coupling still bit for bit (per-pixel sums, frames in order), the twist Grams and right-hand
+    sides (summed per chunk) to 1e-13 (measured: 1e-16). One launch per block is what runs on
+    more than one kernel thread."""
+    from o3d_mvps.solver import kernels, normal_equations
+
+    est = kicked_estimate(problem)
+    ev = problem.evaluate(est)
+    launches = {"block": 0, "frame": 0}
+    for name, key in (("accumulate_block", "block"), ("accumulate_frame", "frame")):
+        def counted(*args, _kernel=getattr(kernels, name), _key=key):
+            launches[_key] += 1
+            return _kernel(*args)
+        monkeypatch.setattr(kernels, name, counted)
+    N = problem.level.grid.size
+    assert normal_equations.HOST_CHUNK_PIXELS < N <= kernels.CHUNK
+    monkeypatch.setattr(normal_equations, "current_kernel_threads", lambda: 2)  # one launch per frame on one
+    for chunk_pixels in (kernels.CHUNK, normal_equations.HOST_CHUNK_PIXELS):
+        for block_pixels in (None, 700):
+            launches.update(block=0, frame=0)
+            with monkeypatch.context() as patch:
+                patch.setattr(normal_equations, "HOST_CHUNK_PIXELS", chunk_pixels)
+                one = joint_system(problem, est, ev, parallax=parallax, project_albedo=project_albedo,
+                                   block_pixels=block_pixels)
+            blocks = -(-N // (block_pixels or normal_equations.BLOCK_PIXELS))
+            assert launches == {"block": blocks, "frame": 0}
+            with monkeypatch.context() as patch:
+                patch.setattr(normal_equations, "_same_types", lambda images: False)
+                per_frame = joint_system(problem, est, ev, parallax=parallax, project_albedo=project_albedo,
+                                         block_pixels=block_pixels)
+            assert launches == {"block": blocks, "frame": blocks * problem.n_frames}
+            assert one.frames == per_frame.frames == [1, 2]
+            assert (one.matrix != per_frame.matrix).nnz == 0
+            for part in ("rhs_z", "coupling", "hessian", "rhs_xi"):
+                got, expected = getattr(one, part), getattr(per_frame, part)
+                if chunk_pixels == kernels.CHUNK or part in ("rhs_z", "coupling"):
+                    np.testing.assert_array_equal(got, expected, err_msg=part)
+                else:
+                    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-13 * np.abs(expected).max(),
+                                               err_msg=part)
+    monkeypatch.setattr(normal_equations, "current_kernel_threads", lambda: 1)
+    launches.update(block=0, frame=0)
+    joint_system(problem, est, ev, parallax=parallax, project_albedo=project_albedo)
+    assert launches == {"block": 0, "frame": problem.n_frames}  # on one thread: a launch per frame
+
+
+@pytest.mark.parametrize("led, project", [(True, True), (False, False)])
+def test_accumulate_block_equals_accumulate_frame_in_turn_over_several_chunks(led, project):
+    """kernels.accumulate_block (every frame in one launch, in parallel over pixel chunks) equals
+    kernels.accumulate_frame called a frame at a time, bit for bit, on 2 pixel chunks and a bit
+    of kernels.CHUNK pixels, and to rounding in the twist sums on 1000-pixel chunks: frame 0
+    with its extra column and no Jacobian, frames in twist slots 1 and 0, one with the parallax
+    only; with and without the LED's shading Jacobians and the albedo projection's e."""
+    from o3d_mvps.solver import kernels
+
+    rng = np.random.default_rng(4)
+    N, m, n = 2 * kernels.CHUNK + 77, 2, 4
+    f = lambda *shape: rng.random(shape)  # noqa: E731
+    frame_slots = np.array([[0, -1], [1, 1], [1, 0], [1, -1]], dtype=np.int64)
+    poses = np.stack([np.eye(4)] + [orbit(d, s) for d, s in (([2, 5, 1], [0.01, 0, 0]), ([-3, 2, 0], [0, 0.01, 0]),
+                                                                ([1, -4, 2], [0, 0, 0.01]))])
+    points = np.column_stack([(f(N, 2) - 0.5) * 0.2, 0.6 + 0.05 * f(N)])
+    images = [f(SIZE[0], SIZE[1], 3).astype(np.float32) for _ in range(n)]
+    r, shading, usable, q = f(n, N, 3) - 0.5, f(n, N), rng.random((n, N)) > 0.2, f(N, 3)
+    alpha, beta, gamma, extra_c, albedo = f(n, N) - 0.5, f(n, N) - 0.5, f(n, N), f(N, 3) - 0.5, f(N, 3)
+    dshading = f(n, N, 6) - 0.5 if led else np.zeros((n, 0, 6))
+    chunks = kernels.chunk_count(N)
+    assert chunks == 3
+    start = [f(9, N), f(3, N, 3) if project else np.zeros((0, 1, 3)), f(3, m, 6, N),
+             f(m, 6, N, 3) if project else np.zeros((0, 6, 1, 3)), np.zeros((m + 1, chunks, 6, 6)),
+             np.zeros((m + 1, chunks, 6))]
+    block, loop = [a.copy() for a in start], [a.copy() for a in start]
+    kernels.accumulate_block(r, shading, usable, 1.0 / 0.04, q, alpha, beta, gamma, extra_c, points, poses, K,
+                             tuple(images), dshading, albedo, frame_slots, True, *block, kernels.CHUNK)
+    sums, e, rows, F, gram, rhs = loop
+    for i, (with_jacobian, slot) in enumerate(frame_slots):
+        kernels.accumulate_frame(r[i], shading[i], usable[i], 1.0 / 0.04, q, alpha[i], beta[i], gamma[i],
+                                 extra_c if i == 0 else np.zeros((0, 3)), points, poses[i], K, images[i],
+                                 dshading[i] if with_jacobian else np.zeros((0, 6)), albedo, bool(with_jacobian),
+                                 True, sums, e, rows, F, int(slot), gram[slot], rhs[slot])
+    for name, got, expected in zip(("sums", "e", "rows", "F"), block, loop):
+        assert got.size == 0 or not np.array_equal(got, start[("sums", "e", "rows", "F").index(name)]), name
+        np.testing.assert_array_equal(got, expected, err_msg=name)
+    for name, k in (("gram", 4), ("rhs", 5)):  # the refined frames' slots (the last row: nobody's)
+        assert np.abs(block[k][:m]).sum(axis=-1).min() > 0.0, name  # every slot and chunk filled
+        np.testing.assert_array_equal(block[k][:m], loop[k][:m], err_msg=name)
+    # in chunks of 1000 pixels (34): the per-pixel outputs bit for bit, the twist sums to rounding
+    small = [a.copy() for a in start[:4]] + [np.zeros((m + 1, 34, 6, 6)), np.zeros((m + 1, 34, 6))]
+    kernels.accumulate_block(r, shading, usable, 1.0 / 0.04, q, alpha, beta, gamma, extra_c, points, poses, K,
+                             tuple(images), dshading, albedo, frame_slots, True, *small, 1000)
+    for got, expected in zip(small[:4], loop[:4]):
+        np.testing.assert_array_equal(got, expected)
+    for k in (4, 5):
+        expected = loop[k][:m].sum(axis=1)
+        np.testing.assert_allclose(small[k][:m].sum(axis=1), expected, rtol=0, atol=1e-12 * np.abs(expected).max())
+
+
 # ---------------------------------------------------------------------------------------------
 # update_pose_depth
 

@@ -153,6 +153,12 @@ def accumulate_pixel(p, r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c
 
 
 @numba.njit(inline="always")
+def pixel_scratch():  # pragma: no cover - compiled
+    """A thread's scratch for :func:`accumulate_pixel`: J (3, 6), G (6, 6), b, wqJ, wcJ (6,), zeros."""
+    return np.zeros((3, 6)), np.zeros((6, 6)), np.zeros(6), np.zeros(6), np.zeros(6)
+
+
+@numba.njit(inline="always")
 def store_partial_sums(G, b, gram, rhs, k):  # pragma: no cover - compiled
     """Row k of the partial sums: gram[k] (6, 6) = G, rhs[k] (6,) = b."""
     for j in range(6):
@@ -191,15 +197,47 @@ def accumulate_frame(r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, p
     """
     n = r.shape[0]
     for chunk in numba.prange(rhs.shape[0]):
-        J = np.zeros((3, 6))
-        G = np.zeros((6, 6))
-        b = np.zeros(6)
-        wqJ = np.zeros(6)
-        wcJ = np.zeros(6)
+        J, G, b, wqJ, wcJ = pixel_scratch()
         for p in range(chunk * CHUNK, min(n, (chunk + 1) * CHUNK)):
             accumulate_pixel(p, r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, pose, K, image,
                              dshading, albedo, with_jacobian, parallax, sums, e, rows, F, slot, J, G, b, wqJ, wcJ)
         store_partial_sums(G, b, gram, rhs, chunk)
+
+
+@numba.njit(parallel=True, cache=True)
+def accumulate_block(residual, shading, usable, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, poses, K, images,
+                     dshading, albedo, frame_slots, parallax, sums, e, rows, F, gram, rhs, chunk_pixels):  # pragma: no cover
+    """:func:`accumulate_frame` of every frame in one launch (the host's assembly block), in
+    parallel over chunks of ``chunk_pixels`` pixels, each taking the frames in turn: each
+    pixel's sums take the frames in the same order as one launch per frame, so sums, e, rows and
+    F are the same bit for bit; the twist sums are per (frame, chunk), so with
+    ``chunk_pixels`` = :data:`CHUNK` they are too (smaller chunks add the pixels' terms in another
+    order: the same to rounding).
+
+    images: a tuple of the frames' (H, W, 3) images; dshading (n, N, 6) or (n, 0, 6) for none
+    (frames without a Jacobian do not read theirs); gram (m + 1, chunks, 6, 6) and rhs
+    (m + 1, chunks, 6) with chunks = ceil(N / chunk_pixels); frames without a slot write no
+    twist sums. The other arguments as :func:`accumulate_frames`'s."""
+    n, N = residual.shape[0], residual.shape[1]
+    for chunk in numba.prange(rhs.shape[1]):
+        J, G, b, wqJ, wcJ = pixel_scratch()
+        first, last = chunk * chunk_pixels, min(N, (chunk + 1) * chunk_pixels)
+        for i in range(n):
+            slot = frame_slots[i, 1]
+            jac = frame_slots[i, 0] != 0
+            ex = extra_c
+            if i > 0:
+                ex = extra_c[:0]
+            G[:] = 0.0
+            b[:] = 0.0
+            r_i, sh_i, use_i = residual[i], shading[i], usable[i]
+            al_i, be_i, ga_i = alpha[i], beta[i], gamma[i]
+            pose, image, ds = poses[i], images[i], dshading[i]
+            for p in range(first, last):
+                accumulate_pixel(p, r_i, sh_i, use_i, inv_lam, q, al_i, be_i, ga_i, ex, points_ref, pose, K, image,
+                                 ds, albedo, jac, parallax, sums, e, rows, F, slot, J, G, b, wqJ, wcJ)
+            if slot >= 0:
+                store_partial_sums(G, b, gram[slot], rhs[slot], chunk)
 
 
 def accumulate_frames(residual, shading, usable, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, poses, K,

@@ -31,6 +31,7 @@ import scipy.linalg
 import scipy.sparse as sp
 
 from ..model.arrays import array_module, fused, like, linear_operator, sparse_module
+from ..model.parallel import current_kernel_threads
 from . import kernels as host_kernels
 from .device import kernels_for, on_gpu, to_host
 from .krylov import multiply_add
@@ -224,6 +225,13 @@ def _dot3(a0, a1, a2, b0, b1, b2):
 #: 963-975 -> 938 MB), for the same assembly time.
 BLOCK_PIXELS = 4096
 
+#: Pixels per parallel chunk of the host's one launch per block (:func:`.kernels.accumulate_block`,
+#: used on more than one kernel thread): a block of :data:`BLOCK_PIXELS` in 4 chunks, so 2 threads
+#: share it (one chunk of 16384 pixels, :data:`.kernels.CHUNK`, left the second idle: a D415
+#: block 18.5 -> 9.5 ms wall); the twist Grams are summed per chunk, so they equal those of one
+#: chunk (one thread) to rounding.
+HOST_CHUNK_PIXELS = 1024
+
 #: :data:`BLOCK_PIXELS` on a GPU, where each block costs some 45 launches and a few copies
 #: whatever its size (``python -m benchmarks.gpu sites``): the D415's finest level (about 90 000
 #: object pixels) in one block, its temporaries some 0.8 GB of GPU memory at 19 refined frames.
@@ -243,9 +251,11 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
     the host, :data:`DEVICE_BLOCK_PIXELS` on a GPU; the result does not depend on it but for the
     order of sums: every sum over frames is per pixel, every sum over pixels is added up across
     blocks).
-    Per block, one pass over the frames; per frame, one compiled kernel
-    (:func:`.kernels.accumulate_frame`) adds its depth rows to per-pixel sums and writes its
-    twist rows and w s J; the block's albedo projection and its share of the coupling follow.
+    Per block, one compiled launch over every frame (:func:`.kernels.accumulate_block` on the
+    host, in parallel over pixel chunks; :func:`.kernels.accumulate_frames` on a GPU): each frame
+    adds its depth rows to per-pixel sums and writes its twist rows and w s J, as
+    :func:`.kernels.accumulate_frame` does a frame at a time; the block's albedo projection and
+    its share of the coupling follow.
     release: release ``ev`` (:meth:`.Evaluation.release`): its warped colours and light bases
     (which the pass does not read: 0.3-0.5 GB at 2 megapixels and 20 frames) before the coupling
     is allocated, the rest once the pass has read it, before the matrices are formed.
@@ -279,8 +289,8 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
     poses = like(est.poses, points_ref)
     slot = {i: k for k, i in enumerate(candidates)}
     with_jacobian = [i > 0 and (parallax or i in slot) for i in range(problem.n_frames)]
-    frame_slots = (like(np.array([[jac, slot.get(i, -1)] for i, jac in enumerate(with_jacobian)], dtype=np.int64),
-                        points_ref) if problem.level.image_stack is not None else None)
+    frame_slots = like(np.array([[jac, slot.get(i, -1)] for i, jac in enumerate(with_jacobian)], dtype=np.int64),
+                       points_ref)
     for b, start in enumerate(starts):
         block = slice(start, min(N, start + block_pixels))
         twist_sums = (grams, rhs_xi, rhs_xi, downdate) if partials is None else _twist_sums(partials[b], m)
@@ -341,6 +351,29 @@ def _twist_sums(row: np.ndarray, m: int) -> tuple:
     return row[:a].reshape(m, 6, 6), row[a:b], row[b:c], row[c:].reshape(6 * m, 6 * m)
 
 
+def _same_types(images: list) -> bool:
+    """Whether the host images (H, W, 3) share shape class, dtype and memory layout, so that
+    :func:`.kernels.accumulate_block` takes them as one tuple."""
+    first = images[0]
+    return all(a.dtype == first.dtype and a.ndim == 3 and a.flags.c_contiguous
+               and a.flags.writeable == first.flags.writeable for a in images)
+
+
+def _accumulate_frames(kernels, problem, residual, shading, usable, q, alpha, beta, gamma, extra_c, points_ref, poses,
+                       dshading, albedo, with_jacobian, parallax, block_sums, e, rows, F, slot, gram, rhs) -> None:
+    """:func:`.kernels.accumulate_frame` a frame at a time (images of mixed types on the host):
+    the same values as :func:`.kernels.accumulate_block`."""
+    xp = array_module(points_ref)
+    none3, none6 = xp.empty((0, 3)), xp.empty((0, 6))
+    for i in range(problem.n_frames):
+        k = slot.get(i, -1)
+        kernels.accumulate_frame(residual[i], shading[i], usable[i], 1.0 / problem.lam, q, alpha[i], beta[i],
+                                 gamma[i], extra_c if i == 0 else none3, points_ref, poses[i], problem.device_K,
+                                 problem.level.images[i],
+                                 dshading[i] if dshading is not None and with_jacobian[i] else none6, albedo,
+                                 with_jacobian[i], parallax, block_sums, e, rows, F, k, gram[k], rhs[k])
+
+
 def _without_zeros(D: sp.csr_matrix) -> sp.csr_matrix:
     """A copy of the CSR matrix D without its explicitly stored zeros."""
     D = D.copy()
@@ -358,11 +391,11 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
     (:func:`_twist_sums`); the transposed coupling (6m, N) added in place. Du_rows, Dv_rows: the
     block's rows (B, N) of the difference operators; poses (n, 4, 4) where the points are;
     with_jacobian (n,) bools: the frames whose twist or parallax rows are formed; frame_slots
-    (n, 2) int64 on the GPU (with a frame stack): with_jacobian and the refined frame's slot (or -1)."""
+    (n, 2) int64 where the points are: with_jacobian and the refined frame's slot (or -1)."""
     xp, kernels = array_module(points_ref), kernels_for(points_ref)
     B = points_ref.shape[0]
     m = len(candidates)
-    none3, none6, none_e = xp.empty((0, 3)), xp.empty((0, 6)), xp.empty((0, 1, 3))  # the kernel's optional arrays (empty)
+    none3, none_e = xp.empty((0, 3)), xp.empty((0, 1, 3))  # the kernel's optional arrays (empty)
     residual, usable, albedo, shading = ev.residual[:, block], ev.usable[:, block], est.albedo[block], ev.shading[:, block]
     normals = ev.normals[block]
     q = albedo / ev.dA[block, None]  # (B, 3)
@@ -374,7 +407,10 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
     # (6m, 3B) are views
     rows = xp.empty((3, m, 6, B))
     F = xp.empty((m, 6, B, 3)) if projection is not None else xp.empty((0, 6, 1, 3))
-    chunks = kernels.chunk_count(B)
+    # on one thread a launch per frame is faster (measured: 17.2 against 20.6 ms a D415 block)
+    host_block = (xp is np and problem.level.image_stack is None and current_kernel_threads() > 1
+                  and _same_types(problem.level.images))
+    chunks = -(-B // HOST_CHUNK_PIXELS) if host_block else kernels.chunk_count(B)
     # per refined frame its partial sums of the twist Gram and right-hand side, and one more for
     # the other frames (whose kernel writes them too)
     gram, rhs = xp.empty((m + 1, chunks, 6, 6)), xp.empty((m + 1, chunks, 6))
@@ -391,13 +427,14 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
                                   points_ref, poses, problem.device_K, problem.level.image_stack,
                                   xp.empty((problem.n_frames, 0, 6)) if dshading is None else dshading, albedo,
                                   frame_slots, parallax, block_sums, e, rows, F, gram, rhs)
-    for i in range(problem.n_frames if problem.level.image_stack is None else 0):
-        k = slot.get(i, -1)
-        kernels.accumulate_frame(residual[i], shading[i], usable[i], 1.0 / problem.lam, q, alpha[i], beta[i],
-                                 gamma[i], extra_c if i == 0 else none3, points_ref, poses[i], problem.device_K,
-                                 problem.level.images[i],
-                                 dshading[i] if dshading is not None and with_jacobian[i] else none6, albedo,
-                                 with_jacobian[i], parallax, block_sums, e, rows, F, k, gram[k], rhs[k])
+    elif host_block:  # on the host: every frame in one launch too, in parallel over pixel chunks
+        kernels.accumulate_block(residual, shading, usable, 1.0 / problem.lam, q, alpha, beta, gamma, extra_c,
+                                 points_ref, poses, problem.device_K, tuple(problem.level.images),
+                                 np.empty((problem.n_frames, 0, 6)) if dshading is None else dshading, albedo,
+                                 frame_slots, parallax, block_sums, e, rows, F, gram, rhs, HOST_CHUNK_PIXELS)
+    else:
+        _accumulate_frames(kernels, problem, residual, shading, usable, q, alpha, beta, gamma, extra_c, points_ref,
+                           poses, dshading, albedo, with_jacobian, parallax, block_sums, e, rows, F, slot, gram, rhs)
     if m and xp is np:
         grams += gram[:m].sum(axis=1)
         rhs_xi += rhs[:m].sum(axis=1).reshape(-1)
