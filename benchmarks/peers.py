@@ -113,12 +113,12 @@ def light_rows(case: dict, light: str) -> tuple[list[dict], dict]:
     timed("bicubic", lambda: bicubic(capture))
     timed("tsdf 4 mm", lambda: tsdf_fusion(capture, 0.004, poses=gt.poses))
     timed("tsdf 2 mm", lambda: tsdf_fusion(capture, 0.002, poses=gt.poses))
-    timed("ours, registered poses", lambda: refine(capture, RefineOptions(progress=False)))
+    timed("ours, registered poses", lambda: refine(capture, RefineOptions(progress=False, drop_depth_outliers=True)))
     registered = results["ours, registered poses"]
     used = [row["index"] for row in registered.info["frames_report"] if row["used"]]  # frames it kept
     timed("tsdf 4 mm, ours' refined poses", lambda: tsdf_fusion(capture.select(used), 0.004,
                                                                  poses=registered.poses.numpy()))
-    timed("ours, given poses", lambda: refine(capture, RefineOptions(progress=False), initial_poses=gt.poses))
+    timed("ours, given poses", lambda: refine(capture, RefineOptions(progress=False, drop_depth_outliers=True), initial_poses=gt.poses))
     truth = np.asarray(gt.depth, np.float64)
     pixels = truth > 0
     for r in results.values():

@@ -71,7 +71,7 @@ def room_case():
     gt = capture.groundtruth
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        ours = refine(capture, RefineOptions(progress=False), initial_poses=gt.poses)
+        ours = refine(capture, RefineOptions(progress=False, drop_depth_outliers=True), initial_poses=gt.poses)
     methods = {"bicubic": bicubic(capture), "tsdf": tsdf_fusion(capture, 0.004, poses=gt.poses), "ours": ours}
     truth = np.asarray(gt.depth, np.float64)
     pixels = truth > 0

@@ -41,15 +41,11 @@ def test_refinement_accuracy_from_a_wrong_led_offset(capture, result):
 
 def test_refined_depth_stays_inside_the_sensor_envelope(capture, result):
     """Every refined depth lies within the least and greatest sensor depth around its pixel,
-    widened by the default 2 % (o3d_mvps.solver.pyramid.depth_envelope), of the reference depth
-    the prior uses: without the pixels the other frames contradict (reference_depth_outliers)."""
-    from o3d_mvps.covisibility import reference_depth_outliers
+    widened by the default 2 % (o3d_mvps.solver.pyramid.depth_envelope)."""
     from o3d_mvps.solver.pyramid import depth_envelope
 
-    depths = np.stack([capture.depth_array(i) for i in range(capture.n_frames)]).astype(np.float64)
-    reference = np.where(reference_depth_outliers(depths, capture.groundtruth.poses, capture.depth_K()), 0.0,
-                         depths[0])
-    lower, upper = depth_envelope(reference, capture.color_size, RefineOptions().depth_envelope)
+    lower, upper = depth_envelope(capture.depth_array(0).astype(np.float64), capture.color_size,
+                                  RefineOptions().depth_envelope)
     depth, mask = result.depth_array(), result.mask_array()
     assert np.all(depth[mask] >= lower[mask] - 1e-6) and np.all(depth[mask] <= upper[mask] + 1e-6)
     assert np.ptp(depth[mask]) > 0.05  # the bounds are local: the object keeps its relief

@@ -174,7 +174,9 @@ class ModelOptions:
         None: :data:`DEFAULT_EVIDENCE_WEIGHTS` of the light model.
     drop_depth_outliers: leave out of the depth prior the reference depth pixels the other frames'
         depth contradicts (flying pixels; :func:`o3d_mvps.covisibility.reference_depth_outliers`;
-        moving camera, 4 frames or more; a static camera's are always left out).
+        moving camera, 4 frames or more; a static camera's are always left out). Off by default:
+        on a render without flying pixels its false alarms at the rims (1 in 500 pixels) cost
+        more than it gains (docs/fidelity.md, "Against depth fusion").
     """
 
     tau: float = 10.0
@@ -190,7 +192,7 @@ class ModelOptions:
     occlusion_tolerance: float = 0.02
     sensor_lowpass: float | str | None = None
     evidence_weights: bool | None = None
-    drop_depth_outliers: bool = True
+    drop_depth_outliers: bool = False
 
     def smoothness_weight(self) -> float | str:
         """mu~, or :data:`AUTO`: ``smoothness``, else the light model's default (the light model
