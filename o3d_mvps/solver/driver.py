@@ -47,7 +47,7 @@ from .reflectance import update_albedo, update_lighting
 from .smoothness import auto_smoothness
 from .solution import SolverOutput
 from .weighting import (absolute_evidence_weights, albedo_step_factor, albedo_step_weights, evidence_weights,
-                        leans_on_smoothness, lowpass_sigma, normal_evidence, tie_low_frequencies)
+                        led_ceiling, leans_on_smoothness, lowpass_sigma, normal_evidence, tie_low_frequencies)
 
 
 #: levels with more object pixels than this refit the point lights' positions in their first sweep
@@ -297,7 +297,8 @@ def _weigh_smoothness(problem: LevelProblem, est: Estimate, ev, options: RefineO
         weights = evidence_weights(evidence)
     else:  # a small one (LED): where the shading's normal is noisier than the sensor's
         noise = robust_scale(ev.residual, ev.usable, NOISE_SAMPLES_PER_FRAME)
-        ceiling = stats["sensor_smoothness"] / max(stats["smoothness"], 1e-12)
+        ceiling = led_ceiling(stats["sensor_smoothness"], stats["smoothness"], evidence, problem.mu,
+                              problem.level.K[0, 0], est.z)
         weights = absolute_evidence_weights(evidence, noise, ceiling)
         # the frames themselves on the finest level, point-sampled (coarser levels: area averages)
         if problem.level.index == 0 and leans_on_smoothness(weights):
