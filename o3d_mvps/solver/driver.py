@@ -81,8 +81,8 @@ NOISE_SAMPLES_PER_FRAME = 10_000
 #: a level's smoothness is weighted by the evidence (:func:`_weigh_smoothness`) at the start of
 #: its first this-many sweeps only, then held, so the rest of the level minimises one energy.
 #: Reweighted every sweep, the energy was a moving target: pixels that one frame alone sees (no
-#: evidence) take the LED's ceiling weight, the sensor's smoothness over the LED's (1.7e6 at 2 MP,
-#: 0.18 mm pixels), and as such pixels came and went with the visibility the prior energy jumped
+#: evidence) took the LED's ceiling weight, the sensor's smoothness over the LED's (1.7e6 at 2 MP,
+#: 0.18 mm pixels; now capped by :func:`.weighting.led_ceiling`), and as such pixels came and went with the visibility the prior energy jumped
 #: 10-60x between sweeps, so no level reached the relative tolerance (2 MP, 20 frames: 50 sweeps,
 #: every level at the cap). 3, not 1: on the speckled LED bunny (tests/test_grain.py) the finest
 #: level's albedo-step weights follow the albedo's first sweeps (darkest quarter 10.39 deg at 3,
