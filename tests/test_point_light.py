@@ -205,34 +205,3 @@ def test_a_noisy_quilt_has_no_bad_border_band():
     for side in (v < 8, v >= H - 8, u < 8, u >= W - 8):
         assert error[mask & side].mean() < inside + 1.0, (error[mask & side].mean(), inside)
     assert albedo_error(albedo, scene["albedo"], border) < 2 * albedo_error(albedo, scene["albedo"], interior)
-
-
-def test_levels_above_the_refit_size_keep_the_coarser_levels_lamps(monkeypatch):
-    """The point lights' positions are refitted (:func:`.point_light.fit_point_lights`) in the
-    first sweep of levels up to ``POINT_REFIT_MAX_PIXELS`` object pixels and of the first level
-    solved, whatever its size; a larger level keeps the coarser levels' lamps."""
-    from o3d_mvps.solver import driver
-
-    scene = quilt_scene(frames=3, size=(160, 120))
-    opts = RefineOptions(progress=False, light_model="point", refine_poses=False, levels=2, max_iterations=2)
-    fitted = []
-
-    def recorded(problem, est, ev, **kwargs):
-        fitted.append(int(problem.level.grid.size))
-        return ev
-
-    monkeypatch.setattr(driver, "fit_point_lights", recorded)
-    monkeypatch.setattr(driver, "POINT_FIT_MAX_PIXELS", 1000)
-
-    def levels_fitted(refit_max):
-        fitted.clear()
-        monkeypatch.setattr(driver, "POINT_REFIT_MAX_PIXELS", refit_max)
-        solve(SolverInput(scene["colors"], scene["depths"], [None] * 3, scene["K"], scene["depth_K"], 2,
-                          np.tile(np.eye(4), (3, 1, 1)), np.zeros(3), [0, 1, 2], opts))
-        return list(fitted)
-
-    everywhere = levels_fitted(10**9)
-    assert len(everywhere) == 2 and everywhere[0] < everywhere[1]  # one refit per level: coarse, fine
-    assert levels_fitted(everywhere[0] - 1) == everywhere[:1]  # the first level refits whatever its size
-    assert levels_fitted(everywhere[1] - 1) == everywhere[:1]  # the finer level keeps the lamps
-    assert levels_fitted(everywhere[1]) == everywhere

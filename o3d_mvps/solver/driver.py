@@ -54,17 +54,10 @@ from .weighting import (absolute_evidence_weights, albedo_step_factor, albedo_st
 #: only (the lighting step refits ambient and intensity in every sweep): the coarse levels place
 #: the lights, and the refit's line search costs a full evaluation
 POINT_FIT_MAX_PIXELS = 20000
-#: levels with more object pixels than this keep the point lights of the coarser levels (the
-#: lighting step still refits ambient and intensity every sweep): halving the pixel size leaves
-#: at least one level of 20,000-80,000 pixels that refits them in its first sweep. On the
-#: 1280x960 quilt (1.1 M object pixels) the refits of the 307k- and 1.2M-pixel levels changed
-#: nothing (the same lamps to 0.1 mm, the same normals, albedo and CG iterations) and cost a full
-#: evaluation each (the first level solved refits them whatever its size)
-POINT_REFIT_MAX_PIXELS = 80000
 #: on the levels that no longer refit the point lights every sweep (more than
 #: :data:`POINT_FIT_MAX_PIXELS`), the depth steps' CG stops at this many times ``cg_tolerance``:
 #: on the 640x480 quilt the finest level's steps took 14-22 CG iterations instead of 24-28, for
-#: the same normals, albedo and lamps (0.923 deg, 1.596 %, 24.4 mm off)
+#: the same normals, albedo and lamps (0.923 deg, 1.596 %, 24.4 mm off; 1280x960: 1.037 deg, 0.982 %)
 POINT_SETTLED_CG_FACTOR = 3.0
 #: the point lights start on the first level with at least this many object pixels (or the finest):
 #: 5 parameters a lamp and an albedo per pixel. From a 20-pixel coarsest level (320x240 colour) the
@@ -184,13 +177,12 @@ def _reference_mask(problem_input: SolverInput) -> np.ndarray:
 
 
 def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timings: dict, stats: dict,
-            anchors: PoseAnchors | None = None, log: PoseLog | None = None, first: bool = False) -> list:
+            anchors: PoseAnchors | None = None, log: PoseLog | None = None) -> list:
     """Run one level's sweeps in place on ``est``: the albedo fitted to the level's images, then
     sweeps of poses and depth (one joint step, or the paper's two), albedo, lighting, LED offset,
     extrapolation. The level's evaluations live here only (no caller holds a stale one: each
     holds frames x pixels arrays). anchors: what a pose update must not worsen besides the
     photometric energy (:mod:`.pose_trust`; calibrated here per level), log: the rejections.
-    first: the first level solved (point lights: refitted there whatever its size).
 
     Returns the level's energy rows; stops at the relative energy change ``options.tolerance``.
     """
@@ -283,8 +275,7 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
         ev = problem.reevaluate(est, ev, overwrite=True)
         if refine_offset:
             est.led_offset, ev = update_led_offset(problem, est, ev, min_decrease=0.1 * options.tolerance * ev.energy)
-        if (problem.light.name == "point" and (first or level.grid.size <= POINT_REFIT_MAX_PIXELS)
-                and (iteration == 1 or level.grid.size <= POINT_FIT_MAX_PIXELS)):
+        if problem.light.name == "point" and (iteration == 1 or level.grid.size <= POINT_FIT_MAX_PIXELS):
             ev = fit_point_lights(problem, est, ev)
         timings["albedo_lighting"] += time.perf_counter() - t
         if options.extrapolate:
@@ -568,7 +559,7 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
             t = time.perf_counter()
             initial_point_lights(problem, est, problem.evaluate(est)).release()
             timings["point_lights"] += time.perf_counter() - t
-        history.extend(_sweeps(problem, est, options, timings, stats, anchors, pose_log, first=first))
+        history.extend(_sweeps(problem, est, options, timings, stats, anchors, pose_log))
         if tie_sigma is not None:
             t = time.perf_counter()
             _tie_to_sensor(problem, g, est, z0, tie_sigma)
