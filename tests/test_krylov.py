@@ -154,36 +154,6 @@ def test_the_finest_strength_pattern_gives_pyamgs_hierarchy_bit_for_bit():
     assert linear.strength_options(strong.astype(np.float32)) == ("symmetric", {"theta": linear.STRENGTH_THETA})
 
 
-
-def test_the_bsr_fast_path_gives_the_same_hierarchy_bit_for_bit_and_sums_duplicates():
-    """:func:`.linear.amg_preconditioner` builds pyamg's hierarchy with scipy's BSR
-    ``sum_duplicates`` replaced by a vectorised check (scipy's loops over every block in Python,
-    on every coarse level's Gershgorin weights): the levels are the same bit for bit, a BSR
-    matrix with duplicated blocks is still summed, and scipy's own method is back afterwards."""
-    import pyamg
-    import scipy.sparse._bsr as scipy_bsr
-
-    from o3d_mvps.solver import linear
-
-    M = sp.csr_matrix(pyamg.gallery.poisson((150, 150), format="csr") + sp.diags(np.linspace(0.0, 0.1, 150 * 150)))
-    build = lambda: pyamg.smoothed_aggregation_solver(M, strength=linear.strength_options(M), **linear.AMG_OPTIONS)
-    theirs = build()
-    original = scipy_bsr._bsr_base.sum_duplicates
-    with linear._canonical_bsr_fast_path():
-        ours = build()
-        duplicated = sp.bsr_matrix((np.arange(1.0, 4.0).reshape(3, 1, 1), np.array([1, 1, 0]), np.array([0, 2, 3])),
-                                   shape=(2, 2))
-        duplicated.sum_duplicates()
-    assert scipy_bsr._bsr_base.sum_duplicates is original
-    assert len(ours.levels) == len(theirs.levels) >= 3  # coarse BSR levels with Gershgorin weights
-    for a, b in zip(ours.levels, theirs.levels):
-        for name in ("A", "P", "R"):
-            if hasattr(b, name):
-                x, y = getattr(a, name), getattr(b, name)
-                assert x.format == y.format and x.shape == y.shape and (x != y).nnz == 0
-    np.testing.assert_array_equal(duplicated.toarray(), [[0.0, 3.0], [3.0, 0.0]])
-    assert duplicated.has_canonical_format and duplicated.nnz == 2
-
 @contextmanager
 def on_stand_in(simulated: bool):
     """Within: the CuPy stand-in (tests/cupy_emulation.py, yielded), the CUDA kernels run by

@@ -10,12 +10,9 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-import contextlib
-
 import numpy as np
 import pyamg
 import scipy.sparse as sp
-import scipy.sparse._bsr as _scipy_bsr
 import scipy.sparse.linalg as spla
 
 from ..model.arrays import array_module, contiguous, sparse_module
@@ -79,45 +76,11 @@ def amg_preconditioner(matrix: sp.csr_matrix) -> spla.LinearOperator:
     fine-level products per CG iteration, about a quarter of the depth step's time).
     Aggregation ignores couplings weaker than :data:`STRENGTH_THETA` (rounding residues).
     """
-    with _canonical_bsr_fast_path():
-        ml = pyamg.smoothed_aggregation_solver(matrix, strength=strength_options(matrix), **AMG_OPTIONS)
+    ml = pyamg.smoothed_aggregation_solver(matrix, strength=strength_options(matrix), **AMG_OPTIONS)
     # a module-level cycle, not a closure that calls itself: that closure is a reference cycle,
     # which kept every hierarchy (and its matrix: 95 MB at D415 size, 20 frames) alive after its
     # solve until the garbage collector's next full pass
     return spla.LinearOperator(matrix.shape, lambda b: _v_cycle(ml, 0, np.ravel(b)), dtype=matrix.dtype)
-
-
-def _fast_sum_duplicates(self) -> None:
-    """scipy's BSR ``sum_duplicates`` where no block is duplicated: sort the indices (C) and
-    mark the matrix canonical. scipy's own runs a Python loop over every stored block, which
-    pyamg's Gershgorin weights (``abs`` of each coarse BSR level) paid on every hierarchy: 6.4 of
-    the 1280x960 static quilt's 128 s under cProfile (58 calls). With duplicates it defers to
-    scipy's, so the result is the same bit for bit."""
-    if self.has_canonical_format:
-        return
-    self.sort_indices()
-    n_rows = self.shape[0] // self.blocksize[0]
-    nnz = int(self.indptr[-1])
-    indices = self.indices[:nnz]
-    same_row = np.repeat(np.arange(n_rows), np.diff(self.indptr))
-    if nnz > 1 and np.any((indices[1:] == indices[:-1]) & (same_row[1:] == same_row[:-1])):
-        _SCIPY_BSR_SUM_DUPLICATES(self)
-        return
-    self.prune()
-    self.has_canonical_format = True
-
-
-_SCIPY_BSR_SUM_DUPLICATES = _scipy_bsr._bsr_base.sum_duplicates
-
-
-@contextlib.contextmanager
-def _canonical_bsr_fast_path():
-    """Within the block, BSR matrices sum duplicates by :func:`_fast_sum_duplicates`."""
-    _scipy_bsr._bsr_base.sum_duplicates = _fast_sum_duplicates
-    try:
-        yield
-    finally:
-        _scipy_bsr._bsr_base.sum_duplicates = _SCIPY_BSR_SUM_DUPLICATES
 
 
 def strength_options(matrix: sp.csr_matrix) -> list | tuple:
