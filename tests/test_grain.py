@@ -22,10 +22,9 @@ from o3d_mvps.covisibility import MIN_WELL_COVISIBLE, MOST_OF_REFERENCE, ViewSel
 from o3d_mvps.metrics import normal_mae_deg
 from o3d_mvps.model.normals import perspective_normals
 from o3d_mvps.model.normals import masked_grid
-from o3d_mvps.solver.pyramid import DepthPrior
-from o3d_mvps.solver.smoothness import second_differences, sensor_noise_smoothness
-from o3d_mvps.solver.weighting import (ALBEDO_STEP_PIXELS, CEILING_CONTRAST, absolute_evidence_weights,
-                                      albedo_step_factor, albedo_step_weights, leans_on_smoothness, led_ceiling)
+from o3d_mvps.solver.smoothness import sensor_noise_smoothness
+from o3d_mvps.solver.weighting import (ALBEDO_STEP_PIXELS, absolute_evidence_weights, albedo_step_factor,
+                                      albedo_step_weights, leans_on_smoothness)
 from o3d_mvps.solving import WEAK_COVERAGE_TAU_FACTOR, lean_on_sensor
 from o3d_mvps.synthetic.scene import SpeckledAlbedo
 
@@ -80,27 +79,6 @@ def test_absolute_evidence_weights_smooth_only_what_the_shading_leaves_noisy():
     assert np.allclose(got, [1.0, 1.0, 4.0, 800.0])
     assert np.array_equal(absolute_evidence_weights(np.full(5, 100 * reference), 0.01, 800.0, 1.0), np.ones(5))
     assert np.allclose(absolute_evidence_weights(np.array([reference / 4]), 0.01, 800.0, 2.0), 1.0)
-
-
-def test_led_ceiling_bounds_the_smoothness_stiffness_by_the_median_pixels_shading():
-    """The 2 MP finest level's figures (mu 32.8, f 1479 px, z 0.194 m, median evidence 0.0772):
-    the sensor's ratio 1.65e6 is capped where an interior pixel's diagonal of the weighted
-    smoothness, mu w (S^T S)_pp, equals CEILING_CONTRAST x the median pixel's shading diagonal
-    evidence f^2 / z^2 (1.14e4 x CEILING_CONTRAST); twice as fine (f x 2, the sensor's ratio x 16) the cap
-    grows x 4, with the shading's stiffness; a capture whose ratio is below it keeps its ratio."""
-    evidence, z = np.array([0.0, 0.05, 0.0772, 0.2, 0.3]), np.full(5, 0.1938)
-    cap = led_ceiling(1.65e6, 1.0, evidence, 32.7651, 1479.17, z)
-    assert 1.1e4 < cap / CEILING_CONTRAST < 1.2e4 and cap < 1.65e6
-    grid = masked_grid(np.ones((7, 7), bool))
-    S = second_differences(grid)
-    prior = DepthPrior(S[:0], np.zeros(0), S=S)
-    prior.weigh_smoothness(np.full(grid.size, cap))
-    hessian, _ = prior.normal_equations(np.zeros(grid.size), 0.0, 32.7651)  # twice the energy's Gauss-Newton matrix
-    centre = grid.size // 2
-    assert hessian[centre, centre] / 2 == pytest.approx(CEILING_CONTRAST * 0.0772 * (1479.17 / 0.1938) ** 2, rel=1e-9)
-    assert led_ceiling(16 * 1.65e6, 1.0, evidence, 32.7651, 2 * 1479.17, z) == pytest.approx(4 * cap, rel=1e-12)
-    assert led_ceiling(2.09e5, 1.0, evidence, 1e-3, 1108.5, np.full(5, 0.544)) == pytest.approx(2.09e5)
-    assert led_ceiling(0.5, 1.0, np.zeros(5), 32.7651, 1479.17, z) == 1.0  # never below 1; no evidence: no cap
 
 
 def test_albedo_steps_count_as_noise_beside_the_step_only():

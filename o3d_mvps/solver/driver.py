@@ -47,7 +47,7 @@ from .reflectance import update_albedo, update_lighting
 from .smoothness import auto_smoothness
 from .solution import SolverOutput
 from .weighting import (absolute_evidence_weights, albedo_step_factor, albedo_step_weights, evidence_weights,
-                        led_ceiling, leans_on_smoothness, lowpass_sigma, normal_evidence, tie_low_frequencies)
+                        leans_on_smoothness, lowpass_sigma, normal_evidence, tie_low_frequencies)
 
 
 #: levels with more object pixels than this refit the point lights' positions in their first sweep
@@ -86,8 +86,8 @@ NOISE_SAMPLES_PER_FRAME = 10_000
 #: a level's smoothness is weighted by the evidence (:func:`_weigh_smoothness`) at the start of
 #: its first this-many sweeps only, then held, so the rest of the level minimises one energy.
 #: Reweighted every sweep, the energy was a moving target: pixels that one frame alone sees (no
-#: evidence) took the LED's ceiling weight, the sensor's smoothness over the LED's (1.7e6 at 2 MP,
-#: 0.18 mm pixels; now capped by :func:`.weighting.led_ceiling`), and as such pixels came and went with the visibility the prior energy jumped
+#: evidence) take the LED's ceiling weight, the sensor's smoothness over the LED's (1.7e6 at 2 MP,
+#: 0.18 mm pixels), and as such pixels came and went with the visibility the prior energy jumped
 #: 10-60x between sweeps, so no level reached the relative tolerance (2 MP, 20 frames: 50 sweeps,
 #: every level at the cap). 3, not 1: on the speckled LED bunny (tests/test_grain.py) the finest
 #: level's albedo-step weights follow the albedo's first sweeps (darkest quarter 10.39 deg at 3,
@@ -305,8 +305,7 @@ def _weigh_smoothness(problem: LevelProblem, est: Estimate, ev, options: RefineO
         weights = evidence_weights(evidence)
     else:  # a small one (LED): where the shading's normal is noisier than the sensor's
         noise = robust_scale(ev.residual, ev.usable, NOISE_SAMPLES_PER_FRAME)
-        ceiling = led_ceiling(stats["sensor_smoothness"], stats["smoothness"], evidence, problem.mu,
-                              problem.level.K[0, 0], est.z)
+        ceiling = stats["sensor_smoothness"] / max(stats["smoothness"], 1e-12)
         weights = absolute_evidence_weights(evidence, noise, ceiling)
         # the frames themselves on the finest level, point-sampled (coarser levels: area averages)
         if problem.level.index == 0 and leans_on_smoothness(weights):

@@ -232,42 +232,11 @@ def absolute_evidence_weights(evidence: np.ndarray, noise: float, ceiling: float
     a capture whose pixels are all well lit is left alone, and a noisy one is smoothed
     throughout); ``ceiling``: the ratio of the sensor's own smoothness
     (:func:`.smoothness.auto_smoothness`) to the light model's, so a pixel without evidence
-    is as smooth as the sensor's surface, capped by :func:`led_ceiling`."""
+    is as smooth as the sensor's surface."""
     xp = array_module(evidence)
     reference = (float(noise) / np.radians(precision_deg)) ** 2
     ceiling = max(1.0, float(ceiling))
     return xp.clip(reference / xp.maximum(evidence, reference / ceiling), 1.0, ceiling)
-
-
-#: the most a pixel's weighted smoothness may add to its depth's diagonal, relative to the
-#: shading's diagonal at the median pixel (:func:`led_ceiling`). 2 MP, 6 frames (finest level:
-#: the sensor's ratio 144 times the median pixel's shading): 10 kept the path (30 sweeps
-#: against 29, CG 8.1 against 8.3 CPU s) at 5.33 deg / 2.30 mm against 5.52 / 2.39; 1 gave
-#: 5.17 deg / 2.16 mm in 37 sweeps. 20 frames: 4.561 deg / 0.5823 mm against 4.555 / 0.5823,
-#: 42 sweeps against 45, CG 10.7 against 15.3 CPU s. The D415, the 640x480 LED bunny and the speckled 320x240
-#: bunny (ratios below 30) are unchanged to 1e-6 deg at 10.
-CEILING_CONTRAST = 10.0
-
-
-def led_ceiling(sensor_smoothness: float, smoothness: float, evidence, mu: float, focal: float, depth) -> float:
-    """The LED's ceiling for :func:`absolute_evidence_weights`: the sensor's smoothness over the
-    LED's (``sensor_smoothness / smoothness``, a pixel without evidence as smooth as the sensor's
-    surface), capped where that weight would make the pixel's smoothness stiffer than
-    :data:`CEILING_CONTRAST` times the median pixel's shading. A pixel's depth enters its
-    smoothness rows' squares with ``12 mu w`` (two second differences, 1 + 4 + 1 each) and the
-    shading with about ``evidence f^2 / z^2`` (a depth step of one pixel tilts the four
-    neighbours' normals by ``f / 2z`` radians each); the cap is their ratio at the median evidence
-    (N,) intensity^2 / rad^2, so it bounds the depth system's coefficient contrast at every
-    resolution, where the sensor's ratio grows as the pixel width^-4 against the shading's
-    width^-2 (2 MP: 1.65e6, 144 times the median pixel's shading on the finest level). mu: the
-    level's normalised smoothness; focal: the level's f_x (pixels); depth (N,) metres."""
-    xp = array_module(evidence)
-    ceiling = float(sensor_smoothness) / max(float(smoothness), 1e-12)
-    z = float(xp.median(depth))
-    stiffness = float(xp.median(evidence)) * (float(focal) / max(z, 1e-12)) ** 2 / max(12.0 * float(mu), 1e-30)
-    if stiffness > 0:
-        ceiling = min(ceiling, CEILING_CONTRAST * stiffness)
-    return max(1.0, ceiling)
 
 
 #: the sub-pixel misplacement (pixels) of an albedo step between the frames that
