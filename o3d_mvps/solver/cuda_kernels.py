@@ -96,6 +96,21 @@ def _grid_barrier():  # pragma: no cover - device
     cuda.cg.this_grid().sync()
 
 
+def _block_tree_sum2(share, t, first, second):  # pragma: no cover - device
+    """Thread t's (first, second) added over its block into ``share[0]`` ((THREADS_PER_BLOCK, 2)
+    shared): a tree in a fixed order, every thread past the last barrier when it returns."""
+    share[t, 0] = first
+    share[t, 1] = second
+    cuda.syncthreads()
+    step = THREADS_PER_BLOCK // 2
+    while step > 0:
+        if t < step:
+            share[t, 0] += share[t + step, 0]
+            share[t, 1] += share[t + step, 1]
+        cuda.syncthreads()
+        step //= 2
+
+
 def _grid_sum2(first, second, partial, slot):  # pragma: no cover - device
     """:func:`.kernels.grid_sum2` in a CUDA kernel: each block adds its threads' terms in shared
     memory (a tree, in a fixed order) into ``partial[block, slot:slot + 2]``; after the grid's
@@ -104,16 +119,7 @@ def _grid_sum2(first, second, partial, slot):  # pragma: no cover - device
     share = cuda.shared.array((THREADS_PER_BLOCK, 2), numba.float64)
     t = cuda.threadIdx.x
     for phase in range(2):  # 0: this block's threads; 1: the blocks' sums
-        share[t, 0] = first
-        share[t, 1] = second
-        cuda.syncthreads()
-        step = THREADS_PER_BLOCK // 2
-        while step > 0:
-            if t < step:
-                share[t, 0] += share[t + step, 0]
-                share[t, 1] += share[t + step, 1]
-            cuda.syncthreads()
-            step //= 2
+        _block_tree_sum2(share, t, first, second)
         first, second = share[0, 0], share[0, 1]
         cuda.syncthreads()  # every thread has read the tree's root before the next writes
         if phase == 0:
@@ -127,6 +133,9 @@ def _grid_sum2(first, second, partial, slot):  # pragma: no cover - device
                 second += partial[k, slot + 1]
     return first, second
 
+
+if not cuda.config.ENABLE_CUDASIM:  # compiled for the device where a kernel calls it
+    _block_tree_sum2 = numba.njit(inline="always")(_block_tree_sum2)
 
 #: the grid-wide functions of kernels' shared code, for the CUDA target
 _GRID = {"grid_barrier": _grid_barrier, "grid_sum2": _grid_sum2}
@@ -455,16 +464,7 @@ def _cg_pass(mode, indptr, indices, data, with_matrix, from_zero, b, z, w, p, s,
         first += a
         second += c
     for phase in range(2):  # 0: this block's rows; 1 (the last block only): the blocks' sums
-        share[t, 0] = first
-        share[t, 1] = second
-        cuda.syncthreads()
-        step = THREADS_PER_BLOCK // 2
-        while step > 0:
-            if t < step:
-                share[t, 0] += share[t + step, 0]
-                share[t, 1] += share[t + step, 1]
-            cuda.syncthreads()
-            step //= 2
+        _block_tree_sum2(share, t, first, second)
         if phase == 1:
             if t == 0:
                 counter[0] = 0
