@@ -96,6 +96,19 @@ def _grid_barrier():  # pragma: no cover - device
     cuda.cg.this_grid().sync()
 
 
+def _block_tree_sum(share, t, value):  # pragma: no cover - device
+    """Thread t's value added over its block into ``share[0]`` ((THREADS_PER_BLOCK,) shared): a
+    tree in a fixed order, every thread past the last barrier when it returns."""
+    share[t] = value
+    cuda.syncthreads()
+    step = THREADS_PER_BLOCK // 2
+    while step > 0:
+        if t < step:
+            share[t] += share[t + step]
+        cuda.syncthreads()
+        step //= 2
+
+
 def _block_tree_sum2(share, t, first, second):  # pragma: no cover - device
     """Thread t's (first, second) added over its block into ``share[0]`` ((THREADS_PER_BLOCK, 2)
     shared): a tree in a fixed order, every thread past the last barrier when it returns."""
@@ -134,7 +147,8 @@ def _grid_sum2(first, second, partial, slot):  # pragma: no cover - device
     return first, second
 
 
-if not cuda.config.ENABLE_CUDASIM:  # compiled for the device where a kernel calls it
+if not cuda.config.ENABLE_CUDASIM:  # compiled for the device where a kernel calls them
+    _block_tree_sum = numba.njit(inline="always")(_block_tree_sum)
     _block_tree_sum2 = numba.njit(inline="always")(_block_tree_sum2)
 
 #: the grid-wide functions of kernels' shared code, for the CUDA target
@@ -531,14 +545,7 @@ def _log1p_square_partials(x, scale, partial):  # pragma: no cover - device
     total = 0.0
     for i in range(cuda.grid(1), x.size, cuda.gridsize(1)):
         total += _log1p_square_term(x[i], scale)
-    share[t] = total
-    cuda.syncthreads()
-    step = THREADS_PER_BLOCK // 2
-    while step > 0:
-        if t < step:
-            share[t] += share[t + step]
-        cuda.syncthreads()
-        step //= 2
+    _block_tree_sum(share, t, total)
     if t == 0:
         partial[cuda.blockIdx.x] = share[0]
 
@@ -637,14 +644,7 @@ def _led_trial_partials(color, usable, albedo, normals, points, poses, start, H,
     for index in range(cuda.blockIdx.x * THREADS_PER_BLOCK + t, n * N, cuda.gridDim.x * THREADS_PER_BLOCK):
         total += _led_trial_term(color, usable, albedo, normals, points, poses, start, X[0, 0, 0], X[0, 1, 0],
                                  X[0, 2, 0], lights, scale, single, k, index // N, index % N)
-    share[t] = total
-    cuda.syncthreads()
-    step = THREADS_PER_BLOCK // 2
-    while step > 0:
-        if t < step:
-            share[t] += share[t + step]
-        cuda.syncthreads()
-        step //= 2
+    _block_tree_sum(share, t, total)
     if t == 0:
         out[k, cuda.blockIdx.x] = share[0]
 
