@@ -32,6 +32,8 @@ from .solver.problem_input import SolverInput, write_problem
 from .solver.smoothness import sensor_noise_smoothness
 from .covisibility import (MIN_OTHER_FRAMES, OUTLIER_MIN_FRAMES, WEAK_COVERAGE_NOTE, ViewSelection,
                            frames_seeing_reference)
+from .covisibility import flying_pixels_check, frame_depths_in_reference
+from .covisibility import reference_depth_fill as moving_reference_fill
 from .covisibility import reference_depth_outliers as moving_reference_outliers
 
 #: the depth step's CG tolerance for a static camera, where ``cg_tolerance`` is left at its default
@@ -216,10 +218,21 @@ def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses
     elif not camera.static and n > OUTLIER_MIN_FRAMES and options.drop_depth_outliers:
         # a moving camera's the same way, the frames' depth moved into the reference by the initial
         # poses: at the speckled, room-lit bunny's rim they held the depth centimetres back, where
-        # depth fusion averages them away (docs/fidelity.md, "Against depth fusion")
-        flying = moving_reference_outliers(depths, initial_poses, capture.depth_K())
-        depths[0][flying] = 0.0
-        report["reference_depth_outliers"] = {"pixels": int(flying.sum()), "fraction": round(float(flying.mean()), 6)}
+        # depth fusion averages them away (docs/fidelity.md, "Flying pixels of a moving camera");
+        # each one's depth then comes from the frames that agree there, else from its kept neighbours
+        t0 = time.perf_counter()
+        K_depth = capture.depth_K()
+        warped = frame_depths_in_reference(depths, initial_poses, K_depth)
+        flying, noise = moving_reference_outliers(depths, initial_poses, K_depth, warped=warped, return_noise=True)
+        values, from_frames = moving_reference_fill(depths, initial_poses, K_depth, flying, noise, warped=warped)
+        depths[0][flying] = values[flying]
+        report["reference_depth_outliers"] = {"pixels": int(flying.sum()), "fraction": round(float(flying.mean()), 6),
+                                              "from_frames": int(from_frames.sum()),
+                                              "from_neighbours": int((flying & ~from_frames).sum()),
+                                              "noise_mm_at_1m": round(1000 * noise, 4),
+                                              "seconds": round(time.perf_counter() - t0, 4)}
+        inputs = report.setdefault("inputs", {"checks": [], "conventions": {}})
+        inputs["checks"].append(flying_pixels_check(flying, from_frames, int((depths[0] > 0).sum()), noise))
     return SolverInput(
         colors=colors,
         depths=depths,

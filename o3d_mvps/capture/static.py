@@ -14,9 +14,8 @@ import warnings
 from dataclasses import asdict, dataclass
 
 import numpy as np
-from scipy import ndimage as ndi
 
-from ..model.resampling import resample_valid
+from ..model.resampling import masked_gaussian, resample_valid
 from .types import Capture
 
 #: Coarse grid of the check: about this many pixels across.
@@ -270,7 +269,5 @@ def reference_depth_fill(depths: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     # frame 0's own low-frequency error (D415-like: ~1 mm at 0.6 m, new each frame) carried into
     # the hole: the median there plus frame 0's offset from the median around it
     both = valid[0] & ~missing & (median > 0)
-    offset = np.where(both, np.asarray(depths[0], np.float64) - median, 0.0)
-    weight = ndi.gaussian_filter(both.astype(np.float64), FILL_OFFSET_SIGMA_PX, mode="constant")
-    offset = ndi.gaussian_filter(offset, FILL_OFFSET_SIGMA_PX, mode="constant") / np.maximum(weight, 1e-12)
+    offset, weight = masked_gaussian(np.asarray(depths[0], np.float64) - median, both, FILL_OFFSET_SIGMA_PX)
     return fill, np.where(fill, median + np.where(weight > 1e-3, offset, 0.0), 0.0)

@@ -1,4 +1,5 @@
-"""Resampling images between grids: area resizing, block averages, nearest-valid fill.
+"""Resampling images between grids: area resizing, block averages, nearest-valid and harmonic
+fill, normalised Gaussian filtering over valid pixels.
 
 Pixel centres sit at integer coordinates (:mod:`o3d_mvps.model.camera`); a grid downsampled
 by an integer factor k keeps the centre of block j at fine coordinate ``k j + (k - 1) / 2``,
@@ -10,6 +11,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import scipy.ndimage as ndi
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
 
 
 def resize(image: np.ndarray, size: tuple[int, int], interpolation=cv2.INTER_AREA) -> np.ndarray:
@@ -57,3 +60,50 @@ def repeat_pixels(image: np.ndarray, factor: int) -> np.ndarray:
     """(h, w) image -> (factor h, factor w): each pixel repeated over a factor x factor block
     (a depth-grid mask onto the colour grid)."""
     return np.repeat(np.repeat(image, factor, axis=0), factor, axis=1)
+
+
+def masked_gaussian(values: np.ndarray, valid: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """Normalised Gaussian filter (std ``sigma`` pixels) of ``values`` (H, W) over ``valid`` (H, W)
+    bool: (smoothed (H, W), weight (H, W), the filtered share of valid pixels; the smoothed value
+    is meaningless where the weight is near 0)."""
+    valid = np.asarray(valid, dtype=bool)
+    weight = ndi.gaussian_filter(valid.astype(np.float64), sigma, mode="constant")
+    total = ndi.gaussian_filter(np.where(valid, values, 0.0).astype(np.float64), sigma, mode="constant")
+    return total / np.maximum(weight, 1e-12), weight
+
+
+#: weight of each unknown pixel's pull toward its nearest known value in :func:`harmonic_fill`
+#: (against 1 per neighbour difference): it settles regions no known pixel borders
+HARMONIC_ANCHOR = 1e-6
+
+
+def harmonic_fill(image: np.ndarray, known: np.ndarray, unknown: np.ndarray) -> np.ndarray:
+    """Copy (H, W) float64 of ``image`` (H, W) with the ``unknown`` (H, W) bool pixels set to the
+    harmonic (membrane) interpolation of the ``known`` (H, W) bool ones: the least squares of the
+    differences between 4-neighbours in ``known | unknown``, one of them unknown (a plane is
+    filled exactly), with a pull of :data:`HARMONIC_ANCHOR` toward the nearest known value (a
+    region no known pixel borders takes it)."""
+    known = np.asarray(known, dtype=bool)
+    unknown = np.asarray(unknown, dtype=bool) & ~known
+    out = np.asarray(image, dtype=np.float64).copy()
+    if not unknown.any() or not known.any():
+        return out
+    H, W = out.shape
+    m = int(unknown.sum())
+    index = np.full(H * W, -1)
+    index[unknown.ravel()] = np.arange(m)
+    domain = (known | unknown).ravel()
+    flat = np.arange(H * W).reshape(H, W)
+    pairs = np.concatenate([np.stack([flat[:, :-1].ravel(), flat[:, 1:].ravel()], axis=1),
+                            np.stack([flat[:-1, :].ravel(), flat[1:, :].ravel()], axis=1)])
+    pairs = pairs[domain[pairs].all(axis=1) & (index[pairs] >= 0).any(axis=1)]
+    cols = index[pairs]  # (k, 2), -1 for a known pixel
+    signs = np.broadcast_to(np.array([1.0, -1.0]), cols.shape)
+    free = cols >= 0
+    rows = np.broadcast_to(np.arange(len(pairs))[:, None], cols.shape)
+    A = sp.csr_matrix((signs[free], (rows[free], cols[free])), shape=(len(pairs), m))
+    b = -np.where(free, 0.0, signs * out.ravel()[pairs]).sum(axis=1)  # the known ends moved over
+    anchor = fill_nearest_valid(out, known)[unknown]
+    normal = (A.T @ A + HARMONIC_ANCHOR * sp.identity(m)).tocsc()
+    out[unknown] = spla.spsolve(normal, A.T @ b + HARMONIC_ANCHOR * anchor)
+    return out

@@ -192,7 +192,7 @@ class ModelOptions:
     occlusion_tolerance: float = 0.02
     sensor_lowpass: float | str | None = None
     evidence_weights: bool | None = None
-    drop_depth_outliers: bool = False
+    drop_depth_outliers: bool = True
 
     def smoothness_weight(self) -> float | str:
         """mu~, or :data:`AUTO`: ``smoothness``, else the light model's default (the light model
