@@ -112,16 +112,16 @@ OUTLIER_MIN_FRAMES = 3
 #: ... sigma(z) = s z^2 the capture's own depth noise, s measured from the frames' disagreement
 #: (:func:`depth_noise_scale`): at 4 sigma a clean Gaussian sensor's tail stays unflagged
 #: (the D415-size render, sigma 3.6 mm at 0.6 m: 163 pixels of 22165 flagged at the fixed 6 mm,
-#: 10 to 17 mm off, the sensor's own noise; their drop then started rim pixels on the wrong side
+#: 5 to 17 mm off, the sensor's own noise, and rim pixels; their drop then started pixels on the wrong side
 #: of the bunny's self-occlusions, up to 75 mm off)
 OUTLIER_SIGMAS = 4.0
 #: ... unless this many of the other frames, their depth moved into the reference
 #: (:func:`frame_depths_in_reference`), measure the pixel's own depth within the tolerance: a
 #: point beside a self-occlusion is hidden from the frames on the occluder's side (they measure
 #: the occluder in front of it, like a flying pixel) and seen by the others. On the D415-size
-#: render 7 of the 8 pixels the median flagged were such points (their depth 1 to 8 mm off, 2 to
-#: 8 frames confirming); of the peers' 84 flying pixels (13 to 105 mm off) none with a true depth
-#: had more than 1 confirming frame.
+#: render all 8 pixels the median flagged were such points (their depth 1 to 8 mm off, 2 to 8
+#: frames confirming at :data:`SPLAT_FOOTPRINT`); on the peers' render none of the flagged pixels
+#: with a true depth (13 to 105 mm off) had more than 1.
 OUTLIER_CONFIRMING_FRAMES = 2
 #: footprint of the frames' depth samples splatted into the reference
 #: (:func:`o3d_mvps.depth_to_colour.register_depth`): the least, 1 (each sample covers its own
@@ -133,7 +133,7 @@ SPLAT_FOOTPRINT = 1.0
 #: median around a flagged pixel is carried into it (:func:`reference_depth_fill`)
 FILL_OFFSET_SIGMA_PX = 4.0
 #: share of the reference's depth pixels flagged above which the run report warns (the peers'
-#: D415-like 640x480 bunny: 5.9 %, its silhouette in 1384 depth pixels)
+#: D415-like 640x480 bunny, SF 4: 6.0 %, 83 of its 1384, most along the silhouette)
 FLYING_WARNING_FRACTION = 0.15
 
 
