@@ -248,7 +248,8 @@ def frame_depths_in_reference(depths: np.ndarray, poses: np.ndarray, K: np.ndarr
 
 
 def reference_depth_fill(depths: np.ndarray, poses: np.ndarray, K: np.ndarray, flagged: np.ndarray,
-                         noise_scale: float = 0.0, *, warped: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                         noise_scale: float = 0.0, *,
+                         warped: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Depths for the reference's flagged pixels: (values (h, w) metres, 0 off ``flagged``;
     from_frames (h, w) bool, the flagged pixels filled from the other frames).
 
