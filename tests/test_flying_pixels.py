@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from o3d_mvps import RefineOptions, refine, synthetic
-from o3d_mvps.covisibility import (OUTLIER_SIGMAS, depth_noise_scale, flying_pixels_check, reference_depth_fill,
+from o3d_mvps.covisibility import (depth_noise_scale, flying_pixels_check, reference_depth_fill,
                                    reference_depth_outliers)
 from o3d_mvps.metrics import evaluate
 from o3d_mvps.model.resampling import harmonic_fill, resample_valid
@@ -90,7 +90,6 @@ def test_a_clean_capture_keeps_its_rims_and_self_occlusions():
     flagged, noise = reference_depth_outliers(depths, clean.groundtruth.poses, clean.depth_K(), return_noise=True)
     assert 0.008 < noise < 0.014, noise
     assert flagged.sum() <= 0.003 * (depths[0] > 0).sum(), flagged.sum()
-    assert OUTLIER_SIGMAS == 4.0
 
 
 def test_noise_scale_of_known_gaussian_differences():
@@ -121,3 +120,13 @@ def test_refining_with_the_default_beats_keeping_the_flying_pixels(flying):
     assert len(rows) == 1 and f"{report['pixels']} of the reference's" in rows[0]["detail"]
     assert "reference_depth_outliers" not in kept.info
     assert not [c for c in kept.info["inputs"]["checks"] if c["name"] == "flying pixels"]
+
+
+def test_the_check_warns_when_a_large_share_is_flagged():
+    """More than 15 % of the reference's depth pixels flagged: a warning row that says why it may be."""
+    flagged = np.zeros((10, 10), bool)
+    flagged[:4] = True  # 40 of 100
+    row = flying_pixels_check(flagged, flagged & (np.arange(10)[None, :] < 5), 100, 0.005)
+    assert row["status"] == "warning" and "40 of the reference's 100 depth pixels (40.00%)" in row["detail"]
+    assert "20 filled from the frames" in row["detail"] and "20 from their kept neighbours" in row["detail"]
+    assert "poorly registered frames" in row["detail"] and "noise 5.00 mm at 1 m" in row["detail"]
