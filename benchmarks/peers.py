@@ -238,7 +238,7 @@ def error_sources(arrays: dict) -> tuple[dict, dict]:
              "frames_seeing_percentiles": {str(q): float(np.percentile(seen[pixels], q)) for q in (5, 10, 50)},
              "smoothed_sensor_mae_deg": {name: float(sensor_error[r].mean()) for name, r in regions.items()},
              "methods": {}}
-    maps = {"truth vs sensor-like": _angle(true_normals, sensor_like)}
+    maps = {"true normals vs sensor-like": _angle(true_normals, sensor_like)}
     for name in STUDY_METHODS:
         if name not in depths:
             continue

@@ -158,7 +158,7 @@ def test_no_region_is_noisier_than_the_smoothed_sensor_and_colour_does_not_becom
     for region, sensor in study["smoothed_sensor_mae_deg"].items():
         assert ours["by_region"][region]["true"] < 0.8 * sensor, (region, ours["by_region"][region], sensor)
     assert abs(ours["high_vs_albedo_gradient"]) < 0.15 and abs(ours["high_vs_albedo_darkness"]) < 0.15, ours
-    assert {"truth vs sensor-like", "ours, given poses: vs truth"} <= set(maps)
+    assert {"true normals vs sensor-like", "ours, given poses: vs truth"} <= set(maps)
     assert all(m.shape == arrays["pixels"].shape and np.isnan(m[~arrays["pixels"]]).all() for m in maps.values())
 
 
