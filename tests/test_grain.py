@@ -159,9 +159,8 @@ def test_dark_speckles_do_not_become_grain(light, frames, all_bound):
     the evidence weights set in every sweep, not a level's first 3 only; before the absolute
     evidence weights 23.6, before the albedo's steps counted 13.1), bicubic's 10.34, the
     smoothed sensor's 16.1: bound 1.02 x bicubic's (a 3 % margin); all pixels 8.37 (before
-    13.8, then 10.0), bicubic 9.82: bound 0.9 x bicubic's. Room light, 8 frames: 9.65 dark,
-    10.01 all (9.60 and 9.96 before room light's smoothness parts were added): bounds 1.02 and
-    1.1 x bicubic's. The depth error's high-pass does not follow the
+    13.8, then 10.0), bicubic 9.82: bound 0.9 x bicubic's. Room light, 8 frames: 9.6 dark,
+    9.96 all: bounds 1.02 and 1.1 x bicubic's. The depth error's high-pass does not follow the
     albedo: |correlation| 0.022 (LED), 0.012 (room), bound 0.1. No coverage warning."""
     capture = synthetic.render_capture("bunny", frames=frames, size=SIZE, scale_factor=SF, light=light,
                                        sensor="d415", albedo="speckled")

@@ -73,7 +73,7 @@ def smoothness_rows(grid: MaskedGrid, z0: np.ndarray, K: np.ndarray, level_facto
 MIN_ROUGHNESS = 0.3e-3
 #: mu~ / tau~ of a sensor depth 1 mm rough seen by colour pixels 1 mm wide (see :func:`auto_smoothness`)
 ROUGHNESS_RATIO = 40.0
-#: the stereo's part of mu~ / tau~ in :func:`auto_smoothness`: the stereo's own pixel-to-pixel noise needs
+#: the least mu~ / tau~ :func:`auto_smoothness` gives: the stereo's own pixel-to-pixel noise needs
 #: smoothing that the sensor's roughness does not measure. 24 (mu~ 240) is the weight measured
 #: best on noiseless 640x480 scenes; on a noiseless 320x240 room bunny the formula alone gave
 #: mu~ 36 and 13.02 deg / 3.53 mm, the floor 12.57 deg / 2.76 mm.
@@ -105,11 +105,10 @@ def sensor_roughness(z0: np.ndarray, mask: np.ndarray, scale_factor: int) -> flo
 
 
 def auto_smoothness(tau_tilde: float, z0: np.ndarray, mask: np.ndarray, scale_factor: int, K: np.ndarray) -> float:
-    """mu~ for room light: ``tau~ (24 + 40 (sigma / 1 mm)^2 (1 mm / h)^4)``, sigma the sensor
+    """mu~ for room light: ``tau~ max(24, 40 (sigma / 1 mm)^2 (1 mm / h)^4)``, sigma the sensor
     depth's roughness (:func:`sensor_roughness`), h = median(z0) / f_x the width (metres) of a
-    colour pixel on the object; 24 is :data:`STEREO_RATIO`, the second part
-    :func:`sensor_noise_smoothness`. z0 (h, w) metres; mask (H, W) bool; K (3, 3) colour
-    intrinsics.
+    colour pixel on the object; 24 is :data:`STEREO_RATIO`. z0 (h, w) metres; mask (H, W) bool;
+    K (3, 3) colour intrinsics.
 
     Noise needs smoothing in proportion to its variance, and finer pixels need more: against
     the sensor's fixed blocks, a curvature's squared second differences summed over the pixels
@@ -118,22 +117,14 @@ def auto_smoothness(tau_tilde: float, z0: np.ndarray, mask: np.ndarray, scale_fa
     0.6-4.2 mm, h 0.5-2 mm) the formula's normal error was within 1.4 deg of the best of a sweep
     of mu~ (the best lay within 5x of the formula), where a fixed mu~ 240 was 100x too small on
     a noisy 2 MP bunny (28.4 deg normal error; with the formula 12.1).
-
-    The stereo's part and the sensor's add (the variances of two independent noises add; it was
-    the larger of the two): where they are alike neither alone smooths enough. On the peers
-    benchmark's room-lit speckled bunny (640x480, D415-like, 20 frames, given poses; mu~ 240 and
-    170) the normals went 6.85 -> 6.69 deg, the rim band 8.73 -> 8.33, the darkest albedo quarter
-    6.98 -> 6.67, the pale inside 5.68 -> 5.66 (twice 240: 6.71; four times: 7.01). Where one part
-    dominates it is the rule measured before (within 15 % on noiseless 640x480 scenes, whose sensor
-    part is at most tau~ 3.6; within 0.4 % at D415 size).
     """
-    return tau_tilde * STEREO_RATIO + sensor_noise_smoothness(tau_tilde, z0, mask, scale_factor, K)
+    return max(tau_tilde * STEREO_RATIO, sensor_noise_smoothness(tau_tilde, z0, mask, scale_factor, K))
 
 
 def sensor_noise_smoothness(tau_tilde: float, z0: np.ndarray, mask: np.ndarray, scale_factor: int,
                             K: np.ndarray) -> float:
     """mu~ the sensor's own noise calls for: ``tau~ 40 (sigma / 1 mm)^2 (1 mm / h)^4``
-    (:func:`auto_smoothness` without the stereo's part, :data:`STEREO_RATIO`);
+    (:func:`auto_smoothness` without its floor for the stereo's noise, :data:`STEREO_RATIO`);
     same arguments. The smooth fit of the sensor alone (:func:`o3d_mvps.baselines.smooth_fit`)
     on a D415-like 320x240 bunny (sigma 0.65 mm, h 2 mm: mu~ 11 at tau~ 10) had normals 7.8-8.0
     deg off at 0.05-0.1 x auto_smoothness's 240, 10.4 at 240 (bicubic 9.8)."""
