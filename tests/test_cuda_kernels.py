@@ -698,3 +698,64 @@ def test_evaluation_partials_match_cpu_and_the_array_formulas():
     cpu, gpu = run_both("evaluation_partials", *empty, scale, *D, prior.z0, *S, tau, mu, z, np.full((1, 2), np.nan))
     for out in (cpu, gpu):
         assert out[-1][0, 0] == 0.0 and out[-1][0, 1] == pytest.approx(prior_ref, rel=1e-12)
+
+
+def test_led_fields_match_cpu():
+    points = RNG.normal(size=(N_PIXELS, 3)) * 0.05 + [0.0, 0.0, 0.6]
+    normals = RNG.normal(size=(N_PIXELS, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    cpu, gpu = run_both("led_fields_into", RNG.random(4) + 0.1, normals, points, RNG.normal(size=(4, 3)) * 0.05,
+                        np.full((4, N_PIXELS, 3), np.nan))
+    assert np.isfinite(cpu[-1]).all() and (cpu[-1] == 0).any() and (cpu[-1] != 0).any()  # lit and unlit points
+    assert_close(gpu[-1], cpu[-1])
+
+
+@pytest.mark.parametrize("led", [True, False])
+def test_evaluate_partials_match_cpu_and_the_array_formulas(led):
+    """An evaluation in one pass: points, normals, dA, warped colours, usable, bases, shading and
+    float32 residuals as the array functions make them (to round-off; the samples and the masks
+    exactly), and the sums of energy_partials; the CUDA kernel equal to its CPU twin."""
+    from o3d_mvps.model.camera import backproject
+    from o3d_mvps.model.normals import unit_normals
+
+    grid, z, K, poses, images, visible, albedo, lights, offset, prior, D, S, S_matrix = _level_data(led)
+    usable_ref, residual_ref, color_ref, basis_ref = _array_formulas(grid, z, K, poses, images, visible, albedo,
+                                                                     lights, offset, led)
+    normals_ref, dA_ref = unit_normals(grid, z, K)
+    tau, mu, scale = 3.0, 0.5, 1.0 / LAM
+    d = prior.D @ z - prior.z0
+    prior_ref = tau * (d @ d) + mu * np.sum((S_matrix @ z) ** 2)
+    grid_arrays = [np.ascontiguousarray(a) for a in (grid.u, grid.v, grid.fwd_u, grid.bwd_u, grid.wf_u, grid.wb_u,
+                                                        grid.fwd_v, grid.bwd_v, grid.wf_v, grid.wb_v)]
+    n, N = visible.shape
+    nan = lambda *shape, dtype=np.float64: np.full(shape, np.nan, dtype)  # noqa: E731
+    cpu, gpu = run_both("evaluate_partials", z, *grid_arrays, K, poses, images, visible, albedo, lights, led, *offset,
+                        scale, True, *D, prior.z0, *S, tau, mu, nan(N, 3), nan(N, 3), nan(N),
+                        nan(n, N, 3, dtype=np.float32), np.zeros((n, N), bool),
+                        nan(*basis_ref.shape, dtype=np.float32), nan(n, N, dtype=np.float32),
+                        nan(n, N, 3, dtype=np.float32), nan(3, 2))
+    for out in (cpu, gpu):
+        points, normals, dA, color, usable, basis, shading, residual, partial = out[-9:]
+        assert_close(points, backproject(z, K, grid.u.astype(np.float64), grid.v.astype(np.float64)))
+        assert_close(normals, normals_ref)
+        assert_close(dA, dA_ref)
+        np.testing.assert_array_equal(color, color_ref)
+        np.testing.assert_array_equal(usable, usable_ref)
+        assert_close(basis, basis_ref, rtol=1e-6)  # float32 of float64 values equal to round-off
+        assert_close(residual, residual_ref, rtol=1e-6)
+        assert partial[:, 1].sum() == pytest.approx(prior_ref, rel=1e-12)
+        assert partial[:, 0].sum() == pytest.approx(kernels.log1p_square_sum(residual_ref.ravel(), scale), rel=1e-6)
+    for a, b in zip(cpu[-9:-1], gpu[-9:-1]):
+        np.testing.assert_array_equal(a, b) if a.dtype == bool else assert_close(b, a)
+
+
+def test_led_shading_jacobians_match_cpu():
+    points = RNG.normal(size=(N_PIXELS, 3)) * 0.05 + [0.0, 0.0, 0.6]
+    normals = RNG.normal(size=(N_PIXELS, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    rotations = np.stack([np.eye(3), POSE[:3, :3], POSE[:3, :3].T, POSE[:3, :3] @ POSE[:3, :3]])
+    cpu, gpu = run_both("led_shading_jacobians_into", RNG.random(4) + 0.1, normals, points,
+                        RNG.normal(size=(4, 3)) * 0.05, rotations, np.array([0.03, -0.02, 0.01]),
+                        np.full((4, N_PIXELS, 6), np.nan))
+    assert np.isfinite(cpu[-1]).all() and (cpu[-1] == 0).any() and (cpu[-1] != 0).any()  # lit and unlit points
+    assert_close(gpu[-1], cpu[-1])

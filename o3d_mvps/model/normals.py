@@ -165,7 +165,7 @@ def unit_normals(grid: MaskedGrid, z: np.ndarray, K: np.ndarray) -> tuple[np.nda
 
 @numba.njit(inline="always")
 def unit_normal_at(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, p):  # pragma: no cover - compiled
-    """:func:`unit_normals` of pixel p, (n_x, n_y, n_z): the grid's differences (its arrays, as
+    """:func:`unit_normals` of pixel p, (n_x, n_y, n_z, dA): the grid's differences (its arrays, as
     :meth:`MaskedGrid.gradient` forms them) and :func:`_normal_components` on one pixel, for the
     compiled loops over frames and pixels (a CUDA kernel computes each pixel's normal from z
     where the array form takes six launches)."""
@@ -178,7 +178,7 @@ def unit_normal_at(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, 
     dA = math.sqrt(nx * nx + ny * ny + nz * nz)
     if dA < 1e-12:
         dA = 1e-12
-    return nx / dA, ny / dA, nz / dA
+    return nx / dA, ny / dA, nz / dA, dA
 
 
 @fused

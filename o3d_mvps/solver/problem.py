@@ -146,6 +146,7 @@ class LevelProblem:
         self.device_K = like(level.K, level.grid.u)
         self._no_frames = None  # on a GPU: empty frames x pixels arrays, for the prior's energy alone
         self._grid_arrays = None  # on a GPU: the grid's per-pixel arrays, C-contiguous, for the kernels
+        self._packed = None  # on a GPU: (host, device) copies of the last poses and lights, flattened together
 
     def pixel_prolongations(self) -> list:
         """The level's pixel aggregation for the GPU path's multigrid (:func:`.krylov.pixel_prolongations`),
@@ -273,34 +274,84 @@ class LevelProblem:
         data, prior_sum = to_host(partial).sum(axis=0)
         return 0.5 * self.lam * self.lam * float(data), float(prior_sum) if prior is None else prior
 
-    def _one_pass_energy(self, est: Estimate, prior: float | None):
-        """:meth:`energy` on a GPU in one launch (:func:`.kernels.energy_partials`: every frame's
-        warp, normals, shading and robust terms, and the prior) and two copies (the poses and
-        lights over, the partial sums back), or None where that kernel does not apply (a light
-        model it does not know, a static camera's shared samples, frames not in one stack)."""
+    def _one_pass_light(self, est: Estimate):
+        """(led, offset) for the one-pass kernels (:func:`.kernels.energy_partials`,
+        :func:`.kernels.evaluate_partials`): whether ``est``'s light model is the LED (else SH or
+        room light) and the LED's offset (3,) metres; None where they do not apply (another light
+        model, a static camera's shared samples, frames not in one stack)."""
         light = self.light_model(est)
         led = type(light) is LEDLight
         if not (led or type(light) in (SHLight, RoomLight)) or self.level.image_stack is None or (
                 self._static_samples is not None and self._identity(est)):
             return None
-        n, N = self.n_frames, self.level.grid.size
-        xp, g = array_module(est.z), self.level.grid
+        return led, (tuple(float(o) for o in light.offset) if led else (0.0, 0.0, 0.0))
+
+    def _grid_and_views(self, est: Estimate) -> tuple:
+        """The one-pass kernels' arguments from z to the lights: z, the grid's arrays (made
+        C-contiguous once per level), K, the poses (n, 4, 4), images, visibility, albedo and
+        lights (n, k) float64 (the poses and lights copied over together, and only where they
+        differ from the last ones copied: :meth:`_device_poses_lights`)."""
+        g = self.level.grid
         if self._grid_arrays is None:  # once per level
+            xp = array_module(est.z)
             self._grid_arrays = tuple(xp.ascontiguousarray(a) for a in (g.u, g.v, g.fwd_u, g.bwd_u, g.wf_u, g.wb_u,
                                                                          g.fwd_v, g.bwd_v, g.wf_v, g.wb_v))
-        k = est.lights.shape[1]
-        packed = like(np.concatenate([np.asarray(to_host(est.poses), np.float64).reshape(-1),
-                                      np.asarray(to_host(est.lights), np.float64).reshape(-1)]), est.z)
-        poses, lights = packed[:16 * n].reshape(n, 4, 4), packed[16 * n:].reshape(n, k)
+        poses, lights = self._device_poses_lights(est)
+        return (est.z, *self._grid_arrays, self.device_K, poses, self.level.image_stack, self.visibility, est.albedo,
+                lights)
+
+    def _device_poses_lights(self, est: Estimate) -> tuple:
+        """``est``'s poses (n, 4, 4) and lights (n, k), float64, on the GPU: one copy of both, none
+        where they equal the last ones copied (views of one device array, never written)."""
+        host = np.concatenate([np.asarray(to_host(est.poses), np.float64).reshape(-1),
+                               np.asarray(to_host(est.lights), np.float64).reshape(-1)])
+        if self._packed is None or not np.array_equal(self._packed[0], host):
+            self._packed = (host, like(host, est.z))
+        n, packed = self.n_frames, self._packed[1]
+        return packed[:16 * n].reshape(n, 4, 4), packed[16 * n:].reshape(n, -1)
+
+    def _one_pass_energy(self, est: Estimate, prior: float | None):
+        """:meth:`energy` on a GPU in one launch (:func:`.kernels.energy_partials`: every frame's
+        warp, normals, shading and robust terms, and the prior) and one or two copies (the poses
+        and lights over where they changed, the partial sums back), or None where that kernel
+        does not apply (:meth:`_one_pass_light`)."""
+        chosen = self._one_pass_light(est)
+        if chosen is None:
+            return None
+        led, offset = chosen
+        n, N = self.n_frames, self.level.grid.size
+        xp = array_module(est.z)
         usable = xp.empty((n, N), dtype=bool)
         partial = xp.empty((energy_blocks(n * N + self.level.prior.rows), 2))
-        offset = light.offset if led else (0.0, 0.0, 0.0)
-        kernels_for(est.z).energy_partials(est.z, *self._grid_arrays, self.device_K, poses, self.level.image_stack, self.visibility,
-                                           est.albedo, lights, led, *offset, 1.0 / self.lam,
+        kernels_for(est.z).energy_partials(*self._grid_and_views(est), led, *offset, 1.0 / self.lam,
                                            self.residual_dtype == np.float32, *self._prior_arrays(prior is None),
                                            usable, partial)
         data, prior_sum = to_host(partial).sum(axis=0)
         return 0.5 * self.lam * self.lam * float(data) + (float(prior_sum) if prior is None else prior), usable
+
+    def _one_pass_evaluation(self, est: Estimate):
+        """:meth:`evaluate` on a GPU in one launch (:func:`.kernels.evaluate_partials`: the points,
+        normals, warped samples, bases, shading, residuals, data and prior energy) and one or two
+        copies, or None where that kernel does not apply (:meth:`_one_pass_light`). The points are
+        kept for :meth:`points` of this z."""
+        chosen = self._one_pass_light(est)
+        if chosen is None:
+            return None
+        led, offset = chosen
+        n, N, dtype = self.n_frames, self.level.grid.size, self.residual_dtype
+        xp = array_module(est.z)
+        points, normals, dA = xp.empty((N, 3)), xp.empty((N, 3)), xp.empty(N)
+        color, usable = xp.empty((n, N, 3), dtype=np.float32), xp.empty((n, N), dtype=bool)
+        basis = xp.empty((n, N, 2) if led else (1, N, 4), dtype=dtype)
+        shading, residual = xp.empty((n, N), dtype=dtype), xp.empty((n, N, 3), dtype=dtype)
+        partial = xp.empty((energy_blocks(n * N + self.level.prior.rows), 2))
+        kernels_for(est.z).evaluate_partials(*self._grid_and_views(est), led, *offset, 1.0 / self.lam,
+                                             dtype == np.float32, *self._prior_arrays(True), points, normals, dA,
+                                             color, usable, basis, shading, residual, partial)
+        data, prior = to_host(partial).sum(axis=0)
+        self._last_points = (est.z, points)
+        return Evaluation(residual, usable, color, shading, normals, dA, basis, 0.5 * self.lam * self.lam * float(data),
+                          float(prior))
 
     def light_model(self, est: Estimate):
         """The level's light model at the estimate's LED offset (its own where the estimate has none)."""
@@ -321,9 +372,13 @@ class LevelProblem:
         camera) each reference pixel sees its own pixel in every frame, whatever z: the frames
         are sampled once per visibility and the samples shared (read-only) by the evaluations."""
         n, N = self.n_frames, self.level.grid.size
+        identity = self._identity(est)
+        if array_module(est.z) is not np and not identity:  # one launch on a GPU
+            found = self._one_pass_evaluation(est)
+            if found is not None:
+                return found
         P = self.points(est.z)
         xp = array_module(P)
-        identity = self._identity(est)
         if identity and self._static_samples is not None:
             return self.evaluate_samples(est, *self._static_samples, *self.normals(est.z))
         color = xp.empty((n, N, 3), dtype=np.float32)  # sampled from float32 images
@@ -402,11 +457,12 @@ class LevelProblem:
             shading, residual = xp.empty((n, N), self.residual_dtype), xp.empty((n, N, 3), self.residual_dtype)
         else:
             shading, residual = reuse.shading, reuse.residual
-        lights = like(est.lights, color, dtype=np.float64)
         if xp is not np:  # residuals, data and prior energy in one launch (and one copy)
+            lights = self._device_poses_lights(est)[1]
             data, prior = self._device_sums(est.z, (color, est.albedo, basis, lights, usable, shading, residual), prior)
             return Evaluation(residual, usable, color, shading, normals, dA, basis, data, prior)
-        kernels.shading_residuals(color, est.albedo, basis, lights, usable, shading, residual)
+        kernels.shading_residuals(color, est.albedo, basis, like(est.lights, color, dtype=np.float64), usable, shading,
+                                  residual)
         data = cauchy_energy(residual, self.lam, kernels.log1p_square_sum)
         return Evaluation(residual, usable, color, shading, normals, dA, basis, data,
                           self.prior_energy(est.z) if prior is None else prior)
