@@ -72,7 +72,8 @@ class MaskedGrid:
         """This grid with its per-pixel arrays and difference operators on ``device`` (a
         :class:`~o3d_mvps.solver.device.ArrayDevice`); ``mask`` and ``index`` stay on the host, so
         :meth:`gather` and :meth:`scatter` take host arrays."""
-        moved = dataclasses.replace(self, **{f.name: device.asarray(getattr(self, f.name))
+        # C-contiguous (np.nonzero's u, v are strided views) for the kernels that take them
+        moved = dataclasses.replace(self, **{f.name: device.asarray(np.ascontiguousarray(getattr(self, f.name)))
                                              for f in dataclasses.fields(self) if f.name not in ("mask", "index")})
         # cached_property writes the instance dict, also of a frozen dataclass
         moved.__dict__["_difference_operators"] = tuple(map(device.sparse_matrix, self.difference_operators()))

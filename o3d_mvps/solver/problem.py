@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..model.arrays import array_module, like
+from ..model.arrays import array_module, contiguous, like
 from ..model.camera import backproject
 from ..model.normals import unit_normals
 from ..model.robust import cauchy_energy
@@ -292,10 +292,9 @@ class LevelProblem:
         lights (n, k) float64 (the poses and lights copied over together, and only where they
         differ from the last ones copied: :meth:`_device_poses_lights`)."""
         g = self.level.grid
-        if self._grid_arrays is None:  # once per level
-            xp = array_module(est.z)
-            self._grid_arrays = tuple(xp.ascontiguousarray(a) for a in (g.u, g.v, g.fwd_u, g.bwd_u, g.wf_u, g.wb_u,
-                                                                         g.fwd_v, g.bwd_v, g.wf_v, g.wb_v))
+        if self._grid_arrays is None:  # once per level (no launch: the device's grid is contiguous)
+            self._grid_arrays = tuple(contiguous(a) for a in (g.u, g.v, g.fwd_u, g.bwd_u, g.wf_u, g.wb_u, g.fwd_v,
+                                                              g.bwd_v, g.wf_v, g.wb_v))
         poses, lights = self._device_poses_lights(est)
         return (est.z, *self._grid_arrays, self.device_K, poses, self.level.image_stack, self.visibility, est.albedo,
                 lights)
