@@ -69,6 +69,24 @@ SIGNATURES = {
     "_ridge_solves": (_F3, _F3, types.float64, types.float64, _F3, _F3, _F1),
     "_led_trial_partials": (_COLOR, _array(2, types.boolean), _F2, _F2, _F2, _F3, _F1, _F3, _F3, _F2,
                             types.float64, types.boolean, _F2),
+    # the data term's evaluation in one launch (gpueval): the grid's int64 pixels and neighbours,
+    # the prior's int32 CSR arrays
+    "_energy_partials": (_F1, *(_array(1, types.int64),) * 4, _F1, _F1, _array(1, types.int64),
+                         _array(1, types.int64), _F1, _F1, _F2, _F3, _array(4, types.float32),
+                         _array(2, types.boolean), _F2, _F2, types.boolean, *(types.float64,) * 4, types.boolean,
+                         _array(1, types.int32), _array(1, types.int32), _F1, _F1, _array(1, types.int32),
+                         _array(1, types.int32), _F1, types.float64, types.float64, _array(2, types.boolean), _F2),
+    "_evaluation_partials": (_COLOR, _F2, _R3, _F2, _array(2, types.boolean), _R2, _R3, types.float64,
+                             _array(1, types.int32), _array(1, types.int32), _F1, _F1, _array(1, types.int32),
+                             _array(1, types.int32), _F1, types.float64, types.float64, _F1, _F2),
+    "_led_fields_into": (_F1, _F2, _F2, _F2, _F3),
+    "_led_shading_jacobians_into": (_F1, _F2, _F2, _F2, _F3, _F1, _F3),
+    "_evaluate_partials": (_F1, *(_array(1, types.int64),) * 4, _F1, _F1, _array(1, types.int64),
+                           _array(1, types.int64), _F1, _F1, _F2, _F3, _array(4, types.float32),
+                           _array(2, types.boolean), _F2, _F2, types.boolean, *(types.float64,) * 4, types.boolean,
+                           _array(1, types.int32), _array(1, types.int32), _F1, _F1, _array(1, types.int32),
+                           _array(1, types.int32), _F1, types.float64, types.float64, _F2, _F2, _F1, _COLOR,
+                           _array(2, types.boolean), _R3, _R2, _R3, _F2),
 }
 
 

@@ -596,3 +596,166 @@ def test_twist_inverse_matches_numpy_and_cpu():
     cpu, _ = run_both("twist_inverse", S, -np.eye(K)[None], b, 1e-12, np.zeros((1, K, K)), np.zeros((1, K, K)),
                       np.zeros(K), np.zeros(1))
     assert cpu[7][0] == 1.0 and np.isclose(cpu[5][0][-1, -1], -1e12)
+
+
+# --- the data term's evaluation in one launch (gpueval) -----------------------------------------
+def _level_data(led: bool):
+    """A small level: a masked grid, z (N,), K, 3 frames (poses, float32 images, visibility),
+    albedo, lights (n, 2 or 4), the LED's offset, a block-average D with z0 and second
+    differences S (int32 CSR, as on a GPU)."""
+    from o3d_mvps.model.normals import masked_grid
+    from o3d_mvps.solver.pyramid import depth_prior
+    from o3d_mvps.solver.smoothness import second_differences
+
+    H, W = 24, 32
+    yy, xx = np.mgrid[0:H, 0:W]
+    grid = masked_grid(((yy - 11.5) ** 2 / 100 + (xx - 15.5) ** 2 / 196) < 1.0)
+    rng = np.random.default_rng(5)
+    z = 0.6 + 0.01 * np.sin(grid.u / 3.0) + 0.004 * grid.v / H + rng.normal(size=grid.size) * 1e-4
+    K = np.array([[40.0, 0.0, 15.5], [0.0, 40.0, 11.5], [0.0, 0.0, 1.0]])
+    poses = np.stack([np.eye(4), POSE, POSE @ POSE])
+    images = rng.random((3, H, W, 3)).astype(np.float32)
+    visible = rng.random((3, grid.size)) > 0.1
+    albedo = rng.random((grid.size, 3))
+    lights = np.stack([[0.2, 0.36]] * 3) * [1.0, 1.0 + rng.random()] if led else rng.normal(size=(3, 4)) * 0.5
+    prior = depth_prior(grid, rng.random((H // 2, W // 2)) * 0.01 + 0.6, 2.0)
+    csr = lambda A: (A.indptr.astype(np.int32), A.indices.astype(np.int32), A.data)  # noqa: E731
+    S = second_differences(grid)
+    return grid, z, K, poses, images, visible, albedo, lights, (0.03, -0.02, 0.0), prior, csr(prior.D), csr(S), S
+
+
+def _array_formulas(grid, z, K, poses, images, visible, albedo, lights, offset, led):
+    """The CPU path's evaluation of the same level by its array functions: usable (n, N) and the
+    float32 residuals (n, N, 3)."""
+    from o3d_mvps.model.camera import backproject
+    from o3d_mvps.model.normals import unit_normals
+    from o3d_mvps.model.shading import sh_basis
+    from o3d_mvps.solver.lighting import LEDLight
+
+    points = backproject(z, K, grid.u.astype(np.float64), grid.v.astype(np.float64))
+    normals, _ = unit_normals(grid, z, K)
+    n, N = visible.shape
+    color, usable = np.zeros((n, N, 3), np.float32), np.zeros((n, N), bool)
+    kernels.warp_sample_frames(points, poses, K, images, visible, color, usable)
+    basis = (LEDLight(np.array(offset)).bases(normals, points, poses, dtype=np.float32) if led
+             else sh_basis(normals)[None].astype(np.float32))
+    shading, residual = np.zeros((n, N), np.float32), np.zeros((n, N, 3), np.float32)
+    kernels.shading_residuals(color, albedo, basis, lights, usable, shading, residual)
+    return usable, residual, color, basis
+
+
+@pytest.mark.parametrize("led", [True, False])
+def test_energy_partials_match_cpu_and_the_array_formulas(led):
+    """One pass over every frame, pixel and prior row: the CUDA kernel's sums equal its CPU twin's
+    (data 1e-6: the float32 logarithms, the simulator's Python ones in float64; prior 1e-12),
+    which equal the array path's residuals' robust sum and the prior's energy; usable exactly."""
+    grid, z, K, poses, images, visible, albedo, lights, offset, prior, D, S, S_matrix = _level_data(led)
+    usable_ref, residual, *_ = _array_formulas(grid, z, K, poses, images, visible, albedo, lights, offset, led)
+    assert 0 < usable_ref.sum() < usable_ref.size
+    tau, mu, scale = 3.0, 0.5, 1.0 / LAM
+    d = prior.D @ z - prior.z0
+    prior_ref = tau * (d @ d) + mu * np.sum((S_matrix @ z) ** 2)
+    data_ref = kernels.log1p_square_sum(residual.ravel(), scale)
+    grid_arrays = [np.ascontiguousarray(a) for a in (grid.u, grid.v, grid.fwd_u, grid.bwd_u, grid.wf_u, grid.wb_u,
+                                                        grid.fwd_v, grid.bwd_v, grid.wf_v, grid.wb_v)]
+    n, N = visible.shape
+    args = [z, *grid_arrays, K, poses, images, visible, albedo, lights, led, *offset, scale, True, *D, prior.z0, *S,
+            tau, mu, np.zeros((n, N), bool), np.full((3, 2), np.nan)]  # three blocks on the GPU
+    cpu, gpu = run_both("energy_partials", *args)
+    np.testing.assert_array_equal(cpu[-2], usable_ref)
+    np.testing.assert_array_equal(gpu[-2], usable_ref)
+    assert cpu[-1][:, 0].sum() == pytest.approx(data_ref, rel=1e-9)
+    assert cpu[-1][:, 1].sum() == pytest.approx(prior_ref, rel=1e-12)
+    assert gpu[-1][:, 0].sum() == pytest.approx(data_ref, rel=1e-6)
+    assert gpu[-1][:, 1].sum() == pytest.approx(prior_ref, rel=1e-12)
+    # without the prior (tau = mu = 0): the data term alone
+    args[-4:-2] = 0.0, 0.0
+    cpu, gpu = run_both("energy_partials", *args)
+    assert not cpu[-1][:, 1].any() and not gpu[-1][:, 1].any()
+    assert gpu[-1][:, 0].sum() == pytest.approx(data_ref, rel=1e-6)
+
+
+def test_evaluation_partials_match_cpu_and_the_array_formulas():
+    """Residuals and shading as shading_residuals writes them, their robust sum and the prior's
+    energy in one pass, on the CPU and the GPU; on no frames the prior alone."""
+    led = True
+    grid, z, K, poses, images, visible, albedo, lights, offset, prior, D, S, S_matrix = _level_data(led)
+    usable, residual, color, basis = _array_formulas(grid, z, K, poses, images, visible, albedo, lights, offset, led)
+    tau, mu, scale = 3.0, 0.5, 1.0 / LAM
+    d = prior.D @ z - prior.z0
+    prior_ref = tau * (d @ d) + mu * np.sum((S_matrix @ z) ** 2)
+    n, N = usable.shape
+    cpu, gpu = run_both("evaluation_partials", color, albedo, basis, lights, usable,
+                        np.full((n, N), np.nan, np.float32), np.full((n, N, 3), np.nan, np.float32), scale, *D,
+                        prior.z0, *S, tau, mu, z, np.full((2, 2), np.nan))
+    for out in (cpu, gpu):
+        np.testing.assert_array_equal(out[6], residual)
+        assert out[-1][:, 1].sum() == pytest.approx(prior_ref, rel=1e-12)
+    assert cpu[-1][:, 0].sum() == pytest.approx(kernels.log1p_square_sum(residual.ravel(), scale), rel=1e-9)
+    assert gpu[-1][:, 0].sum() == pytest.approx(cpu[-1][:, 0].sum(), rel=1e-6)
+    empty = (np.zeros((0, N, 3), np.float32), albedo, np.zeros((0, N, 2), np.float32), np.zeros((0, 2)),
+             np.zeros((0, N), bool), np.zeros((0, N), np.float32), np.zeros((0, N, 3), np.float32))
+    cpu, gpu = run_both("evaluation_partials", *empty, scale, *D, prior.z0, *S, tau, mu, z, np.full((1, 2), np.nan))
+    for out in (cpu, gpu):
+        assert out[-1][0, 0] == 0.0 and out[-1][0, 1] == pytest.approx(prior_ref, rel=1e-12)
+
+
+def test_led_fields_match_cpu():
+    points = RNG.normal(size=(N_PIXELS, 3)) * 0.05 + [0.0, 0.0, 0.6]
+    normals = RNG.normal(size=(N_PIXELS, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    cpu, gpu = run_both("led_fields_into", RNG.random(4) + 0.1, normals, points, RNG.normal(size=(4, 3)) * 0.05,
+                        np.full((4, N_PIXELS, 3), np.nan))
+    assert np.isfinite(cpu[-1]).all() and (cpu[-1] == 0).any() and (cpu[-1] != 0).any()  # lit and unlit points
+    assert_close(gpu[-1], cpu[-1])
+
+
+@pytest.mark.parametrize("led", [True, False])
+def test_evaluate_partials_match_cpu_and_the_array_formulas(led):
+    """An evaluation in one pass: points, normals, dA, warped colours, usable, bases, shading and
+    float32 residuals as the array functions make them (to round-off; the samples and the masks
+    exactly), and the sums of energy_partials; the CUDA kernel equal to its CPU twin."""
+    from o3d_mvps.model.camera import backproject
+    from o3d_mvps.model.normals import unit_normals
+
+    grid, z, K, poses, images, visible, albedo, lights, offset, prior, D, S, S_matrix = _level_data(led)
+    usable_ref, residual_ref, color_ref, basis_ref = _array_formulas(grid, z, K, poses, images, visible, albedo,
+                                                                     lights, offset, led)
+    normals_ref, dA_ref = unit_normals(grid, z, K)
+    tau, mu, scale = 3.0, 0.5, 1.0 / LAM
+    d = prior.D @ z - prior.z0
+    prior_ref = tau * (d @ d) + mu * np.sum((S_matrix @ z) ** 2)
+    grid_arrays = [np.ascontiguousarray(a) for a in (grid.u, grid.v, grid.fwd_u, grid.bwd_u, grid.wf_u, grid.wb_u,
+                                                        grid.fwd_v, grid.bwd_v, grid.wf_v, grid.wb_v)]
+    n, N = visible.shape
+    nan = lambda *shape, dtype=np.float64: np.full(shape, np.nan, dtype)  # noqa: E731
+    cpu, gpu = run_both("evaluate_partials", z, *grid_arrays, K, poses, images, visible, albedo, lights, led, *offset,
+                        scale, True, *D, prior.z0, *S, tau, mu, nan(N, 3), nan(N, 3), nan(N),
+                        nan(n, N, 3, dtype=np.float32), np.zeros((n, N), bool),
+                        nan(*basis_ref.shape, dtype=np.float32), nan(n, N, dtype=np.float32),
+                        nan(n, N, 3, dtype=np.float32), nan(3, 2))
+    for out in (cpu, gpu):
+        points, normals, dA, color, usable, basis, shading, residual, partial = out[-9:]
+        assert_close(points, backproject(z, K, grid.u.astype(np.float64), grid.v.astype(np.float64)))
+        assert_close(normals, normals_ref)
+        assert_close(dA, dA_ref)
+        np.testing.assert_array_equal(color, color_ref)
+        np.testing.assert_array_equal(usable, usable_ref)
+        assert_close(basis, basis_ref, rtol=1e-6)  # float32 of float64 values equal to round-off
+        assert_close(residual, residual_ref, rtol=1e-6)
+        assert partial[:, 1].sum() == pytest.approx(prior_ref, rel=1e-12)
+        assert partial[:, 0].sum() == pytest.approx(kernels.log1p_square_sum(residual_ref.ravel(), scale), rel=1e-6)
+    for a, b in zip(cpu[-9:-1], gpu[-9:-1]):
+        np.testing.assert_array_equal(a, b) if a.dtype == bool else assert_close(b, a)
+
+
+def test_led_shading_jacobians_match_cpu():
+    points = RNG.normal(size=(N_PIXELS, 3)) * 0.05 + [0.0, 0.0, 0.6]
+    normals = RNG.normal(size=(N_PIXELS, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    rotations = np.stack([np.eye(3), POSE[:3, :3], POSE[:3, :3].T, POSE[:3, :3] @ POSE[:3, :3]])
+    cpu, gpu = run_both("led_shading_jacobians_into", RNG.random(4) + 0.1, normals, points,
+                        RNG.normal(size=(4, 3)) * 0.05, rotations, np.array([0.03, -0.02, 0.01]),
+                        np.full((4, N_PIXELS, 6), np.nan))
+    assert np.isfinite(cpu[-1]).all() and (cpu[-1] == 0).any() and (cpu[-1] != 0).any()  # lit and unlit points
+    assert_close(gpu[-1], cpu[-1])

@@ -14,9 +14,11 @@ off the true poses. ``scheme="forward"`` keeps them for comparison.
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 from functools import cached_property
 
+import numba
 import numpy as np
 import scipy.sparse as sp
 
@@ -70,7 +72,8 @@ class MaskedGrid:
         """This grid with its per-pixel arrays and difference operators on ``device`` (a
         :class:`~o3d_mvps.solver.device.ArrayDevice`); ``mask`` and ``index`` stay on the host, so
         :meth:`gather` and :meth:`scatter` take host arrays."""
-        moved = dataclasses.replace(self, **{f.name: device.asarray(getattr(self, f.name))
+        # C-contiguous (np.nonzero's u, v are strided views) for the kernels that take them
+        moved = dataclasses.replace(self, **{f.name: device.asarray(np.ascontiguousarray(getattr(self, f.name)))
                                              for f in dataclasses.fields(self) if f.name not in ("mask", "index")})
         # cached_property writes the instance dict, also of a frozen dataclass
         moved.__dict__["_difference_operators"] = tuple(map(device.sparse_matrix, self.difference_operators()))
@@ -159,6 +162,24 @@ def unit_normals(grid: MaskedGrid, z: np.ndarray, K: np.ndarray) -> tuple[np.nda
     Du, Dv = grid.difference_operators()
     *n, dA = _unit_normal_components(z, Du @ z, Dv @ z, grid.u, grid.v, K[0, 0], K[1, 1], K[0, 2], K[1, 2])
     return xp.stack(n, axis=-1), dA
+
+
+@numba.njit(inline="always")
+def unit_normal_at(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, p):  # pragma: no cover - compiled
+    """:func:`unit_normals` of pixel p, (n_x, n_y, n_z, dA): the grid's differences (its arrays, as
+    :meth:`MaskedGrid.gradient` forms them) and :func:`_normal_components` on one pixel, for the
+    compiled loops over frames and pixels (a CUDA kernel computes each pixel's normal from z
+    where the array form takes six launches)."""
+    zp = z[p]
+    z_u = wf_u[p] * (z[fwd_u[p]] - zp) + wb_u[p] * (zp - z[bwd_u[p]])
+    z_v = wf_v[p] * (z[fwd_v[p]] - zp) + wb_v[p] * (zp - z[bwd_v[p]])
+    nx = K[0, 0] * z_u
+    ny = K[1, 1] * z_v
+    nz = -zp - (u[p] - K[0, 2]) * z_u - (v[p] - K[1, 2]) * z_v
+    dA = math.sqrt(nx * nx + ny * ny + nz * nz)
+    if dA < 1e-12:
+        dA = 1e-12
+    return nx / dA, ny / dA, nz / dA, dA
 
 
 @fused

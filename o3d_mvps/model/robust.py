@@ -12,7 +12,7 @@ import math
 import numba
 import numpy as np
 
-from .arrays import array_module, contiguous
+from .arrays import array_module, contiguous, fused
 
 
 def cauchy(r: np.ndarray, lam: float) -> np.ndarray:
@@ -25,10 +25,20 @@ def cauchy(r: np.ndarray, lam: float) -> np.ndarray:
 
 
 def cauchy_weights(r: np.ndarray, lam: float) -> np.ndarray:
-    """IRLS weights w(r) = 1 / (1 + r^2 / lam^2), elementwise, in (0, 1] (NumPy or CuPy)."""
+    """IRLS weights w(r) = 1 / (1 + r^2 / lam^2), elementwise, in (0, 1] (NumPy, or CuPy: one
+    fused kernel)."""
+    if array_module(r) is not np:
+        return _cauchy_weights(r, 1.0 / lam)
     out = array_module(r).asarray(np.square(np.multiply(r, 1.0 / lam)))  # 0-d for a scalar r, so out= works
     out += 1.0
     return np.reciprocal(out, out=out)
+
+
+@fused
+def _cauchy_weights(r, inv_lam):
+    """:func:`cauchy_weights` of r with inv_lam = 1 / lam (one kernel on a GPU)."""
+    y = r * inv_lam
+    return 1.0 / (y * y + 1.0)
 
 
 def cauchy_energy(r: np.ndarray, lam: float, kernel=None) -> float:

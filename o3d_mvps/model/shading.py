@@ -72,11 +72,19 @@ def led_irradiance(normals, points, positions, i, p):  # pragma: no cover - comp
 @numba.njit(inline="always")
 def led_irradiance_at(normals, points, s0, s1, s2, p):  # pragma: no cover - compiled
     """<n, v> of point p under a light at (s0, s1, s2): :func:`led_irradiance` of one position."""
-    d0 = s0 - points[p, 0]
-    d1 = s1 - points[p, 1]
-    d2 = s2 - points[p, 2]
+    return led_irradiance_of(normals[p, 0], normals[p, 1], normals[p, 2], points[p, 0], points[p, 1], points[p, 2],
+                             s0, s1, s2)
+
+
+@numba.njit(inline="always")
+def led_irradiance_of(n0, n1, n2, x0, x1, x2, s0, s1, s2):  # pragma: no cover - compiled
+    """<n, v> of the unit normal n = (n0, n1, n2) at the point x = (x0, x1, x2) under a light at
+    s = (s0, s1, s2), metres: ``v = (s - x) / |s - x|^3`` (:func:`led_vectors`), unclamped."""
+    d0 = s0 - x0
+    d1 = s1 - x1
+    d2 = s2 - x2
     r2 = d0 * d0 + d1 * d1 + d2 * d2
-    return (normals[p, 0] * d0 + normals[p, 1] * d1 + normals[p, 2] * d2) / (r2 * math.sqrt(r2))
+    return (n0 * d0 + n1 * d1 + n2 * d2) / (r2 * math.sqrt(r2))
 
 
 @numba.njit(inline="always")
@@ -139,16 +147,23 @@ def led_fields_into(intensities, normals, points, positions, out):  # pragma: no
     for k in numba.prange(-(-N // FRAME_CHUNK)):  # chunks of pixels, a frame at a time
         for i in range(positions.shape[0]):
             for p in range(k * FRAME_CHUNK, min(N, (k + 1) * FRAME_CHUNK)):
-                d0 = positions[i, 0] - points[p, 0]
-                d1 = positions[i, 1] - points[p, 1]
-                d2 = positions[i, 2] - points[p, 2]
-                r2 = dot3(d0, d1, d2, d0, d1, d2)
-                r3 = r2 * math.sqrt(r2)
-                v0, v1, v2 = d0 / r3, d1 / r3, d2 / r3
-                lit = intensities[i] if dot3(normals[p, 0], normals[p, 1], normals[p, 2], v0, v1, v2) > 0 else 0.0
-                out[i, p, 0] = v0 * lit
-                out[i, p, 1] = v1 * lit
-                out[i, p, 2] = v2 * lit
+                led_field(intensities, normals, points, positions, out, i, p)
+
+
+@numba.njit(inline="always")
+def led_field(intensities, normals, points, positions, out, i, p):  # pragma: no cover - compiled
+    """:func:`led_fields_into`'s element: out[i, p] (3,) for light i and point p (the CUDA twin
+    in :mod:`o3d_mvps.solver.cuda_kernels` calls it too)."""
+    d0 = positions[i, 0] - points[p, 0]
+    d1 = positions[i, 1] - points[p, 1]
+    d2 = positions[i, 2] - points[p, 2]
+    r2 = dot3(d0, d1, d2, d0, d1, d2)
+    r3 = r2 * math.sqrt(r2)
+    v0, v1, v2 = d0 / r3, d1 / r3, d2 / r3
+    lit = intensities[i] if dot3(normals[p, 0], normals[p, 1], normals[p, 2], v0, v1, v2) > 0 else 0.0
+    out[i, p, 0] = v0 * lit
+    out[i, p, 1] = v1 * lit
+    out[i, p, 2] = v2 * lit
 
 
 @numba.njit(inline="always")

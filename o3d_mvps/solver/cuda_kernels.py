@@ -28,7 +28,7 @@ import numpy as np
 from numba import cuda
 
 from ..model.robust import log1p_square_term
-from ..model.shading import led_irradiance, led_point_gradient
+from ..model.shading import led_field, led_irradiance, led_point_gradient
 from . import kernels
 
 #: the launchers, the same in :mod:`.kernels` (chunk_count is the size of accumulate_frame's partial sums)
@@ -711,3 +711,142 @@ def twist_inverse(hessian, selection, rhs, fallback, L, X, Xb, solved) -> None:
     """:func:`.kernels.twist_inverse` on the GPU: one launch of one block (thread 0 factors, the
     block's threads take the columns' substitutions, then Xb's rows)."""
     _twist_inverse[1, THREADS_PER_BLOCK](hessian, selection, rhs, float(fallback), L, X, Xb, solved)
+
+
+# --- the data term's evaluation in one launch (gpueval, issue #33) -----------------------------
+# :func:`.kernels.energy_partials` and :func:`.kernels.evaluation_partials` on the GPU: every
+# frame and pixel and the prior's rows of a level in one launch, one block per row of the
+# partial sums (each thread a strided share of the frames' pixels, then of the prior's rows; the
+# block adds its threads' sums in shared memory, a tree in a fixed order). The host reads the
+# partial sums (one copy) and adds them.
+
+_energy_term = _device(kernels.energy_term)
+_evaluation_term = _device(kernels.evaluation_term)
+_prior_term = _device(kernels.prior_term)
+_prior_rows = _device(kernels.prior_rows)
+_led_field = _device(led_field)
+_evaluate_pixel = _device(kernels.evaluate_pixel)
+_led_shading_jacobian = _device(kernels.led_shading_jacobian)
+__all__ += ["energy_partials", "evaluation_partials", "led_fields_into", "evaluate_partials",
+            "led_shading_jacobians_into"]
+
+
+@cuda.jit(cache=True)
+def _energy_partials(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images, visible, albedo,
+                     lights, led, o0, o1, o2, scale, single, D_indptr, D_indices, D_data, z0, S_indptr, S_indices,
+                     S_data, tau, mu, usable, partial):  # pragma: no cover - device
+    share = cuda.shared.array((THREADS_PER_BLOCK, 2), numba.float64)
+    t = cuda.threadIdx.x
+    n, N = visible.shape
+    data = 0.0
+    for index in range(cuda.grid(1), n * N, cuda.gridsize(1)):
+        data += _energy_term(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images, visible,
+                             albedo, lights, led, o0, o1, o2, scale, single, usable, index // N, index % N)
+    prior = 0.0
+    for row in range(cuda.grid(1), _prior_rows(z0, S_indptr, tau, mu), cuda.gridsize(1)):
+        prior += _prior_term(D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data, tau, mu, z, row)
+    _block_tree_sum2(share, t, data, prior)
+    if t == 0:
+        partial[cuda.blockIdx.x, 0] = share[0, 0]
+        partial[cuda.blockIdx.x, 1] = share[0, 1]
+
+
+def energy_partials(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images, visible, albedo,
+                    lights, led, o0, o1, o2, scale, single, D_indptr, D_indices, D_data, z0, S_indptr, S_indices,
+                    S_data, tau, mu, usable, partial) -> None:
+    """:func:`.kernels.energy_partials` on the GPU: one launch of partial.shape[0] blocks."""
+    _energy_partials[partial.shape[0], THREADS_PER_BLOCK](
+        z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images, visible, albedo, lights,
+        bool(led), float(o0), float(o1), float(o2), float(scale), bool(single), D_indptr, D_indices, D_data, z0,
+        S_indptr, S_indices, S_data, float(tau), float(mu), usable, partial)
+
+
+@cuda.jit(cache=True)
+def _evaluation_partials(color, albedo, basis, lights, usable, shading, residual, scale, D_indptr, D_indices, D_data,
+                         z0, S_indptr, S_indices, S_data, tau, mu, z, partial):  # pragma: no cover - device
+    share = cuda.shared.array((THREADS_PER_BLOCK, 2), numba.float64)
+    t = cuda.threadIdx.x
+    n, N = usable.shape
+    data = 0.0
+    for index in range(cuda.grid(1), n * N, cuda.gridsize(1)):
+        data += _evaluation_term(color, albedo, basis, lights, usable, shading, residual, scale, index // N,
+                                 index % N)
+    prior = 0.0
+    for row in range(cuda.grid(1), _prior_rows(z0, S_indptr, tau, mu), cuda.gridsize(1)):
+        prior += _prior_term(D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data, tau, mu, z, row)
+    _block_tree_sum2(share, t, data, prior)
+    if t == 0:
+        partial[cuda.blockIdx.x, 0] = share[0, 0]
+        partial[cuda.blockIdx.x, 1] = share[0, 1]
+
+
+def evaluation_partials(color, albedo, basis, lights, usable, shading, residual, scale, D_indptr, D_indices, D_data,
+                        z0, S_indptr, S_indices, S_data, tau, mu, z, partial) -> None:
+    """:func:`.kernels.evaluation_partials` on the GPU: one launch of partial.shape[0] blocks."""
+    _evaluation_partials[partial.shape[0], THREADS_PER_BLOCK](
+        color, albedo, basis, lights, usable, shading, residual, float(scale), D_indptr, D_indices, D_data, z0,
+        S_indptr, S_indices, S_data, float(tau), float(mu), z, partial)
+
+
+@cuda.jit(cache=True)
+def _led_fields_into(intensities, normals, points, positions, out):  # pragma: no cover - device
+    index = cuda.grid(1)
+    N = points.shape[0]
+    if index < positions.shape[0] * N:
+        _led_field(intensities, normals, points, positions, out, index // N, index % N)
+
+
+def led_fields_into(intensities, normals, points, positions, out) -> None:
+    """:func:`o3d_mvps.model.shading.led_fields_into` on the GPU: out (m, N, 3), the lit LED
+    fields ``I_i v_i`` of float64 normals, points (N, 3) under light positions (m, 3) with
+    intensities (m,); one thread per light and point."""
+    _led_fields_into[_blocks(positions.shape[0] * points.shape[0]), THREADS_PER_BLOCK](
+        intensities, normals, points, positions, out)
+
+
+@cuda.jit(cache=True)
+def _evaluate_partials(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images, visible, albedo,
+                       lights, led, o0, o1, o2, scale, single, D_indptr, D_indices, D_data, z0, S_indptr, S_indices,
+                       S_data, tau, mu, points, normals, dA, color, usable, basis, shading, residual,
+                       partial):  # pragma: no cover - device
+    share = cuda.shared.array((THREADS_PER_BLOCK, 2), numba.float64)
+    t = cuda.threadIdx.x
+    n, N = visible.shape
+    data = 0.0
+    for index in range(cuda.grid(1), n * N, cuda.gridsize(1)):
+        data += _evaluate_pixel(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images,
+                                visible, albedo, lights, led, o0, o1, o2, scale, single, points, normals, dA, color,
+                                usable, basis, shading, residual, index // N, index % N)
+    prior = 0.0
+    for row in range(cuda.grid(1), _prior_rows(z0, S_indptr, tau, mu), cuda.gridsize(1)):
+        prior += _prior_term(D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data, tau, mu, z, row)
+    _block_tree_sum2(share, t, data, prior)
+    if t == 0:
+        partial[cuda.blockIdx.x, 0] = share[0, 0]
+        partial[cuda.blockIdx.x, 1] = share[0, 1]
+
+
+def evaluate_partials(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images, visible, albedo,
+                      lights, led, o0, o1, o2, scale, single, D_indptr, D_indices, D_data, z0, S_indptr, S_indices,
+                      S_data, tau, mu, points, normals, dA, color, usable, basis, shading, residual, partial) -> None:
+    """:func:`.kernels.evaluate_partials` on the GPU: one launch of partial.shape[0] blocks."""
+    _evaluate_partials[partial.shape[0], THREADS_PER_BLOCK](
+        z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images, visible, albedo, lights,
+        bool(led), float(o0), float(o1), float(o2), float(scale), bool(single), D_indptr, D_indices, D_data, z0,
+        S_indptr, S_indices, S_data, float(tau), float(mu), points, normals, dA, color, usable, basis, shading,
+        residual, partial)
+
+
+@cuda.jit(cache=True)
+def _led_shading_jacobians_into(intensities, normals, points, positions, rotations, offset,
+                                out):  # pragma: no cover - device
+    index = cuda.grid(1)
+    N = points.shape[0]
+    if index < positions.shape[0] * N:
+        _led_shading_jacobian(intensities, normals, points, positions, rotations, offset, out, index // N, index % N)
+
+
+def led_shading_jacobians_into(intensities, normals, points, positions, rotations, offset, out) -> None:
+    """:func:`.kernels.led_shading_jacobians_into` on the GPU: one thread per light and point."""
+    _led_shading_jacobians_into[_blocks(positions.shape[0] * points.shape[0]), THREADS_PER_BLOCK](
+        intensities, normals, points, positions, rotations, offset, out)

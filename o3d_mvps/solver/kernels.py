@@ -23,8 +23,9 @@ import numba
 import numpy as np
 
 from ..model.robust import log1p_square_sum, log1p_square_term  # noqa: F401 - log1p_square_sum re-exported: the same names as .cuda_kernels
-from ..model.shading import (FRAME_CHUNK, led_irradiance_at, led_irradiances_into,  # noqa: F401
-                             led_point_gradients_into, led_position)
+from ..model.normals import unit_normal_at
+from ..model.shading import (FRAME_CHUNK, led_fields_into, led_irradiance_at, led_irradiance_of,  # noqa: F401
+                             led_irradiances_into, led_point_gradient, led_point_gradients_into, led_position)
 
 # OpenMP first: the TBB that Open3D's wheels may put on the path can be too old for numba,
 # which then warns on every first parallel call.
@@ -1479,3 +1480,302 @@ def twist_inverse(hessian, selection, rhs, fallback, L, X, Xb, solved):  # pragm
     ridge_solve_system(hessian, selection, 0.0, fallback, L, X, solved, 0)
     for j in range(Xb.shape[0]):
         matrix_vector_row(X, rhs, Xb, j)
+
+
+# --- the data term's evaluation in one pass (gpueval, issue #33) -------------------------------
+# The energy of a level (data and prior) and an evaluation's residuals from one launch each on a
+# GPU: every frame and pixel (backprojection, normal, warp and sample, light basis, residuals,
+# robust terms) and the prior's rows in one kernel, which leaves per-block partial sums; the host
+# reads those (one copy). The CPU's solver keeps its own path (:meth:`.LevelProblem.energy`);
+# these loops are the CUDA kernels' twins (their tests, the launch counts).
+
+#: most rows of the partial sums of :func:`energy_partials` and :func:`evaluation_partials`
+#: (the CUDA kernels' blocks): a few per multiprocessor, one small copy to the host
+ENERGY_BLOCKS = 1024
+
+#: items (frame pixels or prior rows) per thread at the least, below :data:`ENERGY_BLOCKS`
+ENERGY_ITEMS_PER_THREAD = 16
+
+
+def energy_blocks(items: int) -> int:
+    """Rows of the partial sums (the CUDA kernels' blocks of 128 threads) for ``items`` terms
+    (not a launch)."""
+    return max(1, min(ENERGY_BLOCKS, -(-items // (128 * ENERGY_ITEMS_PER_THREAD))))
+
+
+@numba.njit(inline="always")
+def prior_rows(z0, S_indptr, tau, mu):  # pragma: no cover - compiled
+    """Rows of the prior that :func:`prior_term` sums: D's (z0's) where tau != 0, then S's where
+    mu != 0 (tau = mu = 0: none, for an energy whose prior the caller has)."""
+    rows = z0.shape[0] if tau != 0.0 else 0
+    return rows + (S_indptr.shape[0] - 1 if mu != 0.0 else 0)
+
+
+@numba.njit(inline="always")
+def prior_term(D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data, tau, mu, z, row):  # pragma: no cover
+    """Row ``row`` of :func:`prior_rows`' count: ``tau (D z - z0)_row^2``, then past D's rows (or
+    from the first where tau = 0) ``mu (S z)_k^2`` (:meth:`.pyramid.DepthPrior.energy`)."""
+    M = z0.shape[0] if tau != 0.0 else 0
+    if row < M:
+        d = csr_row_dot(D_indptr, D_indices, D_data, z, row) - z0[row]
+        return tau * (d * d)
+    s = csr_row_dot(S_indptr, S_indices, S_data, z, row - M)
+    return mu * (s * s)
+
+
+@numba.njit(inline="always")
+def pixel_view(z, u, v, K, poses, images, visible, i, p):  # pragma: no cover - compiled
+    """The reference point (x, y, z) of depth z at pixel p (:func:`~o3d_mvps.model.camera.backproject`),
+    its pixel (uu, vv) in frame i and whether frame i sees it there (:func:`warp_sample_pixel`'s
+    test): (x, y, z, uu, vv, usable)."""
+    zp = z[p]
+    x = (u[p] - K[0, 2]) / K[0, 0] * zp
+    y = (v[p] - K[1, 2]) / K[1, 1] * zp
+    _, _, Z, uu, vv = project_point(poses[i], K, x, y, zp)
+    H, W = images.shape[1], images.shape[2]
+    use = visible[i, p] and Z > 1e-6 and uu >= 0.0 and uu <= W - 1.0 and vv >= 0.0 and vv <= H - 1.0
+    return x, y, zp, uu, vv, use
+
+
+@numba.njit(inline="always")
+def basis_values(led, n0, n1, n2, x, y, zp, poses, o0, o1, o2, single, i):  # pragma: no cover - compiled
+    """Frame i's light basis past its leading 1 at a point (x, y, zp) with unit normal n: SH
+    ``(n0, n1, n2)``; led ``(max(0, <n, v_i>), 0, 0)`` with the LED at offset (o0, o1, o2) in the
+    frame's camera (:func:`~o3d_mvps.model.shading.led_position`); rounded to float32 where
+    ``single`` (as the GPU's evaluations store their bases)."""
+    if led:
+        g = led_irradiance_of(n0, n1, n2, x, y, zp, led_position(poses, o0, o1, o2, i, 0),
+                              led_position(poses, o0, o1, o2, i, 1), led_position(poses, o0, o1, o2, i, 2))
+        b = g if g > 0.0 else 0.0
+        if single:
+            b = np.float64(np.float32(b))
+        return b, 0.0, 0.0
+    if single:
+        return np.float64(np.float32(n0)), np.float64(np.float32(n1)), np.float64(np.float32(n2))
+    return n0, n1, n2
+
+
+@numba.njit(inline="always")
+def basis_shading(led, lights, b1, b2, b3, i):  # pragma: no cover - compiled
+    """``<B, l_i>`` of the basis (1, b1, b2, b3) of :func:`basis_values`, summed in the order of
+    :func:`shading_residual_pixel`."""
+    s = 0.0
+    s += 1.0 * lights[i, 0]
+    s += b1 * lights[i, 1]
+    if not led:
+        s += b2 * lights[i, 2]
+        s += b3 * lights[i, 3]
+    return s
+
+
+@numba.njit(inline="always")
+def energy_term(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images, visible, albedo,
+                lights, led, o0, o1, o2, scale, single, usable, i, p):  # pragma: no cover - compiled
+    """Frame i, pixel p of :meth:`.LevelProblem.energy` in one pass: the reference point of
+    depth z, its warp into frame i and the usable test (:func:`pixel_view`; written into
+    ``usable[i, p]``), its unit normal (:func:`~o3d_mvps.model.normals.unit_normal_at`), the
+    shading ``<B_i(p), l_i>`` (SH: ``B = [1, n]``; led: ``B = [1, max(0, <n, v_i>)]``:
+    :func:`basis_values`), and ``sum_c log(1 + (scale r_c)^2)`` of its residuals
+    (:func:`shading_residual_pixel`, 0 where not usable). single: the basis and residuals
+    rounded to float32 as the GPU's evaluations store them; the colours are float32 samples."""
+    x, y, zp, uu, vv, use = pixel_view(z, u, v, K, poses, images, visible, i, p)
+    usable[i, p] = use
+    if not use:
+        return 0.0
+    n0, n1, n2, _ = unit_normal_at(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, p)
+    b1, b2, b3 = basis_values(led, n0, n1, n2, x, y, zp, poses, o0, o1, o2, single, i)
+    s = basis_shading(led, lights, b1, b2, b3, i)
+    image = images[i]
+    u0, v0, a, b = bilinear_cell(image, uu, vv)
+    total = 0.0
+    for c in range(3):
+        r = np.float64(np.float32(bilinear_in_cell(image, u0, v0, a, b, c))) - albedo[p, c] * s
+        if single:
+            r = np.float64(np.float32(r))
+        total += log1p_square_term(r, scale)
+    return total
+
+
+@numba.njit  # not inline="always": numba's inlining pass refuses its 34 arguments ("a closure with *args")
+def evaluate_pixel(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images, visible, albedo,
+                   lights, led, o0, o1, o2, scale, single, points, normals, dA, color, usable, basis, shading,
+                   residual, i, p):  # pragma: no cover - compiled
+    """:func:`energy_term` writing what an evaluation holds: frame i's colour sample
+    (:func:`warp_sample_pixel`), usable, basis (frame i's row where basis has one per frame, the
+    one shared row from frame 0's pixels), shading and residuals (:func:`shading_residual_pixel`)
+    at pixel p, and from frame 0 the pixel's point (N, 3), unit normal (N, 3) and dA (N,); single:
+    the basis and residuals are float32 (rounded as stored). Returns the pixel's robust sum."""
+    x, y, zp, uu, vv, use = pixel_view(z, u, v, K, poses, images, visible, i, p)
+    usable[i, p] = use
+    n0, n1, n2, area = unit_normal_at(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, p)
+    b1, b2, b3 = basis_values(led, n0, n1, n2, x, y, zp, poses, o0, o1, o2, single, i)
+    if i == 0:
+        points[p, 0] = x
+        points[p, 1] = y
+        points[p, 2] = zp
+        normals[p, 0] = n0
+        normals[p, 1] = n1
+        normals[p, 2] = n2
+        dA[p] = area
+    if led or i == 0:
+        row = i if led else 0
+        basis[row, p, 0] = 1.0
+        basis[row, p, 1] = b1
+        if not led:
+            basis[row, p, 2] = b2
+            basis[row, p, 3] = b3
+    s = basis_shading(led, lights, b1, b2, b3, i)
+    shading[i, p] = s
+    image = images[i]
+    u0, v0, a, b = bilinear_cell(image, uu, vv)
+    for c in range(3):
+        color[i, p, c] = bilinear_in_cell(image, u0, v0, a, b, c)
+    total = 0.0
+    for c in range(3):
+        residual[i, p, c] = color[i, p, c] - albedo[p, c] * s if use else 0.0
+        total += log1p_square_term(residual[i, p, c], scale)
+    return total
+
+
+@numba.njit(parallel=True, cache=True)
+def _energy_partials(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images, visible, albedo,
+                     lights, led, o0, o1, o2, scale, single, D_indptr, D_indices, D_data, z0, S_indptr, S_indices,
+                     S_data, tau, mu, usable, partial):  # pragma: no cover - compiled
+    n, N = visible.shape
+    B = partial.shape[0]
+    items, rows = n * N, prior_rows(z0, S_indptr, tau, mu)
+    for k in numba.prange(B):
+        data = 0.0
+        for index in range(k * items // B, (k + 1) * items // B):
+            data += energy_term(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images,
+                                visible, albedo, lights, led, o0, o1, o2, scale, single, usable, index // N,
+                                index % N)
+        prior = 0.0
+        for row in range(k * rows // B, (k + 1) * rows // B):
+            prior += prior_term(D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data, tau, mu, z, row)
+        partial[k, 0] = data
+        partial[k, 1] = prior
+
+
+def energy_partials(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images, visible, albedo,
+                    lights, led, o0, o1, o2, scale, single, D_indptr, D_indices, D_data, z0, S_indptr, S_indices,
+                    S_data, tau, mu, usable, partial) -> None:
+    """A level's energy in one pass: partial (B, 2) rows whose column 0 adds up to ``sum_{i,p,c}
+    log(1 + (scale r)^2)`` of every frame's residuals (:func:`energy_term`), column 1 to the
+    prior's ``tau ||D z - z0||^2 + mu ||S z||^2`` (:func:`prior_term`); usable (n, N) written.
+    z (N,) metres; the grid's u, v, differences' neighbours and weights (N,) each
+    (:class:`~o3d_mvps.model.normals.MaskedGrid`); K (3, 3); poses (n, 4, 4); images (n, H, W, 3)
+    float32; visible (n, N) bool; albedo (N, 3); lights (n, k) float64 (k = 2 where ``led``, else 4);
+    (o0, o1, o2) the LED's offset (metres, camera frame); D and S as CSR arrays, z0 (M,).
+    B = :func:`energy_blocks` (here a contiguous share of the items per row; on a GPU one block
+    per row)."""
+    _energy_partials(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images, visible, albedo,
+                     lights, bool(led), float(o0), float(o1), float(o2), float(scale), bool(single), D_indptr,
+                     D_indices, D_data, z0, S_indptr, S_indices, S_data, float(tau), float(mu), usable, partial)
+
+
+@numba.njit(inline="always")
+def evaluation_term(color, albedo, basis, lights, usable, shading, residual, scale, i, p):  # pragma: no cover
+    """:func:`shading_residual_pixel` on pixel p of frame i and ``sum_c log(1 + (scale r_c)^2)``
+    of the residuals as stored (in the residual array's type)."""
+    shading_residual_pixel(color, albedo, basis, lights, usable, shading, residual, i, p)
+    total = 0.0
+    for c in range(3):
+        total += log1p_square_term(residual[i, p, c], scale)
+    return total
+
+
+@numba.njit(parallel=True, cache=True)
+def _evaluation_partials(color, albedo, basis, lights, usable, shading, residual, scale, D_indptr, D_indices, D_data,
+                         z0, S_indptr, S_indices, S_data, tau, mu, z, partial):  # pragma: no cover - compiled
+    n, N = usable.shape
+    B = partial.shape[0]
+    items, rows = n * N, prior_rows(z0, S_indptr, tau, mu)
+    for k in numba.prange(B):
+        data = 0.0
+        for index in range(k * items // B, (k + 1) * items // B):
+            data += evaluation_term(color, albedo, basis, lights, usable, shading, residual, scale, index // N,
+                                    index % N)
+        prior = 0.0
+        for row in range(k * rows // B, (k + 1) * rows // B):
+            prior += prior_term(D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data, tau, mu, z, row)
+        partial[k, 0] = data
+        partial[k, 1] = prior
+
+
+def evaluation_partials(color, albedo, basis, lights, usable, shading, residual, scale, D_indptr, D_indices, D_data,
+                        z0, S_indptr, S_indices, S_data, tau, mu, z, partial) -> None:
+    """:func:`shading_residuals` (shading (n, N), residual (n, N, 3) written) and the energy of
+    its residuals and of the prior at depth z (N,) in one pass: partial (B, 2) as in
+    :func:`energy_partials` (n = 0 frames: the prior alone)."""
+    _evaluation_partials(color, albedo, basis, lights, usable, shading, residual, float(scale), D_indptr, D_indices,
+                         D_data, z0, S_indptr, S_indices, S_data, float(tau), float(mu), z, partial)
+
+
+@numba.njit(parallel=True, cache=True)
+def _evaluate_partials(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images, visible, albedo,
+                       lights, led, o0, o1, o2, scale, single, D_indptr, D_indices, D_data, z0, S_indptr, S_indices,
+                       S_data, tau, mu, points, normals, dA, color, usable, basis, shading, residual,
+                       partial):  # pragma: no cover - compiled
+    n, N = visible.shape
+    B = partial.shape[0]
+    items, rows = n * N, prior_rows(z0, S_indptr, tau, mu)
+    for k in numba.prange(B):
+        data = 0.0
+        for index in range(k * items // B, (k + 1) * items // B):
+            data += evaluate_pixel(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images,
+                                   visible, albedo, lights, led, o0, o1, o2, scale, single, points, normals, dA, color,
+                                   usable, basis, shading, residual, index // N, index % N)
+        prior = 0.0
+        for row in range(k * rows // B, (k + 1) * rows // B):
+            prior += prior_term(D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data, tau, mu, z, row)
+        partial[k, 0] = data
+        partial[k, 1] = prior
+
+
+def evaluate_partials(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images, visible, albedo,
+                      lights, led, o0, o1, o2, scale, single, D_indptr, D_indices, D_data, z0, S_indptr, S_indices,
+                      S_data, tau, mu, points, normals, dA, color, usable, basis, shading, residual, partial) -> None:
+    """:meth:`.LevelProblem.evaluate` in one pass (:func:`evaluate_pixel`): the arguments of
+    :func:`energy_partials` (single: the basis and residuals are float32), and written: the
+    points, unit normals (N, 3), dA (N,), colours (n, N, 3) float32, usable (n, N), basis (n, N, 2)
+    under the LED or (1, N, 4), shading (n, N) and residuals (n, N, 3), and the partial sums
+    (B, 2) as :func:`energy_partials`'."""
+    _evaluate_partials(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images, visible, albedo,
+                       lights, bool(led), float(o0), float(o1), float(o2), float(scale), bool(single), D_indptr,
+                       D_indices, D_data, z0, S_indptr, S_indices, S_data, float(tau), float(mu), points, normals, dA,
+                       color, usable, basis, shading, residual, partial)
+
+
+@numba.njit(inline="always")
+def led_shading_jacobian(intensities, normals, points, positions, rotations, offset, out, i, p):  # pragma: no cover
+    """out[i, p] (6,): d(shading)/d(xi) of frame i at point p under the LED
+    (:meth:`.lighting.LEDLight.shading_jacobians`): the point gradient
+    (:func:`~o3d_mvps.model.shading.led_point_gradient`, into out[i, p, :3] first) turned into
+    the frame's camera, ``G = J R_i^T`` (rotations (m, 3, 3)), and ``[G, o x G]``."""
+    led_point_gradient(intensities, normals, points, positions, out, i, p)
+    J0, J1, J2 = out[i, p, 0], out[i, p, 1], out[i, p, 2]
+    G0 = J0 * rotations[i, 0, 0] + J1 * rotations[i, 0, 1] + J2 * rotations[i, 0, 2]
+    G1 = J0 * rotations[i, 1, 0] + J1 * rotations[i, 1, 1] + J2 * rotations[i, 1, 2]
+    G2 = J0 * rotations[i, 2, 0] + J1 * rotations[i, 2, 1] + J2 * rotations[i, 2, 2]
+    out[i, p, 0] = G0
+    out[i, p, 1] = G1
+    out[i, p, 2] = G2
+    out[i, p, 3] = offset[1] * G2 - offset[2] * G1
+    out[i, p, 4] = offset[2] * G0 - offset[0] * G2
+    out[i, p, 5] = offset[0] * G1 - offset[1] * G0
+
+
+@numba.njit(parallel=True, cache=True)
+def led_shading_jacobians_into(intensities, normals, points, positions, rotations, offset,
+                               out):  # pragma: no cover - compiled
+    """The LED's shading Jacobians (m, N, 6) written into out in one pass
+    (:func:`led_shading_jacobian`): intensities (m,), float64 unit normals and points (N, 3),
+    light positions (m, 3) in reference coordinates, the frames' rotations (m, 3, 3), the LED's
+    offset (3,) in the camera frame (metres). The host's solver forms the same from
+    ``lit_point_gradients``, a product and :func:`~o3d_mvps.model.shading.led_twist_jacobians_into`."""
+    N = points.shape[0]
+    for k in numba.prange(-(-N // FRAME_CHUNK)):
+        for i in range(positions.shape[0]):
+            for p in range(k * FRAME_CHUNK, min(N, (k + 1) * FRAME_CHUNK)):
+                led_shading_jacobian(intensities, normals, points, positions, rotations, offset, out, i, p)

@@ -29,7 +29,7 @@ import numpy as np
 
 from ..model.arrays import array_module, contiguous, like
 from ..model.robust import cauchy_weights
-from ..model.shading import (INITIAL_LIGHT, led_positions_into, led_fields_into, led_irradiances, led_twist_jacobians_into, led_vectors,
+from ..model.shading import (INITIAL_LIGHT, led_positions_into, led_fields_into, led_irradiances, led_twist_jacobians_into,
                              sh_basis)
 from .device import kernels_for, to_host
 from .line_search import backtrack
@@ -191,15 +191,18 @@ class LEDLight(FrameFields):
     def fields(self, lights: np.ndarray, normals: np.ndarray, points: np.ndarray, poses: np.ndarray):
         """(c, L): frame i's shading is ``c_i + <L_i, n>``; c (m,) the ambients of lights (m, 2),
         L (m, N, 3) the intensity times v_i, zero where the point faces away (on the host one
-        compiled pass, :func:`~o3d_mvps.model.shading.led_fields_into`)."""
+        compiled pass, :func:`~o3d_mvps.model.shading.led_fields_into`; on a GPU its CUDA twin,
+        one launch and one copy of the intensities and positions)."""
         if array_module(points) is np:
             L = np.empty((len(lights), len(points), 3))
             led_fields_into(_intensities(lights, points), contiguous(normals, np.float64),
                             contiguous(points, np.float64), np.ascontiguousarray(self.positions(poses)), L)
             return lights[:, 0], L
-        v = led_vectors(points, self.positions(poses))  # (m, N, 3)
-        lit = like(lights[:, 1:], points) * (np.einsum("...j,...j->...", normals, v) > 0)
-        return lights[:, 0], v * lit[..., None]
+        intensities, positions = _light_arrays(lights, points, self.positions(poses))
+        L = array_module(points).empty((len(positions), len(points), 3))
+        kernels_for(points).led_fields_into(intensities, contiguous(normals, np.float64),
+                                            contiguous(points, np.float64), positions, L)
+        return lights[:, 0], L
 
     def _camera_gradients(self, lights, normals, points, poses):
         """d(shading)/d(point) (m, N, 3) in each frame's camera coordinates, zero where unlit."""
@@ -213,6 +216,16 @@ class LEDLight(FrameFields):
         Moving the camera moves the LED with it: s_i = T^-1 o, so with G the shading's gradient
         with respect to the point in camera coordinates, ``d/dv = G`` and ``d/dw = o x G``.
         """
+        if array_module(points) is not np:  # one kernel and one copy on a GPU
+            m, N = len(poses), len(points)
+            host_poses = np.asarray(to_host(poses), dtype=np.float64)
+            intensities, packed = _light_arrays(lights, points, np.concatenate(
+                [self.positions(host_poses).reshape(-1), host_poses[:, :3, :3].reshape(-1), self.offset]))
+            out = array_module(points).empty((m, N, 6))
+            kernels_for(points).led_shading_jacobians_into(
+                intensities, contiguous(normals, np.float64), contiguous(points, np.float64), packed[:m],
+                packed[m:4 * m].reshape(m, 3, 3), packed[4 * m], out)
+            return out
         G = self._camera_gradients(lights, normals, points, poses)
         if array_module(G) is np:  # one compiled pass on the host
             out = np.empty(G.shape[:-1] + (6,))
@@ -246,6 +259,18 @@ def _intensities(lights: np.ndarray, points: np.ndarray) -> np.ndarray:
     return lights[:, 1].astype(points.dtype).astype(np.float64)
 
 
+def _light_arrays(lights: np.ndarray, points: np.ndarray, positions: np.ndarray) -> tuple:
+    """:func:`_intensities` (m,) and the positions (m, 3) float64 where the points are: on a GPU
+    in one copy (views of one array; positions may carry further rows of three, which come along)."""
+    intensities = _intensities(to_host(lights), points)
+    positions = np.asarray(to_host(positions), dtype=np.float64).reshape(-1, 3)
+    if array_module(points) is np:
+        return intensities, np.ascontiguousarray(positions)
+    packed = like(np.concatenate([intensities, positions.reshape(-1)]), points)
+    m = len(intensities)
+    return packed[:m], packed[m:].reshape(-1, 3)
+
+
 def lit_point_gradients(lights: np.ndarray, normals: np.ndarray, points: np.ndarray,
                         positions: np.ndarray) -> np.ndarray:
     """d(shading)/d(point) (m, N, 3) of m point lights at ``positions`` (m, 3) with intensities
@@ -255,9 +280,9 @@ def lit_point_gradients(lights: np.ndarray, normals: np.ndarray, points: np.ndar
     compiled pass (:func:`~o3d_mvps.model.shading.led_point_gradients_into`, equal bit for bit
     to the array formulas; on a GPU its CUDA twin, one launch)."""
     J = array_module(points).empty((len(positions), len(points), 3))
-    kernels_for(points).led_point_gradients_into(
-        like(_intensities(lights, points), points), contiguous(normals, np.float64), contiguous(points, np.float64),
-        like(np.ascontiguousarray(positions, dtype=np.float64), points), J)
+    intensities, positions = _light_arrays(lights, points, positions)
+    kernels_for(points).led_point_gradients_into(intensities, contiguous(normals, np.float64),
+                                                 contiguous(points, np.float64), positions, J)
     return J
 
 

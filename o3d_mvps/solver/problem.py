@@ -11,14 +11,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..model.arrays import array_module, like
+from ..model.arrays import array_module, contiguous, like
 from ..model.camera import backproject
 from ..model.normals import unit_normals
 from ..model.robust import cauchy_energy
 from ..model.warping import in_view, visible, warp
 from .device import kernels_for, to_host
+from .kernels import energy_blocks
 from .krylov import pixel_prolongations
-from .lighting import LEDLight, SHLight
+from .lighting import LEDLight, RoomLight, SHLight
 from .pyramid import Level
 
 
@@ -143,6 +144,9 @@ class LevelProblem:
         self._static_samples = None
         #: the level's intrinsics (3, 3) where its arrays live, for the kernels
         self.device_K = like(level.K, level.grid.u)
+        self._no_frames = None  # on a GPU: empty frames x pixels arrays, for the prior's energy alone
+        self._grid_arrays = None  # on a GPU: the grid's per-pixel arrays, C-contiguous, for the kernels
+        self._packed = None  # on a GPU: (host, device) copies of the last poses and lights, flattened together
 
     def pixel_prolongations(self) -> list:
         """The level's pixel aggregation for the GPU path's multigrid (:func:`.krylov.pixel_prolongations`),
@@ -236,8 +240,117 @@ class LevelProblem:
 
     # energy ------------------------------------------------------------------------------
     def prior_energy(self, z: np.ndarray) -> float:
-        """The prior's energy at depth z (N,) metres (:meth:`.pyramid.DepthPrior.energy`)."""
-        return self.level.prior.energy(z, self.tau, self.mu)
+        """The prior's energy at depth z (N,) metres (:meth:`.pyramid.DepthPrior.energy`; on a GPU
+        one launch of :func:`.kernels.evaluation_partials` on no frames and one copy)."""
+        if array_module(z) is np:
+            return self.level.prior.energy(z, self.tau, self.mu)
+        if self._no_frames is None:
+            xp, N = array_module(z), self.level.grid.size
+            k, dtype = self.light.size, self.residual_dtype
+            self._no_frames = (xp.empty((0, N, 3), np.float32), xp.empty((0, 3)), xp.empty((0, N, k), dtype),
+                               xp.empty((0, k)), xp.empty((0, N), bool), xp.empty((0, N), dtype),
+                               xp.empty((0, N, 3), dtype))
+        return self._device_sums(z, self._no_frames, None)[1]
+
+    def _prior_arrays(self, with_prior: bool) -> tuple:
+        """The prior's terms for the one-pass kernels (:func:`.kernels.prior_term`): D's CSR
+        arrays, z0, S's CSR arrays (D's where there is no smoothness term), tau and mu (both 0
+        without the prior: ``with_prior`` False)."""
+        prior = self.level.prior
+        D = prior.D
+        smooth = self.mu > 0 and prior.S is not None
+        S = prior.S if smooth else D
+        tau, mu = (self.tau, self.mu if smooth else 0.0) if with_prior else (0.0, 0.0)
+        return D.indptr, D.indices, D.data, prior.z0, S.indptr, S.indices, S.data, tau, mu
+
+    def _device_sums(self, z: np.ndarray, frames: tuple, prior: float | None) -> tuple[float, float]:
+        """(data, prior) energies of :func:`.kernels.evaluation_partials` on the GPU: frames =
+        (color, albedo, basis, lights, usable, shading, residual) (shading and residual written),
+        the prior's at z unless ``prior`` is given (then that). One launch, one copy."""
+        usable = frames[4]
+        xp = array_module(z)
+        partial = xp.empty((energy_blocks(usable.size + self.level.prior.rows), 2))
+        kernels_for(z).evaluation_partials(*frames, 1.0 / self.lam, *self._prior_arrays(prior is None), z, partial)
+        data, prior_sum = to_host(partial).sum(axis=0)
+        return 0.5 * self.lam * self.lam * float(data), float(prior_sum) if prior is None else prior
+
+    def _one_pass_light(self, est: Estimate):
+        """(led, offset) for the one-pass kernels (:func:`.kernels.energy_partials`,
+        :func:`.kernels.evaluate_partials`): whether ``est``'s light model is the LED (else SH or
+        room light) and the LED's offset (3,) metres; None where they do not apply (another light
+        model, a static camera's shared samples, frames not in one stack)."""
+        light = self.light_model(est)
+        led = type(light) is LEDLight
+        if not (led or type(light) in (SHLight, RoomLight)) or self.level.image_stack is None or (
+                self._static_samples is not None and self._identity(est)):
+            return None
+        return led, (tuple(float(o) for o in light.offset) if led else (0.0, 0.0, 0.0))
+
+    def _grid_and_views(self, est: Estimate) -> tuple:
+        """The one-pass kernels' arguments from z to the lights: z, the grid's arrays (made
+        C-contiguous once per level), K, the poses (n, 4, 4), images, visibility, albedo and
+        lights (n, k) float64 (the poses and lights copied over together, and only where they
+        differ from the last ones copied: :meth:`_device_poses_lights`)."""
+        g = self.level.grid
+        if self._grid_arrays is None:  # once per level (no launch: the device's grid is contiguous)
+            self._grid_arrays = tuple(contiguous(a) for a in (g.u, g.v, g.fwd_u, g.bwd_u, g.wf_u, g.wb_u, g.fwd_v,
+                                                              g.bwd_v, g.wf_v, g.wb_v))
+        poses, lights = self._device_poses_lights(est)
+        return (est.z, *self._grid_arrays, self.device_K, poses, self.level.image_stack, self.visibility, est.albedo,
+                lights)
+
+    def _device_poses_lights(self, est: Estimate) -> tuple:
+        """``est``'s poses (n, 4, 4) and lights (n, k), float64, on the GPU: one copy of both, none
+        where they equal the last ones copied (views of one device array, never written)."""
+        host = np.concatenate([np.asarray(to_host(est.poses), np.float64).reshape(-1),
+                               np.asarray(to_host(est.lights), np.float64).reshape(-1)])
+        if self._packed is None or not np.array_equal(self._packed[0], host):
+            self._packed = (host, like(host, est.z))
+        n, packed = self.n_frames, self._packed[1]
+        return packed[:16 * n].reshape(n, 4, 4), packed[16 * n:].reshape(n, -1)
+
+    def _one_pass_energy(self, est: Estimate, prior: float | None):
+        """:meth:`energy` on a GPU in one launch (:func:`.kernels.energy_partials`: every frame's
+        warp, normals, shading and robust terms, and the prior) and one or two copies (the poses
+        and lights over where they changed, the partial sums back), or None where that kernel
+        does not apply (:meth:`_one_pass_light`)."""
+        chosen = self._one_pass_light(est)
+        if chosen is None:
+            return None
+        led, offset = chosen
+        n, N = self.n_frames, self.level.grid.size
+        xp = array_module(est.z)
+        usable = xp.empty((n, N), dtype=bool)
+        partial = xp.empty((energy_blocks(n * N + self.level.prior.rows), 2))
+        kernels_for(est.z).energy_partials(*self._grid_and_views(est), led, *offset, 1.0 / self.lam,
+                                           self.residual_dtype == np.float32, *self._prior_arrays(prior is None),
+                                           usable, partial)
+        data, prior_sum = to_host(partial).sum(axis=0)
+        return 0.5 * self.lam * self.lam * float(data) + (float(prior_sum) if prior is None else prior), usable
+
+    def _one_pass_evaluation(self, est: Estimate):
+        """:meth:`evaluate` on a GPU in one launch (:func:`.kernels.evaluate_partials`: the points,
+        normals, warped samples, bases, shading, residuals, data and prior energy) and one or two
+        copies, or None where that kernel does not apply (:meth:`_one_pass_light`). The points are
+        kept for :meth:`points` of this z."""
+        chosen = self._one_pass_light(est)
+        if chosen is None:
+            return None
+        led, offset = chosen
+        n, N, dtype = self.n_frames, self.level.grid.size, self.residual_dtype
+        xp = array_module(est.z)
+        points, normals, dA = xp.empty((N, 3)), xp.empty((N, 3)), xp.empty(N)
+        color, usable = xp.empty((n, N, 3), dtype=np.float32), xp.empty((n, N), dtype=bool)
+        basis = xp.empty((n, N, 2) if led else (1, N, 4), dtype=dtype)
+        shading, residual = xp.empty((n, N), dtype=dtype), xp.empty((n, N, 3), dtype=dtype)
+        partial = xp.empty((energy_blocks(n * N + self.level.prior.rows), 2))
+        kernels_for(est.z).evaluate_partials(*self._grid_and_views(est), led, *offset, 1.0 / self.lam,
+                                             dtype == np.float32, *self._prior_arrays(True), points, normals, dA,
+                                             color, usable, basis, shading, residual, partial)
+        data, prior = to_host(partial).sum(axis=0)
+        self._last_points = (est.z, points)
+        return Evaluation(residual, usable, color, shading, normals, dA, basis, 0.5 * self.lam * self.lam * float(data),
+                          float(prior))
 
     def light_model(self, est: Estimate):
         """The level's light model at the estimate's LED offset (its own where the estimate has none)."""
@@ -258,9 +371,13 @@ class LevelProblem:
         camera) each reference pixel sees its own pixel in every frame, whatever z: the frames
         are sampled once per visibility and the samples shared (read-only) by the evaluations."""
         n, N = self.n_frames, self.level.grid.size
+        identity = self._identity(est)
+        if array_module(est.z) is not np and not identity:  # one launch on a GPU
+            found = self._one_pass_evaluation(est)
+            if found is not None:
+                return found
         P = self.points(est.z)
         xp = array_module(P)
-        identity = self._identity(est)
         if identity and self._static_samples is not None:
             return self.evaluate_samples(est, *self._static_samples, *self.normals(est.z))
         color = xp.empty((n, N, 3), dtype=np.float32)  # sampled from float32 images
@@ -280,7 +397,14 @@ class LevelProblem:
         samples: the warped colours (n, N, 3) and usable (n, N) of ``est``'s z and poses where the
         caller has them (an evaluation's, for a trial that moves neither, e.g. the LED offset):
         read instead of warping the frames again; normals (N, 3): ``est``'s unit normals, likewise;
-        prior: the prior energy of ``est.z`` where the caller has it (None: computed)."""
+        prior: the prior energy of ``est.z`` where the caller has it (None: computed).
+
+        On a GPU without ``samples``: :meth:`_one_pass_energy` (one launch; ``normals`` unread,
+        the kernel forms each pixel's from z)."""
+        if samples is None and array_module(est.z) is not np:
+            found = self._one_pass_energy(est, prior)
+            if found is not None:
+                return found
         n, N = self.n_frames, self.level.grid.size
         P = self.points(est.z)
         xp, kernels = array_module(P), kernels_for(P)
@@ -332,8 +456,12 @@ class LevelProblem:
             shading, residual = xp.empty((n, N), self.residual_dtype), xp.empty((n, N, 3), self.residual_dtype)
         else:
             shading, residual = reuse.shading, reuse.residual
-        kernels.shading_residuals(color, est.albedo, basis, like(est.lights, color, dtype=np.float64), usable,
-                                  shading, residual)
+        if xp is not np:  # residuals, data and prior energy in one launch (and one copy)
+            lights = self._device_poses_lights(est)[1]
+            data, prior = self._device_sums(est.z, (color, est.albedo, basis, lights, usable, shading, residual), prior)
+            return Evaluation(residual, usable, color, shading, normals, dA, basis, data, prior)
+        kernels.shading_residuals(color, est.albedo, basis, like(est.lights, color, dtype=np.float64), usable, shading,
+                                  residual)
         data = cauchy_energy(residual, self.lam, kernels.log1p_square_sum)
         return Evaluation(residual, usable, color, shading, normals, dA, basis, data,
                           self.prior_energy(est.z) if prior is None else prior)

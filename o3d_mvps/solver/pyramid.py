@@ -88,6 +88,16 @@ class DepthPrior:
         return -self.z0
 
     @cached_property
+    def _Dt(self):
+        """D^T (N, M) as CSR, formed once (:meth:`negative_gradient` on a GPU)."""
+        return sparse_module(self.D).csr_matrix(self.D.T)
+
+    @cached_property
+    def _zeros(self) -> np.ndarray:
+        """Zeros (N,), formed once (:meth:`negative_gradient` on a GPU)."""
+        return array_module(self.z0).zeros(self.D.shape[1])
+
+    @cached_property
     def DtD(self) -> sp.csr_matrix:
         """D^T D (N, N), built once per level."""
         return (self.D.T @ self.D).tocsr()
@@ -123,7 +133,12 @@ class DepthPrior:
         return terms
 
     def negative_gradient(self, z: np.ndarray, tau: float, mu: float) -> np.ndarray:
-        """Minus the energy's gradient (N,) at depth z (N,)."""
+        """Minus the energy's gradient (N,) at depth z (N,) (on a GPU three launches of
+        :func:`.krylov.multiply_add`: ``D z - z0``, ``-2 tau D^T (.)``, ``-2 mu S^T S z`` added)."""
+        if array_module(z) is not np:
+            d = multiply_add(self.D, 1.0, z, self._negative_z0)
+            rhs = multiply_add(self._Dt, -2.0 * tau, d, self._zeros)
+            return multiply_add(self.StS, -2.0 * mu, z, rhs) if mu > 0 and self.S is not None else rhs
         rhs = -2.0 * tau * (self.D.T @ (self.D @ z - self.z0))
         if mu > 0 and self.S is not None:
             rhs = rhs - 2.0 * mu * (self.StS @ z)
@@ -146,12 +161,21 @@ class DepthPrior:
         return moved
 
     def clip(self, z: np.ndarray) -> np.ndarray:
-        """z (N,) clipped into the envelope."""
-        return z if self.lower is None else np.clip(z, self.lower, self.upper)
+        """z (N,) clipped into the envelope (on a GPU one fused kernel)."""
+        if self.lower is None:
+            return z
+        return np.clip(z, self.lower, self.upper) if array_module(z) is np else _clipped(z, self.lower, self.upper)
 
     @property
     def rows(self) -> int:
         return int(self.z0.size)
+
+
+@fused
+def _clipped(z, lower, upper):
+    """``np.clip(z, lower, upper)`` (N,) as one kernel on a GPU."""
+    xp = array_module(z)
+    return xp.minimum(xp.maximum(z, lower), upper)
 
 
 @fused
