@@ -31,6 +31,8 @@ def test_trace_ends_at_the_solve_result_and_caps_apply(saved):
     assert finest[-1]["rmse_mm"] == pytest.approx(traced["accuracy"]["rmse_mm"], rel=1e-6)
     assert len(traced["sweeps"]) == traced["n_sweeps"] == sum(r["sweeps"] for r in traced["levels"])
     assert all(r["cpu"] > 0 and r["dz_mm"] >= 0 for r in traced["sweeps"])
+    # the stage times are the solver's own: the hooks' accuracy evaluations are not in them
+    assert all(0 < sum(r["steps"].values()) <= r["cpu"] * 1.05 for r in traced["levels"])
     capped = sweeps.run(problem, capture, caps=[2] * 5, trace=False)
     assert [r["sweeps"] for r in capped["levels"]] == [min(2, r["sweeps"]) for r in traced["levels"]]
     assert driver._sweeps.__module__ == driver.__name__  # the hooks were taken out again
