@@ -16,6 +16,7 @@ and scores it with :func:`o3d_mvps.metrics.evaluate`; on the finest level that i
 OUT: {"total_cpu", "accuracy", "n_sweeps", "levels": [{"level", "size", "sweeps", "cpu", "energy",
 "steps" (CPU s per driver stage, the hooks' time taken out), "mae_deg", "rmse_mm"}], "sweeps": [{"level", "cpu", "energy",
 "dz_mm" (RMS depth update), "dn_deg" (mean normal update), "mae_deg", "rmse_mm"}]}.
+:func:`plot_traces` draws such results (benchmarks/results/sweeps.png).
 """
 
 from __future__ import annotations
@@ -129,6 +130,32 @@ def run(problem_file, capture, caps=None, tols=None, trace=True) -> dict:
         driver._solve, driver._sweeps, driver._extrapolate, driver.time = solve0, sweeps0, extrapolate0, clock
     return {"total_cpu": total, "accuracy": evaluate(Refinement.from_arrays(out.depth, out.mask, out.K), gt),
             "n_sweeps": sum(r["sweeps"] for r in levels), "levels": levels, "sweeps": rows}
+
+
+def plot_traces(traces: dict, path) -> None:
+    """One panel per capture ({name: run() result with the trace}): normal MAE (deg) if stopped
+    after each sweep against the solve's cumulative CPU seconds, one colour per level (matplotlib)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(traces), figsize=(4.2 * len(traces), 3.4), squeeze=False)
+    for ax, (name, result) in zip(axes[0], traces.items()):
+        t = np.cumsum([r["cpu"] for r in result["sweeps"]])
+        for level in sorted({r["level"] for r in result["sweeps"]}, reverse=True):
+            at = [i for i, r in enumerate(result["sweeps"]) if r["level"] == level]
+            ax.plot(t[at], [result["sweeps"][i]["mae_deg"] for i in at], "o-", ms=3, label=f"level {level}")
+        final = result["accuracy"]["mae_deg"]
+        ax.axhline(final * 1.01, color="grey", lw=0.8, ls="--", label="final +1 %")
+        ax.set_ylim(final * 0.95, final * 1.6)
+        ax.set_title(f"{name}: {result['n_sweeps']} sweeps")
+        ax.set_xlabel("solve CPU s (cumulative)")
+        ax.set_ylabel("normal MAE if stopped (deg)")
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def main(argv=None) -> int:
