@@ -19,6 +19,8 @@ CPU on saved problems, for a GPU machine without Open3D, and its device operatio
 GPU (see benchmarks/gpu.py).
 stages (python -m benchmarks.stages, not part of 'all'): CPU seconds and peak memory of every refine
 stage, this tree against a baseline checkout, alternating in the same run (speed_stages.json).
+sweeps (python -m benchmarks.sweeps, not part of 'all'): per level and per sweep CPU seconds, energy,
+update and accuracy if stopped there, of a saved problem (per-level caps and tolerances to try).
 summary: no run; rebuild summary.md and every plot from the result files already in --out.
 all: everything, one after the other. --quick runs a tiny case of each (CI, under a minute).
 Results go to DIR (default benchmarks/results) as JSON, summary.md and PNG plots.
