@@ -43,8 +43,8 @@ def update_pose_depth(problem: LevelProblem, est: Estimate, ev: Evaluation, *, r
     S, rhs = system.schur_operator()
     if problem.joint_hierarchy is None:
         problem.joint_hierarchy = HierarchyReuse()
-    dz, iterations = solve_spd(S, rhs, rtol, maxiter, sparse_part=system.matrix,
-                               pixel_prolongations=problem.pixel_prolongations, reuse=problem.joint_hierarchy)
+    dz, iterations = solve_spd(S, rhs, rtol, maxiter, sparse_part=system.matrix, pixel_prolongations=problem.pixel_prolongations,
+                               reuse=problem.joint_hierarchy)
     xi, frames = system.twists(dz), system.frames
     del system, S, rhs  # the coupling (N, 6m) and M: not needed by the line search
 

@@ -133,8 +133,7 @@ class HierarchyReuse:
         self.fresh_builds = 0  # counts, for the tests and benchmarks
         self.reused = 0
 
-    def solve(self, matrix, sparse: sp.csr_matrix, rhs: np.ndarray, rtol: float,
-              maxiter: int) -> tuple[np.ndarray, int]:
+    def solve(self, matrix, sparse: sp.csr_matrix, rhs: np.ndarray, rtol: float, maxiter: int) -> tuple[np.ndarray, int]:
         """PCG from zero on ``matrix`` ((N, N) SPD, sparse or an operator whose sparse part is
         ``sparse``) with a V-cycle of ``sparse``'s hierarchy, reused where it may be; returns
         (x, iterations)."""
