@@ -18,7 +18,7 @@ import numpy as np
 
 from ..model import se3
 from .depth import search_estimates
-from .linear import HierarchyReuse, levenberg_damped, solve_spd
+from .linear import levenberg_damped, solve_spd
 from .normal_equations import joint_system
 from .pose_trust import PoseAnchors
 from .problem import Estimate, Evaluation, LevelProblem
@@ -41,10 +41,7 @@ def update_pose_depth(problem: LevelProblem, est: Estimate, ev: Evaluation, *, r
         priors = ((k, anchors.prior_system(i, est.poses[i])) for k, i in enumerate(system.frames))
         system.add_priors([(k, *prior) for k, prior in priors if prior is not None])
     S, rhs = system.schur_operator()
-    if problem.joint_hierarchy is None:
-        problem.joint_hierarchy = HierarchyReuse()
-    dz, iterations = solve_spd(S, rhs, rtol, maxiter, sparse_part=system.matrix, pixel_prolongations=problem.pixel_prolongations,
-                               reuse=problem.joint_hierarchy)
+    dz, iterations = solve_spd(S, rhs, rtol, maxiter, sparse_part=system.matrix, pixel_prolongations=problem.pixel_prolongations)
     xi, frames = system.twists(dz), system.frames
     del system, S, rhs  # the coupling (N, 6m) and M: not needed by the line search
 

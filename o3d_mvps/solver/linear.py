@@ -83,97 +83,6 @@ def amg_preconditioner(matrix: sp.csr_matrix) -> spla.LinearOperator:
     return spla.LinearOperator(matrix.shape, lambda b: _v_cycle(ml, 0, np.ravel(b)), dtype=matrix.dtype)
 
 
-class _Level:
-    """One level of a V-cycle (:func:`_v_cycle`): its matrix A, the prolongation P and
-    restriction R to the next level (None on the coarsest) and pyamg's smoothers."""
-
-    def __init__(self, A, P=None, R=None, presmoother=None, postsmoother=None):
-        self.A, self.P, self.R, self.presmoother, self.postsmoother = A, P, R, presmoother, postsmoother
-
-
-class _Hierarchy:
-    """A V-cycle's levels (:class:`_Level`, finest first) and its coarsest level's solver."""
-
-    def __init__(self, levels: list, coarse_solver):
-        self.levels, self.coarse_solver = levels, coarse_solver
-
-    def preconditioner(self) -> spla.LinearOperator:
-        """The V-cycle as an SPD preconditioner (:func:`_v_cycle`)."""
-        A = self.levels[0].A
-        return spla.LinearOperator(A.shape, lambda b: _v_cycle(self, 0, np.ravel(b)), dtype=A.dtype)
-
-
-#: :class:`HierarchyReuse`: a solve with reused prolongations that takes more than
-#: ``REUSE_SLACK`` times the iterations of the last fresh hierarchy's solve (and 2 more) has the
-#: next solve build a fresh one; one that has not converged by twice those iterations (and 5
-#: more) builds it at once and goes on from where it stopped.
-REUSE_SLACK = 1.25
-
-
-class HierarchyReuse:
-    """The smoothed-aggregation prolongations of one sparse pattern's systems, kept from one
-    solve to the next (the sweeps of a level's joint step, whose matrix M changes only in its
-    values: IRLS weights, albedo, lighting, the linearisation point).
-
-    pyamg's set-up at 2 megapixels (958k unknowns, 6 frames) took 1.8-2.2 CPU s per solve, more
-    than that solve's CG (1.4 s, 7-8 iterations): most of it the Jacobi smoothing of the
-    tentative prolongator on the finest level. Kept from the previous sweep, the prolongations P
-    (and R = P^T) still suit the new matrix, once the coarse matrices are its own Galerkin
-    products R A P (0.24 s) and the smoothers run on it: measured 7 iterations against a fresh
-    hierarchy's 7 on the next sweep's system. Kept whole (coarse matrices too), the old hierarchy
-    let CG run to its 300-iteration cap. Every V-cycle is an SPD preconditioner of the current
-    matrix, so CG's answer meets the same tolerance whichever prolongations it used; a fresh
-    hierarchy is built when the iterations grow (:data:`REUSE_SLACK`). Only the prolongations
-    are kept between solves (not the finest matrix)."""
-
-    def __init__(self):
-        self._kept: list | None = None  # [(P, R, presmoother, postsmoother)] per level but the coarsest
-        self._fresh_iterations = 0
-        self._rebuild = True
-        self.fresh_builds = 0  # counts, for the tests and benchmarks
-        self.reused = 0
-
-    def solve(self, matrix, sparse: sp.csr_matrix, rhs: np.ndarray, rtol: float, maxiter: int) -> tuple[np.ndarray, int]:
-        """PCG from zero on ``matrix`` ((N, N) SPD, sparse or an operator whose sparse part is
-        ``sparse``) with a V-cycle of ``sparse``'s hierarchy, reused where it may be; returns
-        (x, iterations)."""
-        x0 = np.zeros_like(rhs)
-        fresh = self._rebuild or self._kept is None or self._kept[0][0].shape[0] != sparse.shape[0]
-        if not fresh:
-            limit = min(maxiter, 2 * self._bound() + 5)
-            x, iterations, converged = pcg(matrix, rhs, x0, rtol, limit, self._galerkin(sparse).preconditioner())
-            if converged or limit >= maxiter:
-                self.reused += 1
-                self._rebuild = iterations > self._bound()
-                return x, iterations
-            x0 = x
-        else:
-            iterations = 0
-        hierarchy = self._build(sparse)
-        x, more, _ = pcg(matrix, rhs, x0, rtol, maxiter - iterations, hierarchy.preconditioner())
-        self._fresh_iterations, self._rebuild = more, False
-        self.fresh_builds += 1
-        return x, iterations + more
-
-    def _bound(self) -> int:
-        return int(REUSE_SLACK * self._fresh_iterations) + 2
-
-    def _build(self, sparse: sp.csr_matrix) -> _Hierarchy:
-        ml = pyamg.smoothed_aggregation_solver(sparse, strength=strength_options(sparse), **AMG_OPTIONS)
-        levels = [_Level(lv.A, getattr(lv, "P", None), getattr(lv, "R", None), getattr(lv, "presmoother", None),
-                         getattr(lv, "postsmoother", None)) for lv in ml.levels]
-        self._kept = [(lv.P, lv.R, lv.presmoother, lv.postsmoother) for lv in levels[:-1]]
-        return _Hierarchy(levels, ml.coarse_solver)
-
-    def _galerkin(self, sparse: sp.csr_matrix) -> _Hierarchy:
-        levels, A = [], sparse
-        for P, R, pre, post in self._kept:
-            levels.append(_Level(A, P, R, pre, post))
-            A = R @ A @ P  # pyamg's Galerkin product (_extend_hierarchy)
-        levels.append(_Level(A))
-        return _Hierarchy(levels, pyamg.multilevel.coarse_grid_solver(AMG_OPTIONS["coarse_solver"]))
-
-
 def strength_options(matrix: sp.csr_matrix) -> list | tuple:
     """pyamg's ``strength`` argument for :func:`amg_preconditioner`: symmetric strength at
     :data:`STRENGTH_THETA` on every level; on the finest, for a float64 CSR matrix, the same
@@ -231,8 +140,7 @@ FIRST_CHECK = 6
 
 
 def solve_spd(matrix, rhs: np.ndarray, rtol: float, maxiter: int, sparse_part=None,
-              pixel_prolongations: Callable[[], list] | None = None,
-              reuse: HierarchyReuse | None = None) -> tuple[np.ndarray, int]:
+              pixel_prolongations: Callable[[], list] | None = None) -> tuple[np.ndarray, int]:
     """PCG from zero on ``matrix`` ((N, N) sparse SPD, or an operator whose sparse part
     ``sparse_part`` the AMG hierarchy is built from), preconditioned by a hierarchy built for
     this system; returns (x, iterations).
@@ -245,9 +153,7 @@ def solve_spd(matrix, rhs: np.ndarray, rtol: float, maxiter: int, sparse_part=No
     A hierarchy is not reused across sweeps: the IRLS weights, albedo and lighting move the
     system between sweeps, and with 3 frames a one-sweep-old hierarchy let CG run to its
     300-iteration cap where a fresh one needed 20-40 (8 frames: 4-23 against 4-6 on the finest
-    level). Its setup costs about as much as five CG iterations (0.3 s at 90k unknowns). On the
-    host, ``reuse`` (a :class:`HierarchyReuse` kept by the caller) keeps the prolongations
-    instead and forms only the coarse matrices of the new system.
+    level). Its setup costs about as much as five CG iterations (0.3 s at 90k unknowns).
     """
     sparse = matrix if sparse_part is None else sparse_part
     if on_gpu(rhs):
@@ -259,8 +165,6 @@ def solve_spd(matrix, rhs: np.ndarray, rtol: float, maxiter: int, sparse_part=No
                                       first_check=max(2, _CG_ITERATIONS.get(kind, FIRST_CHECK + 1) - 1))
         _CG_ITERATIONS[kind] = max(iterations, 1)
         return x, iterations
-    if reuse is not None:
-        return reuse.solve(matrix, sparse, rhs, rtol, maxiter)
     x, iterations, _ = pcg(matrix, rhs, np.zeros_like(rhs), rtol, maxiter, amg_preconditioner(sparse))
     return x, iterations
 

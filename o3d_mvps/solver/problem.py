@@ -136,9 +136,6 @@ class LevelProblem:
         #: (indptr, indices) of the depth block's sparse pattern on the host, built at the first
         #: joint or depth step (:func:`.normal_equations.depth_block`)
         self.depth_pattern = None
-        #: the joint step's AMG prolongations on the host (:class:`.linear.HierarchyReuse`), kept
-        #: from one sweep to the next by :func:`.joint.update_pose_depth`
-        self.joint_hierarchy = None
         self._pixels = None
         self._last_points = None  # (z, its points) on a GPU: see points
         self.visibility = like(np.ones((self.n_frames, level.grid.size), dtype=bool), level.grid.u)
