@@ -154,6 +154,11 @@ def solve_spd(matrix, rhs: np.ndarray, rtol: float, maxiter: int, sparse_part=No
     system between sweeps, and with 3 frames a one-sweep-old hierarchy let CG run to its
     300-iteration cap where a fresh one needed 20-40 (8 frames: 4-23 against 4-6 on the finest
     level). Its setup costs about as much as five CG iterations (0.3 s at 90k unknowns).
+    Keeping only the prolongations P, R and forming each new system's Galerkin matrices R A P
+    (docs/performance.md, "2 MP joint step: AMG set-up per sweep") matched a fresh hierarchy's
+    iterations on saved 2 MP systems at an eighth of the set-up, but on 2 MP x 20 frames its
+    1-3-iteration solves on the two finest levels took other, worse steps (why is not known):
+    45 sweeps against 37, 4.93 deg against 4.42.
     """
     sparse = matrix if sparse_part is None else sparse_part
     if on_gpu(rhs):
