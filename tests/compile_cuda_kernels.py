@@ -69,6 +69,9 @@ SIGNATURES = {
     "_ridge_solves": (_F3, _F3, types.float64, types.float64, _F3, _F3, _F1),
     "_led_trial_partials": (_COLOR, _array(2, types.boolean), _F2, _F2, _F2, _F3, _F1, _F3, _F3, _F2,
                             types.float64, types.boolean, _F2),
+    "_albedo_update": (_R3, _array(2, types.boolean), _COLOR, _R2, types.float64, _F2, _F2, _F2, _F2),
+    "_lighting_partials": (_R3, _array(2, types.boolean), _COLOR, _F2, types.float64, _R3, _F3),
+    "_offset_system": (_F3, _R3, _array(2, types.boolean), _F2, types.float64, types.int64, _F3, _F3),
 }
 
 

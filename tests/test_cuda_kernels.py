@@ -596,3 +596,61 @@ def test_twist_inverse_matches_numpy_and_cpu():
     cpu, _ = run_both("twist_inverse", S, -np.eye(K)[None], b, 1e-12, np.zeros((1, K, K)), np.zeros((1, K, K)),
                       np.zeros(K), np.zeros(1))
     assert cpu[7][0] == 1.0 and np.isclose(cpu[5][0][-1, -1], -1e12)
+
+
+def test_albedo_update_matches_cpu_and_the_ratio(frames):
+    """One launch: the sums and the closed form; pixels without weight keep the fallback."""
+    residual, usable, color, shading, albedo = frames
+    usable = usable.copy()
+    usable[:, :7] = False  # no frame: den = 0, the fallback
+    usable[0, 7:] = True  # at least one frame elsewhere
+    empty = lambda *shape: np.full(shape, np.nan)  # noqa: E731
+    cpu, gpu = run_both("albedo_update", residual, usable, color, shading, np.float64(1.0 / LAM), albedo,
+                        empty(N_PIXELS, 3), empty(N_PIXELS, 3), empty(N_PIXELS, 3))
+    num, den, out = cpu[-3:]
+    np.testing.assert_array_equal(out[:7], albedo[:7])
+    assert_close(out[7:], num[7:] / den[7:])
+    for a, b in zip(gpu[-3:], cpu[-3:]):
+        assert_close(a, b)
+
+
+@pytest.mark.parametrize("shared", [True, False])
+def test_lighting_sums_match_cpu_and_the_matrix_formula(frames, shared):
+    """Frame i's Gram sum_p a_p B_p B_p^T, rhs sum_p b_p B_p and usable count (a, b the weighted
+    channel sums of weighted_lighting_sums), blocks' shares added; float32 basis as the solver's."""
+    residual, usable, color, _, albedo = frames
+    k = 4 if shared else 2
+    basis = RNG.random((1 if shared else N_FRAMES, N_PIXELS, k)).astype(np.float32)
+    blocks = 3
+    cpu, gpu = run_both("lighting_sums", residual, usable, color, albedo, np.float64(1.0 / LAM), basis,
+                        np.full((N_FRAMES, blocks, k * k + k + 1), np.nan))
+    a, b = np.empty((N_FRAMES, N_PIXELS)), np.empty((N_FRAMES, N_PIXELS))
+    kernels.weighted_lighting_sums(residual, usable, color, albedo, 1.0 / LAM, a, b)
+    B = np.broadcast_to(basis.astype(np.float64), (N_FRAMES, N_PIXELS, k))
+    expected = np.concatenate([np.einsum("ip,ipr,ipc->irc", a, B, B).reshape(N_FRAMES, -1),
+                               np.einsum("ip,ipr->ir", b, B), usable.sum(axis=1)[:, None]], axis=1)
+    assert_close(cpu[-1].sum(axis=1), expected, rtol=1e-12)
+    assert_close(gpu[-1].sum(axis=1), expected, rtol=1e-12)
+    with pytest.raises(ValueError, match="5 terms"):
+        cuda_kernels.lighting_sums(residual, usable, color, albedo, 1.0 / LAM, np.zeros((1, N_PIXELS, 5)),
+                                   np.zeros((N_FRAMES, 1, 31)))
+
+
+def test_offset_system_matches_cpu_and_the_array_formula(frames):
+    """The LED offset's system from every 3rd pixel: the same as lighting._offset_normal_equations
+    (the host's array formula) on those pixels, unusable ones weighted 0."""
+    from o3d_mvps.model.robust import cauchy_weights
+    from o3d_mvps.solver.lighting import _offset_normal_equations
+
+    residual, usable, _, _, albedo = frames
+    stride = 3
+    ds = RNG.normal(size=(N_FRAMES, -(-N_PIXELS // stride), 3))
+    cpu, gpu = run_both("offset_system", ds, residual, usable, albedo, np.float64(1.0 / LAM), stride,
+                        np.full((1, 3, 3), np.nan), np.full((1, 3, 1), np.nan))
+    spread = slice(None, None, stride)
+    H, g = _offset_normal_equations(ds, cauchy_weights(residual[:, spread], LAM) * usable[:, spread, None],
+                                    albedo[spread], residual[:, spread])
+    assert_close(cpu[-2][0], H)
+    assert_close(cpu[-1][0, :, 0], g)
+    assert_close(gpu[-2], cpu[-2])
+    assert_close(gpu[-1], cpu[-1])

@@ -37,7 +37,7 @@ __all__ = ["chunk_count", "accumulate_frame", "accumulate_frames", "project_twis
            "led_irradiances_into", "led_point_gradients_into", "warp_sample", "warp_sample_frames", "warp_gradients",
            "chebyshev_update", "chebyshev_start", "restrict_residual", "prolong_restart", "csr_multiply_add", "cg_start",
            "cg_scalars", "cg_update", "multigrid_cg", "ridge_solves", "led_trial_sums", "twist_system",
-           "twist_inverse"]
+           "twist_inverse", "albedo_update", "lighting_sums", "offset_system"]
 
 #: Threads per block of every kernel.
 THREADS_PER_BLOCK = 128
@@ -711,3 +711,108 @@ def twist_inverse(hessian, selection, rhs, fallback, L, X, Xb, solved) -> None:
     """:func:`.kernels.twist_inverse` on the GPU: one launch of one block (thread 0 factors, the
     block's threads take the columns' substitutions, then Xb's rows)."""
     _twist_inverse[1, THREADS_PER_BLOCK](hessian, selection, rhs, float(fallback), L, X, Xb, solved)
+
+
+# ============================================================================================
+# gpusetup (issue 33 item 4): the linear solve's set-up and the albedo / lighting / LED-offset
+# updates in fewer launches; their CPU twins in :mod:`.kernels`' section of the same name.
+# ============================================================================================
+
+MAX_LIGHT_TERMS = kernels.MAX_LIGHT_TERMS
+_LIGHT_SUMS = MAX_LIGHT_TERMS * MAX_LIGHT_TERMS + MAX_LIGHT_TERMS + 1
+_weighted_lighting_terms = _device(kernels.weighted_lighting_terms)
+
+
+@cuda.jit(cache=True)
+def _albedo_update(residual, usable, values, shading, inv_lam, fallback, num, den, out):  # pragma: no cover - device
+    p = cuda.grid(1)
+    if p < usable.shape[1]:
+        _weighted_albedo_pixel(residual, usable, values, shading, inv_lam, num, den, p)
+        for c in range(3):
+            d = den[p, c]
+            out[p, c] = num[p, c] / d if d > 1e-8 else fallback[p, c]
+
+
+def albedo_update(residual, usable, values, shading, inv_lam, fallback, num, den, out) -> None:
+    """out (N, 3) = num / den where den > 1e-8, else ``fallback`` (N, 3), num and den (N, 3)
+    :func:`.kernels.weighted_albedo_sums` (written too): the albedo's closed form in one launch
+    (one thread per pixel; was the sums' launch and a fused ratio)."""
+    _albedo_update[_blocks(usable.shape[1]), THREADS_PER_BLOCK](residual, usable, values, shading, float(inv_lam),
+                                                                fallback, num, den, out)
+
+
+@cuda.jit(cache=True)
+def _lighting_partials(residual, usable, color, albedo, inv_lam, basis, out):  # pragma: no cover - device
+    """Block (b, i): its share of frame i's sums, out[i, b] = (Gram k x k, rhs k, usable count);
+    each thread a strided share of the pixels, then the block's tree sum of each value."""
+    share = cuda.shared.array(THREADS_PER_BLOCK, numba.float64)
+    acc = cuda.local.array(_LIGHT_SUMS, numba.float64)
+    t = cuda.threadIdx.x
+    i = cuda.blockIdx.y
+    N = usable.shape[1]
+    k = basis.shape[2]
+    m = min(i, basis.shape[0] - 1)  # a basis per frame, or one for all
+    size = k * k + k + 1
+    for e in range(size):
+        acc[e] = 0.0
+    for p in range(cuda.blockIdx.x * THREADS_PER_BLOCK + t, N, cuda.gridDim.x * THREADS_PER_BLOCK):
+        if usable[i, p]:
+            a, b = _weighted_lighting_terms(residual, usable, color, albedo, inv_lam, i, p)
+            for r in range(k):
+                br = basis[m, p, r]
+                for c in range(k):
+                    acc[r * k + c] += br * a * basis[m, p, c]
+                acc[k * k + r] += b * br
+            acc[size - 1] += 1.0
+    for e in range(size):
+        _block_tree_sum(share, t, acc[e])
+        if t == 0:
+            out[i, cuda.blockIdx.x, e] = share[0]
+        cuda.syncthreads()  # the root read before the next tree writes
+
+
+lighting_blocks = kernels.lighting_blocks
+
+
+def lighting_sums(residual, usable, color, albedo, inv_lam, basis, out) -> None:
+    """The lighting's per-frame weighted normal equations in one launch: out (n,
+    :func:`lighting_blocks`, k k + k + 1) the blocks' shares (their sum over axis 1: frame i's
+    Gram sum_p (sum_c w rho^2) B B^T (k, k), right-hand side sum_p (sum_c w rho I~) B (k) and
+    usable count), w the Cauchy IRLS weights of residual (n, N, 3) (:func:`.kernels.weighted_lighting_sums`),
+    basis (n or 1, N, k), k at most :data:`MAX_LIGHT_TERMS`. Grid: blocks x frames."""
+    k = basis.shape[2]
+    if k > MAX_LIGHT_TERMS or out.shape[2] != k * k + k + 1:
+        raise ValueError(f"lighting_sums: a light basis of {k} terms (at most {MAX_LIGHT_TERMS}) and out "
+                         f"{out.shape} (needs {k * k + k + 1} values a block)")
+    _lighting_partials[(out.shape[1], out.shape[0]), THREADS_PER_BLOCK](residual, usable, color, albedo,
+                                                                        float(inv_lam), basis, out)
+
+
+_offset_system_add = _device(kernels.offset_system_add)
+
+
+@cuda.jit(cache=True)
+def _offset_system(ds, residual, usable, albedo, inv_lam, stride, H, g):  # pragma: no cover - device
+    share = cuda.shared.array(THREADS_PER_BLOCK, numba.float64)
+    acc = cuda.local.array(12, numba.float64)
+    t = cuda.threadIdx.x
+    M = ds.shape[1]
+    for e in range(12):
+        acc[e] = 0.0
+    for index in range(t, ds.shape[0] * M, THREADS_PER_BLOCK):
+        _offset_system_add(ds, residual, usable, albedo, inv_lam, stride, acc, index // M, index % M)
+    for e in range(12):
+        _block_tree_sum(share, t, acc[e])
+        if t == 0:
+            if e < 9:
+                H[0, e // 3, e % 3] = share[0]
+            else:
+                g[0, e - 9, 0] = share[0]
+        cuda.syncthreads()  # the root read before the next tree writes
+
+
+def offset_system(ds, residual, usable, albedo, inv_lam, stride, H, g) -> None:
+    """:func:`.kernels.offset_system` on the GPU: one launch of one block (a few thousand pixels a
+    frame; was ten array operations), its threads strided over the frames' spread pixels, then
+    the block's tree sum of each of the 12 values."""
+    _offset_system[1, THREADS_PER_BLOCK](ds, residual, usable, albedo, float(inv_lam), int(stride), H, g)

@@ -904,6 +904,14 @@ def weighted_albedo_sums(residual, usable, values, shading, inv_lam, num, den): 
 @numba.njit(inline="always")
 def weighted_lighting_pixel(residual, usable, color, albedo, inv_lam, wr2, wri, i, p):  # pragma: no cover
     """:func:`weighted_lighting_sums` on pixel p of frame i."""
+    a, b = weighted_lighting_terms(residual, usable, color, albedo, inv_lam, i, p)
+    wr2[i, p] = a
+    wri[i, p] = b
+
+
+@numba.njit(inline="always")
+def weighted_lighting_terms(residual, usable, color, albedo, inv_lam, i, p):  # pragma: no cover - compiled
+    """(sum_c w rho^2, sum_c w rho I) of :func:`weighted_lighting_sums` at pixel p of frame i."""
     a = 0.0
     b = 0.0
     if usable[i, p]:
@@ -912,8 +920,7 @@ def weighted_lighting_pixel(residual, usable, color, albedo, inv_lam, wr2, wri, 
             w = 1.0 / (1.0 + x * x)
             a += w * albedo[p, c] * albedo[p, c]
             b += w * albedo[p, c] * color[i, p, c]
-    wr2[i, p] = a
-    wri[i, p] = b
+    return a, b
 
 
 @numba.njit(parallel=True, cache=True)
@@ -1479,3 +1486,91 @@ def twist_inverse(hessian, selection, rhs, fallback, L, X, Xb, solved):  # pragm
     ridge_solve_system(hessian, selection, 0.0, fallback, L, X, solved, 0)
     for j in range(Xb.shape[0]):
         matrix_vector_row(X, rhs, Xb, j)
+
+
+# ============================================================================================
+# gpusetup (issue 33 item 4): launchers that are one launch each on the GPU
+# (:mod:`.cuda_kernels`' section of the same name); here their CPU twins.
+# ============================================================================================
+
+#: the most light-basis terms :func:`lighting_sums` takes (SH: 4, LED: 2)
+MAX_LIGHT_TERMS = 4
+
+
+@numba.njit(parallel=True, cache=True)
+def albedo_update(residual, usable, values, shading, inv_lam, fallback, num, den, out):  # pragma: no cover - compiled
+    """out (N, 3) = num / den where den > 1e-8, else ``fallback`` (N, 3): the albedo's closed
+    form, num and den (N, 3) :func:`weighted_albedo_sums` (written too)."""
+    weighted_albedo_sums(residual, usable, values, shading, inv_lam, num, den)
+    for p in numba.prange(out.shape[0]):
+        for c in range(3):
+            d = den[p, c]
+            out[p, c] = num[p, c] / d if d > 1e-8 else fallback[p, c]
+
+
+def lighting_blocks(n_pixels: int) -> int:
+    """The middle axis of :func:`lighting_sums`' out: its blocks per frame on the GPU (not a launch)."""
+    return min(REDUCTION_BLOCKS, max(1, -(-n_pixels // (16 * 128))))
+
+
+@numba.njit(parallel=True, cache=True)
+def lighting_sums(residual, usable, color, albedo, inv_lam, basis, out):  # pragma: no cover - compiled
+    """The lighting's per-frame weighted normal equations: out (n, B, k k + k + 1) shares over
+    B chunks of the pixels, their sum over axis 1 frame i's Gram sum_p (sum_c w rho^2) B B^T
+    (k x k, row-major), right-hand side sum_p (sum_c w rho I~) B (k) and usable count; w the
+    Cauchy IRLS weights of residual (n, N, 3) (:func:`weighted_lighting_terms`), basis
+    (n or 1, N, k)."""
+    n, N = usable.shape
+    B = out.shape[1]
+    k = basis.shape[2]
+    size = k * k + k + 1
+    chunk = -(-N // B)
+    for job in numba.prange(n * B):
+        i, b = job // B, job % B
+        m = min(i, basis.shape[0] - 1)
+        for e in range(size):
+            out[i, b, e] = 0.0
+        for p in range(b * chunk, min(N, (b + 1) * chunk)):
+            if usable[i, p]:
+                a, s = weighted_lighting_terms(residual, usable, color, albedo, inv_lam, i, p)
+                for r in range(k):
+                    br = basis[m, p, r]
+                    for c in range(k):
+                        out[i, b, r * k + c] += br * a * basis[m, p, c]
+                    out[i, b, k * k + r] += s * br
+                out[i, b, size - 1] += 1.0
+
+
+@numba.njit(inline="always")
+def offset_system_add(ds, residual, usable, albedo, inv_lam, stride, acc, i, q):  # pragma: no cover - compiled
+    """Frame i's spread pixel q (pixel q stride) added to acc (12,): the LED offset's Gram
+    sum rho^2 w ds ds^T (3 x 3, row-major) and gradient -sum w rho r ds (3), w the Cauchy IRLS
+    weights of the residual r (zero where not usable)."""
+    p = q * stride
+    if usable[i, p]:
+        rw = 0.0
+        rr = 0.0
+        for c in range(3):
+            x = residual[i, p, c] * inv_lam
+            w = 1.0 / (1.0 + x * x)
+            rw += albedo[p, c] * albedo[p, c] * w
+            rr += w * albedo[p, c] * residual[i, p, c]
+        for a in range(3):
+            for b in range(3):
+                acc[3 * a + b] += ds[i, q, a] * rw * ds[i, q, b]
+            acc[9 + a] -= ds[i, q, a] * rr
+
+
+@numba.njit(cache=True)
+def offset_system(ds, residual, usable, albedo, inv_lam, stride, H, g):  # pragma: no cover - compiled
+    """The LED offset's Gauss-Newton system over all frames from every ``stride``-th pixel: H
+    (1, 3, 3), g (1, 3, 1) (:func:`offset_system_add`); ds (n, M, 3) d(shading)/d(offset) of
+    the spread pixels, residual (n, N, 3), usable (n, N), albedo (N, 3) of all pixels."""
+    acc = np.zeros(12)
+    for i in range(ds.shape[0]):
+        for q in range(ds.shape[1]):
+            offset_system_add(ds, residual, usable, albedo, inv_lam, stride, acc, i, q)
+    for e in range(9):
+        H[0, e // 3, e % 3] = acc[e]
+    for a in range(3):
+        g[0, a, 0] = acc[9 + a]
