@@ -71,6 +71,9 @@ SIGNATURES = {
                             types.float64, types.boolean, _F2),
     "_albedo_update": (_R3, _array(2, types.boolean), _COLOR, _R2, types.float64, _F2, _F2, _F2, _F2),
     "_lighting_partials": (_R3, _array(2, types.boolean), _COLOR, _F2, types.float64, _R3, _F3),
+    "_smoother_scaling": (_array(1, types.int32), _array(1, types.int32), _F1, _F1, _F1, _F1, _F1),
+    "_stencil_transpose_subtract": (*(_array(1, types.int32), _array(1, types.int32), _F1) * 2, _F1, _F1, _F1, _F1,
+                                    _F1),
     "_offset_system": (_F3, _R3, _array(2, types.boolean), _F2, types.float64, types.int64, _F3, _F3),
 }
 

@@ -654,3 +654,40 @@ def test_offset_system_matches_cpu_and_the_array_formula(frames):
     assert_close(cpu[-1][0, :, 0], g)
     assert_close(gpu[-2], cpu[-2])
     assert_close(gpu[-1], cpu[-1])
+
+
+def test_smoother_scaling_matches_cpu_and_the_krylov_formulas():
+    """1 / diag(A), the Gershgorin bound of D^-1 A and their ratio in one launch: equal to
+    krylov.inverse_diagonal / spectral_bound (the diagonal bit for bit, the bound to rounding: SciPy's
+    product may add in another order; measured 1 ulp)."""
+    from o3d_mvps.solver.krylov import inverse_diagonal, spectral_bound
+
+    n = 150
+    B = sp.random(n, n, density=0.05, random_state=5, format="csr")
+    A = (B @ B.T + sp.diags(np.linspace(1.0, 3.0, n))).tocsr()
+    A.indptr, A.indices = A.indptr.astype(np.int32), A.indices.astype(np.int32)
+    nan = lambda *shape: np.full(shape, np.nan)  # noqa: E731
+    cpu, gpu = run_both("smoother_scaling", A.indptr, A.indices, A.data, nan(n), nan(n), nan(1), nan(8))
+    inv_diag = inverse_diagonal(A)
+    upper = spectral_bound(A, inv_diag)
+    np.testing.assert_array_equal(cpu[3], inv_diag)
+    assert cpu[5][0] == pytest.approx(upper, rel=1e-14)
+    assert_close(cpu[4], inv_diag / upper, rtol=1e-14)
+    for k in (3, 4, 5):
+        assert_close(gpu[k], cpu[k])
+
+
+def test_stencil_transpose_subtract_matches_cpu_and_the_sparse_formula():
+    """y - (Du^T Ba + Dv^T Bb + Bg) in one launch, as normal_equations.stencil_transpose on a grid."""
+    from o3d_mvps.model.normals import masked_grid
+
+    mask = np.ones((9, 11), dtype=bool)
+    mask[:2, :3] = False
+    grid = masked_grid(mask)
+    N = grid.size
+    DuT, DvT = grid.transposed_difference_operators()
+    Ba, Bb, Bg, y = RNG.normal(size=(4, N))
+    cpu, gpu = run_both("stencil_transpose_subtract", DuT.indptr, DuT.indices, DuT.data, DvT.indptr, DvT.indices,
+                        DvT.data, Ba, Bb, Bg, y, np.full(N, np.nan))
+    assert_close(cpu[-1], y - (DuT @ Ba + DvT @ Bb + Bg))
+    assert_close(gpu[-1], cpu[-1])

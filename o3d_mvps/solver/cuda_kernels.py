@@ -21,6 +21,7 @@ afterwards, never to one shared accumulator; float64 throughout, as on the CPU.
 
 from __future__ import annotations
 
+import math
 import types
 
 import numba
@@ -37,7 +38,8 @@ __all__ = ["chunk_count", "accumulate_frame", "accumulate_frames", "project_twis
            "led_irradiances_into", "led_point_gradients_into", "warp_sample", "warp_sample_frames", "warp_gradients",
            "chebyshev_update", "chebyshev_start", "restrict_residual", "prolong_restart", "csr_multiply_add", "cg_start",
            "cg_scalars", "cg_update", "multigrid_cg", "ridge_solves", "led_trial_sums", "twist_system",
-           "twist_inverse", "albedo_update", "lighting_sums", "offset_system"]
+           "twist_inverse", "albedo_update", "lighting_sums", "offset_system",
+           "smoother_scaling", "stencil_transpose_subtract"]
 
 #: Threads per block of every kernel.
 THREADS_PER_BLOCK = 128
@@ -582,7 +584,7 @@ def _cooperative_blocks(kernel, args, wanted: int) -> int:
     if cuda.config.ENABLE_CUDASIM:
         return 1
     argtypes = tuple(kernel.typeof_pyval(a) for a in args)
-    key = (cuda.get_current_device().id, argtypes)
+    key = (cuda.get_current_device().id, kernel.py_func.__name__, argtypes)
     if key not in _RESIDENT_BLOCKS:
         _RESIDENT_BLOCKS[key] = kernel.compile(argtypes).max_cooperative_grid_blocks(THREADS_PER_BLOCK)
     return max(1, min(wanted, kernels.COOPERATIVE_BLOCKS, _RESIDENT_BLOCKS[key]))
@@ -816,3 +818,69 @@ def offset_system(ds, residual, usable, albedo, inv_lam, stride, H, g) -> None:
     frame; was ten array operations), its threads strided over the frames' spread pixels, then
     the block's tree sum of each of the 12 values."""
     _offset_system[1, THREADS_PER_BLOCK](ds, residual, usable, albedo, float(inv_lam), int(stride), H, g)
+
+
+_inverse_diagonal_row = _device(kernels.inverse_diagonal_row)
+_gershgorin_row = _device(kernels.gershgorin_row)
+
+
+@cuda.jit(cache=True)
+def _smoother_scaling(indptr, indices, data, inv_diag, scaled, upper, partial):  # pragma: no cover - device
+    """Cooperative: the rows' inverse diagonal, the grid's sync, the rows' Gershgorin sums and
+    each block's largest into partial, the grid's sync, every thread's maximum over the blocks
+    (the same in each), then the scaled inverse diagonal."""
+    share = cuda.shared.array(THREADS_PER_BLOCK, numba.float64)
+    t = cuda.threadIdx.x
+    n = indptr.shape[0] - 1
+    start, step = cuda.grid(1), cuda.gridsize(1)
+    for i in range(start, n, step):
+        _inverse_diagonal_row(indptr, indices, data, inv_diag, i)
+    cuda.cg.this_grid().sync()
+    bound = -math.inf
+    for i in range(start, n, step):
+        bound = max(bound, _gershgorin_row(indptr, indices, data, inv_diag, i))
+    share[t] = bound
+    cuda.syncthreads()
+    half = THREADS_PER_BLOCK // 2
+    while half > 0:
+        if t < half:
+            share[t] = max(share[t], share[t + half])
+        cuda.syncthreads()
+        half //= 2
+    if t == 0:
+        partial[cuda.blockIdx.x] = share[0]
+    cuda.cg.this_grid().sync()
+    bound = -math.inf
+    for b in range(cuda.gridDim.x):
+        bound = max(bound, partial[b])
+    if start == 0:
+        upper[0] = bound
+    for i in range(start, n, step):
+        scaled[i] = inv_diag[i] / bound
+
+
+def smoother_scaling(indptr, indices, data, inv_diag, scaled, upper, partial) -> None:
+    """:func:`.kernels.smoother_scaling` on the GPU in one cooperative launch (was six array
+    operations a multigrid level): rows in grid-stride loops over at most ``partial.size``
+    blocks."""
+    args = (indptr, indices, data, inv_diag, scaled, upper, partial)
+    blocks = min(_cooperative_blocks(_smoother_scaling, args, _blocks(indptr.shape[0] - 1)), partial.shape[0])
+    _smoother_scaling[blocks, THREADS_PER_BLOCK](*args)
+
+
+_stencil_transpose_row = _device(kernels.stencil_transpose_row)
+
+
+@cuda.jit(cache=True)
+def _stencil_transpose_subtract(u_indptr, u_indices, u_data, v_indptr, v_indices, v_data, Ba, Bb, Bg, y,
+                                out):  # pragma: no cover - device
+    i = cuda.grid(1)
+    if i < out.shape[0]:
+        _stencil_transpose_row(u_indptr, u_indices, u_data, v_indptr, v_indices, v_data, Ba, Bb, Bg, y, out, i)
+
+
+def stencil_transpose_subtract(u_indptr, u_indices, u_data, v_indptr, v_indices, v_data, Ba, Bb, Bg, y, out) -> None:
+    """:func:`.kernels.stencil_transpose_subtract` on the GPU: one thread per row (was two sparse
+    products and three array operations)."""
+    _stencil_transpose_subtract[_blocks(out.shape[0]), THREADS_PER_BLOCK](u_indptr, u_indices, u_data, v_indptr,
+                                                                          v_indices, v_data, Ba, Bb, Bg, y, out)

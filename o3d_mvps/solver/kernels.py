@@ -1574,3 +1574,59 @@ def offset_system(ds, residual, usable, albedo, inv_lam, stride, H, g):  # pragm
         H[0, e // 3, e % 3] = acc[e]
     for a in range(3):
         g[0, a, 0] = acc[9 + a]
+
+
+@numba.njit(inline="always")
+def inverse_diagonal_row(indptr, indices, data, inv_diag, i):  # pragma: no cover - compiled
+    """inv_diag[i] = 1 / a_ii of the CSR matrix (its stored diagonal entries added; 1 / 0 = inf
+    where none is stored, as ``1.0 / A.diagonal()``)."""
+    d = 0.0
+    for nz in range(indptr[i], indptr[i + 1]):
+        if indices[nz] == i:
+            d += data[nz]
+    inv_diag[i] = 1.0 / d if d != 0.0 else math.inf
+
+
+@numba.njit(inline="always")
+def gershgorin_row(indptr, indices, data, inv_diag, i):  # pragma: no cover - compiled
+    """Row i's ``sqrt(1/a_ii) sum_j |a_ij| sqrt(1/a_jj)``: the row sum of :func:`.krylov.spectral_bound`'s
+    D^-1/2 |A| D^-1/2, in the order of ``scale * (abs(A) @ scale)``."""
+    total = 0.0
+    for nz in range(indptr[i], indptr[i + 1]):
+        total += abs(data[nz]) * math.sqrt(inv_diag[indices[nz]])
+    return math.sqrt(inv_diag[i]) * total
+
+
+@numba.njit(cache=True)
+def smoother_scaling(indptr, indices, data, inv_diag, scaled, upper, partial):  # pragma: no cover - compiled
+    """A multigrid level's smoother set-up from its CSR matrix A (N, N): inv_diag (N,) = 1 /
+    diag(A), upper (1,) the Gershgorin bound of D^-1 A's spectrum (:func:`.krylov.spectral_bound`)
+    and scaled (N,) = inv_diag / upper (what the smoothers take, :func:`.krylov.make_smoother`);
+    partial (blocks,) scratch of the GPU's launch."""
+    n = indptr.shape[0] - 1
+    for i in range(n):
+        inverse_diagonal_row(indptr, indices, data, inv_diag, i)
+    bound = -math.inf
+    for i in range(n):
+        bound = max(bound, gershgorin_row(indptr, indices, data, inv_diag, i))
+    upper[0] = bound
+    for i in range(n):
+        scaled[i] = inv_diag[i] / bound
+
+
+@numba.njit(inline="always")
+def stencil_transpose_row(u_indptr, u_indices, u_data, v_indptr, v_indices, v_data, Ba, Bb, Bg, y, out,
+                          i):  # pragma: no cover - compiled
+    """out[i] = y[i] - (Du^T Ba + Dv^T Bb + Bg)[i], Du^T and Dv^T (N, N) CSR."""
+    out[i] = y[i] - (csr_row_dot(u_indptr, u_indices, u_data, Ba, i) + csr_row_dot(v_indptr, v_indices, v_data, Bb, i)
+                     + Bg[i])
+
+
+@numba.njit(parallel=True, cache=True)
+def stencil_transpose_subtract(u_indptr, u_indices, u_data, v_indptr, v_indices, v_data, Ba, Bb, Bg, y,
+                               out):  # pragma: no cover - compiled
+    """out (N,) = y - (Du^T Ba + Dv^T Bb + Bg): the joint step's depth right-hand side from the
+    prior's negative gradient y (N,) and the per-pixel sums Ba, Bb, Bg (N,) each
+    (:func:`.normal_equations.stencil_transpose`), Du^T, Dv^T (N, N) CSR."""
+    for i in numba.prange(out.shape[0]):
+        stencil_transpose_row(u_indptr, u_indices, u_data, v_indptr, v_indices, v_data, Ba, Bb, Bg, y, out, i)

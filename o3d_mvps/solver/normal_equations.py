@@ -191,7 +191,7 @@ def residual_jacobians(problem: LevelProblem, est: Estimate, ev: Evaluation, i: 
     if i == 0:
         if dshading is None:
             return use, None, np.zeros(points_ref.shape)
-        return use, None, _reference_parallax(est.albedo, dshading, ray, use)
+        return use, None, _reference_parallax(est.albedo, dshading, points_ref, use)
     J = pose_jacobian(problem.warped_gradients(i, pose, points_ref), problem.level.K)
     if dshading is not None:
         J -= est.albedo[:, :, None] * dshading[:, None, :]
@@ -201,19 +201,17 @@ def residual_jacobians(problem: LevelProblem, est: Estimate, ev: Evaluation, i: 
     return use, J, g
 
 
-def _reference_parallax(albedo: np.ndarray, dshading: np.ndarray, ray: np.ndarray, use: np.ndarray) -> np.ndarray:
-    """d(residual)/dz (N, 3) of the reference frame, albedo (N, 3): only its LED shading moves with z."""
-    return -albedo * (_row_dot(dshading[:, :3], ray) * use)[:, None]
-
-
-def _row_dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """sum_j a[:, j] b[:, j] of two (N, 3) arrays: (N,) (one kernel on a GPU)."""
-    return _dot3(a[:, 0], a[:, 1], a[:, 2], b[:, 0], b[:, 1], b[:, 2])
+def _reference_parallax(albedo: np.ndarray, dshading: np.ndarray, points: np.ndarray, use: np.ndarray) -> np.ndarray:
+    """d(residual)/dz (N, 3) of the reference frame, albedo (N, 3): only its LED shading moves with
+    z, along the ray d(point)/dz = point / z of the reference points (N, 3); dshading (N, 6)."""
+    return _parallax_rows(albedo, dshading[:, 0:1], dshading[:, 1:2], dshading[:, 2:3], points[:, 0:1],
+                          points[:, 1:2], points[:, 2:3], use[:, None])
 
 
 @fused
-def _dot3(a0, a1, a2, b0, b1, b2):
-    return a0 * b0 + a1 * b1 + a2 * b2
+def _parallax_rows(albedo, d0, d1, d2, x, y, z, use):
+    """-albedo (ds . ray) use, ray = (x, y, z) / z (columns (N, 1) each; one kernel on a GPU)."""
+    return -albedo * ((d0 * (x / z) + d1 * (y / z) + d2 * (z / z)) * use)
 
 
 #: Reference pixels per block of the joint assembly. Every per-pixel array of the refined
@@ -319,7 +317,14 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
     else:  # every candidate's rows, a frame not kept an identity block (its twist 0: JointSystem.selection)
         frames, kept, rhs_xi = candidates, list(range(6 * m)), twist_rhs
     prior = problem.level.prior
-    rhs_z = -stencil_transpose(grid, *sums[6:]) + prior.negative_gradient(est.z, problem.tau, problem.mu)
+    if xp is np:
+        rhs_z = -stencil_transpose(grid, *sums[6:]) + prior.negative_gradient(est.z, problem.tau, problem.mu)
+    else:  # the same in one launch
+        rhs_z = xp.empty(N)
+        DuT, DvT = grid.transposed_difference_operators()
+        kernels_for(rhs_z).stencil_transpose_subtract(DuT.indptr, DuT.indices, DuT.data, DvT.indptr, DvT.indices,
+                                                      DvT.data, *sums[6:], prior.negative_gradient(est.z, problem.tau,
+                                                                                                   problem.mu), rhs_z)
     if xp is np:  # filled into the level's pattern: no sparse products or sums
         matrix = depth_block(problem, sums[:6])
         del sums
@@ -420,7 +425,7 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
     dshading = model.shading_jacobians(est.lights, normals, points_ref, est.poses) if parallax or m else None
     extra_c = none3
     if parallax and dshading is not None:
-        extra_c = _reference_parallax(albedo, dshading[0], points_ref / points_ref[:, 2:3], usable[0])
+        extra_c = _reference_parallax(albedo, dshading[0], points_ref, usable[0])
     e = none_e if projection is None else projection.e
     if problem.level.image_stack is not None:  # on a GPU: every frame in one launch
         kernels.accumulate_frames(residual, shading, usable, 1.0 / problem.lam, q, alpha, beta, gamma, extra_c,
@@ -565,9 +570,14 @@ def shading_rows(problem: LevelProblem, est: Estimate, normals: np.ndarray, poin
     c, L = problem.light_model(est).fields(est.lights, normals, points_ref, est.poses)
     n = len(est.lights)
     L = array_module(normals).broadcast_to(like(L, normals).reshape(n, -1, 3), (n, len(u), 3))  # (n, N, 3)
-    alpha = K[0, 0] * L[..., 0] - (u - K[0, 2]) * L[..., 2]
-    beta = K[1, 1] * L[..., 1] - (v - K[1, 2]) * L[..., 2]
-    return c, alpha, beta, -L[..., 2]
+    return (c, *_light_rows(L[..., 0], L[..., 1], L[..., 2], u, v, K[0, 0], K[0, 2], K[1, 1], K[1, 2]))
+
+
+@fused
+def _light_rows(L0, L1, L2, u, v, fx, cx, fy, cy):
+    """(alpha, beta, gamma) of :func:`shading_rows` from the frozen light field's components
+    (n, N) each and the pixels' u, v (N,) (one kernel on a GPU)."""
+    return fx * L0 - (u - cx) * L2, fy * L1 - (v - cy) * L2, -L2
 
 
 def prepare_depth_block(problem: LevelProblem) -> None:
