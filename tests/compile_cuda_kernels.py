@@ -74,6 +74,10 @@ SIGNATURES = {
     "_smoother_scaling": (_array(1, types.int32), _array(1, types.int32), _F1, _F1, _F1, _F1, _F1),
     "_stencil_transpose_subtract": (*(_array(1, types.int32), _array(1, types.int32), _F1) * 2, _F1, _F1, _F1, _F1,
                                     _F1),
+    "_depth_block_fill": (_array(1, types.int32), _array(1, types.int32), *(_array(1, types.int64), _array(1, types.int64),
+                                                                           _F1, _F1) * 2, *(_F1,) * 6,
+                          *(types.float64, _array(1, types.int32), _array(1, types.int32), _F1) * 2, _F1, _F1),
+    "_levenberg_damp": (_array(1, types.int32), _array(1, types.int32), _F1, types.float64, types.float64, _F1, _F1),
     "_offset_system": (_F3, _R3, _array(2, types.boolean), _F2, types.float64, types.int64, _F3, _F3),
 }
 

@@ -691,3 +691,65 @@ def test_stencil_transpose_subtract_matches_cpu_and_the_sparse_formula():
                         DvT.data, Ba, Bb, Bg, y, np.full(N, np.nan))
     assert_close(cpu[-1], y - (DuT @ Ba + DvT @ Bb + Bg))
     assert_close(gpu[-1], cpu[-1])
+
+
+def test_depth_block_fill_matches_cpu_and_the_sparse_products():
+    """The depth block (stencil Gram + 2 tau D^T D + 2 mu S^T S) filled into the level's pattern in
+    one launch: the sparse products' matrix to rounding (the CPU's depth_block's measured 2e-16),
+    no entry missing; a pattern without the prior's entries counts the missing ones."""
+    from o3d_mvps.model.normals import masked_grid
+    from o3d_mvps.solver.normal_equations import depth_block_pattern, stencil_normal_matrix
+
+    mask = np.ones((8, 10), dtype=bool)
+    mask[:2, :3] = False
+    grid = masked_grid(mask)
+    N = grid.size
+    sums = RNG.random((6, N))
+    D = sp.random(N // 4, N, density=0.05, random_state=3, format="csr")
+    S = sp.random(N, N, density=0.02, random_state=4, format="csr")
+    prior = type("Prior", (), {"D": D, "smoothness_pattern": S})()
+    indptr, indices = depth_block_pattern(grid, prior)
+    DtD, StS = (D.T @ D).tocsr(), (S.T @ S).tocsr()
+    geometry = (grid.fwd_u, grid.bwd_u, grid.wf_u, grid.wb_u, grid.fwd_v, grid.bwd_v, grid.wf_v, grid.wb_v)
+    cpu, gpu = run_both("depth_block_fill", indptr, indices, *geometry, *sums, 1.4, DtD.indptr, DtD.indices, DtD.data,
+                        0.6, StS.indptr, StS.indices, StS.data, np.zeros(indices.size), np.zeros(1))
+    expected = (stencil_normal_matrix(grid, *sums) + 1.4 * DtD + 0.6 * StS).toarray()
+    for out in (cpu, gpu):
+        assert out[-1][0] == 0.0
+        M = sp.csr_matrix((out[-2], indices, indptr), shape=(N, N)).toarray()
+        assert_close(M, expected, rtol=1e-13)
+    # without a second term (no rows) and a pattern of the stencil alone: the first term's entries missing
+    no_rows = DtD.indptr[:1]
+    touched_only = type("Prior", (), {"D": sp.csr_matrix((1, N)), "smoothness_pattern": None})()
+    small_ptr, small_idx = depth_block_pattern(grid, touched_only)
+    _, gpu = run_both("depth_block_fill", small_ptr, small_idx, *geometry, *sums, 1.4, DtD.indptr, DtD.indices,
+                      DtD.data, 0.0, no_rows, DtD.indices, DtD.data, np.zeros(small_idx.size), np.zeros(1))
+    outside = (abs(sp.csr_matrix((np.ones(small_idx.size), small_idx, small_ptr), shape=(N, N))).toarray() == 0)
+    assert gpu[-1][0] == (DtD.toarray()[outside] != 0).sum() > 0
+
+
+def test_levenberg_damp_matches_cpu_and_levenberg_damped():
+    """In place and in one launch: linear.levenberg_damped's matrix (1e-14: the diagonal's mean added
+    in another order); a row without a stored diagonal is counted, left as it is."""
+    from o3d_mvps.solver.linear import levenberg_damped
+
+    n = 120
+    B = sp.random(n, n, density=0.05, random_state=8, format="csr")
+    A = (B @ B.T + sp.diags(np.linspace(0.0, 2.0, n))).tocsr()
+    A.indptr, A.indices = A.indptr.astype(np.int32), A.indices.astype(np.int32)
+    A.setdiag(A.diagonal())  # every diagonal entry stored (zeros too)
+    expected = levenberg_damped(A.copy()).toarray()
+    def damp(module, M):  # (data, missing) after the launch
+        data, missing = M.data.copy(), np.full(1, np.nan)
+        module.levenberg_damp(M.indptr, M.indices, data, 1e-4, np.finfo(float).tiny, np.full(8, np.nan), missing)
+        return data, missing[0]
+
+    for module in (kernels, cuda_kernels):
+        data, missing = damp(module, A)
+        assert missing == 0.0
+        assert_close(sp.csr_matrix((data, A.indices, A.indptr), shape=(n, n)).toarray(), expected, rtol=1e-14)
+    C = sp.csr_matrix(A.toarray() - np.diag(np.diag(A.toarray())) + np.diag(np.r_[0.0, np.ones(n - 1)]))  # row 0: none
+    C.indptr, C.indices = C.indptr.astype(np.int32), C.indices.astype(np.int32)
+    data, missing = damp(cuda_kernels, C)
+    assert missing == 1.0
+    np.testing.assert_array_equal(data[C.indptr[0]:C.indptr[1]], C.data[C.indptr[0]:C.indptr[1]])

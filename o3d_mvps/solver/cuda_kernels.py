@@ -39,7 +39,8 @@ __all__ = ["chunk_count", "accumulate_frame", "accumulate_frames", "project_twis
            "chebyshev_update", "chebyshev_start", "restrict_residual", "prolong_restart", "csr_multiply_add", "cg_start",
            "cg_scalars", "cg_update", "multigrid_cg", "ridge_solves", "led_trial_sums", "twist_system",
            "twist_inverse", "albedo_update", "lighting_sums", "offset_system",
-           "smoother_scaling", "stencil_transpose_subtract"]
+           "smoother_scaling", "stencil_transpose_subtract", "depth_block_fill",
+           "levenberg_damp"]
 
 #: Threads per block of every kernel.
 THREADS_PER_BLOCK = 128
@@ -884,3 +885,101 @@ def stencil_transpose_subtract(u_indptr, u_indices, u_data, v_indptr, v_indices,
     products and three array operations)."""
     _stencil_transpose_subtract[_blocks(out.shape[0]), THREADS_PER_BLOCK](u_indptr, u_indices, u_data, v_indptr,
                                                                           v_indices, v_data, Ba, Bb, Bg, y, out)
+
+
+_stencil_pixel = _device(kernels.stencil_pixel)
+_stencil_gram_value = _device(kernels.stencil_gram_value)
+_csr_position = _device(kernels.csr_position)
+
+
+@cuda.jit(cache=True)
+def _depth_block_fill(indptr, indices, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, Saa, Sbb, Sgg, Sab, Sag,
+                      Sbg, s1, t1_indptr, t1_indices, t1_data, s2, t2_indptr, t2_indices, t2_data, data,
+                      missing):  # pragma: no cover - device
+    """Thread k: pixel k's 5 x 5 stencil block, then row k of each term, added by atomics."""
+    nodes = cuda.local.array(5, numba.int64)
+    cu = cuda.local.array(5, numba.float64)
+    cv = cuda.local.array(5, numba.float64)
+    ce = cuda.local.array(5, numba.float64)
+    k = cuda.grid(1)
+    if k < fwd_u.shape[0]:
+        _stencil_pixel(fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, nodes, cu, cv, ce, k)
+        for p in range(5):
+            if cu[p] == 0.0 and cv[p] == 0.0 and ce[p] == 0.0:
+                continue
+            for q in range(5):
+                if cu[q] == 0.0 and cv[q] == 0.0 and ce[q] == 0.0:
+                    continue
+                at = _csr_position(indptr, indices, nodes[p], nodes[q])
+                if at < 0:
+                    cuda.atomic.add(missing, 0, 1.0)
+                else:
+                    cuda.atomic.add(data, at, _stencil_gram_value(Saa[k], Sbb[k], Sgg[k], Sab[k], Sag[k], Sbg[k], cu,
+                                                                  cv, ce, p, q))
+    if k < t1_indptr.shape[0] - 1:
+        for nz in range(t1_indptr[k], t1_indptr[k + 1]):
+            at = _csr_position(indptr, indices, k, t1_indices[nz])
+            if at < 0:
+                cuda.atomic.add(missing, 0, 1.0)
+            else:
+                cuda.atomic.add(data, at, s1 * t1_data[nz])
+    if k < t2_indptr.shape[0] - 1:
+        for nz in range(t2_indptr[k], t2_indptr[k + 1]):
+            at = _csr_position(indptr, indices, k, t2_indices[nz])
+            if at < 0:
+                cuda.atomic.add(missing, 0, 1.0)
+            else:
+                cuda.atomic.add(data, at, s2 * t2_data[nz])
+
+
+def depth_block_fill(indptr, indices, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, Saa, Sbb, Sgg, Sab, Sag, Sbg,
+                     s1, t1_indptr, t1_indices, t1_data, s2, t2_indptr, t2_indices, t2_data, data, missing) -> None:
+    """:func:`.kernels.depth_block_fill` on the GPU in one launch (was eight sparse products and
+    the sums of four matrices): one thread per pixel and term row, adding by atomics (pixels
+    share entries: the order of the additions, so the rounding, varies from run to run)."""
+    rows = max(fwd_u.shape[0], t1_indptr.shape[0] - 1, t2_indptr.shape[0] - 1)
+    _depth_block_fill[_blocks(rows), THREADS_PER_BLOCK](indptr, indices, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v,
+                                                        wb_v, Saa, Sbb, Sgg, Sab, Sag, Sbg, float(s1), t1_indptr,
+                                                        t1_indices, t1_data, float(s2), t2_indptr, t2_indices, t2_data,
+                                                        data, missing)
+
+
+_diagonal_value = _device(kernels.diagonal_value)
+_damp_diagonal = _device(kernels.damp_diagonal)
+
+
+@cuda.jit(cache=True)
+def _levenberg_damp(indptr, indices, data, damping, tiny, partial, missing):  # pragma: no cover - device
+    """Cooperative: the diagonal's sum (each block's into partial, after the grid's sync every
+    thread's total over the blocks in the same order), then each row's damping."""
+    share = cuda.shared.array(THREADS_PER_BLOCK, numba.float64)
+    t = cuda.threadIdx.x
+    n = indptr.shape[0] - 1
+    start, step = cuda.grid(1), cuda.gridsize(1)
+    if start == 0:
+        missing[0] = 0.0  # counted after the grid's sync
+    total = 0.0
+    for row in range(start, n, step):
+        total += _diagonal_value(indptr, indices, data, row)[1]
+    _block_tree_sum(share, t, total)
+    if t == 0:
+        partial[cuda.blockIdx.x] = share[0]
+    cuda.cg.this_grid().sync()
+    total = 0.0
+    for b in range(cuda.gridDim.x):
+        total += partial[b]
+    floor = max(0.01 * (total / n), tiny) if n else tiny
+    for row in range(start, n, step):
+        if _diagonal_value(indptr, indices, data, row)[0] < 0:
+            cuda.atomic.add(missing, 0, 1.0)
+        else:
+            _damp_diagonal(indptr, indices, data, damping, floor, missing, row)
+
+
+def levenberg_damp(indptr, indices, data, damping, tiny, partial, missing) -> None:
+    """:func:`.kernels.levenberg_damp` on the GPU in one cooperative launch and no read (was a
+    mean read by the host, three array operations and a sparse sum); rows in grid-stride loops
+    over at most ``partial.size`` blocks."""
+    args = (indptr, indices, data, float(damping), float(tiny), partial, missing)
+    blocks = min(_cooperative_blocks(_levenberg_damp, args, _blocks(indptr.shape[0] - 1)), partial.shape[0])
+    _levenberg_damp[blocks, THREADS_PER_BLOCK](*args)

@@ -1090,26 +1090,43 @@ def add_stencil_gram(indptr, indices, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf
     (pixels share entries)."""
     nodes = np.empty(5, np.int64)
     cu, cv, ce = np.zeros(5), np.zeros(5), np.zeros(5)
-    ce[0] = 1.0
     for k in range(fwd_u.shape[0]):
-        nodes[0], nodes[1], nodes[2], nodes[3], nodes[4] = k, fwd_u[k], bwd_u[k], fwd_v[k], bwd_v[k]
-        cu[0], cu[1], cu[2] = wb_u[k] - wf_u[k], wf_u[k], -wb_u[k]
-        cv[0], cv[3], cv[4] = wb_v[k] - wf_v[k], wf_v[k], -wb_v[k]
-        saa, sbb, sgg, sab, sag, sbg = Saa[k], Sbb[k], Sgg[k], Sab[k], Sag[k], Sbg[k]
+        stencil_pixel(fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, nodes, cu, cv, ce, k)
         for p in range(5):
             if cu[p] == 0.0 and cv[p] == 0.0 and ce[p] == 0.0:
                 continue
             for q in range(5):
                 if cu[q] == 0.0 and cv[q] == 0.0 and ce[q] == 0.0:
                     continue
-                value = (saa * cu[p] * cu[q] + sbb * cv[p] * cv[q] + sgg * ce[p] * ce[q]
-                         + sab * (cu[p] * cv[q] + cv[p] * cu[q]) + sag * (cu[p] * ce[q] + ce[p] * cu[q])
-                         + sbg * (cv[p] * ce[q] + ce[p] * cv[q]))
                 at = csr_position(indptr, indices, nodes[p], nodes[q])
                 if at < 0:
                     return False
-                data[at] += value
+                data[at] += stencil_gram_value(Saa[k], Sbb[k], Sgg[k], Sab[k], Sag[k], Sbg[k], cu, cv, ce, p, q)
     return True
+
+
+@numba.njit(inline="always")
+def stencil_pixel(fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, nodes, cu, cv, ce, k):  # pragma: no cover
+    """Pixel k's stencil row ``R_k = a Du_k + b Dv_k + c e_k`` of :func:`add_stencil_gram`: its 5
+    nodes (k, u-forward, u-backward, v-forward, v-backward) into ``nodes`` (5,) and the
+    coefficients of Du_k, Dv_k, e_k on them into cu, cv, ce (5,) each."""
+    nodes[0], nodes[1], nodes[2], nodes[3], nodes[4] = k, fwd_u[k], bwd_u[k], fwd_v[k], bwd_v[k]
+    for p in range(5):
+        cu[p] = 0.0
+        cv[p] = 0.0
+        ce[p] = 0.0
+    ce[0] = 1.0
+    cu[0], cu[1], cu[2] = wb_u[k] - wf_u[k], wf_u[k], -wb_u[k]
+    cv[0], cv[3], cv[4] = wb_v[k] - wf_v[k], wf_v[k], -wb_v[k]
+
+
+@numba.njit(inline="always")
+def stencil_gram_value(saa, sbb, sgg, sab, sag, sbg, cu, cv, ce, p, q):  # pragma: no cover - compiled
+    """Entry (p, q) of one pixel's 5 x 5 block of R^T W R (:func:`stencil_pixel`'s coefficients,
+    the pixel's weighted products Saa = sum w a a, ...)."""
+    return (saa * cu[p] * cu[q] + sbb * cv[p] * cv[q] + sgg * ce[p] * ce[q]
+            + sab * (cu[p] * cv[q] + cv[p] * cu[q]) + sag * (cu[p] * ce[q] + ce[p] * cu[q])
+            + sbg * (cv[p] * ce[q] + ce[p] * cv[q]))
 
 
 @numba.njit(cache=True)
@@ -1630,3 +1647,56 @@ def stencil_transpose_subtract(u_indptr, u_indices, u_data, v_indptr, v_indices,
     (:func:`.normal_equations.stencil_transpose`), Du^T, Dv^T (N, N) CSR."""
     for i in numba.prange(out.shape[0]):
         stencil_transpose_row(u_indptr, u_indices, u_data, v_indptr, v_indices, v_data, Ba, Bb, Bg, y, out, i)
+
+
+@numba.njit(cache=True)
+def depth_block_fill(indptr, indices, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, Saa, Sbb, Sgg, Sab, Sag, Sbg,
+                     s1, t1_indptr, t1_indices, t1_data, s2, t2_indptr, t2_indices, t2_data, data,
+                     missing):  # pragma: no cover - compiled
+    """data (nnz,) of the depth block's CSR pattern (indptr, indices; zeroed by the caller) +=
+    the stencil's Gram (:func:`add_stencil_gram`) + s1 T1 + s2 T2, T1 and T2 (N, N) CSR (the
+    prior's Hessian terms; T2 with no rows where there is none); missing (1,) += the entries the
+    pattern lacks (left out; on the host 1 for each part that lacks some)."""
+    if not add_stencil_gram(indptr, indices, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, Saa, Sbb, Sgg, Sab,
+                            Sag, Sbg, data):
+        missing[0] += 1.0
+    for scale, a_indptr, a_indices, a_data in ((s1, t1_indptr, t1_indices, t1_data),
+                                               (s2, t2_indptr, t2_indices, t2_data)):
+        if not add_csr_into_pattern(indptr, indices, data, scale, a_indptr, a_indices, a_data):
+            missing[0] += 1.0
+
+
+@numba.njit(inline="always")
+def diagonal_value(indptr, indices, data, row):  # pragma: no cover - compiled
+    """(position, value) of row's diagonal entry in a CSR matrix (a scan: any column order);
+    (-1, 0.0) where it is not stored."""
+    for nz in range(indptr[row], indptr[row + 1]):
+        if indices[nz] == row:
+            return nz, data[nz]
+    return -1, 0.0
+
+
+@numba.njit(inline="always")
+def damp_diagonal(indptr, indices, data, damping, floor, missing, row):  # pragma: no cover - compiled
+    """Row's diagonal entry d += damping max(d, floor) in place; missing[0] += 1 where not stored."""
+    at, d = diagonal_value(indptr, indices, data, row)
+    if at < 0:
+        missing[0] += 1.0
+    else:
+        data[at] = d + damping * max(d, floor)
+
+
+@numba.njit(cache=True)
+def levenberg_damp(indptr, indices, data, damping, tiny, partial, missing):  # pragma: no cover - compiled
+    """:func:`.linear.levenberg_damped` in place on a CSR matrix (N, N) that stores its whole
+    diagonal: M_pp += damping max(M_pp, max(mean(M_pp) / 100, tiny)); missing (1,) += the rows
+    without a stored diagonal (left undamped; set here); partial (blocks,) scratch of the GPU's
+    launch."""
+    n = indptr.shape[0] - 1
+    missing[0] = 0.0
+    total = 0.0
+    for row in range(n):
+        total += diagonal_value(indptr, indices, data, row)[1]
+    floor = max(0.01 * (total / n), tiny) if n else tiny
+    for row in range(n):
+        damp_diagonal(indptr, indices, data, damping, floor, missing, row)

@@ -330,11 +330,8 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
         del sums
         prior.release_products()  # S^T S not held through the solve (formed again by the next step)
     else:
-        # the prior's matrix formed after the stencil's, and the per-pixel sums dropped before the two are added
-        matrix = stencil_normal_matrix(grid, *sums[:6])
+        matrix = _device_depth_block(problem, sums[:6])
         del sums
-        for scale, term in prior.hessian_terms(problem.tau, problem.mu):
-            matrix = matrix + scale * term
     for row, k in enumerate(kept):  # the kept rows moved up in place (kept is ascending): no second U
         if row != k:
             coupling_t[row] = coupling_t[k]
@@ -585,7 +582,7 @@ def prepare_depth_block(problem: LevelProblem) -> None:
     on the host now, as the level starts: it lasts the level anyway, but built inside its first
     joint step, next to the coupling U, its sparse products' temporaries (some 0.5 GB at 2
     megapixels, with the prior's D^T D it formed then) set that step's peak. Nothing is done
-    on a GPU, where :func:`joint_system` forms M by sparse products."""
+    on a GPU, where :func:`_device_depth_block` makes it at the level's first joint step."""
     if array_module(problem.level.grid.u) is not np:
         return
     if problem.depth_pattern is None:
@@ -628,19 +625,43 @@ def depth_block(problem: LevelProblem, stencil_sums: np.ndarray) -> sp.csr_matri
     return matrix
 
 
+def _device_depth_block(problem: LevelProblem, stencil_sums):
+    """The depth block M (N, N) on a GPU, as :func:`depth_block` on the host: the stencil's Gram of
+    ``stencil_sums`` (6, N) and the prior's Hessian terms filled in one launch
+    (:func:`.kernels.depth_block_fill`) into the level's pattern (:func:`depth_block_pattern`,
+    made on the device at the level's first joint step and kept on the problem), where sparse
+    products and sums of four matrices took some 15 launches (and cuSPARSE's synchronisations)."""
+    grid, prior = problem.level.grid, problem.level.prior
+    if problem.depth_pattern is None:
+        problem.depth_pattern = depth_block_pattern(grid, prior)
+    indptr, indices = problem.depth_pattern
+    xp = array_module(stencil_sums)
+    buffer = xp.zeros(indices.size + 1)  # the values, then the count of entries the pattern lacks (none)
+    terms = prior.hessian_terms(problem.tau, problem.mu)
+    (s1, T1), (s2, T2) = terms[0], terms[1] if len(terms) > 1 else (0.0, terms[0])
+    t2_indptr = T2.indptr if len(terms) > 1 else T2.indptr[:1]  # no rows: no second term
+    kernels_for(stencil_sums).depth_block_fill(indptr, indices, grid.fwd_u, grid.bwd_u, grid.wf_u, grid.wb_u, grid.fwd_v,
+                                               grid.bwd_v, grid.wf_v, grid.wb_v, *stencil_sums, s1, T1.indptr,
+                                               T1.indices, T1.data, s2, t2_indptr, T2.indices, T2.data, buffer[:-1],
+                                               buffer[-1:])
+    return sparse_module(T1).csr_matrix((buffer[:-1], indices, indptr), shape=(grid.size, grid.size))
+
+
 def depth_block_pattern(grid, prior) -> tuple[np.ndarray, np.ndarray]:
     """(indptr, indices) of a CSR pattern (columns ascending per row) holding every entry of the
     stencil's Gram (pixels coupled through one pixel's central-difference stencil), of the
-    prior's D^T D and S^T S (for any smoothness weights) and the diagonal, (N, N)."""
+    prior's D^T D and S^T S (for any smoothness weights) and the diagonal, (N, N); arrays of the
+    grid's device (on a GPU by a few sparse products there, once per level)."""
     Du, Dv = grid.difference_operators()
-    touched = abs(Du) + abs(Dv) + sp.identity(grid.size, format="csr")
-    touched.eliminate_zeros()
+    sparse = sparse_module(Du)
+    # the sum stores no zeros (the stencils' stored zeros lie on the diagonal, where the identity is)
+    touched = abs(Du) + abs(Dv) + sparse.diags(array_module(grid.u).ones(grid.size), format="csr")
     D = abs(prior.D)
     pattern = touched.T @ touched + D.T @ D  # D^T D's pattern, not kept
     S = prior.smoothness_pattern
     if S is not None:
         pattern = pattern + abs(S).T @ abs(S)
-    pattern = sp.csr_matrix(pattern)
+    pattern = sparse.csr_matrix(pattern)
     pattern.sort_indices()
     return pattern.indptr, pattern.indices
 
