@@ -443,9 +443,13 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
     elif m:
         gram[:m].sum(axis=1, out=grams)
         rhs[:m].sum(axis=1, out=rhs_xi.reshape(m, 6))
-    if projection is not None:
+    if projection is not None and xp is not np:  # the downdate and the copy into sums in one launch
+        xp.subtract(block_sums, projection.local(), out=sums)
+    elif projection is not None:
         block_sums -= projection.local()
-    sums[:] = block_sums
+        sums[:] = block_sums
+    else:
+        sums[:] = block_sums
     if m and projection is not None and xp is np:
         # the projection of the rows and their stencil transpose into U^T in one pass on the host
         scaled, sqrt_inv_d = projection.twist_scalings()
@@ -640,10 +644,9 @@ def _device_depth_block(problem: LevelProblem, stencil_sums):
     terms = prior.hessian_terms(problem.tau, problem.mu)
     (s1, T1), (s2, T2) = terms[0], terms[1] if len(terms) > 1 else (0.0, terms[0])
     t2_indptr = T2.indptr if len(terms) > 1 else T2.indptr[:1]  # no rows: no second term
-    kernels_for(stencil_sums).depth_block_fill(indptr, indices, grid.fwd_u, grid.bwd_u, grid.wf_u, grid.wb_u, grid.fwd_v,
-                                               grid.bwd_v, grid.wf_v, grid.wb_v, *stencil_sums, s1, T1.indptr,
-                                               T1.indices, T1.data, s2, t2_indptr, T2.indices, T2.data, buffer[:-1],
-                                               buffer[-1:])
+    geometry = (grid.fwd_u, grid.bwd_u, grid.wf_u, grid.wb_u, grid.fwd_v, grid.bwd_v, grid.wf_v, grid.wb_v)
+    kernels_for(stencil_sums).depth_block_fill(indptr, indices, *geometry, *stencil_sums, s1, T1.indptr, T1.indices,
+                                               T1.data, s2, t2_indptr, T2.indices, T2.data, buffer[:-1], buffer[-1:])
     return sparse_module(T1).csr_matrix((buffer[:-1], indices, indptr), shape=(grid.size, grid.size))
 
 
