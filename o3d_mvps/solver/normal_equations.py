@@ -284,11 +284,16 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
     # on a GPU each block writes its twist sums into its own row, summed and copied to the host
     # once after the pass (not two or four copies per block); the frames' poses and slots copied once
     partials = xp.zeros((len(starts), _twist_sums_size(m))) if xp is not np and m else None
-    poses = like(est.poses, points_ref)
     slot = {i: k for k, i in enumerate(candidates)}
     with_jacobian = [i > 0 and (parallax or i in slot) for i in range(problem.n_frames)]
-    frame_slots = like(np.array([[jac, slot.get(i, -1)] for i, jac in enumerate(with_jacobian)], dtype=np.int64),
-                       points_ref)
+    frame_slots = np.array([[jac, slot.get(i, -1)] for i, jac in enumerate(with_jacobian)], dtype=np.int64)
+    if xp is np:
+        poses = like(est.poses, points_ref)
+    else:  # the poses' bits and the frame slots in one int64 array: one copy, then views
+        n_pose = 16 * problem.n_frames
+        packed = like(np.concatenate([np.ascontiguousarray(est.poses, dtype=np.float64).view(np.int64).ravel(),
+                                      frame_slots.ravel()]), points_ref)
+        poses, frame_slots = packed[:n_pose].view(np.float64).reshape(-1, 4, 4), packed[n_pose:].reshape(-1, 2)
     for b, start in enumerate(starts):
         block = slice(start, min(N, start + block_pixels))
         twist_sums = (grams, rhs_xi, rhs_xi, downdate) if partials is None else _twist_sums(partials[b], m)
