@@ -87,6 +87,16 @@ SIGNATURES = {
                            _array(1, types.int32), _array(1, types.int32), _F1, _F1, _array(1, types.int32),
                            _array(1, types.int32), _F1, types.float64, types.float64, _F2, _F2, _F1, _COLOR,
                            _array(2, types.boolean), _R3, _R2, _R3, _F2),
+    "_albedo_update": (_R3, _array(2, types.boolean), _COLOR, _R2, types.float64, _F2, _F2, _F2, _F2),
+    "_lighting_partials": (_R3, _array(2, types.boolean), _COLOR, _F2, types.float64, _R3, _F3),
+    "_smoother_scaling": (_array(1, types.int32), _array(1, types.int32), _F1, _F1, _F1, _F1, _F1),
+    "_stencil_transpose_subtract": (*(_array(1, types.int32), _array(1, types.int32), _F1) * 2, _F1, _F1, _F1, _F1,
+                                    _F1),
+    "_depth_block_fill": (_array(1, types.int32), _array(1, types.int32),
+                          *(_array(1, types.int64), _array(1, types.int64), _F1, _F1) * 2, *(_F1,) * 6,
+                          *(types.float64, _array(1, types.int32), _array(1, types.int32), _F1) * 2, _F1, _F1),
+    "_levenberg_damp": (_array(1, types.int32), _array(1, types.int32), _F1, types.float64, types.float64, _F1, _F1),
+    "_offset_system": (_F3, _R3, _array(2, types.boolean), _F2, types.float64, types.int64, _F3, _F3),
 }
 
 

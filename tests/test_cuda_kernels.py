@@ -759,3 +759,158 @@ def test_led_shading_jacobians_match_cpu():
                         np.full((4, N_PIXELS, 6), np.nan))
     assert np.isfinite(cpu[-1]).all() and (cpu[-1] == 0).any() and (cpu[-1] != 0).any()  # lit and unlit points
     assert_close(gpu[-1], cpu[-1])
+def test_albedo_update_matches_cpu_and_the_ratio(frames):
+    """One launch: the sums and the closed form; pixels without weight keep the fallback."""
+    residual, usable, color, shading, albedo = frames
+    usable = usable.copy()
+    usable[:, :7] = False  # no frame: den = 0, the fallback
+    usable[0, 7:] = True  # at least one frame elsewhere
+    empty = lambda *shape: np.full(shape, np.nan)  # noqa: E731
+    cpu, gpu = run_both("albedo_update", residual, usable, color, shading, np.float64(1.0 / LAM), albedo,
+                        empty(N_PIXELS, 3), empty(N_PIXELS, 3), empty(N_PIXELS, 3))
+    num, den, out = cpu[-3:]
+    np.testing.assert_array_equal(out[:7], albedo[:7])
+    assert_close(out[7:], num[7:] / den[7:])
+    for a, b in zip(gpu[-3:], cpu[-3:]):
+        assert_close(a, b)
+
+
+@pytest.mark.parametrize("shared", [True, False])
+def test_lighting_sums_match_cpu_and_the_matrix_formula(frames, shared):
+    """Frame i's Gram sum_p a_p B_p B_p^T, rhs sum_p b_p B_p and usable count (a, b the weighted
+    channel sums of weighted_lighting_sums), blocks' shares added; float32 basis as the solver's."""
+    residual, usable, color, _, albedo = frames
+    k = 4 if shared else 2
+    basis = RNG.random((1 if shared else N_FRAMES, N_PIXELS, k)).astype(np.float32)
+    blocks = 3
+    cpu, gpu = run_both("lighting_sums", residual, usable, color, albedo, np.float64(1.0 / LAM), basis,
+                        np.full((N_FRAMES, blocks, k * k + k + 1), np.nan))
+    a, b = np.empty((N_FRAMES, N_PIXELS)), np.empty((N_FRAMES, N_PIXELS))
+    kernels.weighted_lighting_sums(residual, usable, color, albedo, 1.0 / LAM, a, b)
+    B = np.broadcast_to(basis.astype(np.float64), (N_FRAMES, N_PIXELS, k))
+    expected = np.concatenate([np.einsum("ip,ipr,ipc->irc", a, B, B).reshape(N_FRAMES, -1),
+                               np.einsum("ip,ipr->ir", b, B), usable.sum(axis=1)[:, None]], axis=1)
+    assert_close(cpu[-1].sum(axis=1), expected, rtol=1e-12)
+    assert_close(gpu[-1].sum(axis=1), expected, rtol=1e-12)
+    with pytest.raises(ValueError, match="5 terms"):
+        cuda_kernels.lighting_sums(residual, usable, color, albedo, 1.0 / LAM, np.zeros((1, N_PIXELS, 5)),
+                                   np.zeros((N_FRAMES, 1, 31)))
+
+
+def test_offset_system_matches_cpu_and_the_array_formula(frames):
+    """The LED offset's system from every 3rd pixel: the same as lighting._offset_normal_equations
+    (the host's array formula) on those pixels, unusable ones weighted 0."""
+    from o3d_mvps.model.robust import cauchy_weights
+    from o3d_mvps.solver.lighting import _offset_normal_equations
+
+    residual, usable, _, _, albedo = frames
+    stride = 3
+    ds = RNG.normal(size=(N_FRAMES, -(-N_PIXELS // stride), 3))
+    cpu, gpu = run_both("offset_system", ds, residual, usable, albedo, np.float64(1.0 / LAM), stride,
+                        np.full((1, 3, 3), np.nan), np.full((1, 3, 1), np.nan))
+    spread = slice(None, None, stride)
+    H, g = _offset_normal_equations(ds, cauchy_weights(residual[:, spread], LAM) * usable[:, spread, None],
+                                    albedo[spread], residual[:, spread])
+    assert_close(cpu[-2][0], H)
+    assert_close(cpu[-1][0, :, 0], g)
+    assert_close(gpu[-2], cpu[-2])
+    assert_close(gpu[-1], cpu[-1])
+
+
+def test_smoother_scaling_matches_cpu_and_the_krylov_formulas():
+    """1 / diag(A), the Gershgorin bound of D^-1 A and their ratio in one launch: equal to
+    krylov.inverse_diagonal / spectral_bound (the diagonal bit for bit, the bound to rounding: SciPy's
+    product may add in another order; measured 1 ulp)."""
+    from o3d_mvps.solver.krylov import inverse_diagonal, spectral_bound
+
+    n = 150
+    B = sp.random(n, n, density=0.05, random_state=5, format="csr")
+    A = (B @ B.T + sp.diags(np.linspace(1.0, 3.0, n))).tocsr()
+    A.indptr, A.indices = A.indptr.astype(np.int32), A.indices.astype(np.int32)
+    nan = lambda *shape: np.full(shape, np.nan)  # noqa: E731
+    cpu, gpu = run_both("smoother_scaling", A.indptr, A.indices, A.data, nan(n), nan(n), nan(1), nan(8))
+    inv_diag = inverse_diagonal(A)
+    upper = spectral_bound(A, inv_diag)
+    np.testing.assert_array_equal(cpu[3], inv_diag)
+    assert cpu[5][0] == pytest.approx(upper, rel=1e-14)
+    assert_close(cpu[4], inv_diag / upper, rtol=1e-14)
+    for k in (3, 4, 5):
+        assert_close(gpu[k], cpu[k])
+
+
+def test_stencil_transpose_subtract_matches_cpu_and_the_sparse_formula():
+    """y - (Du^T Ba + Dv^T Bb + Bg) in one launch, as normal_equations.stencil_transpose on a grid."""
+    from o3d_mvps.model.normals import masked_grid
+
+    mask = np.ones((9, 11), dtype=bool)
+    mask[:2, :3] = False
+    grid = masked_grid(mask)
+    N = grid.size
+    DuT, DvT = grid.transposed_difference_operators()
+    Ba, Bb, Bg, y = RNG.normal(size=(4, N))
+    cpu, gpu = run_both("stencil_transpose_subtract", DuT.indptr, DuT.indices, DuT.data, DvT.indptr, DvT.indices,
+                        DvT.data, Ba, Bb, Bg, y, np.full(N, np.nan))
+    assert_close(cpu[-1], y - (DuT @ Ba + DvT @ Bb + Bg))
+    assert_close(gpu[-1], cpu[-1])
+
+
+def test_depth_block_fill_matches_cpu_and_the_sparse_products():
+    """The depth block (stencil Gram + 2 tau D^T D + 2 mu S^T S) filled into the level's pattern in
+    one launch: the sparse products' matrix to rounding (the CPU's depth_block's measured 2e-16),
+    no entry missing; a pattern without the prior's entries counts the missing ones."""
+    from o3d_mvps.model.normals import masked_grid
+    from o3d_mvps.solver.normal_equations import depth_block_pattern, stencil_normal_matrix
+
+    mask = np.ones((8, 10), dtype=bool)
+    mask[:2, :3] = False
+    grid = masked_grid(mask)
+    N = grid.size
+    sums = RNG.random((6, N))
+    D = sp.random(N // 4, N, density=0.05, random_state=3, format="csr")
+    S = sp.random(N, N, density=0.02, random_state=4, format="csr")
+    prior = type("Prior", (), {"D": D, "smoothness_pattern": S})()
+    indptr, indices = depth_block_pattern(grid, prior)
+    DtD, StS = (D.T @ D).tocsr(), (S.T @ S).tocsr()
+    geometry = (grid.fwd_u, grid.bwd_u, grid.wf_u, grid.wb_u, grid.fwd_v, grid.bwd_v, grid.wf_v, grid.wb_v)
+    cpu, gpu = run_both("depth_block_fill", indptr, indices, *geometry, *sums, 1.4, DtD.indptr, DtD.indices, DtD.data,
+                        0.6, StS.indptr, StS.indices, StS.data, np.zeros(indices.size), np.zeros(1))
+    expected = (stencil_normal_matrix(grid, *sums) + 1.4 * DtD + 0.6 * StS).toarray()
+    for out in (cpu, gpu):
+        assert out[-1][0] == 0.0
+        M = sp.csr_matrix((out[-2], indices, indptr), shape=(N, N)).toarray()
+        assert_close(M, expected, rtol=1e-13)
+    # without a second term (no rows) and a pattern of the stencil alone: the first term's entries missing
+    no_rows = DtD.indptr[:1]
+    touched_only = type("Prior", (), {"D": sp.csr_matrix((1, N)), "smoothness_pattern": None})()
+    small_ptr, small_idx = depth_block_pattern(grid, touched_only)
+    _, gpu = run_both("depth_block_fill", small_ptr, small_idx, *geometry, *sums, 1.4, DtD.indptr, DtD.indices,
+                      DtD.data, 0.0, no_rows, DtD.indices, DtD.data, np.zeros(small_idx.size), np.zeros(1))
+    outside = (abs(sp.csr_matrix((np.ones(small_idx.size), small_idx, small_ptr), shape=(N, N))).toarray() == 0)
+    assert gpu[-1][0] == (DtD.toarray()[outside] != 0).sum() > 0
+
+
+def test_levenberg_damp_matches_cpu_and_levenberg_damped():
+    """In place and in one launch: linear.levenberg_damped's matrix (1e-14: the diagonal's mean added
+    in another order); a row without a stored diagonal is counted, left as it is."""
+    from o3d_mvps.solver.linear import levenberg_damped
+
+    n = 120
+    B = sp.random(n, n, density=0.05, random_state=8, format="csr")
+    A = (B @ B.T + sp.diags(np.linspace(0.0, 2.0, n))).tocsr()
+    A.indptr, A.indices = A.indptr.astype(np.int32), A.indices.astype(np.int32)
+    A.setdiag(A.diagonal())  # every diagonal entry stored (zeros too)
+    expected = levenberg_damped(A.copy()).toarray()
+    def damp(module, M):  # (data, missing) after the launch
+        data, missing = M.data.copy(), np.full(1, np.nan)
+        module.levenberg_damp(M.indptr, M.indices, data, 1e-4, np.finfo(float).tiny, np.full(8, np.nan), missing)
+        return data, missing[0]
+
+    for module in (kernels, cuda_kernels):
+        data, missing = damp(module, A)
+        assert missing == 0.0
+        assert_close(sp.csr_matrix((data, A.indices, A.indptr), shape=(n, n)).toarray(), expected, rtol=1e-14)
+    C = sp.csr_matrix(A.toarray() - np.diag(np.diag(A.toarray())) + np.diag(np.r_[0.0, np.ones(n - 1)]))  # row 0: none
+    C.indptr, C.indices = C.indptr.astype(np.int32), C.indices.astype(np.int32)
+    data, missing = damp(cuda_kernels, C)
+    assert missing == 1.0
+    np.testing.assert_array_equal(data[C.indptr[0]:C.indptr[1]], C.data[C.indptr[0]:C.indptr[1]])

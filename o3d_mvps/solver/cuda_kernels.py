@@ -21,6 +21,7 @@ afterwards, never to one shared accumulator; float64 throughout, as on the CPU.
 
 from __future__ import annotations
 
+import math
 import types
 
 import numba
@@ -37,7 +38,9 @@ __all__ = ["chunk_count", "accumulate_frame", "accumulate_frames", "project_twis
            "led_irradiances_into", "led_point_gradients_into", "warp_sample", "warp_sample_frames", "warp_gradients",
            "chebyshev_update", "chebyshev_start", "restrict_residual", "prolong_restart", "csr_multiply_add", "cg_start",
            "cg_scalars", "cg_update", "multigrid_cg", "ridge_solves", "led_trial_sums", "twist_system",
-           "twist_inverse"]
+           "twist_inverse", "albedo_update", "lighting_sums", "offset_system",
+           "smoother_scaling", "stencil_transpose_subtract", "depth_block_fill",
+           "levenberg_damp"]
 
 #: Threads per block of every kernel.
 THREADS_PER_BLOCK = 128
@@ -582,7 +585,7 @@ def _cooperative_blocks(kernel, args, wanted: int) -> int:
     if cuda.config.ENABLE_CUDASIM:
         return 1
     argtypes = tuple(kernel.typeof_pyval(a) for a in args)
-    key = (cuda.get_current_device().id, argtypes)
+    key = (cuda.get_current_device().id, kernel.py_func.__name__, argtypes)
     if key not in _RESIDENT_BLOCKS:
         _RESIDENT_BLOCKS[key] = kernel.compile(argtypes).max_cooperative_grid_blocks(THREADS_PER_BLOCK)
     return max(1, min(wanted, kernels.COOPERATIVE_BLOCKS, _RESIDENT_BLOCKS[key]))
@@ -850,3 +853,272 @@ def led_shading_jacobians_into(intensities, normals, points, positions, rotation
     """:func:`.kernels.led_shading_jacobians_into` on the GPU: one thread per light and point."""
     _led_shading_jacobians_into[_blocks(positions.shape[0] * points.shape[0]), THREADS_PER_BLOCK](
         intensities, normals, points, positions, rotations, offset, out)
+
+
+# ============================================================================================
+# gpusetup (issue 33 item 4): the linear solve's set-up and the albedo / lighting / LED-offset
+# updates in fewer launches; their CPU twins in :mod:`.kernels`' section of the same name.
+# ============================================================================================
+
+MAX_LIGHT_TERMS = kernels.MAX_LIGHT_TERMS
+_LIGHT_SUMS = MAX_LIGHT_TERMS * MAX_LIGHT_TERMS + MAX_LIGHT_TERMS + 1
+_weighted_lighting_terms = _device(kernels.weighted_lighting_terms)
+
+
+@cuda.jit(cache=True)
+def _albedo_update(residual, usable, values, shading, inv_lam, fallback, num, den, out):  # pragma: no cover - device
+    p = cuda.grid(1)
+    if p < usable.shape[1]:
+        _weighted_albedo_pixel(residual, usable, values, shading, inv_lam, num, den, p)
+        for c in range(3):
+            d = den[p, c]
+            out[p, c] = num[p, c] / d if d > 1e-8 else fallback[p, c]
+
+
+def albedo_update(residual, usable, values, shading, inv_lam, fallback, num, den, out) -> None:
+    """out (N, 3) = num / den where den > 1e-8, else ``fallback`` (N, 3), num and den (N, 3)
+    :func:`.kernels.weighted_albedo_sums` (written too): the albedo's closed form in one launch
+    (one thread per pixel; was the sums' launch and a fused ratio)."""
+    _albedo_update[_blocks(usable.shape[1]), THREADS_PER_BLOCK](residual, usable, values, shading, float(inv_lam),
+                                                                fallback, num, den, out)
+
+
+@cuda.jit(cache=True)
+def _lighting_partials(residual, usable, color, albedo, inv_lam, basis, out):  # pragma: no cover - device
+    """Block (b, i): its share of frame i's sums, out[i, b] = (Gram k x k, rhs k, usable count);
+    each thread a strided share of the pixels, then the block's tree sum of each value."""
+    share = cuda.shared.array(THREADS_PER_BLOCK, numba.float64)
+    acc = cuda.local.array(_LIGHT_SUMS, numba.float64)
+    t = cuda.threadIdx.x
+    i = cuda.blockIdx.y
+    N = usable.shape[1]
+    k = basis.shape[2]
+    m = min(i, basis.shape[0] - 1)  # a basis per frame, or one for all
+    size = k * k + k + 1
+    for e in range(size):
+        acc[e] = 0.0
+    for p in range(cuda.blockIdx.x * THREADS_PER_BLOCK + t, N, cuda.gridDim.x * THREADS_PER_BLOCK):
+        if usable[i, p]:
+            a, b = _weighted_lighting_terms(residual, usable, color, albedo, inv_lam, i, p)
+            for r in range(k):
+                br = basis[m, p, r]
+                for c in range(k):
+                    acc[r * k + c] += br * a * basis[m, p, c]
+                acc[k * k + r] += b * br
+            acc[size - 1] += 1.0
+    for e in range(size):
+        _block_tree_sum(share, t, acc[e])
+        if t == 0:
+            out[i, cuda.blockIdx.x, e] = share[0]
+        cuda.syncthreads()  # the root read before the next tree writes
+
+
+lighting_blocks = kernels.lighting_blocks
+
+
+def lighting_sums(residual, usable, color, albedo, inv_lam, basis, out) -> None:
+    """The lighting's per-frame weighted normal equations in one launch: out (n,
+    :func:`lighting_blocks`, k k + k + 1) the blocks' shares (their sum over axis 1: frame i's
+    Gram sum_p (sum_c w rho^2) B B^T (k, k), right-hand side sum_p (sum_c w rho I~) B (k) and
+    usable count), w the Cauchy IRLS weights of residual (n, N, 3) (:func:`.kernels.weighted_lighting_sums`),
+    basis (n or 1, N, k), k at most :data:`MAX_LIGHT_TERMS`. Grid: blocks x frames."""
+    k = basis.shape[2]
+    if k > MAX_LIGHT_TERMS or out.shape[2] != k * k + k + 1:
+        raise ValueError(f"lighting_sums: a light basis of {k} terms (at most {MAX_LIGHT_TERMS}) and out "
+                         f"{out.shape} (needs {k * k + k + 1} values a block)")
+    _lighting_partials[(out.shape[1], out.shape[0]), THREADS_PER_BLOCK](residual, usable, color, albedo,
+                                                                        float(inv_lam), basis, out)
+
+
+_offset_system_add = _device(kernels.offset_system_add)
+
+
+@cuda.jit(cache=True)
+def _offset_system(ds, residual, usable, albedo, inv_lam, stride, H, g):  # pragma: no cover - device
+    share = cuda.shared.array(THREADS_PER_BLOCK, numba.float64)
+    acc = cuda.local.array(12, numba.float64)
+    t = cuda.threadIdx.x
+    M = ds.shape[1]
+    for e in range(12):
+        acc[e] = 0.0
+    for index in range(t, ds.shape[0] * M, THREADS_PER_BLOCK):
+        _offset_system_add(ds, residual, usable, albedo, inv_lam, stride, acc, index // M, index % M)
+    for e in range(12):
+        _block_tree_sum(share, t, acc[e])
+        if t == 0:
+            if e < 9:
+                H[0, e // 3, e % 3] = share[0]
+            else:
+                g[0, e - 9, 0] = share[0]
+        cuda.syncthreads()  # the root read before the next tree writes
+
+
+def offset_system(ds, residual, usable, albedo, inv_lam, stride, H, g) -> None:
+    """:func:`.kernels.offset_system` on the GPU: one launch of one block (a few thousand pixels a
+    frame; was ten array operations), its threads strided over the frames' spread pixels, then
+    the block's tree sum of each of the 12 values."""
+    _offset_system[1, THREADS_PER_BLOCK](ds, residual, usable, albedo, float(inv_lam), int(stride), H, g)
+
+
+_inverse_diagonal_row = _device(kernels.inverse_diagonal_row)
+_gershgorin_row = _device(kernels.gershgorin_row)
+
+
+@cuda.jit(cache=True)
+def _smoother_scaling(indptr, indices, data, inv_diag, scaled, upper, partial):  # pragma: no cover - device
+    """Cooperative: the rows' inverse diagonal, the grid's sync, the rows' Gershgorin sums and
+    each block's largest into partial, the grid's sync, every thread's maximum over the blocks
+    (the same in each), then the scaled inverse diagonal."""
+    share = cuda.shared.array(THREADS_PER_BLOCK, numba.float64)
+    t = cuda.threadIdx.x
+    n = indptr.shape[0] - 1
+    start, step = cuda.grid(1), cuda.gridsize(1)
+    for i in range(start, n, step):
+        _inverse_diagonal_row(indptr, indices, data, inv_diag, i)
+    cuda.cg.this_grid().sync()
+    bound = -math.inf
+    for i in range(start, n, step):
+        bound = max(bound, _gershgorin_row(indptr, indices, data, inv_diag, i))
+    share[t] = bound
+    cuda.syncthreads()
+    half = THREADS_PER_BLOCK // 2
+    while half > 0:
+        if t < half:
+            share[t] = max(share[t], share[t + half])
+        cuda.syncthreads()
+        half //= 2
+    if t == 0:
+        partial[cuda.blockIdx.x] = share[0]
+    cuda.cg.this_grid().sync()
+    bound = -math.inf
+    for b in range(cuda.gridDim.x):
+        bound = max(bound, partial[b])
+    if start == 0:
+        upper[0] = bound
+    for i in range(start, n, step):
+        scaled[i] = inv_diag[i] / bound
+
+
+def smoother_scaling(indptr, indices, data, inv_diag, scaled, upper, partial) -> None:
+    """:func:`.kernels.smoother_scaling` on the GPU in one cooperative launch (was six array
+    operations a multigrid level): rows in grid-stride loops over at most ``partial.size``
+    blocks."""
+    args = (indptr, indices, data, inv_diag, scaled, upper, partial)
+    blocks = min(_cooperative_blocks(_smoother_scaling, args, _blocks(indptr.shape[0] - 1)), partial.shape[0])
+    _smoother_scaling[blocks, THREADS_PER_BLOCK](*args)
+
+
+_stencil_transpose_row = _device(kernels.stencil_transpose_row)
+
+
+@cuda.jit(cache=True)
+def _stencil_transpose_subtract(u_indptr, u_indices, u_data, v_indptr, v_indices, v_data, Ba, Bb, Bg, y,
+                                out):  # pragma: no cover - device
+    i = cuda.grid(1)
+    if i < out.shape[0]:
+        _stencil_transpose_row(u_indptr, u_indices, u_data, v_indptr, v_indices, v_data, Ba, Bb, Bg, y, out, i)
+
+
+def stencil_transpose_subtract(u_indptr, u_indices, u_data, v_indptr, v_indices, v_data, Ba, Bb, Bg, y, out) -> None:
+    """:func:`.kernels.stencil_transpose_subtract` on the GPU: one thread per row (was two sparse
+    products and three array operations)."""
+    _stencil_transpose_subtract[_blocks(out.shape[0]), THREADS_PER_BLOCK](u_indptr, u_indices, u_data, v_indptr,
+                                                                          v_indices, v_data, Ba, Bb, Bg, y, out)
+
+
+_stencil_pixel = _device(kernels.stencil_pixel)
+_stencil_gram_value = _device(kernels.stencil_gram_value)
+_csr_position = _device(kernels.csr_position)
+
+
+@cuda.jit(cache=True)
+def _depth_block_fill(indptr, indices, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, Saa, Sbb, Sgg, Sab, Sag,
+                      Sbg, s1, t1_indptr, t1_indices, t1_data, s2, t2_indptr, t2_indices, t2_data, data,
+                      missing):  # pragma: no cover - device
+    """Thread k: pixel k's 5 x 5 stencil block, then row k of each term, added by atomics."""
+    nodes = cuda.local.array(5, numba.int64)
+    cu = cuda.local.array(5, numba.float64)
+    cv = cuda.local.array(5, numba.float64)
+    ce = cuda.local.array(5, numba.float64)
+    k = cuda.grid(1)
+    if k < fwd_u.shape[0]:
+        _stencil_pixel(fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, nodes, cu, cv, ce, k)
+        for p in range(5):
+            if cu[p] == 0.0 and cv[p] == 0.0 and ce[p] == 0.0:
+                continue
+            for q in range(5):
+                if cu[q] == 0.0 and cv[q] == 0.0 and ce[q] == 0.0:
+                    continue
+                at = _csr_position(indptr, indices, nodes[p], nodes[q])
+                if at < 0:
+                    cuda.atomic.add(missing, 0, 1.0)
+                else:
+                    cuda.atomic.add(data, at, _stencil_gram_value(Saa[k], Sbb[k], Sgg[k], Sab[k], Sag[k], Sbg[k], cu,
+                                                                  cv, ce, p, q))
+    if k < t1_indptr.shape[0] - 1:
+        for nz in range(t1_indptr[k], t1_indptr[k + 1]):
+            at = _csr_position(indptr, indices, k, t1_indices[nz])
+            if at < 0:
+                cuda.atomic.add(missing, 0, 1.0)
+            else:
+                cuda.atomic.add(data, at, s1 * t1_data[nz])
+    if k < t2_indptr.shape[0] - 1:
+        for nz in range(t2_indptr[k], t2_indptr[k + 1]):
+            at = _csr_position(indptr, indices, k, t2_indices[nz])
+            if at < 0:
+                cuda.atomic.add(missing, 0, 1.0)
+            else:
+                cuda.atomic.add(data, at, s2 * t2_data[nz])
+
+
+def depth_block_fill(indptr, indices, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, Saa, Sbb, Sgg, Sab, Sag, Sbg,
+                     s1, t1_indptr, t1_indices, t1_data, s2, t2_indptr, t2_indices, t2_data, data, missing) -> None:
+    """:func:`.kernels.depth_block_fill` on the GPU in one launch (was eight sparse products and
+    the sums of four matrices): one thread per pixel and term row, adding by atomics (pixels
+    share entries: the order of the additions, so the rounding, varies from run to run)."""
+    rows = max(fwd_u.shape[0], t1_indptr.shape[0] - 1, t2_indptr.shape[0] - 1)
+    _depth_block_fill[_blocks(rows), THREADS_PER_BLOCK](indptr, indices, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v,
+                                                        wb_v, Saa, Sbb, Sgg, Sab, Sag, Sbg, float(s1), t1_indptr,
+                                                        t1_indices, t1_data, float(s2), t2_indptr, t2_indices, t2_data,
+                                                        data, missing)
+
+
+_diagonal_value = _device(kernels.diagonal_value)
+_damp_diagonal = _device(kernels.damp_diagonal)
+
+
+@cuda.jit(cache=True)
+def _levenberg_damp(indptr, indices, data, damping, tiny, partial, missing):  # pragma: no cover - device
+    """Cooperative: the diagonal's sum (each block's into partial, after the grid's sync every
+    thread's total over the blocks in the same order), then each row's damping."""
+    share = cuda.shared.array(THREADS_PER_BLOCK, numba.float64)
+    t = cuda.threadIdx.x
+    n = indptr.shape[0] - 1
+    start, step = cuda.grid(1), cuda.gridsize(1)
+    if start == 0:
+        missing[0] = 0.0  # counted after the grid's sync
+    total = 0.0
+    for row in range(start, n, step):
+        total += _diagonal_value(indptr, indices, data, row)[1]
+    _block_tree_sum(share, t, total)
+    if t == 0:
+        partial[cuda.blockIdx.x] = share[0]
+    cuda.cg.this_grid().sync()
+    total = 0.0
+    for b in range(cuda.gridDim.x):
+        total += partial[b]
+    floor = max(0.01 * (total / n), tiny) if n else tiny
+    for row in range(start, n, step):
+        if _diagonal_value(indptr, indices, data, row)[0] < 0:
+            cuda.atomic.add(missing, 0, 1.0)
+        else:
+            _damp_diagonal(indptr, indices, data, damping, floor, missing, row)
+
+
+def levenberg_damp(indptr, indices, data, damping, tiny, partial, missing) -> None:
+    """:func:`.kernels.levenberg_damp` on the GPU in one cooperative launch and no read (was a
+    mean read by the host, three array operations and a sparse sum); rows in grid-stride loops
+    over at most ``partial.size`` blocks."""
+    args = (indptr, indices, data, float(damping), float(tiny), partial, missing)
+    blocks = min(_cooperative_blocks(_levenberg_damp, args, _blocks(indptr.shape[0] - 1)), partial.shape[0])
+    _levenberg_damp[blocks, THREADS_PER_BLOCK](*args)

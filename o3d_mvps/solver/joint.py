@@ -14,9 +14,8 @@ from __future__ import annotations
 
 import dataclasses
 
-import numpy as np
-
 from ..model import se3
+from ..model.arrays import fused
 from .depth import search_estimates
 from .linear import levenberg_damped, solve_spd
 from .normal_equations import joint_system
@@ -46,8 +45,8 @@ def update_pose_depth(problem: LevelProblem, est: Estimate, ev: Evaluation, *, r
     del system, S, rhs  # the coupling (N, 6m) and M: not needed by the line search
 
     def moved(t: float):
-        z = problem.level.prior.clip(est.z + t * dz)
-        if not np.all(z > 0):
+        z = problem.level.prior.clip(_stepped(est.z, t, dz))
+        if not z.min() > 0:  # (one reduction and one read on a GPU)
             return None
         poses = est.poses.copy()
         for i, x in zip(frames, xi):
@@ -55,3 +54,9 @@ def update_pose_depth(problem: LevelProblem, est: Estimate, ev: Evaluation, *, r
         return Estimate(z, est.albedo, est.lights, poses, est.led_offset)
 
     return (*search_estimates(problem, est, energy, moved, max_halvings, refit_albedo=project_albedo), iterations)
+
+
+@fused
+def _stepped(z, t, dz):
+    """z + t dz (N,) (one kernel on a GPU)."""
+    return z + t * dz

@@ -905,6 +905,14 @@ def weighted_albedo_sums(residual, usable, values, shading, inv_lam, num, den): 
 @numba.njit(inline="always")
 def weighted_lighting_pixel(residual, usable, color, albedo, inv_lam, wr2, wri, i, p):  # pragma: no cover
     """:func:`weighted_lighting_sums` on pixel p of frame i."""
+    a, b = weighted_lighting_terms(residual, usable, color, albedo, inv_lam, i, p)
+    wr2[i, p] = a
+    wri[i, p] = b
+
+
+@numba.njit(inline="always")
+def weighted_lighting_terms(residual, usable, color, albedo, inv_lam, i, p):  # pragma: no cover - compiled
+    """(sum_c w rho^2, sum_c w rho I) of :func:`weighted_lighting_sums` at pixel p of frame i."""
     a = 0.0
     b = 0.0
     if usable[i, p]:
@@ -913,8 +921,7 @@ def weighted_lighting_pixel(residual, usable, color, albedo, inv_lam, wr2, wri, 
             w = 1.0 / (1.0 + x * x)
             a += w * albedo[p, c] * albedo[p, c]
             b += w * albedo[p, c] * color[i, p, c]
-    wr2[i, p] = a
-    wri[i, p] = b
+    return a, b
 
 
 @numba.njit(parallel=True, cache=True)
@@ -1084,26 +1091,43 @@ def add_stencil_gram(indptr, indices, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf
     (pixels share entries)."""
     nodes = np.empty(5, np.int64)
     cu, cv, ce = np.zeros(5), np.zeros(5), np.zeros(5)
-    ce[0] = 1.0
     for k in range(fwd_u.shape[0]):
-        nodes[0], nodes[1], nodes[2], nodes[3], nodes[4] = k, fwd_u[k], bwd_u[k], fwd_v[k], bwd_v[k]
-        cu[0], cu[1], cu[2] = wb_u[k] - wf_u[k], wf_u[k], -wb_u[k]
-        cv[0], cv[3], cv[4] = wb_v[k] - wf_v[k], wf_v[k], -wb_v[k]
-        saa, sbb, sgg, sab, sag, sbg = Saa[k], Sbb[k], Sgg[k], Sab[k], Sag[k], Sbg[k]
+        stencil_pixel(fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, nodes, cu, cv, ce, k)
         for p in range(5):
             if cu[p] == 0.0 and cv[p] == 0.0 and ce[p] == 0.0:
                 continue
             for q in range(5):
                 if cu[q] == 0.0 and cv[q] == 0.0 and ce[q] == 0.0:
                     continue
-                value = (saa * cu[p] * cu[q] + sbb * cv[p] * cv[q] + sgg * ce[p] * ce[q]
-                         + sab * (cu[p] * cv[q] + cv[p] * cu[q]) + sag * (cu[p] * ce[q] + ce[p] * cu[q])
-                         + sbg * (cv[p] * ce[q] + ce[p] * cv[q]))
                 at = csr_position(indptr, indices, nodes[p], nodes[q])
                 if at < 0:
                     return False
-                data[at] += value
+                data[at] += stencil_gram_value(Saa[k], Sbb[k], Sgg[k], Sab[k], Sag[k], Sbg[k], cu, cv, ce, p, q)
     return True
+
+
+@numba.njit(inline="always")
+def stencil_pixel(fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, nodes, cu, cv, ce, k):  # pragma: no cover
+    """Pixel k's stencil row ``R_k = a Du_k + b Dv_k + c e_k`` of :func:`add_stencil_gram`: its 5
+    nodes (k, u-forward, u-backward, v-forward, v-backward) into ``nodes`` (5,) and the
+    coefficients of Du_k, Dv_k, e_k on them into cu, cv, ce (5,) each."""
+    nodes[0], nodes[1], nodes[2], nodes[3], nodes[4] = k, fwd_u[k], bwd_u[k], fwd_v[k], bwd_v[k]
+    for p in range(5):
+        cu[p] = 0.0
+        cv[p] = 0.0
+        ce[p] = 0.0
+    ce[0] = 1.0
+    cu[0], cu[1], cu[2] = wb_u[k] - wf_u[k], wf_u[k], -wb_u[k]
+    cv[0], cv[3], cv[4] = wb_v[k] - wf_v[k], wf_v[k], -wb_v[k]
+
+
+@numba.njit(inline="always")
+def stencil_gram_value(saa, sbb, sgg, sab, sag, sbg, cu, cv, ce, p, q):  # pragma: no cover - compiled
+    """Entry (p, q) of one pixel's 5 x 5 block of R^T W R (:func:`stencil_pixel`'s coefficients,
+    the pixel's weighted products Saa = sum w a a, ...)."""
+    return (saa * cu[p] * cu[q] + sbb * cv[p] * cv[q] + sgg * ce[p] * ce[q]
+            + sab * (cu[p] * cv[q] + cv[p] * cu[q]) + sag * (cu[p] * ce[q] + ce[p] * cu[q])
+            + sbg * (cv[p] * ce[q] + ce[p] * cv[q]))
 
 
 @numba.njit(cache=True)
@@ -1779,3 +1803,200 @@ def led_shading_jacobians_into(intensities, normals, points, positions, rotation
         for i in range(positions.shape[0]):
             for p in range(k * FRAME_CHUNK, min(N, (k + 1) * FRAME_CHUNK)):
                 led_shading_jacobian(intensities, normals, points, positions, rotations, offset, out, i, p)
+
+
+# ============================================================================================
+# gpusetup (issue 33 item 4): launchers that are one launch each on the GPU
+# (:mod:`.cuda_kernels`' section of the same name); here their CPU twins.
+# ============================================================================================
+
+#: the most light-basis terms :func:`lighting_sums` takes (SH: 4, LED: 2)
+MAX_LIGHT_TERMS = 4
+
+
+@numba.njit(parallel=True, cache=True)
+def albedo_update(residual, usable, values, shading, inv_lam, fallback, num, den, out):  # pragma: no cover - compiled
+    """out (N, 3) = num / den where den > 1e-8, else ``fallback`` (N, 3): the albedo's closed
+    form, num and den (N, 3) :func:`weighted_albedo_sums` (written too)."""
+    weighted_albedo_sums(residual, usable, values, shading, inv_lam, num, den)
+    for p in numba.prange(out.shape[0]):
+        for c in range(3):
+            d = den[p, c]
+            out[p, c] = num[p, c] / d if d > 1e-8 else fallback[p, c]
+
+
+def lighting_blocks(n_pixels: int) -> int:
+    """The middle axis of :func:`lighting_sums`' out: its blocks per frame on the GPU (not a launch)."""
+    return min(REDUCTION_BLOCKS, max(1, -(-n_pixels // (16 * 128))))
+
+
+@numba.njit(parallel=True, cache=True)
+def lighting_sums(residual, usable, color, albedo, inv_lam, basis, out):  # pragma: no cover - compiled
+    """The lighting's per-frame weighted normal equations: out (n, B, k k + k + 1) shares over
+    B chunks of the pixels, their sum over axis 1 frame i's Gram sum_p (sum_c w rho^2) B B^T
+    (k x k, row-major), right-hand side sum_p (sum_c w rho I~) B (k) and usable count; w the
+    Cauchy IRLS weights of residual (n, N, 3) (:func:`weighted_lighting_terms`), basis
+    (n or 1, N, k)."""
+    n, N = usable.shape
+    B = out.shape[1]
+    k = basis.shape[2]
+    size = k * k + k + 1
+    chunk = -(-N // B)
+    for job in numba.prange(n * B):
+        i, b = job // B, job % B
+        m = min(i, basis.shape[0] - 1)
+        for e in range(size):
+            out[i, b, e] = 0.0
+        for p in range(b * chunk, min(N, (b + 1) * chunk)):
+            if usable[i, p]:
+                a, s = weighted_lighting_terms(residual, usable, color, albedo, inv_lam, i, p)
+                for r in range(k):
+                    br = basis[m, p, r]
+                    for c in range(k):
+                        out[i, b, r * k + c] += br * a * basis[m, p, c]
+                    out[i, b, k * k + r] += s * br
+                out[i, b, size - 1] += 1.0
+
+
+@numba.njit(inline="always")
+def offset_system_add(ds, residual, usable, albedo, inv_lam, stride, acc, i, q):  # pragma: no cover - compiled
+    """Frame i's spread pixel q (pixel q stride) added to acc (12,): the LED offset's Gram
+    sum rho^2 w ds ds^T (3 x 3, row-major) and gradient -sum w rho r ds (3), w the Cauchy IRLS
+    weights of the residual r (zero where not usable)."""
+    p = q * stride
+    if usable[i, p]:
+        rw = 0.0
+        rr = 0.0
+        for c in range(3):
+            x = residual[i, p, c] * inv_lam
+            w = 1.0 / (1.0 + x * x)
+            rw += albedo[p, c] * albedo[p, c] * w
+            rr += w * albedo[p, c] * residual[i, p, c]
+        for a in range(3):
+            for b in range(3):
+                acc[3 * a + b] += ds[i, q, a] * rw * ds[i, q, b]
+            acc[9 + a] -= ds[i, q, a] * rr
+
+
+@numba.njit(cache=True)
+def offset_system(ds, residual, usable, albedo, inv_lam, stride, H, g):  # pragma: no cover - compiled
+    """The LED offset's Gauss-Newton system over all frames from every ``stride``-th pixel: H
+    (1, 3, 3), g (1, 3, 1) (:func:`offset_system_add`); ds (n, M, 3) d(shading)/d(offset) of
+    the spread pixels, residual (n, N, 3), usable (n, N), albedo (N, 3) of all pixels."""
+    acc = np.zeros(12)
+    for i in range(ds.shape[0]):
+        for q in range(ds.shape[1]):
+            offset_system_add(ds, residual, usable, albedo, inv_lam, stride, acc, i, q)
+    for e in range(9):
+        H[0, e // 3, e % 3] = acc[e]
+    for a in range(3):
+        g[0, a, 0] = acc[9 + a]
+
+
+@numba.njit(inline="always")
+def inverse_diagonal_row(indptr, indices, data, inv_diag, i):  # pragma: no cover - compiled
+    """inv_diag[i] = 1 / a_ii of the CSR matrix (its stored diagonal entries added; 1 / 0 = inf
+    where none is stored, as ``1.0 / A.diagonal()``)."""
+    d = 0.0
+    for nz in range(indptr[i], indptr[i + 1]):
+        if indices[nz] == i:
+            d += data[nz]
+    inv_diag[i] = 1.0 / d if d != 0.0 else math.inf
+
+
+@numba.njit(inline="always")
+def gershgorin_row(indptr, indices, data, inv_diag, i):  # pragma: no cover - compiled
+    """Row i's ``sqrt(1/a_ii) sum_j |a_ij| sqrt(1/a_jj)``: the row sum of :func:`.krylov.spectral_bound`'s
+    D^-1/2 |A| D^-1/2, in the order of ``scale * (abs(A) @ scale)``."""
+    total = 0.0
+    for nz in range(indptr[i], indptr[i + 1]):
+        total += abs(data[nz]) * math.sqrt(inv_diag[indices[nz]])
+    return math.sqrt(inv_diag[i]) * total
+
+
+@numba.njit(cache=True)
+def smoother_scaling(indptr, indices, data, inv_diag, scaled, upper, partial):  # pragma: no cover - compiled
+    """A multigrid level's smoother set-up from its CSR matrix A (N, N): inv_diag (N,) = 1 /
+    diag(A), upper (1,) the Gershgorin bound of D^-1 A's spectrum (:func:`.krylov.spectral_bound`)
+    and scaled (N,) = inv_diag / upper (what the smoothers take, :func:`.krylov.make_smoother`);
+    partial (blocks,) scratch of the GPU's launch."""
+    n = indptr.shape[0] - 1
+    for i in range(n):
+        inverse_diagonal_row(indptr, indices, data, inv_diag, i)
+    bound = -math.inf
+    for i in range(n):
+        bound = max(bound, gershgorin_row(indptr, indices, data, inv_diag, i))
+    upper[0] = bound
+    for i in range(n):
+        scaled[i] = inv_diag[i] / bound
+
+
+@numba.njit(inline="always")
+def stencil_transpose_row(u_indptr, u_indices, u_data, v_indptr, v_indices, v_data, Ba, Bb, Bg, y, out,
+                          i):  # pragma: no cover - compiled
+    """out[i] = y[i] - (Du^T Ba + Dv^T Bb + Bg)[i], Du^T and Dv^T (N, N) CSR."""
+    out[i] = y[i] - (csr_row_dot(u_indptr, u_indices, u_data, Ba, i) + csr_row_dot(v_indptr, v_indices, v_data, Bb, i)
+                     + Bg[i])
+
+
+@numba.njit(parallel=True, cache=True)
+def stencil_transpose_subtract(u_indptr, u_indices, u_data, v_indptr, v_indices, v_data, Ba, Bb, Bg, y,
+                               out):  # pragma: no cover - compiled
+    """out (N,) = y - (Du^T Ba + Dv^T Bb + Bg): the joint step's depth right-hand side from the
+    prior's negative gradient y (N,) and the per-pixel sums Ba, Bb, Bg (N,) each
+    (:func:`.normal_equations.stencil_transpose`), Du^T, Dv^T (N, N) CSR."""
+    for i in numba.prange(out.shape[0]):
+        stencil_transpose_row(u_indptr, u_indices, u_data, v_indptr, v_indices, v_data, Ba, Bb, Bg, y, out, i)
+
+
+@numba.njit(cache=True)
+def depth_block_fill(indptr, indices, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, Saa, Sbb, Sgg, Sab, Sag, Sbg,
+                     s1, t1_indptr, t1_indices, t1_data, s2, t2_indptr, t2_indices, t2_data, data,
+                     missing):  # pragma: no cover - compiled
+    """data (nnz,) of the depth block's CSR pattern (indptr, indices; zeroed by the caller) +=
+    the stencil's Gram (:func:`add_stencil_gram`) + s1 T1 + s2 T2, T1 and T2 (N, N) CSR (the
+    prior's Hessian terms; T2 with no rows where there is none); missing (1,) += the entries the
+    pattern lacks (left out; on the host 1 for each part that lacks some)."""
+    if not add_stencil_gram(indptr, indices, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, Saa, Sbb, Sgg, Sab,
+                            Sag, Sbg, data):
+        missing[0] += 1.0
+    for scale, a_indptr, a_indices, a_data in ((s1, t1_indptr, t1_indices, t1_data),
+                                               (s2, t2_indptr, t2_indices, t2_data)):
+        if not add_csr_into_pattern(indptr, indices, data, scale, a_indptr, a_indices, a_data):
+            missing[0] += 1.0
+
+
+@numba.njit(inline="always")
+def diagonal_value(indptr, indices, data, row):  # pragma: no cover - compiled
+    """(position, value) of row's diagonal entry in a CSR matrix (a scan: any column order);
+    (-1, 0.0) where it is not stored."""
+    for nz in range(indptr[row], indptr[row + 1]):
+        if indices[nz] == row:
+            return nz, data[nz]
+    return -1, 0.0
+
+
+@numba.njit(inline="always")
+def damp_diagonal(indptr, indices, data, damping, floor, missing, row):  # pragma: no cover - compiled
+    """Row's diagonal entry d += damping max(d, floor) in place; missing[0] += 1 where not stored."""
+    at, d = diagonal_value(indptr, indices, data, row)
+    if at < 0:
+        missing[0] += 1.0
+    else:
+        data[at] = d + damping * max(d, floor)
+
+
+@numba.njit(cache=True)
+def levenberg_damp(indptr, indices, data, damping, tiny, partial, missing):  # pragma: no cover - compiled
+    """:func:`.linear.levenberg_damped` in place on a CSR matrix (N, N) that stores its whole
+    diagonal: M_pp += damping max(M_pp, max(mean(M_pp) / 100, tiny)); missing (1,) += the rows
+    without a stored diagonal (left undamped; set here); partial (blocks,) scratch of the GPU's
+    launch."""
+    n = indptr.shape[0] - 1
+    missing[0] = 0.0
+    total = 0.0
+    for row in range(n):
+        total += diagonal_value(indptr, indices, data, row)[1]
+    floor = max(0.01 * (total / n), tiny) if n else tiny
+    for row in range(n):
+        damp_diagonal(indptr, indices, data, damping, floor, missing, row)

@@ -435,14 +435,16 @@ SMOOTHERS = ("jacobi", "chebyshev")
 def make_smoother(A, inv_diag, upper, kind: str, steps: int):
     """A multigrid smoother of ``kind`` (:data:`SMOOTHERS`) taking ``steps`` steps on A (N, N)
     sparse SPD, inv_diag (N,) = 1 / diag(A), ``upper`` (a float or a 0-d array of inv_diag's
-    module: read by no host) bounding the spectrum of D^-1 A. Both smoothers are made for
+    module: read by no host; None where inv_diag is D^-1 divided by it already) bounding the
+    spectrum of D^-1 A. Both smoothers are made for
     ``(D^-1 / upper) A``, whose spectrum lies in (0, 1]: the same iterations (damped Jacobi
     with omega 4/3, Chebyshev on [:data:`CHEBYSHEV_LOWER_FRACTION`, 1]), their scalars
     independent of ``upper``."""
+    scaled = inv_diag if upper is None else inv_diag / upper  # None: inv_diag is D^-1 / upper already
     if kind == "jacobi":
-        return JacobiSmoother(A, inv_diag / upper, 4.0 / 3.0, steps)
+        return JacobiSmoother(A, scaled, 4.0 / 3.0, steps)
     if kind == "chebyshev":
-        return ChebyshevSmoother(A, inv_diag / upper, CHEBYSHEV_LOWER_FRACTION, 1.0, steps)
+        return ChebyshevSmoother(A, scaled, CHEBYSHEV_LOWER_FRACTION, 1.0, steps)
     raise ValueError(f"unknown smoother {kind!r}; use one of {SMOOTHERS}")
 
 
@@ -649,8 +651,13 @@ def multigrid_preconditioner(A, prolongations: list, *, smoother: str = "chebysh
         prolongations.restrictions = [P.T.tocsr() for P in prolongations]
     levels = []
     for k, P in enumerate(prolongations):
-        inv_diag = inverse_diagonal(A)
-        upper = spectral_bound_array(A, inv_diag)  # on a device: not read back
+        if xp is not np and not smoothed_prolongation:  # D^-1, its bound and D^-1 / bound in one launch
+            inv_diag, upper = xp.empty(A.shape[0]), None  # inv_diag: D^-1 / bound (make_smoother's None)
+            kernels_for(inv_diag).smoother_scaling(A.indptr, A.indices, A.data, xp.empty(A.shape[0]), inv_diag,
+                                                   xp.empty(1), xp.empty(COOPERATIVE_BLOCKS))
+        else:
+            inv_diag = inverse_diagonal(A)
+            upper = spectral_bound_array(A, inv_diag)  # on a device: not read back
         if smoothed_prolongation:
             P = (P - (4.0 / (3.0 * float(upper))) * (sparse.diags(inv_diag, format="csr") @ (A @ P))).tocsr()
         R = prolongations.restrictions[k] if kept else P.T.tocsr()

@@ -411,8 +411,9 @@ def update_led_offset(problem, est, ev, *, max_halvings: int = 3, max_pixels: in
     xp = array_module(residual)
     if xp is not np:  # every frame at once, unusable pixels weighted 0 (their residuals are 0)
         ds = light.offset_jacobians(est.lights, normals, points, est.poses)  # (n, M, 3)
-        H, g = _offset_normal_equations(ds, cauchy_weights(residual, problem.lam) * usable[..., None], albedo,
-                                        residual)
+        H, g = xp.empty((1, 3, 3)), xp.empty((1, 3, 1))  # the system in one launch, from every stride-th pixel
+        kernels_for(ds).offset_system(contiguous(ds, np.float64), ev.residual, ev.usable,
+                                      contiguous(est.albedo, np.float64), 1.0 / problem.lam, stride, H, g)
         return _device_offset_search(problem, est, ev, light, H, g, stride, max_halvings, min_decrease)
     H, g = np.zeros((3, 3)), np.zeros(3)
     for i in range(problem.n_frames):
@@ -443,8 +444,8 @@ def update_led_offset(problem, est, ev, *, max_halvings: int = 3, max_pixels: in
 
 
 def _device_offset_search(problem, est, ev, light, H, g, stride, max_halvings, min_decrease):
-    """:func:`update_led_offset`'s step and line search on a GPU from its system H (3, 3), g (3,)
-    on the device: the step solved and every trial length 1, 1/2, ..., 2^-max_halvings scored
+    """:func:`update_led_offset`'s step and line search on a GPU from its system H (1, 3, 3), g
+    (1, 3, 1) on the device: the step solved and every trial length 1, 1/2, ..., 2^-max_halvings scored
     in one launch (:func:`.kernels.led_trial_sums`: the step by the host's ridge_solve formula,
     the data energy of :meth:`.LevelProblem.energy` from ``ev``'s samples, plus ``ev``'s prior),
     one copy in (the offset, lights and poses) and one read (the trials' sums, the step, g),
@@ -457,7 +458,7 @@ def _device_offset_search(problem, est, ev, light, H, g, stride, max_halvings, m
     kernels = kernels_for(P)
     out = xp.empty((K + 1, kernels.trial_blocks(*ev.usable.shape)))  # the trials' sums, then x, solved, g
     kernels.led_trial_sums(ev.color, ev.usable, contiguous(est.albedo, np.float64), contiguous(ev.normals, np.float64),
-                           contiguous(P, np.float64), poses, packed[:3], H[None], g.reshape(1, 3, 1), lights,
+                           contiguous(P, np.float64), poses, packed[:3], H, g, lights,
                            1.0 / problem.lam, problem.residual_dtype == np.float32, out)
     out = to_host(out)
     sums, step, solved, g = out[:K], -out[K, :3], out[K, 3:4], out[K, 4:7]

@@ -19,6 +19,7 @@ from ..model.arrays import array_module, contiguous, sparse_module
 from . import kernels as host_kernels
 from . import krylov
 from .device import kernels_for, on_gpu
+from .kernels import COOPERATIVE_BLOCKS
 
 
 #: Levenberg-Marquardt damping of the depth block M, relative to its diagonal. Pixels that only
@@ -32,7 +33,15 @@ DAMPING = 1e-4
 def levenberg_damped(matrix: sp.spmatrix, overwrite: bool = False) -> sp.csr_matrix:
     """``M + DAMPING diag(max(M_pp, mean(M_pp) / 100))`` (N, N) sparse: positive definite for
     any PSD M, also where a row of M is zero. overwrite: damp a host CSR matrix that stores its
-    whole diagonal in place (no sparse sum), and return it."""
+    whole diagonal in place (no sparse sum), and return it; on a GPU a CSR matrix in place in one
+    launch and no read (:func:`.kernels.levenberg_damp`), which must store its whole diagonal (the
+    depth block's pattern does, :func:`.normal_equations.depth_block_pattern`: not checked there,
+    a row without one would stay undamped)."""
+    if overwrite and on_gpu(matrix.data):
+        xp = array_module(matrix.data)
+        kernels_for(matrix.data).levenberg_damp(matrix.indptr, matrix.indices, matrix.data, DAMPING,
+                                                np.finfo(float).tiny, xp.empty(COOPERATIVE_BLOCKS), xp.empty(1))
+        return matrix
     d = matrix.diagonal()
     floor = 0.01 * float(d.mean()) if d.size else 0.0
     damping = DAMPING * np.maximum(d, max(floor, np.finfo(float).tiny))

@@ -191,7 +191,7 @@ def residual_jacobians(problem: LevelProblem, est: Estimate, ev: Evaluation, i: 
     if i == 0:
         if dshading is None:
             return use, None, np.zeros(points_ref.shape)
-        return use, None, _reference_parallax(est.albedo, dshading, ray, use)
+        return use, None, _reference_parallax(est.albedo, dshading, points_ref, use)
     J = pose_jacobian(problem.warped_gradients(i, pose, points_ref), problem.level.K)
     if dshading is not None:
         J -= est.albedo[:, :, None] * dshading[:, None, :]
@@ -201,19 +201,17 @@ def residual_jacobians(problem: LevelProblem, est: Estimate, ev: Evaluation, i: 
     return use, J, g
 
 
-def _reference_parallax(albedo: np.ndarray, dshading: np.ndarray, ray: np.ndarray, use: np.ndarray) -> np.ndarray:
-    """d(residual)/dz (N, 3) of the reference frame, albedo (N, 3): only its LED shading moves with z."""
-    return -albedo * (_row_dot(dshading[:, :3], ray) * use)[:, None]
-
-
-def _row_dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """sum_j a[:, j] b[:, j] of two (N, 3) arrays: (N,) (one kernel on a GPU)."""
-    return _dot3(a[:, 0], a[:, 1], a[:, 2], b[:, 0], b[:, 1], b[:, 2])
+def _reference_parallax(albedo: np.ndarray, dshading: np.ndarray, points: np.ndarray, use: np.ndarray) -> np.ndarray:
+    """d(residual)/dz (N, 3) of the reference frame, albedo (N, 3): only its LED shading moves with
+    z, along the ray d(point)/dz = point / z of the reference points (N, 3); dshading (N, 6)."""
+    return _parallax_rows(albedo, dshading[:, 0:1], dshading[:, 1:2], dshading[:, 2:3], points[:, 0:1],
+                          points[:, 1:2], points[:, 2:3], use[:, None])
 
 
 @fused
-def _dot3(a0, a1, a2, b0, b1, b2):
-    return a0 * b0 + a1 * b1 + a2 * b2
+def _parallax_rows(albedo, d0, d1, d2, x, y, z, use):
+    """-albedo (ds . ray) use, ray = (x, y, z) / z (columns (N, 1) each; one kernel on a GPU)."""
+    return -albedo * ((d0 * (x / z) + d1 * (y / z) + d2 * (z / z)) * use)
 
 
 #: Reference pixels per block of the joint assembly. Every per-pixel array of the refined
@@ -286,11 +284,16 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
     # on a GPU each block writes its twist sums into its own row, summed and copied to the host
     # once after the pass (not two or four copies per block); the frames' poses and slots copied once
     partials = xp.zeros((len(starts), _twist_sums_size(m))) if xp is not np and m else None
-    poses = like(est.poses, points_ref)
     slot = {i: k for k, i in enumerate(candidates)}
     with_jacobian = [i > 0 and (parallax or i in slot) for i in range(problem.n_frames)]
-    frame_slots = like(np.array([[jac, slot.get(i, -1)] for i, jac in enumerate(with_jacobian)], dtype=np.int64),
-                       points_ref)
+    frame_slots = np.array([[jac, slot.get(i, -1)] for i, jac in enumerate(with_jacobian)], dtype=np.int64)
+    if xp is np:
+        poses = like(est.poses, points_ref)
+    else:  # the poses' bits and the frame slots in one int64 array: one copy, then views
+        n_pose = 16 * problem.n_frames
+        packed = like(np.concatenate([np.ascontiguousarray(est.poses, dtype=np.float64).view(np.int64).ravel(),
+                                      frame_slots.ravel()]), points_ref)
+        poses, frame_slots = packed[:n_pose].view(np.float64).reshape(-1, 4, 4), packed[n_pose:].reshape(-1, 2)
     for b, start in enumerate(starts):
         block = slice(start, min(N, start + block_pixels))
         twist_sums = (grams, rhs_xi, rhs_xi, downdate) if partials is None else _twist_sums(partials[b], m)
@@ -319,17 +322,21 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
     else:  # every candidate's rows, a frame not kept an identity block (its twist 0: JointSystem.selection)
         frames, kept, rhs_xi = candidates, list(range(6 * m)), twist_rhs
     prior = problem.level.prior
-    rhs_z = -stencil_transpose(grid, *sums[6:]) + prior.negative_gradient(est.z, problem.tau, problem.mu)
+    if xp is np:
+        rhs_z = -stencil_transpose(grid, *sums[6:]) + prior.negative_gradient(est.z, problem.tau, problem.mu)
+    else:  # the same in one launch
+        rhs_z = xp.empty(N)
+        DuT, DvT = grid.transposed_difference_operators()
+        kernels_for(rhs_z).stencil_transpose_subtract(DuT.indptr, DuT.indices, DuT.data, DvT.indptr, DvT.indices,
+                                                      DvT.data, *sums[6:], prior.negative_gradient(est.z, problem.tau,
+                                                                                                   problem.mu), rhs_z)
     if xp is np:  # filled into the level's pattern: no sparse products or sums
         matrix = depth_block(problem, sums[:6])
         del sums
         prior.release_products()  # S^T S not held through the solve (formed again by the next step)
     else:
-        # the prior's matrix formed after the stencil's, and the per-pixel sums dropped before the two are added
-        matrix = stencil_normal_matrix(grid, *sums[:6])
+        matrix = _device_depth_block(problem, sums[:6])
         del sums
-        for scale, term in prior.hessian_terms(problem.tau, problem.mu):
-            matrix = matrix + scale * term
     for row, k in enumerate(kept):  # the kept rows moved up in place (kept is ascending): no second U
         if row != k:
             coupling_t[row] = coupling_t[k]
@@ -420,7 +427,7 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
     dshading = model.shading_jacobians(est.lights, normals, points_ref, est.poses) if parallax or m else None
     extra_c = none3
     if parallax and dshading is not None:
-        extra_c = _reference_parallax(albedo, dshading[0], points_ref / points_ref[:, 2:3], usable[0])
+        extra_c = _reference_parallax(albedo, dshading[0], points_ref, usable[0])
     e = none_e if projection is None else projection.e
     if problem.level.image_stack is not None:  # on a GPU: every frame in one launch
         kernels.accumulate_frames(residual, shading, usable, 1.0 / problem.lam, q, alpha, beta, gamma, extra_c,
@@ -441,9 +448,13 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
     elif m:
         gram[:m].sum(axis=1, out=grams)
         rhs[:m].sum(axis=1, out=rhs_xi.reshape(m, 6))
-    if projection is not None:
+    if projection is not None and xp is not np:  # the downdate and the copy into sums in one launch
+        xp.subtract(block_sums, projection.local(), out=sums)
+    elif projection is not None:
         block_sums -= projection.local()
-    sums[:] = block_sums
+        sums[:] = block_sums
+    else:
+        sums[:] = block_sums
     if m and projection is not None and xp is np:
         # the projection of the rows and their stencil transpose into U^T in one pass on the host
         scaled, sqrt_inv_d = projection.twist_scalings()
@@ -565,9 +576,14 @@ def shading_rows(problem: LevelProblem, est: Estimate, normals: np.ndarray, poin
     c, L = problem.light_model(est).fields(est.lights, normals, points_ref, est.poses)
     n = len(est.lights)
     L = array_module(normals).broadcast_to(like(L, normals).reshape(n, -1, 3), (n, len(u), 3))  # (n, N, 3)
-    alpha = K[0, 0] * L[..., 0] - (u - K[0, 2]) * L[..., 2]
-    beta = K[1, 1] * L[..., 1] - (v - K[1, 2]) * L[..., 2]
-    return c, alpha, beta, -L[..., 2]
+    return (c, *_light_rows(L[..., 0], L[..., 1], L[..., 2], u, v, K[0, 0], K[0, 2], K[1, 1], K[1, 2]))
+
+
+@fused
+def _light_rows(L0, L1, L2, u, v, fx, cx, fy, cy):
+    """(alpha, beta, gamma) of :func:`shading_rows` from the frozen light field's components
+    (n, N) each and the pixels' u, v (N,) (one kernel on a GPU)."""
+    return fx * L0 - (u - cx) * L2, fy * L1 - (v - cy) * L2, -L2
 
 
 def prepare_depth_block(problem: LevelProblem) -> None:
@@ -575,7 +591,7 @@ def prepare_depth_block(problem: LevelProblem) -> None:
     on the host now, as the level starts: it lasts the level anyway, but built inside its first
     joint step, next to the coupling U, its sparse products' temporaries (some 0.5 GB at 2
     megapixels, with the prior's D^T D it formed then) set that step's peak. Nothing is done
-    on a GPU, where :func:`joint_system` forms M by sparse products."""
+    on a GPU, where :func:`_device_depth_block` makes it at the level's first joint step."""
     if array_module(problem.level.grid.u) is not np:
         return
     if problem.depth_pattern is None:
@@ -618,19 +634,42 @@ def depth_block(problem: LevelProblem, stencil_sums: np.ndarray) -> sp.csr_matri
     return matrix
 
 
+def _device_depth_block(problem: LevelProblem, stencil_sums):
+    """The depth block M (N, N) on a GPU, as :func:`depth_block` on the host: the stencil's Gram of
+    ``stencil_sums`` (6, N) and the prior's Hessian terms filled in one launch
+    (:func:`.kernels.depth_block_fill`) into the level's pattern (:func:`depth_block_pattern`,
+    made on the device at the level's first joint step and kept on the problem), where sparse
+    products and sums of four matrices took some 15 launches (and cuSPARSE's synchronisations)."""
+    grid, prior = problem.level.grid, problem.level.prior
+    if problem.depth_pattern is None:
+        problem.depth_pattern = depth_block_pattern(grid, prior)
+    indptr, indices = problem.depth_pattern
+    xp = array_module(stencil_sums)
+    buffer = xp.zeros(indices.size + 1)  # the values, then the count of entries the pattern lacks (none)
+    terms = prior.hessian_terms(problem.tau, problem.mu)
+    (s1, T1), (s2, T2) = terms[0], terms[1] if len(terms) > 1 else (0.0, terms[0])
+    t2_indptr = T2.indptr if len(terms) > 1 else T2.indptr[:1]  # no rows: no second term
+    geometry = (grid.fwd_u, grid.bwd_u, grid.wf_u, grid.wb_u, grid.fwd_v, grid.bwd_v, grid.wf_v, grid.wb_v)
+    kernels_for(stencil_sums).depth_block_fill(indptr, indices, *geometry, *stencil_sums, s1, T1.indptr, T1.indices,
+                                               T1.data, s2, t2_indptr, T2.indices, T2.data, buffer[:-1], buffer[-1:])
+    return sparse_module(T1).csr_matrix((buffer[:-1], indices, indptr), shape=(grid.size, grid.size))
+
+
 def depth_block_pattern(grid, prior) -> tuple[np.ndarray, np.ndarray]:
     """(indptr, indices) of a CSR pattern (columns ascending per row) holding every entry of the
     stencil's Gram (pixels coupled through one pixel's central-difference stencil), of the
-    prior's D^T D and S^T S (for any smoothness weights) and the diagonal, (N, N)."""
+    prior's D^T D and S^T S (for any smoothness weights) and the diagonal, (N, N); arrays of the
+    grid's device (on a GPU by a few sparse products there, once per level)."""
     Du, Dv = grid.difference_operators()
-    touched = abs(Du) + abs(Dv) + sp.identity(grid.size, format="csr")
-    touched.eliminate_zeros()
+    sparse = sparse_module(Du)
+    # the sum stores no zeros (the stencils' stored zeros lie on the diagonal, where the identity is)
+    touched = abs(Du) + abs(Dv) + sparse.diags(array_module(grid.u).ones(grid.size), format="csr")
     D = abs(prior.D)
     pattern = touched.T @ touched + D.T @ D  # D^T D's pattern, not kept
     S = prior.smoothness_pattern
     if S is not None:
         pattern = pattern + abs(S).T @ abs(S)
-    pattern = sp.csr_matrix(pattern)
+    pattern = sparse.csr_matrix(pattern)
     pattern.sort_indices()
     return pattern.indptr, pattern.indices
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..model.arrays import array_module, contiguous, fused
+from ..model.arrays import array_module, contiguous
 from .device import kernels_for, on_gpu, to_host
 from .problem import Estimate, Evaluation
 
@@ -16,17 +16,11 @@ from .problem import Estimate, Evaluation
 def update_albedo(est: Estimate, ev: Evaluation, lam: float) -> np.ndarray:
     """rho_c(p) = sum_i w I~ s / sum_i w s^2, per pixel and channel: (N, 3), w the Cauchy
     IRLS weights of the current residuals."""
-    num, den = np.empty_like(est.albedo), np.empty_like(est.albedo)
-    kernels_for(num).weighted_albedo_sums(ev.residual, ev.usable, ev.color, ev.shading, 1.0 / lam, num, den)
-    return _ratio_where_defined(num, den, est.albedo)
-
-
-@fused
-def _ratio_where_defined(num, den, fallback):
-    """num / den where den > 1e-8, else ``fallback`` (same shapes; one kernel on a GPU)."""
-    where = array_module(num).where
-    ok = den > 1e-8
-    return where(ok, num / where(ok, den, 1.0), fallback)
+    xp = array_module(est.albedo)
+    num, den, out = xp.empty_like(est.albedo), xp.empty_like(est.albedo), xp.empty_like(est.albedo)
+    kernels_for(num).albedo_update(ev.residual, ev.usable, ev.color, ev.shading, 1.0 / lam, contiguous(est.albedo),
+                                   num, den, out)  # num / den where den > 1e-8, else the albedo (one launch)
+    return out
 
 
 def update_lighting(est: Estimate, ev: Evaluation, lam: float, light) -> np.ndarray:
@@ -37,19 +31,12 @@ def update_lighting(est: Estimate, ev: Evaluation, lam: float, light) -> np.ndar
     albedo = contiguous(est.albedo)
     n, k = est.lights.shape
     gram, rhs = np.zeros((n, k, k)), np.zeros((n, k))
-    if on_gpu(ev.residual):  # every frame's system in a few launches and one copy (the host's loop: 5 a frame)
-        wr2, wri = xp.empty(ev.usable.shape), xp.empty(ev.usable.shape)  # sum_c w rho^2, sum_c w rho I~: (n, N)
-        kernels_for(wr2).weighted_lighting_sums(ev.residual, ev.usable, ev.color, albedo, 1.0 / lam, wr2, wri)
-        basis = ev.basis  # (n, N, k), or (1, N, k) shared
-        # the Grams, right-hand sides and usable counts written into one array, read in one copy
-        sizes = np.cumsum([n * k * k, n * k, n])
-        both = xp.empty(int(sizes[-1]))
-        gram, rhs, counts = both[:sizes[0]].reshape(n, k, k), both[sizes[0]:sizes[1]].reshape(n, 1, k), both[sizes[1]:]
-        xp.matmul((basis * wr2[:, :, None]).transpose(0, 2, 1), basis, out=gram)
-        xp.matmul(wri[:, None, :], basis, out=rhs)
-        ev.usable.sum(axis=1, dtype=np.float64, out=counts)
-        both = to_host(both)
-        gram, rhs, counts = both[:sizes[0]].reshape(n, k, k), both[sizes[0]:sizes[1]].reshape(n, k), both[sizes[1]:]
+    if on_gpu(ev.residual):  # every frame's system in one launch and one copy (the host's loop: 5 a frame)
+        kernels = kernels_for(ev.residual)
+        partials = xp.empty((n, kernels.lighting_blocks(ev.usable.shape[1]), k * k + k + 1))
+        kernels.lighting_sums(ev.residual, ev.usable, ev.color, albedo, 1.0 / lam, ev.basis, partials)
+        sums = to_host(partials).sum(axis=1)  # (n, k k + k + 1)
+        gram, rhs, counts = sums[:, :k * k].reshape(n, k, k), sums[:, k * k:k * k + k], sums[:, -1]
         gram[counts < 8], rhs[counts < 8] = 0.0, 0.0
         return light.fit(gram, rhs, est.lights)
     # on the host a frame at a time: the sums of one frame (1, N) each, not of all (2 x 160 MB
