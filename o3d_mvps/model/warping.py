@@ -80,24 +80,27 @@ def in_view(u: np.ndarray, v: np.ndarray, Z: np.ndarray, size: tuple[int, int]) 
 
 def visible(u: np.ndarray, v: np.ndarray, Z: np.ndarray, size: tuple[int, int], *, rel_tol: float = 0.02,
             sensor_depth: np.ndarray | None = None, sensor_uv: tuple[np.ndarray, np.ndarray] | None = None,
-            frame_mask: np.ndarray | None = None) -> np.ndarray:
+            frame_mask: np.ndarray | None = None, zbuffer: bool = True) -> np.ndarray:
     """Occlusion test: which warped reference points frame i really sees, (N,) bool.
 
     A point is visible when it is in view, it is the nearest reference point landing on its
     pixel (z-buffer of the warped reference surface, tolerance ``rel_tol * Z``), frame i's
     own depth measurement there (``sensor_depth`` (h, w) metres, sampled at ``sensor_uv``,
     nearest) is not in front of it by more than the tolerance, and it lies inside frame i's
-    object mask (``frame_mask`` (H, W) bool) when one is given.
+    object mask (``frame_mask`` (H, W) bool) when one is given. zbuffer: False where no two
+    points land on one pixel (the identity warp of a static camera): the z-buffer is skipped.
     """
     H, W = size
     ok = in_view(u, v, Z, size)
-    iu = np.rint(np.where(ok, u, 0)).astype(np.int64)
-    iv = np.rint(np.where(ok, v, 0)).astype(np.int64)
-    zbuf = np.full(H * W, np.inf)
-    flat = iv * W + iu
-    np.minimum.at(zbuf, flat[ok], Z[ok])
+    if zbuffer or frame_mask is not None:
+        iu = np.rint(np.where(ok, u, 0)).astype(np.int64)
+        iv = np.rint(np.where(ok, v, 0)).astype(np.int64)
     tol = rel_tol * np.abs(Z)
-    ok &= Z <= zbuf[flat] + tol
+    if zbuffer:
+        zbuf = np.full(H * W, np.inf)
+        flat = iv * W + iu
+        np.minimum.at(zbuf, flat[ok], Z[ok])
+        ok &= Z <= zbuf[flat] + tol
     if sensor_depth is not None and sensor_uv is not None:
         h, w = sensor_depth.shape
         su = np.clip(np.rint(sensor_uv[0]), 0, w - 1).astype(np.int64)

@@ -57,8 +57,10 @@ POINT_FIT_MAX_PIXELS = 20000
 #: on the levels that no longer refit the point lights every sweep (more than
 #: :data:`POINT_FIT_MAX_PIXELS`), the depth steps' CG stops at this many times ``cg_tolerance``:
 #: on the 640x480 quilt the finest level's steps took 14-22 CG iterations instead of 24-28, for
-#: the same normals, albedo and lamps (0.923 deg, 1.596 %, 24.4 mm off; 1280x960: 1.037 deg, 0.982 %)
-POINT_SETTLED_CG_FACTOR = 3.0
+#: the same normals, albedo and lamps (0.923 deg, 1.596 %, 24.4 mm off; 1280x960: 1.037 deg, 0.982 %);
+#: 10 (a static capture's default: a relative residual of 1e-2) the same again at 640x480
+#: (0.9232 deg, 1.596 %, 0.053 per mille; 30: 0.9227 deg, 1.596 %)
+POINT_SETTLED_CG_FACTOR = 10.0
 #: the point lights start on the first level with at least this many object pixels (or the finest):
 #: 5 parameters a lamp and an albedo per pixel. From a 20-pixel coarsest level (320x240 colour) the
 #: clean bunny's lamps started 450 mm off and never recovered (normals 4.4 deg, albedo error 12 %;
@@ -77,8 +79,13 @@ POINT_SWEEP_FACTOR = 3
 #: energy's tolerance; 640x480: none 27.8, 4 19.7, 3 17.9 CPU s for normals 0.922-0.923 deg and
 #: albedo 1.60 %; 1280x960: sweeps 4/8/3 66.1 CPU s, 4/4/4 73.6, 3/3/3 56.4 (loaded machine),
 #: normals 1.037-1.038 deg, albedo 0.99 % in all. Fewer sweeps on the lamps' levels cost the
-#: albedo instead (10 -> 5 sweeps everywhere: 1.60 -> 2.17 % at 640x480)
-POINT_SETTLED_SWEEPS = 3
+#: albedo instead (10 -> 5 sweeps everywhere: 1.60 -> 2.17 % at 640x480). 2 (with the CG factor
+#: at 10): 640x480 0.9228 deg against 0.9232, albedo 1.6005 % against 1.5960, low-pass 0.053 per mille
+POINT_SETTLED_SWEEPS = 2
+#: whether those finer levels extrapolate their sweeps (:func:`_extrapolate`): on the 640x480
+#: quilt no extrapolation there was kept at 2 sweeps a level (the same figures to 1e-4 without
+#: it), and each tried costs an energy evaluation of every frame
+POINT_SETTLED_EXTRAPOLATE = False
 #: pixels per frame read for the image noise of the LED's evidence weights, every sweep (the
 #: median of 20 x 90 000 x 3 residuals took 1.4 of a D415 refine's 17.6 s; 10 000 a frame give
 #: the noise to well under 1 %)
@@ -278,7 +285,7 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
         if problem.light.name == "point" and (iteration == 1 or level.grid.size <= POINT_FIT_MAX_PIXELS):
             ev = fit_point_lights(problem, est, ev)
         timings["albedo_lighting"] += time.perf_counter() - t
-        if options.extrapolate:
+        if options.extrapolate and (POINT_SETTLED_EXTRAPOLATE or not settled):
             t = time.perf_counter()
             ev = _extrapolate(problem, est, ev, start, anchors)
             timings["extrapolation"] += time.perf_counter() - t

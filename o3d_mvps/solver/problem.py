@@ -220,23 +220,27 @@ class LevelProblem:
 
     def update_visibility(self, est: Estimate, *, occlusion_test: bool, rel_tol: float, sensor_depths=None,
                           depth_K=None) -> None:
-        """Recompute which reference pixels each frame sees (held fixed while a level runs)."""
+        """Recompute which reference pixels each frame sees (held fixed while a level runs). Where
+        every pose is the identity (a static camera) each pixel lands on itself in every frame:
+        the warp is made once and no z-buffer is needed (the same visibility)."""
         self._static_samples = None
         P = to_host(self.points(est.z))  # the z-buffer's scatter-min runs on the host
+        identity = self._identity(est)
         for i in range(self.n_frames):
-            points, u, v, Z = warp(P, est.poses[i], self.level.K)
+            if not identity or i == 0:
+                points, u, v, Z = warp(P, est.poses[i], self.level.K)
             if i == 0 or not occlusion_test:
                 self.visibility[i] = like(in_view(u, v, Z, self.level.size), self.visibility) if i else True
                 continue
             sensor = None if sensor_depths is None else sensor_depths[i]
-            sensor_uv = None
-            if sensor is not None:
+            sensor_uv = None if not identity or i == 1 else sensor_uv
+            if sensor is not None and sensor_uv is None:
                 su = depth_K[0, 0] * points[:, 0] / Z + depth_K[0, 2]
                 sv = depth_K[1, 1] * points[:, 1] / Z + depth_K[1, 2]
                 sensor_uv = (su, sv)
             self.visibility[i] = like(visible(u, v, Z, self.level.size, rel_tol=rel_tol, sensor_depth=sensor,
-                                              sensor_uv=sensor_uv, frame_mask=self.level.frame_masks[i]),
-                                      self.visibility)
+                                              sensor_uv=sensor_uv, frame_mask=self.level.frame_masks[i],
+                                              zbuffer=not identity), self.visibility)
 
     # energy ------------------------------------------------------------------------------
     def prior_energy(self, z: np.ndarray) -> float:
