@@ -193,10 +193,10 @@ def _fit_projected(X: np.ndarray, colour: np.ndarray, usable: np.ndarray, normal
         lit = g > 0
         dpos = -led_vector_jacobian(points, X[:, 2:], normals) * (X[:, 1:2] * lit)[..., None]  # (n, M, 3)
         J = np.concatenate([np.ones((n, M, 1)), np.maximum(g, 0.0)[..., None], dpos], axis=2)  # (n, M, 5)
-        wr2 = w * rho[None] ** 2
+        wr2 = (w * rho[None] ** 2).sum(axis=2)  # (n, M); the sums as matmuls (an einsum of three: 5x slower)
         S = np.zeros((n, 5, n, 5))
-        S[np.arange(n), :, np.arange(n), :] = np.einsum("nmc,nmk,nml->nkl", wr2, J, J)
-        b = np.einsum("nmc,nmk->nk", w * r * rho[None], J).ravel()
+        S[np.arange(n), :, np.arange(n), :] = np.matmul(J.transpose(0, 2, 1) * wr2[:, None, :], J)
+        b = np.matmul(J.transpose(0, 2, 1), (w * r * rho[None]).sum(axis=2)[..., None])[..., 0].ravel()
         C = (w * rho[None] * shading[..., None])[..., None] * J[:, :, None, :]  # (n, M, 3, 5): lights x albedo
         C = C.transpose(1, 2, 0, 3).reshape(M * 3, n * 5)
         A = np.einsum("nmc,nm->mc", w, shading**2).reshape(-1)
