@@ -44,6 +44,8 @@ POINT_START_DISTANCES = (0.5, 1.0, 2.0)
 #: the frames' mean depth 1.02 -> 0.72 %). Coarser levels keep the frame-by-frame fit: there
 #: the projected fit explained the bunny's cast shadows with lamps close to the object
 POINT_FINE_MIN_PIXELS = 20000
+#: :func:`_fit_projected` stops when a step lowers the sampled energy by less than this fraction
+POINT_PROJECTED_TOLERANCE = 1e-5
 POINT_FINE_PIXELS = 8000
 POINT_FINE_ITERATIONS = 12
 
@@ -212,7 +214,10 @@ def _fit_projected(X: np.ndarray, colour: np.ndarray, usable: np.ndarray, normal
         accepted, damping = _damped_step(S, b, accept, damping)
         if accepted is None:
             break
+        previous = energy
         X, (shading, g, rho, r, energy) = accepted
+        if previous - energy <= POINT_PROJECTED_TOLERANCE * previous:  # settled: the rest is cost
+            break
     return X
 
 
