@@ -15,7 +15,7 @@ from dataclasses import replace
 import numpy as np
 
 from .capture import Capture, CameraSetting, camera_setting, frame_white_balance, to_host
-from .capture.static import MIN_FRAMES_FOR_MEDIAN, reference_depth_fill, reference_depth_outliers
+from .capture.static import MIN_FRAMES_FOR_MEDIAN, reference_depth_mean, reference_depth_outliers
 from .capture.checks import check_inputs
 from .capture.layout import COLOR_DIR
 from .capture.poses import GivenPoses
@@ -209,10 +209,11 @@ def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses
         # flying pixels of the reference (the depth prior's) left out: at the 640x480 D415-like
         # bunny's silhouette they pulled the rim back and brightened its albedo
         flying = reference_depth_outliers(depths)
-        # its speckle holes filled from the frames' median: without masks they were cut out of the output
-        fill, values = reference_depth_fill(depths)
         depths[0][flying] = 0.0
-        depths[0][fill] = values[fill]
+        # the frames' mean depth, its speckle holes filled: the frames' depth noise averages out
+        # (640x480 D415-like quilt: normals 0.92 -> 0.45 deg, albedo 1.60 -> 1.02 %), and without
+        # masks the holes were cut out of the output
+        depths[0], fill = reference_depth_mean(depths)
         report["reference_depth_outliers"] = {"pixels": int(flying.sum()), "fraction": round(float(flying.mean()), 6),
                                               "filled": int(fill.sum())}
     elif not camera.static and n > OUTLIER_MIN_FRAMES and options.drop_depth_outliers:
