@@ -196,6 +196,18 @@ def led_point_gradients_into(intensities, normals, points, positions, out):  # p
                 led_point_gradient(intensities, normals, points, positions, out, i, p)
 
 
+@numba.njit(inline="always")
+def twist_row_into(G0, G1, G2, offset, out, i, p):  # pragma: no cover - compiled
+    """``out[i, p, :6] = [G, o x G]`` for one gradient G = (G0, G1, G2) and the LED's offset o
+    (3,), the cross product in NumPy's order of operations."""
+    out[i, p, 0] = G0
+    out[i, p, 1] = G1
+    out[i, p, 2] = G2
+    out[i, p, 3] = offset[1] * G2 - offset[2] * G1
+    out[i, p, 4] = offset[2] * G0 - offset[0] * G2
+    out[i, p, 5] = offset[0] * G1 - offset[1] * G0
+
+
 @numba.njit(parallel=True, cache=True)
 def led_twist_jacobians_into(G, offset, out):  # pragma: no cover - compiled
     """``[G, o x G]`` (m, N, 6) written into out from G (m, N, 3), the shading's gradients with
@@ -206,10 +218,4 @@ def led_twist_jacobians_into(G, offset, out):  # pragma: no cover - compiled
     for k in numba.prange(-(-N // FRAME_CHUNK)):  # chunks of pixels, a frame at a time
         for i in range(G.shape[0]):
             for p in range(k * FRAME_CHUNK, min(N, (k + 1) * FRAME_CHUNK)):
-                G0, G1, G2 = G[i, p, 0], G[i, p, 1], G[i, p, 2]
-                out[i, p, 0] = G0
-                out[i, p, 1] = G1
-                out[i, p, 2] = G2
-                out[i, p, 3] = offset[1] * G2 - offset[2] * G1
-                out[i, p, 4] = offset[2] * G0 - offset[0] * G2
-                out[i, p, 5] = offset[0] * G1 - offset[1] * G0
+                twist_row_into(G[i, p, 0], G[i, p, 1], G[i, p, 2], offset, out, i, p)

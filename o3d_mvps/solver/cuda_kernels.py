@@ -127,6 +127,15 @@ def _block_tree_sum2(share, t, first, second):  # pragma: no cover - device
         step //= 2
 
 
+def _store_block_pair(share, t, first, second, partial):  # pragma: no cover - device
+    """The block's sums of its threads' (first, second) (:func:`_block_tree_sum2`) written into
+    ``partial[block, 0:2]`` by thread 0: a kernel's per-block partial sums for the host."""
+    _block_tree_sum2(share, t, first, second)
+    if t == 0:
+        partial[cuda.blockIdx.x, 0] = share[0, 0]
+        partial[cuda.blockIdx.x, 1] = share[0, 1]
+
+
 def _grid_sum2(first, second, partial, slot):  # pragma: no cover - device
     """:func:`.kernels.grid_sum2` in a CUDA kernel: each block adds its threads' terms in shared
     memory (a tree, in a fixed order) into ``partial[block, slot:slot + 2]``; after the grid's
@@ -153,6 +162,7 @@ def _grid_sum2(first, second, partial, slot):  # pragma: no cover - device
 if not cuda.config.ENABLE_CUDASIM:  # compiled for the device where a kernel calls them
     _block_tree_sum = numba.njit(inline="always")(_block_tree_sum)
     _block_tree_sum2 = numba.njit(inline="always")(_block_tree_sum2)
+    _store_block_pair = numba.njit(inline="always")(_store_block_pair)
 
 #: the grid-wide functions of kernels' shared code, for the CUDA target
 _GRID = {"grid_barrier": _grid_barrier, "grid_sum2": _grid_sum2}
@@ -725,7 +735,7 @@ def twist_inverse(hessian, selection, rhs, fallback, L, X, Xb, solved) -> None:
 
 _energy_term = _device(kernels.energy_term)
 _evaluation_term = _device(kernels.evaluation_term)
-_prior_term = _device(kernels.prior_term)
+_prior_sum = _device(kernels.prior_sum)
 _prior_rows = _device(kernels.prior_rows)
 _led_field = _device(led_field)
 _evaluate_pixel = _device(kernels.evaluate_pixel)
@@ -745,13 +755,9 @@ def _energy_partials(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v
     for index in range(cuda.grid(1), n * N, cuda.gridsize(1)):
         data += _energy_term(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images, visible,
                              albedo, lights, led, o0, o1, o2, scale, single, usable, index // N, index % N)
-    prior = 0.0
-    for row in range(cuda.grid(1), _prior_rows(z0, S_indptr, tau, mu), cuda.gridsize(1)):
-        prior += _prior_term(D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data, tau, mu, z, row)
-    _block_tree_sum2(share, t, data, prior)
-    if t == 0:
-        partial[cuda.blockIdx.x, 0] = share[0, 0]
-        partial[cuda.blockIdx.x, 1] = share[0, 1]
+    prior = _prior_sum(D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data, tau, mu, z, cuda.grid(1),
+                       _prior_rows(z0, S_indptr, tau, mu), cuda.gridsize(1))
+    _store_block_pair(share, t, data, prior, partial)
 
 
 def energy_partials(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images, visible, albedo,
@@ -774,13 +780,9 @@ def _evaluation_partials(color, albedo, basis, lights, usable, shading, residual
     for index in range(cuda.grid(1), n * N, cuda.gridsize(1)):
         data += _evaluation_term(color, albedo, basis, lights, usable, shading, residual, scale, index // N,
                                  index % N)
-    prior = 0.0
-    for row in range(cuda.grid(1), _prior_rows(z0, S_indptr, tau, mu), cuda.gridsize(1)):
-        prior += _prior_term(D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data, tau, mu, z, row)
-    _block_tree_sum2(share, t, data, prior)
-    if t == 0:
-        partial[cuda.blockIdx.x, 0] = share[0, 0]
-        partial[cuda.blockIdx.x, 1] = share[0, 1]
+    prior = _prior_sum(D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data, tau, mu, z, cuda.grid(1),
+                       _prior_rows(z0, S_indptr, tau, mu), cuda.gridsize(1))
+    _store_block_pair(share, t, data, prior, partial)
 
 
 def evaluation_partials(color, albedo, basis, lights, usable, shading, residual, scale, D_indptr, D_indices, D_data,
@@ -820,13 +822,9 @@ def _evaluate_partials(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb
         data += _evaluate_pixel(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images,
                                 visible, albedo, lights, led, o0, o1, o2, scale, single, points, normals, dA, color,
                                 usable, basis, shading, residual, index // N, index % N)
-    prior = 0.0
-    for row in range(cuda.grid(1), _prior_rows(z0, S_indptr, tau, mu), cuda.gridsize(1)):
-        prior += _prior_term(D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data, tau, mu, z, row)
-    _block_tree_sum2(share, t, data, prior)
-    if t == 0:
-        partial[cuda.blockIdx.x, 0] = share[0, 0]
-        partial[cuda.blockIdx.x, 1] = share[0, 1]
+    prior = _prior_sum(D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data, tau, mu, z, cuda.grid(1),
+                       _prior_rows(z0, S_indptr, tau, mu), cuda.gridsize(1))
+    _store_block_pair(share, t, data, prior, partial)
 
 
 def evaluate_partials(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images, visible, albedo,

@@ -25,7 +25,8 @@ import numpy as np
 from ..model.robust import log1p_square_sum, log1p_square_term  # noqa: F401 - log1p_square_sum re-exported: the same names as .cuda_kernels
 from ..model.normals import unit_normal_at
 from ..model.shading import (FRAME_CHUNK, led_fields_into, led_irradiance_at, led_irradiance_of,  # noqa: F401
-                             led_irradiances_into, led_point_gradient, led_point_gradients_into, led_position)
+                             led_irradiances_into, led_point_gradient, led_point_gradients_into, led_position,
+                             twist_row_into)
 
 # OpenMP first: the TBB that Open3D's wheels may put on the path can be too old for numba,
 # which then warns on every first parallel call.
@@ -1548,6 +1549,17 @@ def prior_term(D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data, tau
 
 
 @numba.njit(inline="always")
+def prior_sum(D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data, tau, mu, z, start, stop,
+              step):  # pragma: no cover - compiled
+    """Sum of :func:`prior_term` over rows ``range(start, stop, step)`` (stop at most
+    :func:`prior_rows`): a contiguous share on the CPU, a grid-stride share on a GPU."""
+    total = 0.0
+    for row in range(start, stop, step):
+        total += prior_term(D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data, tau, mu, z, row)
+    return total
+
+
+@numba.njit(inline="always")
 def pixel_view(z, u, v, K, poses, images, visible, i, p):  # pragma: no cover - compiled
     """The reference point (x, y, z) of depth z at pixel p (:func:`~o3d_mvps.model.camera.backproject`),
     its pixel (uu, vv) in frame i and whether frame i sees it there (:func:`warp_sample_pixel`'s
@@ -1674,11 +1686,9 @@ def _energy_partials(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v
             data += energy_term(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images,
                                 visible, albedo, lights, led, o0, o1, o2, scale, single, usable, index // N,
                                 index % N)
-        prior = 0.0
-        for row in range(k * rows // B, (k + 1) * rows // B):
-            prior += prior_term(D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data, tau, mu, z, row)
         partial[k, 0] = data
-        partial[k, 1] = prior
+        partial[k, 1] = prior_sum(D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data, tau, mu, z,
+                                  k * rows // B, (k + 1) * rows // B, 1)
 
 
 def energy_partials(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images, visible, albedo,
@@ -1720,11 +1730,9 @@ def _evaluation_partials(color, albedo, basis, lights, usable, shading, residual
         for index in range(k * items // B, (k + 1) * items // B):
             data += evaluation_term(color, albedo, basis, lights, usable, shading, residual, scale, index // N,
                                     index % N)
-        prior = 0.0
-        for row in range(k * rows // B, (k + 1) * rows // B):
-            prior += prior_term(D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data, tau, mu, z, row)
         partial[k, 0] = data
-        partial[k, 1] = prior
+        partial[k, 1] = prior_sum(D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data, tau, mu, z,
+                                  k * rows // B, (k + 1) * rows // B, 1)
 
 
 def evaluation_partials(color, albedo, basis, lights, usable, shading, residual, scale, D_indptr, D_indices, D_data,
@@ -1750,11 +1758,9 @@ def _evaluate_partials(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb
             data += evaluate_pixel(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images,
                                    visible, albedo, lights, led, o0, o1, o2, scale, single, points, normals, dA, color,
                                    usable, basis, shading, residual, index // N, index % N)
-        prior = 0.0
-        for row in range(k * rows // B, (k + 1) * rows // B):
-            prior += prior_term(D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data, tau, mu, z, row)
         partial[k, 0] = data
-        partial[k, 1] = prior
+        partial[k, 1] = prior_sum(D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data, tau, mu, z,
+                                  k * rows // B, (k + 1) * rows // B, 1)
 
 
 def evaluate_partials(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images, visible, albedo,
@@ -1782,12 +1788,7 @@ def led_shading_jacobian(intensities, normals, points, positions, rotations, off
     G0 = J0 * rotations[i, 0, 0] + J1 * rotations[i, 0, 1] + J2 * rotations[i, 0, 2]
     G1 = J0 * rotations[i, 1, 0] + J1 * rotations[i, 1, 1] + J2 * rotations[i, 1, 2]
     G2 = J0 * rotations[i, 2, 0] + J1 * rotations[i, 2, 1] + J2 * rotations[i, 2, 2]
-    out[i, p, 0] = G0
-    out[i, p, 1] = G1
-    out[i, p, 2] = G2
-    out[i, p, 3] = offset[1] * G2 - offset[2] * G1
-    out[i, p, 4] = offset[2] * G0 - offset[0] * G2
-    out[i, p, 5] = offset[0] * G1 - offset[1] * G0
+    twist_row_into(G0, G1, G2, offset, out, i, p)
 
 
 @numba.njit(parallel=True, cache=True)
