@@ -4,8 +4,9 @@ moved by hand between frames. Such a capture needs no registration (every pose i
 :func:`camera_setting` decides whether a capture is one: capture.json's ``"camera"`` when it says,
 else the depth (:func:`static_depth_agreement`): a fixed camera sees the same surface in every
 frame, so on a coarse grid every frame's depth matches the reference's within the sensor noise
-over nearly the same pixels; a camera moved by even a degree shifts the silhouette and tilts the
-surface by more.
+over nearly the same pixels. A slow orbit (a degree or two) passes that too, so a capture that
+passes is confirmed by ICP of a few frames onto the reference (:func:`static_frame_motion`):
+moving when they move the surface by several times the depth noise and over a depth pixel.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from ..model.camera import project, transform
 from ..model.resampling import masked_gaussian, resample_valid
 from ..model.se3 import rotation_angle_deg
 from ..odometry import ICP_VOXELS, _region, cloud_pyramid, depth_cloud, register
@@ -133,23 +135,26 @@ def static_frame_motion(capture: Capture, frames) -> list[tuple[float, float, fl
     for i in frames:
         attempt = register(clouds[0], clouds[i], np.eye(4), f"ICP of frame {i} onto frame 0")
         T = attempt.T
-        moved = np.linalg.norm(points @ T[:3, :3].T + T[:3, 3] - points, axis=1)
+        aligned = transform(T, points)
+        moved = np.linalg.norm(aligned - points, axis=1)
         ok = attempt.failure is None and len(moved)
         pixels = float(np.percentile(moved * K[0, 0] / points[:, 2], MOTION_PERCENTILE)) if ok else np.inf
         shift = float(np.percentile(moved, MOTION_PERCENTILE)) if ok else np.inf
-        noise = _residual_spread(points @ T[:3, :3].T + T[:3, 3], capture.depth_array(i), K)
+        noise = _residual_spread(aligned, capture.depth_array(i), K)
         out.append((pixels, shift * 1000, noise * 1000, float(np.linalg.norm(T[:3, 3]) * 1000),
                     rotation_angle_deg(T[:3, :3]), attempt.failure))
     return out
 
 
 def _residual_spread(points: np.ndarray, depth: np.ndarray, K: np.ndarray) -> float:
-    """Robust spread (m, 1.4826 MAD) of ``depth`` (h, w) at the pixels the ``points`` (m, 3, camera frame)
-    project to minus their z: the sensor's depth noise once the frames are aligned (inf when none)."""
+    """Robust spread (m, 1.4826 MAD) of ``depth`` (h, w) at the nearest pixels the ``points`` (m, 3,
+    camera frame) project to minus their z (inf when none): once the frames are aligned, the
+    sensor's depth noise, plus what the cloud's smoothing and the pixel rounding on slopes leave
+    (0.49 mm on a noiseless bunny at 0.6 m, 320x240, SF 2)."""
     z = np.asarray(depth, dtype=np.float64).reshape(np.shape(depth)[:2])
-    u = np.rint(K[0, 0] * points[:, 0] / points[:, 2] + K[0, 2]).astype(int)
-    v = np.rint(K[1, 1] * points[:, 1] / points[:, 2] + K[1, 2]).astype(int)
-    inside = (points[:, 2] > 0) & (u >= 0) & (u < z.shape[1]) & (v >= 0) & (v < z.shape[0])
+    u, v, zp = project(points, K)
+    u, v = np.rint(u).astype(int), np.rint(v).astype(int)
+    inside = (zp > 0) & (u >= 0) & (u < z.shape[1]) & (v >= 0) & (v < z.shape[0])
     r = z[v[inside], u[inside]] - points[inside, 2]
     r = r[z[v[inside], u[inside]] > 0]
     return float(1.4826 * np.median(np.abs(r - np.median(r)))) if len(r) else np.inf
