@@ -357,7 +357,7 @@ def register_frames(capture, *, strict: bool = False, max_depth: float = 3.0,
     n = capture.n_frames
     K = np.asarray(capture.depth_K(), dtype=np.float64)
     clouds = [cloud_pyramid(depth_cloud(capture.depth_array(i), K, max_depth, capture.color_array(i),
-                                        _region(capture, i), ICP_VOXELS[-1])) for i in range(n)]
+                                        frame_region(capture, i), ICP_VOXELS[-1])) for i in range(n)]
     if len(clouds[0][-1].points) < MIN_POINTS:
         raise OdometryError(f"the reference frame 0 has only {len(clouds[0][-1].points)} valid depth points below "
                             f"{max_depth} m (at least {MIN_POINTS} are needed): {FIXES['points']}, so that another "
@@ -385,7 +385,7 @@ def register_frames(capture, *, strict: bool = False, max_depth: float = 3.0,
     return result
 
 
-def _region(capture, i: int) -> np.ndarray | None:
+def frame_region(capture, i: int) -> np.ndarray | None:
     """Frame i's :func:`registration_region`, or None when its mask is missing or empty (an empty
     reference mask is reported by the solver, which names it)."""
     mask = capture.mask_array(i)

@@ -19,7 +19,7 @@ import numpy as np
 from ..model.camera import project, transform
 from ..model.resampling import masked_gaussian, resample_valid
 from ..model.se3 import rotation_angle_deg
-from ..odometry import ICP_VOXELS, _region, cloud_pyramid, depth_cloud, register
+from ..odometry import ICP_VOXELS, cloud_pyramid, depth_cloud, frame_region, register
 from .types import Capture
 
 #: Coarse grid of the check: about this many pixels across.
@@ -128,7 +128,8 @@ def static_frame_motion(capture: Capture, frames) -> list[tuple[float, float, fl
     mm, deg: T's translation and rotation; failure: why ICP failed (None when it did not).
     """
     K = np.asarray(capture.depth_K(), dtype=np.float64)
-    clouds = {i: cloud_pyramid(depth_cloud(capture.depth_array(i), K, region=_region(capture, i), voxel=ICP_VOXELS[-1]))
+    clouds = {i: cloud_pyramid(depth_cloud(capture.depth_array(i), K, region=frame_region(capture, i),
+                                           voxel=ICP_VOXELS[-1]))
               for i in [0, *frames]}
     points = np.asarray(clouds[0][-1].points)
     out = []
