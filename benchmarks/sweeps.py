@@ -12,10 +12,15 @@ for ``time.process_time``; the hooks' own CPU time (the accuracy of every sweep)
 "If stopped here" applies what the level's end applies (the sensor tie,
 :func:`o3d_mvps.solver.weighting.tie_low_frequencies`), upsamples z bilinearly to the colour grid
 and scores it with :func:`o3d_mvps.metrics.evaluate`; on the finest level that is the result.
+On a coarser level ``mae_smooth_deg`` / ``rmse_smooth_mm`` score it once more without its grid
+modes (:func:`without_grid_modes`): the depth that alternates from pixel to pixel, which the
+level's central-difference normals do not see and the bilinear upsampling turns into ripples
+the colour grid's normals do see (docs/performance.md, "Why level 1's error grows at 2 MP").
 
 OUT: {"total_cpu", "accuracy", "n_sweeps", "levels": [{"level", "size", "sweeps", "cpu", "energy",
 "steps" (CPU s per driver stage, the hooks' time taken out), "mae_deg", "rmse_mm"}], "sweeps": [{"level", "cpu", "energy",
-"dz_mm" (RMS depth update), "dn_deg" (mean normal update), "mae_deg", "rmse_mm"}]}.
+"dz_mm" (RMS depth update), "dn_deg" (mean normal update), "mae_deg", "rmse_mm" and, on coarser
+levels, "mae_smooth_deg", "rmse_smooth_mm"}]}.
 :func:`plot_traces` draws such results (benchmarks/results/sweeps.png).
 """
 
@@ -29,6 +34,7 @@ from dataclasses import replace
 
 import cv2
 import numpy as np
+from scipy import ndimage
 
 from o3d_mvps.capture.reading import read_capture
 from o3d_mvps.metrics import evaluate
@@ -50,6 +56,26 @@ def _floats(text):
     return None if not text else [float(x) for x in text.split(",")]
 
 
+#: :func:`without_grid_modes`' 5-tap filter ``1 - [1, -4, 6, -4, 1] / 16``: frequency response
+#: ``1 - sin^4(omega / 2)``, 0 at the grid's Nyquist frequency (a period of 2 pixels), 0.75 at a
+#: period of 4 pixels, 0.98 at 8
+GRID_MODE_TAPS = np.array([-1.0, 4.0, 10.0, 4.0, -1.0]) / 16.0
+
+
+def without_grid_modes(z: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """z (H, W) metres filtered by :data:`GRID_MODE_TAPS` along rows, then columns, at the masked
+    pixels whose five pixels in that direction are all masked (elsewhere, and outside ``mask``
+    (H, W) bool, unchanged): without the depth that alternates from pixel to pixel
+    (z[p+1] - z[p-1] = 0, unseen by central differences). Next to a depth step it rings by a
+    16th of the step, which raises the depth RMSE there; the normals' error is what it is for."""
+    out = np.asarray(z, dtype=np.float64)
+    inside = np.asarray(mask, dtype=bool)
+    for axis in (1, 0):
+        full = inside & (ndimage.correlate1d(inside.astype(np.float64), np.ones(5), axis=axis, mode="constant") > 4.5)
+        out = np.where(full, ndimage.correlate1d(out, GRID_MODE_TAPS, axis=axis, mode="nearest"), out)
+    return out
+
+
 def run(problem_file, capture, caps=None, tols=None, trace=True) -> dict:
     """Solve the saved problem once, observed; returns the OUT dictionary (module docstring)."""
     gt = read_capture(capture).groundtruth
@@ -66,10 +92,18 @@ def run(problem_file, capture, caps=None, tols=None, trace=True) -> dict:
         zl = g.scatter(to_host(z))
         if ctx["sigma"] is not None:
             zl = tie_low_frequencies(zl, g.mask, ctx["z0"], ctx["sigma"])
-        zl = fill_nearest_valid(zl, g.mask)
         H, W = ctx["ref"].shape
-        up = zl if zl.shape == (H, W) else cv2.resize(zl, (W, H), interpolation=cv2.INTER_LINEAR)
-        return evaluate(Refinement.from_arrays(np.where(ctx["ref"], up, 0.0), ctx["ref"], ctx["K"]), gt)
+
+        def score(depth):
+            depth = fill_nearest_valid(depth, g.mask)
+            up = depth if depth.shape == (H, W) else cv2.resize(depth, (W, H), interpolation=cv2.INTER_LINEAR)
+            return evaluate(Refinement.from_arrays(np.where(ctx["ref"], up, 0.0), ctx["ref"], ctx["K"]), gt)
+
+        out = score(zl)
+        if zl.shape != (H, W):
+            smooth = score(without_grid_modes(zl, g.mask))
+            out.update(mae_smooth_deg=smooth["mae_deg"], rmse_smooth_mm=smooth["rmse_mm"])
+        return out
 
     def update(problem, z1, z0):
         g, K = problem.level.grid, problem.level.K

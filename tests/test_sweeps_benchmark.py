@@ -1,5 +1,6 @@
 """benchmarks.sweeps: the per-sweep trace of a solve (issue #31, stopping rules)."""
 
+import numpy as np
 import pytest
 
 from benchmarks import sweeps
@@ -31,8 +32,25 @@ def test_trace_ends_at_the_solve_result_and_caps_apply(saved):
     assert finest[-1]["rmse_mm"] == pytest.approx(traced["accuracy"]["rmse_mm"], rel=1e-6)
     assert len(traced["sweeps"]) == traced["n_sweeps"] == sum(r["sweeps"] for r in traced["levels"])
     assert all(r["cpu"] > 0 and r["dz_mm"] >= 0 for r in traced["sweeps"])
+    # coarser levels are scored a second time without their grid modes, the finest level once
+    assert all(("mae_smooth_deg" in r) == (r["level"] > 0) for r in traced["sweeps"])
     # the stage times are the solver's own: the hooks' accuracy evaluations are not in them
     assert all(0 < sum(r["steps"].values()) <= r["cpu"] * 1.05 for r in traced["levels"])
     capped = sweeps.run(problem, capture, caps=[2] * 5, trace=False)
     assert [r["sweeps"] for r in capped["levels"]] == [min(2, r["sweeps"]) for r in traced["levels"]]
     assert driver._sweeps.__module__ == driver.__name__  # the hooks were taken out again
+
+
+def test_grid_modes_are_taken_out_and_a_smooth_surface_kept():
+    """without_grid_modes: the depth that alternates pixel to pixel (unseen by central
+    differences) goes, to 1 % of it; a bowl and the pixels outside the mask stay."""
+    v, u = np.mgrid[0:60, 0:80].astype(float)
+    bowl = 0.5 + 1e-5 * ((u - 40) ** 2 + (v - 30) ** 2)  # second differences 2e-5 m, 0.5 m away
+    mask = np.ones(bowl.shape, bool)
+    mask[:, :3] = False
+    mode = 5e-6 * ((-1.0) ** u + (-1.0) ** v)  # 5 micrometres along rows and along columns
+    inner = (slice(2, -2), slice(5, -2))
+    out = sweeps.without_grid_modes(bowl + mode, mask)
+    assert np.abs(out - bowl)[inner].max() < 0.01 * 5e-6
+    assert np.abs(sweeps.without_grid_modes(bowl, mask) - bowl)[inner].max() < 1e-12
+    assert np.array_equal(out[~mask], (bowl + mode)[~mask])
