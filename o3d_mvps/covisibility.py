@@ -288,16 +288,21 @@ def reference_depth_fill(depths: np.ndarray, poses: np.ndarray, K: np.ndarray, f
     return np.where(flagged, values, 0.0), from_frames
 
 
-def flying_pixels_check(flagged: np.ndarray, from_frames: np.ndarray, valid: int, noise_scale: float) -> dict:
+def flying_pixels_check(flagged: np.ndarray, from_frames: np.ndarray | None, valid: int, noise_scale: float) -> dict:
     """The run report's row ``{"name", "status", "detail"}`` (``info["inputs"]["checks"]``) of the
     reference's flying pixels: flagged (h, w) bool, from_frames (h, w) bool
-    (:func:`reference_depth_fill`), valid: the reference's valid depth pixels, noise_scale: s (1/m)
-    of :func:`depth_noise_scale`. A warning when more than :data:`FLYING_WARNING_FRACTION` were flagged."""
-    count, frames = int(flagged.sum()), int(from_frames.sum())
+    (:func:`reference_depth_fill`; None: flagged pixels kept, ``drop_depth_outliers`` off), valid:
+    the reference's valid depth pixels, noise_scale: s (1/m) of :func:`depth_noise_scale`. A
+    warning when more than :data:`FLYING_WARNING_FRACTION` were flagged."""
+    count = int(flagged.sum())
     share = count / max(valid, 1)
     detail = (f"{count} of the reference's {valid} depth pixels ({share:.2%}) contradicted by the other frames' depth "
-              f"(flying pixels; noise {1000 * noise_scale:.2f} mm at 1 m): {frames} filled from the frames that agree "
-              f"there, {count - frames} from their kept neighbours")
+              f"(flying pixels; noise {1000 * noise_scale:.2f} mm at 1 m): ")
+    if from_frames is None:
+        detail += "kept (RefineOptions(drop_depth_outliers=True) replaces them)" if count else "none"
+    else:
+        frames = int(from_frames.sum())
+        detail += f"{frames} filled from the frames that agree there, {count - frames} from their kept neighbours"
     if share > FLYING_WARNING_FRACTION:
         return {"name": "flying pixels", "status": "warning",
                 "detail": detail + "; so many suggest poorly registered frames or a depth filter that is off"}
