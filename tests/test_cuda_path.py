@@ -99,3 +99,47 @@ def test_led_offset_update_on_the_cuda_path_matches_the_cpu_path():
     energy_rtol, _, _, poses_atol, _ = TOLERANCES
     np.testing.assert_allclose(cuda.info["light_model"]["offset_m"], moved, atol=poses_atol)
     np.testing.assert_allclose([r["energy"] for r in cuda.energy], [r["energy"] for r in cpu.energy], rtol=energy_rtol)
+
+
+@pytest.mark.parametrize("envelope", [True, False])
+def test_extrapolation_trials_and_snapshot_on_the_cuda_path_match_the_cpu_path(envelope):
+    """The driver's device branches: the snapshot's z and albedo in one launch (views of one
+    array), every trial of the extrapolation in one launch and one copy (driver._device_trials),
+    equal to the CPU's per-factor clip of x + f (x - x0) and its all(z > 0)."""
+    from types import SimpleNamespace
+
+    from o3d_mvps.solver.driver import _device_trials, _extrapolated, _snapshot
+    from o3d_mvps.solver.problem import Estimate
+
+    rng = np.random.default_rng(4)
+    N, factors = 500, (1.0, 2.0, 4.0)
+    z0 = 0.5 + 0.1 * rng.random(N)
+    z = z0 + 0.02 * (rng.random(N) - 0.5)
+    z[9] = z0[9] - 0.2  # without the envelope: positive at factor 1, not at 2 (nor 4)
+    albedo0, albedo = rng.random((N, 3)), rng.random((N, 3))
+    bounds = (z0 - 0.05, z0 + 0.05) if envelope else (None, None)
+    cpu_prior = SimpleNamespace(lower=bounds[0], upper=bounds[1])
+    cpu_prior.clip = lambda x: x if bounds[0] is None else np.clip(x, *bounds)
+    lights, poses = rng.random((2, 2)), np.stack([np.eye(4)] * 2)
+    assert _device_trials(SimpleNamespace(level=SimpleNamespace(prior=cpu_prior)), Estimate(z, albedo, lights, poses),
+                          Estimate(z0, albedo0, lights, poses), factors) is None  # the CPU: its own formulas
+    with cupy_emulation.installed():
+        d = cupy_emulation.asarray
+        prior = SimpleNamespace(lower=None if bounds[0] is None else d(bounds[0]),
+                                upper=None if bounds[1] is None else d(bounds[1]))
+        est, start = Estimate(d(z), d(albedo), lights, poses), Estimate(d(z0), d(albedo0), lights, poses)
+        counted = cupy_emulation.operations.copy()
+        snap = _snapshot(start)
+        trials = _device_trials(SimpleNamespace(level=SimpleNamespace(prior=prior)), est, snap, factors)
+        counted = cupy_emulation.operations - counted  # the simulator's kernel launch is not counted here
+        snap_z, snap_albedo = cupy_emulation.asnumpy(snap.z), cupy_emulation.asnumpy(snap.albedo)
+        got = [(cupy_emulation.asnumpy(trials[0][j]), cupy_emulation.asnumpy(trials[1][j])) for j in range(3)]
+    assert dict(counted) == {"function": 1, "to_host": 1}  # the snapshot's one copy kernel, the counts' one read
+    np.testing.assert_array_equal(snap_z, z0)
+    np.testing.assert_array_equal(snap_albedo, albedo0)
+    for j, factor in enumerate(factors):
+        expected = cpu_prior.clip(_extrapolated(z, z0, factor))
+        assert trials[2][j] == np.all(expected > 0)
+        np.testing.assert_allclose(got[j][0], expected, rtol=1e-15)
+        np.testing.assert_allclose(got[j][1], _extrapolated(albedo, albedo0, factor), rtol=1e-15)
+    assert trials[2].tolist() == ([True, True, True] if envelope else [True, False, False])
