@@ -948,3 +948,23 @@ def test_extrapolation_trials_match_cpu_and_the_driver_formulas(envelope):
     with pytest.raises(ValueError, match="5 factors"):
         cuda_kernels.extrapolation_trials(z, z0, albedo, albedo0, (1.0,) * 5, lower, upper, np.empty((5, N)),
                                           np.empty((5, N, 3)), np.empty((5, blocks)))
+
+
+@pytest.mark.parametrize("envelope", [True, False])
+def test_depth_step_matches_cpu_and_the_line_search_formula(envelope):
+    """clip(z + t dz) with the depths not > 0 counted (a NaN too), several blocks on the GPU."""
+    N, t = 5000, 0.5
+    z = 0.5 + 0.1 * RNG.random(N)
+    dz = 0.02 * (RNG.random(N) - 0.5)
+    dz[11] = -2.0  # 0.5..0.6 - 1.0 < 0 without an envelope
+    dz[13] = np.nan
+    lower, upper = (z - 0.005, z + 0.005) if envelope else (np.empty(0), np.empty(0))
+    blocks = kernels.extrapolation_blocks(N)
+    assert blocks == 3
+    cpu, gpu = run_both("depth_step", z, dz, t, lower, upper, np.full(N, np.nan), np.full(blocks, np.nan))
+    x = z + t * dz
+    expected = np.clip(x, lower, upper) if envelope else x
+    np.testing.assert_array_equal(cpu[-2], expected)
+    np.testing.assert_array_equal(np.isnan(gpu[-2]), np.arange(N) == 13)
+    assert_close(np.delete(gpu[-2], 13), np.delete(expected, 13))
+    assert cpu[-1].sum() == gpu[-1].sum() == (1 if envelope else 2)

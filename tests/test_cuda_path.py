@@ -143,3 +143,33 @@ def test_extrapolation_trials_and_snapshot_on_the_cuda_path_match_the_cpu_path(e
         np.testing.assert_allclose(got[j][0], expected, rtol=1e-15)
         np.testing.assert_allclose(got[j][1], _extrapolated(albedo, albedo0, factor), rtol=1e-15)
     assert trials[2].tolist() == ([True, True, True] if envelope else [True, False, False])
+
+
+def test_stepped_depth_on_the_cuda_path_matches_the_cpu_path():
+    """The line searches' trial depth (depth.stepped_depth): on the device one read, the CPU's
+    clip(z + t dz) and None where a depth is not > 0."""
+    from types import SimpleNamespace
+
+    from o3d_mvps.solver.depth import stepped_depth
+
+    rng = np.random.default_rng(5)
+    N = 400
+    z, dz = 0.5 + 0.1 * rng.random(N), 0.02 * (rng.random(N) - 0.5)
+    dz[3] = -1.0  # negative at t = 1, positive at t = 0.25
+    lower, upper = z - 0.7, z + 0.001  # the upper bound clips some steps up
+    cpu_prior = SimpleNamespace(lower=lower, upper=upper, clip=lambda x: np.clip(x, lower, upper))
+    with cupy_emulation.installed():
+        d = cupy_emulation.asarray
+        prior = SimpleNamespace(lower=d(lower), upper=d(upper))
+        z_d, dz_d = d(z), d(dz)
+        counted = cupy_emulation.operations.copy()
+        got = [stepped_depth(prior, z_d, t, dz_d) for t in (1.0, 0.25)]
+        counted = cupy_emulation.operations - counted
+        got = [None if g is None else cupy_emulation.asnumpy(g) for g in got]
+        unclipped = SimpleNamespace(lower=None, upper=None)
+        free = cupy_emulation.asnumpy(stepped_depth(unclipped, d(z), 0.25, d(dz)))
+    assert dict(counted) == {"to_host": 2}  # each trial: one read (the simulator's launch not counted)
+    assert stepped_depth(cpu_prior, z, 1.0, dz) is None and got[0] is None
+    np.testing.assert_allclose(got[1], stepped_depth(cpu_prior, z, 0.25, dz), rtol=1e-15)
+    assert np.any(got[1] < z + 0.25 * dz)  # the clip was applied
+    np.testing.assert_allclose(free, z + 0.25 * dz, rtol=1e-15)

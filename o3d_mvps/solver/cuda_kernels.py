@@ -1168,3 +1168,28 @@ def extrapolation_trials(z, z0, albedo, albedo0, factors, lower, upper, z_out, a
     _extrapolation_trials[(bad.shape[1], F), THREADS_PER_BLOCK](z, z0, albedo, albedo0,
                                                                tuple(float(f) for f in factors), lower, upper,
                                                                z_out, albedo_out, bad)
+
+
+__all__ += ["depth_step"]
+
+
+@cuda.jit(cache=True)
+def _depth_step(z, dz, t, lower, upper, out, bad):  # pragma: no cover - device
+    """Block b: a strided share of the pixels, then its count of depths not > 0 into bad[b]."""
+    share = cuda.shared.array(THREADS_PER_BLOCK, numba.float64)
+    tid = cuda.threadIdx.x
+    count = 0.0
+    for p in range(cuda.blockIdx.x * THREADS_PER_BLOCK + tid, z.shape[0], cuda.gridDim.x * THREADS_PER_BLOCK):
+        x = _clipped_depth(z[p] + t * dz[p], lower, upper, p)
+        out[p] = x
+        if not x > 0.0:
+            count += 1.0
+    _block_tree_sum(share, tid, count)
+    if tid == 0:
+        bad[cuda.blockIdx.x] = share[0]
+
+
+def depth_step(z, dz, t, lower, upper, out, bad) -> None:
+    """:func:`.kernels.depth_step` on the GPU in one launch (was two or three array operations, a
+    clip and a reduction): ``bad.size`` blocks, each thread a strided share of the pixels."""
+    _depth_step[bad.shape[0], THREADS_PER_BLOCK](z, dz, float(t), lower, upper, out, bad)

@@ -30,7 +30,7 @@ from ..model.arrays import array_module, contiguous, fused, like
 from ..model.parallel import current_kernel_threads, kernel_threads, set_kernel_threads
 from ..model.resampling import fill_nearest_valid, repeat_pixels, resize
 from ..model.robust import robust_scale
-from .depth import update_depth
+from .depth import envelope_arrays, update_depth
 from .device import CPU, ArrayDevice, array_device, compile_notice, kernels_for, on_gpu, to_host
 from .joint import update_pose_depth
 from .kernels import MAX_EXTRAPOLATION_FACTORS, extrapolation_blocks
@@ -404,11 +404,10 @@ def _device_trials(problem: LevelProblem, est: Estimate, before: Estimate, facto
         return None
     xp, prior, N, F = array_module(est.z), problem.level.prior, est.z.size, len(factors)
     z, albedo, bad = xp.empty((F, N)), xp.empty((F, N, 3)), xp.empty((F, extrapolation_blocks(N)))
-    lower, upper = (xp.empty(0), xp.empty(0)) if prior.lower is None else (contiguous(prior.lower, np.float64),
-                                                                          contiguous(prior.upper, np.float64))
     kernels_for(est.z).extrapolation_trials(*(contiguous(a, np.float64) for a in (est.z, before.z, est.albedo,
                                                                                  before.albedo)),
-                                            tuple(float(f) for f in factors), lower, upper, z, albedo, bad)
+                                            tuple(float(f) for f in factors), *envelope_arrays(prior, xp), z, albedo,
+                                            bad)
     return z, albedo, to_host(bad).sum(axis=1) == 0
 
 

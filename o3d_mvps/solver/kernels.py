@@ -2053,3 +2053,21 @@ def extrapolation_trials(z, z0, albedo, albedo0, factors, lower, upper, z_out, a
         for b in range(bad.shape[1]):
             bad[f, b] = 0.0
         bad[f, 0] = count
+
+
+@numba.njit(parallel=True, cache=True)
+def depth_step(z, dz, t, lower, upper, out, bad):  # pragma: no cover - compiled
+    """A line search's trial depth: out (N,) = z + t dz of z, dz (N,) metres, clipped into
+    [lower, upper] (N,) each (no clip where they are empty (0,)); bad (B,) shares of the count
+    of out's entries not > 0 (NaN counted), their sum the count (B :func:`extrapolation_blocks`,
+    the GPU's blocks; here all in entry 0)."""
+    N = z.shape[0]
+    count = 0
+    for p in numba.prange(N):
+        x = clipped_depth(z[p] + t * dz[p], lower, upper, p)
+        out[p] = x
+        if not x > 0.0:
+            count += 1
+    for b in range(bad.shape[0]):
+        bad[b] = 0.0
+    bad[0] = count
