@@ -173,3 +173,39 @@ def test_stepped_depth_on_the_cuda_path_matches_the_cpu_path():
     np.testing.assert_allclose(got[1], stepped_depth(cpu_prior, z, 0.25, dz), rtol=1e-15)
     assert np.any(got[1] < z + 0.25 * dz)  # the clip was applied
     np.testing.assert_allclose(free, z + 0.25 * dz, rtol=1e-15)
+
+
+def test_albedo_projection_scalings_on_the_cuda_path_match_the_cpu_path():
+    """normal_equations._AlbedoProjection on the device: 1 / d, 1 / sqrt(d) and s^T W r / sqrt(d)
+    from one fused launch (twist_scalings and downdate_scaled read them), the CPU's values; a
+    pixel without weight (d = 0) gets 0."""
+    from o3d_mvps.solver.normal_equations import _AlbedoProjection
+
+    rng = np.random.default_rng(6)
+    n, B, m = 3, 40, 2
+    residual = (rng.random((n, B, 3)) - 0.5).astype(np.float32)
+    usable = rng.random((n, B)) > 0.2
+    usable[:, 7] = False  # d = 0 there
+    shading = rng.random((n, B)).astype(np.float32)
+    F = rng.random((m, 6, B, 3))
+    cpu = _AlbedoProjection(residual, usable, shading, 0.1)
+    cpu_scaled, cpu_root = cpu.twist_scalings()
+    cpu_down, cpu_rhs = np.zeros((6 * m, 6 * m)), np.zeros(6 * m)
+    cpu.downdate_scaled(F * cpu_root, cpu_down, cpu_rhs, cpu_root)
+    with cupy_emulation.installed():
+        d = cupy_emulation.asarray
+        counted = cupy_emulation.operations.copy()
+        gpu = _AlbedoProjection(d(residual), d(usable), d(shading), 0.1)
+        counted = cupy_emulation.operations - counted
+        scaled, root = gpu.twist_scalings()
+        down, rhs = d(np.zeros((6 * m, 6 * m))), d(np.zeros(6 * m))
+        gpu.downdate_scaled(d(F) * root, down, rhs, root)
+        got = [cupy_emulation.asnumpy(a) for a in (gpu.inv_d, scaled, root, down, rhs)]
+        sWr = cupy_emulation.asnumpy(gpu.sWr)
+    np.testing.assert_array_equal(got[2], np.sqrt(got[0]))  # the fused kernel's own formulas, exactly
+    np.testing.assert_array_equal(got[4], (F * got[2]).reshape(6 * m, -1) @ (sWr * got[2]).reshape(-1))
+    assert counted["fused"] == 1 and counted["elementwise"] == 0  # the scalings in one launch
+    assert cpu_root[7].tolist() == [0.0, 0.0, 0.0] == got[2][7].tolist()
+    # the CPU's: to the float32 residual sums' rounding (the simulated kernel sums in another order)
+    for actual, expected in zip(got, (cpu.inv_d, cpu_scaled, cpu_root, cpu_down, cpu_rhs)):
+        np.testing.assert_allclose(actual, expected, rtol=1e-5, atol=1e-5 * np.abs(expected).max())

@@ -500,7 +500,12 @@ class _AlbedoProjection:
         B = residual.shape[1]
         d, self.sWr = xp.empty((B, 3)), xp.empty((B, 3))  # s^T W s, s^T W r
         kernels_for(residual).weighted_albedo_sums(residual, usable, residual, shading, 1.0 / lam, self.sWr, d)
-        self.inv_d = _safe_inverse(d)
+        # on a GPU 1 / sqrt(d) and s^T W r / sqrt(d) (twist_scalings, downdate_scaled) in the same launch
+        self._root = self._sWr_root = None
+        if xp is np:
+            self.inv_d = _safe_inverse(d)
+        else:
+            self.inv_d, self._root, self._sWr_root = _projection_scalings(d, self.sWr)
         self.e = xp.zeros((3, B, 3))  # e for the a, b, c rows
 
     def local(self) -> np.ndarray:
@@ -522,7 +527,7 @@ class _AlbedoProjection:
     def twist_scalings(self) -> tuple[np.ndarray, np.ndarray]:
         """(e / d (3, B, 3), 1 / sqrt(d) (B, 3)): what the twist rows lose per unit of F, and F's
         scaling (:meth:`downdate_twists`)."""
-        return self.e * self.inv_d, np.sqrt(self.inv_d)
+        return self.e * self.inv_d, np.sqrt(self.inv_d) if self._root is None else self._root
 
     def downdate_scaled(self, F: np.ndarray, downdate: np.ndarray, rhs_xi: np.ndarray, sqrt_inv_d: np.ndarray) -> None:
         """:meth:`downdate_twists`'s sums over F (m, 6, B, 3) once scaled by ``sqrt_inv_d`` (B, 3):
@@ -534,7 +539,8 @@ class _AlbedoProjection:
             rhs_xi += f @ (self.sWr * sqrt_inv_d).reshape(-1)
             downdate += _gram(f)
         else:
-            xp.matmul(f, (self.sWr * sqrt_inv_d).reshape(-1), out=rhs_xi)
+            scaled = self._sWr_root if sqrt_inv_d is self._root else self.sWr * sqrt_inv_d
+            xp.matmul(f, scaled.reshape(-1), out=rhs_xi)
             xp.matmul(f, f.T, out=downdate)
 
 
@@ -543,6 +549,15 @@ def _safe_inverse(d):
     """1 / d where d > 1e-12, else 0 (any shape)."""
     where = array_module(d).where
     return where(d > 1e-12, 1.0 / where(d > 1e-12, d, 1.0), 0.0)
+
+
+@fused
+def _projection_scalings(d, sWr):
+    """(:func:`_safe_inverse` of d, its square root, sWr times that) (B, 3) each: one kernel on a
+    GPU (gpu3: was three)."""
+    inv_d = _safe_inverse.__wrapped__(d)
+    root = array_module(d).sqrt(inv_d)
+    return inv_d, root, sWr * root
 
 
 @fused
