@@ -209,3 +209,31 @@ def test_albedo_projection_scalings_on_the_cuda_path_match_the_cpu_path():
     # the CPU's: to the float32 residual sums' rounding (the simulated kernel sums in another order)
     for actual, expected in zip(got, (cpu.inv_d, cpu_scaled, cpu_root, cpu_down, cpu_rhs)):
         np.testing.assert_allclose(actual, expected, rtol=1e-5, atol=1e-5 * np.abs(expected).max())
+
+
+def test_light_arrays_are_copied_once_per_light_state():
+    """lighting._light_arrays on the device: a light state copied once and its copy reused while
+    the values are the same (the kernels only read it), a changed state copied anew; at most
+    four kept."""
+    from o3d_mvps.solver import lighting
+
+    rng = np.random.default_rng(7)
+    lights, positions = rng.random((3, 2)), rng.random((3, 3))
+    with cupy_emulation.installed():
+        points = cupy_emulation.asarray(rng.random((10, 3)))
+        lighting._LIGHT_COPIES.clear()
+        counted = cupy_emulation.operations.copy()
+        first = lighting._light_arrays(lights, points, positions)
+        again = lighting._light_arrays(lights.copy(), points, positions.copy())
+        moved = lighting._light_arrays(lights, points, positions + 1e-9)
+        counted = cupy_emulation.operations - counted
+        values = [cupy_emulation.asnumpy(a) for a in (*first, *moved, *again)]
+        for k in range(lighting._LIGHT_COPIES.kept + 2):
+            lighting._light_arrays(lights + k, points, positions)
+        kept = len(lighting._LIGHT_COPIES.entries)
+    assert counted["to_device"] == 2  # the first state and the moved one; the repeat reused
+    np.testing.assert_array_equal(values[0], lights[:, 1])
+    np.testing.assert_array_equal(values[1], positions)
+    np.testing.assert_array_equal(values[3], positions + 1e-9)
+    np.testing.assert_array_equal(values[5], positions)
+    assert kept == lighting._LIGHT_COPIES.kept == 4
