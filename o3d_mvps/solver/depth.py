@@ -78,8 +78,8 @@ def stepped_depth(prior, z: np.ndarray, t: float, dz: np.ndarray) -> np.ndarray 
         return stepped if np.all(stepped > 0) else None
     xp = array_module(z)
     out, bad = xp.empty(z.shape[0]), xp.empty(extrapolation_blocks(z.shape[0]))
-    kernels_for(z).depth_step(contiguous(z, np.float64), contiguous(dz, np.float64), float(t), *envelope_arrays(prior, xp),
-                              out, bad)
+    kernels_for(z).depth_step(contiguous(z, np.float64), contiguous(dz, np.float64), float(t),
+                              *envelope_arrays(prior, xp), out, bad)
     return out if to_host(bad).sum() == 0 else None
 
 
