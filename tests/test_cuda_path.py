@@ -237,3 +237,29 @@ def test_light_arrays_are_copied_once_per_light_state():
     np.testing.assert_array_equal(values[3], positions + 1e-9)
     np.testing.assert_array_equal(values[5], positions)
     assert kept == lighting._LIGHT_COPIES.kept == 4
+
+
+def test_albedo_projection_downdated_sums_on_the_cuda_path_match_the_cpu_path():
+    """_AlbedoProjection.downdated_into (the joint assembly's per-pixel sums less the projection's
+    downdates, on a GPU in one fused kernel and a stack into the output): the host's
+    ``block_sums - local()`` from the same projection, exactly."""
+    from o3d_mvps.solver.normal_equations import _AlbedoProjection
+
+    rng = np.random.default_rng(8)
+    n, B = 3, 30
+    residual = (rng.random((n, B, 3)) - 0.5).astype(np.float32)
+    usable, shading = rng.random((n, B)) > 0.2, rng.random((n, B)).astype(np.float32)
+    block_sums, e = rng.random((9, B)), rng.random((3, B, 3))
+    with cupy_emulation.installed():
+        d = cupy_emulation.asarray
+        gpu = _AlbedoProjection(d(residual), d(usable), d(shading), 0.1)
+        gpu.e = d(e)
+        out, sums_d = d(np.full((9, B), np.nan)), d(block_sums)
+        counted = cupy_emulation.operations.copy()
+        gpu.downdated_into(sums_d, out)
+        counted = cupy_emulation.operations - counted
+        got = cupy_emulation.asnumpy(out)
+        expected = block_sums - cupy_emulation.asnumpy(gpu.local())
+    assert dict(counted) == {"fused": 1, "function": 1}
+    np.testing.assert_array_equal(got, expected)
+    assert np.abs(expected - block_sums).max() > 0.0  # the downdates are not zero

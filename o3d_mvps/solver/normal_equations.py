@@ -448,8 +448,8 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
     elif m:
         gram[:m].sum(axis=1, out=grams)
         rhs[:m].sum(axis=1, out=rhs_xi.reshape(m, 6))
-    if projection is not None and xp is not np:  # the downdate and the copy into sums in one launch
-        xp.subtract(block_sums, projection.local(), out=sums)
+    if projection is not None and xp is not np:  # the downdate and the copy into sums in two launches
+        projection.downdated_into(block_sums, sums)
     elif projection is not None:
         block_sums -= projection.local()
         sums[:] = block_sums
@@ -511,8 +511,18 @@ class _AlbedoProjection:
     def local(self) -> np.ndarray:
         """Downdates (9, B) of Saa, Sbb, Sgg, Sab, Sag, Sbg, Ba, Bb, Bg (one kernel and a stack on
         a GPU)."""
-        columns = [e[:, c] for e in self.e for c in range(3)] + [self.inv_d[:, c] for c in range(3)]
-        return array_module(self.e).stack(_projection_downdates(*columns, *(self.sWr[:, c] for c in range(3))))
+        return array_module(self.e).stack(_projection_downdates(*self._columns()))
+
+    def downdated_into(self, block_sums: np.ndarray, out: np.ndarray) -> None:
+        """out (9, B) = block_sums (9, B) - :meth:`local`, on a GPU in two launches (the
+        downdates and differences in one kernel, then a stack into out; gpu3: was three)."""
+        xp = array_module(self.e)
+        xp.stack(_downdated_sums(*(block_sums[k] for k in range(9)), *self._columns()), out=out)
+
+    def _columns(self) -> list:
+        """:func:`_projection_downdates`' arguments: the e columns, inverse d and s^T W r (B,) each."""
+        return ([e[:, c] for e in self.e for c in range(3)] + [self.inv_d[:, c] for c in range(3)]
+                + [self.sWr[:, c] for c in range(3)])
 
     def downdate_twists(self, F: np.ndarray, rows: np.ndarray, downdate: np.ndarray, rhs_xi: np.ndarray) -> None:
         """Project the block's twist parts: the coupling rows (3, m, 6, B) lose
@@ -558,6 +568,15 @@ def _projection_scalings(d, sWr):
     inv_d = _safe_inverse.__wrapped__(d)
     root = array_module(d).sqrt(inv_d)
     return inv_d, root, sWr * root
+
+
+@fused
+def _downdated_sums(Saa, Sbb, Sgg, Sab, Sag, Sbg, Ba, Bb, Bg, ea0, ea1, ea2, eb0, eb1, eb2, ec0, ec1, ec2, i0, i1, i2,
+                    s0, s1, s2):
+    """The per-pixel sums (B,) each less :func:`_projection_downdates` of the remaining arguments,
+    in the same order (one kernel on a GPU)."""
+    downdates = _projection_downdates.__wrapped__(ea0, ea1, ea2, eb0, eb1, eb2, ec0, ec1, ec2, i0, i1, i2, s0, s1, s2)
+    return tuple(s - d for s, d in zip((Saa, Sbb, Sgg, Sab, Sag, Sbg, Ba, Bb, Bg), downdates))
 
 
 @fused
