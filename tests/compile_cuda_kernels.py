@@ -97,6 +97,9 @@ SIGNATURES = {
                           *(types.float64, _array(1, types.int32), _array(1, types.int32), _F1) * 2, _F1, _F1),
     "_levenberg_damp": (_array(1, types.int32), _array(1, types.int32), _F1, types.float64, types.float64, _F1, _F1),
     "_offset_system": (_F3, _R3, _array(2, types.boolean), _F2, types.float64, types.int64, _F3, _F3),
+    # gpu3: the driver's extrapolation trials (the driver's three factors)
+    "_extrapolation_trials": (_F1, _F1, _F2, _F2, types.UniTuple(types.float64, 3), _F1, _F1, _F2, _F3, _F2),
+    "_depth_step": (_F1, _F1, types.float64, _F1, _F1, _F1, _F1),
 }
 
 

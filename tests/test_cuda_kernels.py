@@ -914,3 +914,57 @@ def test_levenberg_damp_matches_cpu_and_levenberg_damped():
     data, missing = damp(cuda_kernels, C)
     assert missing == 1.0
     np.testing.assert_array_equal(data[C.indptr[0]:C.indptr[1]], C.data[C.indptr[0]:C.indptr[1]])
+
+
+# --- gpu3: the driver's extrapolation trials in one launch ---------------------------------------
+
+
+@pytest.mark.parametrize("envelope", [True, False])
+def test_extrapolation_trials_match_cpu_and_the_driver_formulas(envelope):
+    """Every factor's trial at once, equal to the driver's per-factor formulas (clip of
+    x + f (x - x0)); the depths not > 0 counted per factor (a NaN too), the albedo unclipped."""
+    N, factors = 700, (1.0, 2.0, 4.0)
+    z0 = 0.5 + 0.1 * RNG.random(N)
+    z = z0 + 0.02 * (RNG.random(N) - 0.5)
+    z[5] = z0[5] - 0.3  # factor 2 leaves it at 0.5 - 0.6 < 0 without an envelope
+    z[7] = np.nan
+    albedo0, albedo = RNG.random((N, 3)), RNG.random((N, 3))
+    lower, upper = (z0 - 0.04, z0 + 0.04) if envelope else (np.empty(0), np.empty(0))
+    blocks = kernels.extrapolation_blocks(N)
+    assert blocks == cuda_kernels.extrapolation_blocks(N) == 1  # one block a factor here
+    cpu, gpu = run_both("extrapolation_trials", z, z0, albedo, albedo0, factors, lower, upper,
+                        np.full((3, N), np.nan), np.full((3, N, 3), np.nan), np.full((3, blocks), np.nan))
+    for j, factor in enumerate(factors):
+        x = z + factor * (z - z0)
+        expected = np.clip(x, lower, upper) if envelope else x
+        np.testing.assert_array_equal(cpu[-3][j], expected)  # NaN where z is NaN, as np.clip
+        np.testing.assert_array_equal(np.isnan(gpu[-3][j]), np.arange(N) == 7)
+        assert_close(np.delete(gpu[-3][j], 7), np.delete(expected, 7))
+        assert_close(gpu[-2][j], albedo + factor * (albedo - albedo0))
+        np.testing.assert_array_equal(cpu[-2][j], albedo + factor * (albedo - albedo0))
+        not_positive = np.sum(~(expected > 0))
+        assert cpu[-1][j].sum() == gpu[-1][j].sum() == not_positive
+    assert cpu[-1].sum(axis=1).tolist() == ([1, 1, 1] if envelope else [2, 2, 2])
+    with pytest.raises(ValueError, match="5 factors"):
+        cuda_kernels.extrapolation_trials(z, z0, albedo, albedo0, (1.0,) * 5, lower, upper, np.empty((5, N)),
+                                          np.empty((5, N, 3)), np.empty((5, blocks)))
+
+
+@pytest.mark.parametrize("envelope", [True, False])
+def test_depth_step_matches_cpu_and_the_line_search_formula(envelope):
+    """clip(z + t dz) with the depths not > 0 counted (a NaN too), several blocks on the GPU."""
+    N, t = 5000, 0.5
+    z = 0.5 + 0.1 * RNG.random(N)
+    dz = 0.02 * (RNG.random(N) - 0.5)
+    dz[11] = -2.0  # 0.5..0.6 - 1.0 < 0 without an envelope
+    dz[13] = np.nan
+    lower, upper = (z - 0.005, z + 0.005) if envelope else (np.empty(0), np.empty(0))
+    blocks = kernels.extrapolation_blocks(N)
+    assert blocks == 3
+    cpu, gpu = run_both("depth_step", z, dz, t, lower, upper, np.full(N, np.nan), np.full(blocks, np.nan))
+    x = z + t * dz
+    expected = np.clip(x, lower, upper) if envelope else x
+    np.testing.assert_array_equal(cpu[-2], expected)
+    np.testing.assert_array_equal(np.isnan(gpu[-2]), np.arange(N) == 13)
+    assert_close(np.delete(gpu[-2], 13), np.delete(expected, 13))
+    assert cpu[-1].sum() == gpu[-1].sum() == (1 if envelope else 2)

@@ -99,3 +99,167 @@ def test_led_offset_update_on_the_cuda_path_matches_the_cpu_path():
     energy_rtol, _, _, poses_atol, _ = TOLERANCES
     np.testing.assert_allclose(cuda.info["light_model"]["offset_m"], moved, atol=poses_atol)
     np.testing.assert_allclose([r["energy"] for r in cuda.energy], [r["energy"] for r in cpu.energy], rtol=energy_rtol)
+
+
+@pytest.mark.parametrize("envelope", [True, False])
+def test_extrapolation_trials_and_snapshot_on_the_cuda_path_match_the_cpu_path(envelope):
+    """The driver's device branches: the snapshot's z and albedo in one launch (views of one
+    array), every trial of the extrapolation in one launch and one copy (driver._device_trials),
+    equal to the CPU's per-factor clip of x + f (x - x0) and its all(z > 0)."""
+    from types import SimpleNamespace
+
+    from o3d_mvps.solver.driver import _device_trials, _extrapolated, _snapshot
+    from o3d_mvps.solver.problem import Estimate
+
+    rng = np.random.default_rng(4)
+    N, factors = 500, (1.0, 2.0, 4.0)
+    z0 = 0.5 + 0.1 * rng.random(N)
+    z = z0 + 0.02 * (rng.random(N) - 0.5)
+    z[9] = z0[9] - 0.2  # without the envelope: positive at factor 1, not at 2 (nor 4)
+    albedo0, albedo = rng.random((N, 3)), rng.random((N, 3))
+    bounds = (z0 - 0.05, z0 + 0.05) if envelope else (None, None)
+    cpu_prior = SimpleNamespace(lower=bounds[0], upper=bounds[1])
+    cpu_prior.clip = lambda x: x if bounds[0] is None else np.clip(x, *bounds)
+    lights, poses = rng.random((2, 2)), np.stack([np.eye(4)] * 2)
+    assert _device_trials(SimpleNamespace(level=SimpleNamespace(prior=cpu_prior)), Estimate(z, albedo, lights, poses),
+                          Estimate(z0, albedo0, lights, poses), factors) is None  # the CPU: its own formulas
+    with cupy_emulation.installed():
+        d = cupy_emulation.asarray
+        prior = SimpleNamespace(lower=None if bounds[0] is None else d(bounds[0]),
+                                upper=None if bounds[1] is None else d(bounds[1]))
+        est, start = Estimate(d(z), d(albedo), lights, poses), Estimate(d(z0), d(albedo0), lights, poses)
+        counted = cupy_emulation.operations.copy()
+        snap = _snapshot(start)
+        trials = _device_trials(SimpleNamespace(level=SimpleNamespace(prior=prior)), est, snap, factors)
+        counted = cupy_emulation.operations - counted  # the simulator's kernel launch is not counted here
+        snap_z, snap_albedo = cupy_emulation.asnumpy(snap.z), cupy_emulation.asnumpy(snap.albedo)
+        got = [(cupy_emulation.asnumpy(trials[0][j]), cupy_emulation.asnumpy(trials[1][j])) for j in range(3)]
+    assert dict(counted) == {"function": 1, "to_host": 1}  # the snapshot's one copy kernel, the counts' one read
+    np.testing.assert_array_equal(snap_z, z0)
+    np.testing.assert_array_equal(snap_albedo, albedo0)
+    for j, factor in enumerate(factors):
+        expected = cpu_prior.clip(_extrapolated(z, z0, factor))
+        assert trials[2][j] == np.all(expected > 0)
+        np.testing.assert_allclose(got[j][0], expected, rtol=1e-15)
+        np.testing.assert_allclose(got[j][1], _extrapolated(albedo, albedo0, factor), rtol=1e-15)
+    assert trials[2].tolist() == ([True, True, True] if envelope else [True, False, False])
+
+
+def test_stepped_depth_on_the_cuda_path_matches_the_cpu_path():
+    """The line searches' trial depth (depth.stepped_depth): on the device one read, the CPU's
+    clip(z + t dz) and None where a depth is not > 0."""
+    from types import SimpleNamespace
+
+    from o3d_mvps.solver.depth import stepped_depth
+
+    rng = np.random.default_rng(5)
+    N = 400
+    z, dz = 0.5 + 0.1 * rng.random(N), 0.02 * (rng.random(N) - 0.5)
+    dz[3] = -1.0  # negative at t = 1, positive at t = 0.25
+    lower, upper = z - 0.7, z + 0.001  # the upper bound clips some steps up
+    cpu_prior = SimpleNamespace(lower=lower, upper=upper, clip=lambda x: np.clip(x, lower, upper))
+    with cupy_emulation.installed():
+        d = cupy_emulation.asarray
+        prior = SimpleNamespace(lower=d(lower), upper=d(upper))
+        z_d, dz_d = d(z), d(dz)
+        counted = cupy_emulation.operations.copy()
+        got = [stepped_depth(prior, z_d, t, dz_d) for t in (1.0, 0.25)]
+        counted = cupy_emulation.operations - counted
+        got = [None if g is None else cupy_emulation.asnumpy(g) for g in got]
+        unclipped = SimpleNamespace(lower=None, upper=None)
+        free = cupy_emulation.asnumpy(stepped_depth(unclipped, d(z), 0.25, d(dz)))
+    assert dict(counted) == {"to_host": 2}  # each trial: one read (the simulator's launch not counted)
+    assert stepped_depth(cpu_prior, z, 1.0, dz) is None and got[0] is None
+    np.testing.assert_allclose(got[1], stepped_depth(cpu_prior, z, 0.25, dz), rtol=1e-15)
+    assert np.any(got[1] < z + 0.25 * dz)  # the clip was applied
+    np.testing.assert_allclose(free, z + 0.25 * dz, rtol=1e-15)
+
+
+def test_albedo_projection_scalings_on_the_cuda_path_match_the_cpu_path():
+    """normal_equations._AlbedoProjection on the device: 1 / d, 1 / sqrt(d) and s^T W r / sqrt(d)
+    from one fused launch (twist_scalings and downdate_scaled read them), the CPU's values; a
+    pixel without weight (d = 0) gets 0."""
+    from o3d_mvps.solver.normal_equations import _AlbedoProjection
+
+    rng = np.random.default_rng(6)
+    n, B, m = 3, 40, 2
+    residual = (rng.random((n, B, 3)) - 0.5).astype(np.float32)
+    usable = rng.random((n, B)) > 0.2
+    usable[:, 7] = False  # d = 0 there
+    shading = rng.random((n, B)).astype(np.float32)
+    F = rng.random((m, 6, B, 3))
+    cpu = _AlbedoProjection(residual, usable, shading, 0.1)
+    cpu_scaled, cpu_root = cpu.twist_scalings()
+    cpu_down, cpu_rhs = np.zeros((6 * m, 6 * m)), np.zeros(6 * m)
+    cpu.downdate_scaled(F * cpu_root, cpu_down, cpu_rhs, cpu_root)
+    with cupy_emulation.installed():
+        d = cupy_emulation.asarray
+        counted = cupy_emulation.operations.copy()
+        gpu = _AlbedoProjection(d(residual), d(usable), d(shading), 0.1)
+        counted = cupy_emulation.operations - counted
+        scaled, root = gpu.twist_scalings()
+        down, rhs = d(np.zeros((6 * m, 6 * m))), d(np.zeros(6 * m))
+        gpu.downdate_scaled(d(F) * root, down, rhs, root)
+        got = [cupy_emulation.asnumpy(a) for a in (gpu.inv_d, scaled, root, down, rhs)]
+        sWr = cupy_emulation.asnumpy(gpu.sWr)
+    np.testing.assert_array_equal(got[2], np.sqrt(got[0]))  # the fused kernel's own formulas, exactly
+    np.testing.assert_array_equal(got[4], (F * got[2]).reshape(6 * m, -1) @ (sWr * got[2]).reshape(-1))
+    assert counted["fused"] == 1 and counted["elementwise"] == 0  # the scalings in one launch
+    assert cpu_root[7].tolist() == [0.0, 0.0, 0.0] == got[2][7].tolist()
+    # the CPU's: to the float32 residual sums' rounding (the simulated kernel sums in another order)
+    for actual, expected in zip(got, (cpu.inv_d, cpu_scaled, cpu_root, cpu_down, cpu_rhs)):
+        np.testing.assert_allclose(actual, expected, rtol=1e-5, atol=1e-5 * np.abs(expected).max())
+
+
+def test_light_arrays_are_copied_once_per_light_state():
+    """lighting._light_arrays on the device: a light state copied once and its copy reused while
+    the values are the same (the kernels only read it), a changed state copied anew; at most
+    four kept."""
+    from o3d_mvps.solver import lighting
+
+    rng = np.random.default_rng(7)
+    lights, positions = rng.random((3, 2)), rng.random((3, 3))
+    with cupy_emulation.installed():
+        points = cupy_emulation.asarray(rng.random((10, 3)))
+        lighting._LIGHT_COPIES.clear()
+        counted = cupy_emulation.operations.copy()
+        first = lighting._light_arrays(lights, points, positions)
+        again = lighting._light_arrays(lights.copy(), points, positions.copy())
+        moved = lighting._light_arrays(lights, points, positions + 1e-9)
+        counted = cupy_emulation.operations - counted
+        values = [cupy_emulation.asnumpy(a) for a in (*first, *moved, *again)]
+        for k in range(lighting._LIGHT_COPIES.kept + 2):
+            lighting._light_arrays(lights + k, points, positions)
+        kept = len(lighting._LIGHT_COPIES.entries)
+    assert counted["to_device"] == 2  # the first state and the moved one; the repeat reused
+    np.testing.assert_array_equal(values[0], lights[:, 1])
+    np.testing.assert_array_equal(values[1], positions)
+    np.testing.assert_array_equal(values[3], positions + 1e-9)
+    np.testing.assert_array_equal(values[5], positions)
+    assert kept == lighting._LIGHT_COPIES.kept == 4
+
+
+def test_albedo_projection_downdated_sums_on_the_cuda_path_match_the_cpu_path():
+    """_AlbedoProjection.downdated_into (the joint assembly's per-pixel sums less the projection's
+    downdates, on a GPU in one fused kernel and a stack into the output): the host's
+    ``block_sums - local()`` from the same projection, exactly."""
+    from o3d_mvps.solver.normal_equations import _AlbedoProjection
+
+    rng = np.random.default_rng(8)
+    n, B = 3, 30
+    residual = (rng.random((n, B, 3)) - 0.5).astype(np.float32)
+    usable, shading = rng.random((n, B)) > 0.2, rng.random((n, B)).astype(np.float32)
+    block_sums, e = rng.random((9, B)), rng.random((3, B, 3))
+    with cupy_emulation.installed():
+        d = cupy_emulation.asarray
+        gpu = _AlbedoProjection(d(residual), d(usable), d(shading), 0.1)
+        gpu.e = d(e)
+        out, sums_d = d(np.full((9, B), np.nan)), d(block_sums)
+        counted = cupy_emulation.operations.copy()
+        gpu.downdated_into(sums_d, out)
+        counted = cupy_emulation.operations - counted
+        got = cupy_emulation.asnumpy(out)
+        expected = block_sums - cupy_emulation.asnumpy(gpu.local())
+    assert dict(counted) == {"fused": 1, "function": 1}
+    np.testing.assert_array_equal(got, expected)
+    assert np.abs(expected - block_sums).max() > 0.0  # the downdates are not zero

@@ -1120,3 +1120,74 @@ def levenberg_damp(indptr, indices, data, damping, tiny, partial, missing) -> No
     args = (indptr, indices, data, float(damping), float(tiny), partial, missing)
     blocks = min(_cooperative_blocks(_levenberg_damp, args, _blocks(indptr.shape[0] - 1)), partial.shape[0])
     _levenberg_damp[blocks, THREADS_PER_BLOCK](*args)
+
+
+# ============================================================================================
+# gpu3 (issue 33 item 4): the driver's extrapolation trials in one launch
+# (CPU twins in :mod:`.kernels`' section of the same name)
+# ============================================================================================
+
+__all__ += ["extrapolation_trials"]
+
+extrapolation_blocks = kernels.extrapolation_blocks
+_clipped_depth = _device(kernels.clipped_depth)
+
+
+@cuda.jit(cache=True)
+def _extrapolation_trials(z, z0, albedo, albedo0, factors, lower, upper, z_out, albedo_out,
+                          bad):  # pragma: no cover - device
+    """Block (b, f): a strided share of factor f's pixels, then the block's count of depths not
+    > 0 into bad[f, b]."""
+    share = cuda.shared.array(THREADS_PER_BLOCK, numba.float64)
+    t = cuda.threadIdx.x
+    f = cuda.blockIdx.y
+    s = factors[f]
+    count = 0.0
+    for p in range(cuda.blockIdx.x * THREADS_PER_BLOCK + t, z.shape[0], cuda.gridDim.x * THREADS_PER_BLOCK):
+        x = _clipped_depth(z[p] + s * (z[p] - z0[p]), lower, upper, p)
+        z_out[f, p] = x
+        if not x > 0.0:
+            count += 1.0
+        for c in range(3):
+            albedo_out[f, p, c] = albedo[p, c] + s * (albedo[p, c] - albedo0[p, c])
+    _block_tree_sum(share, t, count)
+    if t == 0:
+        bad[f, cuda.blockIdx.x] = share[0]
+
+
+def extrapolation_trials(z, z0, albedo, albedo0, factors, lower, upper, z_out, albedo_out, bad) -> None:
+    """:func:`.kernels.extrapolation_trials` on the GPU in one launch (was three array operations,
+    a clip, a comparison, a reduction and a read per factor): blocks x factors, each thread a
+    strided share of the pixels; factors a tuple of floats (kernel arguments, no copy)."""
+    F = z_out.shape[0]
+    if not F <= len(factors) <= kernels.MAX_EXTRAPOLATION_FACTORS or bad.shape[0] != F:
+        raise ValueError(f"extrapolation_trials: {len(factors)} factors (at most "
+                         f"{kernels.MAX_EXTRAPOLATION_FACTORS}) for {F} trials and bad {bad.shape}")
+    _extrapolation_trials[(bad.shape[1], F), THREADS_PER_BLOCK](z, z0, albedo, albedo0,
+                                                               tuple(float(f) for f in factors), lower, upper,
+                                                               z_out, albedo_out, bad)
+
+
+__all__ += ["depth_step"]
+
+
+@cuda.jit(cache=True)
+def _depth_step(z, dz, t, lower, upper, out, bad):  # pragma: no cover - device
+    """Block b: a strided share of the pixels, then its count of depths not > 0 into bad[b]."""
+    share = cuda.shared.array(THREADS_PER_BLOCK, numba.float64)
+    tid = cuda.threadIdx.x
+    count = 0.0
+    for p in range(cuda.blockIdx.x * THREADS_PER_BLOCK + tid, z.shape[0], cuda.gridDim.x * THREADS_PER_BLOCK):
+        x = _clipped_depth(z[p] + t * dz[p], lower, upper, p)
+        out[p] = x
+        if not x > 0.0:
+            count += 1.0
+    _block_tree_sum(share, tid, count)
+    if tid == 0:
+        bad[cuda.blockIdx.x] = share[0]
+
+
+def depth_step(z, dz, t, lower, upper, out, bad) -> None:
+    """:func:`.kernels.depth_step` on the GPU in one launch (was two or three array operations, a
+    clip and a reduction): ``bad.size`` blocks, each thread a strided share of the pixels."""
+    _depth_step[bad.shape[0], THREADS_PER_BLOCK](z, dz, float(t), lower, upper, out, bad)

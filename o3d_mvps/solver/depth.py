@@ -13,6 +13,9 @@ from typing import Callable
 
 import numpy as np
 
+from ..model.arrays import array_module, contiguous
+from .device import kernels_for, on_gpu, to_host
+from .kernels import extrapolation_blocks
 from .line_search import backtrack
 from .linear import levenberg_damped, solve_spd
 from .normal_equations import joint_system
@@ -36,8 +39,8 @@ def update_depth(problem: LevelProblem, est: Estimate, ev: Evaluation, *, rtol: 
     del system
 
     def moved(t: float):
-        z = problem.level.prior.clip(est.z + t * step)
-        return Estimate(z, est.albedo, est.lights, est.poses, est.led_offset) if np.all(z > 0) else None
+        z = stepped_depth(problem.level.prior, est.z, t, step)
+        return None if z is None else Estimate(z, est.albedo, est.lights, est.poses, est.led_offset)
 
     return (*search_estimates(problem, est, energy, moved, max_halvings, refit_albedo=project_albedo), iterations)
 
@@ -64,3 +67,26 @@ def search_estimates(problem: LevelProblem, est: Estimate, energy: float, moved:
 
     found = backtrack(trial, energy, max_halvings)
     return (est, problem.evaluate(est)) if found is None else found[1]
+
+
+def stepped_depth(prior, z: np.ndarray, t: float, dz: np.ndarray) -> np.ndarray | None:
+    """A line search's trial depth ``prior.clip(z + t dz)`` (N,) metres (``prior`` the level's
+    :class:`.pyramid.DepthPrior`), or None where a depth is not > 0; on a GPU one launch and one
+    read (:func:`.kernels.depth_step`; was up to five array operations and a read)."""
+    if not on_gpu(z):
+        stepped = prior.clip(z + t * dz)
+        return stepped if np.all(stepped > 0) else None
+    xp = array_module(z)
+    out, bad = xp.empty(z.shape[0]), xp.empty(extrapolation_blocks(z.shape[0]))
+    kernels_for(z).depth_step(contiguous(z, np.float64), contiguous(dz, np.float64), float(t),
+                              *envelope_arrays(prior, xp), out, bad)
+    return out if to_host(bad).sum() == 0 else None
+
+
+def envelope_arrays(prior, xp) -> tuple:
+    """The depth envelope (lower, upper) of ``prior`` (:class:`.pyramid.DepthPrior`) as the
+    kernels take it: C-contiguous float64 (N,) each, or empty (0,) arrays of ``xp`` (NumPy or
+    CuPy) without one."""
+    if prior.lower is None:
+        return xp.empty(0), xp.empty(0)
+    return contiguous(prior.lower, np.float64), contiguous(prior.upper, np.float64)

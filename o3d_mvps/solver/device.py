@@ -117,6 +117,29 @@ def to_host_together(*arrays) -> list:
     return [part.reshape(a.shape) for part, a in zip(np.split(flat, ends[:-1]), arrays)]
 
 
+class DeviceCopies:
+    """The device copies of the last ``kept`` small host arrays (newest first; for the kernels'
+    inputs, never written): :meth:`copy` of values equal to a kept one's gives that copy again
+    (no copy), else copies (one ``asarray``) and keeps it."""
+
+    def __init__(self, kept: int):
+        self.kept, self.entries = kept, []  # (host values, array module, device, device array)
+
+    def copy(self, host: np.ndarray, reference):
+        """``host`` as a C-contiguous array of ``reference``'s module and device."""
+        xp, device = array_module(reference), getattr(reference, "device", None)
+        for values, module, where, copied in self.entries:
+            if module is xp and where == device and values.shape == host.shape and np.array_equal(values, host):
+                return copied
+        copied = xp.asarray(host, order="C")
+        self.entries.insert(0, (host, xp, device, copied))
+        del self.entries[self.kept:]
+        return copied
+
+    def clear(self) -> None:
+        self.entries.clear()
+
+
 def check_device_name(device) -> str:
     """The device's name spelled ``"auto"``, ``"cpu"`` or ``"cuda:N"``, without asking whether it
     can run (options check names when made); ValueError for a name that is none of these."""

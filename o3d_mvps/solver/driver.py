@@ -26,13 +26,14 @@ from tqdm.auto import tqdm
 
 from ..errors import CaptureError
 from ..model import se3
-from ..model.arrays import fused, like
+from ..model.arrays import array_module, contiguous, fused, like
 from ..model.parallel import current_kernel_threads, kernel_threads, set_kernel_threads
 from ..model.resampling import fill_nearest_valid, repeat_pixels, resize
 from ..model.robust import robust_scale
-from .depth import update_depth
-from .device import CPU, ArrayDevice, array_device, compile_notice, to_host
+from .depth import envelope_arrays, update_depth
+from .device import CPU, ArrayDevice, array_device, compile_notice, kernels_for, on_gpu, to_host
 from .joint import update_pose_depth
+from .kernels import MAX_EXTRAPOLATION_FACTORS, extrapolation_blocks
 from .light_selection import select_light_model
 from .lighting import make_light_model, update_led_offset
 from .normal_equations import prepare_depth_block
@@ -325,8 +326,14 @@ def _weigh_smoothness(problem: LevelProblem, est: Estimate, ev, options: RefineO
 
 
 def _snapshot(est: Estimate) -> Estimate:
-    """A copy of the unknowns, taken at the start of a sweep."""
-    return Estimate(est.z.copy(), est.albedo.copy(), est.lights.copy(), est.poses.copy(),
+    """A copy of the unknowns, taken at the start of a sweep (on a GPU z and albedo in one
+    launch: views of one array)."""
+    if on_gpu(est.z) and est.albedo.dtype == est.z.dtype:
+        packed = array_module(est.z).concatenate([est.z.reshape(-1), est.albedo.reshape(-1)])
+        z, albedo = packed[:est.z.size].reshape(est.z.shape), packed[est.z.size:].reshape(est.albedo.shape)
+    else:
+        z, albedo = est.z.copy(), est.albedo.copy()
+    return Estimate(z, albedo, est.lights.copy(), est.poses.copy(),
                     None if est.led_offset is None else est.led_offset.copy())
 
 
@@ -358,12 +365,19 @@ def _extrapolate(problem: LevelProblem, est: Estimate, ev, before: Estimate, anc
 
     current = anchored(ev.energy, est, ev.usable)
     delta_poses = [se3.log(T @ np.linalg.inv(T0)) for T, T0 in zip(est.poses, before.poses)] if poses_moved else []
-    for factor in factors:
-        z = problem.level.prior.clip(_extrapolated(est.z, before.z, factor))
-        if not np.all(z > 0):
+    trials = _device_trials(problem, est, before, factors)  # None on the CPU
+    for j, factor in enumerate(factors):
+        if trials is None:
+            z = problem.level.prior.clip(_extrapolated(est.z, before.z, factor))
+            if not np.all(z > 0):
+                break
+            albedo = _extrapolated(est.albedo, before.albedo, factor)
+        elif trials[2][j]:
+            z, albedo = trials[0][j], trials[1][j]
+        else:
             break
         offset = None if est.led_offset is None else est.led_offset + factor * (est.led_offset - before.led_offset)
-        trial = Estimate(z, _extrapolated(est.albedo, before.albedo, factor),
+        trial = Estimate(z, albedo,
                          est.lights + factor * (est.lights - before.lights),
                          np.stack([se3.exp(factor * d) @ T for d, T in zip(delta_poses, est.poses)])
                          if poses_moved else est.poses, offset)
@@ -379,6 +393,23 @@ def _extrapolate(problem: LevelProblem, est: Estimate, ev, before: Estimate, anc
     est.z, est.albedo, est.lights, est.poses, est.led_offset = (best.z, best.albedo, best.lights, best.poses,
                                                                 best.led_offset)
     return problem.evaluate(est)
+
+
+def _device_trials(problem: LevelProblem, est: Estimate, before: Estimate, factors) -> tuple | None:
+    """:func:`_extrapolate`'s trial depths and albedos on a GPU, every factor's in one launch
+    (:func:`.kernels.extrapolation_trials`: extrapolated, the depth clipped into the prior's
+    envelope) and one copy back: (z (F, N), albedo (F, N, 3), positive (F,) bool: every trial
+    depth > 0); None on the CPU, or for factors or albedos that kernel does not take."""
+    if not (on_gpu(est.z) and len(factors) <= MAX_EXTRAPOLATION_FACTORS and est.z.ndim == 1
+            and est.albedo.shape == (est.z.size, 3)):
+        return None
+    xp, prior, N, F = array_module(est.z), problem.level.prior, est.z.size, len(factors)
+    z, albedo, bad = xp.empty((F, N)), xp.empty((F, N, 3)), xp.empty((F, extrapolation_blocks(N)))
+    kernels_for(est.z).extrapolation_trials(*(contiguous(a, np.float64) for a in (est.z, before.z, est.albedo,
+                                                                                 before.albedo)),
+                                            tuple(float(f) for f in factors), *envelope_arrays(prior, xp), z, albedo,
+                                            bad)
+    return z, albedo, to_host(bad).sum(axis=1) == 0
 
 
 @fused

@@ -15,8 +15,7 @@ from __future__ import annotations
 import dataclasses
 
 from ..model import se3
-from ..model.arrays import fused
-from .depth import search_estimates
+from .depth import search_estimates, stepped_depth
 from .linear import levenberg_damped, solve_spd
 from .normal_equations import joint_system
 from .pose_trust import PoseAnchors
@@ -45,8 +44,8 @@ def update_pose_depth(problem: LevelProblem, est: Estimate, ev: Evaluation, *, r
     del system, S, rhs  # the coupling (N, 6m) and M: not needed by the line search
 
     def moved(t: float):
-        z = problem.level.prior.clip(_stepped(est.z, t, dz))
-        if not z.min() > 0:  # (one reduction and one read on a GPU)
+        z = stepped_depth(problem.level.prior, est.z, t, dz)  # (one launch and one read on a GPU)
+        if z is None:
             return None
         poses = est.poses.copy()
         for i, x in zip(frames, xi):
@@ -55,8 +54,3 @@ def update_pose_depth(problem: LevelProblem, est: Estimate, ev: Evaluation, *, r
 
     return (*search_estimates(problem, est, energy, moved, max_halvings, refit_albedo=project_albedo), iterations)
 
-
-@fused
-def _stepped(z, t, dz):
-    """z + t dz (N,) (one kernel on a GPU)."""
-    return z + t * dz

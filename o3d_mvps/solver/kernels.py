@@ -2001,3 +2001,74 @@ def levenberg_damp(indptr, indices, data, damping, tiny, partial, missing):  # p
     floor = max(0.01 * (total / n), tiny) if n else tiny
     for row in range(n):
         damp_diagonal(indptr, indices, data, damping, floor, missing, row)
+
+
+# ============================================================================================
+# gpu3 (issue 33 item 4): the driver's extrapolation trials in one launch on the GPU
+# (:mod:`.cuda_kernels`' section of the same name); here its CPU twin.
+# ============================================================================================
+
+#: the most factors :func:`extrapolation_trials` takes (the driver's: 1, 2, 4)
+MAX_EXTRAPOLATION_FACTORS = 4
+
+
+def extrapolation_blocks(n_pixels: int) -> int:
+    """The second axis of :func:`extrapolation_trials`' ``bad``: its blocks per factor on the GPU
+    (not a launch)."""
+    return min(REDUCTION_BLOCKS, max(1, -(-n_pixels // (16 * 128))))
+
+
+@numba.njit(inline="always")
+def clipped_depth(x, lower, upper, p):  # pragma: no cover - compiled
+    """x clipped into [lower[p], upper[p]] as ``np.clip`` (a NaN stays NaN); as it is where
+    lower is empty (0,) (no envelope)."""
+    if lower.shape[0] == 0:
+        return x
+    if x < lower[p]:
+        x = lower[p]
+    if x > upper[p]:
+        x = upper[p]
+    return x
+
+
+@numba.njit(parallel=True, cache=True)
+def extrapolation_trials(z, z0, albedo, albedo0, factors, lower, upper, z_out, albedo_out,
+                         bad):  # pragma: no cover - compiled
+    """Every factor's trial state of the driver's extrapolation at once: z_out (F, N), row f
+    ``z + factors[f] (z - z0)`` of z, z0 (N,) metres clipped into [lower, upper] (N,) each (no
+    clip where they are empty (0,)); albedo_out (F, N, 3) the same of albedo, albedo0 (N, 3),
+    unclipped; bad (F, B) shares of the count of trial depths not > 0 (NaN counted), their sum
+    over axis 1 the count (B :func:`extrapolation_blocks`, the GPU's blocks; here all in column
+    0). factors: a tuple of at least F floats."""
+    F, N = z_out.shape
+    for f in range(F):
+        s = factors[f]
+        count = 0
+        for p in numba.prange(N):
+            x = clipped_depth(z[p] + s * (z[p] - z0[p]), lower, upper, p)
+            z_out[f, p] = x
+            if not x > 0.0:
+                count += 1
+            for c in range(3):
+                albedo_out[f, p, c] = albedo[p, c] + s * (albedo[p, c] - albedo0[p, c])
+        for b in range(bad.shape[1]):
+            bad[f, b] = 0.0
+        bad[f, 0] = count
+
+
+@numba.njit(parallel=True, cache=True)
+def depth_step(z, dz, t, lower, upper, out, bad):  # pragma: no cover - compiled
+    """A line search's trial depth: out (N,) = z + t dz of z, dz (N,) metres, clipped into
+    [lower, upper] (N,) each (no clip where they are empty (0,)); bad (B,) shares of the count
+    of out's entries not > 0 (NaN counted), their sum the count (B :func:`extrapolation_blocks`,
+    the GPU's blocks; here all in entry 0)."""
+    N = z.shape[0]
+    count = 0
+    for p in numba.prange(N):
+        x = clipped_depth(z[p] + t * dz[p], lower, upper, p)
+        out[p] = x
+        if not x > 0.0:
+            count += 1
+    for b in range(bad.shape[0]):
+        bad[b] = 0.0
+    bad[0] = count

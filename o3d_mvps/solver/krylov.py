@@ -220,6 +220,12 @@ def _iterations_left(rr: float, rr_previous: float, rr_start: float, threshold: 
 
 
 @fused
+def _half_sum(a, b):
+    """``(a + b) / 2`` (any shape; one kernel on a GPU)."""
+    return (a + b) / 2
+
+
+@fused
 def _zero_if(bb, x):
     """x (N,), or zeros where ``bb`` (0-d) is zero."""
     return array_module(x).where(bb == 0, 0.0, x)
@@ -664,7 +670,7 @@ def multigrid_preconditioner(A, prolongations: list, *, smoother: str = "chebysh
         levels.append(MultigridLevel(A, make_smoother(A, inv_diag, upper, smoother, smoothing_steps), P, R))
         A = (R @ (A @ P)).tocsr()
     inverse = xp.linalg.inv(A.toarray())
-    inverse = (inverse + inverse.T) / 2
+    inverse = _half_sum(inverse, inverse.T)  # symmetric (on a GPU one launch, was two)
     packed = None
     if xp is not np and smoother == "chebyshev":
         if kept and prolongations.packed is None:

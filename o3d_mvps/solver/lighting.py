@@ -31,7 +31,7 @@ from ..model.arrays import array_module, contiguous, like
 from ..model.robust import cauchy_weights
 from ..model.shading import (INITIAL_LIGHT, led_positions_into, led_fields_into, led_irradiances, led_twist_jacobians_into,
                              sh_basis)
-from .device import kernels_for, to_host
+from .device import DeviceCopies, kernels_for, to_host
 from .line_search import backtrack
 from .linear import ridge_solve
 
@@ -266,9 +266,14 @@ def _light_arrays(lights: np.ndarray, points: np.ndarray, positions: np.ndarray)
     positions = np.asarray(to_host(positions), dtype=np.float64).reshape(-1, 3)
     if array_module(points) is np:
         return intensities, np.ascontiguousarray(positions)
-    packed = like(np.concatenate([intensities, positions.reshape(-1)]), points)
+    packed = _LIGHT_COPIES.copy(np.concatenate([intensities, positions.reshape(-1)]), points)
     m = len(intensities)
     return packed[:m], packed[m:].reshape(-1, 3)
+
+
+#: device copies of :func:`_light_arrays`' recent light states: a sweep's several calls with one
+#: state copy it once (gpu3)
+_LIGHT_COPIES = DeviceCopies(kept=4)
 
 
 def lit_point_gradients(lights: np.ndarray, normals: np.ndarray, points: np.ndarray,

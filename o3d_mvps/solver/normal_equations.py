@@ -448,8 +448,8 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
     elif m:
         gram[:m].sum(axis=1, out=grams)
         rhs[:m].sum(axis=1, out=rhs_xi.reshape(m, 6))
-    if projection is not None and xp is not np:  # the downdate and the copy into sums in one launch
-        xp.subtract(block_sums, projection.local(), out=sums)
+    if projection is not None and xp is not np:  # the downdate and the copy into sums in two launches
+        projection.downdated_into(block_sums, sums)
     elif projection is not None:
         block_sums -= projection.local()
         sums[:] = block_sums
@@ -500,14 +500,29 @@ class _AlbedoProjection:
         B = residual.shape[1]
         d, self.sWr = xp.empty((B, 3)), xp.empty((B, 3))  # s^T W s, s^T W r
         kernels_for(residual).weighted_albedo_sums(residual, usable, residual, shading, 1.0 / lam, self.sWr, d)
-        self.inv_d = _safe_inverse(d)
+        # on a GPU 1 / sqrt(d) and s^T W r / sqrt(d) (twist_scalings, downdate_scaled) in the same launch
+        self._root = self._sWr_root = None
+        if xp is np:
+            self.inv_d = _safe_inverse(d)
+        else:
+            self.inv_d, self._root, self._sWr_root = _projection_scalings(d, self.sWr)
         self.e = xp.zeros((3, B, 3))  # e for the a, b, c rows
 
     def local(self) -> np.ndarray:
         """Downdates (9, B) of Saa, Sbb, Sgg, Sab, Sag, Sbg, Ba, Bb, Bg (one kernel and a stack on
         a GPU)."""
-        columns = [e[:, c] for e in self.e for c in range(3)] + [self.inv_d[:, c] for c in range(3)]
-        return array_module(self.e).stack(_projection_downdates(*columns, *(self.sWr[:, c] for c in range(3))))
+        return array_module(self.e).stack(_projection_downdates(*self._columns()))
+
+    def downdated_into(self, block_sums: np.ndarray, out: np.ndarray) -> None:
+        """out (9, B) = block_sums (9, B) - :meth:`local`, on a GPU in two launches (the
+        downdates and differences in one kernel, then a stack into out; gpu3: was three)."""
+        xp = array_module(self.e)
+        xp.stack(_downdated_sums(*(block_sums[k] for k in range(9)), *self._columns()), out=out)
+
+    def _columns(self) -> list:
+        """:func:`_projection_downdates`' arguments: the e columns, inverse d and s^T W r (B,) each."""
+        return ([e[:, c] for e in self.e for c in range(3)] + [self.inv_d[:, c] for c in range(3)]
+                + [self.sWr[:, c] for c in range(3)])
 
     def downdate_twists(self, F: np.ndarray, rows: np.ndarray, downdate: np.ndarray, rhs_xi: np.ndarray) -> None:
         """Project the block's twist parts: the coupling rows (3, m, 6, B) lose
@@ -522,7 +537,7 @@ class _AlbedoProjection:
     def twist_scalings(self) -> tuple[np.ndarray, np.ndarray]:
         """(e / d (3, B, 3), 1 / sqrt(d) (B, 3)): what the twist rows lose per unit of F, and F's
         scaling (:meth:`downdate_twists`)."""
-        return self.e * self.inv_d, np.sqrt(self.inv_d)
+        return self.e * self.inv_d, np.sqrt(self.inv_d) if self._root is None else self._root
 
     def downdate_scaled(self, F: np.ndarray, downdate: np.ndarray, rhs_xi: np.ndarray, sqrt_inv_d: np.ndarray) -> None:
         """:meth:`downdate_twists`'s sums over F (m, 6, B, 3) once scaled by ``sqrt_inv_d`` (B, 3):
@@ -534,7 +549,8 @@ class _AlbedoProjection:
             rhs_xi += f @ (self.sWr * sqrt_inv_d).reshape(-1)
             downdate += _gram(f)
         else:
-            xp.matmul(f, (self.sWr * sqrt_inv_d).reshape(-1), out=rhs_xi)
+            scaled = self._sWr_root if sqrt_inv_d is self._root else self.sWr * sqrt_inv_d
+            xp.matmul(f, scaled.reshape(-1), out=rhs_xi)
             xp.matmul(f, f.T, out=downdate)
 
 
@@ -543,6 +559,24 @@ def _safe_inverse(d):
     """1 / d where d > 1e-12, else 0 (any shape)."""
     where = array_module(d).where
     return where(d > 1e-12, 1.0 / where(d > 1e-12, d, 1.0), 0.0)
+
+
+@fused
+def _projection_scalings(d, sWr):
+    """(:func:`_safe_inverse` of d, its square root, sWr times that) (B, 3) each: one kernel on a
+    GPU (gpu3: was three)."""
+    inv_d = _safe_inverse.__wrapped__(d)
+    root = array_module(d).sqrt(inv_d)
+    return inv_d, root, sWr * root
+
+
+@fused
+def _downdated_sums(Saa, Sbb, Sgg, Sab, Sag, Sbg, Ba, Bb, Bg, ea0, ea1, ea2, eb0, eb1, eb2, ec0, ec1, ec2, i0, i1, i2,
+                    s0, s1, s2):
+    """The per-pixel sums (B,) each less :func:`_projection_downdates` of the remaining arguments,
+    in the same order (one kernel on a GPU)."""
+    downdates = _projection_downdates.__wrapped__(ea0, ea1, ea2, eb0, eb1, eb2, ec0, ec1, ec2, i0, i1, i2, s0, s1, s2)
+    return tuple(s - d for s, d in zip((Saa, Sbb, Sgg, Sab, Sag, Sbg, Ba, Bb, Bg), downdates))
 
 
 @fused

@@ -16,7 +16,7 @@ from ..model.camera import backproject
 from ..model.normals import unit_normals
 from ..model.robust import cauchy_energy
 from ..model.warping import in_view, visible, warp
-from .device import kernels_for, to_host
+from .device import DeviceCopies, kernels_for, to_host
 from .kernels import energy_blocks
 from .krylov import pixel_prolongations
 from .lighting import LEDLight, RoomLight, SHLight
@@ -146,7 +146,9 @@ class LevelProblem:
         self.device_K = like(level.K, level.grid.u)
         self._no_frames = None  # on a GPU: empty frames x pixels arrays, for the prior's energy alone
         self._grid_arrays = None  # on a GPU: the grid's per-pixel arrays, C-contiguous, for the kernels
-        self._packed = None  # on a GPU: (host, device) copies of the last poses and lights, flattened together
+        # on a GPU: device copies of the last poses and lights, flattened together (a line
+        # search's or extrapolation's kept trial is not copied again when evaluated)
+        self._packed = DeviceCopies(kept=3)
 
     def pixel_prolongations(self) -> list:
         """The level's pixel aggregation for the GPU path's multigrid (:func:`.krylov.pixel_prolongations`),
@@ -308,9 +310,7 @@ class LevelProblem:
         where they equal the last ones copied (views of one device array, never written)."""
         host = np.concatenate([np.asarray(to_host(est.poses), np.float64).reshape(-1),
                                np.asarray(to_host(est.lights), np.float64).reshape(-1)])
-        if self._packed is None or not np.array_equal(self._packed[0], host):
-            self._packed = (host, like(host, est.z))
-        n, packed = self.n_frames, self._packed[1]
+        n, packed = self.n_frames, self._packed.copy(host, est.z)
         return packed[:16 * n].reshape(n, 4, 4), packed[16 * n:].reshape(n, -1)
 
     def _one_pass_energy(self, est: Estimate, prior: float | None):
