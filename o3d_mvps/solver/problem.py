@@ -228,6 +228,7 @@ class LevelProblem:
         self._static_samples = None
         P = to_host(self.points(est.z))  # the z-buffer's scatter-min runs on the host
         identity = self._identity(est)
+        sensor_uv = None  # the sensor's pixel of each point: one for all frames where the poses are the identity
         for i in range(self.n_frames):
             if not identity or i == 0:
                 points, u, v, Z = warp(P, est.poses[i], self.level.K)
@@ -235,7 +236,8 @@ class LevelProblem:
                 self.visibility[i] = like(in_view(u, v, Z, self.level.size), self.visibility) if i else True
                 continue
             sensor = None if sensor_depths is None else sensor_depths[i]
-            sensor_uv = None if not identity or i == 1 else sensor_uv
+            if not identity:
+                sensor_uv = None
             if sensor is not None and sensor_uv is None:
                 su = depth_K[0, 0] * points[:, 0] / Z + depth_K[0, 2]
                 sv = depth_K[1, 1] * points[:, 1] / Z + depth_K[1, 2]
