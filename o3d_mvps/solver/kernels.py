@@ -684,22 +684,8 @@ def multigrid_cycle(m_indptr, m_indices, m_data, a_indptr, a_indices, a_data, p_
     # the coarsest level: its dense inverse's product, by column segments (the inverse is
     # symmetric: thread i reads column i, neighbouring threads neighbouring memory), then their sum
     b, out = _mg_vector(work, MG_B, layout, levels), _mg_vector(work, MG_XU, layout, levels)
-    n = b.shape[0]
-    segments = coarse_partial.shape[0]
-    length = -(-n // segments)
-    for item in range(start, segments * n, stride):
-        segment, i = item // n, item % n
-        total = 0.0
-        for j in range(segment * length, min(n, (segment + 1) * length)):
-            total += coarse_inverse[j, i] * b[j]
-        coarse_partial[segment, i] = total
-    grid_barrier()
-    for i in range(start, n, stride):
-        total = 0.0
-        for segment in range(segments):
-            total += coarse_partial[segment, i]
-        out[i] = total
-    grid_barrier()
+    chunked_product(coarse_inverse, b, coarse_partial, out, -(-b.shape[0] // coarse_partial.shape[0]), True, start,
+                    stride)
     for k in range(levels - 1, -1, -1):  # up: correct from the coarse level, smooth again
         n = layout[MG_FIELDS * k + MG_N]
         if k == 0:
@@ -725,6 +711,30 @@ def multigrid_cycle(m_indptr, m_indices, m_data, a_indptr, a_indices, a_data, p_
             grid_barrier()
 
 
+@numba.njit(inline="always")
+def chunked_product(M, b, partial, out, length, by_column, start, stride):  # pragma: no cover - compiled
+    """``out = M^T b`` (by_column: ``out[i] = sum_j M[j, i] b[j]``, neighbouring threads reading
+    neighbouring memory) or ``out = M b`` (``out[i] = sum_j M[i, j] b[j]``) by the launch's
+    threads: item (chunk c, i) sums ``length`` terms j of chunk c into ``partial[c, i]``
+    (partial (chunks, len(out)), chunks * length >= len(b)), then each out[i] its chunks in order
+    (the same sums every run); each pass followed by :func:`grid_barrier`."""
+    n_out, n_in = out.shape[0], b.shape[0]
+    chunks = partial.shape[0]
+    for item in range(start, chunks * n_out, stride):
+        c, i = item // n_out, item % n_out
+        total = 0.0
+        for j in range(c * length, min(n_in, (c + 1) * length)):
+            total += (M[j, i] if by_column else M[i, j]) * b[j]
+        partial[c, i] = total
+    grid_barrier()
+    for i in range(start, n_out, stride):
+        total = 0.0
+        for c in range(chunks):
+            total += partial[c, i]
+        out[i] = total
+    grid_barrier()
+
+
 #: Rows per chunk of :func:`low_rank_product`'s partial sums
 LOW_RANK_CHUNK = 256
 
@@ -735,21 +745,7 @@ def low_rank_product(u_t, z, t_partial, t, start, stride):  # pragma: no cover -
     (chunk c, column j) sums rows c :data:`LOW_RANK_CHUNK` ... of column j into
     ``t_partial[c, j]`` (t_partial (chunks, K)), then each t[j] its chunks in order; each pass
     followed by :func:`grid_barrier`."""
-    K, N = u_t.shape
-    chunks = t_partial.shape[0]
-    for item in range(start, chunks * K, stride):
-        c, j = item // K, item % K
-        total = 0.0
-        for i in range(c * LOW_RANK_CHUNK, min(N, (c + 1) * LOW_RANK_CHUNK)):
-            total += u_t[j, i] * z[i]
-        t_partial[c, j] = total
-    grid_barrier()
-    for j in range(start, K, stride):
-        total = 0.0
-        for c in range(chunks):
-            total += t_partial[c, j]
-        t[j] = total
-    grid_barrier()
+    chunked_product(u_t, z, t_partial, t, LOW_RANK_CHUNK, False, start, stride)
 
 
 @numba.njit
