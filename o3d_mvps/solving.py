@@ -220,25 +220,28 @@ def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses
         # a moving camera's the same way, the frames' depth moved into the reference by the initial
         # poses: at the speckled, room-lit bunny's rim they held the depth centimetres back, where
         # depth fusion averages them away (docs/fidelity.md, "Flying pixels of a moving camera").
-        # Always counted and reported; replaced only with drop_depth_outliers (each one's depth from
-        # the frames that agree there, else from its kept neighbours): on the room scene of
-        # tests/test_scenes.py (80 x 60 depth) the frames agreed on the wall behind the object
+        # Always counted and reported; replaced unless drop_depth_outliers=False (each one's depth
+        # from the frames that agree there, else from its kept neighbours, never behind the
+        # reference's own nearest kept neighbour: on the room scene of tests/test_scenes.py, 80 x 60
+        # depth, the frames agreed on the wall behind the object)
         t0 = time.perf_counter()
         K_depth = capture.depth_K()
         warped = frame_depths_in_reference(depths, initial_poses, K_depth)
         flying, noise = moving_reference_outliers(depths, initial_poses, K_depth, warped=warped, return_noise=True)
         found = {"pixels": int(flying.sum()), "fraction": round(float(flying.mean()), 6),
                  "noise_mm_at_1m": round(1000 * noise, 4), "replaced": bool(options.drop_depth_outliers)}
-        from_frames = None
+        from_frames = foreground = None
         if options.drop_depth_outliers:
-            values, from_frames = moving_reference_fill(depths, initial_poses, K_depth, flying, noise, warped=warped)
-            found.update(from_frames=int(from_frames.sum()), from_neighbours=int((flying & ~from_frames).sum()))
+            values, from_frames, foreground = moving_reference_fill(depths, initial_poses, K_depth, flying, noise,
+                                                                    warped=warped)
+            found.update(from_frames=int(from_frames.sum()), from_foreground=int(foreground.sum()),
+                         from_neighbours=int((flying & ~from_frames & ~foreground).sum()))
         valid = int((depths[0] > 0).sum())
         if from_frames is not None:
             depths[0][flying] = values[flying]
         report["reference_depth_outliers"] = {**found, "seconds": round(time.perf_counter() - t0, 4)}
         inputs = report.setdefault("inputs", {"checks": [], "conventions": {}})
-        inputs["checks"].append(flying_pixels_check(flying, from_frames, valid, noise))
+        inputs["checks"].append(flying_pixels_check(flying, from_frames, valid, noise, foreground))
     return SolverInput(
         colors=colors,
         depths=depths,

@@ -175,11 +175,11 @@ class ModelOptions:
     drop_depth_outliers: replace the reference depth pixels the other frames' depth contradicts
         (flying pixels; :func:`o3d_mvps.covisibility.reference_depth_outliers`, at 4 sigma of the
         capture's own noise) by what the frames agree on there, else by the harmonic fill of the
-        kept neighbours (:func:`o3d_mvps.covisibility.reference_depth_fill`); moving camera, 4
-        frames or more (a static camera's are always left out). Off by default (they are counted
-        and reported either way): on the D415-like peers render 3.31 -> 1.56 mm, the clean D415
-        and demo renders unchanged (none flagged), but on a room scene at 80 x 60 depth the frames
-        agreed on the wall behind the object (docs/fidelity.md, "Flying pixels of a moving camera").
+        kept neighbours, never behind the reference's own nearest kept neighbour
+        (:func:`o3d_mvps.covisibility.reference_depth_fill`); moving camera, 4 frames or more (a
+        static camera's are always left out). False keeps them (they are counted and reported
+        either way). On the D415-like peers render 3.31 -> 1.56 mm, the clean D415 render
+        unchanged (none flagged) (docs/fidelity.md, "Flying pixels of a moving camera").
     """
 
     tau: float = 10.0
@@ -195,7 +195,7 @@ class ModelOptions:
     occlusion_tolerance: float = 0.02
     sensor_lowpass: float | str | None = None
     evidence_weights: bool | None = None
-    drop_depth_outliers: bool = False
+    drop_depth_outliers: bool = True
 
     def smoothness_weight(self) -> float | str:
         """mu~, or :data:`AUTO`: ``smoothness``, else the light model's default (the light model
