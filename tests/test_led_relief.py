@@ -51,13 +51,12 @@ MEASURED = {"mae_deg": 4.69, "steepest_quarter_mae_deg": 9.10, "high_vs_albedo_g
 def test_speckles_under_the_led_make_no_more_relief_than_measured():
     """Bounds 5 % above the measured figures (and a correlation 0.03 above): the speckles' rims
     at most 2.05 x the mean normal error. The render's D415-like depth has flying pixels: they are
-    replaced (``drop_depth_outliers=True``); kept, the mean error is 8.9 deg (rims 14.3)."""
+    replaced (the default); kept (``drop_depth_outliers=False``), the mean error is 8.9 deg (rims 14.3)."""
     capture = synthetic.render_capture("bunny", frames=12, size=(480, 360), scale_factor=4, light="led",
                                        sensor="d415", albedo="speckled", orbit_deg=30.0, seed=0)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        result = refine(capture, RefineOptions(progress=False, drop_depth_outliers=True),
-                        initial_poses=capture.groundtruth.poses)
+        result = refine(capture, RefineOptions(progress=False), initial_poses=capture.groundtruth.poses)
     gt = capture.groundtruth
     depth, truth = result.depth_array().astype(np.float64), np.asarray(gt.depth, np.float64)
     inner = ndimage.distance_transform_edt((truth > 0) & (depth > 0)) > 6

@@ -113,8 +113,9 @@ def test_a_bad_light_in_capture_json_is_named(scene, tmp_path):
 def test_refine_a_room_scene_beats_bicubic(scene, tmp_path, poses):
     """The must-show of real captures: no masks, room light, a ring 18 degrees apart; poses from
     each file format, or none (registration). Measured normal MAE / depth RMSE: given poses
-    16.8 deg / 3.5 mm, registered 16.6 deg / 3.5 mm; bicubic 34.3 deg / 10.8 mm (with per-frame
-    SH lights, the "sh" model, it was 28.6 / 5.8)."""
+    15.6 deg / 2.44 mm, registered 15.9 deg / 2.57 mm; bicubic 34.3 deg / 10.8 mm (with per-frame
+    SH lights, the "sh" model, it was 28.6 / 5.8). The reference's flying pixels replaced (the
+    default; on a silhouette never from the wall behind): kept, 16.8 / 3.5 and 16.6 / 3.5."""
     folder, capture = scene
     args = ["--quiet", "refine", str(folder), str(tmp_path / "out")]
     if poses is not None:
@@ -128,17 +129,19 @@ def test_refine_a_room_scene_beats_bicubic(scene, tmp_path, poses):
     ours, bicubic = rows["ours"], rows["bicubic"]
     assert report["info"]["light_model"]["model"] == "room"
     assert report["info"]["frames"] == [0, 1, 2, 3, 16, 17, 18, 19]  # the frames that see the reference
-    assert ours["mae_deg"] < 0.6 * bicubic["mae_deg"] and ours["rmse_mm"] < 0.4 * bicubic["rmse_mm"]  # 0.50, 0.33
+    # measured at most 0.46, 0.24 (flying pixels kept: 0.50, 0.33); bounds about 10 and 15 % above
+    assert ours["mae_deg"] < 0.5 * bicubic["mae_deg"] and ours["rmse_mm"] < 0.28 * bicubic["rmse_mm"]
 
 
 @pytest.mark.parametrize("refine_poses", [True, False])
 def test_room_light_falls_back_toward_the_smooth_fit_never_below_it(scene, refine_poses):
     """Where the photometric terms cannot help (room light, away from the silhouette) the refined
     normals are no worse than the smooth fit of the sensor depth, and better over the object.
-    Measured (true poses; interior = 6 px inside the evaluated region): ours 16.8 deg MAE, 3.5 mm
-    RMSE, 11.8 deg inside; smooth fit 24.0 / 5.3 / 16.2. With the poses held, the depth-only
-    step takes the parallax too (without it the result would be the smooth fit): 17.2 deg MAE,
-    3.4 mm. The room model's lights are one light times a gain per frame."""
+    Measured (true poses; interior = 6 px inside the evaluated region): ours 15.6 deg MAE, 2.44 mm
+    RMSE, 11.5 deg inside; smooth fit 24.0 / 5.3 / 16.2. With the poses held, the depth-only
+    step takes the parallax too (without it the result would be the smooth fit): 15.7 deg MAE,
+    2.44 mm. The reference's flying pixels kept (``drop_depth_outliers=False``): 16.9 / 3.40 /
+    11.7 (held: 17.2 / 3.35). The room model's lights are one light times a gain per frame."""
     from benchmarks.room import angular_error
 
     capture = read_capture(scene[0])  # through the folder: the automatic mask
@@ -156,8 +159,9 @@ def test_room_light_falls_back_toward_the_smooth_fit_never_below_it(scene, refin
         rmse = np.sqrt(np.mean((result.depth_array()[evaluated] - truth[evaluated]) ** 2))
         scores[name] = (np.mean(error[evaluated]), 1000 * rmse, np.mean(error[interior]))
     (mae, rmse, inside), (fit_mae, fit_rmse, fit_inside) = scores["ours"], scores["smooth fit"]
-    # measured 0.73, 0.70, 0.66 (poses held: 0.72, 0.72, 0.63)
-    assert inside < 0.85 * fit_inside and mae < 0.8 * fit_mae and rmse < 0.8 * fit_rmse, scores
+    # measured 0.71, 0.65, 0.46 (poses held: 0.72, 0.65, 0.46; flying pixels kept 0.73, 0.70, 0.64);
+    # bounds 15-20 % above
+    assert inside < 0.85 * fit_inside and mae < 0.75 * fit_mae and rmse < 0.55 * fit_rmse, scores
     lights = ours.lighting.numpy()
     assert ours.info["light_model"]["model"] == "room"
     np.testing.assert_allclose(lights, np.outer(lights[:, 0] / lights[0, 0], lights[0]), rtol=1e-5)  # float32
