@@ -192,3 +192,13 @@ def test_the_check_warns_when_a_large_share_is_flagged():
     assert row["status"] == "warning" and "40 of the reference's 100 depth pixels (40.00%)" in row["detail"]
     assert "20 filled from the frames" in row["detail"] and "20 from their kept neighbours" in row["detail"]
     assert "poorly registered frames" in row["detail"] and "noise 5.00 mm at 1 m" in row["detail"]
+
+
+def test_the_cli_keeps_them_only_when_asked():
+    """``o3d-mvps refine --keep-flying-pixels`` is ``drop_depth_outliers=False``; the default replaces them."""
+    from o3d_mvps.cli import build_parser
+    from o3d_mvps.cli.refine import options_from_args
+
+    parse = build_parser().parse_args
+    assert options_from_args(parse(["refine", "in", "out"])).model.drop_depth_outliers
+    assert not options_from_args(parse(["refine", "in", "out", "--keep-flying-pixels"])).model.drop_depth_outliers

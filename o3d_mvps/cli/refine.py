@@ -69,6 +69,9 @@ def add_solver_arguments(parser: argparse.ArgumentParser) -> None:
                    help=f"relative energy change that ends a level (default {d.tolerance:g})")
     g.add_argument("--no-pose-refinement", action="store_true", help="keep the odometry poses (two-stage baseline)")
     g.add_argument("--no-occlusion-test", action="store_true", help="let hidden pixels enter the data term")
+    g.add_argument("--keep-flying-pixels", action="store_true",
+                   help="keep the reference depth pixels the other frames contradict (only reported; by default "
+                        "they are replaced: docs/fidelity.md, flying pixels of a moving camera)")
     g.add_argument("--light-model", choices=LIGHT_MODELS, default=None,
                    help="near-field LED, one SH light fixed in the room (room) or the paper's first-order SH "
                         "per frame (sh), or a point light per frame at its own position, a lamp moved around a static camera "
@@ -102,6 +105,7 @@ def options_from_args(args) -> RefineOptions:
     return RefineOptions(frames=args.frames, tau=args.tau, cauchy_lambda=args.cauchy_lambda, levels=args.levels,
                          max_iterations=args.iterations, tolerance=args.tolerance,
                          refine_poses=not args.no_pose_refinement, occlusion_test=not args.no_occlusion_test,
+                         drop_depth_outliers=not args.keep_flying_pixels,
                          light_model=args.light_model,
                          led_offset=None if args.led_offset is None else tuple(args.led_offset),
                          progress=not args.quiet)
