@@ -326,7 +326,7 @@ def foreground_side(z0: np.ndarray, kept: np.ndarray, flagged: np.ndarray, value
     far = np.where(np.isfinite(windows), windows, 0.0).max(axis=0)
     tolerance = outlier_tolerance(np.where(np.isfinite(near), near, 0.0), noise_scale)
     behind = flagged & (far > (1 + SILHOUETTE_JUMP_REL) * near) & (values > near + tolerance)
-    side = windows <= near + tolerance  # kept neighbours on the nearest one's side (inf never)
+    side = windows <= near + tolerance  # kept neighbours on the nearest one's side (all inf: none kept, not used)
     mean = np.where(side, windows, 0.0).sum(axis=0) / np.maximum(side.sum(axis=0), 1)
     return np.where(behind, mean, values), behind
 
