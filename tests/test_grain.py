@@ -179,7 +179,8 @@ def test_few_frames_seeing_the_reference_warn_and_lean_on_the_sensor():
     """8 frames 45 degrees apart around an LED-lit speckled bunny: 2 besides the reference see
     most of it (frame 7 73 %, frame 1 65 %). The warning names them; leaning on the sensor
     (10 x its weight, the smoothness of its noise, its low frequencies) the normals are 7.6 deg
-    off, 9.3 in the darkest quarter (with the LED's defaults 23.1; with the sensor's smoothness
+    off, 9.5 in the darkest quarter (colour over the pixel area; point-sampled 7.6 and 9.3; with
+    the LED's defaults 23.1; with the sensor's smoothness
     and tie alone, before, 11.0 and 12.1; bicubic 9.8 and 10.3): bounds bicubic's - 1.5 deg
     (all) and bicubic's (darkest quarter)."""
     capture, _ = synthetic.render_ring("bunny", frames=8, size=SIZE, scale_factor=SF, light="led", sensor="d415",
