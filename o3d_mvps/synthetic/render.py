@@ -65,8 +65,8 @@ def render_frame(scene: SyntheticScene, pose: np.ndarray, light, color_samples: 
 def check_color_samples(color_samples) -> None:
     """ValueError unless ``color_samples`` is an integer >= 1 (subpixel rays per pixel side)."""
     if isinstance(color_samples, bool) or not isinstance(color_samples, (int, np.integer)) or color_samples < 1:
-        raise ValueError(f"color_samples must be an integer >= 1 (subpixel rays per pixel side), got {color_samples!r}; "
-                         "pass e.g. 2 (2 x 2 rays per pixel) or 1 (the pixel centre only)")
+        raise ValueError(f"color_samples must be an integer >= 1 (subpixel rays per pixel side), got "
+                         f"{color_samples!r}; pass e.g. 2 (2 x 2 rays per pixel) or 1 (the pixel centre only)")
 
 
 def _cast(scene: SyntheticScene, pose: np.ndarray, light, d_cam: np.ndarray) -> FrameRender:
