@@ -53,6 +53,7 @@ from o3d_mvps.fileio import json_text
 from o3d_mvps.metrics import (SILHOUETTE_MARGIN_PX, albedo_error, albedo_shading_error, border_bands, evaluate,
                               evaluation_mask, lowpass_difference_permille)
 from o3d_mvps.synthetic import QUILT_DISTANCE, QUILT_SIZE, quilt_mesh, render_static_capture
+from o3d_mvps.synthetic.sensor import make_sensor
 
 FULL = {"size": (640, 480), "scale_factor": 2, "frames": 20}
 QUICK = {"size": (320, 240), "scale_factor": 2, "frames": 12}
@@ -70,7 +71,7 @@ def add_arguments(parser) -> None:
 def render(mesh: str, **kwargs):
     """The static capture of ``mesh`` ("quilt": :func:`quilt_mesh` at :data:`QUILT_DISTANCE`, speckled
     albedo, no masks; else the named mesh at 0.6 m with masks), camera undeclared (the depth must tell).
-    ``kwargs``: frames, size, scale_factor, sensor, seed of :func:`render_static_capture`."""
+    ``kwargs``: frames, size, scale_factor, sensor, seed, color_samples of :func:`render_static_capture`."""
     if mesh == "quilt":
         capture = render_static_capture(quilt_mesh(), object_size=QUILT_SIZE[0], distance=QUILT_DISTANCE,
                                         albedo="speckled", masks=False, **kwargs)
@@ -172,7 +173,9 @@ def measure(mesh: str = "bunny", size=(640, 480), scale_factor: int = 2, frames:
                             "light_model": "sh"}
     rows["bicubic"] = _scores(cubic, capture, cubic, cubic_mean)
     if compare and sensor != "none":
-        clean = render(mesh, frames=frames, size=size, scale_factor=scale_factor, sensor="none", seed=seed)
+        # the same pixels as the noisy render's (its profile's colour rays per pixel), without the noise
+        clean = render(mesh, frames=frames, size=size, scale_factor=scale_factor, sensor="none", seed=seed,
+                       color_samples=make_sensor(sensor).color_samples)
         result, clean_seconds, clean_cpu, _ = _refine(clean, options)
         rows["ours, clean render"] = {**_scores(result, clean, bicubic(clean), bicubic(frames_mean_capture(clean))), "seconds": clean_seconds,
                                       "cpu_seconds": clean_cpu,

@@ -152,22 +152,24 @@ def test_reconstruct_says_once_which_views_lean_on_the_sensor():
     assert WEAK_COVERAGE_NOTE in messages[1] and "18 or more for a whole ring" in messages[1]
     assert view_warnings(views[2:]) == ["reference view 5: odd light"]
 
-@pytest.mark.parametrize("light, frames, all_bound", [("room", 8, 1.1), ("led", 10, 0.9)])
-def test_dark_speckles_do_not_become_grain(light, frames, all_bound):
+@pytest.mark.parametrize("light, frames, dark_bound, all_bound", [("room", 8, 1.02, 1.1), ("led", 10, 1.14, 0.97)])
+def test_dark_speckles_do_not_become_grain(light, frames, dark_bound, all_bound):
     """A speckled bunny on an orbit (frames within 15 deg of the reference), given poses, the
-    light's defaults. LED, 10 frames: the darkest quarter's normals 10.39 deg off (10.26 with
-    the evidence weights set in every sweep, not a level's first 3 only; before the absolute
-    evidence weights 23.6, before the albedo's steps counted 13.1), bicubic's 10.34, the
-    smoothed sensor's 16.1: bound 1.02 x bicubic's (a 3 % margin); all pixels 8.37 (before
-    13.8, then 10.0), bicubic 9.82: bound 0.9 x bicubic's. Room light, 8 frames: 9.6 dark,
-    9.96 all: bounds 1.02 and 1.1 x bicubic's. The depth error's high-pass does not follow the
-    albedo: |correlation| 0.022 (LED), 0.012 (room), bound 0.1. No coverage warning."""
+    light's defaults, the D415 profile's colour integrated over the pixel area (2 x 2 rays). LED,
+    10 frames: the darkest quarter's normals 11.42 deg off, bicubic's 10.34, the smoothed
+    sensor's 16.1: bound 1.14 x bicubic's (1.104 x measured, a 3 % margin); all pixels 9.22,
+    bicubic 9.82: bound 0.97 x bicubic's (0.939 x measured). With the colour point-sampled (as
+    before) 10.39 dark and 8.48 all: the area's mixing at the speckles' rims costs the LED 1 deg
+    there (docs/fidelity.md, "Albedo edges under the LED"). Room light, 8 frames: 9.30 dark,
+    9.72 all (point-sampled 9.60, 9.94): bounds 1.02 and 1.1 x bicubic's. The depth error's
+    high-pass does not follow the albedo: |correlation| 0.047 (LED), 0.012 (room), bound 0.1.
+    No coverage warning."""
     capture = synthetic.render_capture("bunny", frames=frames, size=SIZE, scale_factor=SF, light=light,
                                        sensor="d415", albedo="speckled")
     result, said = _refine(capture)
     got = grain_figures(capture, result.depth_array())
     assert got["dark"] < got["smoothed_dark"], got
-    assert got["dark"] < 1.02 * got["bicubic_dark"], got
+    assert got["dark"] < dark_bound * got["bicubic_dark"], got
     assert got["all"] < all_bound * got["bicubic"], got
     assert abs(got["correlation"]) < 0.1, got
     assert not any("frames see" in s for s in said), said
@@ -177,7 +179,8 @@ def test_few_frames_seeing_the_reference_warn_and_lean_on_the_sensor():
     """8 frames 45 degrees apart around an LED-lit speckled bunny: 2 besides the reference see
     most of it (frame 7 73 %, frame 1 65 %). The warning names them; leaning on the sensor
     (10 x its weight, the smoothness of its noise, its low frequencies) the normals are 7.6 deg
-    off, 9.3 in the darkest quarter (with the LED's defaults 23.1; with the sensor's smoothness
+    off, 9.5 in the darkest quarter (colour over the pixel area; point-sampled 7.6 and 9.3; with
+    the LED's defaults 23.1; with the sensor's smoothness
     and tie alone, before, 11.0 and 12.1; bicubic 9.8 and 10.3): bounds bicubic's - 1.5 deg
     (all) and bicubic's (darkest quarter)."""
     capture, _ = synthetic.render_ring("bunny", frames=8, size=SIZE, scale_factor=SF, light="led", sensor="d415",

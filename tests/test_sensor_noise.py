@@ -179,3 +179,30 @@ def test_d415_capture_round_trips(d415_capture, tmp_path):
     back = read_capture(tmp_path / "c")
     np.testing.assert_allclose(back.depth_array(1), np.rint(d415_capture.depth_array(1) * 1000) / 1000, atol=1e-6)
     np.testing.assert_allclose(back.color_array(1), d415_capture.color_array(1), atol=1e-6)
+
+
+def test_colour_integrates_over_the_pixel_area():
+    """``color_samples`` s averages s x s rays per pixel (a box filter): on a speckled bunny
+    (160x120, directional light) the silhouette's pixels mix the object with the black background
+    (none outside the mask is lit point-sampled, 52 are with 2 x 2: bound 30), and 2 x 2 lies
+    near the 8 x 8 limit where the point sample does not (image total 0.12 % off against 1.1 %:
+    bound 0.3 %; mean |difference| on the object 0.0126 against 0.0393: bound 0.5 x). The D415
+    profile integrates (2 x 2), the paper's protocol does not; a bad count names the value."""
+    scene = synthetic.build_scene("bunny", size=(160, 120), albedo="speckled")
+    light = synthetic.make_light("directional", scene.distance)
+    frames = {s: synthetic.render_frame(scene, np.eye(4), light, color_samples=s) for s in (1, 2, 8)}
+    point, box, limit = (frames[s].color for s in (1, 2, 8))
+    outside = ~frames[1].mask
+    assert not point[outside].any() and (box[outside].sum(axis=1) > 0.01).sum() > 30
+    assert box.sum() == pytest.approx(limit.sum(), rel=3e-3) and point.sum() != pytest.approx(limit.sum(), rel=3e-3)
+    on = frames[1].mask
+    assert np.abs(box - limit)[on].mean() < 0.5 * np.abs(point - limit)[on].mean()
+    for s in (2, 8):  # the geometry (ground truth) stays at the pixel centres
+        np.testing.assert_array_equal(frames[s].depth, frames[1].depth)
+        np.testing.assert_array_equal(frames[s].albedo, frames[1].albedo)
+    kw = dict(frames=1, scale_factor=2, size=(64, 48))
+    d415, paper = (synthetic.render_capture("bunny", sensor=s, **kw) for s in ("d415", "gaussian"))
+    assert d415.metadata["synthetic"]["sensor"]["color_samples"] == 2
+    assert paper.metadata["synthetic"]["sensor"]["color_samples"] == 1
+    with pytest.raises(ValueError, match="color_samples must be an integer >= 1.*got 0"):
+        synthetic.render_capture("bunny", color_samples=0, **kw)

@@ -446,12 +446,13 @@ def test_a_noisy_quilt_albedo_is_near_the_clean_and_its_noise_floor():
     renders. The quilt (``--mesh quilt``, 320x240, SF 2, 12 frames, D415-like, no masks) and the
     same scene without noise. The noisy albedo's gap was the lamps (with the true lamps held it
     fell to the images' own noise; docs/static-camera.md). With the frames' mean depth and the
-    finer levels' lamps refitted every sweep with the albedo projected out, measured (before in
-    brackets): albedo error 1.02 % (2.19), the clean render's 0.29 % (0.63), the images' noise
-    floor 0.66 %; bound: clean + floor + 0.2 points (the noise adds to the clean render's error:
-    below the floor no per-pixel albedo gets). Its shading 0.65 % (2.05), clean 0.23 %; bound
-    clean + 0.6 points. Within 2 px of the image's edge 1.46 % against 0.95 % inside (4.01
-    against 2.00); bound x 1.7. Lamps 12 mm off (34; bound 20), normals 0.85 deg (1.23; bound
+    finer levels' lamps refitted every sweep with the albedo projected out, measured with the
+    colour over the pixel area (2 x 2 rays, the clean render too; point-sampled, then before, in
+    brackets): albedo error 1.05 % (1.02, 2.19), the clean render's 0.35 % (0.29, 0.63), the
+    images' noise floor 0.66 %; bound: clean + floor + 0.2 points (the noise adds to the clean
+    render's error: below the floor no per-pixel albedo gets). Its shading 0.69 % (0.65, 2.05),
+    clean 0.30 % (0.23); bound clean + 0.6 points. Within 2 px of the image's edge 1.55 % against
+    0.98 % inside (1.46 against 0.95; 4.01 against 2.00); bound x 1.7. Lamps 12 mm off (34; bound 20), normals 0.85 deg (1.23; bound
     1.0), low-pass shape against the frames' mean depth 0.07 per mille (bound: issue 32's 2)."""
     from benchmarks.static import measure
 

@@ -20,8 +20,9 @@ Conventions (all lengths in metres):
   quantisation.
 - Sensor profiles (``sensor=``, :mod:`.sensor`): "gaussian" (the two lines above, the default),
   "d415" (an active-stereo camera like the RealSense D415: disparity terraces, flying pixels,
-  z^2 noise with a smooth low-frequency part, speckle holes; colour with per-frame exposure and
-  white-balance drift, shot and read noise), "none" (quantisation only).
+  z^2 noise with a smooth low-frequency part, speckle holes; colour integrated over each pixel's
+  area by 2 x 2 rays, with per-frame exposure and white-balance drift, shot and read noise),
+  "none" (quantisation only). ``color_samples=`` sets the rays per pixel side of any profile.
 - Static camera (:func:`render_static_capture`): identity poses, a hand-held point light moved
   around the camera, one position per frame (Peng et al. 2017's setting).
 

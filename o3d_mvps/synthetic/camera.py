@@ -94,9 +94,18 @@ def ring_trajectory(frames: int, distance: float, elevation_deg: float = 15.0, a
     return poses
 
 
-def camera_rays(K: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """Unit ray directions (H, W, 3) through the pixel centres, camera frame."""
+def camera_rays(K: np.ndarray, size: tuple[int, int], offset: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
+    """Unit ray directions (H, W, 3) through the pixel centres, camera frame; ``offset`` (du, dv)
+    pixels moves every ray to ``(u + du, v + dv)`` (a subpixel sample, :func:`subpixel_offsets`)."""
     W, H = size
     v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    u, v = u + offset[0], v + offset[1]
     d = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], axis=-1)
     return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+
+def subpixel_offsets(samples: int) -> list[tuple[float, float]]:
+    """The ``samples`` x ``samples`` (du, dv) offsets (pixels) of a box filter over the pixel area:
+    cell centres ``(k + 1/2) / samples - 1/2``, k = 0..samples-1 (samples 1: the pixel centre only)."""
+    steps = (np.arange(int(samples)) + 0.5) / int(samples) - 0.5
+    return [(float(du), float(dv)) for dv in steps for du in steps]

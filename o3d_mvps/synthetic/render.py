@@ -8,6 +8,7 @@ import numpy as np
 import open3d as o3d
 
 from ..capture import GroundTruth, image_from_array
+from .camera import camera_rays, subpixel_offsets
 from .scene import SyntheticScene, apply_matrix, random_stream
 from .sensor import resolve_sensor
 
@@ -37,19 +38,45 @@ class FrameRender:
         return np.where(self.mask, self.depth, 0.0)
 
 
-def render_frame(scene: SyntheticScene, pose: np.ndarray, light) -> FrameRender:
+def render_frame(scene: SyntheticScene, pose: np.ndarray, light, color_samples: int = 1) -> FrameRender:
     """Ray-cast one frame with ``pose`` (4, 4) reference -> frame; one ray per pixel centre.
 
     ``light`` is a :class:`PointLight`, :class:`DirectionalLight` or :class:`RoomLight` (see
-    :func:`make_light`); it shades every surface hit.
+    :func:`make_light`); it shades every surface hit. ``color_samples`` s > 1: the colour is the
+    mean of s x s rays spread over each pixel's area (:func:`~.camera.subpixel_offsets`, a box
+    filter, as a sensor's pixel integrates the light falling on it: an albedo edge or the
+    silhouette inside a pixel gives a mixed value); the geometry buffers (mask, depth, normals,
+    albedo: the ground truth) stay at the pixel centres. Costs about s^2 times the s = 1 render.
     """
+    check_color_samples(color_samples)
+    frame = _cast(scene, pose, light, scene.rays)
+    if color_samples > 1:
+        centre = frame.color
+        frame.color = np.zeros_like(centre)
+        for offset in subpixel_offsets(color_samples):  # an odd s's middle sample is the centre's ray
+            if offset == (0.0, 0.0):
+                frame.color += centre
+                continue
+            frame.color += _cast(scene, pose, light, camera_rays(scene.K, scene.size, offset).reshape(-1, 3)).color
+        frame.color /= color_samples**2
+    return frame
+
+
+def check_color_samples(color_samples) -> None:
+    """ValueError unless ``color_samples`` is an integer >= 1 (subpixel rays per pixel side)."""
+    if isinstance(color_samples, bool) or not isinstance(color_samples, (int, np.integer)) or color_samples < 1:
+        raise ValueError(f"color_samples must be an integer >= 1 (subpixel rays per pixel side), got "
+                         f"{color_samples!r}; pass e.g. 2 (2 x 2 rays per pixel) or 1 (the pixel centre only)")
+
+
+def _cast(scene: SyntheticScene, pose: np.ndarray, light, d_cam: np.ndarray) -> FrameRender:
+    """The buffers of one frame for the unit rays ``d_cam`` (H*W, 3), camera frame, row-major."""
     W, H = scene.size
     R_c2r = pose[:3, :3].T
     C = -R_c2r @ pose[:3, 3]
-    d_cam = scene.rays
     rays = np.empty((H * W, 6), dtype=np.float32)
     rays[:, :3] = C
-    rays[:, 3:] = apply_matrix(R_c2r.astype(np.float32), scene.rays32)
+    rays[:, 3:] = apply_matrix(R_c2r.astype(np.float32), d_cam.astype(np.float32))
     hit = scene.raycaster.cast_rays(o3d.core.Tensor(rays), nthreads=0)
     t = hit["t_hit"].numpy()  # distance along the unit ray
     index = np.flatnonzero(np.isfinite(t))
@@ -122,22 +149,27 @@ class SensorFrames:
 
 def render_sensor_frames(scene: SyntheticScene, poses: np.ndarray, light, scale_factor: int, *, seed: int = 0,
                          noise: bool = True, sensor: str | None = None, masks: bool = True,
-                         progress: bool = False) -> SensorFrames:
+                         progress: bool = False, color_samples: int | None = None) -> SensorFrames:
     """Render every pose (n, 4, 4; scene frame -> camera) and simulate the colour and depth sensors.
 
     ``light``: one light for every frame, or a sequence of n (one per frame). ``sensor``: the
     profile (:data:`~o3d_mvps.synthetic.sensor.SENSORS`; None: "gaussian", or "none" when not
     ``noise``); its noise is drawn from ``seed``'s colour and depth streams. ``masks=False``
     leaves the object masks out (what a user's capture without a ``mask/`` folder looks like).
+    ``color_samples``: subpixel samples per side of the colour's box filter (:func:`render_frame`);
+    None: the profile's (``color_samples`` of the sensor: 1 for "gaussian" and "none", the
+    paper's point-sampled protocol; 2 for "d415", a real camera's pixel area).
     """
     profile = resolve_sensor(sensor, noise)
+    samples = profile.color_samples if color_samples is None else color_samples
+    check_color_samples(samples)
     lights = list(light) if isinstance(light, (list, tuple)) else [light] * len(poses)
     if len(lights) != len(poses):
         raise ValueError(f"{len(lights)} lights for {len(poses)} poses; give one light, or one per frame")
     color_rng, depth_rng = random_stream(seed, "color"), random_stream(seed, "depth")
     color, depth, object_masks, reference, draws = [], [], [], None, []
     for pose, frame_light in _progress(list(zip(poses, lights)), progress):
-        frame = render_frame(scene, pose, frame_light)
+        frame = render_frame(scene, pose, frame_light, samples)
         reference = frame if reference is None else reference
         image, drawn = profile.color(frame.color, color_rng)
         color.append(image_from_array(image))
@@ -145,7 +177,8 @@ def render_sensor_frames(scene: SyntheticScene, poses: np.ndarray, light, scale_
         z = profile.depth(frame.depth, scale_factor, depth_rng)
         depth.append(image_from_array(z.astype(np.float32)[:, :, None]))
         object_masks.append(image_from_array((frame.mask * np.uint8(255))[:, :, None]))
-    return SensorFrames(color, depth, object_masks if masks else None, reference, profile.describe(), draws)
+    described = {**profile.describe(), "color_samples": int(samples)}
+    return SensorFrames(color, depth, object_masks if masks else None, reference, described, draws)
 
 
 def _progress(iterable, enabled: bool):

@@ -26,13 +26,13 @@ from .sensor import DEPTH_SCALE
 def render_ring(mesh="bunny", *, frames: int = 12, size=(160, 120), scale_factor: int = 4, arc_deg: float = 360.0,
                 elevation_deg: float = 20.0, light: str = "led", surroundings: bool = False, seed: int = 0,
                 noise: bool = True, sensor: str | None = None, object_size: float = 0.2, distance: float = 0.6,
-                progress: bool = False, albedo: str = "patches"):
+                progress: bool = False, albedo: str = "patches", color_samples: int | None = None):
     """(Capture, scene): a ring capture of ``mesh`` and its :class:`~o3d_mvps.synthetic.SyntheticScene`.
 
     ``light``: "led", "directional" or "room" (:func:`~o3d_mvps.synthetic.make_light`; the
     capture's ``light`` says "led" or "room"). ``surroundings``: scene mode (table, wall, no
-    masks). ``sensor``: the sensor profile and ``albedo`` the texture ("patches" or "speckled")
-    (:func:`~o3d_mvps.synthetic.render_capture`).
+    masks). ``sensor``: the sensor profile, ``albedo`` the texture ("patches" or "speckled") and
+    ``color_samples`` the colour rays per pixel side (:func:`~o3d_mvps.synthetic.render_capture`).
     ``capture.groundtruth.poses`` (n, 4, 4) map frame-0 camera -> frame-i camera (what a
     pose file gives); ground truth depth, normals and albedo cover the object only.
     ``capture.metadata["world_to_camera"]`` holds the poses from the scene's reference camera
@@ -44,7 +44,8 @@ def render_ring(mesh="bunny", *, frames: int = 12, size=(160, 120), scale_factor
     world = ring_trajectory(frames, distance, elevation_deg, arc_deg)
     lighting = make_light(light, distance)
     rendered = render_sensor_frames(scene, world, lighting, scale_factor, seed=seed, noise=noise,
-                                    sensor=sensor, masks=not surroundings, progress=progress)
+                                    sensor=sensor, masks=not surroundings, progress=progress,
+                                    color_samples=color_samples)
     poses = relative_to_reference(world)
     gt = rendered.groundtruth(poses, lighting.parameters(poses, world[0]), world[0] @ scene.mesh_to_reference)
     K = scene.K

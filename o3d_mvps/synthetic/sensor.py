@@ -75,10 +75,12 @@ class GaussianSensor:
     """The paper's protocol (Kinect-like, DESIGN.md section 5): depth area-averaged over SF x SF
     blocks (mixed blocks dropped), Gaussian noise ``sigma = 1e-5 z_mm^2`` mm, 1 mm steps; colour
     Gaussian noise of ``color_sigma`` (linear units), 8-bit sRGB. ``noise=False`` keeps the
-    quantisation only (the "none" profile)."""
+    quantisation only (the "none" profile). ``color_samples`` 1: colour point-sampled at the
+    pixel centres, as the paper's renders (:func:`~o3d_mvps.synthetic.render.render_frame`)."""
 
     noise: bool = True
     color_sigma: float = COLOR_NOISE_SIGMA
+    color_samples: int = 1
 
     @property
     def name(self) -> str:
@@ -120,10 +122,12 @@ class D415Sensor:
     5. disparity quantisation to ``1 / subpixel_steps`` px: terraces ``z^2 / (f B steps)``
        (1.13 mm at 1 m, 0.41 mm at 0.6 m); then the capture's 1 mm uint16 units.
 
-    Colour (a CMOS RGB camera): radiance times the frame's exposure gain ``g`` (log-uniform in
-    ``1 +- gain_drift``), shot noise (``full_well`` electrons at linear 1.0, Gaussian
-    approximation of Poisson) and read noise (``read_noise`` electrons), white balance ``w_c``
-    on red and blue (log-uniform in ``1 +- white_balance_drift``, green 1), clipped, 8-bit sRGB.
+    Colour (a CMOS RGB camera): the radiance integrated over each pixel's area (``color_samples``
+    x ``color_samples`` rays, a box filter: :func:`~o3d_mvps.synthetic.render.render_frame`),
+    times the frame's exposure gain ``g`` (log-uniform in ``1 +- gain_drift``), shot noise
+    (``full_well`` electrons at linear 1.0, Gaussian approximation of Poisson) and read noise
+    (``read_noise`` electrons), white balance ``w_c`` on red and blue (log-uniform in
+    ``1 +- white_balance_drift``, green 1), clipped, 8-bit sRGB.
 
     Sources: baseline 55 mm and depth HFOV 65 deg (D415 datasheet, Intel doc. 337029); f the
     640x360 depth mode's focal length ``320 / tan(32.5 deg)`` = 502 px; 1/32 px disparity
@@ -148,6 +152,7 @@ class D415Sensor:
     read_noise: float = 5.0  # electrons RMS
     gain_drift: float = 0.1  # exposure gain in [1/(1+x), 1+x]
     white_balance_drift: float = 0.04  # red/blue gains in [1/(1+x), 1+x]
+    color_samples: int = 2  # subpixel rays per side over the pixel area (4x the point-sampled render)
     name = "d415"
 
     def depth_step(self, z) -> np.ndarray:

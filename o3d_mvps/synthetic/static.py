@@ -27,7 +27,8 @@ from .sensor import DEPTH_SCALE
 def render_static_capture(mesh="bunny", *, frames: int = 20, scale_factor: int = 2, size=(1280, 960),
                           light_radius=HANDHELD_RADIUS, seed: int = 0, sensor: str | None = None, noise: bool = True,
                           object_size: float = 0.2, distance: float = 0.6, shadows: bool = True,
-                          albedo: str = "patches", masks: bool = True, progress: bool = False) -> Capture:
+                          albedo: str = "patches", masks: bool = True, progress: bool = False,
+                          color_samples: int | None = None) -> Capture:
     """Render a static-camera capture of ``mesh`` lit by a hand-held light, with ground truth.
 
     Parameters
@@ -60,6 +61,9 @@ def render_static_capture(mesh="bunny", *, frames: int = 20, scale_factor: int =
         False: no object masks (a user's capture without ``mask/``, refined as ``--mask none``).
     progress : bool
         Show a progress bar over frames.
+    color_samples : int or None
+        Colour rays per pixel side, averaged over the pixel's area (as
+        :func:`~o3d_mvps.synthetic.render_capture`); None: the sensor profile's.
 
     Returns
     -------
@@ -79,7 +83,7 @@ def render_static_capture(mesh="bunny", *, frames: int = 20, scale_factor: int =
     poses = np.tile(np.eye(4), (int(frames), 1, 1))
     lights = handheld_lights(int(frames), distance, radius, shadows)
     rendered = render_sensor_frames(scene, poses, lights, scale_factor, seed=seed, noise=noise, sensor=sensor,
-                                    masks=masks, progress=progress)
+                                    masks=masks, progress=progress, color_samples=color_samples)
     gt = rendered.groundtruth(poses, handheld_parameters(lights), scene.mesh_to_reference)
     K = scene.K
     return Capture(
