@@ -236,9 +236,9 @@ BLOCK_PIXELS = 4096
 #: chunk (one thread) to rounding.
 HOST_CHUNK_PIXELS = 1024
 
-#: :data:`BLOCK_PIXELS` on a GPU, where each block costs some 45 launches and a few copies
-#: whatever its size (``python -m benchmarks.gpu sites``): the D415's finest level (about 90 000
-#: object pixels) in one block, its temporaries some 0.8 GB of GPU memory at 19 refined frames.
+#: :data:`BLOCK_PIXELS` on a GPU (:func:`_device_joint_system`), where each block costs three
+#: launches (``python -m benchmarks.gpu sites``): the D415's finest level (about 90 000 object
+#: pixels) in one block, its temporaries some 0.8 GB of GPU memory at 19 refined frames.
 DEVICE_BLOCK_PIXELS = 98304
 
 
@@ -256,10 +256,10 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
     order of sums: every sum over frames is per pixel, every sum over pixels is added up across
     blocks).
     Per block, one compiled launch over every frame (:func:`.kernels.accumulate_block` on the
-    host, in parallel over pixel chunks; :func:`.kernels.accumulate_frames` on a GPU): each frame
-    adds its depth rows to per-pixel sums and writes its twist rows and w s J, as
-    :func:`.kernels.accumulate_frame` does a frame at a time; the block's albedo projection and
-    its share of the coupling follow.
+    host, in parallel over pixel chunks): each frame adds its depth rows to per-pixel sums and
+    writes its twist rows and w s J, as :func:`.kernels.accumulate_frame` does a frame at a
+    time; the block's albedo projection and its share of the coupling follow. On a GPU:
+    :func:`_device_joint_system`.
     release: release ``ev`` (:meth:`.Evaluation.release`): its warped colours and light bases
     (which the pass does not read: 0.3-0.5 GB at 2 megapixels and 20 frames) before the coupling
     is allocated, the rest once the pass has read it, before the matrices are formed.
