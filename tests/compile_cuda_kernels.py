@@ -100,6 +100,19 @@ SIGNATURES = {
     # gpu3: the driver's extrapolation trials (the driver's three factors)
     "_extrapolation_trials": (_F1, _F1, _F2, _F2, types.UniTuple(types.float64, 3), _F1, _F1, _F2, _F3, _F2),
     "_depth_step": (_F1, _F1, types.float64, _F1, _F1, _F1, _F1),
+    # gpujoint: the joint step's assembly, twist system, depth system, inverse and read-out
+    "_joint_block": (_R3, _R2, _array(2, types.boolean), types.float64, _F2, _F1, _F3, _array(1, types.int64),
+                     _array(1, types.int64), _F2, _F3, _F2, _array(4, types.float32), _F3, types.boolean,
+                     types.boolean, _F2, _F2, _F2, _F2, _F2, _F2, _F3, _F4, _F4, _F1, _F2, _F3),
+    "_add_stencil_transpose_rows": (*(_array(1, types.int32), _array(1, types.int32), _F1) * 2, _F3, types.int64,
+                                    _F2),
+    "_joint_twist_system": (_F3, _F3, types.float64, types.float64, _F3, _F1, _F2, _F3, _F1, _F2, _F1, _F2),
+    "_joint_depth_system": (_array(1, types.int32), _array(1, types.int32),
+                            *(_array(1, types.int64), _array(1, types.int64), _F1, _F1) * 2, *(_F1,) * 6,
+                            *(types.float64, _array(1, types.int32), _array(1, types.int32), _F1) * 2, _F1, _F1,
+                            *(_array(1, types.int32), _array(1, types.int32), _F1) * 2, _F1, _F1, _F1, _F1, _F1),
+    "_joint_inverse": (_F3, _F3, _F1, types.float64, _F3, _F3, _F1),
+    "_twist_readout": (_F2, _F1, _F3, _F1),
 }
 
 

@@ -968,3 +968,190 @@ def test_depth_step_matches_cpu_and_the_line_search_formula(envelope):
     np.testing.assert_array_equal(np.isnan(gpu[-2]), np.arange(N) == 13)
     assert_close(np.delete(gpu[-2], 13), np.delete(expected, 13))
     assert cpu[-1].sum() == gpu[-1].sum() == (1 if envelope else 2)
+
+
+# --- gpujoint (issue #33): the joint step's device assembly, twist system and read-out ----------
+
+
+@pytest.mark.parametrize("project", [True, False])
+def test_joint_block_matches_cpu_and_the_host_pass(project):
+    """One launch per assembly block (light rows, reference parallax, every frame's sums and rows,
+    the albedo projection): the CPU twin equals the host's pass of separate steps on the same data
+    (_light_rows, _parallax_rows, accumulate_frames, _AlbedoProjection's downdates, scalings and
+    project_twist_rows) to round-off, the CUDA kernel its twin; the partial twist sums add up to
+    accumulate_frames' and count each frame's usable pixels."""
+    from o3d_mvps.solver.normal_equations import _AlbedoProjection, _light_rows, _parallax_rows
+
+    n, B = 3, 140  # more pixels than a thread block's threads: some threads take two
+    m = n - 1
+    f = lambda *shape: RNG.random(shape)  # noqa: E731
+    K = np.array([[300.0, 0.0, 80.0], [0.0, 310.0, 60.0], [0.0, 0.0, 1.0]])
+    poses = np.stack([np.eye(4), POSE, POSE @ POSE])
+    # float64 residuals: the simulator's NumPy scalars would keep float32 products in float32
+    residual, shading = f(n, B, 3) - 0.5, f(n, B)
+    usable = RNG.random((n, B)) > 0.2
+    usable[:, 5] = False  # d = 0 there
+    albedo, dA, field = f(B, 3), f(B) + 0.5, f(n, B, 3) - 0.5
+    u, v = RNG.integers(0, 160, B), RNG.integers(0, 120, B)
+    points = (f(B, 3) - 0.5) * [0.6, 0.4, 0.2] + [0.0, 0.0, 1.0]
+    images, dshading = RNG.random((n, 120, 160, 3)).astype(np.float32), f(n, B, 6) - 0.5
+    inputs = (residual, shading, usable, 1.0 / LAM, albedo, dA, field, u, v, points, poses, K, images, dshading, True,
+              True)
+
+    def outputs(rows_count):
+        return [np.full(shape, np.nan) for shape in ((B, 3), (n, B), (n, B), (n, B), (B, 3), (9, B),
+                                                     (3 if project else 0, B if project else 1, 3), (3, m, 6, B),
+                                                     (m if project else 0, 6, B if project else 1, 3),
+                                                     (3 * B if project else 0,), (B, 3), (rows_count, m, 28))]
+
+    cpu = outputs(kernels.joint_blocks(B))
+    kernels.joint_block(*inputs, *cpu)
+    gpu = outputs(cuda_kernels.joint_blocks(B))
+    cuda_kernels.joint_block(*[np.copy(a) if isinstance(a, np.ndarray) else a for a in inputs], *gpu)
+    # the host's steps
+    alpha, beta, gamma = _light_rows(field[..., 0], field[..., 1], field[..., 2], u, v, 300.0, 80.0, 310.0, 60.0)
+    extra = _parallax_rows(albedo, *(dshading[0][:, k:k + 1] for k in range(3)), *(points[:, k:k + 1] for k in range(3)),
+                           usable[0][:, None])
+    frame_slots = np.array([[0, -1], [1, 0], [1, 1]], dtype=np.int64)
+    sums, e = np.zeros((9, B)), np.zeros((3, B, 3)) if project else np.zeros((0, 1, 3))
+    rows, F = np.zeros((3, m, 6, B)), np.zeros((m, 6, B, 3)) if project else np.zeros((0, 6, 1, 3))
+    gram, rhs = np.zeros((m + 1, kernels.chunk_count(B), 6, 6)), np.zeros((m + 1, kernels.chunk_count(B), 6))
+    kernels.accumulate_frames(residual, shading, usable, 1.0 / LAM, albedo / dA[:, None], alpha, beta, gamma, extra,
+                              points, poses, K, images, dshading, albedo, frame_slots, True, sums, e, rows, F, gram, rhs)
+    expected = {7: sums, 8: rows}
+    if project:
+        projection = _AlbedoProjection(residual, usable, shading, LAM)
+        projection.e = e
+        sums = sums - projection.local()
+        scaled, root = projection.twist_scalings()
+        kernels.project_twist_rows(rows, F, scaled, root)
+        expected = {5: sums, 6: scaled, 7: rows, 8: F, 9: (projection.sWr * root).reshape(-1), 10: root}
+    else:
+        expected = {5: sums, 7: rows}
+    for k, value in {0: albedo / dA[:, None], 1: alpha, 2: beta, 3: gamma, 4: extra, **expected}.items():
+        assert_close(cpu[k], value)
+        assert_close(gpu[k], cpu[k])
+    for got in (cpu, gpu):
+        totals = got[11].sum(axis=0)  # (m, 28)
+        upper = np.triu_indices(6)
+        assert_close(totals[:, :21], gram[:m].sum(axis=1)[:, upper[0], upper[1]])
+        assert_close(totals[:, 21:27], rhs[:m].sum(axis=1))
+        np.testing.assert_array_equal(totals[:, 27], usable[1:].sum(axis=1))
+    assert np.abs(cpu[7]).max() > 0.0 and (not project or cpu[10][5].tolist() == [0.0, 0.0, 0.0])
+
+
+def test_add_stencil_transpose_rows_matches_cpu_and_the_sparse_formula():
+    """U^T += Du_b^T a + Dv_b^T b + c for one block's rows of the difference operators, given by
+    the block's slice of indptr and the whole indices and data: the CUDA kernel's atomic adds
+    (neighbouring pixels share columns) equal the CPU's to round-off and the sparse products."""
+    from o3d_mvps.model.normals import masked_grid
+
+    mask = np.ones((9, 11), dtype=bool)
+    mask[:2, :3] = False
+    grid = masked_grid(mask)
+    N, k, start, stop = grid.size, 5, 20, 60
+    Du, Dv = grid.difference_operators()
+    rows, out = RNG.normal(size=(3, k, stop - start)), RNG.normal(size=(k, N))
+    cpu, gpu = run_both("add_stencil_transpose_rows", Du.indptr[start:stop + 1], Du.indices, Du.data,
+                        Dv.indptr[start:stop + 1], Dv.indices, Dv.data, rows, start, out)
+    expected = out + (Du[start:stop].T @ rows[0].T + Dv[start:stop].T @ rows[1].T).T
+    expected[:, start:stop] += rows[2]
+    assert_close(cpu[-1], expected)
+    assert_close(gpu[-1], cpu[-1])
+
+
+def test_joint_twist_system_matches_cpu_and_twist_system():
+    """The twist system from the assembly's partial sums (two blocks' rows and F Grams): the
+    twist_system of the summed Grams, right-hand sides and downdate, and a frame with fewer usable
+    pixels than asked dropped (an identity block, a zero right-hand side); CPU and CUDA alike."""
+    m, R = 3, 4
+    K = 6 * m
+    partial = RNG.normal(size=(R, m, 28))
+    for f in range(m):  # a well-conditioned Gram per frame, split over the rows
+        M = RNG.normal(size=(6, 6))
+        partial[:, f, :21] = (np.triu(M @ M.T + 6 * np.eye(6))[np.triu_indices(6)] / R)
+    partial[:, :, 27] = [[10.0, 2.0, 9.0]] * R  # usable pixels: 40, 8, 36
+    products = RNG.normal(size=(2, K + 1, K + 1)) * 1e-3
+    products = products @ products.transpose(0, 2, 1)
+    args = (partial, products, 12, kernels.MAX_TWIST_CONDITION, np.zeros((m, 6, 6)), np.zeros(K),
+            np.zeros((K + 1, K + 1)), np.zeros((m, 6, 6)), np.zeros(m), np.full((K, K), np.nan), np.zeros(K),
+            np.ones((K, K)))
+    cpu, gpu = run_both("joint_twist_system", *args)
+    grams = np.zeros((m, 6, 6))
+    for f in range(m):
+        grams[f][np.triu_indices(6)] = partial[:, f, :21].sum(axis=0)
+    D = products.sum(axis=0)
+    reference = (grams, partial[:, :, 21:27].sum(axis=0).reshape(-1), D[K, :K].copy(), D[:K, :K].copy(),
+                 kernels.MAX_TWIST_CONDITION, np.zeros((m, 6, 6)), np.zeros(m), np.zeros((K, K)), np.zeros(K),
+                 np.zeros((K, K)))
+    kernels.twist_system(*reference)
+    np.testing.assert_array_equal(cpu[8], [1.0, 0.0, 1.0])
+    np.testing.assert_array_equal(reference[6], [1.0, 1.0, 1.0])  # the Grams alone keep all three
+    keep = np.r_[np.ones(6), np.zeros(6), np.ones(6)].astype(bool)
+    assert_close(cpu[9][np.ix_(keep, keep)], reference[7][np.ix_(keep, keep)])
+    np.testing.assert_array_equal(cpu[9][6:12, 6:12], np.eye(6))
+    assert_close(cpu[10], np.where(keep, reference[8], 0.0))
+    np.testing.assert_array_equal(cpu[11], -np.diag(keep.astype(float)))
+    for k in (8, 9, 10, 11):
+        assert_close(gpu[k], cpu[k])
+
+
+def test_joint_depth_system_matches_cpu_and_its_two_kernels():
+    """The depth block and its right-hand side in one launch: depth_block_fill's and
+    stencil_transpose_subtract's values, CPU and CUDA alike."""
+    from o3d_mvps.model.normals import masked_grid
+    from o3d_mvps.solver.normal_equations import depth_block_pattern
+
+    mask = np.ones((8, 10), dtype=bool)
+    mask[:2, :3] = False
+    grid = masked_grid(mask)
+    N = grid.size
+    sums = RNG.random((9, N))
+    D = sp.random(N // 4, N, density=0.05, random_state=3, format="csr")
+    prior = type("Prior", (), {"D": D, "smoothness_pattern": None})()
+    indptr, indices = depth_block_pattern(grid, prior)
+    DtD = (D.T @ D).tocsr()
+    DuT, DvT = grid.transposed_difference_operators()
+    geometry = (grid.fwd_u, grid.bwd_u, grid.wf_u, grid.wb_u, grid.fwd_v, grid.bwd_v, grid.wf_v, grid.wb_v)
+    fill = (indptr, indices, *geometry, *sums[:6], 1.4, DtD.indptr, DtD.indices, DtD.data, 0.0, DtD.indptr[:1],
+            DtD.indices, DtD.data, np.zeros(indices.size), np.zeros(1))
+    rhs = (DuT.indptr, DuT.indices, DuT.data, DvT.indptr, DvT.indices, DvT.data, *sums[6:], RNG.normal(size=N),
+           np.full(N, np.nan))
+    cpu, gpu = run_both("joint_depth_system", *fill, *rhs)
+    alone = [np.copy(a) for a in fill], [np.copy(a) for a in rhs]
+    kernels.depth_block_fill(*alone[0])
+    kernels.stencil_transpose_subtract(*alone[1])
+    n_fill = len(fill)
+    for k in (n_fill - 2, n_fill - 1):
+        assert_close(cpu[k], alone[0][k])
+        assert_close(gpu[k], cpu[k])
+    assert_close(cpu[-1], alone[1][-1])
+    assert_close(gpu[-1], cpu[-1])
+    assert cpu[n_fill - 1][0] == 0.0 and np.abs(cpu[n_fill - 2]).max() > 0.0
+
+
+def test_joint_inverse_and_twist_readout_match_numpy_and_cpu():
+    """X = [[H^-1 selection, H^-1 selection b], [0, 1]] in one launch, and the twists
+    ``P[j] . dz - X[j, K]`` of P = X^T [U^T; rhs_z^T] in another: NumPy's formulas (the Schur
+    right-hand side rhs_z + U x in P's last row), CPU and CUDA alike."""
+    K, N = 12, 50
+    M = RNG.normal(size=(K, K))
+    H = (M @ M.T)[None]
+    selection = -np.diag(np.r_[np.ones(6), np.zeros(6)])[None]
+    b = RNG.normal(size=K)
+    cpu, gpu = run_both("joint_inverse", H, selection, b, 1e-12, np.zeros((1, K, K)), np.full((1, K + 1, K + 1), np.nan),
+                        np.zeros(1))
+    X = np.linalg.solve(H[0], selection[0])
+    assert_close(cpu[5][0, :K, :K], X, rtol=1e-9)
+    assert_close(cpu[5][0, :K, K], X @ b, rtol=1e-9)
+    np.testing.assert_array_equal(cpu[5][0, K], np.r_[np.zeros(K), 1.0])
+    assert cpu[6][0] == 1.0
+    assert_close(gpu[5], cpu[5])
+    stacked = RNG.normal(size=(K + 1, N))  # [U^T; rhs_z^T]
+    P = cpu[5][0].T @ stacked
+    assert_close(P[K], stacked[K] + stacked[:K].T @ (X @ b))
+    dz = RNG.normal(size=N)
+    out_cpu, out_gpu = run_both("twist_readout", P, dz, cpu[5], np.full(K, np.nan))
+    # (U X)^T dz - X b: with the solver's H and selection (X symmetric) -H^-1 diag(kept) (b - U^T dz)
+    assert_close(out_cpu[-1], X.T @ (stacked[:K] @ dz) - X @ b, rtol=1e-9)
+    assert_close(out_gpu[-1], out_cpu[-1])

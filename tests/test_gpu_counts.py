@@ -31,8 +31,11 @@ one copy): alone against 33f5a07 313 / 314 and 423 launches, 45 / 43 and 58.5 co
 merged: 249 / 256 and 412 launches, 45 / 43 and 58.5 copies. The data term's evaluation in one
 launch, the set-up's, lighting's and albedo's kernels and the trial states' kernels (issue 33,
 2026-11-26; docs/gpu.md): 106 / 119 and 303 launches, 30 / 29 and 54 copies (the room's light
-path keeps more array operations). The bounds are these counts with a margin of about 1 % (1-3
-launches, 1 copy, 0.5 on the room's copies).
+path keeps more array operations). The joint step's assembly, twist system, Schur operator and
+twists in a few numba-cuda kernels (issue 33, gpujoint: one per assembly block, no read of the
+frames' pixel counts, the poses the evaluation's copy): 80 / 93 and 291 launches, 28 / 27 and 52
+copies. The bounds are these counts with a margin of about 1 % (1-3 launches, 1 copy, 0.5 on the
+room's copies).
 """
 
 import shutil
@@ -42,7 +45,7 @@ import pytest
 from benchmarks import gpu
 
 #: (problem, level) -> (launches per sweep, copies per sweep, host reads per linear solve): at most
-BOUNDS = {("led", 1): (107, 31, 2), ("led", 0): (120, 30, 2), ("room", 0): (306, 54.5, 1)}
+BOUNDS = {("led", 1): (81, 29, 2), ("led", 0): (94, 28, 2), ("room", 0): (294, 52.5, 1)}
 
 
 @pytest.fixture(scope="module")

@@ -1029,16 +1029,11 @@ _stencil_gram_value = _device(kernels.stencil_gram_value)
 _csr_position = _device(kernels.csr_position)
 
 
-@cuda.jit(cache=True)
-def _depth_block_fill(indptr, indices, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, Saa, Sbb, Sgg, Sab, Sag,
-                      Sbg, s1, t1_indptr, t1_indices, t1_data, s2, t2_indptr, t2_indices, t2_data, data,
-                      missing):  # pragma: no cover - device
-    """Thread k: pixel k's 5 x 5 stencil block, then row k of each term, added by atomics."""
-    nodes = cuda.local.array(5, numba.int64)
-    cu = cuda.local.array(5, numba.float64)
-    cv = cuda.local.array(5, numba.float64)
-    ce = cuda.local.array(5, numba.float64)
-    k = cuda.grid(1)
+def _depth_block_rows(indptr, indices, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, Saa, Sbb, Sgg, Sab, Sag, Sbg,
+                      s1, t1_indptr, t1_indices, t1_data, s2, t2_indptr, t2_indices, t2_data, data, missing, nodes, cu,
+                      cv, ce, k):  # pragma: no cover - device
+    """Thread k's share of :func:`depth_block_fill`: pixel k's 5 x 5 stencil block, then row k of
+    each term, added by atomics (scratch nodes, cu, cv, ce (5,))."""
     if k < fwd_u.shape[0]:
         _stencil_pixel(fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, nodes, cu, cv, ce, k)
         for p in range(5):
@@ -1067,6 +1062,25 @@ def _depth_block_fill(indptr, indices, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, w
                 cuda.atomic.add(missing, 0, 1.0)
             else:
                 cuda.atomic.add(data, at, s2 * t2_data[nz])
+
+
+if not cuda.config.ENABLE_CUDASIM:  # compiled for the device where a kernel calls it (not inline="always":
+    _depth_block_rows = numba.njit(_depth_block_rows)  # numba's inlining refuses its 31 arguments)
+
+
+@cuda.jit(cache=True)
+def _depth_block_fill(indptr, indices, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, Saa, Sbb, Sgg, Sab, Sag,
+                      Sbg, s1, t1_indptr, t1_indices, t1_data, s2, t2_indptr, t2_indices, t2_data, data,
+                      missing):  # pragma: no cover - device
+    """Thread k: pixel k's 5 x 5 stencil block, then row k of each term, added by atomics."""
+    nodes = cuda.local.array(5, numba.int64)
+    cu = cuda.local.array(5, numba.float64)
+    cv = cuda.local.array(5, numba.float64)
+    ce = cuda.local.array(5, numba.float64)
+    k = cuda.grid(1)
+    _depth_block_rows(indptr, indices, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, Saa, Sbb, Sgg, Sab, Sag, Sbg,
+                      s1, t1_indptr, t1_indices, t1_data, s2, t2_indptr, t2_indices, t2_data, data, missing, nodes, cu,
+                      cv, ce, k)
 
 
 def depth_block_fill(indptr, indices, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, Saa, Sbb, Sgg, Sab, Sag, Sbg,
@@ -1191,3 +1205,218 @@ def depth_step(z, dz, t, lower, upper, out, bad) -> None:
     """:func:`.kernels.depth_step` on the GPU in one launch (was two or three array operations, a
     clip and a reduction): ``bad.size`` blocks, each thread a strided share of the pixels."""
     _depth_step[bad.shape[0], THREADS_PER_BLOCK](z, dz, float(t), lower, upper, out, bad)
+
+
+# --- gpujoint (issue #33): the joint step's device assembly, twist system and read-out ---------
+# (CPU twins in :mod:`.kernels`' section of the same name)
+
+__all__ += ["joint_block", "add_stencil_transpose_rows", "joint_twist_system", "joint_depth_system", "joint_inverse",
+            "twist_readout"]
+
+_JOINT_SUMS = kernels.JOINT_SUMS  # a global: a constant where a kernel sizes a shared array
+_joint_pixel_rows = _device(kernels.joint_pixel_rows)
+_joint_frame = _device(kernels.joint_frame)
+_joint_pack_sums = _device(kernels.joint_pack_sums)
+_joint_pixel_projection = _device(kernels.joint_pixel_projection)
+_joint_unpack_sums = _device(kernels.joint_unpack_sums)
+_joint_frame_kept = _device(kernels.joint_frame_kept)
+_joint_inverse_row = _device(kernels.joint_inverse_row)
+
+
+def joint_blocks(n_pixels: int) -> int:
+    """Partial rows of :func:`joint_block`'s twist sums for a block of ``n_pixels``: its thread
+    blocks (:data:`PIXELS_PER_THREAD` pixels a thread)."""
+    return _blocks(-(-n_pixels // PIXELS_PER_THREAD))
+
+
+@cuda.jit(cache=True)
+def _joint_block(residual, shading, usable, inv_lam, albedo, dA, L, u, v, points_ref, poses, K, images, dshading,
+                 parallax, twists, q, alpha, beta, gamma, extra, sums, e, rows, F, top, root,
+                 partial):  # pragma: no cover - device
+    """Thread t takes pixels t, t + T, ... (T the launch's threads) through the set-up, the frames
+    in order and the projection; after each refined frame the block's threads add their twist
+    sums in shared memory (a fixed order: thread s's values in turn by value) into the block's
+    partial row."""
+    share = cuda.shared.array((THREADS_PER_BLOCK, _JOINT_SUMS), numba.float64)
+    J = cuda.local.array((3, 6), numba.float64)
+    G = cuda.local.array((6, 6), numba.float64)
+    b = cuda.local.array(6, numba.float64)
+    wqJ = cuda.local.array(6, numba.float64)
+    wcJ = cuda.local.array(6, numba.float64)
+    num = cuda.local.array(3, numba.float64)
+    den = cuda.local.array(3, numba.float64)
+    t = cuda.threadIdx.x
+    first, stride = cuda.grid(1), cuda.gridsize(1)
+    B = residual.shape[1]
+    for p in range(first, B, stride):
+        _joint_pixel_rows(p, albedo, dA, L, u, v, K, points_ref, dshading, usable[0], q, alpha, beta, gamma, extra,
+                          sums, e)
+    for i in range(residual.shape[0]):
+        jac, slot = _joint_frame(i, parallax, twists)
+        for j in range(6):
+            b[j] = 0.0
+            for k in range(6):
+                G[j, k] = 0.0
+        count = 0.0
+        ex = extra[:extra.shape[0] if i == 0 else 0]
+        r_i, sh_i, use_i = residual[i], shading[i], usable[i]
+        al_i, be_i, ga_i = alpha[i], beta[i], gamma[i]
+        pose, image, ds = poses[i], images[i], dshading[i]
+        for p in range(first, B, stride):
+            _accumulate_pixel(p, r_i, sh_i, use_i, inv_lam, q, al_i, be_i, ga_i, ex, points_ref, pose, K, image, ds,
+                              albedo, jac, parallax, sums, e, rows, F, slot, J, G, b, wqJ, wcJ)
+            if use_i[p]:
+                count += 1.0
+        if slot >= 0:  # the same for every thread: the barriers are reached by all
+            _joint_pack_sums(G, b, count, share, t)
+            cuda.syncthreads()
+            if t < _JOINT_SUMS:
+                total = 0.0
+                for s in range(THREADS_PER_BLOCK):
+                    total += share[s, t]
+                partial[cuda.blockIdx.x, slot, t] = total
+            cuda.syncthreads()
+    if e.shape[0] > 0:
+        for p in range(first, B, stride):
+            _joint_pixel_projection(p, residual, usable, shading, inv_lam, sums, e, rows, F, top, root, den, num)
+
+
+def joint_block(residual, shading, usable, inv_lam, albedo, dA, L, u, v, points_ref, poses, K, images, dshading,
+                parallax, twists, q, alpha, beta, gamma, extra, sums, e, rows, F, top, root, partial) -> None:
+    """:func:`.kernels.joint_block` on the GPU in one launch (was some 20 launches a block): the
+    partial rows are its :func:`joint_blocks` (B) thread blocks (partial (R, m,
+    :data:`.kernels.JOINT_SUMS`))."""
+    _joint_block[partial.shape[0], THREADS_PER_BLOCK](residual, shading, usable, float(inv_lam), albedo, dA, L, u, v,
+                                                      points_ref, poses, K, images, dshading, bool(parallax),
+                                                      bool(twists), q, alpha, beta, gamma, extra, sums, e, rows, F,
+                                                      top, root, partial)
+
+
+@cuda.jit(cache=True)
+def _add_stencil_transpose_rows(u_indptr, u_indices, u_data, v_indptr, v_indices, v_data, rows, first,
+                                out):  # pragma: no cover - device
+    index = cuda.grid(1)
+    B = rows.shape[2]
+    if index < rows.shape[1] * B:
+        j, p = index // B, index % B
+        a, b = rows[0, j, p], rows[1, j, p]
+        cuda.atomic.add(out, (j, first + p), rows[2, j, p])
+        for nz in range(u_indptr[p], u_indptr[p + 1]):
+            cuda.atomic.add(out, (j, u_indices[nz]), u_data[nz] * a)
+        for nz in range(v_indptr[p], v_indptr[p + 1]):
+            cuda.atomic.add(out, (j, v_indices[nz]), v_data[nz] * b)
+
+
+def add_stencil_transpose_rows(u_indptr, u_indices, u_data, v_indptr, v_indices, v_data, rows, first, out) -> None:
+    """:func:`.kernels.add_stencil_transpose_rows` on the GPU in one launch (was two scatters and
+    a sum): one thread per row and pixel, adding by atomics (neighbouring pixels share columns:
+    the order of the additions, so the rounding, varies from run to run)."""
+    _add_stencil_transpose_rows[_blocks(rows.shape[1] * rows.shape[2]), THREADS_PER_BLOCK](
+        u_indptr, u_indices, u_data, v_indptr, v_indices, v_data, rows, int(first), out)
+
+
+@cuda.jit(cache=True)
+def _joint_twist_system(partial, products, min_pixels, limit, grams, rhs_frames, D, W, kept, hessian, rhs,
+                        selection):  # pragma: no cover - device
+    """One block: the sums (strided over the items), the frames' kept flags, the entries; a
+    barrier between."""
+    t = cuda.threadIdx.x
+    m = partial.shape[1]
+    items = m * _JOINT_SUMS
+    for item in range(t, items + D.shape[0] * D.shape[1], THREADS_PER_BLOCK):
+        if item < items:
+            _joint_unpack_sums(partial, products, grams, rhs_frames, kept, D, item // _JOINT_SUMS,
+                               item % _JOINT_SUMS)
+        else:
+            _joint_unpack_sums(partial, products, grams, rhs_frames, kept, D, 0, item - items + _JOINT_SUMS)
+    cuda.syncthreads()
+    for f in range(t, m, THREADS_PER_BLOCK):
+        _joint_frame_kept(grams, limit, min_pixels, W, kept, f)
+    cuda.syncthreads()
+    k = hessian.shape[0]
+    for index in range(t, k * k, THREADS_PER_BLOCK):
+        _twist_entry(grams, rhs_frames, D[k], D, kept, hessian, rhs, selection, index // k, index % k)
+
+
+def joint_twist_system(partial, products, min_pixels, limit, grams, rhs_frames, D, W, kept, hessian, rhs,
+                       selection) -> None:
+    """:func:`.kernels.joint_twist_system` on the GPU: one launch of one block (was two
+    reductions, a sum and :func:`twist_system`)."""
+    _joint_twist_system[1, THREADS_PER_BLOCK](partial, products, float(min_pixels), float(limit), grams, rhs_frames, D,
+                                              W, kept, hessian, rhs, selection)
+
+
+@cuda.jit(cache=True)
+def _joint_depth_system(indptr, indices, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, Saa, Sbb, Sgg, Sab, Sag,
+                        Sbg, s1, t1_indptr, t1_indices, t1_data, s2, t2_indptr, t2_indices, t2_data, data, missing,
+                        u_indptr, u_indices, u_data, v_indptr, v_indices, v_data, Ba, Bb, Bg, y,
+                        out):  # pragma: no cover - device
+    """Thread k: :func:`_depth_block_fill`'s pixel k and rows k, then row k of the right-hand side."""
+    nodes = cuda.local.array(5, numba.int64)
+    cu = cuda.local.array(5, numba.float64)
+    cv = cuda.local.array(5, numba.float64)
+    ce = cuda.local.array(5, numba.float64)
+    k = cuda.grid(1)
+    _depth_block_rows(indptr, indices, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, Saa, Sbb, Sgg, Sab, Sag, Sbg,
+                      s1, t1_indptr, t1_indices, t1_data, s2, t2_indptr, t2_indices, t2_data, data, missing, nodes, cu,
+                      cv, ce, k)
+    if k < out.shape[0]:
+        _stencil_transpose_row(u_indptr, u_indices, u_data, v_indptr, v_indices, v_data, Ba, Bb, Bg, y, out, k)
+
+
+def joint_depth_system(indptr, indices, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, Saa, Sbb, Sgg, Sab, Sag,
+                       Sbg, s1, t1_indptr, t1_indices, t1_data, s2, t2_indptr, t2_indices, t2_data, data, missing,
+                       u_indptr, u_indices, u_data, v_indptr, v_indices, v_data, Ba, Bb, Bg, y, out) -> None:
+    """:func:`.kernels.joint_depth_system` on the GPU in one launch (was :func:`depth_block_fill`
+    and :func:`stencil_transpose_subtract`): one thread per pixel, term row and right-hand side
+    row."""
+    rows = max(fwd_u.shape[0], t1_indptr.shape[0] - 1, t2_indptr.shape[0] - 1, out.shape[0])
+    _joint_depth_system[_blocks(rows), THREADS_PER_BLOCK](
+        indptr, indices, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, Saa, Sbb, Sgg, Sab, Sag, Sbg, float(s1),
+        t1_indptr, t1_indices, t1_data, float(s2), t2_indptr, t2_indices, t2_data, data, missing, u_indptr, u_indices,
+        u_data, v_indptr, v_indices, v_data, Ba, Bb, Bg, y, out)
+
+
+@cuda.jit(cache=True)
+def _joint_inverse(hessian, selection, rhs, fallback, L, X, solved):  # pragma: no cover - device
+    """One block: thread 0 factors; after the barrier the threads take X's columns, then its
+    last column's rows and its last row."""
+    t = cuda.threadIdx.x
+    ok = cuda.shared.array(1, numba.int32)
+    if t == 0:
+        done = _ridge_cholesky(hessian, 0.0, fallback, L, 0)
+        solved[0] = 1.0 if done else 0.0
+        ok[0] = 1 if done else 0
+    cuda.syncthreads()
+    K = hessian.shape[1]
+    for c in range(t, K, THREADS_PER_BLOCK):
+        _cholesky_column(L, selection, X, ok[0] != 0, 0, c)
+    cuda.syncthreads()
+    for j in range(t, K + 1, THREADS_PER_BLOCK):
+        _joint_inverse_row(X, rhs, j)
+
+
+def joint_inverse(hessian, selection, rhs, fallback, L, X, solved) -> None:
+    """:func:`.kernels.joint_inverse` on the GPU: one launch of one block."""
+    _joint_inverse[1, THREADS_PER_BLOCK](hessian, selection, rhs, float(fallback), L, X, solved)
+
+
+@cuda.jit(cache=True)
+def _twist_readout(P, dz, X, out):  # pragma: no cover - device
+    """Block j: its threads' strided shares of P[j] . dz, added in a tree."""
+    share = cuda.shared.array(THREADS_PER_BLOCK, numba.float64)
+    t = cuda.threadIdx.x
+    j = cuda.blockIdx.x
+    total = 0.0
+    for q in range(t, dz.shape[0], THREADS_PER_BLOCK):
+        total += P[j, q] * dz[q]
+    _block_tree_sum(share, t, total)
+    if t == 0:
+        out[j] = share[0] - X[0, j, out.shape[0]]
+
+
+def twist_readout(P, dz, X, out) -> None:
+    """:func:`.kernels.twist_readout` on the GPU: one launch, a block per twist (was a product
+    and a difference)."""
+    if out.shape[0]:
+        _twist_readout[out.shape[0], THREADS_PER_BLOCK](P, dz, X, out)

@@ -2068,3 +2068,299 @@ def depth_step(z, dz, t, lower, upper, out, bad):  # pragma: no cover - compiled
     for b in range(bad.shape[0]):
         bad[b] = 0.0
     bad[0] = count
+
+
+# --- gpujoint (issue #33): the joint step's device assembly, twist system and read-out -------
+# The GPU's joint step (:func:`.normal_equations.joint_system` on a device) in a handful of
+# launches: a block of pixels in one (:func:`joint_block`: the light rows, the reference frame's
+# parallax, every frame's sums and rows, the albedo projection), its rows' stencil transpose in
+# one (:func:`add_stencil_transpose_rows`), the twist system from the partial sums in one
+# (:func:`joint_twist_system`), the depth block and its right-hand side in one
+# (:func:`joint_depth_system`), ``-H^-1`` with the Schur right-hand side's column in one
+# (:func:`joint_inverse`) and the twists in one (:func:`twist_readout`). The host's solver keeps
+# its own path; these are the CUDA kernels' CPU twins (the tests', and the launch counts').
+
+#: Values per (partial row, frame slot) of :func:`joint_block`'s twist sums: the Gram's upper
+#: triangle (21, row by row), the right-hand side (6) and the frame's usable pixels (1).
+JOINT_SUMS = 28
+
+
+def joint_blocks(n_pixels: int) -> int:
+    """Partial rows of :func:`joint_block`'s twist sums for a block of ``n_pixels``: one per
+    chunk of :data:`CHUNK` pixels (on the GPU: one per thread block)."""
+    return chunk_count(n_pixels)
+
+
+@numba.njit(inline="always")
+def joint_pixel_rows(p, albedo, dA, L, u, v, K, points_ref, dshading, use0, q, alpha, beta, gamma, extra, sums,
+                     e):  # pragma: no cover - compiled
+    """:func:`joint_block`'s set-up of pixel p (block-local): q (B, 3) = albedo / dA; per frame i
+    the light rows (:func:`.normal_equations._light_rows` of the frozen field L[i] (B, 3), or
+    (1, 3) for one value per frame, and the pixel's u, v): alpha, beta, gamma (n, B); the
+    reference frame's parallax into extra (B, 3) where it has rows (the formula of
+    :func:`.normal_equations._parallax_rows`, from dshading[0] (B, 6) and use0 (B,)); the
+    pixel's sums (9, B) and e (3, B, 3) (where it has rows) zeroed."""
+    for c in range(3):
+        q[p, c] = albedo[p, c] / dA[p]
+    fx, cx, fy, cy = K[0, 0], K[0, 2], K[1, 1], K[1, 2]
+    at = p if L.shape[1] > 1 else 0
+    for i in range(alpha.shape[0]):
+        L0, L1, L2 = L[i, at, 0], L[i, at, 1], L[i, at, 2]
+        alpha[i, p] = fx * L0 - (u[p] - cx) * L2
+        beta[i, p] = fy * L1 - (v[p] - cy) * L2
+        gamma[i, p] = -L2
+    if extra.shape[0] > 0:
+        x, y, z = points_ref[p, 0], points_ref[p, 1], points_ref[p, 2]
+        d0, d1, d2 = dshading[0, p, 0], dshading[0, p, 1], dshading[0, p, 2]
+        use = 1.0 if use0[p] else 0.0
+        for c in range(3):
+            extra[p, c] = -albedo[p, c] * ((d0 * (x / z) + d1 * (y / z) + d2 * (z / z)) * use)
+    for k in range(9):
+        sums[k, p] = 0.0
+    for k in range(e.shape[0]):
+        for c in range(3):
+            e[k, p, c] = 0.0
+
+
+@numba.njit(inline="always")
+def joint_frame(i, parallax, twists):  # pragma: no cover - compiled
+    """(with_jacobian, slot) of frame i in :func:`joint_block`: every frame but the reference
+    has its Jacobian where the parallax or the twists need it; with twists frame i > 0 has slot
+    i - 1 (every frame a candidate: :func:`joint_twist_system` drops those without enough
+    pixels), else none (-1)."""
+    return i > 0 and (parallax or twists), (i - 1) if twists and i > 0 else -1
+
+
+@numba.njit(inline="always")
+def joint_pack_sums(G, b, count, out, r):  # pragma: no cover - compiled
+    """out[r] (:data:`JOINT_SUMS`,) = the upper triangle of G (6, 6) row by row, b (6,), count."""
+    k = 0
+    for j in range(6):
+        for c in range(j, 6):
+            out[r, k] = G[j, c]
+            k += 1
+    for j in range(6):
+        out[r, 21 + j] = b[j]
+    out[r, 27] = count
+
+
+@numba.njit(inline="always")
+def joint_pixel_projection(p, residual, usable, shading, inv_lam, sums, e, rows, F, top, root, den,
+                           num):  # pragma: no cover - compiled
+    """The albedo projection of pixel p (:class:`.normal_equations._AlbedoProjection`'s formulas,
+    per pixel, after every frame's :func:`accumulate_pixel`): d = s^T W s and s^T W r per channel
+    (the frames in order, :func:`weighted_albedo_add`) into den, num (3,) scratch; 1 / d where
+    d > 1e-12 (else 0) and its square root into root[p] (B, 3); the sums (9, B) less the
+    projection's downdates; e (3, B, 3) scaled by 1 / d; the twist rows (3, m, 6, B) projected
+    and F (m, 6, B, 3) scaled by root (:func:`project_twist_pixel`); top (3B,): s^T W r root, the
+    row that F's Gram with it makes the projection's right-hand side."""
+    for c in range(3):
+        num[c] = 0.0
+        den[c] = 0.0
+    for i in range(usable.shape[0]):
+        if usable[i, p]:
+            for c in range(3):
+                x = residual[i, p, c] * inv_lam
+                ws = shading[i, p] / (1.0 + x * x)
+                num[c] += ws * residual[i, p, c]
+                den[c] += ws * shading[i, p]
+    i0 = 1.0 / den[0] if den[0] > 1e-12 else 0.0
+    i1 = 1.0 / den[1] if den[1] > 1e-12 else 0.0
+    i2 = 1.0 / den[2] if den[2] > 1e-12 else 0.0
+    ea0, ea1, ea2 = e[0, p, 0], e[0, p, 1], e[0, p, 2]
+    eb0, eb1, eb2 = e[1, p, 0], e[1, p, 1], e[1, p, 2]
+    ec0, ec1, ec2 = e[2, p, 0], e[2, p, 1], e[2, p, 2]
+    a0, a1, a2 = ea0 * i0, ea1 * i1, ea2 * i2
+    b0, b1, b2 = eb0 * i0, eb1 * i1, eb2 * i2
+    c0, c1, c2 = ec0 * i0, ec1 * i1, ec2 * i2
+    s0, s1, s2 = num[0], num[1], num[2]
+    sums[0, p] -= a0 * ea0 + a1 * ea1 + a2 * ea2
+    sums[1, p] -= b0 * eb0 + b1 * eb1 + b2 * eb2
+    sums[2, p] -= c0 * ec0 + c1 * ec1 + c2 * ec2
+    sums[3, p] -= a0 * eb0 + a1 * eb1 + a2 * eb2
+    sums[4, p] -= a0 * ec0 + a1 * ec1 + a2 * ec2
+    sums[5, p] -= b0 * ec0 + b1 * ec1 + b2 * ec2
+    sums[6, p] -= a0 * s0 + a1 * s1 + a2 * s2
+    sums[7, p] -= b0 * s0 + b1 * s1 + b2 * s2
+    sums[8, p] -= c0 * s0 + c1 * s1 + c2 * s2
+    e[0, p, 0] = a0
+    e[0, p, 1] = a1
+    e[0, p, 2] = a2
+    e[1, p, 0] = b0
+    e[1, p, 1] = b1
+    e[1, p, 2] = b2
+    e[2, p, 0] = c0
+    e[2, p, 1] = c1
+    e[2, p, 2] = c2
+    root[p, 0] = math.sqrt(i0)
+    root[p, 1] = math.sqrt(i1)
+    root[p, 2] = math.sqrt(i2)
+    for f in range(F.shape[0]):
+        for j in range(6):
+            project_twist_pixel(rows, F, e, root, f, j, p)
+    if top.shape[0] > 0:
+        top[3 * p] = s0 * root[p, 0]
+        top[3 * p + 1] = s1 * root[p, 1]
+        top[3 * p + 2] = s2 * root[p, 2]
+
+
+@numba.njit(parallel=True, cache=True)
+def joint_block(residual, shading, usable, inv_lam, albedo, dA, L, u, v, points_ref, poses, K, images, dshading,
+                parallax, twists, q, alpha, beta, gamma, extra, sums, e, rows, F, top, root, partial):  # pragma: no cover
+    """One block of B pixels of the joint step's assembly in one pass: per pixel
+    :func:`joint_pixel_rows`, then every frame's :func:`accumulate_pixel` in order (each frame's
+    Jacobian and slot by :func:`joint_frame`), then with the albedo projection (e (3, B, 3);
+    (0, 1, 3): none) :func:`joint_pixel_projection`.
+
+    residual (n, B, 3), shading, usable (n, B), albedo (B, 3), dA (B,), L (n, B or 1, 3) the
+    frozen light field, u, v (B,) the pixels, points_ref (B, 3), poses (n, 4, 4), K (3, 3),
+    images (n, H, W, 3), dshading (n, B, 6) or (n, 0, 6) for none; scratch q (B, 3), alpha, beta,
+    gamma (n, B), extra (B, 3) (the reference's parallax, only with ``parallax`` and dshading;
+    else (0, 3)); written: sums (9, B) the per-pixel sums of :func:`accumulate_frame`, rows
+    (3, m, 6, B) and F (m, 6, B, 3) the twist rows, projected (m = n - 1 with ``twists``, else
+    0), top (3B,) or (0,) (:func:`joint_pixel_projection`), root (B, 3), and partial (R, m,
+    :data:`JOINT_SUMS`) the twist sums (:func:`joint_pack_sums`) per chunk of :data:`CHUNK`
+    pixels, R = :func:`joint_blocks` (B)."""
+    n, B = residual.shape[0], residual.shape[1]
+    for chunk in numba.prange(partial.shape[0]):
+        J, G, b, wqJ, wcJ = pixel_scratch()
+        num, den = np.zeros(3), np.zeros(3)
+        first, last = chunk * CHUNK, min(B, (chunk + 1) * CHUNK)
+        for p in range(first, last):
+            joint_pixel_rows(p, albedo, dA, L, u, v, K, points_ref, dshading, usable[0], q, alpha, beta, gamma, extra,
+                             sums, e)
+        for i in range(n):
+            jac, slot = joint_frame(i, parallax, twists)
+            G[:] = 0.0
+            b[:] = 0.0
+            count = 0.0
+            ex = extra if i == 0 else extra[:0]
+            r_i, sh_i, use_i = residual[i], shading[i], usable[i]
+            for p in range(first, last):
+                accumulate_pixel(p, r_i, sh_i, use_i, inv_lam, q, alpha[i], beta[i], gamma[i], ex, points_ref,
+                                 poses[i], K, images[i], dshading[i], albedo, jac, parallax, sums, e, rows, F, slot,
+                                 J, G, b, wqJ, wcJ)
+                if use_i[p]:
+                    count += 1.0
+            if slot >= 0:
+                joint_pack_sums(G, b, count, partial[:, slot], chunk)
+        if e.shape[0] > 0:
+            for p in range(first, last):
+                joint_pixel_projection(p, residual, usable, shading, inv_lam, sums, e, rows, F, top, root, den, num)
+
+
+@numba.njit(inline="always")
+def joint_unpack_sums(partial, products, grams, rhs_frames, counts, D, f, item):  # pragma: no cover - compiled
+    """Item ``item`` of :func:`joint_twist_system`'s sums: for item < :data:`JOINT_SUMS` value
+    ``item`` of frame slot f summed over partial's rows (in order) into grams (m, 6, 6) (upper
+    triangle), rhs_frames (6m,) or counts (m,); beyond, entry item - JOINT_SUMS of D
+    ((6m + 1)^2) summed over products' (P, 6m + 1, 6m + 1)."""
+    if item < JOINT_SUMS:
+        total = 0.0
+        for r in range(partial.shape[0]):
+            total += partial[r, f, item]
+        if item < 21:
+            j, k = 0, item
+            while k >= 6 - j:
+                k -= 6 - j
+                j += 1
+            grams[f, j, j + k] = total
+        elif item < 27:
+            rhs_frames[6 * f + item - 21] = total
+        else:
+            counts[f] = total
+        return
+    index = item - JOINT_SUMS
+    k = D.shape[0]
+    total = 0.0
+    for s in range(products.shape[0]):
+        total += products[s, index // k, index % k]
+    D[index // k, index % k] = total
+
+
+@numba.njit(cache=True)
+def joint_twist_system(partial, products, min_pixels, limit, grams, rhs_frames, D, W, kept, hessian, rhs,
+                       selection):  # pragma: no cover - compiled
+    """The joint step's twist system from :func:`joint_block`'s sums: the frames' Grams (m, 6, 6),
+    right-hand sides rhs_frames (6m,) and usable pixels (into kept (m,), first) summed over
+    partial (R, m, :data:`JOINT_SUMS`) (:func:`joint_unpack_sums`), D (6m + 1, 6m + 1) over
+    products (P, 6m + 1, 6m + 1) (each block's F Gram with its top row: the projection's
+    downdate and, in row 6m, its right-hand side); then kept[f] = 1.0 where the frame has at
+    least ``min_pixels`` usable pixels and :func:`twist_frame_kept`, and hessian (6m, 6m), rhs
+    (6m,) and selection (6m, 6m) by :func:`twist_entry`. W (m, 6, 6) scratch."""
+    m = partial.shape[1]
+    for f in range(m):
+        for item in range(JOINT_SUMS):
+            joint_unpack_sums(partial, products, grams, rhs_frames, kept, D, f, item)
+    for index in range(D.shape[0] * D.shape[1]):
+        joint_unpack_sums(partial, products, grams, rhs_frames, kept, D, 0, JOINT_SUMS + index)
+    for f in range(m):
+        joint_frame_kept(grams, limit, min_pixels, W, kept, f)
+    K = hessian.shape[0]
+    for j in range(K):
+        for c in range(K):
+            twist_entry(grams, rhs_frames, D[K], D, kept, hessian, rhs, selection, j, c)
+
+
+@numba.njit(inline="always")
+def joint_frame_kept(grams, limit, min_pixels, W, kept, f):  # pragma: no cover - compiled
+    """kept[f] (its usable pixels on entry) = 1.0 where that is at least ``min_pixels`` and
+    :func:`twist_frame_kept`, else 0.0."""
+    enough = kept[f] >= min_pixels
+    twist_frame_kept(grams, limit, W, kept, f)
+    if not enough:
+        kept[f] = 0.0
+
+
+def joint_depth_system(indptr, indices, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, Saa, Sbb, Sgg, Sab, Sag,
+                       Sbg, s1, t1_indptr, t1_indices, t1_data, s2, t2_indptr, t2_indices, t2_data, data, missing,
+                       u_indptr, u_indices, u_data, v_indptr, v_indices, v_data, Ba, Bb, Bg, y, out) -> None:
+    """The joint step's depth block and right-hand side: :func:`depth_block_fill` (data (nnz,)
+    zeroed by the caller, missing (1,)) and :func:`stencil_transpose_subtract` (out (N,)), the
+    GPU's one launch."""
+    depth_block_fill(indptr, indices, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, Saa, Sbb, Sgg, Sab, Sag, Sbg,
+                     s1, t1_indptr, t1_indices, t1_data, s2, t2_indptr, t2_indices, t2_data, data, missing)
+    stencil_transpose_subtract(u_indptr, u_indices, u_data, v_indptr, v_indices, v_data, Ba, Bb, Bg, y, out)
+
+
+@numba.njit(inline="always")
+def joint_inverse_row(X, rhs, j):  # pragma: no cover - compiled
+    """Row j of X[0] ((K + 1, K + 1)) past its K x K block: X[0, j, K] = X[0, j, :K] . rhs for
+    j < K, the last row (0, ..., 0, 1) for j = K."""
+    K = rhs.shape[0]
+    if j < K:
+        total = 0.0
+        for c in range(K):
+            total += X[0, j, c] * rhs[c]
+        X[0, j, K] = total
+    else:
+        for c in range(K):
+            X[0, K, c] = 0.0
+        X[0, K, K] = 1.0
+
+
+@numba.njit(cache=True)
+def joint_inverse(hessian, selection, rhs, fallback, L, X, solved):  # pragma: no cover - compiled
+    """:func:`twist_inverse` into one augmented matrix X (1, K + 1, K + 1): ``[[H^-1 selection,
+    H^-1 selection rhs], [0, 1]]``, so that ``X^T [U^T; rhs_z^T]`` gives the Schur complement's
+    ``(-U H^-1)^T`` and right-hand side in one product. hessian, selection, L (1, K, K), rhs
+    (K,), solved (1,)."""
+    ok = ridge_cholesky(hessian, 0.0, fallback, L, 0)
+    solved[0] = 1.0 if ok else 0.0
+    for c in range(hessian.shape[1]):
+        cholesky_column(L, selection, X, ok, 0, c)
+    for j in range(X.shape[1]):
+        joint_inverse_row(X, rhs, j)
+
+
+@numba.njit(cache=True)
+def twist_readout(P, dz, X, out):  # pragma: no cover - compiled
+    """The twists out (K,) = P[j] . dz - X[0, j, K] of the Schur product P (K + 1, N) (rows j < K:
+    (-U H^-1 diag(kept))^T) and the augmented inverse X (1, K + 1, K + 1) of :func:`joint_inverse`
+    (its last column: -H^-1 diag(kept) rhs_xi), dz (N,)."""
+    K = out.shape[0]
+    for j in range(K):
+        total = 0.0
+        for q in range(dz.shape[0]):
+            total += P[j, q] * dz[q]
+        out[j] = total - X[0, j, K]

@@ -65,7 +65,8 @@ class JointSystem:
     frames: list
     kept: np.ndarray | None = None
     selection: np.ndarray | None = None
-    _inverse: tuple | None = None  # on a GPU (-U H^-1 diag(kept), -H^-1 diag(kept) rhs_xi), by schur_operator
+    _inverse: tuple | None = None  # on a GPU (P, X) of schur_operator: (-U H^-1 diag(kept))^T and X's last column
+    _work: tuple | None = None  # on a GPU: [U^T; rhs_z] (K + 1, N) and the inverse's arrays (L, X, solved, twists)
 
     def schur_operator(self):
         """(S, rhs): ``S = M - U H^-1 U^T`` as an operator (:func:`~o3d_mvps.model.arrays.linear_operator`) and
@@ -73,32 +74,34 @@ class JointSystem:
         passes over U per product, where forming U H^-1 (N, 6m) once cost as much as twenty
         products. The small solve with H (6m, 6m) runs on the host.
 
-        On the GPU, where the cost is per launch, ``X = -H^-1 diag(kept)`` and ``X b_xi`` are
-        formed there in one launch (:func:`.kernels.twist_inverse`: the Cholesky formula of the
-        host's small systems, with :func:`_cholesky`'s fallback; the substitutions one thread
-        per column) and ``-U H^-1`` (N, 6m) once (one product; as much memory again as U): a
-        product is then ``U^T x``, that times it, and ``M x`` added in one kernel
-        (:func:`.krylov.multiply_add`), three launches for five, no copy either way; the
-        operator's ``low_rank_parts`` (M, -U H^-1, U^T) let :func:`.krylov.pcg` form the product
-        inside its multigrid kernel instead (none of these launches)."""
+        On the GPU, where the cost is per launch, ``X = [[-H^-1 diag(kept), x], [0, 1]]`` with
+        ``x = -H^-1 diag(kept) rhs_xi`` (K + 1, K + 1) is formed there in one launch
+        (:func:`.kernels.joint_inverse`: the Cholesky formula of the host's small systems, with
+        :func:`_cholesky`'s fallback; the substitutions one thread per column) and
+        ``P = X^T [U^T; rhs_z^T]`` (K + 1, N) in one product (as much memory again as U): its
+        rows are ``(-U H^-1)^T`` and, last, the Schur right-hand side ``rhs_z + U x``. A product is
+        then ``U^T x``, ``-U H^-1`` times it, and ``M x`` added in one kernel
+        (:func:`.krylov.multiply_add`), no copy either way; the operator's ``low_rank_parts``
+        (M, -U H^-1, U^T) let :func:`.krylov.pcg` form the product inside its multigrid kernel
+        instead (none of these launches)."""
         M, U = self.matrix, self.coupling
         if not self.frames:
             return linear_operator(M.shape, lambda x: M @ x.ravel(), self.rhs_z), self.rhs_z
         if on_gpu(U):
             xp, K = array_module(U), len(self.hessian)
-            # X = -H^-1 diag(kept) (the columns of a frame not kept 0) and X rhs_xi in one launch
-            X, Xb = xp.empty((1, K, K)), xp.empty(K)
-            kernels_for(U).twist_inverse(self.hessian[None], self.selection[None], self.rhs_xi, CHOLESKY_FALLBACK,
-                                         xp.empty((1, K, K)), X, Xb, xp.empty(1))
-            coupled = U @ X[0]  # -U H^-1
-            self._inverse = (coupled, Xb)
+            stacked, L, X, solved, _ = self._work
+            kernels_for(U).joint_inverse(self.hessian[None], self.selection[None], self.rhs_xi, CHOLESKY_FALLBACK, L, X,
+                                         solved)
+            P = xp.matmul(X[0].T, stacked)  # (-U H^-1)^T (K, N), then the right-hand side
+            coupled = P[:K].T  # -U H^-1
+            self._inverse = (P, X)
 
             def schur_product(x):
                 return multiply_add(M, 1.0, x.ravel(), coupled @ (U.T @ x.ravel()))
 
             operator = linear_operator(M.shape, schur_product, self.rhs_z)
             operator.low_rank_parts = (M, coupled, U.T)  # krylov.pcg forms the product in its kernel
-            return operator, self.rhs_z + U @ Xb
+            return operator, P[K]
         factor = _cholesky(self.hessian)
 
         def solve_h(y):
@@ -152,13 +155,16 @@ class JointSystem:
     def twists(self, dz: np.ndarray) -> np.ndarray:
         """The twists (m, 6) that go with the depth increment dz (N,), on the host (on a GPU
         H^-1 (rhs_xi - U^T dz) there, as ``(-U H^-1 diag(kept))^T dz + H^-1 diag(kept) rhs_xi``
-        from :meth:`schur_operator`'s products, two launches and one read: a frame not kept gets
-        a zero twist, exactly)."""
+        from :meth:`schur_operator`'s product and inverse, one launch
+        (:func:`.kernels.twist_readout`) and one read: a frame not kept gets a zero twist,
+        exactly)."""
         if not self.frames:
             return np.zeros((0, 6))
         if self._inverse is not None:  # a frame not kept gets exactly 0: its pose stays
-            coupled, Xb = self._inverse  # H^-1 symmetric: (U X)^T dz = X U^T dz up to rounding
-            return to_host(coupled.T @ dz - Xb).reshape(-1, 6)
+            P, X = self._inverse  # H^-1 symmetric: (U X)^T dz = X U^T dz up to rounding
+            out = self._work[4]
+            kernels_for(out).twist_readout(P, dz.ravel(), X, out)
+            return to_host(out).reshape(-1, 6)
         return scipy.linalg.cho_solve(_cholesky(self.hessian), self.rhs_xi - to_host(self.couple_t(dz))).reshape(-1, 6)
 
 
@@ -230,9 +236,9 @@ BLOCK_PIXELS = 4096
 #: chunk (one thread) to rounding.
 HOST_CHUNK_PIXELS = 1024
 
-#: :data:`BLOCK_PIXELS` on a GPU, where each block costs some 45 launches and a few copies
-#: whatever its size (``python -m benchmarks.gpu sites``): the D415's finest level (about 90 000
-#: object pixels) in one block, its temporaries some 0.8 GB of GPU memory at 19 refined frames.
+#: :data:`BLOCK_PIXELS` on a GPU (:func:`_device_joint_system`), where each block costs three
+#: launches (``python -m benchmarks.gpu sites``): the D415's finest level (about 90 000 object
+#: pixels) in one block, its temporaries some 0.8 GB of GPU memory at 19 refined frames.
 DEVICE_BLOCK_PIXELS = 98304
 
 
@@ -250,10 +256,10 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
     order of sums: every sum over frames is per pixel, every sum over pixels is added up across
     blocks).
     Per block, one compiled launch over every frame (:func:`.kernels.accumulate_block` on the
-    host, in parallel over pixel chunks; :func:`.kernels.accumulate_frames` on a GPU): each frame
-    adds its depth rows to per-pixel sums and writes its twist rows and w s J, as
-    :func:`.kernels.accumulate_frame` does a frame at a time; the block's albedo projection and
-    its share of the coupling follow.
+    host, in parallel over pixel chunks): each frame adds its depth rows to per-pixel sums and
+    writes its twist rows and w s J, as :func:`.kernels.accumulate_frame` does a frame at a
+    time; the block's albedo projection and its share of the coupling follow. On a GPU:
+    :func:`_device_joint_system`.
     release: release ``ev`` (:meth:`.Evaluation.release`): its warped colours and light bases
     (which the pass does not read: 0.3-0.5 GB at 2 megapixels and 20 frames) before the coupling
     is allocated, the rest once the pass has read it, before the matrices are formed.
@@ -263,99 +269,167 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
                          "evaluate the estimate again (LevelProblem.evaluate)")
     if release:  # the warped colours and light bases are not read here: dropped before U is allocated
         ev.release(keep=("residual", "usable", "shading", "normals", "dA"))
+    if on_gpu(ev.residual):
+        return _device_joint_system(problem, est, ev, parallax, twists, project_albedo, min_pixels, block_pixels,
+                                    release)
     grid = problem.level.grid
     N = grid.size
-    xp = array_module(ev.residual)
-    counts = to_host(ev.usable.sum(axis=1))
+    counts = ev.usable.sum(axis=1)
     candidates = [i for i in range(1, problem.n_frames) if twists and counts[i] >= min_pixels]
     m = len(candidates)
-    sums = xp.empty((9, N))  # per pixel: Saa, Sbb, Sgg, Sab, Sag, Sbg, Ba, Bb, Bg
-    # U^T, frame j's twist in rows 6j..6j+5
-    coupling_t = xp.zeros((6 * m, N), dtype=COUPLING_DTYPE if xp is np else np.float64)
+    sums = np.empty((9, N))  # per pixel: Saa, Sbb, Sgg, Sab, Sag, Sbg, Ba, Bb, Bg
+    coupling_t = np.zeros((6 * m, N), dtype=COUPLING_DTYPE)  # U^T, frame j's twist in rows 6j..6j+5
     grams, rhs_xi = np.zeros((m, 6, 6)), np.zeros(6 * m)  # per frame: upper triangle of w J^T J; -J^T w r
     downdate = np.zeros((6 * m, 6 * m))  # the albedo projection's sum f f^T over pixels and channels
     points_ref = problem.points(est.z)
     Du, Dv = grid.difference_operators()
-    if xp is np and m:  # without the stored zeros (the central differences' own pixel): a third fewer scatters into U
+    if m:  # without the stored zeros (the central differences' own pixel): a third fewer scatters into U
         Du, Dv = _without_zeros(Du), _without_zeros(Dv)
     if block_pixels is None:
-        block_pixels = BLOCK_PIXELS if xp is np else DEVICE_BLOCK_PIXELS
-    starts = range(0, N, block_pixels)
-    # on a GPU each block writes its twist sums into its own row, summed and copied to the host
-    # once after the pass (not two or four copies per block); the frames' poses and slots copied once
-    partials = xp.zeros((len(starts), _twist_sums_size(m))) if xp is not np and m else None
+        block_pixels = BLOCK_PIXELS
     slot = {i: k for k, i in enumerate(candidates)}
     with_jacobian = [i > 0 and (parallax or i in slot) for i in range(problem.n_frames)]
     frame_slots = np.array([[jac, slot.get(i, -1)] for i, jac in enumerate(with_jacobian)], dtype=np.int64)
-    if xp is np:
-        poses = like(est.poses, points_ref)
-    else:  # the poses' bits and the frame slots in one int64 array: one copy, then views
-        n_pose = 16 * problem.n_frames
-        packed = like(np.concatenate([np.ascontiguousarray(est.poses, dtype=np.float64).view(np.int64).ravel(),
-                                      frame_slots.ravel()]), points_ref)
-        poses, frame_slots = packed[:n_pose].view(np.float64).reshape(-1, 4, 4), packed[n_pose:].reshape(-1, 2)
-    for b, start in enumerate(starts):
+    poses = like(est.poses, points_ref)
+    for start in range(0, N, block_pixels):
         block = slice(start, min(N, start + block_pixels))
-        twist_sums = (grams, rhs_xi, rhs_xi, downdate) if partials is None else _twist_sums(partials[b], m)
         _assemble_block(problem, est, ev, block, points_ref[block], candidates, parallax, project_albedo,
-                        sums[:, block], *twist_sums, coupling_t, Du[block], Dv[block], poses, with_jacobian,
-                        frame_slots)
+                        sums[:, block], grams, rhs_xi, downdate, coupling_t, Du[block], Dv[block], poses,
+                        with_jacobian, frame_slots)
     # frames whose own Gram is not safely invertible keep their depth rows but take no twist
     # (kernels.twist_system: the frames' condition numbers and H = blockdiag(Grams) - downdate)
-    hessian, twist_rhs, frame_kept = xp.empty((6 * m, 6 * m)), xp.empty(6 * m), xp.empty(m)
-    selection = xp.empty((6 * m, 6 * m))  # -diag(kept) per twist row
-    if partials is not None:  # on a GPU the block's sums added and the system formed there: no copy
-        grams, rhs_frames, rhs_projection, downdate = _twist_sums(partials.sum(axis=0), m)
-    else:
-        rhs_frames, rhs_projection = rhs_xi, np.zeros_like(rhs_xi)
+    hessian, twist_rhs, frame_kept = np.empty((6 * m, 6 * m)), np.empty(6 * m), np.empty(m)
+    selection = np.empty((6 * m, 6 * m))  # -diag(kept) per twist row
     if m:
-        kernels_for(hessian).twist_system(grams, rhs_frames, rhs_projection, downdate, host_kernels.MAX_TWIST_CONDITION,
-                                          xp.empty((m, 6, 6)), frame_kept, hessian, twist_rhs, selection)
-    del Du, Dv, points_ref, partials  # the zero-free copies (45 MB at 2 megapixels): not held while M is formed
+        host_kernels.twist_system(grams, rhs_xi, np.zeros_like(rhs_xi), downdate, host_kernels.MAX_TWIST_CONDITION,
+                                  np.empty((m, 6, 6)), frame_kept, hessian, twist_rhs, selection)
+    del Du, Dv, points_ref  # the zero-free copies (45 MB at 2 megapixels): not held while M is formed
     if release:
         ev.release()
-    if xp is np:  # the kept frames' rows and columns
-        kept_slots = np.flatnonzero(frame_kept)
-        frames = [candidates[k] for k in kept_slots]
-        kept = [6 * k + a for k in kept_slots for a in range(6)]
-        hessian, rhs_xi = hessian[np.ix_(kept, kept)], twist_rhs[kept]
-    else:  # every candidate's rows, a frame not kept an identity block (its twist 0: JointSystem.selection)
-        frames, kept, rhs_xi = candidates, list(range(6 * m)), twist_rhs
+    kept_slots = np.flatnonzero(frame_kept)  # the kept frames' rows and columns
+    frames = [candidates[k] for k in kept_slots]
+    kept = [6 * k + a for k in kept_slots for a in range(6)]
+    hessian, rhs_xi = hessian[np.ix_(kept, kept)], twist_rhs[kept]
     prior = problem.level.prior
-    if xp is np:
-        rhs_z = -stencil_transpose(grid, *sums[6:]) + prior.negative_gradient(est.z, problem.tau, problem.mu)
-    else:  # the same in one launch
-        rhs_z = xp.empty(N)
-        DuT, DvT = grid.transposed_difference_operators()
-        kernels_for(rhs_z).stencil_transpose_subtract(DuT.indptr, DuT.indices, DuT.data, DvT.indptr, DvT.indices,
-                                                      DvT.data, *sums[6:], prior.negative_gradient(est.z, problem.tau,
-                                                                                                   problem.mu), rhs_z)
-    if xp is np:  # filled into the level's pattern: no sparse products or sums
-        matrix = depth_block(problem, sums[:6])
-        del sums
-        prior.release_products()  # S^T S not held through the solve (formed again by the next step)
-    else:
-        matrix = _device_depth_block(problem, sums[:6])
-        del sums
+    rhs_z = -stencil_transpose(grid, *sums[6:]) + prior.negative_gradient(est.z, problem.tau, problem.mu)
+    matrix = depth_block(problem, sums[:6])  # filled into the level's pattern: no sparse products or sums
+    del sums
+    prior.release_products()  # S^T S not held through the solve (formed again by the next step)
     for row, k in enumerate(kept):  # the kept rows moved up in place (kept is ascending): no second U
         if row != k:
             coupling_t[row] = coupling_t[k]
     coupling = coupling_t[:len(kept)].T  # (N, 6m')
-    return JointSystem(sparse_module(matrix).csr_matrix(matrix), rhs_z, coupling, hessian, rhs_xi, frames,
-                       *((None, None) if xp is np else (frame_kept, selection)))
+    return JointSystem(sp.csr_matrix(matrix), rhs_z, coupling, hessian, rhs_xi, frames)
 
 
-def _twist_sums_size(m: int) -> int:
-    """The length of one block's twist sums (:func:`_twist_sums`) for m refined frames."""
-    return 36 * m + 12 * m + 36 * m * m
+def _device_joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, parallax: bool, twists: bool,
+                         project_albedo: bool, min_pixels: int, block_pixels: int | None,
+                         release: bool) -> JointSystem:
+    """:func:`joint_system` on a GPU: every frame 1..n-1 a candidate (m = n - 1 with twists), those
+    with fewer than ``min_pixels`` usable pixels or an ill-conditioned Gram not kept (an identity
+    block, a zero twist: :class:`JointSystem`), so that nothing is read back. Per block of pixels
+    (:data:`DEVICE_BLOCK_PIXELS`) two launches, :func:`.kernels.joint_block` (the light rows, the
+    reference's parallax, every frame's sums and rows, the albedo projection) and
+    :func:`.kernels.add_stencil_transpose_rows` (the rows into U^T), and with the projection the
+    product of its F with itself (the downdate and its right-hand side); then
+    :func:`.kernels.joint_twist_system` and :func:`.kernels.joint_depth_system` (M and rhs_z),
+    one launch each, and one allocation that is zeroed (U^T, M's values and the small arrays):
+    six launches in all where there was one block (were some 35 and 3 copies). The poses are
+    the evaluation's device copy (:meth:`.LevelProblem._device_poses_lights`: no copy)."""
+    if release:  # the warped colours and light bases are not read here: dropped before U is allocated
+        ev.release(keep=("residual", "usable", "shading", "normals", "dA"))
+    grid, prior = problem.level.grid, problem.level.prior
+    N, n = grid.size, problem.n_frames
+    xp, kernels = array_module(ev.residual), kernels_for(ev.residual)
+    m = n - 1 if twists else 0
+    K = 6 * m
+    if problem.depth_pattern is None:
+        problem.depth_pattern = depth_block_pattern(grid, prior)
+    indptr, indices = problem.depth_pattern
+    # kept with the system: [U^T; rhs_z] (zeroed: the rows' stencil transposes add into U^T), M's
+    # values and the count of entries its pattern lacks, the twist system, the inverse's arrays
+    kept_shapes = ((K + 1, N), (indices.size,), (1,), (K, K), (K,), (m,), (K, K), (1, K, K), (1, K + 1, K + 1), (1,),
+                   (K,))
+    stacked, data, missing, hessian, twist_rhs, frame_kept, selection, L, X, solved, readout = _views(
+        xp.zeros(_size(kept_shapes)), kept_shapes)
+    if block_pixels is None:
+        block_pixels = DEVICE_BLOCK_PIXELS
+    starts = range(0, N, block_pixels)
+    block_rows = [kernels.joint_blocks(min(N, start + block_pixels) - start) for start in starts]
+    projected = project_albedo and K > 0
+    # the pass's scratch, dropped with this function: the per-pixel sums, the blocks' partial
+    # twist sums and F Grams, the twist system's sums, then one block's arrays
+    B = min(N, block_pixels)
+    pass_shapes = ((9, N), (sum(block_rows), m, host_kernels.JOINT_SUMS),
+                   (len(starts) if projected else 0, K + 1, K + 1), (m, 6, 6), (K,), (K + 1, K + 1), (m, 6, 6))
+    block_size = (3 + 3 * n + 3 + 9 + 3 * K + (K + 1) * 3 + 3) * B
+    scratch = xp.empty(_size(pass_shapes) + block_size)
+    sums, partial, products, grams, rhs_frames, D, W = _views(scratch, pass_shapes)
+    points_ref = problem.points(est.z)
+    poses = problem._device_poses_lights(est)[0]
+    model = problem.light_model(est)
+    Du, Dv = grid.difference_operators()
+    row = 0
+    for b, start in enumerate(starts):
+        stop = min(N, start + block_pixels)
+        block, Bb = slice(start, stop), stop - start
+        normals, points = ev.normals[block], points_ref[block]
+        field = like(model.fields(est.lights, normals, points, est.poses)[1], normals).reshape(n, -1, 3)
+        dshading = model.shading_jacobians(est.lights, normals, points, est.poses) if parallax or m else None
+        with_extra = parallax and dshading is not None
+        shapes = ((Bb, 3), (n, Bb), (n, Bb), (n, Bb), (Bb if with_extra else 0, 3),
+                  (3 if project_albedo else 0, Bb if project_albedo else 1, 3), (3, m, 6, Bb),
+                  (K + 1 if projected else 0, 3 * Bb), (Bb, 3))
+        q, alpha, beta, gamma, extra, e, rows, stacked_F, root = _views(scratch[scratch.size - block_size:], shapes)
+        top = stacked_F[K] if projected else xp.empty(0)  # the projection's s^T W r / sqrt(d) per pixel and channel
+        F = stacked_F[:K].reshape(m, 6, Bb, 3) if projected else xp.empty((0, 6, 1, 3))
+        kernels.joint_block(ev.residual[:, block], ev.shading[:, block], ev.usable[:, block], 1.0 / problem.lam,
+                            est.albedo[block], ev.dA[block], field, grid.u[block], grid.v[block], points, poses,
+                            problem.device_K, problem.level.image_stack,
+                            xp.empty((n, 0, 6)) if dshading is None else dshading, parallax, twists, q, alpha, beta,
+                            gamma, extra, sums[:, block], e, rows, F, top, root,
+                            partial[row:row + block_rows[b]])
+        row += block_rows[b]
+        if K:  # U^T += the rows' stencil transpose: Du^T rows_a + Dv^T rows_b + rows_c
+            kernels.add_stencil_transpose_rows(Du.indptr[start:stop + 1], Du.indices, Du.data,
+                                               Dv.indptr[start:stop + 1], Dv.indices, Dv.data,
+                                               rows.reshape(3, K, Bb), start, stacked[:K])
+        if projected:  # the projection's downdate F F^T and, in its last row, right-hand side
+            xp.matmul(stacked_F, stacked_F.T, out=products[b])
+    del points_ref, Du, Dv
+    if release:
+        ev.release()
+    if K:  # the frames' sums, which are kept, H, its right-hand side and -diag(kept)
+        kernels.joint_twist_system(partial, products, min_pixels, host_kernels.MAX_TWIST_CONDITION, grams,
+                                   rhs_frames, D, W, frame_kept, hessian, twist_rhs, selection)
+    terms = prior.hessian_terms(problem.tau, problem.mu)
+    (s1, T1), (s2, T2) = terms[0], terms[1] if len(terms) > 1 else (0.0, terms[0])
+    t2_indptr = T2.indptr if len(terms) > 1 else T2.indptr[:1]  # no rows: no second term
+    geometry = (grid.fwd_u, grid.bwd_u, grid.wf_u, grid.wb_u, grid.fwd_v, grid.bwd_v, grid.wf_v, grid.wb_v)
+    DuT, DvT = grid.transposed_difference_operators()
+    kernels.joint_depth_system(indptr, indices, *geometry, *sums[:6], s1, T1.indptr, T1.indices, T1.data, s2, t2_indptr,
+                               T2.indices, T2.data, data, missing, DuT.indptr, DuT.indices, DuT.data, DvT.indptr,
+                               DvT.indices, DvT.data, *sums[6:], prior.negative_gradient(est.z, problem.tau,
+                                                                                         problem.mu), stacked[K])
+    del scratch, sums, partial, products
+    matrix = sparse_module(T1).csr_matrix((data, indices, indptr), shape=(N, N))
+    return JointSystem(matrix, stacked[K], stacked[:K].T, hessian, twist_rhs, list(range(1, n)) if K else [],
+                       frame_kept, selection, _work=(stacked, L, X, solved, readout))
 
 
-def _twist_sums(row: np.ndarray, m: int) -> tuple:
-    """Views of one block's twist sums in ``row`` (:func:`_twist_sums_size`,): the frames' Grams
-    (m, 6, 6), right-hand sides from the frames (6m,) and from the albedo projection (6m,), and
-    the projection's downdate (6m, 6m)."""
-    a, b, c = 36 * m, 42 * m, 48 * m
-    return row[:a].reshape(m, 6, 6), row[a:b], row[b:c], row[c:].reshape(6 * m, 6 * m)
+def _size(shapes) -> int:
+    """Entries of arrays of these shapes together."""
+    return sum(int(np.prod(shape)) for shape in shapes)
+
+
+def _views(buffer, shapes) -> list:
+    """Consecutive C-ordered views of the flat ``buffer`` with these shapes (no copy)."""
+    views, at = [], 0
+    for shape in shapes:
+        size = int(np.prod(shape))
+        views.append(buffer[at:at + size].reshape(shape))
+        at += size
+    return views
 
 
 def _same_types(images: list) -> bool:
@@ -389,38 +463,36 @@ def _without_zeros(D: sp.csr_matrix) -> sp.csr_matrix:
 
 
 def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, project_albedo, sums, grams,
-                    rhs_xi, rhs_projection, downdate, coupling_t, Du_rows, Dv_rows, poses, with_jacobian,
-                    frame_slots) -> None:
-    """One block of :func:`joint_system`'s pass: the block's pixels' per-pixel sums (9, B)
-    written into ``sums``; its share of the frames' Grams (m, 6, 6), their right-hand sides rhs_xi
-    (6m,), the projection's rhs_projection (6m,) and downdate (6m, 6m) added in place on the host
-    (where rhs_xi and rhs_projection are one array), written into the block's own slots on a GPU
-    (:func:`_twist_sums`); the transposed coupling (6m, N) added in place. Du_rows, Dv_rows: the
-    block's rows (B, N) of the difference operators; poses (n, 4, 4) where the points are;
-    with_jacobian (n,) bools: the frames whose twist or parallax rows are formed; frame_slots
-    (n, 2) int64 where the points are: with_jacobian and the refined frame's slot (or -1)."""
-    xp, kernels = array_module(points_ref), kernels_for(points_ref)
+                    rhs_xi, downdate, coupling_t, Du_rows, Dv_rows, poses, with_jacobian, frame_slots) -> None:
+    """One block of :func:`joint_system`'s pass on the host: the block's pixels' per-pixel sums
+    (9, B) written into ``sums``; its share of the frames' Grams (m, 6, 6), their right-hand sides
+    rhs_xi (6m,) (the albedo projection's too) and the projection's downdate (6m, 6m) added in
+    place; the transposed coupling (6m, N) added in place. Du_rows, Dv_rows: the block's rows
+    (B, N) of the difference operators; poses (n, 4, 4); with_jacobian (n,) bools: the frames
+    whose twist or parallax rows are formed; frame_slots (n, 2) int64: with_jacobian and the
+    refined frame's slot (or -1). (A GPU's pass: :func:`_device_joint_system`.)"""
+    kernels = host_kernels
     B = points_ref.shape[0]
     m = len(candidates)
-    none3, none_e = xp.empty((0, 3)), xp.empty((0, 1, 3))  # the kernel's optional arrays (empty)
+    none3, none_e = np.empty((0, 3)), np.empty((0, 1, 3))  # the kernel's optional arrays (empty)
     residual, usable, albedo, shading = ev.residual[:, block], ev.usable[:, block], est.albedo[block], ev.shading[:, block]
     normals = ev.normals[block]
     q = albedo / ev.dA[block, None]  # (B, 3)
     model = problem.light_model(est)
-    block_sums = xp.zeros((9, B))
+    block_sums = np.zeros((9, B))
     projection = _AlbedoProjection(residual, usable, shading, problem.lam) if project_albedo else None
     slot = {i: k for k, i in enumerate(candidates)}
     # twist-component-major, so the transposed coupling rows (6m, B) and the projection's rows
     # (6m, 3B) are views
-    rows = xp.empty((3, m, 6, B))
-    F = xp.empty((m, 6, B, 3)) if projection is not None else xp.empty((0, 6, 1, 3))
+    rows = np.empty((3, m, 6, B))
+    F = np.empty((m, 6, B, 3)) if projection is not None else np.empty((0, 6, 1, 3))
     # on one thread a launch per frame is faster (measured: 17.2 against 20.6 ms a D415 block)
-    host_block = (xp is np and problem.level.image_stack is None and current_kernel_threads() > 1
+    host_block = (problem.level.image_stack is None and current_kernel_threads() > 1
                   and _same_types(problem.level.images))
     chunks = -(-B // HOST_CHUNK_PIXELS) if host_block else kernels.chunk_count(B)
     # per refined frame its partial sums of the twist Gram and right-hand side, and one more for
     # the other frames (whose kernel writes them too)
-    gram, rhs = xp.empty((m + 1, chunks, 6, 6)), xp.empty((m + 1, chunks, 6))
+    gram, rhs = np.empty((m + 1, chunks, 6, 6)), np.empty((m + 1, chunks, 6))
     # every frame's frozen light field and LED shading Jacobian at once: a few dozen array
     # operations per block rather than per frame
     _, alpha, beta, gamma = shading_rows(problem, est, normals, points_ref, block)  # (n, B) each
@@ -429,12 +501,7 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
     if parallax and dshading is not None:
         extra_c = _reference_parallax(albedo, dshading[0], points_ref, usable[0])
     e = none_e if projection is None else projection.e
-    if problem.level.image_stack is not None:  # on a GPU: every frame in one launch
-        kernels.accumulate_frames(residual, shading, usable, 1.0 / problem.lam, q, alpha, beta, gamma, extra_c,
-                                  points_ref, poses, problem.device_K, problem.level.image_stack,
-                                  xp.empty((problem.n_frames, 0, 6)) if dshading is None else dshading, albedo,
-                                  frame_slots, parallax, block_sums, e, rows, F, gram, rhs)
-    elif host_block:  # on the host: every frame in one launch too, in parallel over pixel chunks
+    if host_block:  # every frame in one launch, in parallel over pixel chunks
         kernels.accumulate_block(residual, shading, usable, 1.0 / problem.lam, q, alpha, beta, gamma, extra_c,
                                  points_ref, poses, problem.device_K, tuple(problem.level.images),
                                  np.empty((problem.n_frames, 0, 6)) if dshading is None else dshading, albedo,
@@ -442,38 +509,22 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
     else:
         _accumulate_frames(kernels, problem, residual, shading, usable, q, alpha, beta, gamma, extra_c, points_ref,
                            poses, dshading, albedo, with_jacobian, parallax, block_sums, e, rows, F, slot, gram, rhs)
-    if m and xp is np:
+    if m:
         grams += gram[:m].sum(axis=1)
         rhs_xi += rhs[:m].sum(axis=1).reshape(-1)
-    elif m:
-        gram[:m].sum(axis=1, out=grams)
-        rhs[:m].sum(axis=1, out=rhs_xi.reshape(m, 6))
-    if projection is not None and xp is not np:  # the downdate and the copy into sums in two launches
-        projection.downdated_into(block_sums, sums)
-    elif projection is not None:
+    if projection is not None:
         block_sums -= projection.local()
-        sums[:] = block_sums
-    else:
-        sums[:] = block_sums
-    if m and projection is not None and xp is np:
-        # the projection of the rows and their stencil transpose into U^T in one pass on the host
+    sums[:] = block_sums
+    if m and projection is not None:
+        # the projection of the rows and their stencil transpose into U^T in one pass
         scaled, sqrt_inv_d = projection.twist_scalings()
         kernels.project_stencil_rows(rows, F, scaled, sqrt_inv_d, Du_rows.indptr, Du_rows.indices, Du_rows.data,
                                      Dv_rows.indptr, Dv_rows.indices, Dv_rows.data, block.start, coupling_t)
         projection.downdate_scaled(F, downdate, rhs_xi, sqrt_inv_d)
-        return
-    if m and projection is not None:
-        projection.downdate_twists(F, rows, downdate, rhs_projection)
-    if m:
-        # U^T += the stencil transpose of the rows: Du^T rows_a + Dv^T rows_b + rows_c
-        if xp is np:  # one pass on the host
-            kernels.add_stencil_transpose_rows(Du_rows.indptr, Du_rows.indices, Du_rows.data, Dv_rows.indptr,
-                                               Dv_rows.indices, Dv_rows.data, rows.reshape(3, 6 * m, B),
-                                               block.start, coupling_t)
-            return
-        for D, r in ((Du_rows, rows[0]), (Dv_rows, rows[1])):
-            kernels.scatter_sparse_transpose_rows(D.indptr, D.indices, D.data, r.reshape(6 * m, B), coupling_t)
-        coupling_t[:, block] += rows[2].reshape(6 * m, B)
+    elif m:  # U^T += the stencil transpose of the rows: Du^T rows_a + Dv^T rows_b + rows_c, in one pass
+        kernels.add_stencil_transpose_rows(Du_rows.indptr, Du_rows.indices, Du_rows.data, Dv_rows.indptr,
+                                           Dv_rows.indices, Dv_rows.data, rows.reshape(3, 6 * m, B), block.start,
+                                           coupling_t)
 
 
 class _AlbedoProjection:
@@ -492,66 +543,40 @@ class _AlbedoProjection:
     loss's lam, whose IRLS weights are W. ``e``
     (3, B, 3) holds e per (pixel, channel) for the depth rows (a, b, c), accumulated by
     :func:`.kernels.accumulate_frame`; the twist rows' e are ``F`` (m, 6, B, 3), w s J of the
-    m refined frames, written by the same kernel. Arrays (B, 3) unless stated.
+    m refined frames, written by the same kernel. Arrays (B, 3) unless stated. On the host; a
+    GPU's pass projects per pixel inside its one launch (:func:`.kernels.joint_pixel_projection`,
+    the same formulas).
     """
 
     def __init__(self, residual: np.ndarray, usable: np.ndarray, shading: np.ndarray, lam: float):
-        xp = array_module(residual)
         B = residual.shape[1]
-        d, self.sWr = xp.empty((B, 3)), xp.empty((B, 3))  # s^T W s, s^T W r
-        kernels_for(residual).weighted_albedo_sums(residual, usable, residual, shading, 1.0 / lam, self.sWr, d)
-        # on a GPU 1 / sqrt(d) and s^T W r / sqrt(d) (twist_scalings, downdate_scaled) in the same launch
-        self._root = self._sWr_root = None
-        if xp is np:
-            self.inv_d = _safe_inverse(d)
-        else:
-            self.inv_d, self._root, self._sWr_root = _projection_scalings(d, self.sWr)
-        self.e = xp.zeros((3, B, 3))  # e for the a, b, c rows
+        d, self.sWr = np.empty((B, 3)), np.empty((B, 3))  # s^T W s, s^T W r
+        host_kernels.weighted_albedo_sums(residual, usable, residual, shading, 1.0 / lam, self.sWr, d)
+        self.inv_d = _safe_inverse(d)
+        self.e = np.zeros((3, B, 3))  # e for the a, b, c rows
 
     def local(self) -> np.ndarray:
-        """Downdates (9, B) of Saa, Sbb, Sgg, Sab, Sag, Sbg, Ba, Bb, Bg (one kernel and a stack on
-        a GPU)."""
-        return array_module(self.e).stack(_projection_downdates(*self._columns()))
-
-    def downdated_into(self, block_sums: np.ndarray, out: np.ndarray) -> None:
-        """out (9, B) = block_sums (9, B) - :meth:`local`, on a GPU in two launches (the
-        downdates and differences in one kernel, then a stack into out; gpu3: was three)."""
-        xp = array_module(self.e)
-        xp.stack(_downdated_sums(*(block_sums[k] for k in range(9)), *self._columns()), out=out)
+        """Downdates (9, B) of Saa, Sbb, Sgg, Sab, Sag, Sbg, Ba, Bb, Bg."""
+        return np.stack(_projection_downdates(*self._columns()))
 
     def _columns(self) -> list:
         """:func:`_projection_downdates`' arguments: the e columns, inverse d and s^T W r (B,) each."""
         return ([e[:, c] for e in self.e for c in range(3)] + [self.inv_d[:, c] for c in range(3)]
                 + [self.sWr[:, c] for c in range(3)])
 
-    def downdate_twists(self, F: np.ndarray, rows: np.ndarray, downdate: np.ndarray, rhs_xi: np.ndarray) -> None:
-        """Project the block's twist parts: the coupling rows (3, m, 6, B) lose
-        ``sum_c (e_k / d) f`` in place, ``downdate`` (6m, 6m) gains ``sum f f^T / d`` (the Gram's
-        loss) and the right-hand side (6m,) gains ``sum f (s^T W r) / d`` over the block's pixels
-        and channels (on a GPU: the block's sums are written into them, see
-        :meth:`downdate_scaled`); F (m, 6, B, 3) = w s J of the m refined frames is scaled in place."""
-        scaled, sqrt_inv_d = self.twist_scalings()
-        kernels_for(F).project_twist_rows(rows, F, scaled, sqrt_inv_d)
-        self.downdate_scaled(F, downdate, rhs_xi, sqrt_inv_d)
-
     def twist_scalings(self) -> tuple[np.ndarray, np.ndarray]:
-        """(e / d (3, B, 3), 1 / sqrt(d) (B, 3)): what the twist rows lose per unit of F, and F's
-        scaling (:meth:`downdate_twists`)."""
-        return self.e * self.inv_d, np.sqrt(self.inv_d) if self._root is None else self._root
+        """(e / d (3, B, 3), 1 / sqrt(d) (B, 3)): what the twist rows lose per unit of F
+        (:func:`.kernels.project_stencil_rows`), and F's scaling."""
+        return self.e * self.inv_d, np.sqrt(self.inv_d)
 
     def downdate_scaled(self, F: np.ndarray, downdate: np.ndarray, rhs_xi: np.ndarray, sqrt_inv_d: np.ndarray) -> None:
-        """:meth:`downdate_twists`'s sums over F (m, 6, B, 3) once scaled by ``sqrt_inv_d`` (B, 3):
-        added to ``downdate`` and ``rhs_xi`` on the host, written into them (the block's slots,
-        :func:`_twist_sums`) on a GPU."""
+        """The projection's sums over the block's F (m, 6, B, 3) (w s J of the m refined frames)
+        once scaled by ``sqrt_inv_d`` (B, 3): ``downdate`` (6m, 6m) gains ``sum f f^T / d`` (the
+        Gram's loss) and the right-hand side rhs_xi (6m,) ``sum f (s^T W r) / d`` over the block's
+        pixels and channels."""
         f = F.reshape(6 * len(F), -1)  # (6m, 3B): frame j in rows 6j..
-        xp = array_module(f)
-        if xp is np:
-            rhs_xi += f @ (self.sWr * sqrt_inv_d).reshape(-1)
-            downdate += _gram(f)
-        else:
-            scaled = self._sWr_root if sqrt_inv_d is self._root else self.sWr * sqrt_inv_d
-            xp.matmul(f, scaled.reshape(-1), out=rhs_xi)
-            xp.matmul(f, f.T, out=downdate)
+        rhs_xi += f @ (self.sWr * sqrt_inv_d).reshape(-1)
+        downdate += _gram(f)
 
 
 @fused
@@ -559,24 +584,6 @@ def _safe_inverse(d):
     """1 / d where d > 1e-12, else 0 (any shape)."""
     where = array_module(d).where
     return where(d > 1e-12, 1.0 / where(d > 1e-12, d, 1.0), 0.0)
-
-
-@fused
-def _projection_scalings(d, sWr):
-    """(:func:`_safe_inverse` of d, its square root, sWr times that) (B, 3) each: one kernel on a
-    GPU (gpu3: was three)."""
-    inv_d = _safe_inverse.__wrapped__(d)
-    root = array_module(d).sqrt(inv_d)
-    return inv_d, root, sWr * root
-
-
-@fused
-def _downdated_sums(Saa, Sbb, Sgg, Sab, Sag, Sbg, Ba, Bb, Bg, ea0, ea1, ea2, eb0, eb1, eb2, ec0, ec1, ec2, i0, i1, i2,
-                    s0, s1, s2):
-    """The per-pixel sums (B,) each less :func:`_projection_downdates` of the remaining arguments,
-    in the same order (one kernel on a GPU)."""
-    downdates = _projection_downdates.__wrapped__(ea0, ea1, ea2, eb0, eb1, eb2, ec0, ec1, ec2, i0, i1, i2, s0, s1, s2)
-    return tuple(s - d for s, d in zip((Saa, Sbb, Sgg, Sab, Sag, Sbg, Ba, Bb, Bg), downdates))
 
 
 @fused
@@ -666,27 +673,6 @@ def depth_block(problem: LevelProblem, stencil_sums: np.ndarray) -> sp.csr_matri
     matrix = sp.csr_matrix((data, indices, indptr), shape=(grid.size, grid.size), copy=False)
     matrix.has_sorted_indices = True
     return matrix
-
-
-def _device_depth_block(problem: LevelProblem, stencil_sums):
-    """The depth block M (N, N) on a GPU, as :func:`depth_block` on the host: the stencil's Gram of
-    ``stencil_sums`` (6, N) and the prior's Hessian terms filled in one launch
-    (:func:`.kernels.depth_block_fill`) into the level's pattern (:func:`depth_block_pattern`,
-    made on the device at the level's first joint step and kept on the problem), where sparse
-    products and sums of four matrices took some 15 launches (and cuSPARSE's synchronisations)."""
-    grid, prior = problem.level.grid, problem.level.prior
-    if problem.depth_pattern is None:
-        problem.depth_pattern = depth_block_pattern(grid, prior)
-    indptr, indices = problem.depth_pattern
-    xp = array_module(stencil_sums)
-    buffer = xp.zeros(indices.size + 1)  # the values, then the count of entries the pattern lacks (none)
-    terms = prior.hessian_terms(problem.tau, problem.mu)
-    (s1, T1), (s2, T2) = terms[0], terms[1] if len(terms) > 1 else (0.0, terms[0])
-    t2_indptr = T2.indptr if len(terms) > 1 else T2.indptr[:1]  # no rows: no second term
-    geometry = (grid.fwd_u, grid.bwd_u, grid.wf_u, grid.wb_u, grid.fwd_v, grid.bwd_v, grid.wf_v, grid.wb_v)
-    kernels_for(stencil_sums).depth_block_fill(indptr, indices, *geometry, *stencil_sums, s1, T1.indptr, T1.indices,
-                                               T1.data, s2, t2_indptr, T2.indices, T2.data, buffer[:-1], buffer[-1:])
-    return sparse_module(T1).csr_matrix((buffer[:-1], indices, indptr), shape=(grid.size, grid.size))
 
 
 def depth_block_pattern(grid, prior) -> tuple[np.ndarray, np.ndarray]:
