@@ -100,6 +100,9 @@ SIGNATURES = {
     # gpu3: the driver's extrapolation trials (the driver's three factors)
     "_extrapolation_trials": (_F1, _F1, _F2, _F2, types.UniTuple(types.float64, 3), _F1, _F1, _F2, _F3, _F2),
     "_depth_step": (_F1, _F1, types.float64, _F1, _F1, _F1, _F1),
+    # gpueval2: the LED offset's system from the light state
+    "_led_offset_system": (_F1, _F2, _F2, _F2, _F3, _R3, _array(2, types.boolean), _F2, types.float64, types.int64,
+                           _F3, _F3),
 }
 
 

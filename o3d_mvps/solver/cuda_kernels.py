@@ -1191,3 +1191,45 @@ def depth_step(z, dz, t, lower, upper, out, bad) -> None:
     """:func:`.kernels.depth_step` on the GPU in one launch (was two or three array operations, a
     clip and a reduction): ``bad.size`` blocks, each thread a strided share of the pixels."""
     _depth_step[bad.shape[0], THREADS_PER_BLOCK](z, dz, float(t), lower, upper, out, bad)
+
+
+# ============================================================================================
+# gpueval2 (issue 33): the LED offset's system from the light state in one launch (CPU twin in
+# :mod:`.kernels`' section of the same name)
+# ============================================================================================
+
+__all__ += ["led_offset_system"]
+
+_led_offset_system_add = _device(kernels.led_offset_system_add)
+
+
+@cuda.jit(cache=True)
+def _led_offset_system(intensities, normals, points, positions, rotations, residual, usable, albedo, inv_lam, stride,
+                       H, g):  # pragma: no cover - device
+    share = cuda.shared.array(THREADS_PER_BLOCK, numba.float64)
+    acc = cuda.local.array(12, numba.float64)
+    t = cuda.threadIdx.x
+    n, N = usable.shape
+    M = (N + stride - 1) // stride
+    for e in range(12):
+        acc[e] = 0.0
+    for index in range(t, n * M, THREADS_PER_BLOCK):
+        _led_offset_system_add(intensities, normals, points, positions, rotations, residual, usable, albedo, inv_lam,
+                               stride, acc, index // M, index % M)
+    for e in range(12):
+        _block_tree_sum(share, t, acc[e])
+        if t == 0:
+            if e < 9:
+                H[0, e // 3, e % 3] = share[0]
+            else:
+                g[0, e - 9, 0] = share[0]
+        cuda.syncthreads()  # the root read before the next tree writes
+
+
+def led_offset_system(intensities, normals, points, positions, rotations, residual, usable, albedo, inv_lam, stride, H,
+                      g) -> None:
+    """:func:`.kernels.led_offset_system` on the GPU: one launch of one block (as
+    :func:`offset_system`), each thread forming its spread pixels' Jacobians (was a Jacobian
+    launch, two array operations, a copy of the rotations and the system's launch)."""
+    _led_offset_system[1, THREADS_PER_BLOCK](intensities, normals, points, positions, rotations, residual, usable,
+                                             albedo, float(inv_lam), int(stride), H, g)

@@ -321,16 +321,15 @@ def _weigh_smoothness(problem: LevelProblem, est: Estimate, ev, options: RefineO
             steps = albedo_step_factor(est.albedo, problem.level.grid, ev.shading, ev.usable, noise)
             weights = albedo_step_weights(weights, evidence, steps, noise, ceiling)
     problem.level.prior.weigh_smoothness(weights)
-    ev.prior = problem.prior_energy(est.z)
+    ev.prior = problem.prior_energy(est.z, pending=True)  # on a GPU read where first used
     timings["evidence_weights"] += time.perf_counter() - t
 
 
 def _snapshot(est: Estimate) -> Estimate:
-    """A copy of the unknowns, taken at the start of a sweep (on a GPU z and albedo in one
-    launch: views of one array)."""
-    if on_gpu(est.z) and est.albedo.dtype == est.z.dtype:
-        packed = array_module(est.z).concatenate([est.z.reshape(-1), est.albedo.reshape(-1)])
-        z, albedo = packed[:est.z.size].reshape(est.z.shape), packed[est.z.size:].reshape(est.albedo.shape)
+    """A copy of the unknowns, taken at the start of a sweep (on a GPU z and albedo themselves,
+    no launch: the steps replace those arrays, never write into them)."""
+    if on_gpu(est.z):
+        z, albedo = est.z, est.albedo
     else:
         z, albedo = est.z.copy(), est.albedo.copy()
     return Estimate(z, albedo, est.lights.copy(), est.poses.copy(),

@@ -25,8 +25,8 @@ import numpy as np
 from ..model.robust import log1p_square_sum, log1p_square_term  # noqa: F401 - log1p_square_sum re-exported: the same names as .cuda_kernels
 from ..model.normals import unit_normal_at
 from ..model.shading import (FRAME_CHUNK, led_fields_into, led_irradiance_at, led_irradiance_of,  # noqa: F401
-                             led_irradiances_into, led_point_gradient, led_point_gradients_into, led_position,
-                             twist_row_into)
+                             led_irradiances_into, led_point_gradient, led_point_gradient_of, led_point_gradients_into,
+                             led_position, twist_row_into)
 
 # OpenMP first: the TBB that Open3D's wheels may put on the path can be too old for numba,
 # which then warns on every first parallel call.
@@ -1862,17 +1862,39 @@ def offset_system_add(ds, residual, usable, albedo, inv_lam, stride, acc, i, q):
     weights of the residual r (zero where not usable)."""
     p = q * stride
     if usable[i, p]:
-        rw = 0.0
-        rr = 0.0
-        for c in range(3):
-            x = residual[i, p, c] * inv_lam
-            w = 1.0 / (1.0 + x * x)
-            rw += albedo[p, c] * albedo[p, c] * w
-            rr += w * albedo[p, c] * residual[i, p, c]
-        for a in range(3):
-            for b in range(3):
-                acc[3 * a + b] += ds[i, q, a] * rw * ds[i, q, b]
-            acc[9 + a] -= ds[i, q, a] * rr
+        rw, rr = offset_pixel_weights(residual, albedo, inv_lam, i, p)
+        offset_terms_add(acc, ds[i, q, 0], ds[i, q, 1], ds[i, q, 2], rw, rr)
+
+
+@numba.njit(inline="always")
+def offset_pixel_weights(residual, albedo, inv_lam, i, p):  # pragma: no cover - compiled
+    """Pixel p of frame i's weights in the LED offset's system: (sum_c rho_c^2 w_c, sum_c w_c
+    rho_c r_c), w the Cauchy IRLS weights of the residuals r (n, N, 3)."""
+    rw = 0.0
+    rr = 0.0
+    for c in range(3):
+        x = residual[i, p, c] * inv_lam
+        w = 1.0 / (1.0 + x * x)
+        rw += albedo[p, c] * albedo[p, c] * w
+        rr += w * albedo[p, c] * residual[i, p, c]
+    return rw, rr
+
+
+@numba.njit(inline="always")
+def offset_terms_add(acc, d0, d1, d2, rw, rr):  # pragma: no cover - compiled
+    """acc (12,) += one pixel's Gram rw ds ds^T (row-major) and gradient -rr ds, ds = (d0, d1, d2)."""
+    acc[0] += d0 * rw * d0
+    acc[1] += d0 * rw * d1
+    acc[2] += d0 * rw * d2
+    acc[3] += d1 * rw * d0
+    acc[4] += d1 * rw * d1
+    acc[5] += d1 * rw * d2
+    acc[6] += d2 * rw * d0
+    acc[7] += d2 * rw * d1
+    acc[8] += d2 * rw * d2
+    acc[9] -= d0 * rr
+    acc[10] -= d1 * rr
+    acc[11] -= d2 * rr
 
 
 @numba.njit(cache=True)
@@ -2068,3 +2090,45 @@ def depth_step(z, dz, t, lower, upper, out, bad):  # pragma: no cover - compiled
     for b in range(bad.shape[0]):
         bad[b] = 0.0
     bad[0] = count
+
+
+# ============================================================================================
+# gpueval2 (issue 33): the LED offset's system from the light state in one launch on the GPU
+# (:mod:`.cuda_kernels`' section of the same name); here its CPU twin.
+# ============================================================================================
+
+
+@numba.njit(inline="always")
+def led_offset_system_add(intensities, normals, points, positions, rotations, residual, usable, albedo, inv_lam,
+                          stride, acc, i, q):  # pragma: no cover - compiled
+    """:func:`offset_system_add` of frame i's spread pixel q (pixel q stride) with its
+    d(shading)/d(offset) formed here: ``ds = -J R_i^T``, J the LED's point gradient
+    (:func:`~o3d_mvps.model.shading.led_point_gradient_of`; :meth:`.lighting.LEDLight.offset_jacobians`)."""
+    p = q * stride
+    if usable[i, p]:
+        J0, J1, J2 = led_point_gradient_of(intensities, normals, points, positions, i, p)
+        d0 = -(J0 * rotations[i, 0, 0] + J1 * rotations[i, 0, 1] + J2 * rotations[i, 0, 2])
+        d1 = -(J0 * rotations[i, 1, 0] + J1 * rotations[i, 1, 1] + J2 * rotations[i, 1, 2])
+        d2 = -(J0 * rotations[i, 2, 0] + J1 * rotations[i, 2, 1] + J2 * rotations[i, 2, 2])
+        rw, rr = offset_pixel_weights(residual, albedo, inv_lam, i, p)
+        offset_terms_add(acc, d0, d1, d2, rw, rr)
+
+
+@numba.njit(cache=True)
+def led_offset_system(intensities, normals, points, positions, rotations, residual, usable, albedo, inv_lam, stride, H,
+                      g):  # pragma: no cover - compiled
+    """:func:`offset_system` with the Jacobians formed per pixel (:func:`led_offset_system_add`),
+    not read from an (n, M, 3) array: H (1, 3, 3), g (1, 3, 1) over every frame's pixels 0,
+    stride, 2 stride, ...; intensities (n,), light positions (n, 3) in reference coordinates,
+    rotations (n, 3, 3) of the poses, normals, points (N, 3) float64, residual (n, N, 3), usable
+    (n, N), albedo (N, 3)."""
+    acc = np.zeros(12)
+    n, N = usable.shape
+    for i in range(n):
+        for q in range(-(-N // stride)):
+            led_offset_system_add(intensities, normals, points, positions, rotations, residual, usable, albedo,
+                                  inv_lam, stride, acc, i, q)
+    for e in range(9):
+        H[0, e // 3, e % 3] = acc[e]
+    for a in range(3):
+        g[0, a, 0] = acc[9 + a]

@@ -16,10 +16,10 @@ from ..model.camera import backproject
 from ..model.normals import unit_normals
 from ..model.robust import cauchy_energy
 from ..model.warping import in_view, visible, warp
-from .device import DeviceCopies, kernels_for, to_host
+from .device import kernels_for, to_host
 from .kernels import energy_blocks
 from .krylov import pixel_prolongations
-from .lighting import LEDLight, RoomLight, SHLight
+from .lighting import LEDLight, RoomLight, SHLight, device_light_state
 from .pyramid import Level
 
 
@@ -59,6 +59,47 @@ class FrameGradients:
     points: np.ndarray
     grad_u: np.ndarray
     grad_v: np.ndarray
+
+
+class PendingSums:
+    """The (data, prior) energies of a one-pass kernel's partial sums (B, 2) on the GPU, read to
+    the host at the first use (one copy, a synchronisation), not at the launch: an evaluation
+    whose energy no step reads (the albedo's, the smoothness weighing's prior) costs no copy.
+    scale: the data sum's factor (lambda^2 / 2); prior: the prior energy where the caller had it
+    (then the kernel's prior sum is not read)."""
+
+    def __init__(self, partial, scale: float, prior: float | None = None):
+        self._partial, self._scale, self._prior, self._values = partial, scale, prior, None
+
+    def value(self, index: int) -> float:
+        """The data (index 0) or prior (1) energy."""
+        if self._values is None:
+            data, prior = to_host(self._partial).sum(axis=0)
+            self._values = (self._scale * float(data), float(prior) if self._prior is None else self._prior)
+            self._partial = None
+        return self._values[index]
+
+
+class _Energy:
+    """A data descriptor of :class:`Evaluation`'s ``data`` and ``prior``: a float, or a
+    :class:`PendingSums` read at the first get (and then kept as the float)."""
+
+    def __init__(self, index: int):
+        self.index = index
+
+    def __set_name__(self, owner, name):
+        self.key = "_" + name
+
+    def __get__(self, obj, owner=None):
+        if obj is None:
+            return self
+        value = obj.__dict__[self.key]
+        if isinstance(value, PendingSums):
+            value = obj.__dict__[self.key] = value.value(self.index)
+        return value
+
+    def __set__(self, obj, value):
+        obj.__dict__[self.key] = value
 
 
 @dataclass
@@ -107,6 +148,11 @@ class Evaluation:
             rms.append(float(xp.sqrt(xp.vdot(r, r).astype(np.float64) / count)) if count else float("nan"))
         return rms
 
+    def pending(self, name: str):
+        """The ``data`` or ``prior`` energy as held: a float, or the :class:`PendingSums` not yet
+        read (passed on without a copy)."""
+        return self.__dict__["_" + name]
+
     def frame_basis(self, i: int) -> np.ndarray:
         """Frame i's light basis (N, k)."""
         return self.basis[min(i, len(self.basis) - 1)]
@@ -114,6 +160,12 @@ class Evaluation:
     @property
     def energy(self) -> float:
         return self.data + self.prior
+
+
+# data and prior: floats, or device sums read at the first use (the GPU's evaluations)
+Evaluation.data, Evaluation.prior = _Energy(0), _Energy(1)
+Evaluation.data.__set_name__(Evaluation, "data")
+Evaluation.prior.__set_name__(Evaluation, "prior")
 
 
 class LevelProblem:
@@ -146,9 +198,6 @@ class LevelProblem:
         self.device_K = like(level.K, level.grid.u)
         self._no_frames = None  # on a GPU: empty frames x pixels arrays, for the prior's energy alone
         self._grid_arrays = None  # on a GPU: the grid's per-pixel arrays, C-contiguous, for the kernels
-        # on a GPU: device copies of the last poses and lights, flattened together (a line
-        # search's or extrapolation's kept trial is not copied again when evaluated)
-        self._packed = DeviceCopies(kept=3)
 
     def pixel_prolongations(self) -> list:
         """The level's pixel aggregation for the GPU path's multigrid (:func:`.krylov.pixel_prolongations`),
@@ -247,9 +296,10 @@ class LevelProblem:
                                               zbuffer=not identity), self.visibility)
 
     # energy ------------------------------------------------------------------------------
-    def prior_energy(self, z: np.ndarray) -> float:
+    def prior_energy(self, z: np.ndarray, pending: bool = False) -> float:
         """The prior's energy at depth z (N,) metres (:meth:`.pyramid.DepthPrior.energy`; on a GPU
-        one launch of :func:`.kernels.evaluation_partials` on no frames and one copy)."""
+        one launch of :func:`.kernels.evaluation_partials` on no frames and one copy, or with
+        ``pending`` a :class:`PendingSums` for an :class:`Evaluation`'s prior, read when used)."""
         if array_module(z) is np:
             return self.level.prior.energy(z, self.tau, self.mu)
         if self._no_frames is None:
@@ -258,7 +308,8 @@ class LevelProblem:
             self._no_frames = (xp.empty((0, N, 3), np.float32), xp.empty((0, 3)), xp.empty((0, N, k), dtype),
                                xp.empty((0, k)), xp.empty((0, N), bool), xp.empty((0, N), dtype),
                                xp.empty((0, N, 3), dtype))
-        return self._device_sums(z, self._no_frames, None)[1]
+        sums = self._device_sums(z, self._no_frames, None)
+        return sums if pending else sums.value(1)
 
     def _prior_arrays(self, with_prior: bool) -> tuple:
         """The prior's terms for the one-pass kernels (:func:`.kernels.prior_term`): D's CSR
@@ -271,16 +322,18 @@ class LevelProblem:
         tau, mu = (self.tau, self.mu if smooth else 0.0) if with_prior else (0.0, 0.0)
         return D.indptr, D.indices, D.data, prior.z0, S.indptr, S.indices, S.data, tau, mu
 
-    def _device_sums(self, z: np.ndarray, frames: tuple, prior: float | None) -> tuple[float, float]:
-        """(data, prior) energies of :func:`.kernels.evaluation_partials` on the GPU: frames =
-        (color, albedo, basis, lights, usable, shading, residual) (shading and residual written),
-        the prior's at z unless ``prior`` is given (then that). One launch, one copy."""
+    def _device_sums(self, z: np.ndarray, frames: tuple, prior) -> PendingSums:
+        """The (data, prior) energies of :func:`.kernels.evaluation_partials` on the GPU, read when
+        first used: frames = (color, albedo, basis, lights, usable, shading, residual) (shading and
+        residual written), the prior's at z unless ``prior`` is given as a float (then that; a
+        :class:`PendingSums` not yet read is computed again, so that one copy reads both). One
+        launch, and one copy where the energy is read."""
         usable = frames[4]
         xp = array_module(z)
+        given = prior if isinstance(prior, float) else None
         partial = xp.empty((energy_blocks(usable.size + self.level.prior.rows), 2))
-        kernels_for(z).evaluation_partials(*frames, 1.0 / self.lam, *self._prior_arrays(prior is None), z, partial)
-        data, prior_sum = to_host(partial).sum(axis=0)
-        return 0.5 * self.lam * self.lam * float(data), float(prior_sum) if prior is None else prior
+        kernels_for(z).evaluation_partials(*frames, 1.0 / self.lam, *self._prior_arrays(given is None), z, partial)
+        return PendingSums(partial, 0.5 * self.lam * self.lam, given)
 
     def _one_pass_light(self, est: Estimate):
         """(led, offset) for the one-pass kernels (:func:`.kernels.energy_partials`,
@@ -308,12 +361,12 @@ class LevelProblem:
                 lights)
 
     def _device_poses_lights(self, est: Estimate) -> tuple:
-        """``est``'s poses (n, 4, 4) and lights (n, k), float64, on the GPU: one copy of both, none
-        where they equal the last ones copied (views of one device array, never written)."""
-        host = np.concatenate([np.asarray(to_host(est.poses), np.float64).reshape(-1),
-                               np.asarray(to_host(est.lights), np.float64).reshape(-1)])
-        n, packed = self.n_frames, self._packed.copy(host, est.z)
-        return packed[:16 * n].reshape(n, 4, 4), packed[16 * n:].reshape(n, -1)
+        """``est``'s poses (n, 4, 4) and lights (n, k), float64, on the GPU: one copy of them and
+        the light model's LED arrays, none where they equal a state copied lately (views of one
+        device array, never written: :func:`.lighting.device_light_state`, which the LED's
+        Jacobians, fields and offset step of this state then read without a copy)."""
+        state = device_light_state(self.light_model(est), est.lights, est.poses, est.z)
+        return state.poses, state.lights
 
     def _one_pass_energy(self, est: Estimate, prior: float | None):
         """:meth:`energy` on a GPU in one launch (:func:`.kernels.energy_partials`: every frame's
@@ -464,8 +517,8 @@ class LevelProblem:
             shading, residual = reuse.shading, reuse.residual
         if xp is not np:  # residuals, data and prior energy in one launch (and one copy)
             lights = self._device_poses_lights(est)[1]
-            data, prior = self._device_sums(est.z, (color, est.albedo, basis, lights, usable, shading, residual), prior)
-            return Evaluation(residual, usable, color, shading, normals, dA, basis, data, prior)
+            sums = self._device_sums(est.z, (color, est.albedo, basis, lights, usable, shading, residual), prior)
+            return Evaluation(residual, usable, color, shading, normals, dA, basis, sums, sums)
         kernels.shading_residuals(color, est.albedo, basis, like(est.lights, color, dtype=np.float64), usable, shading,
                                   residual)
         data = cauchy_energy(residual, self.lam, kernels.log1p_square_sum)
@@ -486,4 +539,4 @@ class LevelProblem:
         gives ``ev`` up: no second frames x pixels x 3 array while the new one is computed). The
         prior energy is ``ev``'s (the same z)."""
         return self._evaluation(est, ev.color, ev.usable, ev.normals, ev.dA, ev.basis, ev if overwrite else None,
-                                ev.prior)
+                                ev.pending("prior"))
