@@ -103,6 +103,11 @@ SIGNATURES = {
     # gpueval2: the LED offset's system from the light state
     "_led_offset_system": (_F1, _F2, _F2, _F2, _F3, _R3, _array(2, types.boolean), _F2, types.float64, types.int64,
                            _F3, _F3),
+    "_led_evidence_sums": (_array(2, types.boolean), _F2, _R2, _F1, _F2, _F2, _F2, _F2, _F2, _F1),
+    "_albedo_evaluation_partials": (_R3, _array(2, types.boolean), _COLOR, _R2, types.float64, _F2, _F2, _F2, _F2,
+                                    _R3, _F2, _array(1, types.int32), _array(1, types.int32), _F1, _F1,
+                                    _array(1, types.int32), _array(1, types.int32), _F1, types.float64,
+                                    types.float64, _F1, _F2),
 }
 
 

@@ -968,3 +968,63 @@ def test_depth_step_matches_cpu_and_the_line_search_formula(envelope):
     np.testing.assert_array_equal(np.isnan(gpu[-2]), np.arange(N) == 13)
     assert_close(np.delete(gpu[-2], 13), np.delete(expected, 13))
     assert cpu[-1].sum() == gpu[-1].sum() == (1 if envelope else 2)
+
+
+# --- gpueval2 (issue 33) ---------------------------------------------------------------------
+
+
+def _led_surface():
+    """Unit normals and points (N_PIXELS, 3) in front of the camera, and a light state of four
+    frames: poses (4, 4, 4), an LED offset (3,), lights (4, 2)."""
+    from o3d_mvps.solver.lighting import LEDLight
+
+    points = RNG.normal(size=(N_PIXELS, 3)) * 0.05 + [0.0, 0.0, 0.6]
+    normals = RNG.normal(size=(N_PIXELS, 3))
+    normals[:, 2] = -np.abs(normals[:, 2])  # most face the camera: lit and unlit pixels
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    poses = np.stack([np.eye(4), POSE, np.linalg.inv(POSE), POSE @ POSE])
+    light = LEDLight(np.array([0.03, -0.02, 0.01]))
+    return normals, points, poses, light, np.column_stack([RNG.random(4) * 0.2, RNG.random(4) * 0.4 + 0.1])
+
+
+def test_led_offset_system_matches_the_jacobians_and_offset_system(frames):
+    """The LED offset's system with its Jacobians formed per pixel (one launch on a GPU): the
+    same as offset_system on the light model's own offset_jacobians (the host's array formulas)
+    of every 4th pixel."""
+    residual, usable, _, _, albedo = frames
+    residual, usable = np.concatenate([residual, residual[:1]]), np.concatenate([usable, usable[:1]])  # 4 frames
+    normals, points, poses, light, lights = _led_surface()
+    stride = 4
+    ds = light.offset_jacobians(lights, normals[::stride], points[::stride], poses)
+    H, g = np.full((1, 3, 3), np.nan), np.full((1, 3, 1), np.nan)
+    kernels.offset_system(ds, residual, usable, albedo, 1.0 / LAM, stride, H, g)
+    rotations = np.ascontiguousarray(poses[:, :3, :3])
+    cpu, gpu = run_both("led_offset_system", lights[:, 1].copy(), normals, points, light.positions(poses), rotations,
+                        residual, usable, albedo, np.float64(1.0 / LAM), stride, np.full((1, 3, 3), np.nan),
+                        np.full((1, 3, 1), np.nan))
+    assert np.abs(H).max() > 0 and (ds == 0).any()  # lit and unlit pixels
+    assert_close(cpu[-2], H, rtol=1e-10)  # the product's order of sums differs (J R^T against matmul)
+    assert_close(cpu[-1], g, rtol=1e-10)
+    assert_close(gpu[-2], cpu[-2])
+    assert_close(gpu[-1], cpu[-1])
+
+
+def test_led_evidence_sums_match_the_hosts_evidence_sums(frames):
+    """normal_evidence's sums with the LED's fields formed per pixel (one launch on a GPU): equal
+    bit for bit on the CPU to the host's _evidence_sums of the light model's fields."""
+    from o3d_mvps.solver.weighting import _evidence_sums
+
+    _, usable, _, shading, albedo = frames
+    usable, shading = np.concatenate([usable, usable[:1]]), np.concatenate([shading, shading[:1]]).astype(np.float32)
+    normals, points, poses, light, lights = _led_surface()
+    _, L = light.fields(lights, normals, points, poses)
+    expected = np.empty((6, N_PIXELS)), np.empty((3, N_PIXELS)), np.empty(N_PIXELS)
+    _evidence_sums(usable, (albedo ** 2).sum(axis=1), shading, L, *expected)
+    nan = lambda *shape: np.full(shape, np.nan)  # noqa: E731
+    cpu, gpu = run_both("led_evidence_sums", usable, albedo, shading, lights[:, 1].copy(), normals, points,
+                        light.positions(poses), nan(6, N_PIXELS), nan(3, N_PIXELS), nan(N_PIXELS))
+    assert (L == 0).any() and (L != 0).any()
+    for got, want in zip(cpu[-3:], expected):
+        np.testing.assert_array_equal(got, want)
+    for a, b in zip(gpu[-3:], cpu[-3:]):
+        assert_close(a, b)

@@ -1233,3 +1233,58 @@ def led_offset_system(intensities, normals, points, positions, rotations, residu
     launch, two array operations, a copy of the rotations and the system's launch)."""
     _led_offset_system[1, THREADS_PER_BLOCK](intensities, normals, points, positions, rotations, residual, usable,
                                              albedo, float(inv_lam), int(stride), H, g)
+
+
+__all__ += ["led_evidence_sums"]
+
+_led_evidence_pixel = _device(kernels.led_evidence_pixel)
+
+
+@cuda.jit(cache=True)
+def _led_evidence_sums(usable, albedo, shading, intensities, normals, points, positions, G6, v,
+                       d):  # pragma: no cover - device
+    p = cuda.grid(1)
+    if p < usable.shape[1]:
+        _led_evidence_pixel(usable, albedo, shading, intensities, normals, points, positions, G6, v, d, p)
+
+
+def led_evidence_sums(usable, albedo, shading, intensities, normals, points, positions, G6, v, d) -> None:
+    """:func:`.kernels.led_evidence_sums` on the GPU: one thread per pixel, its frames in turn (was
+    the fields' launch and some eight array operations)."""
+    _led_evidence_sums[_blocks(usable.shape[1]), THREADS_PER_BLOCK](usable, albedo, shading, intensities, normals,
+                                                                    points, positions, G6, v, d)
+
+
+__all__ += ["albedo_evaluation_partials"]
+
+_albedo_ratio_pixel = _device(kernels.albedo_ratio_pixel)
+
+
+@cuda.jit(cache=True)
+def _albedo_evaluation_partials(residual, usable, color, shading, inv_lam, fallback, num, den, albedo, basis, lights,
+                                D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data, tau, mu, z,
+                                partial):  # pragma: no cover - device
+    """Each thread a grid-stride share of the pixels: a pixel's albedo from its frames' old
+    residuals, then its frames' new residuals and their energy; the prior's rows likewise."""
+    share = cuda.shared.array((THREADS_PER_BLOCK, 2), numba.float64)
+    t = cuda.threadIdx.x
+    n, N = usable.shape
+    data = 0.0
+    for p in range(cuda.grid(1), N, cuda.gridsize(1)):
+        _weighted_albedo_pixel(residual, usable, color, shading, inv_lam, num, den, p)
+        _albedo_ratio_pixel(num, den, fallback, albedo, p)
+        for i in range(n):
+            data += _evaluation_term(color, albedo, basis, lights, usable, shading, residual, inv_lam, i, p)
+    prior = _prior_sum(D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data, tau, mu, z, cuda.grid(1),
+                       _prior_rows(z0, S_indptr, tau, mu), cuda.gridsize(1))
+    _store_block_pair(share, t, data, prior, partial)
+
+
+def albedo_evaluation_partials(residual, usable, color, shading, inv_lam, fallback, num, den, albedo, basis, lights,
+                               D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data, tau, mu, z,
+                               partial) -> None:
+    """:func:`.kernels.albedo_evaluation_partials` on the GPU: one launch of partial.shape[0]
+    blocks (was the albedo's launch and the evaluation's)."""
+    _albedo_evaluation_partials[partial.shape[0], THREADS_PER_BLOCK](
+        residual, usable, color, shading, float(inv_lam), fallback, num, den, albedo, basis, lights, D_indptr,
+        D_indices, D_data, z0, S_indptr, S_indices, S_data, float(tau), float(mu), z, partial)

@@ -20,7 +20,7 @@ from .line_search import backtrack
 from .linear import levenberg_damped, solve_spd
 from .normal_equations import joint_system
 from .problem import Estimate, Evaluation, LevelProblem
-from .reflectance import update_albedo
+from .reflectance import refit_albedo as refit_albedo_at
 
 
 def update_depth(problem: LevelProblem, est: Estimate, ev: Evaluation, *, rtol: float, maxiter: int,
@@ -52,7 +52,7 @@ def search_estimates(problem: LevelProblem, est: Estimate, energy: float, moved:
     evaluation), or ``est`` evaluated anew when no length lowers the energy (its evaluation
     was released for the solve: see :meth:`.Evaluation.release`).
 
-    refit_albedo: give each trial its closed-form albedo (:func:`update_albedo`) first.
+    refit_albedo: give each trial its closed-form albedo (:func:`.reflectance.refit_albedo`) first.
     """
 
     def trial(t: float):
@@ -61,8 +61,7 @@ def search_estimates(problem: LevelProblem, est: Estimate, energy: float, moved:
             return None
         candidate_ev = problem.evaluate(candidate)
         if refit_albedo:
-            candidate.albedo = update_albedo(candidate, candidate_ev, problem.lam)
-            candidate_ev = problem.reevaluate(candidate, candidate_ev, overwrite=True)
+            candidate_ev = refit_albedo_at(problem, candidate, candidate_ev)
         return (candidate, candidate_ev), candidate_ev.energy
 
     found = backtrack(trial, energy, max_halvings)

@@ -136,6 +136,27 @@ class DeviceCopies:
         del self.entries[self.kept:]
         return copied
 
+    def copy_many(self, hosts: list, reference) -> list:
+        """:meth:`copy` of several host arrays (1-d) in one ``asarray`` (views of one device
+        array), keeping each; those equal to a kept one give that copy, and none is copied
+        where all are kept."""
+        found = [self.copy(host, reference) if self._kept(host, reference) else None for host in hosts]
+        missing = [k for k, got in enumerate(found) if got is None]
+        if missing:
+            xp, device = array_module(reference), getattr(reference, "device", None)
+            packed = xp.asarray(np.concatenate([hosts[k] for k in missing]))
+            ends = np.cumsum([0] + [len(hosts[k]) for k in missing])
+            for k, start, stop in zip(missing, ends[:-1], ends[1:]):
+                found[k] = packed[start:stop]
+                self.entries.insert(0, (hosts[k], xp, device, found[k]))
+            del self.entries[max(self.kept, len(missing)):]
+        return found
+
+    def _kept(self, host: np.ndarray, reference) -> bool:
+        xp, device = array_module(reference), getattr(reference, "device", None)
+        return any(module is xp and where == device and values.shape == host.shape and np.array_equal(values, host)
+                   for values, module, where, _ in self.entries)
+
     def clear(self) -> None:
         self.entries.clear()
 

@@ -35,7 +35,7 @@ from .device import CPU, ArrayDevice, array_device, compile_notice, kernels_for,
 from .joint import update_pose_depth
 from .kernels import MAX_EXTRAPOLATION_FACTORS, extrapolation_blocks
 from .light_selection import select_light_model
-from .lighting import make_light_model, update_led_offset
+from .lighting import make_light_model, preload_light_states, update_led_offset
 from .normal_equations import prepare_depth_block
 from .options import AUTO, DEFAULT_CAUCHY_LAMBDA, RefineOptions
 from .pose import keep_agreeing_poses, pose_information, update_poses
@@ -44,7 +44,7 @@ from .pose_trust import PoseAnchors, PoseLog
 from .problem import Estimate, LevelProblem
 from .problem_input import SolverInput
 from .pyramid import build_level, level_size
-from .reflectance import update_albedo, update_lighting
+from .reflectance import refit_albedo, update_albedo, update_lighting
 from .smoothness import auto_smoothness
 from .solution import SolverOutput
 from .weighting import (absolute_evidence_weights, albedo_step_factor, albedo_step_weights, evidence_weights,
@@ -203,8 +203,7 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
     # coarse (or, on the first level, the reference image's) albedo lacks the detail the pose
     # and depth steps compare against. Fitting lighting first would explain the reference image
     # by ambient light alone, since the initial albedo is that image.
-    est.albedo = update_albedo(est, ev, problem.lam)
-    ev = problem.reevaluate(est, ev, overwrite=True)
+    ev = refit_albedo(problem, est, ev)
     if options.model.cauchy_scale() == AUTO:  # the level's noise floor, once its albedo fits
         problem.lam = robust_scale(ev.residual, ev.usable)
         ev = problem.reevaluate(est, ev, overwrite=True)
@@ -278,8 +277,7 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
             timings["depth"] += time.perf_counter() - t
         stats["cg_iterations"].append(cg_iterations)
         t = time.perf_counter()
-        est.albedo = update_albedo(est, ev, problem.lam)
-        ev = problem.reevaluate(est, ev, overwrite=True)
+        ev = refit_albedo(problem, est, ev)  # (one launch on a GPU)
         est.lights = update_lighting(est, ev, problem.lam, problem.light_model(est))
         ev = problem.reevaluate(est, ev, overwrite=True)
         if refine_offset:
@@ -365,6 +363,10 @@ def _extrapolate(problem: LevelProblem, est: Estimate, ev, before: Estimate, anc
     current = anchored(ev.energy, est, ev.usable)
     delta_poses = [se3.log(T @ np.linalg.inv(T0)) for T, T0 in zip(est.poses, before.poses)] if poses_moved else []
     trials = _device_trials(problem, est, before, factors)  # None on the CPU
+    if trials is not None:  # every factor's poses and lights copied over at once (one copy, not one a factor)
+        parts = [_trial(est, before, factor, delta_poses, poses_moved) for factor in factors]
+        preload_light_states([(problem.light_model(Estimate(est.z, est.albedo, *part)), part[0], part[1])
+                              for part in parts], est.z)
     for j, factor in enumerate(factors):
         if trials is None:
             z = problem.level.prior.clip(_extrapolated(est.z, before.z, factor))
@@ -375,11 +377,7 @@ def _extrapolate(problem: LevelProblem, est: Estimate, ev, before: Estimate, anc
             z, albedo = trials[0][j], trials[1][j]
         else:
             break
-        offset = None if est.led_offset is None else est.led_offset + factor * (est.led_offset - before.led_offset)
-        trial = Estimate(z, albedo,
-                         est.lights + factor * (est.lights - before.lights),
-                         np.stack([se3.exp(factor * d) @ T for d, T in zip(delta_poses, est.poses)])
-                         if poses_moved else est.poses, offset)
+        trial = Estimate(z, albedo, *_trial(est, before, factor, delta_poses, poses_moved))
         energy, usable = problem.energy(trial)
         trial_energy = anchored(energy, trial, usable)
         if trial_energy < current:
@@ -392,6 +390,14 @@ def _extrapolate(problem: LevelProblem, est: Estimate, ev, before: Estimate, anc
     est.z, est.albedo, est.lights, est.poses, est.led_offset = (best.z, best.albedo, best.lights, best.poses,
                                                                 best.led_offset)
     return problem.evaluate(est)
+
+
+def _trial(est: Estimate, before: Estimate, factor: float, delta_poses: list, poses_moved: bool) -> tuple:
+    """:func:`_extrapolate`'s trial lights (n, k), poses (n, 4, 4) and LED offset (or None) at ``factor``."""
+    offset = None if est.led_offset is None else est.led_offset + factor * (est.led_offset - before.led_offset)
+    return (est.lights + factor * (est.lights - before.lights),
+            np.stack([se3.exp(factor * d) @ T for d, T in zip(delta_poses, est.poses)]) if poses_moved else est.poses,
+            offset)
 
 
 def _device_trials(problem: LevelProblem, est: Estimate, before: Estimate, factors) -> tuple | None:

@@ -25,7 +25,7 @@ import numpy as np
 from ..model.robust import log1p_square_sum, log1p_square_term  # noqa: F401 - log1p_square_sum re-exported: the same names as .cuda_kernels
 from ..model.normals import unit_normal_at
 from ..model.shading import (FRAME_CHUNK, led_fields_into, led_irradiance_at, led_irradiance_of,  # noqa: F401
-                             led_irradiances_into, led_point_gradient, led_point_gradient_of, led_point_gradients_into,
+                             led_field_of, led_irradiances_into, led_point_gradient, led_point_gradient_of, led_point_gradients_into,
                              led_position, twist_row_into)
 
 # OpenMP first: the TBB that Open3D's wheels may put on the path can be too old for numba,
@@ -2132,3 +2132,63 @@ def led_offset_system(intensities, normals, points, positions, rotations, residu
         H[0, e // 3, e % 3] = acc[e]
     for a in range(3):
         g[0, a, 0] = acc[9 + a]
+
+
+@numba.njit(inline="always")
+def led_evidence_pixel(usable, albedo, shading, intensities, normals, points, positions, G6, v, d,
+                       p):  # pragma: no cover - compiled
+    """Pixel p's sums of :func:`.weighting.normal_evidence` (those of its host's
+    ``_evidence_sums``, in the same order) with the LED's fields formed here
+    (:func:`~o3d_mvps.model.shading.led_field_of`), not read from an (n, N, 3) array:
+    G6[:, p], v[:, p], d[p] over the frames that see p; rho2 = sum_c albedo[p, c]^2."""
+    r = albedo[p, 0] * albedo[p, 0] + albedo[p, 1] * albedo[p, 1] + albedo[p, 2] * albedo[p, 2]
+    g00 = g01 = g02 = g11 = g12 = g22 = v0 = v1 = v2 = dd = 0.0
+    for i in range(usable.shape[0]):
+        if usable[i, p]:
+            l0, l1, l2 = led_field_of(intensities, normals, points, positions, i, p)
+            s = np.float64(shading[i, p])
+            us = r * s
+            g00 += r * l0 * l0
+            g01 += r * l0 * l1
+            g02 += r * l0 * l2
+            g11 += r * l1 * l1
+            g12 += r * l1 * l2
+            g22 += r * l2 * l2
+            v0 += us * l0
+            v1 += us * l1
+            v2 += us * l2
+            dd += us * s
+    G6[0, p], G6[1, p], G6[2, p], G6[3, p], G6[4, p], G6[5, p] = g00, g01, g02, g11, g12, g22
+    v[0, p], v[1, p], v[2, p], d[p] = v0, v1, v2, dd
+
+
+@numba.njit(parallel=True, cache=True)
+def led_evidence_sums(usable, albedo, shading, intensities, normals, points, positions, G6, v,
+                      d):  # pragma: no cover - compiled
+    """:func:`.weighting.normal_evidence`'s per-pixel sums under the LED (or point lights) in one
+    pass, the fields formed per pixel (:func:`led_evidence_pixel`): G6 (6, N), v (3, N), d (N,)
+    written; usable (n, N), albedo (N, 3), shading (n, N), intensities (n,), float64 unit normals
+    and points (N, 3), light positions (n, 3) in reference coordinates."""
+    for p in numba.prange(usable.shape[1]):
+        led_evidence_pixel(usable, albedo, shading, intensities, normals, points, positions, G6, v, d, p)
+
+
+@numba.njit(inline="always")
+def albedo_ratio_pixel(num, den, fallback, out, p):  # pragma: no cover - compiled
+    """out[p] (3,) = num / den where den > 1e-8, else ``fallback[p]`` (:func:`albedo_update`'s closed form)."""
+    for c in range(3):
+        d = den[p, c]
+        out[p, c] = num[p, c] / d if d > 1e-8 else fallback[p, c]
+
+
+def albedo_evaluation_partials(residual, usable, color, shading, inv_lam, fallback, num, den, albedo, basis, lights,
+                               D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data, tau, mu, z,
+                               partial) -> None:
+    """:func:`albedo_update` (albedo (N, 3) written, from the IRLS weights of ``residual``) and
+    then :func:`evaluation_partials` at that albedo (shading and residual written: the residual
+    array is read first and overwritten) in one pass on a GPU (each thread a pixel: its albedo,
+    then its frames' residuals): the driver's albedo step and re-evaluation, partial (B, 2) the
+    data and prior sums, the data's scale ``inv_lam``."""
+    albedo_update(residual, usable, color, shading, float(inv_lam), fallback, num, den, albedo)
+    evaluation_partials(color, albedo, basis, lights, usable, shading, residual, inv_lam, D_indptr, D_indices, D_data,
+                        z0, S_indptr, S_indices, S_data, tau, mu, z, partial)

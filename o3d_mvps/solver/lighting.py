@@ -295,21 +295,37 @@ def device_light_state(light, lights: np.ndarray, poses: np.ndarray, reference) 
     in one copy, or none where the same state was copied lately (:data:`_STATE_COPIES`): an
     evaluation, the joint step's Jacobians and fields, the LED offset's system and line search
     of one state share one copy (gpueval2)."""
+    parts = _state_parts(light, lights, poses, reference)
+    return _state_views(light, parts, _STATE_COPIES.copy(np.concatenate(parts), reference))
+
+
+def preload_light_states(states: list, reference) -> None:
+    """Copy the light states ``states`` [(light, lights, poses)] that :func:`device_light_state`
+    will be asked for (an extrapolation's trials) in one copy, those not kept already."""
+    _STATE_COPIES.copy_many([np.concatenate(_state_parts(*state, reference)) for state in states], reference)
+
+
+def _state_parts(light, lights, poses, reference) -> tuple:
+    """The host arrays (1-d, float64) of :func:`device_light_state`: poses, lights, offset,
+    intensities, positions, rotations."""
     host_poses = np.ascontiguousarray(to_host(poses), dtype=np.float64)
     host_lights = np.ascontiguousarray(to_host(lights), dtype=np.float64)
-    n, k = host_lights.shape
     if isinstance(light, LEDLight):
         offset = light.offset.reshape(-1)
         positions, intensities = light.positions(host_poses).reshape(-1), _intensities(host_lights, reference)
         rotations = host_poses[:, :3, :3].reshape(-1)
     else:
         offset = positions = intensities = rotations = np.zeros(0)
-    parts = (host_poses.reshape(-1), host_lights.reshape(-1), offset, intensities, positions, rotations)
-    packed = _STATE_COPIES.copy(np.concatenate(parts), reference)
+    return host_poses.reshape(-1), host_lights.reshape(-1), offset, intensities, positions, rotations
+
+
+def _state_views(light, parts: tuple, packed) -> DeviceLightState:
+    """The :class:`DeviceLightState` views of ``packed``, the device copy of ``parts``' concatenation."""
     ends = np.cumsum([0] + [len(part) for part in parts])
     views = [packed[a:b] for a, b in zip(ends[:-1], ends[1:])]
-    return DeviceLightState(views[0].reshape(n, 4, 4), views[1].reshape(n, k),
-                            views[2].reshape(light.offset.shape) if len(offset) else views[2], views[3],
+    n = len(parts[0]) // 16
+    return DeviceLightState(views[0].reshape(n, 4, 4), views[1].reshape(n, -1),
+                            views[2].reshape(light.offset.shape) if len(parts[2]) else views[2], views[3],
                             views[4].reshape(-1, 3), views[5].reshape(-1, 3, 3))
 
 

@@ -389,8 +389,8 @@ class LevelProblem:
 
     def _one_pass_evaluation(self, est: Estimate):
         """:meth:`evaluate` on a GPU in one launch (:func:`.kernels.evaluate_partials`: the points,
-        normals, warped samples, bases, shading, residuals, data and prior energy) and one or two
-        copies, or None where that kernel does not apply (:meth:`_one_pass_light`). The points are
+        normals, warped samples, bases, shading, residuals, data and prior energy), the light
+        state's copy where it changed and the energy's where it is read, or None where that kernel does not apply (:meth:`_one_pass_light`). The points are
         kept for :meth:`points` of this z."""
         chosen = self._one_pass_light(est)
         if chosen is None:
@@ -406,10 +406,9 @@ class LevelProblem:
         kernels_for(est.z).evaluate_partials(*self._grid_and_views(est), led, *offset, 1.0 / self.lam,
                                              dtype == np.float32, *self._prior_arrays(True), points, normals, dA,
                                              color, usable, basis, shading, residual, partial)
-        data, prior = to_host(partial).sum(axis=0)
         self._last_points = (est.z, points)
-        return Evaluation(residual, usable, color, shading, normals, dA, basis, 0.5 * self.lam * self.lam * float(data),
-                          float(prior))
+        sums = PendingSums(partial, 0.5 * self.lam * self.lam)  # read where the energy is used
+        return Evaluation(residual, usable, color, shading, normals, dA, basis, sums, sums)
 
     def light_model(self, est: Estimate):
         """The level's light model at the estimate's LED offset (its own where the estimate has none)."""
@@ -524,6 +523,24 @@ class LevelProblem:
         data = cauchy_energy(residual, self.lam, kernels.log1p_square_sum)
         return Evaluation(residual, usable, color, shading, normals, dA, basis, data,
                           self.prior_energy(est.z) if prior is None else prior)
+
+    def albedo_reevaluation(self, est: Estimate, ev: Evaluation) -> Evaluation:
+        """On a GPU: ``est.albedo`` set to its closed form from ``ev``'s IRLS weights
+        (:func:`.reflectance.update_albedo`) and the evaluation at it written into ``ev``'s arrays
+        (:meth:`reevaluate` with overwrite), in one launch (:func:`.kernels.albedo_evaluation_partials`),
+        its energy read when first used (``ev`` is given up)."""
+        xp = array_module(ev.residual)
+        num, den, albedo = (xp.empty_like(est.albedo) for _ in range(3))
+        lights = self._device_poses_lights(est)[1]
+        prior = ev.pending("prior")
+        given = prior if isinstance(prior, float) else None
+        partial = xp.empty((energy_blocks(ev.usable.size + self.level.prior.rows), 2))
+        kernels_for(est.z).albedo_evaluation_partials(ev.residual, ev.usable, ev.color, ev.shading, 1.0 / self.lam,
+                                                      contiguous(est.albedo), num, den, albedo, ev.basis, lights,
+                                                      *self._prior_arrays(given is None), est.z, partial)
+        est.albedo = albedo
+        sums = PendingSums(partial, 0.5 * self.lam * self.lam, given)
+        return Evaluation(ev.residual, ev.usable, ev.color, ev.shading, ev.normals, ev.dA, ev.basis, sums, sums)
 
     def relit(self, est: Estimate, ev: Evaluation) -> Evaluation:
         """The evaluation of ``est``, whose z and poses are those ``ev`` was computed at but whose

@@ -25,6 +25,13 @@ from .krylov import multiply_add
 from .smoothness import second_differences, smoothness_rows
 
 
+@fused
+def _row_scaled(data, weights):
+    """``data * weights ** 0.5`` elementwise: a CSR matrix's entries scaled by the square root of
+    their row's weight (one kernel on a GPU)."""
+    return data * weights ** 0.5
+
+
 def level_size(size: tuple[int, int], level: int) -> tuple[int, int]:
     """(H, W) of pyramid level ``level`` for a colour size (H, W)."""
     f = 2**level
@@ -54,8 +61,17 @@ class DepthPrior:
         base = self._unweighted_smoothness()
         if self.__dict__.get("_S_build") is None:
             self.__dict__.setdefault("_S_unweighted", base)
-        centre = base.indices[base.data < 0]  # each row's -2 entry, in row order
-        self.S = sparse_module(base).csr_matrix(sparse_module(base).diags(pixel_weights[centre] ** 0.5) @ base)
+        if array_module(pixel_weights) is not np:  # on a GPU: a gather and one fused kernel, S's pattern kept
+            entries = self.__dict__.get("_entry_centres")
+            if entries is None:  # once per level: each stored entry's row centre (the pattern does not change)
+                xp = array_module(pixel_weights)
+                centre = base.indices[base.data < 0]
+                entries = self.__dict__["_entry_centres"] = xp.repeat(centre, xp.diff(base.indptr).tolist())
+            self.S = sparse_module(base).csr_matrix((_row_scaled(base.data, pixel_weights[entries]), base.indices,
+                                                     base.indptr), shape=base.shape)
+        else:
+            centre = base.indices[base.data < 0]  # each row's -2 entry, in row order
+            self.S = sparse_module(base).csr_matrix(sparse_module(base).diags(pixel_weights[centre] ** 0.5) @ base)
         self.__dict__["_weighted"] = True
         self.__dict__.pop("StS", None)
 
