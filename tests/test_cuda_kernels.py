@@ -1028,3 +1028,34 @@ def test_led_evidence_sums_match_the_hosts_evidence_sums(frames):
         np.testing.assert_array_equal(got, want)
     for a, b in zip(gpu[-3:], cpu[-3:]):
         assert_close(a, b)
+
+
+def test_albedo_evaluation_partials_match_the_albedo_update_and_evaluation_partials():
+    """The albedo's closed form and the evaluation at it in one pass (one launch on a GPU): the
+    albedo, shading and residuals of albedo_update then evaluation_partials, their sums the same
+    to the partial sums' order; the residuals read before they are overwritten."""
+    led = True
+    grid, z, K, poses, images, visible, albedo, lights, offset, prior, D, S, S_matrix = _level_data(led)
+    usable, residual, color, basis = _array_formulas(grid, z, K, poses, images, visible, albedo, lights, offset, led)
+    tau, mu, inv_lam = 3.0, 0.5, 1.0 / LAM
+    n, N = usable.shape
+    shading = np.full((n, N), np.nan, np.float32)
+    kernels.shading_residuals(color, albedo, basis, lights, usable, shading, residual)
+    residual = residual + (RNG.normal(size=residual.shape) * 0.05).astype(np.float32) * usable[..., None]
+    usable = usable.copy()
+    usable[:, :5] = False  # no frame: the fallback albedo
+    nan = lambda *shape: np.full(shape, np.nan)  # noqa: E731
+    ref = [residual.copy(), nan(N, 3), nan(N, 3), nan(N, 3), shading.copy(), nan(2, 2)]
+    kernels.albedo_update(ref[0], usable, color, shading, inv_lam, albedo, ref[1], ref[2], ref[3])
+    kernels.evaluation_partials(color, ref[3], basis, lights, usable, ref[4], ref[0], inv_lam, *D, prior.z0, *S, tau,
+                                mu, z, ref[5])
+    cpu, gpu = run_both("albedo_evaluation_partials", residual, usable, color, shading, np.float64(inv_lam), albedo,
+                        nan(N, 3), nan(N, 3), nan(N, 3), basis, lights, *D, prior.z0, *S, tau, mu, z, nan(2, 2))
+    np.testing.assert_array_equal(cpu[8][:5], albedo[:5])
+    for out, rtol in ((cpu, 1e-12), (gpu, 1e-6)):  # the simulator's Python: float32 residual x float = float32 (NEP 50)
+        assert_close(out[8], ref[3], rtol=rtol)  # the albedo
+        assert_close(out[3], ref[4])  # the shading
+        assert_close(out[0], ref[0], rtol=1e-6)  # the float32 residuals
+        assert out[-1][:, 1].sum() == pytest.approx(ref[5][:, 1].sum(), rel=1e-12)
+        assert out[-1][:, 0].sum() == pytest.approx(ref[5][:, 0].sum(), rel=1e-6)
+    assert not np.array_equal(cpu[0], residual)  # written

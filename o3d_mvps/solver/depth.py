@@ -71,7 +71,9 @@ def search_estimates(problem: LevelProblem, est: Estimate, energy: float, moved:
 def stepped_depth(prior, z: np.ndarray, t: float, dz: np.ndarray) -> np.ndarray | None:
     """A line search's trial depth ``prior.clip(z + t dz)`` (N,) metres (``prior`` the level's
     :class:`.pyramid.DepthPrior`), or None where a depth is not > 0; on a GPU one launch and one
-    read (:func:`.kernels.depth_step`; was up to five array operations and a read)."""
+    read (:func:`.kernels.depth_step`; was up to five array operations and a read), no read
+    where the envelope is positive (:attr:`.pyramid.DepthPrior.envelope_positive`: every
+    clipped depth is > 0 or NaN, and a NaN depth's energy is NaN, which the search rejects)."""
     if not on_gpu(z):
         stepped = prior.clip(z + t * dz)
         return stepped if np.all(stepped > 0) else None
@@ -79,6 +81,8 @@ def stepped_depth(prior, z: np.ndarray, t: float, dz: np.ndarray) -> np.ndarray 
     out, bad = xp.empty(z.shape[0]), xp.empty(extrapolation_blocks(z.shape[0]))
     kernels_for(z).depth_step(contiguous(z, np.float64), contiguous(dz, np.float64), float(t),
                               *envelope_arrays(prior, xp), out, bad)
+    if getattr(prior, "envelope_positive", False):  # clipped into a positive envelope: no read (gpueval2)
+        return out
     return out if to_host(bad).sum() == 0 else None
 
 

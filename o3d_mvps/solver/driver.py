@@ -403,8 +403,9 @@ def _trial(est: Estimate, before: Estimate, factor: float, delta_poses: list, po
 def _device_trials(problem: LevelProblem, est: Estimate, before: Estimate, factors) -> tuple | None:
     """:func:`_extrapolate`'s trial depths and albedos on a GPU, every factor's in one launch
     (:func:`.kernels.extrapolation_trials`: extrapolated, the depth clipped into the prior's
-    envelope) and one copy back: (z (F, N), albedo (F, N, 3), positive (F,) bool: every trial
-    depth > 0); None on the CPU, or for factors or albedos that kernel does not take."""
+    envelope) and one copy back, none where the envelope is positive
+    (:attr:`.pyramid.DepthPrior.envelope_positive`): (z (F, N), albedo (F, N, 3), positive (F,)
+    bool: every trial depth > 0); None on the CPU, or for factors or albedos that kernel does not take."""
     if not (on_gpu(est.z) and len(factors) <= MAX_EXTRAPOLATION_FACTORS and est.z.ndim == 1
             and est.albedo.shape == (est.z.size, 3)):
         return None
@@ -414,6 +415,8 @@ def _device_trials(problem: LevelProblem, est: Estimate, before: Estimate, facto
                                                                                  before.albedo)),
                                             tuple(float(f) for f in factors), *envelope_arrays(prior, xp), z, albedo,
                                             bad)
+    if getattr(prior, "envelope_positive", False):  # clipped into a positive envelope: no read (a NaN
+        return z, albedo, np.ones(F, dtype=bool)      # trial's energy is NaN, and it is not kept)
     return z, albedo, to_host(bad).sum(axis=1) == 0
 
 

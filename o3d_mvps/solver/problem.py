@@ -72,7 +72,9 @@ class PendingSums:
         self._partial, self._scale, self._prior, self._values = partial, scale, prior, None
 
     def value(self, index: int) -> float:
-        """The data (index 0) or prior (1) energy."""
+        """The data (index 0) or prior (1) energy (a given prior without a read)."""
+        if index == 1 and self._prior is not None:
+            return self._prior
         if self._values is None:
             data, prior = to_host(self._partial).sum(axis=0)
             self._values = (self._scale * float(data), float(prior) if self._prior is None else self._prior)

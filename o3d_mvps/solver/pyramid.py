@@ -171,10 +171,20 @@ class DepthPrior:
         moved = DepthPrior(device.sparse_matrix(self.D), device.asarray(self.z0),
                            *(None if a is None else device.asarray(a) for a in (self.lower, self.upper)),
                            None if self.S is None else device.sparse_matrix(self.S))
+        moved.__dict__["envelope_positive"] = self.envelope_positive  # from the host's arrays: no read there
         moved.__dict__["DtD"] = device.sparse_matrix(self.DtD)
         if self.S is not None:
             moved.__dict__["StS"] = device.sparse_matrix(self.StS)
         return moved
+
+    @cached_property
+    def envelope_positive(self) -> bool:
+        """Whether every depth clipped into the envelope is > 0 (or NaN): both bounds > 0 at every
+        pixel (False without an envelope). A GPU's line searches then need not read whether a
+        trial depth left the domain (a NaN trial's energy is NaN, which no search accepts)."""
+        if self.lower is None:
+            return False
+        return bool(np.all(self.lower > 0) and np.all(self.upper > 0))
 
     def clip(self, z: np.ndarray) -> np.ndarray:
         """z (N,) clipped into the envelope (on a GPU one fused kernel)."""
