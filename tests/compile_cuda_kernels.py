@@ -30,6 +30,13 @@ _COLOR = _array(3, types.float32)
 #: (o3d_mvps.solver.device.ArrayDevice.residual_dtype)
 _R1, _R2, _R3 = (_array(d, types.float32) for d in (1, 2, 3))
 
+#: the arguments of _evaluate_partials
+_EVALUATE = (_F1, *(_array(1, types.int64),) * 4, _F1, _F1, _array(1, types.int64), _array(1, types.int64), _F1, _F1,
+             _F2, _F3, _array(4, types.float32), _array(2, types.boolean), _F2, _F2, types.boolean,
+             *(types.float64,) * 4, types.boolean, _array(1, types.int32), _array(1, types.int32), _F1, _F1,
+             _array(1, types.int32), _array(1, types.int32), _F1, types.float64, types.float64, _F2, _F2, _F1, _COLOR,
+             _array(2, types.boolean), _R3, _R2, _R3, _F2)
+
 #: kernel name in cuda_kernels -> argument types
 SIGNATURES = {
     "_accumulate_frames": (_R3, _R2, _array(2, types.boolean), types.float64, _F2, _F2, _F2, _F2, _F2, _F2, _F3,
@@ -104,6 +111,7 @@ SIGNATURES = {
     "_led_offset_system": (_F1, _F2, _F2, _F2, _F3, _R3, _array(2, types.boolean), _F2, types.float64, types.int64,
                            _F3, _F3),
     "_led_evidence_sums": (_array(2, types.boolean), _F2, _R2, _F1, _F2, _F2, _F2, _F2, _F2, _F1),
+    "_evaluate_albedo_partials": (*_EVALUATE, _F2, _F2, _F2),
     "_albedo_evaluation_partials": (_R3, _array(2, types.boolean), _COLOR, _R2, types.float64, _F2, _F2, _F2, _F2,
                                     _R3, _F2, _array(1, types.int32), _array(1, types.int32), _F1, _F1,
                                     _array(1, types.int32), _array(1, types.int32), _F1, types.float64,

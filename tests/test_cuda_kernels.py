@@ -1059,3 +1059,35 @@ def test_albedo_evaluation_partials_match_the_albedo_update_and_evaluation_parti
         assert out[-1][:, 1].sum() == pytest.approx(ref[5][:, 1].sum(), rel=1e-12)
         assert out[-1][:, 0].sum() == pytest.approx(ref[5][:, 0].sum(), rel=1e-6)
     assert not np.array_equal(cpu[0], residual)  # written
+
+
+@pytest.mark.parametrize("led", [True, False])
+def test_evaluate_albedo_partials_match_the_evaluation_then_the_albedo_step(led):
+    """A line-search trial's evaluation and its albedo refit in one pass (one launch on a GPU):
+    what evaluate_partials and then albedo_evaluation_partials write, to round-off."""
+    grid, z, K, poses, images, visible, albedo, lights, offset, prior, D, S, S_matrix = _level_data(led)
+    basis_shape = _array_formulas(grid, z, K, poses, images, visible, albedo, lights, offset, led)[3].shape
+    tau, mu, scale = 3.0, 0.5, 1.0 / LAM
+    grid_arrays = [np.ascontiguousarray(a) for a in (grid.u, grid.v, grid.fwd_u, grid.bwd_u, grid.wf_u, grid.wb_u,
+                                                        grid.fwd_v, grid.bwd_v, grid.wf_v, grid.wb_v)]
+    n, N = visible.shape
+    nan = lambda *shape, dtype=np.float64: np.full(shape, np.nan, dtype)  # noqa: E731
+    outputs = lambda: [nan(N, 3), nan(N, 3), nan(N), nan(n, N, 3, dtype=np.float32),  # noqa: E731
+                       np.zeros((n, N), bool), nan(*basis_shape, dtype=np.float32), nan(n, N, dtype=np.float32),
+                       nan(n, N, 3, dtype=np.float32), nan(3, 2)]
+    inputs = [z, *grid_arrays, K, poses, images, visible, albedo, lights, led, *offset, scale, True, *D, prior.z0, *S,
+              tau, mu]
+    ref = outputs()
+    kernels.evaluate_partials(*inputs, *ref)
+    points, normals, dA, color, usable, basis, shading, residual, partial = ref
+    refit = nan(N, 3)
+    kernels.albedo_evaluation_partials(residual, usable, color, shading, scale, albedo, nan(N, 3), nan(N, 3), refit,
+                                       basis, lights, *D, prior.z0, *S, tau, mu, z, partial)
+    cpu, gpu = run_both("evaluate_albedo_partials", *inputs, *outputs(), nan(N, 3), nan(N, 3), nan(N, 3))
+    assert not np.allclose(refit, albedo)  # refitted
+    for out, rtol in ((cpu, 1e-12), (gpu, 1e-6)):  # the simulator's float32 x float = float32 (NEP 50)
+        assert_close(out[-1], refit, rtol=rtol)
+        for got, want in zip(out[-12:-4], ref[:8]):
+            np.testing.assert_array_equal(got, want) if want.dtype == bool else assert_close(got, want, rtol=1e-6)
+        assert out[-4][:, 0].sum() == pytest.approx(partial[:, 0].sum(), rel=1e-6)
+        assert out[-4][:, 1].sum() == pytest.approx(partial[:, 1].sum(), rel=1e-12)

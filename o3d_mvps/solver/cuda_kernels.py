@@ -1288,3 +1288,45 @@ def albedo_evaluation_partials(residual, usable, color, shading, inv_lam, fallba
     _albedo_evaluation_partials[partial.shape[0], THREADS_PER_BLOCK](
         residual, usable, color, shading, float(inv_lam), fallback, num, den, albedo, basis, lights, D_indptr,
         D_indices, D_data, z0, S_indptr, S_indices, S_data, float(tau), float(mu), z, partial)
+
+
+__all__ += ["evaluate_albedo_partials"]
+
+
+@cuda.jit(cache=True)
+def _evaluate_albedo_partials(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images, visible,
+                              albedo, lights, led, o0, o1, o2, scale, single, D_indptr, D_indices, D_data, z0, S_indptr,
+                              S_indices, S_data, tau, mu, points, normals, dA, color, usable, basis, shading, residual,
+                              partial, num, den, refit):  # pragma: no cover - device
+    """Each thread a grid-stride share of the pixels: a pixel's frames evaluated (frame 0 first:
+    its point, normal, dA), its albedo refitted, its frames' residuals at that albedo and their
+    energy; the prior's rows likewise."""
+    share = cuda.shared.array((THREADS_PER_BLOCK, 2), numba.float64)
+    t = cuda.threadIdx.x
+    n, N = visible.shape
+    data = 0.0
+    for p in range(cuda.grid(1), N, cuda.gridsize(1)):
+        for i in range(n):
+            _evaluate_pixel(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images, visible,
+                            albedo, lights, led, o0, o1, o2, scale, single, points, normals, dA, color, usable, basis,
+                            shading, residual, i, p)
+        _weighted_albedo_pixel(residual, usable, color, shading, scale, num, den, p)
+        _albedo_ratio_pixel(num, den, albedo, refit, p)
+        for i in range(n):
+            data += _evaluation_term(color, refit, basis, lights, usable, shading, residual, scale, i, p)
+    prior = _prior_sum(D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data, tau, mu, z, cuda.grid(1),
+                       _prior_rows(z0, S_indptr, tau, mu), cuda.gridsize(1))
+    _store_block_pair(share, t, data, prior, partial)
+
+
+def evaluate_albedo_partials(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images, visible,
+                             albedo, lights, led, o0, o1, o2, scale, single, D_indptr, D_indices, D_data, z0, S_indptr,
+                             S_indices, S_data, tau, mu, points, normals, dA, color, usable, basis, shading, residual,
+                             partial, num, den, refit) -> None:
+    """:func:`.kernels.evaluate_albedo_partials` on the GPU: one launch of partial.shape[0] blocks
+    (was the evaluation's launch and the albedo step's)."""
+    _evaluate_albedo_partials[partial.shape[0], THREADS_PER_BLOCK](
+        z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images, visible, albedo, lights,
+        bool(led), float(o0), float(o1), float(o2), float(scale), bool(single), D_indptr, D_indices, D_data, z0,
+        S_indptr, S_indices, S_data, float(tau), float(mu), points, normals, dA, color, usable, basis, shading,
+        residual, partial, num, den, refit)

@@ -59,9 +59,11 @@ def search_estimates(problem: LevelProblem, est: Estimate, energy: float, moved:
         candidate = moved(t)
         if candidate is None:
             return None
-        candidate_ev = problem.evaluate(candidate)
-        if refit_albedo:
-            candidate_ev = refit_albedo_at(problem, candidate, candidate_ev)
+        candidate_ev = problem.evaluate_refit(candidate) if refit_albedo else None  # one launch on a GPU
+        if candidate_ev is None:
+            candidate_ev = problem.evaluate(candidate)
+            if refit_albedo:
+                candidate_ev = refit_albedo_at(problem, candidate, candidate_ev)
         return (candidate, candidate_ev), candidate_ev.energy
 
     found = backtrack(trial, energy, max_halvings)

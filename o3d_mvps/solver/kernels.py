@@ -2192,3 +2192,19 @@ def albedo_evaluation_partials(residual, usable, color, shading, inv_lam, fallba
     albedo_update(residual, usable, color, shading, float(inv_lam), fallback, num, den, albedo)
     evaluation_partials(color, albedo, basis, lights, usable, shading, residual, inv_lam, D_indptr, D_indices, D_data,
                         z0, S_indptr, S_indices, S_data, tau, mu, z, partial)
+
+
+def evaluate_albedo_partials(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images, visible,
+                             albedo, lights, led, o0, o1, o2, scale, single, D_indptr, D_indices, D_data, z0, S_indptr,
+                             S_indices, S_data, tau, mu, points, normals, dA, color, usable, basis, shading, residual,
+                             partial, num, den, refit) -> None:
+    """:func:`evaluate_partials` at ``albedo`` and then :func:`albedo_evaluation_partials` (the
+    albedo refit (N, 3) written into ``refit``, num and den (N, 3) scratch, the shading and
+    residuals and partial sums those at the refit albedo) in one pass on a GPU (each thread a
+    pixel: its frames' evaluation, its albedo, its frames' residuals again): a line search's
+    trial with its albedo projected out (:func:`.depth.search_estimates`)."""
+    evaluate_partials(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images, visible, albedo,
+                      lights, led, o0, o1, o2, scale, single, D_indptr, D_indices, D_data, z0, S_indptr, S_indices,
+                      S_data, tau, mu, points, normals, dA, color, usable, basis, shading, residual, partial)
+    albedo_evaluation_partials(residual, usable, color, shading, scale, albedo, num, den, refit, basis, lights,
+                               D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data, tau, mu, z, partial)

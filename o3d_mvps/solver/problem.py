@@ -389,7 +389,16 @@ class LevelProblem:
         data, prior_sum = to_host(partial).sum(axis=0)
         return 0.5 * self.lam * self.lam * float(data) + (float(prior_sum) if prior is None else prior), usable
 
-    def _one_pass_evaluation(self, est: Estimate):
+    def evaluate_refit(self, est: Estimate) -> Evaluation | None:
+        """On a GPU: ``est``'s evaluation with its albedo refitted (``est.albedo`` set to
+        :func:`.reflectance.update_albedo`'s from the evaluation's IRLS weights, the evaluation
+        the one at it) in one launch (:func:`.kernels.evaluate_albedo_partials`); None on the
+        host, or where the one-pass kernels do not apply (:meth:`_one_pass_light`)."""
+        if array_module(est.z) is np or self._identity(est):
+            return None
+        return self._one_pass_evaluation(est, refit_albedo=True)
+
+    def _one_pass_evaluation(self, est: Estimate, refit_albedo: bool = False):
         """:meth:`evaluate` on a GPU in one launch (:func:`.kernels.evaluate_partials`: the points,
         normals, warped samples, bases, shading, residuals, data and prior energy), the light
         state's copy where it changed and the energy's where it is read, or None where that kernel does not apply (:meth:`_one_pass_light`). The points are
@@ -405,9 +414,15 @@ class LevelProblem:
         basis = xp.empty((n, N, 2) if led else (1, N, 4), dtype=dtype)
         shading, residual = xp.empty((n, N), dtype=dtype), xp.empty((n, N, 3), dtype=dtype)
         partial = xp.empty((energy_blocks(n * N + self.level.prior.rows), 2))
-        kernels_for(est.z).evaluate_partials(*self._grid_and_views(est), led, *offset, 1.0 / self.lam,
-                                             dtype == np.float32, *self._prior_arrays(True), points, normals, dA,
-                                             color, usable, basis, shading, residual, partial)
+        args = (*self._grid_and_views(est), led, *offset, 1.0 / self.lam, dtype == np.float32,
+                *self._prior_arrays(True), points, normals, dA, color, usable, basis, shading, residual, partial)
+        if refit_albedo:  # and the albedo refitted at those residuals, in the same launch
+            refit = xp.empty_like(est.albedo)
+            kernels_for(est.z).evaluate_albedo_partials(*args, xp.empty_like(est.albedo), xp.empty_like(est.albedo),
+                                                        refit)
+            est.albedo = refit
+        else:
+            kernels_for(est.z).evaluate_partials(*args)
         self._last_points = (est.z, points)
         sums = PendingSums(partial, 0.5 * self.lam * self.lam)  # read where the energy is used
         return Evaluation(residual, usable, color, shading, normals, dA, basis, sums, sums)
