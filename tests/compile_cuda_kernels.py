@@ -75,7 +75,7 @@ SIGNATURES = {
     "_twist_inverse": (_F3, _F3, _F1, types.float64, _F3, _F3, _F1, _F1),
     "_ridge_solves": (_F3, _F3, types.float64, types.float64, _F3, _F3, _F1),
     "_led_trial_partials": (_COLOR, _array(2, types.boolean), _F2, _F2, _F2, _F3, _F1, _F3, _F3, _F2,
-                            types.float64, types.boolean, _F2),
+                            types.float64, types.boolean, types.int64, _F2),
     # the data term's evaluation in one launch (gpueval): the grid's int64 pixels and neighbours,
     # the prior's int32 CSR arrays
     "_energy_partials": (_F1, *(_array(1, types.int64),) * 4, _F1, _F1, _array(1, types.int64),

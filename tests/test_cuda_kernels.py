@@ -545,6 +545,17 @@ def test_led_trial_sums_match_the_formula_and_cpu():
         assert len(set(cpu[:K].sum(axis=1))) == K  # the trials differ
         # the simulator takes Python's float64 logarithm of each float32 term: ~1e-9 of the sums
         assert_close(gpu[:K].sum(axis=1), cpu[:K].sum(axis=1), rtol=1e-8)
+        # current: the last trial row is the offset ``start`` itself (gpueval2), the others unchanged
+        now_cpu, now_gpu = np.zeros_like(cpu), np.zeros_like(gpu)
+        kernels.led_trial_sums(*args, single, now_cpu, current=True)
+        cuda_kernels.led_trial_sums(*args, single, now_gpu, current=True)
+        np.testing.assert_array_equal(now_cpu[:K - 1], cpu[:K - 1])
+        np.testing.assert_array_equal(now_cpu[K], cpu[K])
+        residual = color - albedo * (lights[:, :1] + np.maximum(LEDLight(start).irradiances(normals, points, poses),
+                                                                0.0) * lights[:, 1:])[..., None]
+        y = (residual.astype(np.float32 if single else np.float64)[usable] / LAM).astype(np.float32)
+        assert_close(now_cpu[K - 1].sum(), np.log(np.float32(1.0) + y * y).astype(np.float64).sum(), rtol=1e-6)
+        assert_close(now_gpu[:K].sum(axis=1), now_cpu[:K].sum(axis=1), rtol=1e-8)
 
 
 def test_twist_system_matches_numpy_and_cpu():

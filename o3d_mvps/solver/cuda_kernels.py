@@ -637,7 +637,7 @@ def ridge_solves(A, B, ridge, fallback, L, X, solved) -> None:
 
 
 @cuda.jit(cache=True)
-def _led_trial_partials(color, usable, albedo, normals, points, poses, start, H, g, lights, scale, single,
+def _led_trial_partials(color, usable, albedo, normals, points, poses, start, H, g, lights, scale, single, zero_row,
                         out):  # pragma: no cover - device
     """out[k, block] = the block's share of trial k's sum (grid: blocks x trials): every thread
     solves the offset's 3x3 system (some 50 operations; no launch of its own), sums a strided
@@ -649,6 +649,7 @@ def _led_trial_partials(color, usable, albedo, normals, points, poses, start, H,
     solved = cuda.local.array(1, numba.float64)
     t = cuda.threadIdx.x
     k = cuda.blockIdx.y
+    trial = k if k != zero_row else -1  # -1: the offset ``start`` itself
     n, N = usable.shape
     _led_offset_step(H, g, L, X, solved)
     if k == 0 and cuda.blockIdx.x == 0 and t == 0:
@@ -656,7 +657,7 @@ def _led_trial_partials(color, usable, albedo, normals, points, poses, start, H,
     total = 0.0
     for index in range(cuda.blockIdx.x * THREADS_PER_BLOCK + t, n * N, cuda.gridDim.x * THREADS_PER_BLOCK):
         total += _led_trial_term(color, usable, albedo, normals, points, poses, start, X[0, 0, 0], X[0, 1, 0],
-                                 X[0, 2, 0], lights, scale, single, k, index // N, index % N)
+                                 X[0, 2, 0], lights, scale, single, trial, index // N, index % N)
     _block_tree_sum(share, t, total)
     if t == 0:
         out[k, cuda.blockIdx.x] = share[0]
@@ -668,11 +669,13 @@ def trial_blocks(n_frames: int, n_pixels: int) -> int:
     return min(kernels.REDUCTION_BLOCKS, max(7, _blocks(-(-n_frames * n_pixels // TERMS_PER_THREAD))))
 
 
-def led_trial_sums(color, usable, albedo, normals, points, poses, start, H, g, lights, scale, single, out) -> None:
+def led_trial_sums(color, usable, albedo, normals, points, poses, start, H, g, lights, scale, single, out,
+                   current: bool = False) -> None:
     """:func:`.kernels.led_trial_sums` on the GPU: the step and every trial in one launch (grid:
     blocks x trials), out (K + 1, :func:`trial_blocks`) one sum per block, the step's row."""
     _led_trial_partials[(out.shape[1], out.shape[0] - 1), THREADS_PER_BLOCK](
-        color, usable, albedo, normals, points, poses, start, H, g, lights, float(scale), bool(single), out)
+        color, usable, albedo, normals, points, poses, start, H, g, lights, float(scale), bool(single),
+        out.shape[0] - 2 if current else -1, out)
 
 
 _twist_frame_kept = _device(kernels.twist_frame_kept)

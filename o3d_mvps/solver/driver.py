@@ -281,7 +281,8 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
         est.lights = update_lighting(est, ev, problem.lam, problem.light_model(est))
         ev = problem.reevaluate(est, ev, overwrite=True)
         if refine_offset:
-            est.led_offset, ev = update_led_offset(problem, est, ev, min_decrease=0.1 * options.tolerance * ev.energy)
+            est.led_offset, ev = update_led_offset(problem, est, ev, min_decrease=0.1 * options.tolerance,
+                                                   relative=True)  # of ev's energy (on a GPU read with the step's)
         if problem.light.name == "point":  # every sweep (point_light.POINT_FINE_MIN_PIXELS: how, by level)
             ev = fit_point_lights(problem, est, ev)
         timings["albedo_lighting"] += time.perf_counter() - t

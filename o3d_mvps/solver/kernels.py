@@ -1297,7 +1297,7 @@ def ridge_solves(A, B, ridge, fallback, L, X, solved):  # pragma: no cover - com
 def led_trial_term(color, usable, albedo, normals, points, poses, start, x0, x1, x2, lights, scale, single, k, i,
                    p):  # pragma: no cover - compiled
     """Pixel p of frame i with the LED at trial k's offset ``start - 2^-k x`` (x = (x0, x1, x2):
-    the step's negative): ``sum_c log(1 + (scale r_c)^2)`` of its residuals
+    the step's negative; ``start`` itself where k < 0): ``sum_c log(1 + (scale r_c)^2)`` of its residuals
     ``r_c = I~_c - rho_c (l_0 + l_1 max(0, <n, v>))`` (0 where not usable), as
     :meth:`.LevelProblem.energy` forms them (:func:`shading_residual_pixel` on the LED basis of
     :func:`~o3d_mvps.model.shading.led_irradiance`, the LED's position
@@ -1305,7 +1305,7 @@ def led_trial_term(color, usable, albedo, normals, points, poses, start, x0, x1,
     float32 as the GPU's evaluations store them."""
     if not usable[i, p]:
         return 0.0
-    length = 1.0
+    length = 1.0 if k >= 0 else 0.0  # k < 0: the offset ``start`` itself
     for _ in range(k):
         length *= 0.5
     o0 = start[0] - length * x0
@@ -1347,7 +1347,7 @@ def store_offset_step(X, solved, g, out):  # pragma: no cover - compiled
 
 
 @numba.njit(parallel=True, cache=True)
-def _led_trial_sums(color, usable, albedo, normals, points, poses, start, H, g, lights, scale, single,
+def _led_trial_sums(color, usable, albedo, normals, points, poses, start, H, g, lights, scale, single, zero_row,
                     out):  # pragma: no cover - compiled
     K, n = out.shape[0] - 1, usable.shape[0]
     N = usable.shape[1]
@@ -1361,7 +1361,7 @@ def _led_trial_sums(color, usable, albedo, normals, points, poses, start, H, g, 
         total = 0.0
         for p in range(N):
             total += led_trial_term(color, usable, albedo, normals, points, poses, start, x0, x1, x2, lights, scale,
-                                    single, k, i, p)
+                                    single, k if k != zero_row else -1, i, p)
         out[k, i] = total
 
 
@@ -1370,7 +1370,8 @@ def trial_blocks(n_frames: int, n_pixels: int) -> int:
     return max(7, n_frames)
 
 
-def led_trial_sums(color, usable, albedo, normals, points, poses, start, H, g, lights, scale, single, out) -> None:
+def led_trial_sums(color, usable, albedo, normals, points, poses, start, H, g, lights, scale, single, out,
+                   current: bool = False) -> None:
     """The LED offset's step and its K line-search trials in one pass. The step's negative x
     from its Gauss-Newton system H (1, 3, 3), g (1, 3, 1) (:func:`led_offset_step`); out (K + 1,
     B): rows k < K partial sums adding up to ``sum_{i,p,c} log(1 + (scale r)^2)`` of trial k,
@@ -1378,9 +1379,10 @@ def led_trial_sums(color, usable, albedo, normals, points, poses, start, H, g, l
     g (3) (:func:`store_offset_step`), B = :func:`trial_blocks` (n, N) (here one sum per frame;
     on a GPU one launch, B its blocks). color (n, N, 3), usable (n, N), albedo, normals, points
     (N, 3) float64, poses (n, 4, 4), start (3,), lights (n, 2) float64; single: float32
-    residuals."""
+    residuals. current: the last trial row K - 1 is the LED at ``start`` (the current
+    offset's data sum, read with the trials: no read of its own)."""
     _led_trial_sums(color, usable, albedo, normals, points, poses, start, H, g, lights, float(scale), bool(single),
-                    out)
+                    out.shape[0] - 2 if current else -1, out)
 
 
 #: The joint step's refined frames: one whose own twist Gram (6, 6) has a condition number

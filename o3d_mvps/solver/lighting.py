@@ -452,7 +452,8 @@ def make_light_model(name: str, *, initial_sh=INITIAL_LIGHT, led_offset=None):
     raise ValueError(f"light_model must be one of {LIGHT_MODELS}, got {name!r}")
 
 
-def update_led_offset(problem, est, ev, *, max_halvings: int = 3, max_pixels: int = 4000, min_decrease: float = 0.0):
+def update_led_offset(problem, est, ev, *, max_halvings: int = 3, max_pixels: int = 4000, min_decrease: float = 0.0,
+                      relative: bool = False):
     """One IRLS Gauss-Newton step on the LED offset (all frames): returns (offset (3,), evaluation).
 
     The step is computed from at most ``max_pixels`` evenly spread pixels per frame (three
@@ -461,8 +462,10 @@ def update_led_offset(problem, est, ev, *, max_halvings: int = 3, max_pixels: in
     system in one launch: :func:`.kernels.led_offset_system`); the
     offset is ``est``'s (or the
     light model's) unchanged, with ``ev``, when no step lowers the energy, or when the
-    Gauss-Newton model predicts a decrease below ``min_decrease`` (energy units; each line
-    search trial costs an energy, and near convergence they nearly all fail). The trials are
+    Gauss-Newton model predicts a decrease below ``min_decrease`` (energy units, or with
+    ``relative`` times ``ev``'s energy; each line search trial costs an energy, and near
+    convergence they nearly all fail). On a GPU ``ev``'s data energy, where not read yet, comes
+    with the trials' read (their sums at the current offset). The trials are
     scored by :meth:`.LevelProblem.energy` from ``ev``'s samples (no frames x pixels arrays
     but a few frames'); the kept offset's evaluation is written into ``ev``'s arrays
     (:meth:`.LevelProblem.relit`), so ``ev`` is given up when the offset moves.
@@ -481,7 +484,8 @@ def update_led_offset(problem, est, ev, *, max_halvings: int = 3, max_pixels: in
                                          contiguous(P, np.float64), state.positions, state.rotations, ev.residual,
                                          ev.usable, contiguous(est.albedo, np.float64), 1.0 / problem.lam, stride,
                                          H, g)
-        return _device_offset_search(problem, est, ev, light, H, g, stride, max_halvings, min_decrease)
+        return _device_offset_search(problem, est, ev, light, H, g, stride, max_halvings, min_decrease, relative)
+    min_decrease = min_decrease * ev.energy if relative else min_decrease
     H, g = np.zeros((3, 3)), np.zeros(3)
     for i in range(problem.n_frames):
         use = usable[i]
@@ -510,7 +514,7 @@ def update_led_offset(problem, est, ev, *, max_halvings: int = 3, max_pixels: in
     return moved.led_offset, problem.relit(moved, ev)
 
 
-def _device_offset_search(problem, est, ev, light, H, g, stride, max_halvings, min_decrease):
+def _device_offset_search(problem, est, ev, light, H, g, stride, max_halvings, min_decrease, relative):
     """:func:`update_led_offset`'s step and line search on a GPU from its system H (1, 3, 3), g
     (1, 3, 1) on the device: the step solved and every trial length 1, 1/2, ..., 2^-max_halvings scored
     in one launch (:func:`.kernels.led_trial_sums`: the step by the host's ridge_solve formula,
@@ -523,12 +527,16 @@ def _device_offset_search(problem, est, ev, light, H, g, stride, max_halvings, m
     start, K = light.offset, max_halvings + 1
     state = device_light_state(light, est.lights, est.poses, P)  # the evaluation's copy: none made here
     kernels = kernels_for(P)
-    out = xp.empty((K + 1, kernels.trial_blocks(*ev.usable.shape)))  # the trials' sums, then x, solved, g
+    # the trials' sums, the current offset's (ev's data energy: not read apart), then x, solved, g
+    out = xp.empty((K + 2, kernels.trial_blocks(*ev.usable.shape)))
     kernels.led_trial_sums(ev.color, ev.usable, contiguous(est.albedo, np.float64), contiguous(ev.normals, np.float64),
                            contiguous(P, np.float64), state.poses, state.offset, H, g, state.lights,
-                           1.0 / problem.lam, problem.residual_dtype == np.float32, out)
+                           1.0 / problem.lam, problem.residual_dtype == np.float32, out, current=True)
     out = to_host(out)
-    sums, step, solved, g = out[:K], -out[K, :3], out[K, 3:4], out[K, 4:7]
+    if not isinstance(ev.pending("data"), float):  # ev's data energy from this read, as the trials'
+        ev.data = 0.5 * problem.lam ** 2 * float(out[K].sum())
+    min_decrease = min_decrease * ev.energy if relative else min_decrease
+    sums, step, solved, g = out[:K], -out[K + 1, :3], out[K + 1, 3:4], out[K + 1, 4:7]
     # the IRLS model's decrease -g.step / 2 on the spread pixels, scaled to all of them
     if not solved[0] or -0.5 * float(g @ step) * stride < min_decrease:
         return start, ev
