@@ -112,6 +112,8 @@ SIGNATURES = {
                            _F3, _F3),
     "_led_evidence_sums": (_array(2, types.boolean), _F2, _R2, _F1, _F2, _F2, _F2, _F2, _F2, _F1),
     "_evaluate_albedo_partials": (*_EVALUATE, _F2, _F2, _F2),
+    "_trial_energy_partials": (_F2, *_EVALUATE[1:12], _F4, *_EVALUATE[13:15], _F3, _F3, types.boolean, _F2,
+                               types.float64, types.boolean, *_EVALUATE[23:32], _array(3, types.boolean), _F3),
     "_albedo_evaluation_partials": (_R3, _array(2, types.boolean), _COLOR, _R2, types.float64, _F2, _F2, _F2, _F2,
                                     _R3, _F2, _array(1, types.int32), _array(1, types.int32), _F1, _F1,
                                     _array(1, types.int32), _array(1, types.int32), _F1, types.float64,

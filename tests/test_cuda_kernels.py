@@ -1102,3 +1102,34 @@ def test_evaluate_albedo_partials_match_the_evaluation_then_the_albedo_step(led)
             np.testing.assert_array_equal(got, want) if want.dtype == bool else assert_close(got, want, rtol=1e-6)
         assert out[-4][:, 0].sum() == pytest.approx(partial[:, 0].sum(), rel=1e-6)
         assert out[-4][:, 1].sum() == pytest.approx(partial[:, 1].sum(), rel=1e-12)
+
+
+def test_trial_energy_partials_match_energy_partials_per_trial():
+    """Three trial states' energies in one pass (one launch on a GPU): each trial's sums, usable
+    mask and prior those of energy_partials on that trial alone (the CPU twin exactly)."""
+    led = True
+    grid, z, K, poses, images, visible, albedo, lights, offset, prior, D, S, S_matrix = _level_data(led)
+    tau, mu, scale = 3.0, 0.5, 1.0 / LAM
+    grid_arrays = [np.ascontiguousarray(a) for a in (grid.u, grid.v, grid.fwd_u, grid.bwd_u, grid.wf_u, grid.wb_u,
+                                                        grid.fwd_v, grid.bwd_v, grid.wf_v, grid.wb_v)]
+    n, N = visible.shape
+    F = 3
+    zs = np.stack([z * (1.0 + 0.002 * f) for f in range(F)])
+    all_poses = np.stack([poses] * F)
+    all_poses[1:, :, :3, 3] += 0.001
+    albedos = np.stack([albedo * (1.0 + 0.05 * f) for f in range(F)])
+    all_lights = np.stack([lights * (1.0 + 0.1 * f) for f in range(F)])
+    offsets = np.array([offset, np.add(offset, 0.002), np.add(offset, -0.001)], dtype=np.float64)
+    cpu, gpu = run_both("trial_energy_partials", zs, *grid_arrays, K, all_poses, images, visible, albedos, all_lights,
+                        led, offsets, scale, True, *D, prior.z0, *S, tau, mu, np.zeros((F, n, N), bool),
+                        np.full((F, 2, 2), np.nan))
+    for f in range(F):
+        one = [np.zeros((n, N), bool), np.full((2, 2), np.nan)]
+        kernels.energy_partials(zs[f], *grid_arrays, K, all_poses[f], images, visible, albedos[f], all_lights[f], led,
+                                *offsets[f], scale, True, *D, prior.z0, *S, tau, mu, *one)
+        np.testing.assert_array_equal(cpu[-2][f], one[0])
+        np.testing.assert_array_equal(cpu[-1][f], one[1])
+        np.testing.assert_array_equal(gpu[-2][f], one[0])
+        assert gpu[-1][f, :, 0].sum() == pytest.approx(one[1][:, 0].sum(), rel=1e-6)
+        assert gpu[-1][f, :, 1].sum() == pytest.approx(one[1][:, 1].sum(), rel=1e-12)
+    assert len(set(cpu[-1][:, :, 0].sum(axis=1))) == F  # the trials differ

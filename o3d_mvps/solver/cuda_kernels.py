@@ -1333,3 +1333,39 @@ def evaluate_albedo_partials(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf
         bool(led), float(o0), float(o1), float(o2), float(scale), bool(single), D_indptr, D_indices, D_data, z0,
         S_indptr, S_indices, S_data, float(tau), float(mu), points, normals, dA, color, usable, basis, shading,
         residual, partial, num, den, refit)
+
+
+__all__ += ["trial_energy_partials"]
+
+
+@cuda.jit(cache=True)
+def _trial_energy_partials(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images, visible,
+                           albedo, lights, led, offsets, scale, single, D_indptr, D_indices, D_data, z0, S_indptr,
+                           S_indices, S_data, tau, mu, usable, partial):  # pragma: no cover - device
+    """Block (b, f): a strided share of trial f's frames' pixels and prior rows, as
+    :func:`_energy_partials` (one launch for every trial)."""
+    share = cuda.shared.array((THREADS_PER_BLOCK, 2), numba.float64)
+    t = cuda.threadIdx.x
+    f = cuda.blockIdx.y
+    n, N = visible.shape
+    zf = z[f]
+    start, step = cuda.blockIdx.x * THREADS_PER_BLOCK + t, cuda.gridDim.x * THREADS_PER_BLOCK
+    data = 0.0
+    for index in range(start, n * N, step):
+        data += _energy_term(zf, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses[f], images,
+                             visible, albedo[f], lights[f], led, offsets[f, 0], offsets[f, 1], offsets[f, 2], scale,
+                             single, usable[f], index // N, index % N)
+    prior = _prior_sum(D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data, tau, mu, zf, start,
+                       _prior_rows(z0, S_indptr, tau, mu), step)
+    _store_block_pair(share, t, data, prior, partial[f])
+
+
+def trial_energy_partials(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images, visible,
+                          albedo, lights, led, offsets, scale, single, D_indptr, D_indices, D_data, z0, S_indptr,
+                          S_indices, S_data, tau, mu, usable, partial) -> None:
+    """:func:`.kernels.trial_energy_partials` on the GPU: one launch, partial.shape[1] blocks per
+    trial (was a launch and a read per trial)."""
+    _trial_energy_partials[(partial.shape[1], partial.shape[0]), THREADS_PER_BLOCK](
+        z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images, visible, albedo, lights,
+        bool(led), offsets, float(scale), bool(single), D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data,
+        float(tau), float(mu), usable, partial)

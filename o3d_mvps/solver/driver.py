@@ -364,10 +364,13 @@ def _extrapolate(problem: LevelProblem, est: Estimate, ev, before: Estimate, anc
     current = anchored(ev.energy, est, ev.usable)
     delta_poses = [se3.log(T @ np.linalg.inv(T0)) for T, T0 in zip(est.poses, before.poses)] if poses_moved else []
     trials = _device_trials(problem, est, before, factors)  # None on the CPU
-    if trials is not None:  # every factor's poses and lights copied over at once (one copy, not one a factor)
-        parts = [_trial(est, before, factor, delta_poses, poses_moved) for factor in factors]
-        preload_light_states([(problem.light_model(Estimate(est.z, est.albedo, *part)), part[0], part[1])
-                              for part in parts], est.z)
+    batch = None  # on a GPU every factor's energy in one launch and one read (and one copy over)
+    if trials is not None:
+        candidates = [Estimate(trials[0][j], trials[1][j], *_trial(est, before, factor, delta_poses, poses_moved))
+                      for j, factor in enumerate(factors)]
+        batch = problem.trial_energies(trials[0], trials[1], candidates)
+        if batch is None:  # every factor's poses and lights copied over at once (one copy, not one a factor)
+            preload_light_states([(problem.light_model(c), c.lights, c.poses) for c in candidates], est.z)
     for j, factor in enumerate(factors):
         if trials is None:
             z = problem.level.prior.clip(_extrapolated(est.z, before.z, factor))
@@ -379,7 +382,7 @@ def _extrapolate(problem: LevelProblem, est: Estimate, ev, before: Estimate, anc
         else:
             break
         trial = Estimate(z, albedo, *_trial(est, before, factor, delta_poses, poses_moved))
-        energy, usable = problem.energy(trial)
+        energy, usable = problem.energy(trial) if batch is None else (float(batch[0][j]), batch[1][j])
         trial_energy = anchored(energy, trial, usable)
         if trial_energy < current:
             best, current = trial, trial_energy

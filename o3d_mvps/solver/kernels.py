@@ -2210,3 +2210,17 @@ def evaluate_albedo_partials(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf
                       S_data, tau, mu, points, normals, dA, color, usable, basis, shading, residual, partial)
     albedo_evaluation_partials(residual, usable, color, shading, scale, albedo, num, den, refit, basis, lights,
                                D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data, tau, mu, z, partial)
+
+
+def trial_energy_partials(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images, visible,
+                          albedo, lights, led, offsets, scale, single, D_indptr, D_indices, D_data, z0, S_indptr,
+                          S_indices, S_data, tau, mu, usable, partial) -> None:
+    """:func:`energy_partials` of F trial states at once (the driver's extrapolation factors):
+    z (F, N), poses (F, n, 4, 4), albedo (F, N, 3), lights (F, n, k), offsets (F, 3) the LED's,
+    usable (F, n, N) and partial (F, B, 2) written, trial f's in row f; the grid, K, images,
+    visibility and prior as :func:`energy_partials` takes them. On a GPU one launch (grid:
+    blocks x trials)."""
+    for f in range(z.shape[0]):
+        energy_partials(z[f], u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses[f], images, visible,
+                        albedo[f], lights[f], led, offsets[f, 0], offsets[f, 1], offsets[f, 2], scale, single,
+                        D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data, tau, mu, usable[f], partial[f])

@@ -299,10 +299,12 @@ def device_light_state(light, lights: np.ndarray, poses: np.ndarray, reference) 
     return _state_views(light, parts, _STATE_COPIES.copy(np.concatenate(parts), reference))
 
 
-def preload_light_states(states: list, reference) -> None:
+def preload_light_states(states: list, reference, extra: tuple = ()) -> list:
     """Copy the light states ``states`` [(light, lights, poses)] that :func:`device_light_state`
-    will be asked for (an extrapolation's trials) in one copy, those not kept already."""
-    _STATE_COPIES.copy_many([np.concatenate(_state_parts(*state, reference)) for state in states], reference)
+    will be asked for (an extrapolation's trials) in one copy, those not kept already, with the
+    host arrays ``extra`` (1-d); returns the device copies of ``extra``."""
+    return _STATE_COPIES.copy_many([np.concatenate(_state_parts(*state, reference)) for state in states], reference,
+                                   extra)[1]
 
 
 def _state_parts(light, lights, poses, reference) -> tuple:

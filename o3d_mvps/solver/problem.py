@@ -19,7 +19,7 @@ from ..model.warping import in_view, visible, warp
 from .device import kernels_for, to_host
 from .kernels import energy_blocks
 from .krylov import pixel_prolongations
-from .lighting import LEDLight, RoomLight, SHLight, device_light_state
+from .lighting import LEDLight, RoomLight, SHLight, device_light_state, preload_light_states
 from .pyramid import Level
 
 
@@ -369,6 +369,38 @@ class LevelProblem:
         Jacobians, fields and offset step of this state then read without a copy)."""
         state = device_light_state(self.light_model(est), est.lights, est.poses, est.z)
         return state.poses, state.lights
+
+    def trial_energies(self, z: np.ndarray, albedo: np.ndarray, trials: list) -> tuple | None:
+        """On a GPU: the energies (F,) (a host array) and usable masks (F, n, N) of F trial
+        estimates whose depths z (F, N) and albedos (F, N, 3) lie in one device array each
+        (:func:`.kernels.extrapolation_trials`'), ``trials`` their :class:`Estimate` (of one light
+        model), in one launch and one read (:func:`.kernels.trial_energy_partials`), their poses,
+        lights and LED offsets copied over in one copy with their light states (the kept one's
+        evaluation then copies nothing); None where :meth:`_one_pass_energy` would not apply.
+        Each trial's energy is :meth:`energy`'s (the same sums in another order)."""
+        if array_module(z) is np:
+            return None
+        chosen = [self._one_pass_light(trial) for trial in trials]
+        if None in chosen or len({led for led, _ in chosen}) != 1:
+            return None
+        led = chosen[0][0]
+        F, n, N = len(trials), self.n_frames, self.level.grid.size
+        xp = array_module(z)
+        host = [np.stack([np.asarray(to_host(getattr(t, name)), np.float64) for t in trials]).ravel()
+                for name in ("poses", "lights")] + [np.asarray([offset for _, offset in chosen], np.float64).ravel()]
+        poses, lights, offsets = preload_light_states(
+            [(self.light_model(t), t.lights, t.poses) for t in trials], z, host)
+        k = len(host[1]) // (F * n)
+        usable = xp.empty((F, n, N), dtype=bool)
+        partial = xp.empty((F, energy_blocks(n * N + self.level.prior.rows), 2))
+        grid = self._grid_and_views(trials[0])
+        kernels_for(z).trial_energy_partials(z, *grid[1:12], poses.reshape(F, n, 4, 4), self.level.image_stack,
+                                             self.visibility, albedo, lights.reshape(F, n, k), led,
+                                             offsets.reshape(F, 3), 1.0 / self.lam,
+                                             self.residual_dtype == np.float32, *self._prior_arrays(True), usable,
+                                             partial)
+        sums = to_host(partial).sum(axis=1)
+        return 0.5 * self.lam * self.lam * sums[:, 0] + sums[:, 1], usable
 
     def _one_pass_energy(self, est: Estimate, prior: float | None):
         """:meth:`energy` on a GPU in one launch (:func:`.kernels.energy_partials`: every frame's

@@ -17,12 +17,25 @@ import cv2
 import numpy as np
 import scipy.sparse as sp
 
-from ..model.arrays import array_module, fused, sparse_module
+from ..model.arrays import array_module, fused, like, sparse_module
 from ..model.camera import scale_intrinsics
 from ..model.normals import MaskedGrid, masked_grid
 from ..model.resampling import fill_nearest_valid, resample_valid, resize
 from .krylov import multiply_add
 from .smoothness import second_differences, smoothness_rows
+
+
+def _entry_centres(S: sp.csr_matrix) -> np.ndarray:
+    """Each stored entry's row centre pixel (nnz,) int32 of the host's second differences S: the
+    column of its row's negative entry (:meth:`DepthPrior.weigh_smoothness`)."""
+    return np.repeat(S.indices[S.data < 0], np.diff(S.indptr)).astype(np.int32)
+
+
+def to_host_sparse(S):
+    """A device CSR matrix's SciPy copy (its arrays read; the host's itself)."""
+    if array_module(S.data) is np:
+        return S
+    return sp.csr_matrix((S.data.get(), S.indices.get(), S.indptr.get()), shape=S.shape)
 
 
 @fused
@@ -63,10 +76,8 @@ class DepthPrior:
             self.__dict__.setdefault("_S_unweighted", base)
         if array_module(pixel_weights) is not np:  # on a GPU: a gather and one fused kernel, S's pattern kept
             entries = self.__dict__.get("_entry_centres")
-            if entries is None:  # once per level: each stored entry's row centre (the pattern does not change)
-                xp = array_module(pixel_weights)
-                centre = base.indices[base.data < 0]
-                entries = self.__dict__["_entry_centres"] = xp.repeat(centre, xp.diff(base.indptr).tolist())
+            if entries is None:  # once per level (set by on_device): each stored entry's row centre
+                entries = self.__dict__["_entry_centres"] = like(_entry_centres(to_host_sparse(base)), pixel_weights)
             self.S = sparse_module(base).csr_matrix((_row_scaled(base.data, pixel_weights[entries]), base.indices,
                                                      base.indptr), shape=base.shape)
         else:
@@ -172,6 +183,11 @@ class DepthPrior:
                            *(None if a is None else device.asarray(a) for a in (self.lower, self.upper)),
                            None if self.S is None else device.sparse_matrix(self.S))
         moved.__dict__["envelope_positive"] = self.envelope_positive  # from the host's arrays: no read there
+        # formed here, with the level (a copy each), not by launches in its first sweep
+        moved.__dict__["_negative_z0"] = device.asarray(-self.z0)
+        moved.__dict__["_zeros"] = device.asarray(np.zeros(self.D.shape[1]))
+        if self.S is not None and device.xp is not np:
+            moved.__dict__["_entry_centres"] = device.asarray(_entry_centres(self._unweighted_smoothness()))
         moved.__dict__["DtD"] = device.sparse_matrix(self.DtD)
         if self.S is not None:
             moved.__dict__["StS"] = device.sparse_matrix(self.StS)
