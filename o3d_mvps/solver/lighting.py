@@ -529,11 +529,12 @@ def _device_offset_search(problem, est, ev, light, H, g, stride, max_halvings, m
     start, K = light.offset, max_halvings + 1
     state = device_light_state(light, est.lights, est.poses, P)  # the evaluation's copy: none made here
     kernels = kernels_for(P)
-    # the trials' sums, the current offset's (ev's data energy: not read apart), then x, solved, g
+    # the trials' sums, the current offset's (ev's data energy: not read apart; current=True, the
+    # last argument), then x, solved, g
     out = xp.empty((K + 2, kernels.trial_blocks(*ev.usable.shape)))
     kernels.led_trial_sums(ev.color, ev.usable, contiguous(est.albedo, np.float64), contiguous(ev.normals, np.float64),
                            contiguous(P, np.float64), state.poses, state.offset, H, g, state.lights,
-                           1.0 / problem.lam, problem.residual_dtype == np.float32, out, True)  # current: the last trial
+                           1.0 / problem.lam, problem.residual_dtype == np.float32, out, True)
     out = to_host(out)
     if not isinstance(ev.pending("data"), float):  # ev's data energy from this read, as the trials'
         ev.data = 0.5 * problem.lam ** 2 * float(out[K].sum())
