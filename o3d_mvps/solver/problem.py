@@ -71,6 +71,14 @@ class PendingSums:
     def __init__(self, partial, scale: float, prior: float | None = None):
         self._partial, self._scale, self._prior, self._values = partial, scale, prior, None
 
+    @staticmethod
+    def known_prior(prior) -> float | None:
+        """The prior energy ``prior`` (a float, a :class:`PendingSums` or None) where it is known
+        without a read, else None."""
+        if isinstance(prior, PendingSums):
+            return prior._prior if prior._values is None else prior._values[1]
+        return None if prior is None else float(prior)
+
     def value(self, index: int) -> float:
         """The data (index 0) or prior (1) energy (a given prior without a read)."""
         if index == 1 and self._prior is not None:
@@ -327,12 +335,13 @@ class LevelProblem:
     def _device_sums(self, z: np.ndarray, frames: tuple, prior) -> PendingSums:
         """The (data, prior) energies of :func:`.kernels.evaluation_partials` on the GPU, read when
         first used: frames = (color, albedo, basis, lights, usable, shading, residual) (shading and
-        residual written), the prior's at z unless ``prior`` is given as a float (then that; a
-        :class:`PendingSums` not yet read is computed again, so that one copy reads both). One
-        launch, and one copy where the energy is read."""
+        residual written), the prior's at z unless ``prior`` is known (a float, or a
+        :class:`PendingSums` holding one: :meth:`PendingSums.known_prior`; one not yet read is
+        computed again, so that one copy reads both). One launch, and one copy where the energy
+        is read."""
         usable = frames[4]
         xp = array_module(z)
-        given = prior if isinstance(prior, float) else None
+        given = PendingSums.known_prior(prior)
         partial = xp.empty((energy_blocks(usable.size + self.level.prior.rows), 2))
         kernels_for(z).evaluation_partials(*frames, 1.0 / self.lam, *self._prior_arrays(given is None), z, partial)
         return PendingSums(partial, 0.5 * self.lam * self.lam, given)
@@ -581,8 +590,7 @@ class LevelProblem:
         xp = array_module(ev.residual)
         num, den, albedo = (xp.empty_like(est.albedo) for _ in range(3))
         lights = self._device_poses_lights(est)[1]
-        prior = ev.pending("prior")
-        given = prior if isinstance(prior, float) else None
+        given = PendingSums.known_prior(ev.pending("prior"))
         partial = xp.empty((energy_blocks(ev.usable.size + self.level.prior.rows), 2))
         kernels_for(est.z).albedo_evaluation_partials(ev.residual, ev.usable, ev.color, ev.shading, 1.0 / self.lam,
                                                       contiguous(est.albedo), num, den, albedo, ev.basis, lights,
