@@ -104,7 +104,8 @@ def test_led_offset_update_on_the_cuda_path_matches_the_cpu_path():
 @pytest.mark.parametrize("envelope", [True, False])
 def test_extrapolation_trials_and_snapshot_on_the_cuda_path_match_the_cpu_path(envelope):
     """The driver's device branches: the snapshot's z and albedo without a launch (the arrays
-    themselves: the steps replace them, never write into them), every trial of the extrapolation in one launch and one copy (driver._device_trials),
+    themselves: the steps replace them, never write into them), every trial of the extrapolation
+    in one launch and one copy (driver._device_trials),
     equal to the CPU's per-factor clip of x + f (x - x0) and its all(z > 0)."""
     from types import SimpleNamespace
 

@@ -25,8 +25,8 @@ import numpy as np
 from ..model.robust import log1p_square_sum, log1p_square_term  # noqa: F401 - log1p_square_sum re-exported: the same names as .cuda_kernels
 from ..model.normals import unit_normal_at
 from ..model.shading import (FRAME_CHUNK, led_fields_into, led_irradiance_at, led_irradiance_of,  # noqa: F401
-                             led_field_of, led_irradiances_into, led_point_gradient, led_point_gradient_of, led_point_gradients_into,
-                             led_position, twist_row_into)
+                             led_field_of, led_irradiances_into, led_point_gradient, led_point_gradient_of,
+                             led_point_gradients_into, led_position, twist_row_into)
 
 # OpenMP first: the TBB that Open3D's wheels may put on the path can be too old for numba,
 # which then warns on every first parallel call.

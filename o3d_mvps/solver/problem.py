@@ -442,8 +442,10 @@ class LevelProblem:
     def _one_pass_evaluation(self, est: Estimate, refit_albedo: bool = False):
         """:meth:`evaluate` on a GPU in one launch (:func:`.kernels.evaluate_partials`: the points,
         normals, warped samples, bases, shading, residuals, data and prior energy), the light
-        state's copy where it changed and the energy's where it is read, or None where that kernel does not apply (:meth:`_one_pass_light`). The points are
-        kept for :meth:`points` of this z."""
+        state's copy where it changed and the energy's where it is read, or None where that
+        kernel does not apply (:meth:`_one_pass_light`). The points are kept for :meth:`points`
+        of this z. refit_albedo: ``est.albedo`` refitted in the same launch
+        (:func:`.kernels.evaluate_albedo_partials`, :meth:`evaluate_refit`)."""
         chosen = self._one_pass_light(est)
         if chosen is None:
             return None
