@@ -25,10 +25,14 @@ from .krylov import multiply_add
 from .smoothness import second_differences, smoothness_rows
 
 
-def _entry_centres(S: sp.csr_matrix) -> np.ndarray:
+def _entry_centres(S: sp.csr_matrix) -> np.ndarray | None:
     """Each stored entry's row centre pixel (nnz,) int32 of the host's second differences S: the
-    column of its row's negative entry (:meth:`DepthPrior.weigh_smoothness`)."""
-    return np.repeat(S.indices[S.data < 0], np.diff(S.indptr)).astype(np.int32)
+    column of its row's negative entry (:meth:`DepthPrior.weigh_smoothness`); None where the
+    rows do not have one negative entry each."""
+    centre = S.indices[S.data < 0]
+    if len(centre) != S.shape[0]:
+        return None
+    return np.repeat(centre, np.diff(S.indptr)).astype(np.int32)
 
 
 def to_host_sparse(S):
@@ -74,10 +78,12 @@ class DepthPrior:
         base = self._unweighted_smoothness()
         if self.__dict__.get("_S_build") is None:
             self.__dict__.setdefault("_S_unweighted", base)
-        if array_module(pixel_weights) is not np:  # on a GPU: a gather and one fused kernel, S's pattern kept
+        entries = None
+        if array_module(pixel_weights) is not np:  # once per level (set by on_device): each entry's row centre
             entries = self.__dict__.get("_entry_centres")
-            if entries is None:  # once per level (set by on_device): each stored entry's row centre
-                entries = self.__dict__["_entry_centres"] = like(_entry_centres(to_host_sparse(base)), pixel_weights)
+            if entries is None and (host := _entry_centres(to_host_sparse(base))) is not None:
+                entries = self.__dict__["_entry_centres"] = like(host, pixel_weights)
+        if entries is not None:  # on a GPU: a gather and one fused kernel, S's pattern kept
             self.S = sparse_module(base).csr_matrix((_row_scaled(base.data, pixel_weights[entries]), base.indices,
                                                      base.indptr), shape=base.shape)
         else:
@@ -186,8 +192,9 @@ class DepthPrior:
         # formed here, with the level (a copy each), not by launches in its first sweep
         moved.__dict__["_negative_z0"] = device.asarray(-self.z0)
         moved.__dict__["_zeros"] = device.asarray(np.zeros(self.D.shape[1]))
-        if self.S is not None and device.xp is not np:
-            moved.__dict__["_entry_centres"] = device.asarray(_entry_centres(self._unweighted_smoothness()))
+        entries = None if self.S is None or device.xp is np else _entry_centres(self._unweighted_smoothness())
+        if entries is not None:
+            moved.__dict__["_entry_centres"] = device.asarray(entries)
         moved.__dict__["DtD"] = device.sparse_matrix(self.DtD)
         if self.S is not None:
             moved.__dict__["StS"] = device.sparse_matrix(self.StS)
