@@ -30,6 +30,13 @@ _COLOR = _array(3, types.float32)
 #: (o3d_mvps.solver.device.ArrayDevice.residual_dtype)
 _R1, _R2, _R3 = (_array(d, types.float32) for d in (1, 2, 3))
 
+#: the arguments of _evaluate_partials
+_EVALUATE = (_F1, *(_array(1, types.int64),) * 4, _F1, _F1, _array(1, types.int64), _array(1, types.int64), _F1, _F1,
+             _F2, _F3, _array(4, types.float32), _array(2, types.boolean), _F2, _F2, types.boolean,
+             *(types.float64,) * 4, types.boolean, _array(1, types.int32), _array(1, types.int32), _F1, _F1,
+             _array(1, types.int32), _array(1, types.int32), _F1, types.float64, types.float64, _F2, _F2, _F1, _COLOR,
+             _array(2, types.boolean), _R3, _R2, _R3, _F2)
+
 #: kernel name in cuda_kernels -> argument types
 SIGNATURES = {
     "_accumulate_frames": (_R3, _R2, _array(2, types.boolean), types.float64, _F2, _F2, _F2, _F2, _F2, _F2, _F3,
@@ -68,7 +75,7 @@ SIGNATURES = {
     "_twist_inverse": (_F3, _F3, _F1, types.float64, _F3, _F3, _F1, _F1),
     "_ridge_solves": (_F3, _F3, types.float64, types.float64, _F3, _F3, _F1),
     "_led_trial_partials": (_COLOR, _array(2, types.boolean), _F2, _F2, _F2, _F3, _F1, _F3, _F3, _F2,
-                            types.float64, types.boolean, _F2),
+                            types.float64, types.boolean, types.int64, _F2),
     # the data term's evaluation in one launch (gpueval): the grid's int64 pixels and neighbours,
     # the prior's int32 CSR arrays
     "_energy_partials": (_F1, *(_array(1, types.int64),) * 4, _F1, _F1, _array(1, types.int64),
@@ -113,6 +120,17 @@ SIGNATURES = {
                             *(_array(1, types.int32), _array(1, types.int32), _F1) * 2, _F1, _F1, _F1, _F1, _F1),
     "_joint_inverse": (_F3, _F3, _F1, types.float64, _F3, _F3, _F1),
     "_twist_readout": (_F2, _F1, _F3, _F1),
+    # gpueval2: the LED offset's system from the light state
+    "_led_offset_system": (_F1, _F2, _F2, _F2, _F3, _R3, _array(2, types.boolean), _F2, types.float64, types.int64,
+                           _F3, _F3),
+    "_led_evidence_sums": (_array(2, types.boolean), _F2, _R2, _F1, _F2, _F2, _F2, _F2, _F2, _F1),
+    "_evaluate_albedo_partials": (*_EVALUATE, _F2, _F2, _F2),
+    "_trial_energy_partials": (_F2, *_EVALUATE[1:12], _F4, *_EVALUATE[13:15], _F3, _F3, types.boolean, _F2,
+                               types.float64, types.boolean, *_EVALUATE[23:32], _array(3, types.boolean), _F3),
+    "_albedo_evaluation_partials": (_R3, _array(2, types.boolean), _COLOR, _R2, types.float64, _F2, _F2, _F2, _F2,
+                                    _R3, _F2, _array(1, types.int32), _array(1, types.int32), _F1, _F1,
+                                    _array(1, types.int32), _array(1, types.int32), _F1, types.float64,
+                                    types.float64, _F1, _F2),
 }
 
 

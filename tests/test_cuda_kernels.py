@@ -545,6 +545,17 @@ def test_led_trial_sums_match_the_formula_and_cpu():
         assert len(set(cpu[:K].sum(axis=1))) == K  # the trials differ
         # the simulator takes Python's float64 logarithm of each float32 term: ~1e-9 of the sums
         assert_close(gpu[:K].sum(axis=1), cpu[:K].sum(axis=1), rtol=1e-8)
+        # current: the last trial row is the offset ``start`` itself (gpueval2), the others unchanged
+        now_cpu, now_gpu = np.zeros_like(cpu), np.zeros_like(gpu)
+        kernels.led_trial_sums(*args, single, now_cpu, current=True)
+        cuda_kernels.led_trial_sums(*args, single, now_gpu, current=True)
+        np.testing.assert_array_equal(now_cpu[:K - 1], cpu[:K - 1])
+        np.testing.assert_array_equal(now_cpu[K], cpu[K])
+        residual = color - albedo * (lights[:, :1] + np.maximum(LEDLight(start).irradiances(normals, points, poses),
+                                                                0.0) * lights[:, 1:])[..., None]
+        y = (residual.astype(np.float32 if single else np.float64)[usable] / LAM).astype(np.float32)
+        assert_close(now_cpu[K - 1].sum(), np.log(np.float32(1.0) + y * y).astype(np.float64).sum(), rtol=1e-6)
+        assert_close(now_gpu[:K].sum(axis=1), now_cpu[:K].sum(axis=1), rtol=1e-8)
 
 
 def test_twist_system_matches_numpy_and_cpu():
@@ -1155,3 +1166,155 @@ def test_joint_inverse_and_twist_readout_match_numpy_and_cpu():
     # (U X)^T dz - X b: with the solver's H and selection (X symmetric) -H^-1 diag(kept) (b - U^T dz)
     assert_close(out_cpu[-1], X.T @ (stacked[:K] @ dz) - X @ b, rtol=1e-9)
     assert_close(out_gpu[-1], out_cpu[-1])
+# --- gpueval2 (issue 33) ---------------------------------------------------------------------
+
+
+def _led_surface():
+    """Unit normals and points (N_PIXELS, 3) in front of the camera, and a light state of four
+    frames: poses (4, 4, 4), an LED offset (3,), lights (4, 2)."""
+    from o3d_mvps.solver.lighting import LEDLight
+
+    points = RNG.normal(size=(N_PIXELS, 3)) * 0.05 + [0.0, 0.0, 0.6]
+    normals = RNG.normal(size=(N_PIXELS, 3))
+    normals[:, 2] = -np.abs(normals[:, 2])  # most face the camera: lit and unlit pixels
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    poses = np.stack([np.eye(4), POSE, np.linalg.inv(POSE), POSE @ POSE])
+    light = LEDLight(np.array([0.03, -0.02, 0.01]))
+    return normals, points, poses, light, np.column_stack([RNG.random(4) * 0.2, RNG.random(4) * 0.4 + 0.1])
+
+
+def test_led_offset_system_matches_the_jacobians_and_offset_system(frames):
+    """The LED offset's system with its Jacobians formed per pixel (one launch on a GPU): the
+    same as offset_system on the light model's own offset_jacobians (the host's array formulas)
+    of every 4th pixel."""
+    residual, usable, _, _, albedo = frames
+    residual, usable = np.concatenate([residual, residual[:1]]), np.concatenate([usable, usable[:1]])  # 4 frames
+    normals, points, poses, light, lights = _led_surface()
+    stride = 4
+    ds = light.offset_jacobians(lights, normals[::stride], points[::stride], poses)
+    H, g = np.full((1, 3, 3), np.nan), np.full((1, 3, 1), np.nan)
+    kernels.offset_system(ds, residual, usable, albedo, 1.0 / LAM, stride, H, g)
+    rotations = np.ascontiguousarray(poses[:, :3, :3])
+    cpu, gpu = run_both("led_offset_system", lights[:, 1].copy(), normals, points, light.positions(poses), rotations,
+                        residual, usable, albedo, np.float64(1.0 / LAM), stride, np.full((1, 3, 3), np.nan),
+                        np.full((1, 3, 1), np.nan))
+    assert np.abs(H).max() > 0 and (ds == 0).any()  # lit and unlit pixels
+    assert_close(cpu[-2], H, rtol=1e-10)  # the product's order of sums differs (J R^T against matmul)
+    assert_close(cpu[-1], g, rtol=1e-10)
+    assert_close(gpu[-2], cpu[-2])
+    assert_close(gpu[-1], cpu[-1])
+
+
+def test_led_evidence_sums_match_the_hosts_evidence_sums(frames):
+    """normal_evidence's sums with the LED's fields formed per pixel (one launch on a GPU): equal
+    bit for bit on the CPU to the host's _evidence_sums of the light model's fields."""
+    from o3d_mvps.solver.weighting import _evidence_sums
+
+    _, usable, _, shading, albedo = frames
+    usable, shading = np.concatenate([usable, usable[:1]]), np.concatenate([shading, shading[:1]]).astype(np.float32)
+    normals, points, poses, light, lights = _led_surface()
+    _, L = light.fields(lights, normals, points, poses)
+    expected = np.empty((6, N_PIXELS)), np.empty((3, N_PIXELS)), np.empty(N_PIXELS)
+    _evidence_sums(usable, (albedo ** 2).sum(axis=1), shading, L, *expected)
+    nan = lambda *shape: np.full(shape, np.nan)  # noqa: E731
+    cpu, gpu = run_both("led_evidence_sums", usable, albedo, shading, lights[:, 1].copy(), normals, points,
+                        light.positions(poses), nan(6, N_PIXELS), nan(3, N_PIXELS), nan(N_PIXELS))
+    assert (L == 0).any() and (L != 0).any()
+    for got, want in zip(cpu[-3:], expected):
+        np.testing.assert_array_equal(got, want)
+    for a, b in zip(gpu[-3:], cpu[-3:]):
+        assert_close(a, b)
+
+
+def test_albedo_evaluation_partials_match_the_albedo_update_and_evaluation_partials():
+    """The albedo's closed form and the evaluation at it in one pass (one launch on a GPU): the
+    albedo, shading and residuals of albedo_update then evaluation_partials, their sums the same
+    to the partial sums' order; the residuals read before they are overwritten."""
+    led = True
+    grid, z, K, poses, images, visible, albedo, lights, offset, prior, D, S, S_matrix = _level_data(led)
+    usable, residual, color, basis = _array_formulas(grid, z, K, poses, images, visible, albedo, lights, offset, led)
+    tau, mu, inv_lam = 3.0, 0.5, 1.0 / LAM
+    n, N = usable.shape
+    shading = np.full((n, N), np.nan, np.float32)
+    kernels.shading_residuals(color, albedo, basis, lights, usable, shading, residual)
+    residual = residual + (RNG.normal(size=residual.shape) * 0.05).astype(np.float32) * usable[..., None]
+    usable = usable.copy()
+    usable[:, :5] = False  # no frame: the fallback albedo
+    nan = lambda *shape: np.full(shape, np.nan)  # noqa: E731
+    ref = [residual.copy(), nan(N, 3), nan(N, 3), nan(N, 3), shading.copy(), nan(2, 2)]
+    kernels.albedo_update(ref[0], usable, color, shading, inv_lam, albedo, ref[1], ref[2], ref[3])
+    kernels.evaluation_partials(color, ref[3], basis, lights, usable, ref[4], ref[0], inv_lam, *D, prior.z0, *S, tau,
+                                mu, z, ref[5])
+    cpu, gpu = run_both("albedo_evaluation_partials", residual, usable, color, shading, np.float64(inv_lam), albedo,
+                        nan(N, 3), nan(N, 3), nan(N, 3), basis, lights, *D, prior.z0, *S, tau, mu, z, nan(2, 2))
+    np.testing.assert_array_equal(cpu[8][:5], albedo[:5])
+    for out, rtol in ((cpu, 1e-12), (gpu, 1e-6)):  # the simulator's Python: float32 residual x float = float32 (NEP 50)
+        assert_close(out[8], ref[3], rtol=rtol)  # the albedo
+        assert_close(out[3], ref[4])  # the shading
+        assert_close(out[0], ref[0], rtol=1e-6)  # the float32 residuals
+        assert out[-1][:, 1].sum() == pytest.approx(ref[5][:, 1].sum(), rel=1e-12)
+        assert out[-1][:, 0].sum() == pytest.approx(ref[5][:, 0].sum(), rel=1e-6)
+    assert not np.array_equal(cpu[0], residual)  # written
+
+
+@pytest.mark.parametrize("led", [True, False])
+def test_evaluate_albedo_partials_match_the_evaluation_then_the_albedo_step(led):
+    """A line-search trial's evaluation and its albedo refit in one pass (one launch on a GPU):
+    what evaluate_partials and then albedo_evaluation_partials write, to round-off."""
+    grid, z, K, poses, images, visible, albedo, lights, offset, prior, D, S, S_matrix = _level_data(led)
+    basis_shape = _array_formulas(grid, z, K, poses, images, visible, albedo, lights, offset, led)[3].shape
+    tau, mu, scale = 3.0, 0.5, 1.0 / LAM
+    grid_arrays = [np.ascontiguousarray(a) for a in (grid.u, grid.v, grid.fwd_u, grid.bwd_u, grid.wf_u, grid.wb_u,
+                                                        grid.fwd_v, grid.bwd_v, grid.wf_v, grid.wb_v)]
+    n, N = visible.shape
+    nan = lambda *shape, dtype=np.float64: np.full(shape, np.nan, dtype)  # noqa: E731
+    outputs = lambda: [nan(N, 3), nan(N, 3), nan(N), nan(n, N, 3, dtype=np.float32),  # noqa: E731
+                       np.zeros((n, N), bool), nan(*basis_shape, dtype=np.float32), nan(n, N, dtype=np.float32),
+                       nan(n, N, 3, dtype=np.float32), nan(3, 2)]
+    inputs = [z, *grid_arrays, K, poses, images, visible, albedo, lights, led, *offset, scale, True, *D, prior.z0, *S,
+              tau, mu]
+    ref = outputs()
+    kernels.evaluate_partials(*inputs, *ref)
+    points, normals, dA, color, usable, basis, shading, residual, partial = ref
+    refit = nan(N, 3)
+    kernels.albedo_evaluation_partials(residual, usable, color, shading, scale, albedo, nan(N, 3), nan(N, 3), refit,
+                                       basis, lights, *D, prior.z0, *S, tau, mu, z, partial)
+    cpu, gpu = run_both("evaluate_albedo_partials", *inputs, *outputs(), nan(N, 3), nan(N, 3), nan(N, 3))
+    assert not np.allclose(refit, albedo)  # refitted
+    for out, rtol in ((cpu, 1e-12), (gpu, 1e-6)):  # the simulator's float32 x float = float32 (NEP 50)
+        assert_close(out[-1], refit, rtol=rtol)
+        for got, want in zip(out[-12:-4], ref[:8]):
+            np.testing.assert_array_equal(got, want) if want.dtype == bool else assert_close(got, want, rtol=1e-6)
+        assert out[-4][:, 0].sum() == pytest.approx(partial[:, 0].sum(), rel=1e-6)
+        assert out[-4][:, 1].sum() == pytest.approx(partial[:, 1].sum(), rel=1e-12)
+
+
+def test_trial_energy_partials_match_energy_partials_per_trial():
+    """Three trial states' energies in one pass (one launch on a GPU): each trial's sums, usable
+    mask and prior those of energy_partials on that trial alone (the CPU twin exactly)."""
+    led = True
+    grid, z, K, poses, images, visible, albedo, lights, offset, prior, D, S, S_matrix = _level_data(led)
+    tau, mu, scale = 3.0, 0.5, 1.0 / LAM
+    grid_arrays = [np.ascontiguousarray(a) for a in (grid.u, grid.v, grid.fwd_u, grid.bwd_u, grid.wf_u, grid.wb_u,
+                                                        grid.fwd_v, grid.bwd_v, grid.wf_v, grid.wb_v)]
+    n, N = visible.shape
+    F = 3
+    zs = np.stack([z * (1.0 + 0.002 * f) for f in range(F)])
+    all_poses = np.stack([poses] * F)
+    all_poses[1:, :, :3, 3] += 0.001
+    albedos = np.stack([albedo * (1.0 + 0.05 * f) for f in range(F)])
+    all_lights = np.stack([lights * (1.0 + 0.1 * f) for f in range(F)])
+    offsets = np.array([offset, np.add(offset, 0.002), np.add(offset, -0.001)], dtype=np.float64)
+    cpu, gpu = run_both("trial_energy_partials", zs, *grid_arrays, K, all_poses, images, visible, albedos, all_lights,
+                        led, offsets, scale, True, *D, prior.z0, *S, tau, mu, np.zeros((F, n, N), bool),
+                        np.full((F, 2, 2), np.nan))
+    for f in range(F):
+        one = [np.zeros((n, N), bool), np.full((2, 2), np.nan)]
+        kernels.energy_partials(zs[f], *grid_arrays, K, all_poses[f], images, visible, albedos[f], all_lights[f], led,
+                                *offsets[f], scale, True, *D, prior.z0, *S, tau, mu, *one)
+        np.testing.assert_array_equal(cpu[-2][f], one[0])
+        np.testing.assert_array_equal(cpu[-1][f], one[1])
+        np.testing.assert_array_equal(gpu[-2][f], one[0])
+        assert gpu[-1][f, :, 0].sum() == pytest.approx(one[1][:, 0].sum(), rel=1e-6)
+        assert gpu[-1][f, :, 1].sum() == pytest.approx(one[1][:, 1].sum(), rel=1e-12)
+    assert len(set(cpu[-1][:, :, 0].sum(axis=1))) == F  # the trials differ

@@ -67,8 +67,9 @@ def test_cauchy_weights_on_the_device_are_one_launch():
 
 
 def test_led_fields_and_point_gradients_on_the_device_match_the_host():
-    """The LED's fields (m, N, 3) and point gradients in one launch each and one copy (intensities
-    and positions together; the same state's copy reused: lighting._LIGHT_COPIES)."""
+    """The LED's fields (m, N, 3) and point gradients in one launch each and one copy each (the
+    fields' light state: lighting.device_light_state, reused by a repeat; the gradients'
+    intensities and positions: lighting._light_arrays)."""
     points = RNG.normal(size=(N, 3)) * 0.05 + [0.0, 0.0, 0.6]
     normals = RNG.normal(size=(N, 3))
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
@@ -82,14 +83,17 @@ def test_led_fields_and_point_gradients_on_the_device_match_the_host():
     with cp.installed():
         normals_d, points_d = cp.asarray(normals), cp.asarray(points)
         lighting._LIGHT_COPIES.clear()  # no light state copied by an earlier test
+        lighting._STATE_COPIES.clear()
         (c_d, L_d), launches, copies = counted(lambda: light.fields(lights, normals_d, points_d, poses))
         np.testing.assert_array_equal(c_d, c)
         np.testing.assert_allclose(to_host(L_d), L, rtol=1e-14)
         assert (launches, copies) == (1, 1)
+        _, launches, copies = counted(lambda: light.fields(lights.copy(), normals_d, points_d, poses.copy()))
+        assert (launches, copies) == (1, 0)  # the same light state: its copy reused
         J_d, launches, copies = counted(lambda: lit_point_gradients(lights, normals_d, points_d,
                                                                     light.positions(poses)))
         np.testing.assert_allclose(to_host(J_d), J, rtol=1e-14)
-        assert (launches, copies) == (1, 0)  # the same light state: the fields' copy reused (gpu3)
+        assert (launches, copies) == (1, 1)
 
 
 def test_led_shading_jacobians_on_the_device_match_the_host():

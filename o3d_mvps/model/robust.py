@@ -116,4 +116,10 @@ def robust_scale(residual: np.ndarray, usable: np.ndarray, max_samples: int = 1_
     r = residual[:, ::stride][usable[:, ::stride]].ravel()
     if r.size == 0:
         return MIN_SCALE
-    return max(MIN_SCALE, 1.4826 * float(np.median(np.abs(r - np.median(r)))))
+    return max(MIN_SCALE, 1.4826 * float(np.median(_absolute_deviations(r, np.median(r)))))
+
+
+@fused
+def _absolute_deviations(r, centre):
+    """``|r - centre|`` elementwise (one kernel on a GPU)."""
+    return abs(r - centre)

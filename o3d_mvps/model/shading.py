@@ -154,6 +154,13 @@ def led_fields_into(intensities, normals, points, positions, out):  # pragma: no
 def led_field(intensities, normals, points, positions, out, i, p):  # pragma: no cover - compiled
     """:func:`led_fields_into`'s element: out[i, p] (3,) for light i and point p (the CUDA twin
     in :mod:`o3d_mvps.solver.cuda_kernels` calls it too)."""
+    out[i, p, 0], out[i, p, 1], out[i, p, 2] = led_field_of(intensities, normals, points, positions, i, p)
+
+
+@numba.njit(inline="always")
+def led_field_of(intensities, normals, points, positions, i, p):  # pragma: no cover - compiled
+    """:func:`led_field`'s values (3 floats) for light i and point p, not stored (the GPU's
+    evidence sums form them per pixel, :func:`o3d_mvps.solver.kernels.led_evidence_sums`)."""
     d0 = positions[i, 0] - points[p, 0]
     d1 = positions[i, 1] - points[p, 1]
     d2 = positions[i, 2] - points[p, 2]
@@ -161,15 +168,20 @@ def led_field(intensities, normals, points, positions, out, i, p):  # pragma: no
     r3 = r2 * math.sqrt(r2)
     v0, v1, v2 = d0 / r3, d1 / r3, d2 / r3
     lit = intensities[i] if dot3(normals[p, 0], normals[p, 1], normals[p, 2], v0, v1, v2) > 0 else 0.0
-    out[i, p, 0] = v0 * lit
-    out[i, p, 1] = v1 * lit
-    out[i, p, 2] = v2 * lit
+    return v0 * lit, v1 * lit, v2 * lit
 
 
 @numba.njit(inline="always")
 def led_point_gradient(intensities, normals, points, positions, out, i, p):  # pragma: no cover - compiled
     """:func:`led_point_gradients_into`'s element: out[i, p] (3,) for light i and point p (the
     CUDA twin in :mod:`o3d_mvps.solver.cuda_kernels` calls it too)."""
+    out[i, p, 0], out[i, p, 1], out[i, p, 2] = led_point_gradient_of(intensities, normals, points, positions, i, p)
+
+
+@numba.njit(inline="always")
+def led_point_gradient_of(intensities, normals, points, positions, i, p):  # pragma: no cover - compiled
+    """:func:`led_point_gradient`'s values (3 floats) for light i and point p, not stored (the
+    GPU's LED-offset system forms them per pixel, :func:`o3d_mvps.solver.kernels.led_offset_system`)."""
     n0, n1, n2 = normals[p, 0], normals[p, 1], normals[p, 2]
     d0 = positions[i, 0] - points[p, 0]
     d1 = positions[i, 1] - points[p, 1]
@@ -179,9 +191,7 @@ def led_point_gradient(intensities, normals, points, positions, out, i, p):  # p
     nd = dot3(n0, n1, n2, d0, d1, d2)
     lit = intensities[i] if nd > 0 else 0.0
     s = 3.0 * nd / (r3 * r2)
-    out[i, p, 0] = (-n0 / r3 + s * d0) * lit
-    out[i, p, 1] = (-n1 / r3 + s * d1) * lit
-    out[i, p, 2] = (-n2 / r3 + s * d2) * lit
+    return (-n0 / r3 + s * d0) * lit, (-n1 / r3 + s * d1) * lit, (-n2 / r3 + s * d2) * lit
 
 
 @numba.njit(parallel=True, cache=True)

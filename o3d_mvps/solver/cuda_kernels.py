@@ -637,7 +637,7 @@ def ridge_solves(A, B, ridge, fallback, L, X, solved) -> None:
 
 
 @cuda.jit(cache=True)
-def _led_trial_partials(color, usable, albedo, normals, points, poses, start, H, g, lights, scale, single,
+def _led_trial_partials(color, usable, albedo, normals, points, poses, start, H, g, lights, scale, single, zero_row,
                         out):  # pragma: no cover - device
     """out[k, block] = the block's share of trial k's sum (grid: blocks x trials): every thread
     solves the offset's 3x3 system (some 50 operations; no launch of its own), sums a strided
@@ -649,6 +649,7 @@ def _led_trial_partials(color, usable, albedo, normals, points, poses, start, H,
     solved = cuda.local.array(1, numba.float64)
     t = cuda.threadIdx.x
     k = cuda.blockIdx.y
+    trial = k if k != zero_row else -1  # -1: the offset ``start`` itself
     n, N = usable.shape
     _led_offset_step(H, g, L, X, solved)
     if k == 0 and cuda.blockIdx.x == 0 and t == 0:
@@ -656,7 +657,7 @@ def _led_trial_partials(color, usable, albedo, normals, points, poses, start, H,
     total = 0.0
     for index in range(cuda.blockIdx.x * THREADS_PER_BLOCK + t, n * N, cuda.gridDim.x * THREADS_PER_BLOCK):
         total += _led_trial_term(color, usable, albedo, normals, points, poses, start, X[0, 0, 0], X[0, 1, 0],
-                                 X[0, 2, 0], lights, scale, single, k, index // N, index % N)
+                                 X[0, 2, 0], lights, scale, single, trial, index // N, index % N)
     _block_tree_sum(share, t, total)
     if t == 0:
         out[k, cuda.blockIdx.x] = share[0]
@@ -668,11 +669,13 @@ def trial_blocks(n_frames: int, n_pixels: int) -> int:
     return min(kernels.REDUCTION_BLOCKS, max(7, _blocks(-(-n_frames * n_pixels // TERMS_PER_THREAD))))
 
 
-def led_trial_sums(color, usable, albedo, normals, points, poses, start, H, g, lights, scale, single, out) -> None:
+def led_trial_sums(color, usable, albedo, normals, points, poses, start, H, g, lights, scale, single, out,
+                   current: bool = False) -> None:
     """:func:`.kernels.led_trial_sums` on the GPU: the step and every trial in one launch (grid:
     blocks x trials), out (K + 1, :func:`trial_blocks`) one sum per block, the step's row."""
     _led_trial_partials[(out.shape[1], out.shape[0] - 1), THREADS_PER_BLOCK](
-        color, usable, albedo, normals, points, poses, start, H, g, lights, float(scale), bool(single), out)
+        color, usable, albedo, normals, points, poses, start, H, g, lights, float(scale), bool(single),
+        out.shape[0] - 2 if current else -1, out)
 
 
 _twist_frame_kept = _device(kernels.twist_frame_kept)
@@ -1420,3 +1423,176 @@ def twist_readout(P, dz, X, out) -> None:
     and a difference)."""
     if out.shape[0]:
         _twist_readout[out.shape[0], THREADS_PER_BLOCK](P, dz, X, out)
+# ============================================================================================
+# gpueval2 (issue 33): the LED offset's system from the light state in one launch (CPU twin in
+# :mod:`.kernels`' section of the same name)
+# ============================================================================================
+
+__all__ += ["led_offset_system"]
+
+_led_offset_system_add = _device(kernels.led_offset_system_add)
+
+
+@cuda.jit(cache=True)
+def _led_offset_system(intensities, normals, points, positions, rotations, residual, usable, albedo, inv_lam, stride,
+                       H, g):  # pragma: no cover - device
+    share = cuda.shared.array(THREADS_PER_BLOCK, numba.float64)
+    acc = cuda.local.array(12, numba.float64)
+    t = cuda.threadIdx.x
+    n, N = usable.shape
+    M = (N + stride - 1) // stride
+    for e in range(12):
+        acc[e] = 0.0
+    for index in range(t, n * M, THREADS_PER_BLOCK):
+        _led_offset_system_add(intensities, normals, points, positions, rotations, residual, usable, albedo, inv_lam,
+                               stride, acc, index // M, index % M)
+    for e in range(12):
+        _block_tree_sum(share, t, acc[e])
+        if t == 0:
+            if e < 9:
+                H[0, e // 3, e % 3] = share[0]
+            else:
+                g[0, e - 9, 0] = share[0]
+        cuda.syncthreads()  # the root read before the next tree writes
+
+
+def led_offset_system(intensities, normals, points, positions, rotations, residual, usable, albedo, inv_lam, stride, H,
+                      g) -> None:
+    """:func:`.kernels.led_offset_system` on the GPU: one launch of one block (as
+    :func:`offset_system`), each thread forming its spread pixels' Jacobians (was a Jacobian
+    launch, two array operations, a copy of the rotations and the system's launch)."""
+    _led_offset_system[1, THREADS_PER_BLOCK](intensities, normals, points, positions, rotations, residual, usable,
+                                             albedo, float(inv_lam), int(stride), H, g)
+
+
+__all__ += ["led_evidence_sums"]
+
+_led_evidence_pixel = _device(kernels.led_evidence_pixel)
+
+
+@cuda.jit(cache=True)
+def _led_evidence_sums(usable, albedo, shading, intensities, normals, points, positions, G6, v,
+                       d):  # pragma: no cover - device
+    p = cuda.grid(1)
+    if p < usable.shape[1]:
+        _led_evidence_pixel(usable, albedo, shading, intensities, normals, points, positions, G6, v, d, p)
+
+
+def led_evidence_sums(usable, albedo, shading, intensities, normals, points, positions, G6, v, d) -> None:
+    """:func:`.kernels.led_evidence_sums` on the GPU: one thread per pixel, its frames in turn (was
+    the fields' launch and some eight array operations)."""
+    _led_evidence_sums[_blocks(usable.shape[1]), THREADS_PER_BLOCK](usable, albedo, shading, intensities, normals,
+                                                                    points, positions, G6, v, d)
+
+
+__all__ += ["albedo_evaluation_partials"]
+
+_albedo_ratio_pixel = _device(kernels.albedo_ratio_pixel)
+
+
+@cuda.jit(cache=True)
+def _albedo_evaluation_partials(residual, usable, color, shading, inv_lam, fallback, num, den, albedo, basis, lights,
+                                D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data, tau, mu, z,
+                                partial):  # pragma: no cover - device
+    """Each thread a grid-stride share of the pixels: a pixel's albedo from its frames' old
+    residuals, then its frames' new residuals and their energy; the prior's rows likewise."""
+    share = cuda.shared.array((THREADS_PER_BLOCK, 2), numba.float64)
+    t = cuda.threadIdx.x
+    n, N = usable.shape
+    data = 0.0
+    for p in range(cuda.grid(1), N, cuda.gridsize(1)):
+        _weighted_albedo_pixel(residual, usable, color, shading, inv_lam, num, den, p)
+        _albedo_ratio_pixel(num, den, fallback, albedo, p)
+        for i in range(n):
+            data += _evaluation_term(color, albedo, basis, lights, usable, shading, residual, inv_lam, i, p)
+    prior = _prior_sum(D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data, tau, mu, z, cuda.grid(1),
+                       _prior_rows(z0, S_indptr, tau, mu), cuda.gridsize(1))
+    _store_block_pair(share, t, data, prior, partial)
+
+
+def albedo_evaluation_partials(residual, usable, color, shading, inv_lam, fallback, num, den, albedo, basis, lights,
+                               D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data, tau, mu, z,
+                               partial) -> None:
+    """:func:`.kernels.albedo_evaluation_partials` on the GPU: one launch of partial.shape[0]
+    blocks (was the albedo's launch and the evaluation's)."""
+    _albedo_evaluation_partials[partial.shape[0], THREADS_PER_BLOCK](
+        residual, usable, color, shading, float(inv_lam), fallback, num, den, albedo, basis, lights, D_indptr,
+        D_indices, D_data, z0, S_indptr, S_indices, S_data, float(tau), float(mu), z, partial)
+
+
+__all__ += ["evaluate_albedo_partials"]
+
+
+@cuda.jit(cache=True)
+def _evaluate_albedo_partials(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images, visible,
+                              albedo, lights, led, o0, o1, o2, scale, single, D_indptr, D_indices, D_data, z0, S_indptr,
+                              S_indices, S_data, tau, mu, points, normals, dA, color, usable, basis, shading, residual,
+                              partial, num, den, refit):  # pragma: no cover - device
+    """Each thread a grid-stride share of the pixels: a pixel's frames evaluated (frame 0 first:
+    its point, normal, dA), its albedo refitted, its frames' residuals at that albedo and their
+    energy; the prior's rows likewise."""
+    share = cuda.shared.array((THREADS_PER_BLOCK, 2), numba.float64)
+    t = cuda.threadIdx.x
+    n, N = visible.shape
+    data = 0.0
+    for p in range(cuda.grid(1), N, cuda.gridsize(1)):
+        for i in range(n):
+            _evaluate_pixel(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images, visible,
+                            albedo, lights, led, o0, o1, o2, scale, single, points, normals, dA, color, usable, basis,
+                            shading, residual, i, p)
+        _weighted_albedo_pixel(residual, usable, color, shading, scale, num, den, p)
+        _albedo_ratio_pixel(num, den, albedo, refit, p)
+        for i in range(n):
+            data += _evaluation_term(color, refit, basis, lights, usable, shading, residual, scale, i, p)
+    prior = _prior_sum(D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data, tau, mu, z, cuda.grid(1),
+                       _prior_rows(z0, S_indptr, tau, mu), cuda.gridsize(1))
+    _store_block_pair(share, t, data, prior, partial)
+
+
+def evaluate_albedo_partials(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images, visible,
+                             albedo, lights, led, o0, o1, o2, scale, single, D_indptr, D_indices, D_data, z0, S_indptr,
+                             S_indices, S_data, tau, mu, points, normals, dA, color, usable, basis, shading, residual,
+                             partial, num, den, refit) -> None:
+    """:func:`.kernels.evaluate_albedo_partials` on the GPU: one launch of partial.shape[0] blocks
+    (was the evaluation's launch and the albedo step's)."""
+    _evaluate_albedo_partials[partial.shape[0], THREADS_PER_BLOCK](
+        z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images, visible, albedo, lights,
+        bool(led), float(o0), float(o1), float(o2), float(scale), bool(single), D_indptr, D_indices, D_data, z0,
+        S_indptr, S_indices, S_data, float(tau), float(mu), points, normals, dA, color, usable, basis, shading,
+        residual, partial, num, den, refit)
+
+
+__all__ += ["trial_energy_partials"]
+
+
+@cuda.jit(cache=True)
+def _trial_energy_partials(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images, visible,
+                           albedo, lights, led, offsets, scale, single, D_indptr, D_indices, D_data, z0, S_indptr,
+                           S_indices, S_data, tau, mu, usable, partial):  # pragma: no cover - device
+    """Block (b, f): a strided share of trial f's frames' pixels and prior rows, as
+    :func:`_energy_partials` (one launch for every trial)."""
+    share = cuda.shared.array((THREADS_PER_BLOCK, 2), numba.float64)
+    t = cuda.threadIdx.x
+    f = cuda.blockIdx.y
+    n, N = visible.shape
+    zf = z[f]
+    start, step = cuda.blockIdx.x * THREADS_PER_BLOCK + t, cuda.gridDim.x * THREADS_PER_BLOCK
+    data = 0.0
+    for index in range(start, n * N, step):
+        data += _energy_term(zf, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses[f], images,
+                             visible, albedo[f], lights[f], led, offsets[f, 0], offsets[f, 1], offsets[f, 2], scale,
+                             single, usable[f], index // N, index % N)
+    prior = _prior_sum(D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data, tau, mu, zf, start,
+                       _prior_rows(z0, S_indptr, tau, mu), step)
+    _store_block_pair(share, t, data, prior, partial[f])
+
+
+def trial_energy_partials(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images, visible,
+                          albedo, lights, led, offsets, scale, single, D_indptr, D_indices, D_data, z0, S_indptr,
+                          S_indices, S_data, tau, mu, usable, partial) -> None:
+    """:func:`.kernels.trial_energy_partials` on the GPU: one launch, partial.shape[1] blocks per
+    trial (was a launch and a read per trial)."""
+    _trial_energy_partials[(partial.shape[1], partial.shape[0]), THREADS_PER_BLOCK](
+        z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images, visible, albedo, lights,
+        bool(led), offsets, float(scale), bool(single), D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data,
+        float(tau), float(mu), usable, partial)

@@ -20,7 +20,7 @@ from .line_search import backtrack
 from .linear import levenberg_damped, solve_spd
 from .normal_equations import joint_system
 from .problem import Estimate, Evaluation, LevelProblem
-from .reflectance import update_albedo
+from .reflectance import refit_albedo as refit_albedo_at
 
 
 def update_depth(problem: LevelProblem, est: Estimate, ev: Evaluation, *, rtol: float, maxiter: int,
@@ -52,17 +52,18 @@ def search_estimates(problem: LevelProblem, est: Estimate, energy: float, moved:
     evaluation), or ``est`` evaluated anew when no length lowers the energy (its evaluation
     was released for the solve: see :meth:`.Evaluation.release`).
 
-    refit_albedo: give each trial its closed-form albedo (:func:`update_albedo`) first.
+    refit_albedo: give each trial its closed-form albedo (:func:`.reflectance.refit_albedo`) first.
     """
 
     def trial(t: float):
         candidate = moved(t)
         if candidate is None:
             return None
-        candidate_ev = problem.evaluate(candidate)
-        if refit_albedo:
-            candidate.albedo = update_albedo(candidate, candidate_ev, problem.lam)
-            candidate_ev = problem.reevaluate(candidate, candidate_ev, overwrite=True)
+        candidate_ev = problem.evaluate_refit(candidate) if refit_albedo else None  # one launch on a GPU
+        if candidate_ev is None:
+            candidate_ev = problem.evaluate(candidate)
+            if refit_albedo:
+                candidate_ev = refit_albedo_at(problem, candidate, candidate_ev)
         return (candidate, candidate_ev), candidate_ev.energy
 
     found = backtrack(trial, energy, max_halvings)
@@ -72,7 +73,9 @@ def search_estimates(problem: LevelProblem, est: Estimate, energy: float, moved:
 def stepped_depth(prior, z: np.ndarray, t: float, dz: np.ndarray) -> np.ndarray | None:
     """A line search's trial depth ``prior.clip(z + t dz)`` (N,) metres (``prior`` the level's
     :class:`.pyramid.DepthPrior`), or None where a depth is not > 0; on a GPU one launch and one
-    read (:func:`.kernels.depth_step`; was up to five array operations and a read)."""
+    read (:func:`.kernels.depth_step`; was up to five array operations and a read), no read
+    where the envelope is positive (:attr:`.pyramid.DepthPrior.envelope_positive`: every
+    clipped depth is > 0 or NaN, and a NaN depth's energy is NaN, which the search rejects)."""
     if not on_gpu(z):
         stepped = prior.clip(z + t * dz)
         return stepped if np.all(stepped > 0) else None
@@ -80,6 +83,8 @@ def stepped_depth(prior, z: np.ndarray, t: float, dz: np.ndarray) -> np.ndarray 
     out, bad = xp.empty(z.shape[0]), xp.empty(extrapolation_blocks(z.shape[0]))
     kernels_for(z).depth_step(contiguous(z, np.float64), contiguous(dz, np.float64), float(t),
                               *envelope_arrays(prior, xp), out, bad)
+    if getattr(prior, "envelope_positive", False):  # clipped into a positive envelope: no read (gpueval2)
+        return out
     return out if to_host(bad).sum() == 0 else None
 
 

@@ -136,6 +136,32 @@ class DeviceCopies:
         del self.entries[self.kept:]
         return copied
 
+    def copy_many(self, hosts: list, reference, extra: tuple = ()) -> tuple[list, list]:
+        """:meth:`copy` of several host arrays (1-d) in one ``asarray`` (views of one device
+        array), keeping each; those equal to a kept one give that copy, and none is copied
+        where all are kept and there is no ``extra``: further host arrays (1-d) copied in the
+        same copy, not kept. Returns (the copies of ``hosts``, those of ``extra``)."""
+        found = [self.copy(host, reference) if self._kept(host, reference) else None for host in hosts]
+        missing = [k for k, got in enumerate(found) if got is None]
+        extra = list(extra)
+        if missing or extra:
+            xp, device = array_module(reference), getattr(reference, "device", None)
+            parts = [hosts[k] for k in missing] + extra
+            packed = xp.asarray(np.concatenate(parts))
+            ends = np.cumsum([0] + [len(part) for part in parts])
+            views = [packed[start:stop] for start, stop in zip(ends[:-1], ends[1:])]
+            for k, view in zip(missing, views):
+                found[k] = view
+                self.entries.insert(0, (hosts[k], xp, device, view))
+            del self.entries[max(self.kept, len(missing)):]
+            return found, views[len(missing):]
+        return found, []
+
+    def _kept(self, host: np.ndarray, reference) -> bool:
+        xp, device = array_module(reference), getattr(reference, "device", None)
+        return any(module is xp and where == device and values.shape == host.shape and np.array_equal(values, host)
+                   for values, module, where, _ in self.entries)
+
     def clear(self) -> None:
         self.entries.clear()
 

@@ -35,7 +35,7 @@ from .device import CPU, ArrayDevice, array_device, compile_notice, kernels_for,
 from .joint import update_pose_depth
 from .kernels import MAX_EXTRAPOLATION_FACTORS, extrapolation_blocks
 from .light_selection import select_light_model
-from .lighting import make_light_model, update_led_offset
+from .lighting import make_light_model, preload_light_states, update_led_offset
 from .normal_equations import prepare_depth_block
 from .options import AUTO, DEFAULT_CAUCHY_LAMBDA, RefineOptions
 from .pose import keep_agreeing_poses, pose_information, update_poses
@@ -44,7 +44,7 @@ from .pose_trust import PoseAnchors, PoseLog
 from .problem import Estimate, LevelProblem
 from .problem_input import SolverInput
 from .pyramid import build_level, level_size
-from .reflectance import update_albedo, update_lighting
+from .reflectance import refit_albedo, update_albedo, update_lighting
 from .smoothness import auto_smoothness
 from .solution import SolverOutput
 from .weighting import (absolute_evidence_weights, albedo_step_factor, albedo_step_weights, evidence_weights,
@@ -203,8 +203,7 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
     # coarse (or, on the first level, the reference image's) albedo lacks the detail the pose
     # and depth steps compare against. Fitting lighting first would explain the reference image
     # by ambient light alone, since the initial albedo is that image.
-    est.albedo = update_albedo(est, ev, problem.lam)
-    ev = problem.reevaluate(est, ev, overwrite=True)
+    ev = refit_albedo(problem, est, ev)
     if options.model.cauchy_scale() == AUTO:  # the level's noise floor, once its albedo fits
         problem.lam = robust_scale(ev.residual, ev.usable)
         ev = problem.reevaluate(est, ev, overwrite=True)
@@ -278,12 +277,12 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
             timings["depth"] += time.perf_counter() - t
         stats["cg_iterations"].append(cg_iterations)
         t = time.perf_counter()
-        est.albedo = update_albedo(est, ev, problem.lam)
-        ev = problem.reevaluate(est, ev, overwrite=True)
+        ev = refit_albedo(problem, est, ev)  # (one launch on a GPU)
         est.lights = update_lighting(est, ev, problem.lam, problem.light_model(est))
         ev = problem.reevaluate(est, ev, overwrite=True)
         if refine_offset:
-            est.led_offset, ev = update_led_offset(problem, est, ev, min_decrease=0.1 * options.tolerance * ev.energy)
+            est.led_offset, ev = update_led_offset(problem, est, ev, min_decrease=0.1 * options.tolerance,
+                                                   relative=True)  # of ev's energy (on a GPU read with the step's)
         if problem.light.name == "point":  # every sweep (point_light.POINT_FINE_MIN_PIXELS: how, by level)
             ev = fit_point_lights(problem, est, ev)
         timings["albedo_lighting"] += time.perf_counter() - t
@@ -321,16 +320,15 @@ def _weigh_smoothness(problem: LevelProblem, est: Estimate, ev, options: RefineO
             steps = albedo_step_factor(est.albedo, problem.level.grid, ev.shading, ev.usable, noise)
             weights = albedo_step_weights(weights, evidence, steps, noise, ceiling)
     problem.level.prior.weigh_smoothness(weights)
-    ev.prior = problem.prior_energy(est.z)
+    ev.prior = problem.prior_energy(est.z, pending=True)  # on a GPU read where first used
     timings["evidence_weights"] += time.perf_counter() - t
 
 
 def _snapshot(est: Estimate) -> Estimate:
-    """A copy of the unknowns, taken at the start of a sweep (on a GPU z and albedo in one
-    launch: views of one array)."""
-    if on_gpu(est.z) and est.albedo.dtype == est.z.dtype:
-        packed = array_module(est.z).concatenate([est.z.reshape(-1), est.albedo.reshape(-1)])
-        z, albedo = packed[:est.z.size].reshape(est.z.shape), packed[est.z.size:].reshape(est.albedo.shape)
+    """A copy of the unknowns, taken at the start of a sweep (on a GPU z and albedo themselves,
+    no launch: the steps replace those arrays, never write into them)."""
+    if on_gpu(est.z):
+        z, albedo = est.z, est.albedo
     else:
         z, albedo = est.z.copy(), est.albedo.copy()
     return Estimate(z, albedo, est.lights.copy(), est.poses.copy(),
@@ -366,6 +364,13 @@ def _extrapolate(problem: LevelProblem, est: Estimate, ev, before: Estimate, anc
     current = anchored(ev.energy, est, ev.usable)
     delta_poses = [se3.log(T @ np.linalg.inv(T0)) for T, T0 in zip(est.poses, before.poses)] if poses_moved else []
     trials = _device_trials(problem, est, before, factors)  # None on the CPU
+    batch = None  # on a GPU every factor's energy in one launch and one read (and one copy over)
+    if trials is not None:
+        candidates = [Estimate(trials[0][j], trials[1][j], *_trial(est, before, factor, delta_poses, poses_moved))
+                      for j, factor in enumerate(factors)]
+        batch = problem.trial_energies(trials[0], trials[1], candidates)
+        if batch is None:  # every factor's poses and lights copied over at once (one copy, not one a factor)
+            preload_light_states([(problem.light_model(c), c.lights, c.poses) for c in candidates], est.z)
     for j, factor in enumerate(factors):
         if trials is None:
             z = problem.level.prior.clip(_extrapolated(est.z, before.z, factor))
@@ -376,12 +381,8 @@ def _extrapolate(problem: LevelProblem, est: Estimate, ev, before: Estimate, anc
             z, albedo = trials[0][j], trials[1][j]
         else:
             break
-        offset = None if est.led_offset is None else est.led_offset + factor * (est.led_offset - before.led_offset)
-        trial = Estimate(z, albedo,
-                         est.lights + factor * (est.lights - before.lights),
-                         np.stack([se3.exp(factor * d) @ T for d, T in zip(delta_poses, est.poses)])
-                         if poses_moved else est.poses, offset)
-        energy, usable = problem.energy(trial)
+        trial = Estimate(z, albedo, *_trial(est, before, factor, delta_poses, poses_moved))
+        energy, usable = problem.energy(trial) if batch is None else (float(batch[0][j]), batch[1][j])
         trial_energy = anchored(energy, trial, usable)
         if trial_energy < current:
             best, current = trial, trial_energy
@@ -395,11 +396,20 @@ def _extrapolate(problem: LevelProblem, est: Estimate, ev, before: Estimate, anc
     return problem.evaluate(est)
 
 
+def _trial(est: Estimate, before: Estimate, factor: float, delta_poses: list, poses_moved: bool) -> tuple:
+    """:func:`_extrapolate`'s trial lights (n, k), poses (n, 4, 4) and LED offset (or None) at ``factor``."""
+    offset = None if est.led_offset is None else est.led_offset + factor * (est.led_offset - before.led_offset)
+    return (est.lights + factor * (est.lights - before.lights),
+            np.stack([se3.exp(factor * d) @ T for d, T in zip(delta_poses, est.poses)]) if poses_moved else est.poses,
+            offset)
+
+
 def _device_trials(problem: LevelProblem, est: Estimate, before: Estimate, factors) -> tuple | None:
     """:func:`_extrapolate`'s trial depths and albedos on a GPU, every factor's in one launch
     (:func:`.kernels.extrapolation_trials`: extrapolated, the depth clipped into the prior's
-    envelope) and one copy back: (z (F, N), albedo (F, N, 3), positive (F,) bool: every trial
-    depth > 0); None on the CPU, or for factors or albedos that kernel does not take."""
+    envelope) and one copy back, none where the envelope is positive
+    (:attr:`.pyramid.DepthPrior.envelope_positive`): (z (F, N), albedo (F, N, 3), positive (F,)
+    bool: every trial depth > 0); None on the CPU, or for factors or albedos that kernel does not take."""
     if not (on_gpu(est.z) and len(factors) <= MAX_EXTRAPOLATION_FACTORS and est.z.ndim == 1
             and est.albedo.shape == (est.z.size, 3)):
         return None
@@ -409,6 +419,8 @@ def _device_trials(problem: LevelProblem, est: Estimate, before: Estimate, facto
                                                                                  before.albedo)),
                                             tuple(float(f) for f in factors), *envelope_arrays(prior, xp), z, albedo,
                                             bad)
+    if getattr(prior, "envelope_positive", False):  # clipped into a positive envelope: no read (a NaN
+        return z, albedo, np.ones(F, dtype=bool)      # trial's energy is NaN, and it is not kept)
     return z, albedo, to_host(bad).sum(axis=1) == 0
 
 

@@ -25,8 +25,8 @@ import numpy as np
 from ..model.robust import log1p_square_sum, log1p_square_term  # noqa: F401 - log1p_square_sum re-exported: the same names as .cuda_kernels
 from ..model.normals import unit_normal_at
 from ..model.shading import (FRAME_CHUNK, led_fields_into, led_irradiance_at, led_irradiance_of,  # noqa: F401
-                             led_irradiances_into, led_point_gradient, led_point_gradients_into, led_position,
-                             twist_row_into)
+                             led_field_of, led_irradiances_into, led_point_gradient, led_point_gradient_of,
+                             led_point_gradients_into, led_position, twist_row_into)
 
 # OpenMP first: the TBB that Open3D's wheels may put on the path can be too old for numba,
 # which then warns on every first parallel call.
@@ -1297,7 +1297,7 @@ def ridge_solves(A, B, ridge, fallback, L, X, solved):  # pragma: no cover - com
 def led_trial_term(color, usable, albedo, normals, points, poses, start, x0, x1, x2, lights, scale, single, k, i,
                    p):  # pragma: no cover - compiled
     """Pixel p of frame i with the LED at trial k's offset ``start - 2^-k x`` (x = (x0, x1, x2):
-    the step's negative): ``sum_c log(1 + (scale r_c)^2)`` of its residuals
+    the step's negative; ``start`` itself where k < 0): ``sum_c log(1 + (scale r_c)^2)`` of its residuals
     ``r_c = I~_c - rho_c (l_0 + l_1 max(0, <n, v>))`` (0 where not usable), as
     :meth:`.LevelProblem.energy` forms them (:func:`shading_residual_pixel` on the LED basis of
     :func:`~o3d_mvps.model.shading.led_irradiance`, the LED's position
@@ -1305,7 +1305,7 @@ def led_trial_term(color, usable, albedo, normals, points, poses, start, x0, x1,
     float32 as the GPU's evaluations store them."""
     if not usable[i, p]:
         return 0.0
-    length = 1.0
+    length = 1.0 if k >= 0 else 0.0  # k < 0: the offset ``start`` itself
     for _ in range(k):
         length *= 0.5
     o0 = start[0] - length * x0
@@ -1347,7 +1347,7 @@ def store_offset_step(X, solved, g, out):  # pragma: no cover - compiled
 
 
 @numba.njit(parallel=True, cache=True)
-def _led_trial_sums(color, usable, albedo, normals, points, poses, start, H, g, lights, scale, single,
+def _led_trial_sums(color, usable, albedo, normals, points, poses, start, H, g, lights, scale, single, zero_row,
                     out):  # pragma: no cover - compiled
     K, n = out.shape[0] - 1, usable.shape[0]
     N = usable.shape[1]
@@ -1361,7 +1361,7 @@ def _led_trial_sums(color, usable, albedo, normals, points, poses, start, H, g, 
         total = 0.0
         for p in range(N):
             total += led_trial_term(color, usable, albedo, normals, points, poses, start, x0, x1, x2, lights, scale,
-                                    single, k, i, p)
+                                    single, k if k != zero_row else -1, i, p)
         out[k, i] = total
 
 
@@ -1370,7 +1370,8 @@ def trial_blocks(n_frames: int, n_pixels: int) -> int:
     return max(7, n_frames)
 
 
-def led_trial_sums(color, usable, albedo, normals, points, poses, start, H, g, lights, scale, single, out) -> None:
+def led_trial_sums(color, usable, albedo, normals, points, poses, start, H, g, lights, scale, single, out,
+                   current: bool = False) -> None:
     """The LED offset's step and its K line-search trials in one pass. The step's negative x
     from its Gauss-Newton system H (1, 3, 3), g (1, 3, 1) (:func:`led_offset_step`); out (K + 1,
     B): rows k < K partial sums adding up to ``sum_{i,p,c} log(1 + (scale r)^2)`` of trial k,
@@ -1378,9 +1379,10 @@ def led_trial_sums(color, usable, albedo, normals, points, poses, start, H, g, l
     g (3) (:func:`store_offset_step`), B = :func:`trial_blocks` (n, N) (here one sum per frame;
     on a GPU one launch, B its blocks). color (n, N, 3), usable (n, N), albedo, normals, points
     (N, 3) float64, poses (n, 4, 4), start (3,), lights (n, 2) float64; single: float32
-    residuals."""
+    residuals. current: the last trial row K - 1 is the LED at ``start`` (the current
+    offset's data sum, read with the trials: no read of its own)."""
     _led_trial_sums(color, usable, albedo, normals, points, poses, start, H, g, lights, float(scale), bool(single),
-                    out)
+                    out.shape[0] - 2 if current else -1, out)
 
 
 #: The joint step's refined frames: one whose own twist Gram (6, 6) has a condition number
@@ -1862,17 +1864,39 @@ def offset_system_add(ds, residual, usable, albedo, inv_lam, stride, acc, i, q):
     weights of the residual r (zero where not usable)."""
     p = q * stride
     if usable[i, p]:
-        rw = 0.0
-        rr = 0.0
-        for c in range(3):
-            x = residual[i, p, c] * inv_lam
-            w = 1.0 / (1.0 + x * x)
-            rw += albedo[p, c] * albedo[p, c] * w
-            rr += w * albedo[p, c] * residual[i, p, c]
-        for a in range(3):
-            for b in range(3):
-                acc[3 * a + b] += ds[i, q, a] * rw * ds[i, q, b]
-            acc[9 + a] -= ds[i, q, a] * rr
+        rw, rr = offset_pixel_weights(residual, albedo, inv_lam, i, p)
+        offset_terms_add(acc, ds[i, q, 0], ds[i, q, 1], ds[i, q, 2], rw, rr)
+
+
+@numba.njit(inline="always")
+def offset_pixel_weights(residual, albedo, inv_lam, i, p):  # pragma: no cover - compiled
+    """Pixel p of frame i's weights in the LED offset's system: (sum_c rho_c^2 w_c, sum_c w_c
+    rho_c r_c), w the Cauchy IRLS weights of the residuals r (n, N, 3)."""
+    rw = 0.0
+    rr = 0.0
+    for c in range(3):
+        x = residual[i, p, c] * inv_lam
+        w = 1.0 / (1.0 + x * x)
+        rw += albedo[p, c] * albedo[p, c] * w
+        rr += w * albedo[p, c] * residual[i, p, c]
+    return rw, rr
+
+
+@numba.njit(inline="always")
+def offset_terms_add(acc, d0, d1, d2, rw, rr):  # pragma: no cover - compiled
+    """acc (12,) += one pixel's Gram rw ds ds^T (row-major) and gradient -rr ds, ds = (d0, d1, d2)."""
+    acc[0] += d0 * rw * d0
+    acc[1] += d0 * rw * d1
+    acc[2] += d0 * rw * d2
+    acc[3] += d1 * rw * d0
+    acc[4] += d1 * rw * d1
+    acc[5] += d1 * rw * d2
+    acc[6] += d2 * rw * d0
+    acc[7] += d2 * rw * d1
+    acc[8] += d2 * rw * d2
+    acc[9] -= d0 * rr
+    acc[10] -= d1 * rr
+    acc[11] -= d2 * rr
 
 
 @numba.njit(cache=True)
@@ -2364,3 +2388,133 @@ def twist_readout(P, dz, X, out):  # pragma: no cover - compiled
         for q in range(dz.shape[0]):
             total += P[j, q] * dz[q]
         out[j] = total - X[0, j, K]
+# ============================================================================================
+# gpueval2 (issue 33): the LED offset's system from the light state in one launch on the GPU
+# (:mod:`.cuda_kernels`' section of the same name); here its CPU twin.
+# ============================================================================================
+
+
+@numba.njit(inline="always")
+def led_offset_system_add(intensities, normals, points, positions, rotations, residual, usable, albedo, inv_lam,
+                          stride, acc, i, q):  # pragma: no cover - compiled
+    """:func:`offset_system_add` of frame i's spread pixel q (pixel q stride) with its
+    d(shading)/d(offset) formed here: ``ds = -J R_i^T``, J the LED's point gradient
+    (:func:`~o3d_mvps.model.shading.led_point_gradient_of`; :meth:`.lighting.LEDLight.offset_jacobians`)."""
+    p = q * stride
+    if usable[i, p]:
+        J0, J1, J2 = led_point_gradient_of(intensities, normals, points, positions, i, p)
+        d0 = -(J0 * rotations[i, 0, 0] + J1 * rotations[i, 0, 1] + J2 * rotations[i, 0, 2])
+        d1 = -(J0 * rotations[i, 1, 0] + J1 * rotations[i, 1, 1] + J2 * rotations[i, 1, 2])
+        d2 = -(J0 * rotations[i, 2, 0] + J1 * rotations[i, 2, 1] + J2 * rotations[i, 2, 2])
+        rw, rr = offset_pixel_weights(residual, albedo, inv_lam, i, p)
+        offset_terms_add(acc, d0, d1, d2, rw, rr)
+
+
+@numba.njit(cache=True)
+def led_offset_system(intensities, normals, points, positions, rotations, residual, usable, albedo, inv_lam, stride, H,
+                      g):  # pragma: no cover - compiled
+    """:func:`offset_system` with the Jacobians formed per pixel (:func:`led_offset_system_add`),
+    not read from an (n, M, 3) array: H (1, 3, 3), g (1, 3, 1) over every frame's pixels 0,
+    stride, 2 stride, ...; intensities (n,), light positions (n, 3) in reference coordinates,
+    rotations (n, 3, 3) of the poses, normals, points (N, 3) float64, residual (n, N, 3), usable
+    (n, N), albedo (N, 3)."""
+    acc = np.zeros(12)
+    n, N = usable.shape
+    for i in range(n):
+        for q in range(-(-N // stride)):
+            led_offset_system_add(intensities, normals, points, positions, rotations, residual, usable, albedo,
+                                  inv_lam, stride, acc, i, q)
+    for e in range(9):
+        H[0, e // 3, e % 3] = acc[e]
+    for a in range(3):
+        g[0, a, 0] = acc[9 + a]
+
+
+@numba.njit(inline="always")
+def led_evidence_pixel(usable, albedo, shading, intensities, normals, points, positions, G6, v, d,
+                       p):  # pragma: no cover - compiled
+    """Pixel p's sums of :func:`.weighting.normal_evidence` (those of its host's
+    ``_evidence_sums``, in the same order) with the LED's fields formed here
+    (:func:`~o3d_mvps.model.shading.led_field_of`), not read from an (n, N, 3) array:
+    G6[:, p], v[:, p], d[p] over the frames that see p; rho2 = sum_c albedo[p, c]^2."""
+    r = albedo[p, 0] * albedo[p, 0] + albedo[p, 1] * albedo[p, 1] + albedo[p, 2] * albedo[p, 2]
+    g00 = g01 = g02 = g11 = g12 = g22 = v0 = v1 = v2 = dd = 0.0
+    for i in range(usable.shape[0]):
+        if usable[i, p]:
+            l0, l1, l2 = led_field_of(intensities, normals, points, positions, i, p)
+            s = np.float64(shading[i, p])
+            us = r * s
+            g00 += r * l0 * l0
+            g01 += r * l0 * l1
+            g02 += r * l0 * l2
+            g11 += r * l1 * l1
+            g12 += r * l1 * l2
+            g22 += r * l2 * l2
+            v0 += us * l0
+            v1 += us * l1
+            v2 += us * l2
+            dd += us * s
+    G6[0, p], G6[1, p], G6[2, p], G6[3, p], G6[4, p], G6[5, p] = g00, g01, g02, g11, g12, g22
+    v[0, p], v[1, p], v[2, p], d[p] = v0, v1, v2, dd
+
+
+@numba.njit(parallel=True, cache=True)
+def led_evidence_sums(usable, albedo, shading, intensities, normals, points, positions, G6, v,
+                      d):  # pragma: no cover - compiled
+    """:func:`.weighting.normal_evidence`'s per-pixel sums under the LED (or point lights) in one
+    pass, the fields formed per pixel (:func:`led_evidence_pixel`): G6 (6, N), v (3, N), d (N,)
+    written; usable (n, N), albedo (N, 3), shading (n, N), intensities (n,), float64 unit normals
+    and points (N, 3), light positions (n, 3) in reference coordinates."""
+    for p in numba.prange(usable.shape[1]):
+        led_evidence_pixel(usable, albedo, shading, intensities, normals, points, positions, G6, v, d, p)
+
+
+@numba.njit(inline="always")
+def albedo_ratio_pixel(num, den, fallback, out, p):  # pragma: no cover - compiled
+    """out[p] (3,) = num / den where den > 1e-8, else ``fallback[p]`` (:func:`albedo_update`'s closed form)."""
+    for c in range(3):
+        d = den[p, c]
+        out[p, c] = num[p, c] / d if d > 1e-8 else fallback[p, c]
+
+
+def albedo_evaluation_partials(residual, usable, color, shading, inv_lam, fallback, num, den, albedo, basis, lights,
+                               D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data, tau, mu, z,
+                               partial) -> None:
+    """:func:`albedo_update` (albedo (N, 3) written, from the IRLS weights of ``residual``) and
+    then :func:`evaluation_partials` at that albedo (shading and residual written: the residual
+    array is read first and overwritten) in one pass on a GPU (each thread a pixel: its albedo,
+    then its frames' residuals): the driver's albedo step and re-evaluation, partial (B, 2) the
+    data and prior sums, the data's scale ``inv_lam``."""
+    albedo_update(residual, usable, color, shading, float(inv_lam), fallback, num, den, albedo)
+    evaluation_partials(color, albedo, basis, lights, usable, shading, residual, inv_lam, D_indptr, D_indices, D_data,
+                        z0, S_indptr, S_indices, S_data, tau, mu, z, partial)
+
+
+def evaluate_albedo_partials(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images, visible,
+                             albedo, lights, led, o0, o1, o2, scale, single, D_indptr, D_indices, D_data, z0, S_indptr,
+                             S_indices, S_data, tau, mu, points, normals, dA, color, usable, basis, shading, residual,
+                             partial, num, den, refit) -> None:
+    """:func:`evaluate_partials` at ``albedo`` and then :func:`albedo_evaluation_partials` (the
+    albedo refit (N, 3) written into ``refit``, num and den (N, 3) scratch, the shading and
+    residuals and partial sums those at the refit albedo) in one pass on a GPU (each thread a
+    pixel: its frames' evaluation, its albedo, its frames' residuals again): a line search's
+    trial with its albedo projected out (:func:`.depth.search_estimates`)."""
+    evaluate_partials(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images, visible, albedo,
+                      lights, led, o0, o1, o2, scale, single, D_indptr, D_indices, D_data, z0, S_indptr, S_indices,
+                      S_data, tau, mu, points, normals, dA, color, usable, basis, shading, residual, partial)
+    albedo_evaluation_partials(residual, usable, color, shading, scale, albedo, num, den, refit, basis, lights,
+                               D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data, tau, mu, z, partial)
+
+
+def trial_energy_partials(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images, visible,
+                          albedo, lights, led, offsets, scale, single, D_indptr, D_indices, D_data, z0, S_indptr,
+                          S_indices, S_data, tau, mu, usable, partial) -> None:
+    """:func:`energy_partials` of F trial states at once (the driver's extrapolation factors):
+    z (F, N), poses (F, n, 4, 4), albedo (F, N, 3), lights (F, n, k), offsets (F, 3) the LED's,
+    usable (F, n, N) and partial (F, B, 2) written, trial f's in row f; the grid, K, images,
+    visibility and prior as :func:`energy_partials` takes them. On a GPU one launch (grid:
+    blocks x trials)."""
+    for f in range(z.shape[0]):
+        energy_partials(z[f], u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses[f], images, visible,
+                        albedo[f], lights[f], led, offsets[f, 0], offsets[f, 1], offsets[f, 2], scale, single,
+                        D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data, tau, mu, usable[f], partial[f])

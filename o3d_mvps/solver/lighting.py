@@ -198,10 +198,10 @@ class LEDLight(FrameFields):
             led_fields_into(_intensities(lights, points), contiguous(normals, np.float64),
                             contiguous(points, np.float64), np.ascontiguousarray(self.positions(poses)), L)
             return lights[:, 0], L
-        intensities, positions = _light_arrays(lights, points, self.positions(poses))
-        L = array_module(points).empty((len(positions), len(points), 3))
-        kernels_for(points).led_fields_into(intensities, contiguous(normals, np.float64),
-                                            contiguous(points, np.float64), positions, L)
+        state = device_light_state(self, lights, poses, points)
+        L = array_module(points).empty((len(state.positions), len(points), 3))
+        kernels_for(points).led_fields_into(state.intensities, contiguous(normals, np.float64),
+                                            contiguous(points, np.float64), state.positions, L)
         return lights[:, 0], L
 
     def _camera_gradients(self, lights, normals, points, poses):
@@ -216,15 +216,12 @@ class LEDLight(FrameFields):
         Moving the camera moves the LED with it: s_i = T^-1 o, so with G the shading's gradient
         with respect to the point in camera coordinates, ``d/dv = G`` and ``d/dw = o x G``.
         """
-        if array_module(points) is not np:  # one kernel and one copy on a GPU
-            m, N = len(poses), len(points)
-            host_poses = np.asarray(to_host(poses), dtype=np.float64)
-            intensities, packed = _light_arrays(lights, points, np.concatenate(
-                [self.positions(host_poses).reshape(-1), host_poses[:, :3, :3].reshape(-1), self.offset]))
-            out = array_module(points).empty((m, N, 6))
+        if array_module(points) is not np:  # one kernel on a GPU (the light state's copy shared: device_light_state)
+            state = device_light_state(self, lights, poses, points)
+            out = array_module(points).empty((len(poses), len(points), 6))
             kernels_for(points).led_shading_jacobians_into(
-                intensities, contiguous(normals, np.float64), contiguous(points, np.float64), packed[:m],
-                packed[m:4 * m].reshape(m, 3, 3), packed[4 * m], out)
+                state.intensities, contiguous(normals, np.float64), contiguous(points, np.float64), state.positions,
+                state.rotations, state.offset, out)
             return out
         G = self._camera_gradients(lights, normals, points, poses)
         if array_module(G) is np:  # one compiled pass on the host
@@ -274,6 +271,69 @@ def _light_arrays(lights: np.ndarray, points: np.ndarray, positions: np.ndarray)
 #: device copies of :func:`_light_arrays`' recent light states: a sweep's several calls with one
 #: state copy it once (gpu3)
 _LIGHT_COPIES = DeviceCopies(kept=4)
+
+
+@dataclass
+class DeviceLightState:
+    """The small arrays the GPU's kernels read of one light state, float64 views of one device
+    array (:func:`device_light_state`): poses (n, 4, 4), lights (n, k), and for the LED and
+    point lights the offset (3,) (point lights: (n, 3)), the intensities ``lights[:, 1]`` (n,)
+    (:func:`_intensities`), the light positions (n, 3) in reference coordinates and the poses'
+    rotations (n, 3, 3); those three empty for other models."""
+
+    poses: np.ndarray
+    lights: np.ndarray
+    offset: np.ndarray
+    intensities: np.ndarray
+    positions: np.ndarray
+    rotations: np.ndarray
+
+
+def device_light_state(light, lights: np.ndarray, poses: np.ndarray, reference) -> DeviceLightState:
+    """The :class:`DeviceLightState` of the light model ``light`` with lights (n, k) and poses
+    (n, 4, 4) on ``reference``'s device (the intensities rounded to its dtype: the points'),
+    in one copy, or none where the same state was copied lately (:data:`_STATE_COPIES`): an
+    evaluation, the joint step's Jacobians and fields, the LED offset's system and line search
+    of one state share one copy (gpueval2)."""
+    parts = _state_parts(light, lights, poses, reference)
+    return _state_views(light, parts, _STATE_COPIES.copy(np.concatenate(parts), reference))
+
+
+def preload_light_states(states: list, reference, extra: tuple = ()) -> list:
+    """Copy the light states ``states`` [(light, lights, poses)] that :func:`device_light_state`
+    will be asked for (an extrapolation's trials) in one copy, those not kept already, with the
+    host arrays ``extra`` (1-d); returns the device copies of ``extra``."""
+    return _STATE_COPIES.copy_many([np.concatenate(_state_parts(*state, reference)) for state in states], reference,
+                                   extra)[1]
+
+
+def _state_parts(light, lights, poses, reference) -> tuple:
+    """The host arrays (1-d, float64) of :func:`device_light_state`: poses, lights, offset,
+    intensities, positions, rotations."""
+    host_poses = np.ascontiguousarray(to_host(poses), dtype=np.float64)
+    host_lights = np.ascontiguousarray(to_host(lights), dtype=np.float64)
+    if isinstance(light, LEDLight):
+        offset = light.offset.reshape(-1)
+        positions, intensities = light.positions(host_poses).reshape(-1), _intensities(host_lights, reference)
+        rotations = host_poses[:, :3, :3].reshape(-1)
+    else:
+        offset = positions = intensities = rotations = np.zeros(0)
+    return host_poses.reshape(-1), host_lights.reshape(-1), offset, intensities, positions, rotations
+
+
+def _state_views(light, parts: tuple, packed) -> DeviceLightState:
+    """The :class:`DeviceLightState` views of ``packed``, the device copy of ``parts``' concatenation."""
+    ends = np.cumsum([0] + [len(part) for part in parts])
+    views = [packed[a:b] for a, b in zip(ends[:-1], ends[1:])]
+    n = len(parts[0]) // 16
+    return DeviceLightState(views[0].reshape(n, 4, 4), views[1].reshape(n, -1),
+                            views[2].reshape(light.offset.shape) if len(parts[2]) else views[2], views[3],
+                            views[4].reshape(-1, 3), views[5].reshape(-1, 3, 3))
+
+
+#: device copies of :func:`device_light_state`'s recent states (an extrapolation's trials and
+#: the state it started from)
+_STATE_COPIES = DeviceCopies(kept=6)
 
 
 def lit_point_gradients(lights: np.ndarray, normals: np.ndarray, points: np.ndarray,
@@ -394,16 +454,20 @@ def make_light_model(name: str, *, initial_sh=INITIAL_LIGHT, led_offset=None):
     raise ValueError(f"light_model must be one of {LIGHT_MODELS}, got {name!r}")
 
 
-def update_led_offset(problem, est, ev, *, max_halvings: int = 3, max_pixels: int = 4000, min_decrease: float = 0.0):
+def update_led_offset(problem, est, ev, *, max_halvings: int = 3, max_pixels: int = 4000, min_decrease: float = 0.0,
+                      relative: bool = False):
     """One IRLS Gauss-Newton step on the LED offset (all frames): returns (offset (3,), evaluation).
 
     The step is computed from at most ``max_pixels`` evenly spread pixels per frame (three
     unknowns need few), the line search on the full energy (on a GPU every frame's system summed,
-    solved and every trial scored on the device, one read: :func:`_device_offset_search`); the
+    solved and every trial scored on the device, one read: :func:`_device_offset_search`, the
+    system in one launch: :func:`.kernels.led_offset_system`); the
     offset is ``est``'s (or the
     light model's) unchanged, with ``ev``, when no step lowers the energy, or when the
-    Gauss-Newton model predicts a decrease below ``min_decrease`` (energy units; each line
-    search trial costs an energy, and near convergence they nearly all fail). The trials are
+    Gauss-Newton model predicts a decrease below ``min_decrease`` (energy units, or with
+    ``relative`` times ``ev``'s energy; each line search trial costs an energy, and near
+    convergence they nearly all fail). On a GPU ``ev``'s data energy, where not read yet, comes
+    with the trials' read (their sums at the current offset). The trials are
     scored by :meth:`.LevelProblem.energy` from ``ev``'s samples (no frames x pixels arrays
     but a few frames'); the kept offset's evaluation is written into ``ev``'s arrays
     (:meth:`.LevelProblem.relit`), so ``ev`` is given up when the offset moves.
@@ -415,11 +479,15 @@ def update_led_offset(problem, est, ev, *, max_halvings: int = 3, max_pixels: in
     normals, points, albedo = (a[spread] for a in (ev.normals, problem.points(est.z), est.albedo))
     xp = array_module(residual)
     if xp is not np:  # every frame at once, unusable pixels weighted 0 (their residuals are 0)
-        ds = light.offset_jacobians(est.lights, normals, points, est.poses)  # (n, M, 3)
+        P = problem.points(est.z)
+        state = device_light_state(light, est.lights, est.poses, P)  # the evaluation's copy: none made here
         H, g = xp.empty((1, 3, 3)), xp.empty((1, 3, 1))  # the system in one launch, from every stride-th pixel
-        kernels_for(ds).offset_system(contiguous(ds, np.float64), ev.residual, ev.usable,
-                                      contiguous(est.albedo, np.float64), 1.0 / problem.lam, stride, H, g)
-        return _device_offset_search(problem, est, ev, light, H, g, stride, max_halvings, min_decrease)
+        kernels_for(P).led_offset_system(state.intensities, contiguous(ev.normals, np.float64),
+                                         contiguous(P, np.float64), state.positions, state.rotations, ev.residual,
+                                         ev.usable, contiguous(est.albedo, np.float64), 1.0 / problem.lam, stride,
+                                         H, g)
+        return _device_offset_search(problem, est, ev, light, H, g, stride, max_halvings, min_decrease, relative)
+    min_decrease = min_decrease * ev.energy if relative else min_decrease
     H, g = np.zeros((3, 3)), np.zeros(3)
     for i in range(problem.n_frames):
         use = usable[i]
@@ -448,25 +516,30 @@ def update_led_offset(problem, est, ev, *, max_halvings: int = 3, max_pixels: in
     return moved.led_offset, problem.relit(moved, ev)
 
 
-def _device_offset_search(problem, est, ev, light, H, g, stride, max_halvings, min_decrease):
+def _device_offset_search(problem, est, ev, light, H, g, stride, max_halvings, min_decrease, relative):
     """:func:`update_led_offset`'s step and line search on a GPU from its system H (1, 3, 3), g
     (1, 3, 1) on the device: the step solved and every trial length 1, 1/2, ..., 2^-max_halvings scored
     in one launch (:func:`.kernels.led_trial_sums`: the step by the host's ridge_solve formula,
     the data energy of :meth:`.LevelProblem.energy` from ``ev``'s samples, plus ``ev``'s prior),
-    one copy in (the offset, lights and poses) and one read (the trials' sums, the step, g),
+    the light state's copy shared with ``ev``'s evaluation (:func:`device_light_state`) and one
+    read (the trials' sums, the step, g),
     where the host's line search reads a system and then an energy per trial; then the longest
     trial whose energy is not above ``ev``'s, as :func:`.line_search.backtrack` takes it."""
     xp, P = array_module(ev.residual), problem.points(est.z)
-    start, n, K = light.offset, problem.n_frames, max_halvings + 1
-    packed = like(np.concatenate([start, est.lights.astype(np.float64).ravel(), est.poses.ravel()]), P)
-    lights, poses = packed[3:3 + 2 * n].reshape(n, 2), packed[3 + 2 * n:].reshape(n, 4, 4)
+    start, K = light.offset, max_halvings + 1
+    state = device_light_state(light, est.lights, est.poses, P)  # the evaluation's copy: none made here
     kernels = kernels_for(P)
-    out = xp.empty((K + 1, kernels.trial_blocks(*ev.usable.shape)))  # the trials' sums, then x, solved, g
+    # the trials' sums, the current offset's (ev's data energy: not read apart; current=True, the
+    # last argument), then x, solved, g
+    out = xp.empty((K + 2, kernels.trial_blocks(*ev.usable.shape)))
     kernels.led_trial_sums(ev.color, ev.usable, contiguous(est.albedo, np.float64), contiguous(ev.normals, np.float64),
-                           contiguous(P, np.float64), poses, packed[:3], H, g, lights,
-                           1.0 / problem.lam, problem.residual_dtype == np.float32, out)
+                           contiguous(P, np.float64), state.poses, state.offset, H, g, state.lights,
+                           1.0 / problem.lam, problem.residual_dtype == np.float32, out, True)
     out = to_host(out)
-    sums, step, solved, g = out[:K], -out[K, :3], out[K, 3:4], out[K, 4:7]
+    if not isinstance(ev.pending("data"), float):  # ev's data energy from this read, as the trials'
+        ev.data = 0.5 * problem.lam ** 2 * float(out[K].sum())
+    min_decrease = min_decrease * ev.energy if relative else min_decrease
+    sums, step, solved, g = out[:K], -out[K + 1, :3], out[K + 1, 3:4], out[K + 1, 4:7]
     # the IRLS model's decrease -g.step / 2 on the spread pixels, scaled to all of them
     if not solved[0] or -0.5 * float(g @ step) * stride < min_decrease:
         return start, ev

@@ -16,10 +16,10 @@ from ..model.camera import backproject
 from ..model.normals import unit_normals
 from ..model.robust import cauchy_energy
 from ..model.warping import in_view, visible, warp
-from .device import DeviceCopies, kernels_for, to_host
+from .device import kernels_for, to_host
 from .kernels import energy_blocks
 from .krylov import pixel_prolongations
-from .lighting import LEDLight, RoomLight, SHLight
+from .lighting import LEDLight, RoomLight, SHLight, device_light_state, preload_light_states
 from .pyramid import Level
 
 
@@ -59,6 +59,57 @@ class FrameGradients:
     points: np.ndarray
     grad_u: np.ndarray
     grad_v: np.ndarray
+
+
+class PendingSums:
+    """The (data, prior) energies of a one-pass kernel's partial sums (B, 2) on the GPU, read to
+    the host at the first use (one copy, a synchronisation), not at the launch: an evaluation
+    whose energy no step reads (the albedo's, the smoothness weighing's prior) costs no copy.
+    scale: the data sum's factor (lambda^2 / 2); prior: the prior energy where the caller had it
+    (then the kernel's prior sum is not read)."""
+
+    def __init__(self, partial, scale: float, prior: float | None = None):
+        self._partial, self._scale, self._prior, self._values = partial, scale, prior, None
+
+    @staticmethod
+    def known_prior(prior) -> float | None:
+        """The prior energy ``prior`` (a float, a :class:`PendingSums` or None) where it is known
+        without a read, else None."""
+        if isinstance(prior, PendingSums):
+            return prior._prior if prior._values is None else prior._values[1]
+        return None if prior is None else float(prior)
+
+    def value(self, index: int) -> float:
+        """The data (index 0) or prior (1) energy (a given prior without a read)."""
+        if index == 1 and self._prior is not None:
+            return self._prior
+        if self._values is None:
+            data, prior = to_host(self._partial).sum(axis=0)
+            self._values = (self._scale * float(data), float(prior) if self._prior is None else self._prior)
+            self._partial = None
+        return self._values[index]
+
+
+class _Energy:
+    """A data descriptor of :class:`Evaluation`'s ``data`` and ``prior``: a float, or a
+    :class:`PendingSums` read at the first get (and then kept as the float)."""
+
+    def __init__(self, index: int):
+        self.index = index
+
+    def __set_name__(self, owner, name):
+        self.key = "_" + name
+
+    def __get__(self, obj, owner=None):
+        if obj is None:
+            return self
+        value = obj.__dict__[self.key]
+        if isinstance(value, PendingSums):
+            value = obj.__dict__[self.key] = value.value(self.index)
+        return value
+
+    def __set__(self, obj, value):
+        obj.__dict__[self.key] = value
 
 
 @dataclass
@@ -107,6 +158,11 @@ class Evaluation:
             rms.append(float(xp.sqrt(xp.vdot(r, r).astype(np.float64) / count)) if count else float("nan"))
         return rms
 
+    def pending(self, name: str):
+        """The ``data`` or ``prior`` energy as held: a float, or the :class:`PendingSums` not yet
+        read (passed on without a copy)."""
+        return self.__dict__["_" + name]
+
     def frame_basis(self, i: int) -> np.ndarray:
         """Frame i's light basis (N, k)."""
         return self.basis[min(i, len(self.basis) - 1)]
@@ -114,6 +170,12 @@ class Evaluation:
     @property
     def energy(self) -> float:
         return self.data + self.prior
+
+
+# data and prior: floats, or device sums read at the first use (the GPU's evaluations)
+Evaluation.data, Evaluation.prior = _Energy(0), _Energy(1)
+Evaluation.data.__set_name__(Evaluation, "data")
+Evaluation.prior.__set_name__(Evaluation, "prior")
 
 
 class LevelProblem:
@@ -146,9 +208,6 @@ class LevelProblem:
         self.device_K = like(level.K, level.grid.u)
         self._no_frames = None  # on a GPU: empty frames x pixels arrays, for the prior's energy alone
         self._grid_arrays = None  # on a GPU: the grid's per-pixel arrays, C-contiguous, for the kernels
-        # on a GPU: device copies of the last poses and lights, flattened together (a line
-        # search's or extrapolation's kept trial is not copied again when evaluated)
-        self._packed = DeviceCopies(kept=3)
 
     def pixel_prolongations(self) -> list:
         """The level's pixel aggregation for the GPU path's multigrid (:func:`.krylov.pixel_prolongations`),
@@ -247,9 +306,10 @@ class LevelProblem:
                                               zbuffer=not identity), self.visibility)
 
     # energy ------------------------------------------------------------------------------
-    def prior_energy(self, z: np.ndarray) -> float:
+    def prior_energy(self, z: np.ndarray, pending: bool = False) -> float:
         """The prior's energy at depth z (N,) metres (:meth:`.pyramid.DepthPrior.energy`; on a GPU
-        one launch of :func:`.kernels.evaluation_partials` on no frames and one copy)."""
+        one launch of :func:`.kernels.evaluation_partials` on no frames and one copy, or with
+        ``pending`` a :class:`PendingSums` for an :class:`Evaluation`'s prior, read when used)."""
         if array_module(z) is np:
             return self.level.prior.energy(z, self.tau, self.mu)
         if self._no_frames is None:
@@ -258,7 +318,8 @@ class LevelProblem:
             self._no_frames = (xp.empty((0, N, 3), np.float32), xp.empty((0, 3)), xp.empty((0, N, k), dtype),
                                xp.empty((0, k)), xp.empty((0, N), bool), xp.empty((0, N), dtype),
                                xp.empty((0, N, 3), dtype))
-        return self._device_sums(z, self._no_frames, None)[1]
+        sums = self._device_sums(z, self._no_frames, None)
+        return sums if pending else sums.value(1)
 
     def _prior_arrays(self, with_prior: bool) -> tuple:
         """The prior's terms for the one-pass kernels (:func:`.kernels.prior_term`): D's CSR
@@ -271,16 +332,19 @@ class LevelProblem:
         tau, mu = (self.tau, self.mu if smooth else 0.0) if with_prior else (0.0, 0.0)
         return D.indptr, D.indices, D.data, prior.z0, S.indptr, S.indices, S.data, tau, mu
 
-    def _device_sums(self, z: np.ndarray, frames: tuple, prior: float | None) -> tuple[float, float]:
-        """(data, prior) energies of :func:`.kernels.evaluation_partials` on the GPU: frames =
-        (color, albedo, basis, lights, usable, shading, residual) (shading and residual written),
-        the prior's at z unless ``prior`` is given (then that). One launch, one copy."""
+    def _device_sums(self, z: np.ndarray, frames: tuple, prior) -> PendingSums:
+        """The (data, prior) energies of :func:`.kernels.evaluation_partials` on the GPU, read when
+        first used: frames = (color, albedo, basis, lights, usable, shading, residual) (shading and
+        residual written), the prior's at z unless ``prior`` is known (a float, or a
+        :class:`PendingSums` holding one: :meth:`PendingSums.known_prior`; one not yet read is
+        computed again, so that one copy reads both). One launch, and one copy where the energy
+        is read."""
         usable = frames[4]
         xp = array_module(z)
+        given = PendingSums.known_prior(prior)
         partial = xp.empty((energy_blocks(usable.size + self.level.prior.rows), 2))
-        kernels_for(z).evaluation_partials(*frames, 1.0 / self.lam, *self._prior_arrays(prior is None), z, partial)
-        data, prior_sum = to_host(partial).sum(axis=0)
-        return 0.5 * self.lam * self.lam * float(data), float(prior_sum) if prior is None else prior
+        kernels_for(z).evaluation_partials(*frames, 1.0 / self.lam, *self._prior_arrays(given is None), z, partial)
+        return PendingSums(partial, 0.5 * self.lam * self.lam, given)
 
     def _one_pass_light(self, est: Estimate):
         """(led, offset) for the one-pass kernels (:func:`.kernels.energy_partials`,
@@ -308,12 +372,44 @@ class LevelProblem:
                 lights)
 
     def _device_poses_lights(self, est: Estimate) -> tuple:
-        """``est``'s poses (n, 4, 4) and lights (n, k), float64, on the GPU: one copy of both, none
-        where they equal the last ones copied (views of one device array, never written)."""
-        host = np.concatenate([np.asarray(to_host(est.poses), np.float64).reshape(-1),
-                               np.asarray(to_host(est.lights), np.float64).reshape(-1)])
-        n, packed = self.n_frames, self._packed.copy(host, est.z)
-        return packed[:16 * n].reshape(n, 4, 4), packed[16 * n:].reshape(n, -1)
+        """``est``'s poses (n, 4, 4) and lights (n, k), float64, on the GPU: one copy of them and
+        the light model's LED arrays, none where they equal a state copied lately (views of one
+        device array, never written: :func:`.lighting.device_light_state`, which the LED's
+        Jacobians, fields and offset step of this state then read without a copy)."""
+        state = device_light_state(self.light_model(est), est.lights, est.poses, est.z)
+        return state.poses, state.lights
+
+    def trial_energies(self, z: np.ndarray, albedo: np.ndarray, trials: list) -> tuple | None:
+        """On a GPU: the energies (F,) (a host array) and usable masks (F, n, N) of F trial
+        estimates whose depths z (F, N) and albedos (F, N, 3) lie in one device array each
+        (:func:`.kernels.extrapolation_trials`'), ``trials`` their :class:`Estimate` (of one light
+        model), in one launch and one read (:func:`.kernels.trial_energy_partials`), their poses,
+        lights and LED offsets copied over in one copy with their light states (the kept one's
+        evaluation then copies nothing); None where :meth:`_one_pass_energy` would not apply.
+        Each trial's energy is :meth:`energy`'s (the same sums in another order)."""
+        if array_module(z) is np:
+            return None
+        chosen = [self._one_pass_light(trial) for trial in trials]
+        if None in chosen or len({led for led, _ in chosen}) != 1:
+            return None
+        led = chosen[0][0]
+        F, n, N = len(trials), self.n_frames, self.level.grid.size
+        xp = array_module(z)
+        host = [np.stack([np.asarray(to_host(getattr(t, name)), np.float64) for t in trials]).ravel()
+                for name in ("poses", "lights")] + [np.asarray([offset for _, offset in chosen], np.float64).ravel()]
+        poses, lights, offsets = preload_light_states(
+            [(self.light_model(t), t.lights, t.poses) for t in trials], z, host)
+        k = len(host[1]) // (F * n)
+        usable = xp.empty((F, n, N), dtype=bool)
+        partial = xp.empty((F, energy_blocks(n * N + self.level.prior.rows), 2))
+        grid = self._grid_and_views(trials[0])
+        kernels_for(z).trial_energy_partials(z, *grid[1:12], poses.reshape(F, n, 4, 4), self.level.image_stack,
+                                             self.visibility, albedo, lights.reshape(F, n, k), led,
+                                             offsets.reshape(F, 3), 1.0 / self.lam,
+                                             self.residual_dtype == np.float32, *self._prior_arrays(True), usable,
+                                             partial)
+        sums = to_host(partial).sum(axis=1)
+        return 0.5 * self.lam * self.lam * sums[:, 0] + sums[:, 1], usable
 
     def _one_pass_energy(self, est: Estimate, prior: float | None):
         """:meth:`energy` on a GPU in one launch (:func:`.kernels.energy_partials`: every frame's
@@ -334,11 +430,22 @@ class LevelProblem:
         data, prior_sum = to_host(partial).sum(axis=0)
         return 0.5 * self.lam * self.lam * float(data) + (float(prior_sum) if prior is None else prior), usable
 
-    def _one_pass_evaluation(self, est: Estimate):
+    def evaluate_refit(self, est: Estimate) -> Evaluation | None:
+        """On a GPU: ``est``'s evaluation with its albedo refitted (``est.albedo`` set to
+        :func:`.reflectance.update_albedo`'s from the evaluation's IRLS weights, the evaluation
+        the one at it) in one launch (:func:`.kernels.evaluate_albedo_partials`); None on the
+        host, or where the one-pass kernels do not apply (:meth:`_one_pass_light`)."""
+        if array_module(est.z) is np or self._identity(est):
+            return None
+        return self._one_pass_evaluation(est, refit_albedo=True)
+
+    def _one_pass_evaluation(self, est: Estimate, refit_albedo: bool = False):
         """:meth:`evaluate` on a GPU in one launch (:func:`.kernels.evaluate_partials`: the points,
-        normals, warped samples, bases, shading, residuals, data and prior energy) and one or two
-        copies, or None where that kernel does not apply (:meth:`_one_pass_light`). The points are
-        kept for :meth:`points` of this z."""
+        normals, warped samples, bases, shading, residuals, data and prior energy), the light
+        state's copy where it changed and the energy's where it is read, or None where that
+        kernel does not apply (:meth:`_one_pass_light`). The points are kept for :meth:`points`
+        of this z. refit_albedo: ``est.albedo`` refitted in the same launch
+        (:func:`.kernels.evaluate_albedo_partials`, :meth:`evaluate_refit`)."""
         chosen = self._one_pass_light(est)
         if chosen is None:
             return None
@@ -350,13 +457,18 @@ class LevelProblem:
         basis = xp.empty((n, N, 2) if led else (1, N, 4), dtype=dtype)
         shading, residual = xp.empty((n, N), dtype=dtype), xp.empty((n, N, 3), dtype=dtype)
         partial = xp.empty((energy_blocks(n * N + self.level.prior.rows), 2))
-        kernels_for(est.z).evaluate_partials(*self._grid_and_views(est), led, *offset, 1.0 / self.lam,
-                                             dtype == np.float32, *self._prior_arrays(True), points, normals, dA,
-                                             color, usable, basis, shading, residual, partial)
-        data, prior = to_host(partial).sum(axis=0)
+        args = (*self._grid_and_views(est), led, *offset, 1.0 / self.lam, dtype == np.float32,
+                *self._prior_arrays(True), points, normals, dA, color, usable, basis, shading, residual, partial)
+        if refit_albedo:  # and the albedo refitted at those residuals, in the same launch
+            refit = xp.empty_like(est.albedo)
+            kernels_for(est.z).evaluate_albedo_partials(*args, xp.empty_like(est.albedo), xp.empty_like(est.albedo),
+                                                        refit)
+            est.albedo = refit
+        else:
+            kernels_for(est.z).evaluate_partials(*args)
         self._last_points = (est.z, points)
-        return Evaluation(residual, usable, color, shading, normals, dA, basis, 0.5 * self.lam * self.lam * float(data),
-                          float(prior))
+        sums = PendingSums(partial, 0.5 * self.lam * self.lam)  # read where the energy is used
+        return Evaluation(residual, usable, color, shading, normals, dA, basis, sums, sums)
 
     def light_model(self, est: Estimate):
         """The level's light model at the estimate's LED offset (its own where the estimate has none)."""
@@ -464,13 +576,30 @@ class LevelProblem:
             shading, residual = reuse.shading, reuse.residual
         if xp is not np:  # residuals, data and prior energy in one launch (and one copy)
             lights = self._device_poses_lights(est)[1]
-            data, prior = self._device_sums(est.z, (color, est.albedo, basis, lights, usable, shading, residual), prior)
-            return Evaluation(residual, usable, color, shading, normals, dA, basis, data, prior)
+            sums = self._device_sums(est.z, (color, est.albedo, basis, lights, usable, shading, residual), prior)
+            return Evaluation(residual, usable, color, shading, normals, dA, basis, sums, sums)
         kernels.shading_residuals(color, est.albedo, basis, like(est.lights, color, dtype=np.float64), usable, shading,
                                   residual)
         data = cauchy_energy(residual, self.lam, kernels.log1p_square_sum)
         return Evaluation(residual, usable, color, shading, normals, dA, basis, data,
                           self.prior_energy(est.z) if prior is None else prior)
+
+    def albedo_reevaluation(self, est: Estimate, ev: Evaluation) -> Evaluation:
+        """On a GPU: ``est.albedo`` set to its closed form from ``ev``'s IRLS weights
+        (:func:`.reflectance.update_albedo`) and the evaluation at it written into ``ev``'s arrays
+        (:meth:`reevaluate` with overwrite), in one launch (:func:`.kernels.albedo_evaluation_partials`),
+        its energy read when first used (``ev`` is given up)."""
+        xp = array_module(ev.residual)
+        num, den, albedo = (xp.empty_like(est.albedo) for _ in range(3))
+        lights = self._device_poses_lights(est)[1]
+        given = PendingSums.known_prior(ev.pending("prior"))
+        partial = xp.empty((energy_blocks(ev.usable.size + self.level.prior.rows), 2))
+        kernels_for(est.z).albedo_evaluation_partials(ev.residual, ev.usable, ev.color, ev.shading, 1.0 / self.lam,
+                                                      contiguous(est.albedo), num, den, albedo, ev.basis, lights,
+                                                      *self._prior_arrays(given is None), est.z, partial)
+        est.albedo = albedo
+        sums = PendingSums(partial, 0.5 * self.lam * self.lam, given)
+        return Evaluation(ev.residual, ev.usable, ev.color, ev.shading, ev.normals, ev.dA, ev.basis, sums, sums)
 
     def relit(self, est: Estimate, ev: Evaluation) -> Evaluation:
         """The evaluation of ``est``, whose z and poses are those ``ev`` was computed at but whose
@@ -486,4 +615,4 @@ class LevelProblem:
         gives ``ev`` up: no second frames x pixels x 3 array while the new one is computed). The
         prior energy is ``ev``'s (the same z)."""
         return self._evaluation(est, ev.color, ev.usable, ev.normals, ev.dA, ev.basis, ev if overwrite else None,
-                                ev.prior)
+                                ev.pending("prior"))

@@ -17,12 +17,36 @@ import cv2
 import numpy as np
 import scipy.sparse as sp
 
-from ..model.arrays import array_module, fused, sparse_module
+from ..model.arrays import array_module, fused, like, sparse_module
 from ..model.camera import scale_intrinsics
 from ..model.normals import MaskedGrid, masked_grid
 from ..model.resampling import fill_nearest_valid, resample_valid, resize
 from .krylov import multiply_add
 from .smoothness import second_differences, smoothness_rows
+
+
+def _entry_centres(S: sp.csr_matrix) -> np.ndarray | None:
+    """Each stored entry's row centre pixel (nnz,) int32 of the host's second differences S: the
+    column of its row's negative entry (:meth:`DepthPrior.weigh_smoothness`); None where the
+    rows do not have one negative entry each."""
+    centre = S.indices[S.data < 0]
+    if len(centre) != S.shape[0]:
+        return None
+    return np.repeat(centre, np.diff(S.indptr)).astype(np.int32)
+
+
+def to_host_sparse(S):
+    """A device CSR matrix's SciPy copy (its arrays read; the host's itself)."""
+    if array_module(S.data) is np:
+        return S
+    return sp.csr_matrix((S.data.get(), S.indices.get(), S.indptr.get()), shape=S.shape)
+
+
+@fused
+def _row_scaled(data, weights):
+    """``data * weights ** 0.5`` elementwise: a CSR matrix's entries scaled by the square root of
+    their row's weight (one kernel on a GPU)."""
+    return data * weights ** 0.5
 
 
 def level_size(size: tuple[int, int], level: int) -> tuple[int, int]:
@@ -54,8 +78,17 @@ class DepthPrior:
         base = self._unweighted_smoothness()
         if self.__dict__.get("_S_build") is None:
             self.__dict__.setdefault("_S_unweighted", base)
-        centre = base.indices[base.data < 0]  # each row's -2 entry, in row order
-        self.S = sparse_module(base).csr_matrix(sparse_module(base).diags(pixel_weights[centre] ** 0.5) @ base)
+        entries = None
+        if array_module(pixel_weights) is not np:  # once per level (set by on_device): each entry's row centre
+            entries = self.__dict__.get("_entry_centres")
+            if entries is None and (host := _entry_centres(to_host_sparse(base))) is not None:
+                entries = self.__dict__["_entry_centres"] = like(host, pixel_weights)
+        if entries is not None:  # on a GPU: a gather and one fused kernel, S's pattern kept
+            self.S = sparse_module(base).csr_matrix((_row_scaled(base.data, pixel_weights[entries]), base.indices,
+                                                     base.indptr), shape=base.shape)
+        else:
+            centre = base.indices[base.data < 0]  # each row's -2 entry, in row order
+            self.S = sparse_module(base).csr_matrix(sparse_module(base).diags(pixel_weights[centre] ** 0.5) @ base)
         self.__dict__["_weighted"] = True
         self.__dict__.pop("StS", None)
 
@@ -155,10 +188,26 @@ class DepthPrior:
         moved = DepthPrior(device.sparse_matrix(self.D), device.asarray(self.z0),
                            *(None if a is None else device.asarray(a) for a in (self.lower, self.upper)),
                            None if self.S is None else device.sparse_matrix(self.S))
+        moved.__dict__["envelope_positive"] = self.envelope_positive  # from the host's arrays: no read there
+        # formed here, with the level (a copy each), not by launches in its first sweep
+        moved.__dict__["_negative_z0"] = device.asarray(-self.z0)
+        moved.__dict__["_zeros"] = device.asarray(np.zeros(self.D.shape[1]))
+        entries = None if self.S is None or device.xp is np else _entry_centres(self._unweighted_smoothness())
+        if entries is not None:
+            moved.__dict__["_entry_centres"] = device.asarray(entries)
         moved.__dict__["DtD"] = device.sparse_matrix(self.DtD)
         if self.S is not None:
             moved.__dict__["StS"] = device.sparse_matrix(self.StS)
         return moved
+
+    @cached_property
+    def envelope_positive(self) -> bool:
+        """Whether every depth clipped into the envelope is > 0 (or NaN): both bounds > 0 at every
+        pixel (False without an envelope). A GPU's line searches then need not read whether a
+        trial depth left the domain (a NaN trial's energy is NaN, which no search accepts)."""
+        if self.lower is None:
+            return False
+        return bool(np.all(self.lower > 0) and np.all(self.upper > 0))
 
     def clip(self, z: np.ndarray) -> np.ndarray:
         """z (N,) clipped into the envelope (on a GPU one fused kernel)."""

@@ -23,6 +23,16 @@ def update_albedo(est: Estimate, ev: Evaluation, lam: float) -> np.ndarray:
     return out
 
 
+def refit_albedo(problem, est: Estimate, ev: Evaluation) -> Evaluation:
+    """``est.albedo`` set to :func:`update_albedo`'s and the evaluation at it written into
+    ``ev``'s arrays (``problem.reevaluate(est, ev, overwrite=True)``; ``ev`` is given up): on a
+    GPU in one launch (:meth:`.LevelProblem.albedo_reevaluation`), on the host the two steps."""
+    if on_gpu(ev.residual):
+        return problem.albedo_reevaluation(est, ev)
+    est.albedo = update_albedo(est, ev, problem.lam)
+    return problem.reevaluate(est, ev, overwrite=True)
+
+
 def update_lighting(est: Estimate, ev: Evaluation, lam: float, light) -> np.ndarray:
     """The lights (n, k) minimising sum_{i,p,c} w (I~ - rho_c <l_i, B_i>)^2 under the light
     model ``light``'s constraint (:meth:`~.lighting.SHLight.fit`: per frame, or one light for

@@ -22,8 +22,10 @@ import cv2
 import numba
 import numpy as np
 
-from ..model.arrays import array_module, fused
+from ..model.arrays import array_module, contiguous, fused
 from ..model.resampling import fill_nearest_valid
+from .device import kernels_for
+from .lighting import LEDLight, device_light_state
 from .smoothness import sensor_roughness
 
 #: the least width (Gaussian sigma, depth pixels) of the low-pass that ties the depth to the
@@ -117,8 +119,8 @@ def normal_evidence(light_model, est, ev, points: np.ndarray) -> np.ndarray:
     est: the :class:`~.problem.Estimate`; ev its :class:`~.problem.Evaluation`; points (N, 3)."""
     xp = array_module(ev.normals)
     normals = ev.normals
-    rho2 = (est.albedo ** 2).sum(axis=1)
     N = normals.shape[0]
+    rho2 = (est.albedo ** 2).sum(axis=1) if xp is np or not isinstance(light_model, LEDLight) else None
     if xp is np:
         first = slice(0, min(N, EVIDENCE_CHUNK_PIXELS))
         _, L = light_model.fields(est.lights, normals[first], points[first], est.poses)
@@ -133,6 +135,13 @@ def normal_evidence(light_model, est, ev, points: np.ndarray) -> np.ndarray:
                                np.ascontiguousarray(ev.shading[:, c]), np.ascontiguousarray(L, dtype=np.float64), *sums)
                 G6[:, c], v[:, c], d[c] = sums
             return _tangent_min_eigenvalue(normals[:, 0], normals[:, 1], normals[:, 2], *G6, *v, d)
+    if isinstance(light_model, LEDLight):  # on a GPU the sums in one launch, the fields formed per pixel
+        state = device_light_state(light_model, est.lights, est.poses, points)
+        G6, v, d = xp.empty((6, N)), xp.empty((3, N)), xp.empty(N)
+        kernels_for(points).led_evidence_sums(ev.usable, contiguous(est.albedo, np.float64), ev.shading,
+                                              state.intensities, contiguous(normals, np.float64),
+                                              contiguous(points, np.float64), state.positions, G6, v, d)
+        return _tangent_min_eigenvalue(normals[:, 0], normals[:, 1], normals[:, 2], *G6, *v, d)
     _, L = light_model.fields(est.lights, normals, points, est.poses)
     L = xp.asarray(L, dtype=np.float64)
     u = ev.usable * rho2  # (n, N)
@@ -233,10 +242,17 @@ def absolute_evidence_weights(evidence: np.ndarray, noise: float, ceiling: float
     throughout); ``ceiling``: the ratio of the sensor's own smoothness
     (:func:`.smoothness.auto_smoothness`) to the light model's, so a pixel without evidence
     is as smooth as the sensor's surface."""
-    xp = array_module(evidence)
     reference = (float(noise) / np.radians(precision_deg)) ** 2
     ceiling = max(1.0, float(ceiling))
-    return xp.clip(reference / xp.maximum(evidence, reference / ceiling), 1.0, ceiling)
+    return _clipped_ratio(evidence, reference, ceiling)
+
+
+@fused
+def _clipped_ratio(evidence, reference, ceiling):
+    """``clip(reference / max(evidence, reference / ceiling), 1, ceiling)`` elementwise (as
+    ``np.clip``: a NaN stays NaN); one kernel on a GPU."""
+    xp = array_module(evidence)
+    return xp.minimum(xp.maximum(reference / xp.maximum(evidence, reference / ceiling), 1.0), ceiling)
 
 
 #: the sub-pixel misplacement (pixels) of an albedo step between the frames that
