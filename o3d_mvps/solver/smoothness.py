@@ -67,13 +67,15 @@ def grid_mode_rows(grid: MaskedGrid, weight: float | None = None) -> sp.csr_matr
 
 
 def row_centres(S) -> np.ndarray:
-    """The column (K,) of each row's largest entry in magnitude of a smoothness matrix S (K, N)
-    (the -2 of a second difference, the 6 of :func:`grid_mode_rows`; rows scaled by positive
-    weights keep it): the pixel whose weight each row takes. S on the host or a GPU."""
-    magnitude = abs(S)
-    largest = magnitude.max(axis=1)
-    largest = (largest.toarray() if hasattr(largest, "toarray") else largest).ravel()
-    return S.indices[magnitude.data == largest[magnitude.tocoo().row]]
+    """The column (K,) of each row's centre pixel in a smoothness matrix S (K, N) whose rows are
+    symmetric stencils along a row or a column of the grid (the -2 of a second difference, the 6 of
+    :func:`grid_mode_rows`): with the columns in ascending order, each row's middle entry (the masked
+    index grows along rows and columns). S on the host or a GPU; the pixel whose weight each row
+    takes."""
+    if not getattr(S, "has_sorted_indices", True):
+        S = S.copy()
+        S.sort_indices()
+    return S.indices[(S.indptr[:-1] + S.indptr[1:]) // 2]
 
 
 #: exponent of the smoothness rows' slope weights ``(1 + |grad z|^2)^(-SLOPE_EXPONENT / 2)``: with
