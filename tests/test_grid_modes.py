@@ -38,6 +38,13 @@ def test_row_centres_are_the_second_differences_centres_and_the_mode_rows():
     dense = M.toarray()
     assert np.array_equal(smoothness.row_centres(M), np.argmax(np.abs(dense), axis=1))
     assert np.allclose(dense[np.arange(M.shape[0]), smoothness.row_centres(M)], 1.5)
+    # slope-weighted and stacked (columns not in order after the products): the same centres
+    z0 = 0.5 + 1e-3 * np.random.default_rng(0).normal(size=(20, 25))
+    K = np.array([[60.0, 0, 25], [0, 60.0, 20], [0, 0, 1]])
+    weighted = smoothness.smoothness_rows(grid, z0, K, 2.0)
+    both = smoothness.with_grid_modes(grid, weighted, z0, K, 2.0, weight=1000.0)
+    assert np.array_equal(smoothness.row_centres(both), np.concatenate([S.indices[S.data < 0],
+                                                                        smoothness.row_centres(M)]))
 
 
 def test_evidence_weights_leave_the_grid_mode_rows_alone():
