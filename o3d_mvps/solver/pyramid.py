@@ -46,7 +46,8 @@ class DepthPrior:
     def weigh_smoothness(self, pixel_weights: np.ndarray) -> None:
         """Weight each second-difference row of the unweighted S by ``pixel_weights`` (N,) at its
         centre pixel (:func:`.smoothness.row_centres`; grid-mode rows keep theirs): the energy's
-        mu ||S z||^2 becomes mu sum_k w_k (S z)_k^2; replaces the last weights. Where the prior can make its unweighted S again (:meth:`rebuild_smoothness_with`)
+        mu ||S z||^2 becomes mu sum_k w_k (S z)_k^2; replaces the last weights. Where the prior
+        can make its unweighted S again (:meth:`rebuild_smoothness_with`)
         it does so for each weighing instead of holding it beside the weighted one (77 MB at 2
         megapixels, through the level's joint steps)."""
         if self.S is None:

@@ -3,7 +3,9 @@
 S takes the depth's second differences along rows and columns (:func:`second_differences`);
 under room light each row is weighted down where the sensor's surface is steep
 (:func:`slope_weights`), and the weight mu~ follows the sensor depth's roughness and the
-colour pixels' footprint (:func:`auto_smoothness`).
+colour pixels' footprint (:func:`auto_smoothness`). Fourth-difference rows that see the depth
+alternating from pixel to pixel, which the central-difference normals do not (:func:`grid_mode_rows`,
+:func:`with_grid_modes`), can be added below S; their weight is 0 by default (:data:`GRID_MODE_WEIGHT`).
 """
 
 from __future__ import annotations
@@ -55,7 +57,8 @@ def grid_mode_rows(grid: MaskedGrid, weight: float | None = None) -> sp.csr_matr
     count = 0
     own = np.arange(grid.size)
     taps = np.sqrt(weight) * np.array([1.0, -4.0, 6.0, -4.0, 1.0]) / 4.0
-    for fwd, bwd, wf, wb in ((grid.fwd_u, grid.bwd_u, grid.wf_u, grid.wb_u), (grid.fwd_v, grid.bwd_v, grid.wf_v, grid.wb_v)):
+    for fwd, bwd, wf, wb in ((grid.fwd_u, grid.bwd_u, grid.wf_u, grid.wb_u),
+                             (grid.fwd_v, grid.bwd_v, grid.wf_v, grid.wb_v)):
         inner = (wf == 0.5) & (wb == 0.5)
         both = own[inner & inner[fwd] & inner[bwd]]
         r = count + np.arange(both.size)
