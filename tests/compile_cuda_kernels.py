@@ -100,6 +100,10 @@ SIGNATURES = {
     # gpu3: the driver's extrapolation trials (the driver's three factors)
     "_extrapolation_trials": (_F1, _F1, _F2, _F2, types.UniTuple(types.float64, 3), _F1, _F1, _F2, _F3, _F2),
     "_depth_step": (_F1, _F1, types.float64, _F1, _F1, _F1, _F1),
+    # gpukrylov: the device multigrid's set-up (level 0's CSR, the coarser levels', P's and R's indptr and indices)
+    "_multigrid_setup": (_array(1, types.int32), _array(1, types.int32), _F1, _array(1, types.int32),
+                         _array(1, types.int32), _F1, *(_array(1, types.int32),) * 4, _F1, _F2, _F3, _F1,
+                         types.UniTuple(types.int64, 8 * 12), types.int64),
 }
 
 

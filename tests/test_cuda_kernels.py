@@ -393,6 +393,15 @@ def test_cg_passes_stop_at_convergence_and_idle_after():
         assert_close(x, b / A.diagonal())
 
 
+def multigrid_grid(shape=(22, 26)):
+    """The disc of pixels of :func:`multigrid_system`."""
+    from o3d_mvps.model.normals import masked_grid
+
+    H, W = shape
+    v, u = np.mgrid[:H, :W]
+    return masked_grid((u - W / 2) ** 2 + (v - H / 2) ** 2 < (0.45 * min(H, W)) ** 2)
+
+
 def multigrid_system(shape=(22, 26)):
     """(A, hierarchy): an SPD matrix on a disc of pixels (a 5-point Laplacian plus a random
     positive diagonal) and its multigrid (:func:`krylov.multigrid_preconditioner`, host) of three
@@ -422,6 +431,52 @@ def multigrid_system(shape=(22, 26)):
         for m in (level.A, level.P, level.R):
             m.indices, m.indptr = m.indices.astype(np.int32), m.indptr.astype(np.int32)
     return A, hierarchy
+
+
+def device_multigrid(A, grid, simulated: bool):
+    """:func:`krylov.multigrid_preconditioner` of A on the CuPy stand-in (tests/cupy_emulation.py):
+    its set-up launch run by the CUDA kernel (numba's simulator) or by its CPU twin; the packed
+    arrays as NumPy arrays and the layout."""
+    import cupy_emulation as cp
+    from contextlib import nullcontext
+
+    from benchmarks.gpu import _cpu_kernels_as_cuda_kernels
+    from o3d_mvps.solver import krylov
+
+    with cp.installed(), nullcontext() if simulated else _cpu_kernels_as_cuda_kernels(cp):
+        prolongations = krylov.pixel_prolongations(cp.asarray(grid.u), cp.asarray(grid.v), max_coarse=30)
+        before = cp.operations["kernel"]
+        multigrid = krylov.multigrid_preconditioner(cp.sparse.csr_matrix(A), prolongations)
+        launches = cp.operations["kernel"] - before
+        return [cp.host_data(a) for a in multigrid.packed.arrays], multigrid.packed.layout, launches
+
+
+def test_multigrid_setup_matches_cpu_and_the_host_hierarchy():
+    """The device multigrid's set-up in one launch (kernels.multigrid_setup: every level's
+    D^-1 / bound, the Galerkin operators P^T A P, the coarsest's inverse): CUDA (the simulator runs
+    one block) against its CPU twin to round-off; both against the host's hierarchy (SciPy's
+    products, NumPy's inverse): the scalings and the coarse operators' patterns and values equal
+    (measured: bit for bit, the same sums), the coarsest inverse to 1e-13 (measured 1.2e-15)."""
+    A, hierarchy = multigrid_system()
+    grid = multigrid_grid()
+    (cpu, layout, launches), (gpu, _, _) = (device_multigrid(A, grid, simulated) for simulated in (False, True))
+    assert launches == 1 and len(hierarchy.levels) == 3
+    for k, level in enumerate(hierarchy.levels):
+        offset, n = layout[kernels.MG_FIELDS * k + kernels.MG_VEC], layout[kernels.MG_FIELDS * k + kernels.MG_N]
+        np.testing.assert_array_equal(cpu[9][offset:offset + n], level.smoother.inv_diag)
+        assert_close(gpu[9][offset:offset + n], cpu[9][offset:offset + n])
+        if k == 0:
+            continue
+        start, nz = layout[kernels.MG_FIELDS * k + kernels.MG_A_PTR], layout[kernels.MG_FIELDS * k + kernels.MG_A_NZ]
+        for arrays in (cpu, gpu):
+            indptr = arrays[0][start:start + n + 1]
+            C = sp.csr_matrix((arrays[2][nz:nz + indptr[-1]], arrays[1][nz:nz + indptr[-1]], indptr), shape=(n, n))
+            assert C.has_sorted_indices and C.nnz == level.A.nnz
+            np.testing.assert_array_equal(C.indices, level.A.indices)
+            assert_close(C.data, level.A.data)
+    assert_close(cpu[10], hierarchy.coarse_inverse, rtol=1e-13)
+    np.testing.assert_array_equal(cpu[10], cpu[10].T)
+    assert_close(gpu[10], cpu[10])
 
 
 def test_multigrid_cg_matches_cpu_the_host_cycle_and_host_pcg():

@@ -1191,3 +1191,80 @@ def depth_step(z, dz, t, lower, upper, out, bad) -> None:
     """:func:`.kernels.depth_step` on the GPU in one launch (was two or three array operations, a
     clip and a reduction): ``bad.size`` blocks, each thread a strided share of the pixels."""
     _depth_step[bad.shape[0], THREADS_PER_BLOCK](z, dz, float(t), lower, upper, out, bad)
+
+
+# --- gpukrylov ------------------------------------------------------------------------------------
+# The device multigrid's set-up in one cooperative launch (issue 33): kernels.multigrid_setup.
+
+__all__ += ["multigrid_setup"]
+
+
+def _grid_max(value, partial):  # pragma: no cover - device
+    """:func:`.kernels.grid_max` in a CUDA kernel: each block's largest (a tree in shared memory)
+    into ``partial[block]``, the grid's sync, then every thread's largest over the blocks."""
+    share = cuda.shared.array(THREADS_PER_BLOCK, numba.float64)
+    t = cuda.threadIdx.x
+    share[t] = value
+    cuda.syncthreads()
+    half = THREADS_PER_BLOCK // 2
+    while half > 0:
+        if t < half:
+            share[t] = max(share[t], share[t + half])
+        cuda.syncthreads()
+        half //= 2
+    if t == 0:
+        partial[cuda.blockIdx.x] = share[0]
+    cuda.cg.this_grid().sync()
+    largest = -math.inf
+    for b in range(cuda.gridDim.x):
+        largest = max(largest, partial[b])
+    return largest
+
+
+def _grid_prefix(value, partial):  # pragma: no cover - device
+    """:func:`.kernels.grid_prefix` in a CUDA kernel: the block's threads' values before this
+    thread's (thread 0 of the block adds them in order in shared memory), the block's total into
+    ``partial[block]``, the grid's sync, then the earlier blocks' totals added in order."""
+    share = cuda.shared.array(THREADS_PER_BLOCK, numba.float64)
+    t = cuda.threadIdx.x
+    share[t] = value
+    cuda.syncthreads()
+    if t == 0:
+        running = 0.0
+        for k in range(THREADS_PER_BLOCK):
+            here = share[k]
+            share[k] = running
+            running += here
+        partial[cuda.blockIdx.x] = running
+    cuda.syncthreads()
+    before = share[t]
+    cuda.cg.this_grid().sync()
+    for b in range(cuda.blockIdx.x):
+        before += partial[b]
+    return before
+
+
+_GRID["grid_max"], _GRID["grid_prefix"] = (
+    (_grid_max, _grid_prefix) if cuda.config.ENABLE_CUDASIM else
+    (numba.njit(inline="always")(_grid_max), numba.njit(inline="always")(_grid_prefix)))
+_multigrid_setup_steps = _on_grid(kernels.multigrid_setup_steps)
+
+
+@cuda.jit(cache=True)
+def _multigrid_setup(m_indptr, m_indices, m_data, a_indptr, a_indices, a_data, p_indptr, p_indices, r_indptr,
+                     r_indices, inv_diag, coarse, pivots, partial, layout, levels):  # pragma: no cover - device
+    _multigrid_setup_steps(m_indptr, m_indices, m_data, a_indptr, a_indices, a_data, p_indptr, p_indices, r_indptr,
+                           r_indices, inv_diag, coarse, pivots, partial, layout, levels, cuda.grid(1),
+                           cuda.gridsize(1))
+
+
+def multigrid_setup(m_indptr, m_indices, m_data, a_indptr, a_indices, a_data, p_indptr, p_indices, r_indptr, r_indices,
+                    inv_diag, coarse, pivots, partial, layout, levels) -> None:
+    """:func:`.kernels.multigrid_setup` on the GPU in one cooperative launch (its passes separated
+    by the grid's sync; rows and entries in grid-stride loops over at most ``partial.size``
+    blocks)."""
+    args = (m_indptr, m_indices, m_data, a_indptr, a_indices, a_data, p_indptr, p_indices, r_indptr, r_indices,
+            inv_diag, coarse, pivots, partial, tuple(int(v) for v in layout), int(levels))
+    wanted = _blocks(max(m_indptr.shape[0], coarse.size))
+    blocks = min(_cooperative_blocks(_multigrid_setup, args, wanted), partial.shape[0])
+    _multigrid_setup[blocks, THREADS_PER_BLOCK](*args)

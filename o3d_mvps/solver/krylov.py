@@ -579,6 +579,9 @@ class Multigrid:
 
     def __call__(self, r):
         """The cycle applied to r (N,): z (N,)."""
+        if self.levels and self.levels[0].smoother is None:
+            raise TypeError("a device multigrid made by one set-up launch runs its cycle in krylov.pcg's kernel only "
+                            "(Multigrid.packed); call krylov.pcg with it")
         return self._cycle(0, r)
 
     def _cycle(self, k: int, b):
@@ -650,11 +653,13 @@ def multigrid_preconditioner(A, prolongations: list, *, smoother: str = "chebysh
     times the non-zeros read per iteration and 7-14 times the setup (on the CPU), and they depend
     on A, so they cannot be built once per grid.
     """
-    xp = array_module(A.diagonal())
+    xp = array_module(A.data)
     sparse = sparse_module(A)
     kept = not smoothed_prolongation and isinstance(prolongations, Prolongations)  # R and their packing per grid
     if kept and prolongations.restrictions is None:
         prolongations.restrictions = [P.T.tocsr() for P in prolongations]
+    if xp is not np and kept and smoother == "chebyshev" and len(prolongations) + 1 <= MG_MAX_LEVELS:
+        return _device_multigrid(A, prolongations, smoothing_steps)
     levels = []
     for k, P in enumerate(prolongations):
         if xp is not np and not smoothed_prolongation:  # D^-1, its bound and D^-1 / bound in one launch
@@ -678,4 +683,53 @@ def multigrid_preconditioner(A, prolongations: list, *, smoother: str = "chebysh
         packed = pack_hierarchy(levels, inverse, smoothing_steps, prolongations.packed if kept else None)
         if packed is not None and packed.source is None:  # no level above the coarsest: the matrix itself
             packed.source = A
+    return Multigrid(levels, inverse, packed)
+
+
+def _device_multigrid(A, prolongations: "Prolongations", steps: int) -> Multigrid:
+    """:func:`multigrid_preconditioner` on a device (Chebyshev smoothers of ``steps`` steps,
+    tentative prolongations kept with the grid): the whole set-up in one launch of
+    :func:`.kernels.multigrid_setup` (every level's D^-1 / bound, the Galerkin operators
+    ``P^T A P``: CSR above the coarsest, sized for at most the finer level's non-zeros, and the
+    coarsest's dense inverse), packed for :func:`.kernels.multigrid_cg` as it is made. Its
+    levels hold P and R (and level 0 its A) only: the cycle runs in :func:`pcg`'s kernel."""
+    xp = array_module(A.data)
+    levels = [MultigridLevel(A if k == 0 else None, None, P, R)
+              for k, (P, R) in enumerate(zip(prolongations, prolongations.restrictions))]
+    if prolongations.packed is None:
+        prolongations.packed = pack_transfers(levels, xp)
+    sizes = [A.shape[0]] + [P.shape[1] for P in prolongations]
+    capacity = [int(A.data.size)]  # level k + 1's non-zeros are at most level k's (each sums some of them)
+    for n in sizes[1:]:
+        capacity.append(min(capacity[-1], n * n))
+    layout = [0] * (MG_FIELDS * MG_MAX_LEVELS)
+    ends = dict.fromkeys(("vec", "A_ptr", "A_nz", "P_ptr", "P_nz", "R_ptr", "R_nz"), 0)
+    for k, n in enumerate(sizes):
+        base = MG_FIELDS * k
+        layout[base + MG_VEC], layout[base + MG_N] = ends["vec"], n
+        ends["vec"] += n
+        if k == len(levels):
+            break
+        for name, field, rows, nz in (("A", MG_A_PTR, n, capacity[k]), ("P", MG_P_PTR, n, levels[k].P.data.size),
+                                      ("R", MG_R_PTR, sizes[k + 1], levels[k].R.data.size)):
+            if name == "A" and k == 0:
+                continue
+            layout[base + field], layout[base + field + 1] = ends[f"{name}_ptr"], ends[f"{name}_nz"]
+            ends[f"{name}_ptr"] += rows + 1
+            ends[f"{name}_nz"] += int(nz)
+    n_coarse = sizes[-1]
+    a_indptr, a_indices = xp.empty(ends["A_ptr"], dtype=np.int32), xp.empty(ends["A_nz"], dtype=np.int32)
+    a_data = xp.empty(ends["A_nz"])
+    inv_diag = xp.empty(sum(sizes[:-1]))
+    inverse = xp.empty((n_coarse, n_coarse))
+    transfers = prolongations.packed
+    kernels_for(A.data).multigrid_setup(A.indptr, A.indices, A.data, a_indptr, a_indices, a_data, transfers[0],
+                                        transfers[1], transfers[3], transfers[4], inv_diag, inverse,
+                                        xp.empty((2, 2, n_coarse)), xp.empty(COOPERATIVE_BLOCKS), tuple(layout),
+                                        len(levels))
+    theta, scales, factors = chebyshev_scalars(CHEBYSHEV_LOWER_FRACTION, 1.0, steps)
+    arrays = (a_indptr, a_indices, a_data, *transfers, inv_diag, inverse,
+              xp.empty((-(-n_coarse // COARSE_SEGMENT), n_coarse)))
+    packed = PackedHierarchy(A, arrays, tuple(layout), len(levels),
+                             (theta, *(v for pair in zip(scales, factors) for v in pair)), ends["vec"])
     return Multigrid(levels, inverse, packed)
