@@ -421,6 +421,36 @@ def test_the_device_multigrid_runs_its_cycles_and_cg_in_one_launch_per_host_read
         np.testing.assert_allclose(x_parts.get(), x_plain.get(), rtol=0, atol=1e-12 * np.abs(x_plain.get()).max())
 
 
+def test_device_prolongations_from_the_host_pixels_are_two_copies_and_the_same_hierarchy():
+    """The grid's prolongations for a device, aggregated from the host's pixels (``like=``): two
+    copies to the device and no launch, the same P and R (and their packing) as aggregated on the
+    device; the multigrid's set-up is then one launch per solve, and PCG takes the same iterations
+    and solution."""
+    M, b, grid = grid_system(shape=(24, 36))
+    with on_stand_in(simulated=False) as cp:
+        A, rhs = cp.sparse.csr_matrix(M), cp.asarray(b)
+        on_device = krylov.pixel_prolongations(cp.asarray(grid.u), cp.asarray(grid.v), max_coarse=100)
+        before = dict(cp.operations)
+        moved = krylov.pixel_prolongations(grid.u, grid.v, max_coarse=100, like=rhs)
+        spent = {kind: n - before.get(kind, 0) for kind, n in cp.operations.items() if n != before.get(kind, 0)}
+        assert spent == {"to_device": 2}
+        results = []
+        for prolongations in (on_device, moved):
+            before = sum(cp.operations.values())
+            P = krylov.multigrid_preconditioner(A, prolongations)
+            if prolongations is moved:
+                assert sum(cp.operations.values()) - before == 1  # the set-up's launch
+            results.append(krylov.pcg(A, rhs, None, 1e-8, 1000, P, first_check=8))
+        assert len(moved) == len(on_device) == 2
+        for mine, theirs in zip(moved.packed, on_device.packed):
+            np.testing.assert_array_equal(mine.get(), theirs.get())
+        for P, Q in zip(moved + moved.restrictions, on_device + on_device.restrictions):
+            assert P.shape == Q.shape
+            np.testing.assert_array_equal(P.indices.get(), Q.indices.get())
+        assert results[0][1:] == results[1][1:] == (9, True)
+        np.testing.assert_array_equal(results[0][0].get(), results[1][0].get())
+
+
 def test_the_amg_set_up_estimates_no_spectral_radius_and_preconditions_as_well(monkeypatch):
     """:func:`.linear.amg_preconditioner` weights its Jacobi prolongation smoother row by row
     (:data:`.linear.AMG_OPTIONS`, pyamg's ``weighting="local"``): no spectral-radius estimate

@@ -601,7 +601,7 @@ class Multigrid:
         return sum(nnz) / nnz[0]
 
 
-def pixel_prolongations(u, v, stride: int = 2, max_coarse: int = MAX_COARSE) -> list:
+def pixel_prolongations(u, v, stride: int = 2, max_coarse: int = MAX_COARSE, like=None) -> list:
     """The tentative prolongations of a pixel grid's aggregation hierarchy: (N_l, N_l+1) sparse
     per level, from the pixels at integer coordinates u, v (N,) each
     (:attr:`o3d_mvps.model.normals.MaskedGrid.u`, ``.v``) by 2x2-pixel aggregates ``stride``
@@ -616,6 +616,10 @@ def pixel_prolongations(u, v, stride: int = 2, max_coarse: int = MAX_COARSE) -> 
     iterations (geometric mean) with stride 2 and 1.11 times with stride 1 (958k-pixel depth
     system: 11 against 58). Under room light (large smoothness weight) stride 1 did better:
     1.12 against 1.25 times pyamg's (a 73k-pixel joint system: 20 against 33).
+
+    ``like``: an array of the module the prolongations are for (a device's), u and v then on
+    the host: aggregated there (the grid's mask stays on the host) and copied over in two copies
+    (:meth:`Prolongations.moved`), no launch.
     """
     prolongations = Prolongations()
     while u.size > max_coarse:
@@ -624,6 +628,8 @@ def pixel_prolongations(u, v, stride: int = 2, max_coarse: int = MAX_COARSE) -> 
             break
         prolongations.append(tentative_prolongation(aggregate, cu.size))
         u, v = cu, cv
+    if like is not None and array_module(like) is not np:
+        return prolongations.moved(like)
     return prolongations
 
 
@@ -634,6 +640,37 @@ class Prolongations(list):
 
     restrictions: list | None = None
     packed: tuple | None = None
+
+    def moved(self, like) -> "Prolongations":
+        """These host prolongations (and their restrictions, packed: :func:`pack_transfers`) on
+        the module of ``like`` (a device's): their int32 CSR indices in one copy, their values (all
+        ones; P's and R's alike) in another; the matrices are views of those arrays."""
+        xp, sparse = array_module(like), sparse_module(like)
+        moved = Prolongations()
+        if not self:
+            return moved
+        restrictions = [P.T.tocsr() for P in self]
+        parts = [[m.indptr for m in self], [m.indices for m in self], [m.indptr for m in restrictions],
+                 [m.indices for m in restrictions]]
+        lengths = [[a.size for a in kind] for kind in parts]
+        indices = xp.asarray(np.concatenate([a for kind in parts for a in kind]).astype(np.int32))
+        ones = xp.asarray(np.ones(sum(lengths[1])))
+        packed, at = [], 0
+        for kind in lengths:
+            packed.append(indices[at:at + sum(kind)])
+            at += sum(kind)
+        moved.packed = (packed[0], packed[1], ones, packed[2], packed[3], ones)
+        for host, out, ptr, ind in ((self, moved, 0, 1), (restrictions, None, 2, 3)):
+            matrices, p_at, i_at = [], 0, 0
+            for m, n_ptr, n_ind in zip(host, lengths[ptr], lengths[ind]):
+                matrices.append(sparse.csr_matrix((ones[i_at:i_at + n_ind], packed[ind][i_at:i_at + n_ind],
+                                                   packed[ptr][p_at:p_at + n_ptr]), shape=m.shape))
+                p_at, i_at = p_at + n_ptr, i_at + n_ind
+            if out is None:
+                moved.restrictions = matrices
+            else:
+                out.extend(matrices)
+        return moved
 
 
 def multigrid_preconditioner(A, prolongations: list, *, smoother: str = "chebyshev", smoothing_steps: int = 3,
