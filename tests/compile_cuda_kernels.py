@@ -63,7 +63,7 @@ SIGNATURES = {
                       *(_array(1, types.int32), _array(1, types.int32), _F1) * 4,
                       _F1, _F2, _F2, _F2, _F1, _F1, _F1, _F1, _F2, _F2, _F2, _F1, types.UniTuple(types.int64, 8 * 12),
                       types.int64,
-                      types.UniTuple(types.float64, 5), _F1, _F2),
+                      types.UniTuple(types.float64, 5), types.boolean, _F1, types.boolean, types.float64, _F1, _F2),
     "_twist_system": (_F3, _F1, _F1, _F2, types.float64, _F3, _F1, _F2, _F1, _F2),
     "_twist_inverse": (_F3, _F3, _F1, types.float64, _F3, _F3, _F1, _F1),
     "_ridge_solves": (_F3, _F3, types.float64, types.float64, _F3, _F3, _F1),

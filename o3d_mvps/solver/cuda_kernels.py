@@ -576,12 +576,13 @@ def log1p_square_sum(x, scale: float) -> float:
 @cuda.jit(cache=True)
 def _multigrid_cg(n_steps, cycle_first, with_matrix, m_indptr, m_indices, m_data, a_indptr, a_indices, a_data, p_indptr,
                   p_indices, p_data, r_indptr, r_indices, r_data, inv_diag, coarse_inverse, coarse_partial, work, x, p,
-                  s, w, u_t, coupled, t_partial, t, layout, levels, cheb, state, partial):  # pragma: no cover - device
+                  s, w, u_t, coupled, t_partial, t, layout, levels, cheb, begin, b, from_zero, rtol2, state,
+                  partial):  # pragma: no cover - device
     local = cuda.local.array(_CG_STATE, numba.float64)
     _multigrid_cg_steps(n_steps, cycle_first, with_matrix, m_indptr, m_indices, m_data, a_indptr, a_indices, a_data,
                         p_indptr, p_indices, p_data, r_indptr, r_indices, r_data, inv_diag, coarse_inverse,
-                        coarse_partial, work, x, p, s, w, u_t, coupled, t_partial, t, layout, levels, cheb, state,
-                        partial, local, cuda.grid(1), cuda.gridsize(1))
+                        coarse_partial, work, x, p, s, w, u_t, coupled, t_partial, t, layout, levels, cheb, begin, b,
+                        from_zero, rtol2, state, partial, local, cuda.grid(1), cuda.gridsize(1))
 
 
 #: (device, argument types) -> the most blocks of :func:`_multigrid_cg` resident at once
@@ -603,14 +604,15 @@ def _cooperative_blocks(kernel, args, wanted: int) -> int:
 
 def multigrid_cg(n_steps, cycle_first, with_matrix, m_indptr, m_indices, m_data, a_indptr, a_indices, a_data, p_indptr,
                  p_indices, p_data, r_indptr, r_indices, r_data, inv_diag, coarse_inverse, coarse_partial, work, x, p,
-                 s, w, u_t, coupled, t_partial, t, layout, levels, cheb, state, partial) -> None:
+                 s, w, u_t, coupled, t_partial, t, layout, levels, cheb, begin, b, from_zero, rtol2, state,
+                 partial) -> None:
     """:func:`.kernels.multigrid_cg` on the GPU in one cooperative launch (its passes separated by
     the grid's sync; rows in grid-stride loops over at most :data:`.kernels.COOPERATIVE_BLOCKS` blocks,
     the rows of ``partial`` (blocks, 4))."""
     args = (int(n_steps), bool(cycle_first), bool(with_matrix), m_indptr, m_indices, m_data, a_indptr, a_indices,
             a_data, p_indptr, p_indices, p_data, r_indptr, r_indices, r_data, inv_diag, coarse_inverse,
             coarse_partial, work, x, p, s, w, u_t, coupled, t_partial, t, tuple(int(v) for v in layout), int(levels),
-            tuple(float(v) for v in cheb), state, partial)
+            tuple(float(v) for v in cheb), bool(begin), b, bool(from_zero), float(rtol2), state, partial)
     wanted = _blocks(max(x.shape[0], coarse_partial.size, t_partial.size))
     blocks = min(_cooperative_blocks(_multigrid_cg, args, wanted), partial.shape[0])
     _multigrid_cg[blocks, THREADS_PER_BLOCK](*args)

@@ -751,18 +751,30 @@ def low_rank_product(u_t, z, t_partial, t, start, stride):  # pragma: no cover -
 @numba.njit
 def multigrid_cg_steps(n_steps, cycle_first, with_matrix, m_indptr, m_indices, m_data, a_indptr, a_indices, a_data,
                        p_indptr, p_indices, p_data, r_indptr, r_indices, r_data, inv_diag, coarse_inverse,
-                       coarse_partial, work, x, p, s, w, u_t, coupled, t_partial, t, layout, levels, cheb, state,
-                       partial, local, start, stride):  # pragma: no cover - compiled
+                       coarse_partial, work, x, p, s, w, u_t, coupled, t_partial, t, layout, levels, cheb, begin,
+                       b, from_zero, rtol2, state, partial, local, start, stride):  # pragma: no cover - compiled
     """:func:`multigrid_cg` by one thread of ``start, start + stride, ...`` rows, its scalars in
     ``local`` (:data:`CG_STATE`, each thread's copy of the state: every thread sums the same
     partial sums in the same order, so all hold the same; the thread of ``start`` 0 writes them
     back)."""
     for k in range(CG_STATE):
         local[k] = state[k]
-    if local[CG_ACTIVE] == 0.0:  # every thread read the state before any writes it (after a barrier)
-        return
     n = x.shape[0]
     r, z = work[MG_B, :n], work[MG_XU, :n]
+    if begin:  # CG's start (cg_start's pass), its sums through partial's slots 2, 3
+        first = second = 0.0
+        for row in range(start, n, stride):
+            a, c = cg_row(CG_START, m_indptr, m_indices, m_data, False, from_zero, b, b, b, p, s, x, r, 0.0, 0.0,
+                          row)
+            first += a
+            second += c
+        first, second = grid_sum2(first, second, partial, 2)
+        cg_finish(CG_START, local, first, second, rtol2)
+        if start == 0:
+            for k in range(CG_STATE):
+                state[k] = local[k]
+    if local[CG_ACTIVE] == 0.0:  # every thread read the state before any writes it (after a barrier)
+        return
     if cycle_first:
         multigrid_cycle(m_indptr, m_indices, m_data, a_indptr, a_indices, a_data, p_indptr, p_indices, p_data,
                         r_indptr, r_indices, r_data, inv_diag, coarse_inverse, coarse_partial, work, layout, levels,
@@ -804,7 +816,8 @@ def multigrid_cg_steps(n_steps, cycle_first, with_matrix, m_indptr, m_indices, m
 @numba.njit(cache=True)
 def multigrid_cg(n_steps, cycle_first, with_matrix, m_indptr, m_indices, m_data, a_indptr, a_indices, a_data, p_indptr,
                  p_indices, p_data, r_indptr, r_indices, r_data, inv_diag, coarse_inverse, coarse_partial, work, x, p,
-                 s, w, u_t, coupled, t_partial, t, layout, levels, cheb, state, partial):  # pragma: no cover - compiled
+                 s, w, u_t, coupled, t_partial, t, layout, levels, cheb, begin, b, from_zero, rtol2, state,
+                 partial):  # pragma: no cover - compiled
     """Up to ``n_steps`` iterations of multigrid-preconditioned CG (:func:`.krylov.pcg` with a
     :class:`.krylov.Multigrid` of Chebyshev smoothers) in one launch: per iteration the dot
     products (:func:`cg_row`: w = A z where ``with_matrix``, else w given), the
@@ -820,13 +833,14 @@ def multigrid_cg(n_steps, cycle_first, with_matrix, m_indptr, m_indices, m_data,
     complement ``M + coupled U^T`` (:meth:`.normal_equations.JointSystem.schur_operator`,
     coupled = -U H^-1), its product formed here too where ``with_matrix``
     (:func:`low_rank_product`; t_partial (chunks, K), t (K,) its scratch); state
-    (:data:`CG_STATE`) after :func:`cg_start`; partial
+    (:data:`CG_STATE`) after :func:`cg_start`, or with ``begin`` that start made here first (on
+    b (N,), ``from_zero``, rtol2: :func:`cg_start`'s; r is work's row); partial
     (blocks, 4): the CUDA kernel's scratch. Another operator's case launches ``n_steps`` 0 (the
     first cycle), then 1 per iteration (with w = A z given)."""
     multigrid_cg_steps(n_steps, cycle_first, with_matrix, m_indptr, m_indices, m_data, a_indptr, a_indices, a_data,
                        p_indptr, p_indices, p_data, r_indptr, r_indices, r_data, inv_diag, coarse_inverse,
-                       coarse_partial, work, x, p, s, w, u_t, coupled, t_partial, t, layout, levels, cheb, state,
-                       partial, np.empty(CG_STATE), 0, 1)
+                       coarse_partial, work, x, p, s, w, u_t, coupled, t_partial, t, layout, levels, cheb, begin, b,
+                       from_zero, rtol2, state, partial, np.empty(CG_STATE), 0, 1)
 
 
 @numba.njit(inline="always")

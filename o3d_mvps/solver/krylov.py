@@ -89,8 +89,6 @@ def pcg(A, b, x0, rtol: float, maxiter: int, preconditioner: Callable | None = N
     on_host = xp is np
     packed = None if on_host else getattr(preconditioner, "packed", None)
     state = xp.empty(CG_STATE)
-    partial = xp.empty((REDUCTION_BLOCKS, 2))
-    counter = xp.zeros(1, dtype=np.int32)
     p, s = xp.empty_like(b), xp.empty_like(b)
     if packed is not None:  # r and z in the V-cycle's workspace: its level 0's right-hand side and result
         work = xp.empty((MG_ROWS, packed.unknowns))
@@ -105,15 +103,18 @@ def pcg(A, b, x0, rtol: float, maxiter: int, preconditioner: Callable | None = N
             r = residual
         else:
             r[...] = residual
-    kernels.cg_start(b, x, r, p, s, x0 is None, rtol * rtol, state, partial, counter)
     # a CSR matrix (CuPy's have no format attribute): w = A z in the pass of the dot products
     matrix = getattr(A, "indptr", None) is not None and getattr(A, "format", "csr") == "csr"
-    csr = (A.indptr, A.indices, A.data) if matrix else (counter, counter, state)
     w = xp.empty_like(b) if matrix else None
     next_check, reads = max(1, min(first_check, maxiter)), 0
     code = None
-    if packed is not None:
-        return _pcg_multigrid(A, matrix, x, p, s, w, work, state, packed, maxiter, next_check, check_every)
+    if packed is not None:  # CG's start in the first launch
+        return _pcg_multigrid(A, matrix, b, x0 is None, rtol * rtol, x, p, s, w, work, state, packed, maxiter,
+                              next_check, check_every)
+    partial = xp.empty((REDUCTION_BLOCKS, 2))
+    counter = xp.zeros(1, dtype=np.int32)
+    kernels.cg_start(b, x, r, p, s, x0 is None, rtol * rtol, state, partial, counter)
+    csr = (A.indptr, A.indices, A.data) if matrix else (counter, counter, state)
     for iteration in range(1, maxiter + 1):
         z = r if preconditioner is None else preconditioner(r)
         if not matrix:
@@ -141,8 +142,10 @@ def _checks_apart(rr: float, rr_previous: float, rr_start: float, threshold: flo
     return max(check_every, 2 * iteration) if left is None else int(np.ceil(READ_MARGIN * left)) + 1
 
 
-def _pcg_multigrid(A, matrix: bool, x, p, s, w, work, state, packed, maxiter: int, next_check: int, check_every: int):
-    """:func:`pcg`'s iterations on a device with a packed multigrid (:attr:`Multigrid.packed`):
+def _pcg_multigrid(A, matrix: bool, b, from_zero: bool, rtol2: float, x, p, s, w, work, state, packed, maxiter: int,
+                   next_check: int, check_every: int):
+    """:func:`pcg`'s start and iterations on a device with a packed multigrid (:attr:`Multigrid.packed`),
+    the start (:func:`.kernels.cg_start`'s, on b (N,), ``from_zero``, rtol2 = rtol^2) in the first launch:
     where A is the hierarchy's own CSR matrix M, or ``M + C U^T`` (an operator with
     ``low_rank_parts`` (M, C (N, K), U^T (K, N)): the joint step's Schur complement), all
     iterations up to a read of the state in one launch of :func:`.kernels.multigrid_cg` (the
@@ -166,14 +169,18 @@ def _pcg_multigrid(A, matrix: bool, x, p, s, w, work, state, packed, maxiter: in
         u_t = coupled = t_partial = xp.empty((0, 0))
         t = xp.empty(0)
 
+    begin = [True]  # the first launch starts CG
+
     def launch(n_steps: int, cycle_first: bool, w):
         kernels.multigrid_cg(n_steps, cycle_first, matrix, *csr, *packed.arrays, work, x, p, s, w, u_t, coupled,
-                             t_partial, t, packed.layout, packed.levels, packed.cheb, state, partial)
+                             t_partial, t, packed.layout, packed.levels, packed.cheb, begin[0], b, from_zero, rtol2,
+                             state, partial)
+        begin[0] = False
 
     iteration, reads, code = 0, 0, None
     w = xp.empty_like(x) if w is None else w
-    if not matrix:
-        launch(0, True, x)  # the first cycle, z from r (w unread)
+    if not matrix or maxiter < 1:
+        launch(0, maxiter >= 1, x)  # the start and the first cycle, z from r (w unread)
     while iteration < maxiter:
         if matrix:
             launch(next_check - iteration, iteration == 0, w)
