@@ -104,6 +104,8 @@ SIGNATURES = {
     "_multigrid_setup": (_array(1, types.int32), _array(1, types.int32), _F1, _array(1, types.int32),
                          _array(1, types.int32), _F1, *(_array(1, types.int32),) * 4, _F1, _F2, _F3, _F1,
                          types.UniTuple(types.int64, 8 * 12), types.int64),
+    "_prior_gradient": (*(_array(1, types.int32), _array(1, types.int32), _F1) * 3, types.boolean, _F1, _F1,
+                        types.float64, types.float64, _F1),
 }
 
 

@@ -1026,3 +1026,24 @@ def test_depth_step_matches_cpu_and_the_line_search_formula(envelope):
     np.testing.assert_array_equal(np.isnan(gpu[-2]), np.arange(N) == 13)
     assert_close(np.delete(gpu[-2], 13), np.delete(expected, 13))
     assert cpu[-1].sum() == gpu[-1].sum() == (1 if envelope else 2)
+
+
+def test_prior_gradient_matches_cpu_and_the_sparse_formula():
+    """The depth prior's minus gradient ``-2 tau D^T (D z - z0) - 2 mu S^T S z`` in one launch
+    (kernels.prior_gradient; was three csr_multiply_add passes): equal to the sparse formula to
+    round-off, CUDA against CPU; without S its first term alone (S's arrays unread)."""
+    N, M, tau, mu = 60, 20, 3.0, 0.5
+    D = sp.random(M, N, density=0.1, random_state=7, format="csr")
+    S = sp.random(N, N, density=0.05, random_state=8, format="csr")
+    StS = (S.T @ S).tocsr()
+    Dt = D.T.tocsr()
+    for m in (D, Dt, StS):
+        m.indptr, m.indices = m.indptr.astype(np.int32), m.indices.astype(np.int32)
+    z, z0 = RNG.random(N), RNG.random(M)
+    expected = -2 * tau * (D.T @ (D @ z - z0)) - 2 * mu * (StS @ z)
+    for with_s in (True, False):
+        Q = StS if with_s else D
+        cpu, gpu = run_both("prior_gradient", D.indptr, D.indices, D.data, Dt.indptr, Dt.indices, Dt.data, Q.indptr,
+                            Q.indices, Q.data, with_s, z, -z0, -2 * tau, -2 * mu, np.full(N, np.nan))
+        assert_close(cpu[-1], expected if with_s else -2 * tau * (D.T @ (D @ z - z0)))
+        assert_close(gpu[-1], cpu[-1])

@@ -1270,3 +1270,24 @@ def multigrid_setup(m_indptr, m_indices, m_data, a_indptr, a_indices, a_data, p_
     wanted = _blocks(max(m_indptr.shape[0], coarse.size))
     blocks = min(_cooperative_blocks(_multigrid_setup, args, wanted), partial.shape[0])
     _multigrid_setup[blocks, THREADS_PER_BLOCK](*args)
+
+
+__all__ += ["prior_gradient"]
+_prior_gradient_row = _device(kernels.prior_gradient_row)
+
+
+@cuda.jit(cache=True)
+def _prior_gradient(D_indptr, D_indices, D_data, t_indptr, t_indices, t_data, S_indptr, S_indices, S_data, with_s, z,
+                    negative_z0, tau2, mu2, out):  # pragma: no cover - device
+    i = cuda.grid(1)
+    if i < out.shape[0]:
+        out[i] = _prior_gradient_row(D_indptr, D_indices, D_data, t_indptr, t_indices, t_data, S_indptr, S_indices,
+                                     S_data, with_s, z, negative_z0, tau2, mu2, i)
+
+
+def prior_gradient(D_indptr, D_indices, D_data, t_indptr, t_indices, t_data, S_indptr, S_indices, S_data, with_s, z,
+                   negative_z0, tau2, mu2, out) -> None:
+    """:func:`.kernels.prior_gradient` on the GPU (one thread per row)."""
+    _prior_gradient[_blocks(out.shape[0]), THREADS_PER_BLOCK](D_indptr, D_indices, D_data, t_indptr, t_indices, t_data,
+                                                              S_indptr, S_indices, S_data, bool(with_s), z,
+                                                              negative_z0, float(tau2), float(mu2), out)

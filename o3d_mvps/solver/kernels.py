@@ -2275,3 +2275,31 @@ def multigrid_setup(m_indptr, m_indices, m_data, a_indptr, a_indices, a_data, p_
     coarsest is m itself. pivots (2, 2, n), partial (blocks,): scratch."""
     multigrid_setup_steps(m_indptr, m_indices, m_data, a_indptr, a_indices, a_data, p_indptr, p_indices, r_indptr,
                           r_indices, inv_diag, coarse, pivots, partial, layout, levels, 0, 1)
+
+
+@numba.njit(inline="always")
+def prior_gradient_row(D_indptr, D_indices, D_data, t_indptr, t_indices, t_data, S_indptr, S_indices, S_data,
+                       with_s, z, negative_z0, tau2, mu2, i):  # pragma: no cover - compiled
+    """Row i of ``tau2 D^T (D z - z0) + mu2 S^T S z`` (with_s; else its first term), D^T's
+    row from its CSR arrays t_* and each ``(D z - z0)_m`` it takes formed here, added as
+    :func:`csr_multiply_add`'s three passes add them (``-z0 + 1 D z``, ``0 + tau2 D^T d``, ``+ mu2
+    S^T S z``)."""
+    total = 0.0
+    for k in range(t_indptr[i], t_indptr[i + 1]):
+        m = t_indices[k]
+        total += t_data[k] * (negative_z0[m] + 1.0 * csr_row_dot(D_indptr, D_indices, D_data, z, m))
+    value = 0.0 + tau2 * total
+    if with_s:
+        value = value + mu2 * csr_row_dot(S_indptr, S_indices, S_data, z, i)
+    return value
+
+
+@numba.njit(parallel=True, cache=True)
+def prior_gradient(D_indptr, D_indices, D_data, t_indptr, t_indices, t_data, S_indptr, S_indices, S_data, with_s, z,
+                   negative_z0, tau2, mu2, out):  # pragma: no cover - compiled
+    """The depth prior's ``out = tau2 D^T (D z - z0) + mu2 S^T S z`` (N,) in one pass
+    (:meth:`.pyramid.DepthPrior.negative_gradient`: tau2 = -2 tau, mu2 = -2 mu) for D (M, N),
+    D^T (N, M) and S^T S (N, N) CSR (with_s False: S^T S unread), z (N,), negative_z0 (M,) = -z0."""
+    for i in numba.prange(out.shape[0]):
+        out[i] = prior_gradient_row(D_indptr, D_indices, D_data, t_indptr, t_indices, t_data, S_indptr, S_indices,
+                                    S_data, with_s, z, negative_z0, tau2, mu2, i)
