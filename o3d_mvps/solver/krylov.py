@@ -696,6 +696,9 @@ def multigrid_preconditioner(A, prolongations: list, *, smoother: str = "chebysh
     prolongations saved 10-14 % of the iterations in all (-20 to +38 % per system) for 1.9-2.3
     times the non-zeros read per iteration and 7-14 times the setup (on the CPU), and they depend
     on A, so they cannot be built once per grid.
+
+    On a device, with Chebyshev smoothers and the grid's tentative prolongations
+    (:class:`Prolongations`), the whole set-up is one launch (:func:`_device_multigrid`).
     """
     xp = array_module(A.data)
     sparse = sparse_module(A)
