@@ -34,8 +34,7 @@ launch, the set-up's, lighting's and albedo's kernels and the trial states' kern
 path keeps more array operations). The multigrid's set-up in one launch, CG's start in its first
 launch and the prior's gradient in one (issue 33, gpukrylov; these problems' multigrid is the dense
 coarsest alone): 100 / 113 and 297.5 launches, copies as before. The bounds are these counts with a
-margin of about 1 % (1-3
-launches, 1 copy, 0.5 on the room's copies).
+margin of about 1 % (1-3 launches, 1 copy, 0.5 on the room's copies).
 """
 
 import shutil
