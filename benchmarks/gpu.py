@@ -23,7 +23,8 @@ stand-in of tests/cupy_emulation.py; no memory counted, times meaningless).
   kernels standing in for the CUDA ones (one launch per call) and the CUDA path's levels (those
   below CUDA_MIN_LEVEL_PIXELS on the CPU); writes ``gpu_counts.json``: per problem the totals by
   kind, launches (every operation but the copies) and transfers (copies either way), and per
-  level the operations, launches and transfers per sweep, the commit counted, the linear solves
+  level the operations, launches and transfers per sweep and each sweep's CG iterations
+  (``cg_iterations``), the commit counted, the linear solves
   and their host reads (copies to the host) each; with ``baseline`` the totals of
   ``gpu_operations.json`` (the counts at aacda76) and their ratio, with ``previous`` the counts
   of the ``gpu_counts.json`` it overwrites (launches and transfers, per sweep of each device
@@ -179,7 +180,8 @@ def count(folder, out="benchmarks/results", min_level_pixels: int | None = None,
         rows = solve_level_sweeps(problem, *args, **kwargs)
         operations, transfers = sum(kinds.values()) - before, kinds["to_host"] + kinds["to_device"] - copies_before
         levels.append({"level": problem.level.index, "pixels": problem.level.grid.size, "sweeps": len(rows) - 1,
-                       "operations": operations, "launches": operations - transfers, "transfers": transfers})
+                       "operations": operations, "launches": operations - transfers, "transfers": transfers,
+                       "cg_iterations": [row.get("cg_iterations") for row in rows[1:]]})
         if sites:
             levels[-1]["sites"] = cupy_emulation.sites - sites_before
         return rows

@@ -70,7 +70,7 @@ SIGNATURES = {
                       *(_array(1, types.int32), _array(1, types.int32), _F1) * 4,
                       _F1, _F2, _F2, _F2, _F1, _F1, _F1, _F1, _F2, _F2, _F2, _F1, types.UniTuple(types.int64, 8 * 12),
                       types.int64,
-                      types.UniTuple(types.float64, 5), _F1, _F2),
+                      types.UniTuple(types.float64, 5), types.boolean, _F1, types.boolean, types.float64, _F1, _F2),
     "_twist_system": (_F3, _F1, _F1, _F2, types.float64, _F3, _F1, _F2, _F1, _F2),
     "_twist_inverse": (_F3, _F3, _F1, types.float64, _F3, _F3, _F1, _F1),
     "_ridge_solves": (_F3, _F3, types.float64, types.float64, _F3, _F3, _F1),
@@ -131,6 +131,12 @@ SIGNATURES = {
                                     _R3, _F2, _array(1, types.int32), _array(1, types.int32), _F1, _F1,
                                     _array(1, types.int32), _array(1, types.int32), _F1, types.float64,
                                     types.float64, _F1, _F2),
+    # gpukrylov: the device multigrid's set-up (level 0's CSR, the coarser levels', P's and R's indptr and indices)
+    "_multigrid_setup": (_array(1, types.int32), _array(1, types.int32), _F1, _array(1, types.int32),
+                         _array(1, types.int32), _F1, *(_array(1, types.int32),) * 4, _F1, _F2, _F3, _F1,
+                         types.UniTuple(types.int64, 8 * 12), types.int64),
+    "_prior_gradient": (*(_array(1, types.int32), _array(1, types.int32), _F1) * 3, types.boolean, _F1, _F1,
+                        types.float64, types.float64, _F1),
 }
 
 

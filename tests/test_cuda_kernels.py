@@ -393,6 +393,15 @@ def test_cg_passes_stop_at_convergence_and_idle_after():
         assert_close(x, b / A.diagonal())
 
 
+def multigrid_grid(shape=(22, 26)):
+    """The disc of pixels of :func:`multigrid_system`."""
+    from o3d_mvps.model.normals import masked_grid
+
+    H, W = shape
+    v, u = np.mgrid[:H, :W]
+    return masked_grid((u - W / 2) ** 2 + (v - H / 2) ** 2 < (0.45 * min(H, W)) ** 2)
+
+
 def multigrid_system(shape=(22, 26)):
     """(A, hierarchy): an SPD matrix on a disc of pixels (a 5-point Laplacian plus a random
     positive diagonal) and its multigrid (:func:`krylov.multigrid_preconditioner`, host) of three
@@ -424,12 +433,59 @@ def multigrid_system(shape=(22, 26)):
     return A, hierarchy
 
 
+def device_multigrid(A, grid, simulated: bool):
+    """:func:`krylov.multigrid_preconditioner` of A on the CuPy stand-in (tests/cupy_emulation.py):
+    its set-up launch run by the CUDA kernel (numba's simulator) or by its CPU twin; the packed
+    arrays as NumPy arrays and the layout."""
+    import cupy_emulation as cp
+    from contextlib import nullcontext
+
+    from benchmarks.gpu import _cpu_kernels_as_cuda_kernels
+    from o3d_mvps.solver import krylov
+
+    with cp.installed(), nullcontext() if simulated else _cpu_kernels_as_cuda_kernels(cp):
+        prolongations = krylov.pixel_prolongations(cp.asarray(grid.u), cp.asarray(grid.v), max_coarse=30)
+        before = cp.operations["kernel"]
+        multigrid = krylov.multigrid_preconditioner(cp.sparse.csr_matrix(A), prolongations)
+        launches = cp.operations["kernel"] - before
+        return [cp.host_data(a) for a in multigrid.packed.arrays], multigrid.packed.layout, launches
+
+
+def test_multigrid_setup_matches_cpu_and_the_host_hierarchy():
+    """The device multigrid's set-up in one launch (kernels.multigrid_setup: every level's
+    D^-1 / bound, the Galerkin operators P^T A P, the coarsest's inverse): CUDA (the simulator runs
+    one block) against its CPU twin to round-off; both against the host's hierarchy (SciPy's
+    products, NumPy's inverse): the scalings and the coarse operators' patterns and values equal
+    (measured: bit for bit, the same sums), the coarsest inverse to 1e-13 (measured 1.2e-15)."""
+    A, hierarchy = multigrid_system()
+    grid = multigrid_grid()
+    (cpu, layout, launches), (gpu, _, _) = (device_multigrid(A, grid, simulated) for simulated in (False, True))
+    assert launches == 1 and len(hierarchy.levels) == 3
+    for k, level in enumerate(hierarchy.levels):
+        offset, n = layout[kernels.MG_FIELDS * k + kernels.MG_VEC], layout[kernels.MG_FIELDS * k + kernels.MG_N]
+        np.testing.assert_array_equal(cpu[9][offset:offset + n], level.smoother.inv_diag)
+        assert_close(gpu[9][offset:offset + n], cpu[9][offset:offset + n])
+        if k == 0:
+            continue
+        start, nz = layout[kernels.MG_FIELDS * k + kernels.MG_A_PTR], layout[kernels.MG_FIELDS * k + kernels.MG_A_NZ]
+        for arrays in (cpu, gpu):
+            indptr = arrays[0][start:start + n + 1]
+            C = sp.csr_matrix((arrays[2][nz:nz + indptr[-1]], arrays[1][nz:nz + indptr[-1]], indptr), shape=(n, n))
+            assert C.has_sorted_indices and C.nnz == level.A.nnz
+            np.testing.assert_array_equal(C.indices, level.A.indices)
+            assert_close(C.data, level.A.data)
+    assert_close(cpu[10], hierarchy.coarse_inverse, rtol=1e-13)
+    np.testing.assert_array_equal(cpu[10], cpu[10].T)
+    assert_close(gpu[10], cpu[10])
+
+
 def test_multigrid_cg_matches_cpu_the_host_cycle_and_host_pcg():
     """multigrid_cg (the V-cycle and CG in one cooperative launch; the simulator runs one block):
     CUDA against CPU to round-off; its V-cycle alone (no CG step) against the host's
     :class:`krylov.Multigrid` (SciPy's products) and its CG iterations, from one launch or two,
     with w = A z in the kernel (also for A + C U^T, a Schur complement's low-rank term) or given,
-    against the host's :func:`krylov.pcg` after as many."""
+    against the host's :func:`krylov.pcg` after as many; CG's start by cg_start or in the first
+    launch."""
     from o3d_mvps.solver import krylov
 
     A, hierarchy = multigrid_system()
@@ -452,14 +508,16 @@ def test_multigrid_cg_matches_cpu_the_host_cycle_and_host_pcg():
             r, z = work[kernels.MG_B, :n], work[kernels.MG_XU, :n]
             state, partial = np.zeros(kernels.CG_STATE), np.zeros((kernels.REDUCTION_BLOCKS, 2))
             x, p, s, w = (np.full(n, np.nan) for _ in range(4))
-            module.cg_start(b, x, r, p, s, True, 1e-30, state, partial, np.zeros(1, np.int32))
+            begin = len(steps) % 2 == 0  # CG's start in the first launch, else cg_start's own
+            if not begin:
+                module.cg_start(b, x, r, p, s, True, 1e-30, state, partial, np.zeros(1, np.int32))
             for k, n_steps in enumerate(steps):
                 if not with_matrix:
                     w = A @ z  # the operator's product between launches
                 t_partial, t = np.zeros((-(-n // kernels.LOW_RANK_CHUNK), u_t.shape[0])), np.zeros(u_t.shape[0])
                 module.multigrid_cg(n_steps, k == 0, with_matrix, A.indptr, A.indices, A.data, *arrays, work, x, p, s,
-                                    w, u_t, coupled, t_partial, t, packed.layout, packed.levels, packed.cheb, state,
-                                    np.zeros((kernels.COOPERATIVE_BLOCKS, 4)))
+                                    w, u_t, coupled, t_partial, t, packed.layout, packed.levels, packed.cheb,
+                                    begin and k == 0, b, True, 1e-30, state, np.zeros((kernels.COOPERATIVE_BLOCKS, 4)))
             results[name] = (x.copy(), z.copy(), state.copy())
         (x, z, state), (x_gpu, z_gpu, state_gpu) = results["cpu"], results["cuda"]
         assert_close(z_gpu, z)
@@ -1318,3 +1376,22 @@ def test_trial_energy_partials_match_energy_partials_per_trial():
         assert gpu[-1][f, :, 0].sum() == pytest.approx(one[1][:, 0].sum(), rel=1e-6)
         assert gpu[-1][f, :, 1].sum() == pytest.approx(one[1][:, 1].sum(), rel=1e-12)
     assert len(set(cpu[-1][:, :, 0].sum(axis=1))) == F  # the trials differ
+def test_prior_gradient_matches_cpu_and_the_sparse_formula():
+    """The depth prior's minus gradient ``-2 tau D^T (D z - z0) - 2 mu S^T S z`` in one launch
+    (kernels.prior_gradient; was three csr_multiply_add passes): equal to the sparse formula to
+    round-off, CUDA against CPU; without S its first term alone (S's arrays unread)."""
+    N, M, tau, mu = 60, 20, 3.0, 0.5
+    D = sp.random(M, N, density=0.1, random_state=7, format="csr")
+    S = sp.random(N, N, density=0.05, random_state=8, format="csr")
+    StS = (S.T @ S).tocsr()
+    Dt = D.T.tocsr()
+    for m in (D, Dt, StS):
+        m.indptr, m.indices = m.indptr.astype(np.int32), m.indices.astype(np.int32)
+    z, z0 = RNG.random(N), RNG.random(M)
+    expected = -2 * tau * (D.T @ (D @ z - z0)) - 2 * mu * (StS @ z)
+    for with_s in (True, False):
+        Q = StS if with_s else D
+        cpu, gpu = run_both("prior_gradient", D.indptr, D.indices, D.data, Dt.indptr, Dt.indices, Dt.data, Q.indptr,
+                            Q.indices, Q.data, with_s, z, -z0, -2 * tau, -2 * mu, np.full(N, np.nan))
+        assert_close(cpu[-1], expected if with_s else -2 * tau * (D.T @ (D @ z - z0)))
+        assert_close(gpu[-1], cpu[-1])

@@ -576,12 +576,13 @@ def log1p_square_sum(x, scale: float) -> float:
 @cuda.jit(cache=True)
 def _multigrid_cg(n_steps, cycle_first, with_matrix, m_indptr, m_indices, m_data, a_indptr, a_indices, a_data, p_indptr,
                   p_indices, p_data, r_indptr, r_indices, r_data, inv_diag, coarse_inverse, coarse_partial, work, x, p,
-                  s, w, u_t, coupled, t_partial, t, layout, levels, cheb, state, partial):  # pragma: no cover - device
+                  s, w, u_t, coupled, t_partial, t, layout, levels, cheb, begin, b, from_zero, rtol2, state,
+                  partial):  # pragma: no cover - device
     local = cuda.local.array(_CG_STATE, numba.float64)
     _multigrid_cg_steps(n_steps, cycle_first, with_matrix, m_indptr, m_indices, m_data, a_indptr, a_indices, a_data,
                         p_indptr, p_indices, p_data, r_indptr, r_indices, r_data, inv_diag, coarse_inverse,
-                        coarse_partial, work, x, p, s, w, u_t, coupled, t_partial, t, layout, levels, cheb, state,
-                        partial, local, cuda.grid(1), cuda.gridsize(1))
+                        coarse_partial, work, x, p, s, w, u_t, coupled, t_partial, t, layout, levels, cheb, begin, b,
+                        from_zero, rtol2, state, partial, local, cuda.grid(1), cuda.gridsize(1))
 
 
 #: (device, argument types) -> the most blocks of :func:`_multigrid_cg` resident at once
@@ -603,14 +604,15 @@ def _cooperative_blocks(kernel, args, wanted: int) -> int:
 
 def multigrid_cg(n_steps, cycle_first, with_matrix, m_indptr, m_indices, m_data, a_indptr, a_indices, a_data, p_indptr,
                  p_indices, p_data, r_indptr, r_indices, r_data, inv_diag, coarse_inverse, coarse_partial, work, x, p,
-                 s, w, u_t, coupled, t_partial, t, layout, levels, cheb, state, partial) -> None:
+                 s, w, u_t, coupled, t_partial, t, layout, levels, cheb, begin, b, from_zero, rtol2, state,
+                 partial) -> None:
     """:func:`.kernels.multigrid_cg` on the GPU in one cooperative launch (its passes separated by
     the grid's sync; rows in grid-stride loops over at most :data:`.kernels.COOPERATIVE_BLOCKS` blocks,
     the rows of ``partial`` (blocks, 4))."""
     args = (int(n_steps), bool(cycle_first), bool(with_matrix), m_indptr, m_indices, m_data, a_indptr, a_indices,
             a_data, p_indptr, p_indices, p_data, r_indptr, r_indices, r_data, inv_diag, coarse_inverse,
             coarse_partial, work, x, p, s, w, u_t, coupled, t_partial, t, tuple(int(v) for v in layout), int(levels),
-            tuple(float(v) for v in cheb), state, partial)
+            tuple(float(v) for v in cheb), bool(begin), b, bool(from_zero), float(rtol2), state, partial)
     wanted = _blocks(max(x.shape[0], coarse_partial.size, t_partial.size))
     blocks = min(_cooperative_blocks(_multigrid_cg, args, wanted), partial.shape[0])
     _multigrid_cg[blocks, THREADS_PER_BLOCK](*args)
@@ -1596,3 +1598,99 @@ def trial_energy_partials(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v,
         z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses, images, visible, albedo, lights,
         bool(led), offsets, float(scale), bool(single), D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data,
         float(tau), float(mu), usable, partial)
+# --- gpukrylov ------------------------------------------------------------------------------------
+# The device multigrid's set-up in one cooperative launch (issue 33): kernels.multigrid_setup.
+
+__all__ += ["multigrid_setup"]
+
+
+def _grid_max(value, partial):  # pragma: no cover - device
+    """:func:`.kernels.grid_max` in a CUDA kernel: each block's largest (a tree in shared memory)
+    into ``partial[block]``, the grid's sync, then every thread's largest over the blocks."""
+    share = cuda.shared.array(THREADS_PER_BLOCK, numba.float64)
+    t = cuda.threadIdx.x
+    share[t] = value
+    cuda.syncthreads()
+    half = THREADS_PER_BLOCK // 2
+    while half > 0:
+        if t < half:
+            share[t] = max(share[t], share[t + half])
+        cuda.syncthreads()
+        half //= 2
+    if t == 0:
+        partial[cuda.blockIdx.x] = share[0]
+    cuda.cg.this_grid().sync()
+    largest = -math.inf
+    for b in range(cuda.gridDim.x):
+        largest = max(largest, partial[b])
+    return largest
+
+
+def _grid_prefix(value, partial):  # pragma: no cover - device
+    """:func:`.kernels.grid_prefix` in a CUDA kernel: the block's threads' values before this
+    thread's (thread 0 of the block adds them in order in shared memory), the block's total into
+    ``partial[block]``, the grid's sync, then the earlier blocks' totals added in order."""
+    share = cuda.shared.array(THREADS_PER_BLOCK, numba.float64)
+    t = cuda.threadIdx.x
+    share[t] = value
+    cuda.syncthreads()
+    if t == 0:
+        running = 0.0
+        for k in range(THREADS_PER_BLOCK):
+            here = share[k]
+            share[k] = running
+            running += here
+        partial[cuda.blockIdx.x] = running
+    cuda.syncthreads()
+    before = share[t]
+    cuda.cg.this_grid().sync()
+    for b in range(cuda.blockIdx.x):
+        before += partial[b]
+    return before
+
+
+_GRID["grid_max"], _GRID["grid_prefix"] = (
+    (_grid_max, _grid_prefix) if cuda.config.ENABLE_CUDASIM else
+    (numba.njit(inline="always")(_grid_max), numba.njit(inline="always")(_grid_prefix)))
+_multigrid_setup_steps = _on_grid(kernels.multigrid_setup_steps)
+
+
+@cuda.jit(cache=True)
+def _multigrid_setup(m_indptr, m_indices, m_data, a_indptr, a_indices, a_data, p_indptr, p_indices, r_indptr,
+                     r_indices, inv_diag, coarse, pivots, partial, layout, levels):  # pragma: no cover - device
+    _multigrid_setup_steps(m_indptr, m_indices, m_data, a_indptr, a_indices, a_data, p_indptr, p_indices, r_indptr,
+                           r_indices, inv_diag, coarse, pivots, partial, layout, levels, cuda.grid(1),
+                           cuda.gridsize(1))
+
+
+def multigrid_setup(m_indptr, m_indices, m_data, a_indptr, a_indices, a_data, p_indptr, p_indices, r_indptr, r_indices,
+                    inv_diag, coarse, pivots, partial, layout, levels) -> None:
+    """:func:`.kernels.multigrid_setup` on the GPU in one cooperative launch (its passes separated
+    by the grid's sync; rows and entries in grid-stride loops over at most ``partial.size``
+    blocks)."""
+    args = (m_indptr, m_indices, m_data, a_indptr, a_indices, a_data, p_indptr, p_indices, r_indptr, r_indices,
+            inv_diag, coarse, pivots, partial, tuple(int(v) for v in layout), int(levels))
+    wanted = _blocks(max(m_indptr.shape[0], coarse.size))
+    blocks = min(_cooperative_blocks(_multigrid_setup, args, wanted), partial.shape[0])
+    _multigrid_setup[blocks, THREADS_PER_BLOCK](*args)
+
+
+__all__ += ["prior_gradient"]
+_prior_gradient_row = _device(kernels.prior_gradient_row)
+
+
+@cuda.jit(cache=True)
+def _prior_gradient(D_indptr, D_indices, D_data, t_indptr, t_indices, t_data, S_indptr, S_indices, S_data, with_s, z,
+                    negative_z0, tau2, mu2, out):  # pragma: no cover - device
+    i = cuda.grid(1)
+    if i < out.shape[0]:
+        out[i] = _prior_gradient_row(D_indptr, D_indices, D_data, t_indptr, t_indices, t_data, S_indptr, S_indices,
+                                     S_data, with_s, z, negative_z0, tau2, mu2, i)
+
+
+def prior_gradient(D_indptr, D_indices, D_data, t_indptr, t_indices, t_data, S_indptr, S_indices, S_data, with_s, z,
+                   negative_z0, tau2, mu2, out) -> None:
+    """:func:`.kernels.prior_gradient` on the GPU (one thread per row)."""
+    _prior_gradient[_blocks(out.shape[0]), THREADS_PER_BLOCK](D_indptr, D_indices, D_data, t_indptr, t_indices, t_data,
+                                                              S_indptr, S_indices, S_data, bool(with_s), z,
+                                                              negative_z0, float(tau2), float(mu2), out)

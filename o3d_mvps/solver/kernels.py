@@ -751,18 +751,30 @@ def low_rank_product(u_t, z, t_partial, t, start, stride):  # pragma: no cover -
 @numba.njit
 def multigrid_cg_steps(n_steps, cycle_first, with_matrix, m_indptr, m_indices, m_data, a_indptr, a_indices, a_data,
                        p_indptr, p_indices, p_data, r_indptr, r_indices, r_data, inv_diag, coarse_inverse,
-                       coarse_partial, work, x, p, s, w, u_t, coupled, t_partial, t, layout, levels, cheb, state,
-                       partial, local, start, stride):  # pragma: no cover - compiled
+                       coarse_partial, work, x, p, s, w, u_t, coupled, t_partial, t, layout, levels, cheb, begin,
+                       b, from_zero, rtol2, state, partial, local, start, stride):  # pragma: no cover - compiled
     """:func:`multigrid_cg` by one thread of ``start, start + stride, ...`` rows, its scalars in
     ``local`` (:data:`CG_STATE`, each thread's copy of the state: every thread sums the same
     partial sums in the same order, so all hold the same; the thread of ``start`` 0 writes them
     back)."""
     for k in range(CG_STATE):
         local[k] = state[k]
-    if local[CG_ACTIVE] == 0.0:  # every thread read the state before any writes it (after a barrier)
-        return
     n = x.shape[0]
     r, z = work[MG_B, :n], work[MG_XU, :n]
+    if begin:  # CG's start (cg_start's pass), its sums through partial's slots 2, 3
+        first = second = 0.0
+        for row in range(start, n, stride):
+            a, c = cg_row(CG_START, m_indptr, m_indices, m_data, False, from_zero, b, b, b, p, s, x, r, 0.0, 0.0,
+                          row)
+            first += a
+            second += c
+        first, second = grid_sum2(first, second, partial, 2)
+        cg_finish(CG_START, local, first, second, rtol2)
+        if start == 0:
+            for k in range(CG_STATE):
+                state[k] = local[k]
+    if local[CG_ACTIVE] == 0.0:  # every thread read the state before any writes it (after a barrier)
+        return
     if cycle_first:
         multigrid_cycle(m_indptr, m_indices, m_data, a_indptr, a_indices, a_data, p_indptr, p_indices, p_data,
                         r_indptr, r_indices, r_data, inv_diag, coarse_inverse, coarse_partial, work, layout, levels,
@@ -804,7 +816,8 @@ def multigrid_cg_steps(n_steps, cycle_first, with_matrix, m_indptr, m_indices, m
 @numba.njit(cache=True)
 def multigrid_cg(n_steps, cycle_first, with_matrix, m_indptr, m_indices, m_data, a_indptr, a_indices, a_data, p_indptr,
                  p_indices, p_data, r_indptr, r_indices, r_data, inv_diag, coarse_inverse, coarse_partial, work, x, p,
-                 s, w, u_t, coupled, t_partial, t, layout, levels, cheb, state, partial):  # pragma: no cover - compiled
+                 s, w, u_t, coupled, t_partial, t, layout, levels, cheb, begin, b, from_zero, rtol2, state,
+                 partial):  # pragma: no cover - compiled
     """Up to ``n_steps`` iterations of multigrid-preconditioned CG (:func:`.krylov.pcg` with a
     :class:`.krylov.Multigrid` of Chebyshev smoothers) in one launch: per iteration the dot
     products (:func:`cg_row`: w = A z where ``with_matrix``, else w given), the
@@ -820,13 +833,14 @@ def multigrid_cg(n_steps, cycle_first, with_matrix, m_indptr, m_indices, m_data,
     complement ``M + coupled U^T`` (:meth:`.normal_equations.JointSystem.schur_operator`,
     coupled = -U H^-1), its product formed here too where ``with_matrix``
     (:func:`low_rank_product`; t_partial (chunks, K), t (K,) its scratch); state
-    (:data:`CG_STATE`) after :func:`cg_start`; partial
+    (:data:`CG_STATE`) after :func:`cg_start`, or with ``begin`` that start made here first (on
+    b (N,), ``from_zero``, rtol2: :func:`cg_start`'s; r is work's row); partial
     (blocks, 4): the CUDA kernel's scratch. Another operator's case launches ``n_steps`` 0 (the
     first cycle), then 1 per iteration (with w = A z given)."""
     multigrid_cg_steps(n_steps, cycle_first, with_matrix, m_indptr, m_indices, m_data, a_indptr, a_indices, a_data,
                        p_indptr, p_indices, p_data, r_indptr, r_indices, r_data, inv_diag, coarse_inverse,
-                       coarse_partial, work, x, p, s, w, u_t, coupled, t_partial, t, layout, levels, cheb, state,
-                       partial, np.empty(CG_STATE), 0, 1)
+                       coarse_partial, work, x, p, s, w, u_t, coupled, t_partial, t, layout, levels, cheb, begin, b,
+                       from_zero, rtol2, state, partial, np.empty(CG_STATE), 0, 1)
 
 
 @numba.njit(inline="always")
@@ -2518,3 +2532,222 @@ def trial_energy_partials(z, u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v,
         energy_partials(z[f], u, v, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, K, poses[f], images, visible,
                         albedo[f], lights[f], led, offsets[f, 0], offsets[f, 1], offsets[f, 2], scale, single,
                         D_indptr, D_indices, D_data, z0, S_indptr, S_indices, S_data, tau, mu, usable[f], partial[f])
+# --- gpukrylov --------------------------------------------------------------------------------
+# The device multigrid's per-sweep set-up in one launch (issue 33): every level's smoother
+# scaling, the Galerkin coarse operators (CSR on the middle levels, dense on the coarsest) and the
+# coarsest level's inverse, from the system's CSR matrix and the grid's aggregation.
+
+
+@numba.njit(inline="always")
+def grid_max(value, partial):  # pragma: no cover - compiled
+    """The largest ``value`` over every thread of the launch: on the host (one thread) the value
+    itself; the CUDA kernel's through ``partial`` (blocks,) after the grid's sync (:mod:`.cuda_kernels`)."""
+    return value
+
+
+@numba.njit(inline="always")
+def grid_prefix(value, partial):  # pragma: no cover - compiled
+    """The sum of ``value`` over the launch's threads before this one (thread order: ``start``):
+    0 on the host (one thread); the CUDA kernel's through ``partial`` (blocks,) after the grid's
+    sync (:mod:`.cuda_kernels`). Integers as float64: exact below 2^53."""
+    return 0.0
+
+
+@numba.njit(inline="always")
+def galerkin_row(indptr, indices, data, R_indptr, R_indices, P_indptr, P_indices, I, out_indices, out_data,
+                 position, write):  # pragma: no cover - compiled
+    """Row I of the Galerkin product ``P^T A P`` of A (N, N) CSR and a piecewise-constant
+    prolongation P (N, n) (one entry of 1 a row: pixel i's aggregate ``P_indices[P_indptr[i]]``;
+    R = P^T's row I: the aggregate's pixels): its columns J (ascending) and values, the sum of
+    ``a_ij`` over i in aggregate I (R's order), j in aggregate J (A's stored order), written from
+    ``position`` where ``write``; returns the row's number of columns."""
+    count = 0
+    last = -1
+    big = 2147483647
+    while True:
+        following = big
+        for k in range(R_indptr[I], R_indptr[I + 1]):
+            i = R_indices[k]
+            for nz in range(indptr[i], indptr[i + 1]):
+                J = P_indices[P_indptr[indices[nz]]]
+                if last < J < following:
+                    following = J
+        if following == big:
+            return count
+        if write:
+            total = 0.0
+            for k in range(R_indptr[I], R_indptr[I + 1]):
+                i = R_indices[k]
+                for nz in range(indptr[i], indptr[i + 1]):
+                    if P_indices[P_indptr[indices[nz]]] == following:
+                        total += data[nz]
+            out_indices[position + count] = following
+            out_data[position + count] = total
+        count += 1
+        last = following
+
+
+@numba.njit(inline="always")
+def dense_galerkin_row(indptr, indices, data, R_indptr, R_indices, P_indptr, P_indices, aggregated, I,
+                       dense):  # pragma: no cover - compiled
+    """Row I of ``P^T A P`` (:func:`galerkin_row`, the same sums in the same order) into the dense
+    ``dense`` (n, n); with ``aggregated`` False, row I of A itself (P the identity)."""
+    for J in range(dense.shape[1]):
+        dense[I, J] = 0.0
+    if not aggregated:
+        for nz in range(indptr[I], indptr[I + 1]):
+            dense[I, indices[nz]] += data[nz]
+        return
+    for k in range(R_indptr[I], R_indptr[I + 1]):
+        i = R_indices[k]
+        for nz in range(indptr[i], indptr[i + 1]):
+            dense[I, P_indices[P_indptr[indices[nz]]]] += data[nz]
+
+
+@numba.njit(inline="always")
+def sweep_entry(M, pivots, k, b, item):  # pragma: no cover - compiled
+    """Entry ``item`` (row-major) of step k of the Gauss-Jordan inversion in place of M (n, n)
+    SPD (no pivoting: its pivots stay positive), reading pivot row and column k from
+    ``pivots[b]`` (2, n) and writing row and column k + 1 after the step into ``pivots[1 - b]``
+    (so that a step needs one barrier)."""
+    n = M.shape[0]
+    i, j = item // n, item % n
+    p = pivots[b, 0, k]
+    if i == k and j == k:
+        value = 1.0 / p
+    elif i == k:
+        value = pivots[b, 0, j] / p
+    elif j == k:
+        value = -pivots[b, 1, i] / p
+    else:
+        value = M[i, j] - pivots[b, 1, i] * (pivots[b, 0, j] / p)
+    M[i, j] = value
+    if i == k + 1:
+        pivots[1 - b, 0, j] = value
+    if j == k + 1:
+        pivots[1 - b, 1, i] = value
+
+
+@numba.njit
+def multigrid_setup_steps(m_indptr, m_indices, m_data, a_indptr, a_indices, a_data, p_indptr, p_indices, r_indptr,
+                          r_indices, inv_diag, coarse, pivots, partial, layout, levels, start,
+                          stride):  # pragma: no cover - compiled
+    """:func:`multigrid_setup` by one thread of ``start, start + stride, ...`` rows (entries),
+    every pass followed by :func:`grid_barrier`."""
+    indptr, indices, data = m_indptr, m_indices, m_data
+    P_indptr, P_indices, R_indptr, R_indices = m_indptr, m_indices, m_indptr, m_indices
+    for k in range(levels + 1):
+        n = layout[MG_FIELDS * k + MG_N]
+        if k == 0:
+            indptr, indices, data = m_indptr, m_indices, m_data
+        else:
+            indptr, indices, data = _mg_csr(a_indptr, a_indices, a_data, layout, k, MG_A_PTR, n)
+        if k == levels:
+            break
+        offset = layout[MG_FIELDS * k + MG_VEC]
+        diagonal = inv_diag[offset:offset + n]
+        for i in range(start, n, stride):  # the smoother's D^-1 / bound (as kernels.smoother_scaling)
+            inverse_diagonal_row(indptr, indices, data, diagonal, i)
+        grid_barrier()
+        bound = -math.inf
+        for i in range(start, n, stride):
+            bound = max(bound, gershgorin_row(indptr, indices, data, diagonal, i))
+        bound = grid_max(bound, partial)  # every thread past the Gershgorin sums (a grid sync)
+        for i in range(start, n, stride):
+            diagonal[i] = diagonal[i] / bound
+        n_coarse = layout[MG_FIELDS * (k + 1) + MG_N]
+        P_indptr, P_indices, _ = _mg_csr(p_indptr, p_indices, p_indices, layout, k, MG_P_PTR, n)
+        R_indptr, R_indices, _ = _mg_csr(r_indptr, r_indices, r_indices, layout, k, MG_R_PTR, n_coarse)
+        if k + 1 == levels:
+            break
+        C_indptr, C_indices, C_data = _mg_csr(a_indptr, a_indices, a_data, layout, k + 1, MG_A_PTR, n_coarse)
+        for I in range(start, n_coarse, stride):  # the coarse rows' lengths, then their offsets, then the rows
+            C_indptr[I + 1] = galerkin_row(indptr, indices, data, R_indptr, R_indices, P_indptr, P_indices, I,
+                                           C_indices, C_data, 0, False)
+        grid_barrier()
+        chunk = -(-n_coarse // stride)
+        low, high = min(n_coarse, start * chunk), min(n_coarse, (start + 1) * chunk)
+        total = 0
+        for I in range(low, high):
+            total += C_indptr[I + 1]
+        running = int(grid_prefix(float(total), partial))
+        if start == 0:
+            C_indptr[0] = 0
+        for I in range(low, high):
+            running += C_indptr[I + 1]
+            C_indptr[I + 1] = running
+        grid_barrier()
+        for I in range(start, n_coarse, stride):
+            galerkin_row(indptr, indices, data, R_indptr, R_indices, P_indptr, P_indices, I, C_indices, C_data,
+                         C_indptr[I], True)
+        grid_barrier()
+    # the coarsest level: its dense matrix, then its inverse (Gauss-Jordan, symmetrised)
+    n = coarse.shape[0]
+    for I in range(start, n, stride):
+        if levels == 0:
+            dense_galerkin_row(indptr, indices, data, indptr, indices, indptr, indices, False, I, coarse)
+        else:
+            dense_galerkin_row(indptr, indices, data, R_indptr, R_indices, P_indptr, P_indices, True, I, coarse)
+    grid_barrier()
+    for item in range(start, 2 * n, stride):  # pivot row and column 0
+        if item < n:
+            pivots[0, 0, item] = coarse[0, item]
+        else:
+            pivots[0, 1, item - n] = coarse[item - n, 0]
+    grid_barrier()
+    for k in range(n):
+        for item in range(start, n * n, stride):
+            sweep_entry(coarse, pivots, k, k % 2, item)
+        grid_barrier()
+    for item in range(start, n * n, stride):
+        i, j = item // n, item % n
+        if i < j:
+            value = (coarse[i, j] + coarse[j, i]) / 2
+            coarse[i, j] = value
+            coarse[j, i] = value
+    grid_barrier()
+
+
+@numba.njit(cache=True)
+def multigrid_setup(m_indptr, m_indices, m_data, a_indptr, a_indices, a_data, p_indptr, p_indices, r_indptr,
+                    r_indices, inv_diag, coarse, pivots, partial, layout, levels):  # pragma: no cover - compiled
+    """The per-solve set-up of the device multigrid (:func:`.krylov.multigrid_preconditioner`) in
+    one launch, on the hierarchy's ``layout`` (:data:`MG_FIELDS` ints per level, ``levels``
+    above the coarsest): per level k < levels from its CSR matrix (level 0: m_*; then the
+    packed a_*), D^-1 / bound into its slice of inv_diag (:func:`smoother_scaling`'s values),
+    and its Galerkin product ``P^T A P`` (piecewise-constant P: p_* its packed indptr and indices,
+    r_* those of R = P^T; :func:`galerkin_row`) as the next level's CSR matrix in a_* (its
+    columns ascending; a_* sized for level k + 1 at most level k's non-zeros) or, for the
+    coarsest, dense into ``coarse`` (n, n), which is then inverted in place (Gauss-Jordan
+    without pivoting, :func:`sweep_entry`; SPD) and symmetrised ((M + M^T) / 2). levels 0: the
+    coarsest is m itself. pivots (2, 2, n), partial (blocks,): scratch."""
+    multigrid_setup_steps(m_indptr, m_indices, m_data, a_indptr, a_indices, a_data, p_indptr, p_indices, r_indptr,
+                          r_indices, inv_diag, coarse, pivots, partial, layout, levels, 0, 1)
+
+
+@numba.njit(inline="always")
+def prior_gradient_row(D_indptr, D_indices, D_data, t_indptr, t_indices, t_data, S_indptr, S_indices, S_data,
+                       with_s, z, negative_z0, tau2, mu2, i):  # pragma: no cover - compiled
+    """Row i of ``tau2 D^T (D z - z0) + mu2 S^T S z`` (with_s; else its first term), D^T's
+    row from its CSR arrays t_* and each ``(D z - z0)_m`` it takes formed here, added as
+    :func:`csr_multiply_add`'s three passes add them (``-z0 + 1 D z``, ``0 + tau2 D^T d``, ``+ mu2
+    S^T S z``)."""
+    total = 0.0
+    for k in range(t_indptr[i], t_indptr[i + 1]):
+        m = t_indices[k]
+        total += t_data[k] * (negative_z0[m] + 1.0 * csr_row_dot(D_indptr, D_indices, D_data, z, m))
+    value = 0.0 + tau2 * total
+    if with_s:
+        value = value + mu2 * csr_row_dot(S_indptr, S_indices, S_data, z, i)
+    return value
+
+
+@numba.njit(parallel=True, cache=True)
+def prior_gradient(D_indptr, D_indices, D_data, t_indptr, t_indices, t_data, S_indptr, S_indices, S_data, with_s, z,
+                   negative_z0, tau2, mu2, out):  # pragma: no cover - compiled
+    """The depth prior's ``out = tau2 D^T (D z - z0) + mu2 S^T S z`` (N,) in one pass
+    (:meth:`.pyramid.DepthPrior.negative_gradient`: tau2 = -2 tau, mu2 = -2 mu) for D (M, N),
+    D^T (N, M) and S^T S (N, N) CSR (with_s False: S^T S unread), z (N,), negative_z0 (M,) = -z0."""
+    for i in numba.prange(out.shape[0]):
+        out[i] = prior_gradient_row(D_indptr, D_indices, D_data, t_indptr, t_indices, t_data, S_indptr, S_indices,
+                                    S_data, with_s, z, negative_z0, tau2, mu2, i)

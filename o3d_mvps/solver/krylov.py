@@ -89,8 +89,6 @@ def pcg(A, b, x0, rtol: float, maxiter: int, preconditioner: Callable | None = N
     on_host = xp is np
     packed = None if on_host else getattr(preconditioner, "packed", None)
     state = xp.empty(CG_STATE)
-    partial = xp.empty((REDUCTION_BLOCKS, 2))
-    counter = xp.zeros(1, dtype=np.int32)
     p, s = xp.empty_like(b), xp.empty_like(b)
     if packed is not None:  # r and z in the V-cycle's workspace: its level 0's right-hand side and result
         work = xp.empty((MG_ROWS, packed.unknowns))
@@ -105,15 +103,18 @@ def pcg(A, b, x0, rtol: float, maxiter: int, preconditioner: Callable | None = N
             r = residual
         else:
             r[...] = residual
-    kernels.cg_start(b, x, r, p, s, x0 is None, rtol * rtol, state, partial, counter)
     # a CSR matrix (CuPy's have no format attribute): w = A z in the pass of the dot products
     matrix = getattr(A, "indptr", None) is not None and getattr(A, "format", "csr") == "csr"
-    csr = (A.indptr, A.indices, A.data) if matrix else (counter, counter, state)
     w = xp.empty_like(b) if matrix else None
     next_check, reads = max(1, min(first_check, maxiter)), 0
     code = None
-    if packed is not None:
-        return _pcg_multigrid(A, matrix, x, p, s, w, work, state, packed, maxiter, next_check, check_every)
+    if packed is not None:  # CG's start in the first launch
+        return _pcg_multigrid(A, matrix, b, x0 is None, rtol * rtol, x, p, s, w, work, state, packed, maxiter,
+                              next_check, check_every)
+    partial = xp.empty((REDUCTION_BLOCKS, 2))
+    counter = xp.zeros(1, dtype=np.int32)
+    kernels.cg_start(b, x, r, p, s, x0 is None, rtol * rtol, state, partial, counter)
+    csr = (A.indptr, A.indices, A.data) if matrix else (counter, counter, state)
     for iteration in range(1, maxiter + 1):
         z = r if preconditioner is None else preconditioner(r)
         if not matrix:
@@ -141,8 +142,10 @@ def _checks_apart(rr: float, rr_previous: float, rr_start: float, threshold: flo
     return max(check_every, 2 * iteration) if left is None else int(np.ceil(READ_MARGIN * left)) + 1
 
 
-def _pcg_multigrid(A, matrix: bool, x, p, s, w, work, state, packed, maxiter: int, next_check: int, check_every: int):
-    """:func:`pcg`'s iterations on a device with a packed multigrid (:attr:`Multigrid.packed`):
+def _pcg_multigrid(A, matrix: bool, b, from_zero: bool, rtol2: float, x, p, s, w, work, state, packed, maxiter: int,
+                   next_check: int, check_every: int):
+    """:func:`pcg`'s start and iterations on a device with a packed multigrid (:attr:`Multigrid.packed`),
+    the start (:func:`.kernels.cg_start`'s, on b (N,), ``from_zero``, rtol2 = rtol^2) in the first launch:
     where A is the hierarchy's own CSR matrix M, or ``M + C U^T`` (an operator with
     ``low_rank_parts`` (M, C (N, K), U^T (K, N)): the joint step's Schur complement), all
     iterations up to a read of the state in one launch of :func:`.kernels.multigrid_cg` (the
@@ -166,14 +169,18 @@ def _pcg_multigrid(A, matrix: bool, x, p, s, w, work, state, packed, maxiter: in
         u_t = coupled = t_partial = xp.empty((0, 0))
         t = xp.empty(0)
 
+    begin = [True]  # the first launch starts CG
+
     def launch(n_steps: int, cycle_first: bool, w):
         kernels.multigrid_cg(n_steps, cycle_first, matrix, *csr, *packed.arrays, work, x, p, s, w, u_t, coupled,
-                             t_partial, t, packed.layout, packed.levels, packed.cheb, state, partial)
+                             t_partial, t, packed.layout, packed.levels, packed.cheb, begin[0], b, from_zero, rtol2,
+                             state, partial)
+        begin[0] = False
 
     iteration, reads, code = 0, 0, None
     w = xp.empty_like(x) if w is None else w
-    if not matrix:
-        launch(0, True, x)  # the first cycle, z from r (w unread)
+    if not matrix or maxiter < 1:
+        launch(0, maxiter >= 1, x)  # the start and the first cycle, z from r (w unread)
     while iteration < maxiter:
         if matrix:
             launch(next_check - iteration, iteration == 0, w)
@@ -579,6 +586,9 @@ class Multigrid:
 
     def __call__(self, r):
         """The cycle applied to r (N,): z (N,)."""
+        if self.levels and self.levels[0].smoother is None:
+            raise TypeError("a device multigrid made by one set-up launch runs its cycle in krylov.pcg's kernel only "
+                            "(Multigrid.packed); call krylov.pcg with it")
         return self._cycle(0, r)
 
     def _cycle(self, k: int, b):
@@ -598,7 +608,7 @@ class Multigrid:
         return sum(nnz) / nnz[0]
 
 
-def pixel_prolongations(u, v, stride: int = 2, max_coarse: int = MAX_COARSE) -> list:
+def pixel_prolongations(u, v, stride: int = 2, max_coarse: int = MAX_COARSE, like=None) -> list:
     """The tentative prolongations of a pixel grid's aggregation hierarchy: (N_l, N_l+1) sparse
     per level, from the pixels at integer coordinates u, v (N,) each
     (:attr:`o3d_mvps.model.normals.MaskedGrid.u`, ``.v``) by 2x2-pixel aggregates ``stride``
@@ -613,6 +623,10 @@ def pixel_prolongations(u, v, stride: int = 2, max_coarse: int = MAX_COARSE) -> 
     iterations (geometric mean) with stride 2 and 1.11 times with stride 1 (958k-pixel depth
     system: 11 against 58). Under room light (large smoothness weight) stride 1 did better:
     1.12 against 1.25 times pyamg's (a 73k-pixel joint system: 20 against 33).
+
+    ``like``: an array of the module the prolongations are for (a device's), u and v then on
+    the host: aggregated there (the grid's mask stays on the host) and copied over in two copies
+    (:meth:`Prolongations.moved`), no launch.
     """
     prolongations = Prolongations()
     while u.size > max_coarse:
@@ -621,6 +635,8 @@ def pixel_prolongations(u, v, stride: int = 2, max_coarse: int = MAX_COARSE) -> 
             break
         prolongations.append(tentative_prolongation(aggregate, cu.size))
         u, v = cu, cv
+    if like is not None and array_module(like) is not np:
+        return prolongations.moved(like)
     return prolongations
 
 
@@ -631,6 +647,37 @@ class Prolongations(list):
 
     restrictions: list | None = None
     packed: tuple | None = None
+
+    def moved(self, like) -> "Prolongations":
+        """These host prolongations (and their restrictions, packed: :func:`pack_transfers`) on
+        the module of ``like`` (a device's): their int32 CSR indices in one copy, their values (all
+        ones; P's and R's alike) in another; the matrices are views of those arrays."""
+        xp, sparse = array_module(like), sparse_module(like)
+        moved = Prolongations()
+        if not self:
+            return moved
+        restrictions = [P.T.tocsr() for P in self]
+        parts = [[m.indptr for m in self], [m.indices for m in self], [m.indptr for m in restrictions],
+                 [m.indices for m in restrictions]]
+        lengths = [[a.size for a in kind] for kind in parts]
+        indices = xp.asarray(np.concatenate([a for kind in parts for a in kind]).astype(np.int32))
+        ones = xp.asarray(np.ones(sum(lengths[1])))
+        packed, at = [], 0
+        for kind in lengths:
+            packed.append(indices[at:at + sum(kind)])
+            at += sum(kind)
+        moved.packed = (packed[0], packed[1], ones, packed[2], packed[3], ones)
+        for host, out, ptr, ind in ((self, moved, 0, 1), (restrictions, None, 2, 3)):
+            matrices, p_at, i_at = [], 0, 0
+            for m, n_ptr, n_ind in zip(host, lengths[ptr], lengths[ind]):
+                matrices.append(sparse.csr_matrix((ones[i_at:i_at + n_ind], packed[ind][i_at:i_at + n_ind],
+                                                   packed[ptr][p_at:p_at + n_ptr]), shape=m.shape))
+                p_at, i_at = p_at + n_ptr, i_at + n_ind
+            if out is None:
+                moved.restrictions = matrices
+            else:
+                out.extend(matrices)
+        return moved
 
 
 def multigrid_preconditioner(A, prolongations: list, *, smoother: str = "chebyshev", smoothing_steps: int = 3,
@@ -649,12 +696,17 @@ def multigrid_preconditioner(A, prolongations: list, *, smoother: str = "chebysh
     prolongations saved 10-14 % of the iterations in all (-20 to +38 % per system) for 1.9-2.3
     times the non-zeros read per iteration and 7-14 times the setup (on the CPU), and they depend
     on A, so they cannot be built once per grid.
+
+    On a device, with Chebyshev smoothers and the grid's tentative prolongations
+    (:class:`Prolongations`), the whole set-up is one launch (:func:`_device_multigrid`).
     """
-    xp = array_module(A.diagonal())
+    xp = array_module(A.data)
     sparse = sparse_module(A)
     kept = not smoothed_prolongation and isinstance(prolongations, Prolongations)  # R and their packing per grid
     if kept and prolongations.restrictions is None:
         prolongations.restrictions = [P.T.tocsr() for P in prolongations]
+    if xp is not np and kept and smoother == "chebyshev" and len(prolongations) + 1 <= MG_MAX_LEVELS:
+        return _device_multigrid(A, prolongations, smoothing_steps)
     levels = []
     for k, P in enumerate(prolongations):
         if xp is not np and not smoothed_prolongation:  # D^-1, its bound and D^-1 / bound in one launch
@@ -678,4 +730,53 @@ def multigrid_preconditioner(A, prolongations: list, *, smoother: str = "chebysh
         packed = pack_hierarchy(levels, inverse, smoothing_steps, prolongations.packed if kept else None)
         if packed is not None and packed.source is None:  # no level above the coarsest: the matrix itself
             packed.source = A
+    return Multigrid(levels, inverse, packed)
+
+
+def _device_multigrid(A, prolongations: "Prolongations", steps: int) -> Multigrid:
+    """:func:`multigrid_preconditioner` on a device (Chebyshev smoothers of ``steps`` steps,
+    tentative prolongations kept with the grid): the whole set-up in one launch of
+    :func:`.kernels.multigrid_setup` (every level's D^-1 / bound, the Galerkin operators
+    ``P^T A P``: CSR above the coarsest, sized for at most the finer level's non-zeros, and the
+    coarsest's dense inverse), packed for :func:`.kernels.multigrid_cg` as it is made. Its
+    levels hold P and R (and level 0 its A) only: the cycle runs in :func:`pcg`'s kernel."""
+    xp = array_module(A.data)
+    levels = [MultigridLevel(A if k == 0 else None, None, P, R)
+              for k, (P, R) in enumerate(zip(prolongations, prolongations.restrictions))]
+    if prolongations.packed is None:
+        prolongations.packed = pack_transfers(levels, xp)
+    sizes = [A.shape[0]] + [P.shape[1] for P in prolongations]
+    capacity = [int(A.data.size)]  # level k + 1's non-zeros are at most level k's (each sums some of them)
+    for n in sizes[1:]:
+        capacity.append(min(capacity[-1], n * n))
+    layout = [0] * (MG_FIELDS * MG_MAX_LEVELS)
+    ends = dict.fromkeys(("vec", "A_ptr", "A_nz", "P_ptr", "P_nz", "R_ptr", "R_nz"), 0)
+    for k, n in enumerate(sizes):
+        base = MG_FIELDS * k
+        layout[base + MG_VEC], layout[base + MG_N] = ends["vec"], n
+        ends["vec"] += n
+        if k == len(levels):
+            break
+        for name, field, rows, nz in (("A", MG_A_PTR, n, capacity[k]), ("P", MG_P_PTR, n, levels[k].P.data.size),
+                                      ("R", MG_R_PTR, sizes[k + 1], levels[k].R.data.size)):
+            if name == "A" and k == 0:
+                continue
+            layout[base + field], layout[base + field + 1] = ends[f"{name}_ptr"], ends[f"{name}_nz"]
+            ends[f"{name}_ptr"] += rows + 1
+            ends[f"{name}_nz"] += int(nz)
+    n_coarse = sizes[-1]
+    a_indptr, a_indices = xp.empty(ends["A_ptr"], dtype=np.int32), xp.empty(ends["A_nz"], dtype=np.int32)
+    a_data = xp.empty(ends["A_nz"])
+    inv_diag = xp.empty(sum(sizes[:-1]))
+    inverse = xp.empty((n_coarse, n_coarse))
+    transfers = prolongations.packed
+    kernels_for(A.data).multigrid_setup(A.indptr, A.indices, A.data, a_indptr, a_indices, a_data, transfers[0],
+                                        transfers[1], transfers[3], transfers[4], inv_diag, inverse,
+                                        xp.empty((2, 2, n_coarse)), xp.empty(COOPERATIVE_BLOCKS), tuple(layout),
+                                        len(levels))
+    theta, scales, factors = chebyshev_scalars(CHEBYSHEV_LOWER_FRACTION, 1.0, steps)
+    arrays = (a_indptr, a_indices, a_data, *transfers, inv_diag, inverse,
+              xp.empty((-(-n_coarse // COARSE_SEGMENT), n_coarse)))
+    packed = PackedHierarchy(A, arrays, tuple(layout), len(levels),
+                             (theta, *(v for pair in zip(scales, factors) for v in pair)), ends["vec"])
     return Multigrid(levels, inverse, packed)

@@ -213,9 +213,10 @@ class LevelProblem:
         """The level's pixel aggregation for the GPU path's multigrid (:func:`.krylov.pixel_prolongations`),
         built at the first call: aggregates of pixels 2 apart, or neighbours under a light fixed
         in the world (whose large smoothness weight suits them: the measured best of each)."""
-        if self._prolongations is None:
+        if self._prolongations is None:  # from the host's pixels (the grid's mask stays there): no launch
             g = self.level.grid
-            self._prolongations = pixel_prolongations(g.u, g.v, stride=1 if self.light.fixed_in_world else 2)
+            v, u = np.nonzero(g.mask)
+            self._prolongations = pixel_prolongations(u, v, stride=1 if self.light.fixed_in_world else 2, like=g.u)
         return self._prolongations
 
     # geometry ----------------------------------------------------------------------------

@@ -21,6 +21,7 @@ from ..model.arrays import array_module, fused, like, sparse_module
 from ..model.camera import scale_intrinsics
 from ..model.normals import MaskedGrid, masked_grid
 from ..model.resampling import fill_nearest_valid, resample_valid, resize
+from .device import kernels_for
 from .krylov import multiply_add
 from .smoothness import row_centres, second_differences, smoothness_rows, with_grid_modes
 
@@ -136,11 +137,6 @@ class DepthPrior:
         return sparse_module(self.D).csr_matrix(self.D.T)
 
     @cached_property
-    def _zeros(self) -> np.ndarray:
-        """Zeros (N,), formed once (:meth:`negative_gradient` on a GPU)."""
-        return array_module(self.z0).zeros(self.D.shape[1])
-
-    @cached_property
     def DtD(self) -> sp.csr_matrix:
         """D^T D (N, N), built once per level."""
         return (self.D.T @ self.D).tocsr()
@@ -176,12 +172,16 @@ class DepthPrior:
         return terms
 
     def negative_gradient(self, z: np.ndarray, tau: float, mu: float) -> np.ndarray:
-        """Minus the energy's gradient (N,) at depth z (N,) (on a GPU three launches of
-        :func:`.krylov.multiply_add`: ``D z - z0``, ``-2 tau D^T (.)``, ``-2 mu S^T S z`` added)."""
-        if array_module(z) is not np:
-            d = multiply_add(self.D, 1.0, z, self._negative_z0)
-            rhs = multiply_add(self._Dt, -2.0 * tau, d, self._zeros)
-            return multiply_add(self.StS, -2.0 * mu, z, rhs) if mu > 0 and self.S is not None else rhs
+        """Minus the energy's gradient (N,) at depth z (N,) (on a GPU one launch of
+        :func:`.kernels.prior_gradient`: ``D z - z0``, ``-2 tau D^T (.)``, ``-2 mu S^T S z`` added)."""
+        if array_module(z) is not np:  # one launch (the sums of three csr_multiply_add passes)
+            with_s = mu > 0 and self.S is not None
+            S = self.StS if with_s else self.D  # unread without S
+            out = array_module(z).empty_like(z)
+            kernels_for(z).prior_gradient(self.D.indptr, self.D.indices, self.D.data, self._Dt.indptr, self._Dt.indices,
+                                          self._Dt.data, S.indptr, S.indices, S.data, with_s, z, self._negative_z0,
+                                          -2.0 * tau, -2.0 * mu, out)
+            return out
         rhs = -2.0 * tau * (self.D.T @ (self.D @ z - self.z0))
         if mu > 0 and self.S is not None:
             rhs = rhs - 2.0 * mu * (self.StS @ z)
