@@ -78,7 +78,8 @@ AMG_OPTIONS = dict(symmetry="symmetric", max_coarse=300, coarse_solver="splu",
 
 
 def amg_preconditioner(matrix: sp.csr_matrix) -> spla.LinearOperator:
-    """One smoothed-aggregation AMG V-cycle (pyamg hierarchy, :data:`AMG_OPTIONS`) as an SPD preconditioner.
+    """One smoothed-aggregation AMG V-cycle (pyamg hierarchy, :data:`AMG_OPTIONS`, built by
+    :func:`smoothed_aggregation`) as an SPD preconditioner.
 
     The cycle is run here rather than through ``MultilevelSolver.aspreconditioner``, whose
     ``solve`` also computes two residuals and three norms per application (two extra
