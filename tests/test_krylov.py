@@ -94,14 +94,14 @@ def test_the_amg_hierarchy_is_freed_with_its_solve_without_the_garbage_collector
     from o3d_mvps.solver import linear
 
     made = []
-    build = linear.pyamg.smoothed_aggregation_solver
+    build = linear.smoothed_aggregation
 
     def recorded(*args, **kwargs):
         ml = build(*args, **kwargs)
         made.append(weakref.ref(ml))
         return ml
 
-    monkeypatch.setattr(linear.pyamg, "smoothed_aggregation_solver", recorded)
+    monkeypatch.setattr(linear, "smoothed_aggregation", recorded)
     n = 2000
     matrix = sp.diags([-np.ones(n - 1), 2.01 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1]).tocsr()
     enabled = gc.isenabled()
@@ -152,6 +152,36 @@ def test_the_finest_strength_pattern_gives_pyamgs_hierarchy_bit_for_bit():
     pattern = linear.strength_options(strong)[0][1]["C"]
     assert np.shares_memory(pattern.indices, strong.indices) and np.shares_memory(pattern.indptr, strong.indptr)
     assert linear.strength_options(strong.astype(np.float32)) == ("symmetric", {"theta": linear.STRENGTH_THETA})
+
+
+def test_the_level_by_level_set_up_is_pyamgs_hierarchy_bit_for_bit():
+    """:func:`.linear.smoothed_aggregation` (pyamg's set-up one level at a time, each coarse matrix
+    passed on as CSR) gives pyamg's one-call hierarchy bit for bit: the same levels (matrices,
+    prolongations, restrictions; pyamg's BSR coarse matrices kept), the same V-cycle, without
+    scipy's Python loop over a BSR matrix's entries (``_bsr.sum_duplicates``, not called)."""
+    from unittest import mock
+
+    import pyamg
+    import scipy.sparse._bsr as bsr
+
+    from o3d_mvps.solver import linear
+
+    M = sp.csr_matrix(grid_system(shape=(80, 112))[0])
+    b = np.random.default_rng(3).normal(size=M.shape[0])
+    with mock.patch.object(bsr._bsr_base, "sum_duplicates", autospec=True,
+                           side_effect=bsr._bsr_base.sum_duplicates) as loop:
+        ours = linear.smoothed_aggregation(M)
+    assert loop.call_count == 0
+    theirs = pyamg.smoothed_aggregation_solver(M, strength=linear.strength_options(M), **linear.AMG_OPTIONS)
+    assert len(ours.levels) == len(theirs.levels) >= 3
+    for k, (x, y) in enumerate(zip(ours.levels, theirs.levels)):
+        assert type(x.A) is type(y.A)
+        pairs = [(x.A, y.A)] + ([(x.P, y.P), (x.R, y.R)] if k < len(ours.levels) - 1 else [])
+        for a, c in pairs:
+            a, c = sp.csr_matrix(a), sp.csr_matrix(c)
+            for name in ("indptr", "indices", "data"):
+                np.testing.assert_array_equal(getattr(a, name), getattr(c, name))
+    np.testing.assert_array_equal(linear._v_cycle(ours, 0, b), linear._v_cycle(theirs, 0, b))
 
 
 @contextmanager
