@@ -204,7 +204,7 @@ class DepthPrior:
         moved.__dict__["_zeros"] = device.asarray(np.zeros(self.D.shape[1]))
         entries = None if self.S is None or device.xp is np else _entry_centres(self._unweighted_smoothness())
         if entries is not None:
-            moved.__dict__["_entry_centres"] = device.asarray(entries)
+            moved.__dict__["_entry_centres"] = tuple(device.asarray(a) for a in entries)
         moved.__dict__["DtD"] = device.sparse_matrix(self.DtD)
         if self.S is not None:
             moved.__dict__["StS"] = device.sparse_matrix(self.StS)
