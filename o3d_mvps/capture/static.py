@@ -19,7 +19,7 @@ import numpy as np
 from ..model.camera import project, transform
 from ..model.resampling import masked_gaussian, resample_valid
 from ..model.se3 import rotation_angle_deg
-from ..odometry import ICP_VOXELS, cloud_pyramid, depth_cloud, frame_region, register
+from ..odometry import ICP_VOXELS, MAX_CLOUD_POINTS, cloud_pyramid, depth_cloud, frame_region, register
 from .types import Capture
 
 #: Coarse grid of the check: about this many pixels across.
@@ -47,6 +47,9 @@ CONFIRM_FRAMES = 4
 STATIC_NOISE_MULTIPLE = 4.0
 STATIC_MIN_MOTION_PX = 1.0
 MOTION_PERCENTILE = 95
+#: the ICP check's clouds read every k-th depth pixel of every k-th row, k the largest that leaves
+#: at least this many times the clouds' MAX_CLOUD_POINTS pixels (a 640x480 depth: every 2nd)
+ICP_PIXELS_PER_POINT = 2
 
 
 #: Given poses that move a frame by more than this (m, or radians) are a moving camera.
@@ -135,8 +138,11 @@ def static_frame_motion(capture: Capture, frames) -> list[tuple[float, float, fl
     mm, deg: T's translation and rotation; failure: why ICP failed (None when it did not).
     """
     K = np.asarray(capture.depth_K(), dtype=np.float64)
+    h, w = capture.depth_size
+    # every k-th pixel where the depth image holds over ICP_PIXELS_PER_POINT x MAX_CLOUD_POINTS
+    stride = max(1, int(np.sqrt(h * w / (ICP_PIXELS_PER_POINT * MAX_CLOUD_POINTS))))
     clouds = {i: cloud_pyramid(depth_cloud(capture.depth_array(i), K, region=frame_region(capture, i),
-                                           voxel=ICP_VOXELS[-1]))
+                                           voxel=ICP_VOXELS[-1], pixel_stride=stride))
               for i in [0, *frames]}
     points = np.asarray(clouds[0][-1].points)
     out = []
