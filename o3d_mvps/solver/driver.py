@@ -87,12 +87,12 @@ POINT_SETTLED_SWEEPS = 2
 #: ... and the finest level (index 0) this many (None: as the others) where a coarser level of
 #: those refitted the lamps already (the first such level places them with the albedo projected
 #: out: a 320x240 capture's finest level, 1 sweep and no refit there, albedo 1.04 -> 1.64 %).
-#: Issue 32's 1280x960 D415-like quilt (20 frames, 2 numba threads, CPU seconds of the same
-#: loaded run): 1 sweep there instead of 2, 47.4 -> 38.3 CPU s, normals 0.4736 -> 0.4659 deg,
-#: albedo 0.6175 -> 0.6171 %, lamps 3.58 mm either way, low-pass 0.008 per mille either way.
-#: 1 sweep on every such level (1280x960: the 320x240 and 640x480 levels too): 32.5 CPU s, but
-#: albedo 0.643 %, lamps 4.4 mm
-POINT_FINEST_SWEEPS = 1
+#: Issue 32's 1280x960 D415-like quilt (20 frames, 2 numba threads, base and 1 sweep run at once):
+#: 45.8 -> 33.9 CPU s, normals 0.4736 -> 0.4659 deg, albedo 0.6175 -> 0.6171 %, lamps 3.58 mm
+#: either way, but the normals within 2 px of the image's edge 0.572 -> 0.701 deg (the clean
+#: render's albedo 0.114 -> 0.133 %, lamps 2.3 -> 3.8 mm; CG to 1e-3 there: the same), so not
+#: the default. 1 sweep on every such level: 32.5 CPU s, albedo 0.643 %, lamps 4.4 mm
+POINT_FINEST_SWEEPS = None
 #: whether the finest level (where a coarser level of those refitted the lamps) refits the point lights
 #: (:func:`.point_light.fit_point_lights`) in its sweeps: on that quilt the refit was never kept
 #: there (its trial energy never lower: the same figures and final energy to the last digit
@@ -250,12 +250,13 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
     parallax_only = problem.light.fixed_in_world
     _weigh_smoothness(problem, est, ev, options, timings, stats)
     rows = [{"level": level.index, "iteration": 0, "energy": ev.energy}]
+    finest = problem.light.name == "point" and level.index == 0 and lamps_settled
     sweeps = options.max_iterations
     if problem.light.name == "point" and level.grid.size <= POINT_FIT_MAX_PIXELS:
         sweeps *= POINT_SWEEP_FACTOR  # the lamps creep down a valley with the depth
     elif problem.light.name == "point" and POINT_SETTLED_SWEEPS is not None:
         sweeps = min(sweeps, POINT_SETTLED_SWEEPS)  # the lamps placed: the depth's detail settles in a few
-        if level.index == 0 and lamps_settled and POINT_FINEST_SWEEPS is not None:
+        if finest and POINT_FINEST_SWEEPS is not None:
             sweeps = min(sweeps, POINT_FINEST_SWEEPS)
     bar = tqdm(range(1, sweeps + 1), desc=f"level {level.index} ({level.size[1]}x{level.size[0]})",
                disable=not options.progress, leave=False)
