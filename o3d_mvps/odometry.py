@@ -146,7 +146,7 @@ def registration_region(mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 
 def depth_cloud(depth: np.ndarray, K: np.ndarray, max_depth: float = 3.0,
                 color: np.ndarray | None = None, region: np.ndarray | None = None,
-                voxel: float | None = None) -> o3d.geometry.PointCloud:
+                voxel: float | None = None, pixel_stride: int = 1) -> o3d.geometry.PointCloud:
     """Denoised point cloud with camera-facing normals (and colours) of one depth frame.
 
     Parameters
@@ -165,6 +165,9 @@ def depth_cloud(depth: np.ndarray, K: np.ndarray, max_depth: float = 3.0,
     voxel : float, optional
         Downsample the points to this voxel (m), then to every k-th point where more than
         ``MAX_CLOUD_POINTS`` remain, before estimating the normals (None: every point).
+    pixel_stride : int, optional
+        Keep every k-th pixel of every k-th row only (after the smoothing): a cloud that the
+        voxel and ``MAX_CLOUD_POINTS`` thin anyway, made for less (1: every pixel).
 
     Returns
     -------
@@ -182,6 +185,10 @@ def depth_cloud(depth: np.ndarray, K: np.ndarray, max_depth: float = 3.0,
     keep = ndimage.binary_erosion(valid)  # silhouette pixels are the least reliable ...
     if keep.sum() < 4 * MIN_POINTS:  # ... but a small object (e.g. at SF 8) cannot spare them
         keep = valid
+    if pixel_stride > 1:
+        grid = np.zeros_like(keep)
+        grid[::pixel_stride, ::pixel_stride] = True
+        keep = keep & grid
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(backproject(z, np.asarray(K, dtype=np.float64))[keep]))
     if color is not None:
         low = cv2.resize(np.asarray(color, dtype=np.float32), (z.shape[1], z.shape[0]), interpolation=cv2.INTER_AREA)

@@ -109,19 +109,22 @@ def energy_per_level(energy: list) -> list[dict]:
 
 def summarise(report: dict, outputs: str | None = None) -> dict:
     """The summary of a report: frames used / dropped, the finest level's energy first -> last,
-    seconds, peak memory, warnings, the input checks by status (None without checks), the outputs."""
+    seconds, peak memory, warnings, the input checks by status (None without checks) and the names of
+    those not ok by status, the outputs."""
     frames = report.get("frames") or []
     checks = (report.get("inputs") or {}).get("checks") or []
-    statuses = {}
+    statuses, flagged = {}, {}
     for check in checks:
         statuses[check.get("status")] = statuses.get(check.get("status"), 0) + 1
+        if check.get("status") != "ok":
+            flagged.setdefault(check.get("status"), []).append(check.get("name"))
     levels = energy_per_level(report.get("energy") or [])
     finest = levels[-1] if levels else {}
     return {"frames_used": sum(r["used"] for r in frames), "frames_dropped": sum(not r["used"] for r in frames),
             "energy_first": finest.get("first"), "energy_last": finest.get("last"),
             "seconds": round(float(report.get("timings", {}).get("total", 0.0)), 2),
             "peak_memory_mb": report.get("peak_memory_mb"), "warnings": len(report.get("warnings") or []),
-            "input_checks": statuses or None, "outputs": outputs}
+            "input_checks": statuses or None, "input_checks_flagged": flagged or None, "outputs": outputs}
 
 
 def summary_lines(summary: dict, *, one_line: bool = False) -> list[str]:
@@ -142,7 +145,9 @@ def summary_lines(summary: dict, *, one_line: bool = False) -> list[str]:
     lines = [f"summary: {frames}" + (f"; {energy} at the finest level" if energy else ""),
              f"         {time_memory}; {said}" + (" (listed in report.json)" if summary["warnings"] else "")]
     if summary.get("input_checks"):
+        flagged = summary.get("input_checks_flagged") or {}
         counts = ", ".join(f"{n} {status}{'s' if n != 1 and status != 'ok' else ''}"
+                           + (f" ({', '.join(map(str, flagged[status]))})" if flagged.get(status) else "")
                            for status, n in summary["input_checks"].items())
         lines.insert(1, f"         input checks: {counts}")
     if where:

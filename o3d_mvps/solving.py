@@ -159,6 +159,7 @@ def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses
                              pose_trust=trust)
         why.update({row["index"]: row["reason"] for row in found.frames if not row["used"]})
         capture, frames = capture.select(found.usable), [frames[k] for k in found.usable]
+        found.checks.append(camera.check())  # its warning was said when it was decided (camera_setting)
         report["inputs"] = {**found.to_dict(), "seconds": round(time.perf_counter() - t0, 4)}
     if given is not None:
         initial_poses = se3.relative_to_reference(given.world_to_camera[frames])  # onto the first frame used

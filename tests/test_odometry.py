@@ -178,3 +178,20 @@ def test_multi_scale_matches_full_resolution(monkeypatch):
     assert apart[:, 0].max() < 0.1 and apart[:, 1].max() < 0.001, apart  # measured 0.013 deg / 0.13 mm
     errors = _errors(fast, capture.groundtruth.poses)
     assert errors[:, 0].max() < 0.5 and errors[:, 1].max() < 0.005, errors  # measured 0.30 deg / 3.1 mm
+
+
+def test_depth_cloud_pixel_stride_reads_every_kth_pixel():
+    """pixel_stride=2 keeps the points of every 2nd pixel of every 2nd row (of those kept with
+    every pixel: the smoothing and the silhouette erosion are the same), at the same positions."""
+    h, w = 60, 80
+    K = np.array([[70.0, 0.0, 39.5], [0.0, 70.0, 29.5], [0.0, 0.0, 1.0]])
+    v, u = np.mgrid[0:h, 0:w]
+    depth = 0.5 + 0.001 * u + 0.002 * v
+    depth[:5] = 0.0  # a hole: its border is eroded in both
+    every = np.asarray(depth_cloud(depth, K).points)
+    strided = np.asarray(depth_cloud(depth, K, pixel_stride=2).points)
+    uu = np.rint(every[:, 0] / every[:, 2] * K[0, 0] + K[0, 2]).astype(int)
+    vv = np.rint(every[:, 1] / every[:, 2] * K[1, 1] + K[1, 2]).astype(int)
+    expected = every[(uu % 2 == 0) & (vv % 2 == 0)]
+    np.testing.assert_allclose(strided, expected, atol=1e-12)
+    assert 0.2 < len(strided) / len(every) < 0.3

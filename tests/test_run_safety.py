@@ -440,7 +440,7 @@ def test_the_summary_shows_the_input_checks_and_the_drops():
               "timings": {"total": 12.34}, "peak_memory_mb": 820.4, "warnings": ["a", "b"]}
     assert summary_lines(summarise(report, "out")) == [
         "summary: 1 frame used, 1 dropped; energy 2 -> 1.5 (-25.0 %) at the finest level",
-        "         input checks: 2 ok, 1 warning",
+        "         input checks: 2 ok, 1 warning (depth scale)",
         "         12.3 s, peak memory 820 MB; 2 warnings (listed in report.json)",
         "         report: out/report.json"]
     assert summary_lines(summarise(report), one_line=True) == [

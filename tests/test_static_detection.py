@@ -75,12 +75,38 @@ def test_a_failed_check_means_moving(static, monkeypatch):
     assert "failed (fitness 0.10" in setting.detail and "cannot be ruled out" in setting.detail
 
 
-def test_declared_cameras_are_not_checked_by_icp(slow_orbit, static, monkeypatch):
-    """capture.json's "camera" wins: a declared static slow orbit stays static (its depth agrees:
-    no warning), a declared moving static capture stays moving; ICP is not run for either."""
+def test_a_declared_static_camera_that_moved_is_a_warning_check(slow_orbit, static, monkeypatch):
+    """capture.json's "camera" wins, but a declared static camera is checked too: a declared static
+    slow orbit (its depth agrees) stays static, yet ICP finds frame 4 moved (measured 15 times the
+    noise, 2.5 depth pixels), so refine warns and report.json's input checks get a "camera"
+    warning naming the figures (the CLI summary counts it by name); a declared static capture that
+    is static gets an "ok" row and no warning; a declared moving one is not checked by ICP."""
+    from o3d_mvps import RefineOptions
+    from o3d_mvps.run_report import summarise, summary_lines
+    from o3d_mvps.solving import problem_from_capture
+
+    declared = replace(slow_orbit, camera="static")
+    with pytest.warns(UserWarning, match='capture.json says "camera": "static", but every frame.*ICP of frame 4'):
+        setting = camera_setting(declared)
+    assert setting.static and setting.declared == "static" and setting.detected is False
+    assert setting.motion_frame == 4 and setting.motion_noise > 2.5 * STATIC_NOISE_MULTIPLE
+    row = setting.check()
+    assert row["name"] == "camera" and row["status"] == "warning"
+    assert "declared static in capture.json, although" in row["detail"]
+    assert f"moves its points by {setting.motion_mm:.2f} mm" in row["detail"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        problem, _ = problem_from_capture(declared, RefineOptions(progress=False), camera=setting)
+    checks = problem.report["inputs"]["checks"]
+    assert [c for c in checks if c["name"] == "camera"] == [row]
+    lines = summary_lines(summarise({"inputs": {"checks": checks}, "peak_memory_mb": 1.0}))
+    assert any("input checks:" in line and "warning" in line and "(camera" in line for line in lines), lines
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ok = camera_setting(replace(static, camera="static"))
+    assert ok.static and ok.detected and ok.check()["status"] == "ok" and ok.motion_noise < STATIC_NOISE_MULTIPLE
     monkeypatch.setattr("o3d_mvps.capture.static.static_frame_motion", lambda *a, **k: pytest.fail("ICP ran"))
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        declared = camera_setting(replace(slow_orbit, camera="static"))
-        assert not camera_setting(replace(static, camera="moving")).static
-    assert declared.static and declared.motion_frame is None
+        moving = camera_setting(replace(static, camera="moving"))
+    assert not moving.static and moving.detected is None and moving.check()["status"] == "ok"

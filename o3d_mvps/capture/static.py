@@ -19,7 +19,7 @@ import numpy as np
 from ..model.camera import project, transform
 from ..model.resampling import masked_gaussian, resample_valid
 from ..model.se3 import rotation_angle_deg
-from ..odometry import ICP_VOXELS, cloud_pyramid, depth_cloud, frame_region, register
+from ..odometry import ICP_VOXELS, MAX_CLOUD_POINTS, cloud_pyramid, depth_cloud, frame_region, register
 from .types import Capture
 
 #: Coarse grid of the check: about this many pixels across.
@@ -47,6 +47,9 @@ CONFIRM_FRAMES = 4
 STATIC_NOISE_MULTIPLE = 4.0
 STATIC_MIN_MOTION_PX = 1.0
 MOTION_PERCENTILE = 95
+#: the ICP check's clouds read every k-th depth pixel of every k-th row, k the largest that leaves
+#: at least this many times the clouds' MAX_CLOUD_POINTS pixels (a 640x480 depth: every 2nd)
+ICP_PIXELS_PER_POINT = 2
 
 
 #: Given poses that move a frame by more than this (m, or radians) are a moving camera.
@@ -69,8 +72,8 @@ class CameraSetting:
     declared: capture.json's "camera" ("static", "moving" or None). detected: what the depth
     says (None when not checked: a capture that declares "moving", or a single frame).
     agreement, overlap: the worst frame's figures (:func:`static_depth_agreement`); worst_frame
-    its index. motion_frame, motion_mm, motion_noise, motion_px: the ICP check of an undeclared
-    capture whose depth agrees (:func:`_confirm_static`): the frame, how far its points moved (mm),
+    its index. motion_frame, motion_mm, motion_noise, motion_px: the ICP check of a capture
+    (undeclared, or declared static) whose depth agrees (:func:`_confirm_static`): the frame, how far its points moved (mm),
     that over the depth noise, and in depth pixels (None when not checked or ICP failed). detail: in words.
     """
 
@@ -88,6 +91,13 @@ class CameraSetting:
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+    def check(self) -> dict:
+        """The row of ``info["inputs"]["checks"]`` (name "camera"): a warning where capture.json
+        declares a static camera that the depth (agreement, or ICP of the frames that agree)
+        finds moving, else ok; detail: :attr:`detail`."""
+        contradicted = self.declared == "static" and self.detected is False
+        return {"name": "camera", "status": "warning" if contradicted else "ok", "detail": self.detail}
 
 
 def static_depth_agreement(depths: np.ndarray, coarse_width: int = COARSE_WIDTH) -> list[tuple[float, float, int]]:
@@ -128,8 +138,11 @@ def static_frame_motion(capture: Capture, frames) -> list[tuple[float, float, fl
     mm, deg: T's translation and rotation; failure: why ICP failed (None when it did not).
     """
     K = np.asarray(capture.depth_K(), dtype=np.float64)
+    h, w = capture.depth_size
+    # every k-th pixel where the depth image holds over ICP_PIXELS_PER_POINT x MAX_CLOUD_POINTS
+    stride = max(1, int(np.sqrt(h * w / (ICP_PIXELS_PER_POINT * MAX_CLOUD_POINTS))))
     clouds = {i: cloud_pyramid(depth_cloud(capture.depth_array(i), K, region=frame_region(capture, i),
-                                           voxel=ICP_VOXELS[-1]))
+                                           voxel=ICP_VOXELS[-1], pixel_stride=stride))
               for i in [0, *frames]}
     points = np.asarray(clouds[0][-1].points)
     out = []
@@ -189,9 +202,10 @@ def _confirm_static(capture: Capture, scores: list) -> tuple[dict, str, bool]:
 
 def camera_setting(capture: Capture, poses=None, warn: bool = True) -> CameraSetting:
     """Whether ``capture`` is a static-camera capture: declared in capture.json, or detected from
-    the depth (:func:`static_depth_agreement`; every frame must agree). Warns (when ``warn``) if
-    the depth finds a static camera the capture does not declare, or contradicts a declared one;
-    a declared "camera" always wins. Given ``poses`` (n, 4, 4) that move a frame by more than
+    the depth (:func:`static_depth_agreement`; every frame must agree, then ICP of a few frames,
+    :func:`_confirm_static`). Warns (when ``warn``) if the depth finds a static camera the capture
+    does not declare, or contradicts a declared one (the depth disagrees, or ICP finds a frame
+    moved; :meth:`CameraSetting.check` is then a warning); a declared "camera" always wins. Given ``poses`` (n, 4, 4) that move a frame by more than
     :data:`MOVED_M` or :data:`MOVED_RAD` settle an undeclared capture as moving (no check)."""
     declared = capture.camera
     if declared == "moving" or capture.n_frames < 2:
@@ -210,17 +224,19 @@ def camera_setting(capture: Capture, poses=None, warn: bool = True) -> CameraSet
     figures_text = (f"the depth of frame {worst + 1} agrees with the reference's on {agreement:.0%} of the pixels "
                     f"both see, which overlap {overlap:.0%}" + (f" (only {pixels} coarse pixels: too little depth "
                                                                 f"to tell)" if pixels < MIN_COARSE_PIXELS else ""))
-    motion = {}
-    if declared is None and detected:  # the depth agrees: confirm that no frame moved by a pixel or two
+    motion, moved = {}, False
+    if detected:  # the depth agrees: confirm that no frame moved by a pixel or two (declared static too)
         motion, motion_text, moved = _confirm_static(capture, scores)
         detected = not moved
     static = declared == "static" or detected
     if declared == "static":
-        detail = "declared static in capture.json" + ("" if detected else f", although {figures_text}")
+        contradiction = (f"every frame's depth agrees with the reference's (the worst: {figures_text}), but "
+                         f"{motion_text}" if moved else
+                         f"{figures_text} (a static camera gives at least {MIN_AGREEMENT:.0%} and {MIN_OVERLAP:.0%})")
+        detail = "declared static in capture.json" + ("" if detected else f", although {contradiction}")
         if warn and not detected:
-            warnings.warn(f"capture.json says \"camera\": \"static\", but {figures_text} (a static camera gives "
-                          f"at least {MIN_AGREEMENT:.0%} and {MIN_OVERLAP:.0%}): treating it as static as declared; "
-                          "if the camera moved, write \"camera\": \"moving\"", stacklevel=3)
+            warnings.warn(f"capture.json says \"camera\": \"static\", but {contradiction}: treating it as static as "
+                          "declared; if the camera moved, write \"camera\": \"moving\"", stacklevel=3)
     elif detected:
         detail = (f"detected from the depth (every frame agrees with the reference; the worst: {figures_text}; "
                   f"{motion_text})")

@@ -84,6 +84,21 @@ POINT_SWEEP_FACTOR = 3
 #: albedo instead (10 -> 5 sweeps everywhere: 1.60 -> 2.17 % at 640x480). 2 (with the CG factor
 #: at 10): 640x480 0.9228 deg against 0.9232, albedo 1.6005 % against 1.5960, low-pass 0.053 per mille
 POINT_SETTLED_SWEEPS = 2
+#: ... and the finest level (index 0) this many (None: as the others) where a coarser level of
+#: those refitted the lamps already (the first such level places them with the albedo projected
+#: out: a 320x240 capture's finest level, 1 sweep and no refit there, albedo 1.04 -> 1.64 %).
+#: Issue 32's 1280x960 D415-like quilt (20 frames, 2 numba threads, base and 1 sweep run at once):
+#: 45.8 -> 33.9 CPU s, normals 0.4736 -> 0.4659 deg, albedo 0.6175 -> 0.6171 %, lamps 3.58 mm
+#: either way, but the normals within 2 px of the image's edge 0.572 -> 0.701 deg (the clean
+#: render's albedo 0.114 -> 0.133 %, lamps 2.3 -> 3.8 mm; CG to 1e-3 there: the same), so not
+#: the default. 1 sweep on every such level: 32.5 CPU s, albedo 0.643 %, lamps 4.4 mm
+POINT_FINEST_SWEEPS = None
+#: whether the finest level (where a coarser level of those refitted the lamps) refits the point lights
+#: (:func:`.point_light.fit_point_lights`) in its sweeps: on that quilt the refit was never kept
+#: there (its trial energy never lower: the same figures and final energy to the last digit
+#: without it), and each costs two evaluations of every frame and a lamp fit (2.6 CPU s of 47);
+#: on the clean render it was kept: without it albedo 0.114 -> 0.132 %, lamps 2.3 -> 3.8 mm off
+POINT_FINEST_REFIT = False
 #: whether those finer levels extrapolate their sweeps (:func:`_extrapolate`): on the 640x480
 #: quilt no extrapolation there was kept at 2 sweeps a level (the same figures to 1e-4 without
 #: it), and each tried costs an energy evaluation of every frame
@@ -186,12 +201,15 @@ def _reference_mask(problem_input: SolverInput) -> np.ndarray:
 
 
 def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timings: dict, stats: dict,
-            anchors: PoseAnchors | None = None, log: PoseLog | None = None) -> list:
+            anchors: PoseAnchors | None = None, log: PoseLog | None = None, lamps_settled: bool = False) -> list:
     """Run one level's sweeps in place on ``est``: the albedo fitted to the level's images, then
     sweeps of poses and depth (one joint step, or the paper's two), albedo, lighting, LED offset,
     extrapolation. The level's evaluations live here only (no caller holds a stale one: each
     holds frames x pixels arrays). anchors: what a pose update must not worsen besides the
     photometric energy (:mod:`.pose_trust`; calibrated here per level), log: the rejections.
+    lamps_settled: a coarser level of more than :data:`POINT_FIT_MAX_PIXELS` object pixels has
+    refitted the point lights (the finest level then takes :data:`POINT_FINEST_SWEEPS` and
+    :data:`POINT_FINEST_REFIT`).
 
     Returns the level's energy rows; stops at the relative energy change ``options.tolerance``.
     """
@@ -232,11 +250,14 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
     parallax_only = problem.light.fixed_in_world
     _weigh_smoothness(problem, est, ev, options, timings, stats)
     rows = [{"level": level.index, "iteration": 0, "energy": ev.energy}]
+    finest = problem.light.name == "point" and level.index == 0 and lamps_settled
     sweeps = options.max_iterations
     if problem.light.name == "point" and level.grid.size <= POINT_FIT_MAX_PIXELS:
         sweeps *= POINT_SWEEP_FACTOR  # the lamps creep down a valley with the depth
     elif problem.light.name == "point" and POINT_SETTLED_SWEEPS is not None:
         sweeps = min(sweeps, POINT_SETTLED_SWEEPS)  # the lamps placed: the depth's detail settles in a few
+        if finest and POINT_FINEST_SWEEPS is not None:
+            sweeps = min(sweeps, POINT_FINEST_SWEEPS)
     bar = tqdm(range(1, sweeps + 1), desc=f"level {level.index} ({level.size[1]}x{level.size[0]})",
                disable=not options.progress, leave=False)
     for iteration in bar:
@@ -283,7 +304,8 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
         if refine_offset:
             est.led_offset, ev = update_led_offset(problem, est, ev, min_decrease=0.1 * options.tolerance,
                                                    relative=True)  # of ev's energy (on a GPU read with the step's)
-        if problem.light.name == "point":  # every sweep (point_light.POINT_FINE_MIN_PIXELS: how, by level)
+        # every sweep (point_light.POINT_FINE_MIN_PIXELS: how, by level), but see POINT_FINEST_REFIT
+        if problem.light.name == "point" and (POINT_FINEST_REFIT or level.index > 0 or not lamps_settled):
             ev = fit_point_lights(problem, est, ev)
         timings["albedo_lighting"] += time.perf_counter() - t
         if options.extrapolate and (POINT_SETTLED_EXTRAPOLATE or not settled):
@@ -554,6 +576,7 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
     anchors = (PoseAnchors(sensor_depths, depth_K, problem_input.initial_poses, problem_input.pose_trust,
                            scale_factor=sf) if given else None)
     pose_log = PoseLog()
+    settled_levels = []  # the levels that refitted the point lights with the albedo projected out
     stats = {"cg_iterations": [], "cauchy_lambda": [], "smoothness": smoothness, "sensor_smoothness": sensor_smoothness,
              "levels": n_levels,
              "level_devices": [], "sensor_lowpass_sigma": tie_sigma}
@@ -610,7 +633,10 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
             t = time.perf_counter()
             initial_point_lights(problem, est, problem.evaluate(est)).release()
             timings["point_lights"] += time.perf_counter() - t
-        history.extend(_sweeps(problem, est, options, timings, stats, anchors, pose_log))
+        history.extend(_sweeps(problem, est, options, timings, stats, anchors, pose_log,
+                               lamps_settled=bool(settled_levels)))
+        if light.name == "point" and g.size > POINT_FIT_MAX_PIXELS:
+            settled_levels.append(level_index)
         if tie_sigma is not None:
             t = time.perf_counter()
             _tie_to_sensor(problem, g, est, z0, tie_sigma)
