@@ -5,7 +5,7 @@ under room light each row is weighted down where the sensor's surface is steep
 (:func:`slope_weights`), and the weight mu~ follows the sensor depth's roughness and the
 colour pixels' footprint (:func:`auto_smoothness`). Fourth-difference rows that see the depth
 alternating from pixel to pixel, which the central-difference normals do not (:func:`grid_mode_rows`,
-:func:`with_grid_modes`), can be added below S; their weight is :data:`GRID_MODE_WEIGHT`.
+:func:`with_grid_modes`), can be added below S; their weight is 0 by default (:data:`GRID_MODE_WEIGHT`).
 """
 
 from __future__ import annotations
@@ -35,12 +35,12 @@ def second_differences(grid: MaskedGrid) -> sp.csr_matrix:
 
 
 #: weight of :func:`grid_mode_rows` in the smoothness, relative to the second differences' (their
-#: rows are scaled by its square root); 0: no such rows. At 1000 (LED, D415 render, 20 frames) the
-#: normal MAE fell 1.337 -> 1.292 deg and a mesh's (forward-difference) normals' 3.29 -> 1.72 deg,
-#: the grid mode's median amplitude 8.3 -> 2.2 um, for a depth RMSE 0.516 -> 0.521 mm (+1.1 %, at
-#: the ear's depth steps, which the rows straddle); at 2 MP every figure improved (docs/method.md,
-#: "Grid modes").
-GRID_MODE_WEIGHT = 1000.0
+#: rows are scaled by its square root); 0: no such rows (the default). At 1000 (LED, D415 render,
+#: 20 frames) the normal MAE fell 1.337 -> 1.292 deg and a mesh's (forward-difference) normals'
+#: 3.29 -> 1.72 deg, the grid mode's median amplitude 8.3 -> 2.2 um, but the depth RMSE rose
+#: 0.516 -> 0.521 mm (+1.1 %, at the ear's depth steps, which the rows straddle): over the 0.5 %
+#: the default may lose, so the rows are off (docs/method.md, "Grid modes").
+GRID_MODE_WEIGHT = 0.0
 
 
 def grid_mode_rows(grid: MaskedGrid, weight: float | None = None) -> sp.csr_matrix:
