@@ -33,6 +33,7 @@ from pathlib import Path
 STAGE_FUNCTIONS = (("solving", "problem_from_capture", "odometry"),
                    ("solver.driver", "select_light_model", "light_selection"),
                    ("solver.driver", "build_level", "build_level"), ("solver.driver", "update_albedo", "albedo"),
+                   ("solver.driver", "refit_albedo", "albedo"),
                    ("solver.driver", "update_lighting", "lighting"),
                    ("solver.driver", "_extrapolate", "extrapolation"),
                    ("solver.driver", "update_poses", "poses"), ("solver.driver", "update_depth", "depth"),

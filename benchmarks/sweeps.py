@@ -126,13 +126,13 @@ def run(problem_file, capture, caps=None, tols=None, trace=True) -> dict:
         ctx.update(ref=ref, z0=z0, K=pi.K, sigma=lowpass_sigma(z0, ref, pi.scale_factor) if s == AUTO else s)
         return solve0(pi, options, device)
 
-    def sweeps(problem, est, options, timings, stats, anchors=None, log=None):
+    def sweeps(problem, est, options, timings, stats, anchors=None, log=None, **settings):
         i = problem.level.index
         options = replace(options, **({"max_iterations": caps[i]} if caps else {}),
                           **({"tolerance": tols[i]} if tols else {}))
         before, hooked = dict(timings), hook[0]
         ctx["start"] = ctx["last"] = cpu()
-        out = sweeps0(problem, est, options, timings, stats, anchors, log)
+        out = sweeps0(problem, est, options, timings, stats, anchors, log, **settings)
         steps = {k: v - before.get(k, 0.0) for k, v in timings.items() if v != before.get(k, 0.0)}
         if "extrapolation" in steps:  # the driver's clock around _extrapolate also ran the per-sweep hook
             steps["extrapolation"] -= hook[0] - hooked

@@ -99,7 +99,7 @@ def test_correct_pose_file_refines_and_reports_the_checks(folder, tmp_path, caps
     info = json.loads((out / "report.json").read_text())["info"]
     assert {c["name"]: c["status"] for c in info["inputs"]["checks"]} == {
         "intrinsics": "ok", "depth scale": "ok", "frame quality": "ok", "colour/depth alignment": "ok", "poses": "ok",
-        "flying pixels": "ok"}
+        "flying pixels": "ok", "camera": "ok"}
     poses = info["inputs"]["conventions"]["poses"]
     assert poses["source"] == str(tmp_path / "trajectory.log") and poses["fits"] == "as given"
     assert min(poses["frame_agreement"].values()) > 0.8  # measured 0.93-0.98
