@@ -74,7 +74,10 @@ POINT_MIN_PIXELS = 4000
 #: on the levels that refit the point lights every sweep (up to :data:`POINT_FIT_MAX_PIXELS`),
 #: this many times ``max_iterations`` sweeps at most: depth and lamps trade off along a valley
 #: (a nearly flat surface: the lamp's distance against the depth's curvature and the albedo),
-#: down which the alternating sweeps creep a few per cent of the lamp's distance a sweep
+#: down which the alternating sweeps creep a few per cent of the lamp's distance a sweep (3 before:
+#: the one-ring 320x240 quilt's lamps stopped 98 mm off, still moving; see :data:`POINT_CREEP_TOLERANCE`).
+#: These levels have no grid-mode rows (:func:`.pyramid.build_level`'s ``grid_mode_min_pixels``): on
+#: 80x60 pixels the fourth differences held the quilt's bend and the lamps went out instead (501 mm off)
 POINT_SWEEP_FACTOR = 6
 #: on the finer levels (the lamps placed, refitted in the first sweep only) this many sweeps at most
 #: (None: ``max_iterations``). The rendered D415-like quilt (20 frames) took up to 8 there to the
@@ -84,6 +87,10 @@ POINT_SWEEP_FACTOR = 6
 #: albedo instead (10 -> 5 sweeps everywhere: 1.60 -> 2.17 % at 640x480). 2 (with the CG factor
 #: at 10): 640x480 0.9228 deg against 0.9232, albedo 1.6005 % against 1.5960, low-pass 0.053 per mille
 POINT_SETTLED_SWEEPS = 2
+#: on those levels the sweeps go on past ``options.tolerance`` while the lamps moved, on average, more
+#: than this fraction of their distance from the camera in the last :data:`POINT_CREEP_SWEEPS` sweeps
+#: (the energy falls little a sweep down the valley): one-ring 320x240 quilt (tests/test_static_camera.py)
+#: lamps 98 -> 61 mm off, normals 0.73 -> 0.55 deg, albedo 1.76 -> 1.44 % (both without the grid-mode rows)
 POINT_CREEP_TOLERANCE = 0.002
 POINT_CREEP_SWEEPS = 3
 #: ... and the finest level (index 0) this many (None: as the others) where a coarser level of
