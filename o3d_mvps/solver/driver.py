@@ -74,11 +74,8 @@ POINT_MIN_PIXELS = 4000
 #: on the levels that refit the point lights every sweep (up to :data:`POINT_FIT_MAX_PIXELS`),
 #: this many times ``max_iterations`` sweeps at most: depth and lamps trade off along a valley
 #: (a nearly flat surface: the lamp's distance against the depth's curvature and the albedo),
-#: down which the alternating sweeps creep a few per cent of the lamp's distance a sweep (3 before:
-#: the one-ring 320x240 quilt's lamps stopped 98 mm off, still moving; see :data:`POINT_CREEP_TOLERANCE`).
-#: These levels have no grid-mode rows (:func:`.pyramid.build_level`'s ``grid_mode_min_pixels``): on
-#: 80x60 pixels the fourth differences held the quilt's bend and the lamps went out instead (501 mm off)
-POINT_SWEEP_FACTOR = 6
+#: down which the alternating sweeps creep a few per cent of the lamp's distance a sweep
+POINT_SWEEP_FACTOR = 3
 #: on the finer levels (the lamps placed, refitted in the first sweep only) this many sweeps at most
 #: (None: ``max_iterations``). The rendered D415-like quilt (20 frames) took up to 8 there to the
 #: energy's tolerance; 640x480: none 27.8, 4 19.7, 3 17.9 CPU s for normals 0.922-0.923 deg and
@@ -87,12 +84,6 @@ POINT_SWEEP_FACTOR = 6
 #: albedo instead (10 -> 5 sweeps everywhere: 1.60 -> 2.17 % at 640x480). 2 (with the CG factor
 #: at 10): 640x480 0.9228 deg against 0.9232, albedo 1.6005 % against 1.5960, low-pass 0.053 per mille
 POINT_SETTLED_SWEEPS = 2
-#: on those levels the sweeps go on past ``options.tolerance`` while the lamps moved, on average, more
-#: than this fraction of their distance from the camera in the last :data:`POINT_CREEP_SWEEPS` sweeps
-#: (the energy falls little a sweep down the valley): one-ring 320x240 quilt (tests/test_static_camera.py)
-#: lamps 98 -> 61 mm off, normals 0.73 -> 0.55 deg, albedo 1.76 -> 1.44 % (both without the grid-mode rows)
-POINT_CREEP_TOLERANCE = 0.002
-POINT_CREEP_SWEEPS = 3
 #: ... and the finest level (index 0) this many (None: as the others) where a coarser level of
 #: those refitted the lamps already (the first such level places them with the albedo projected
 #: out: a 320x240 capture's finest level, 1 sweep and no refit there, albedo 1.04 -> 1.64 %).
@@ -259,7 +250,6 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
     parallax_only = problem.light.fixed_in_world
     _weigh_smoothness(problem, est, ev, options, timings, stats)
     rows = [{"level": level.index, "iteration": 0, "energy": ev.energy}]
-    lamp_history = []  # the point lights at the start of each sweep (_lamps_creeping)
     finest = problem.light.name == "point" and level.index == 0 and lamps_settled
     sweeps = options.max_iterations
     if problem.light.name == "point" and level.grid.size <= POINT_FIT_MAX_PIXELS:
@@ -280,7 +270,6 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
             _weigh_smoothness(problem, est, ev, options, timings, stats)
         previous = ev.energy
         start = _snapshot(est)
-        lamp_history.append(start.led_offset)
         if refine_poses and options.joint_pose_depth and (parallax_only or level.grid.size >= options.joint_min_pixels):
             t = time.perf_counter()
             stepped, ev, cg_iterations = update_pose_depth(problem, est, ev, rtol=options.joint_cg_tolerance,
@@ -325,25 +314,11 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
             timings["extrapolation"] += time.perf_counter() - t
         rows.append({"level": level.index, "iteration": iteration, "energy": ev.energy, "cg_iterations": cg_iterations})
         bar.set_postfix(energy=f"{ev.energy:.5g}")
-        if abs(previous - ev.energy) <= options.tolerance * abs(previous) and not (
-                problem.light.name == "point" and not settled and _lamps_creeping(est, lamp_history)):
+        if abs(previous - ev.energy) <= options.tolerance * abs(previous):
             break
     bar.close()
     stats["frame_rms"] = ev.frame_rms()  # the finest level's stays: the report's per-frame residual
     return rows
-
-
-def _lamps_creeping(est: Estimate, history: list) -> bool:
-    """Whether the point lights (``est.led_offset`` (n, 3), metres) moved, on average, by more
-    than :data:`POINT_CREEP_TOLERANCE` of their mean distance from the camera since the start of
-    the sweep :data:`POINT_CREEP_SWEEPS` - 1 sweeps before the last (``history``: their positions
-    at each sweep's start). A sweep whose lamp refit is refused moves them not at all, and the
-    next one (the depth bent further) moves them again: judged over a few sweeps."""
-    before = history[-POINT_CREEP_SWEEPS] if len(history) >= POINT_CREEP_SWEEPS else history[0]
-    if est.led_offset is None or before is None or np.shape(est.led_offset) != np.shape(before):
-        return False
-    moved = np.linalg.norm(np.asarray(est.led_offset) - np.asarray(before), axis=1).mean()
-    return bool(moved > POINT_CREEP_TOLERANCE * np.linalg.norm(np.asarray(est.led_offset), axis=1).mean())
 
 
 def _weigh_smoothness(problem: LevelProblem, est: Estimate, ev, options: RefineOptions, timings: dict,
@@ -623,8 +598,7 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
         t = time.perf_counter()
         trim_heap()  # the previous level's freed arrays out of the resident set before this level's are made
         level = build_level(level_index, colors, masks, ref_mask, K, z0, sf, options.difference_scheme,
-                            options.depth_envelope, options.model.slope_weighted(),
-                            grid_mode_min_pixels=POINT_FIT_MAX_PIXELS if light.name == "point" else 0)
+                            options.depth_envelope, options.model.slope_weighted())
         g = level.grid
         if g.size < 16 or (light.name == "point" and g.size < POINT_MIN_PIXELS and level_index > 0):
             return None

@@ -318,12 +318,10 @@ class Level:
 
 def build_level(index: int, colors: list, masks: list, ref_mask: np.ndarray, K: np.ndarray, z0: np.ndarray,
                 scale_factor: int, scheme: str = "central", envelope_margin: float | None = None,
-                slope_weighted: bool = False, grid_mode_min_pixels: int = 0) -> Level:
+                slope_weighted: bool = False) -> Level:
     """Level ``index`` from full-resolution colours (H, W, 3), masks, reference mask and z0;
     ``envelope_margin`` None leaves the depth unbounded (see :func:`depth_envelope`);
-    ``slope_weighted``: the smoothness rows are :func:`smoothness_rows` (else plain second differences);
-    the grid-mode rows (:func:`.smoothness.with_grid_modes`) only on a grid of more than
-    ``grid_mode_min_pixels`` pixels."""
+    ``slope_weighted``: the smoothness rows are :func:`smoothness_rows` (else plain second differences)."""
     size = level_size(ref_mask.shape, index)
     K_level = scale_intrinsics(K, size[1] / ref_mask.shape[1], size[0] / ref_mask.shape[0])
     # the finest level reads the full-resolution float32 colours themselves (no copy: they are
@@ -337,8 +335,7 @@ def build_level(index: int, colors: list, masks: list, ref_mask: np.ndarray, K: 
     prior = depth_prior(grid, z0, scale_factor / 2**index)
     def smoothness():
         return with_grid_modes(grid, smoothness_rows(grid, z0, K_level, scale_factor / 2**index) if slope_weighted
-                               else second_differences(grid), z0, K_level, scale_factor / 2**index,
-                               weight=None if grid.size > grid_mode_min_pixels else 0.0)
+                               else second_differences(grid), z0, K_level, scale_factor / 2**index)
 
     prior.S = smoothness()
     prior.rebuild_smoothness_with(smoothness)  # weighed without a copy of the unweighted S kept
