@@ -33,18 +33,16 @@ launch, the set-up's, lighting's and albedo's kernels and the trial states' kern
 2026-11-26; docs/gpu.md): 106 / 119 and 303 launches, 30 / 29 and 54 copies (the room's light
 path keeps more array operations). The joint step's assembly, twist system, Schur operator and
 twists in a few numba-cuda kernels (issue 33, gpujoint: one per assembly block, no read of the
-frames' pixel counts, the poses the evaluation's copy): 80 / 93 and 291 launches, 28 / 27 and 52
-copies. The bounds are these counts with a margin of about 1 % (1-3 launches, 1 copy, 0.5 on the
-room's copies).
-path keeps more array operations). Issue 33's evaluation, energy, weights and light updates
-(gpueval2: one copy per light state, energies read where used, the LED offset system, the albedo
-step with its re-evaluation, a trial with its albedo refit, the extrapolation's energies and the
-evidence sums one kernel each): 82 / 93 and 297 launches, 20 / 17 and 49 copies. The bounds are
-these counts with a margin of about 1 % (1-3 launches, 1 copy, 0.5 on the room's copies).
-path keeps more array operations). The multigrid's set-up in one launch, CG's start in its first
-launch and the prior's gradient in one (issue 33, gpukrylov; these problems' multigrid is the dense
-coarsest alone): 100 / 113 and 297.5 launches, copies as before. The bounds are these counts with a
-margin of about 1 % (1-3 launches, 1 copy, 0.5 on the room's copies).
+frames' pixel counts, the poses the evaluation's copy), alone: 80 / 93 and 291 launches, 28 / 27
+and 52 copies. Issue 33's evaluation, energy, weights and light updates (gpueval2: one copy per
+light state, energies read where used, the LED offset system, the albedo step with its
+re-evaluation, a trial with its albedo refit, the extrapolation's energies and the evidence sums
+one kernel each), alone: 82 / 93 and 297 launches, 20 / 17 and 49 copies. The multigrid's set-up
+in one launch, CG's start in its first launch and the prior's gradient in one (gpukrylov; these
+problems' multigrid is the dense coarsest alone), alone: 100 / 113 and 297.5 launches, copies as
+before. All three merged (51602b1; gpuclean's removal of dead device code changes no count): 51 /
+62 and 290 launches, 18 / 15 and 51 copies. The bounds are these counts with a margin of about
+1 % (1-3 launches, 1 copy).
 """
 
 import shutil
@@ -54,7 +52,7 @@ import pytest
 from benchmarks import gpu
 
 #: (problem, level) -> (launches per sweep, copies per sweep, host reads per linear solve): at most
-BOUNDS = {("led", 1): (83, 21, 2), ("led", 0): (94, 18, 2), ("room", 0): (300, 49.5, 1)}
+BOUNDS = {("led", 1): (52, 19, 2), ("led", 0): (63, 16, 2), ("room", 0): (293, 52, 1)}
 
 
 @pytest.fixture(scope="module")
