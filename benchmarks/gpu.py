@@ -329,7 +329,7 @@ def _cpu_kernels_as_cuda_kernels(stand_in):
 
     module = types.ModuleType(cuda_kernels.__name__)
     module.__dict__.update({name: launcher(getattr(kernels, name), name) for name in cuda_kernels.__all__})
-    module.chunk_count, module.trial_blocks = kernels.chunk_count, kernels.trial_blocks  # not launches
+    module.trial_blocks = kernels.trial_blocks  # not launches
     module.lighting_blocks = kernels.lighting_blocks
     module.joint_blocks = kernels.joint_blocks
     sys.modules[module.__name__] = o3d_mvps.solver.cuda_kernels = module

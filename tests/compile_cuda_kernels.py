@@ -39,14 +39,7 @@ _EVALUATE = (_F1, *(_array(1, types.int64),) * 4, _F1, _F1, _array(1, types.int6
 
 #: kernel name in cuda_kernels -> argument types
 SIGNATURES = {
-    "_accumulate_frames": (_R3, _R2, _array(2, types.boolean), types.float64, _F2, _F2, _F2, _F2, _F2, _F2, _F3,
-                           _F2, _array(4, types.float32), _F3, _F2, _array(2, types.int64), types.boolean, _F2, _F3,
-                           _F4, _F4, _F4, _F3),
-    "_project_twist_rows": (_F4, _F4, _F3, _F2),
-    "_scatter_sparse_transpose_rows": (_array(1, types.int32), _array(1, types.int32), _F1, _F2, _F2),
     "_shading_residuals": (_COLOR, _F2, _R3, _F2, _array(2, types.boolean), _R2, _R3),
-    "_weighted_albedo_sums": (_R3, _array(2, types.boolean), _COLOR, _R2, types.float64, _F2, _F2),
-    "_weighted_lighting_sums": (_R3, _array(2, types.boolean), _COLOR, _F2, types.float64, _F2, _F2),
     "_led_irradiances_into": (_F2, _F2, _F2, _F2),
     "_led_point_gradients_into": (_F1, _F2, _F2, _F2, _F3),
     "_log1p_square_partials": (_R1, types.float64, _F1),
@@ -71,8 +64,6 @@ SIGNATURES = {
                       _F1, _F2, _F2, _F2, _F1, _F1, _F1, _F1, _F2, _F2, _F2, _F1, types.UniTuple(types.int64, 8 * 12),
                       types.int64,
                       types.UniTuple(types.float64, 5), types.boolean, _F1, types.boolean, types.float64, _F1, _F2),
-    "_twist_system": (_F3, _F1, _F1, _F2, types.float64, _F3, _F1, _F2, _F1, _F2),
-    "_twist_inverse": (_F3, _F3, _F1, types.float64, _F3, _F3, _F1, _F1),
     "_ridge_solves": (_F3, _F3, types.float64, types.float64, _F3, _F3, _F1),
     "_led_trial_partials": (_COLOR, _array(2, types.boolean), _F2, _F2, _F2, _F3, _F1, _F3, _F3, _F2,
                             types.float64, types.boolean, types.int64, _F2),
@@ -96,14 +87,7 @@ SIGNATURES = {
                            _array(2, types.boolean), _R3, _R2, _R3, _F2),
     "_albedo_update": (_R3, _array(2, types.boolean), _COLOR, _R2, types.float64, _F2, _F2, _F2, _F2),
     "_lighting_partials": (_R3, _array(2, types.boolean), _COLOR, _F2, types.float64, _R3, _F3),
-    "_smoother_scaling": (_array(1, types.int32), _array(1, types.int32), _F1, _F1, _F1, _F1, _F1),
-    "_stencil_transpose_subtract": (*(_array(1, types.int32), _array(1, types.int32), _F1) * 2, _F1, _F1, _F1, _F1,
-                                    _F1),
-    "_depth_block_fill": (_array(1, types.int32), _array(1, types.int32),
-                          *(_array(1, types.int64), _array(1, types.int64), _F1, _F1) * 2, *(_F1,) * 6,
-                          *(types.float64, _array(1, types.int32), _array(1, types.int32), _F1) * 2, _F1, _F1),
     "_levenberg_damp": (_array(1, types.int32), _array(1, types.int32), _F1, types.float64, types.float64, _F1, _F1),
-    "_offset_system": (_F3, _R3, _array(2, types.boolean), _F2, types.float64, types.int64, _F3, _F3),
     # gpu3: the driver's extrapolation trials (the driver's three factors)
     "_extrapolation_trials": (_F1, _F1, _F2, _F2, types.UniTuple(types.float64, 3), _F1, _F1, _F2, _F3, _F2),
     "_depth_step": (_F1, _F1, types.float64, _F1, _F1, _F1, _F1),

@@ -41,99 +41,12 @@ def run_both(kernel_name, *args):
     return cpu, gpu
 
 
-# (with_jacobian, parallax, slot, albedo projection, LED shading Jacobian, extra_c)
-ACCUMULATE_CASES = {
-    "joint step, projected, LED": (True, True, 1, True, True, False),
-    "depth rows only, reference parallax": (False, False, -1, False, False, True),
-    "parallax only (slot -1), projected": (True, True, -1, True, False, False),
-    "twist rows, frozen warp, no projection": (True, False, 0, False, True, False),
-}
-
-
-@pytest.mark.parametrize("case", ACCUMULATE_CASES)
-def test_accumulate_frame_matches_cpu(case):
-    with_jacobian, parallax, slot, project, led, extra = ACCUMULATE_CASES[case]
-    N, m = N_PIXELS, 2
-    f = lambda *shape: RNG.random(shape)  # noqa: E731
-    none3, none6 = np.zeros((0, 3)), np.zeros((0, 6))
-    K = np.array([[300.0, 0.0, 80.0], [0.0, 310.0, 60.0], [0.0, 0.0, 1.0]])
-    sums, e = f(9, N), f(3, N, 3) if project else np.zeros((0, 1, 3))
-    rows, F = f(3, m, 6, N), f(m, 6, N, 3) if project else np.zeros((0, 6, 1, 3))
-    gram_cpu, rhs_cpu = np.zeros((kernels.chunk_count(N), 6, 6)), np.zeros((kernels.chunk_count(N), 6))
-    gram_gpu, rhs_gpu = np.zeros((cuda_kernels.chunk_count(N), 6, 6)), np.zeros((cuda_kernels.chunk_count(N), 6))
-    image = RNG.random((120, 160, 3)).astype(np.float32)  # as the solver's frames
-    for _ in range(N_FRAMES):  # the frames add to one set of sums
-        use = RNG.random(N) > 0.2
-        frame = [f(N, 3) - 0.5, f(N), use, 1.0 / LAM, f(N, 3), f(N) - 0.5, f(N) - 0.5, f(N),
-                 f(N, 3) - 0.5 if extra else none3, (f(N, 3) - 0.5) * [0.6, 0.4, 0.2] + [0.0, 0.0, 1.0], POSE,
-                 K, image, f(N, 6) if led and with_jacobian else none6, f(N, 3),
-                 with_jacobian, parallax]
-        # the same frame on the GPU from the same sums, so that each frame's output is compared
-        sums_gpu, e_gpu, rows_gpu, F_gpu = (np.copy(a) for a in (sums, e, rows, F))
-        kernels.accumulate_frame(*frame, sums, e, rows, F, slot, gram_cpu, rhs_cpu)
-        cuda_kernels.accumulate_frame(*frame, sums_gpu, e_gpu, rows_gpu, F_gpu, slot, gram_gpu, rhs_gpu)
-        for cpu, gpu in ((sums, sums_gpu), (e, e_gpu), (rows, rows_gpu), (F, F_gpu)):
-            assert_close(gpu, cpu)
-        assert_close(gram_gpu.sum(axis=0), gram_cpu.sum(axis=0))
-        assert_close(rhs_gpu.sum(axis=0), rhs_cpu.sum(axis=0))
-    if slot >= 0 and with_jacobian:
-        assert np.abs(gram_cpu.sum(axis=0)).max() > 0.0  # the Gram was compared, not two zeros
-    else:
-        assert not gram_gpu.any() and not rhs_gpu.any()
-
-
-def test_accumulate_frames_matches_cpu_and_the_per_frame_kernel():
-    """Every frame of an assembly block in one launch: the CUDA kernel equals its CPU twin, which
-    equals accumulate_frame called a frame at a time (the host's loop): frame 0 with its extra
-    column and no Jacobian, then frames in twist slots 1 and 0, and one with the parallax only."""
-    N, m, n = N_PIXELS, 2, 4
-    f = lambda *shape: RNG.random(shape)  # noqa: E731
-    K = np.array([[300.0, 0.0, 80.0], [0.0, 310.0, 60.0], [0.0, 0.0, 1.0]])
-    frame_slots = np.array([[0, -1], [1, 1], [1, 0], [1, -1]], dtype=np.int64)
-    poses = np.stack([np.eye(4), POSE, POSE @ POSE, POSE.T @ POSE])
-    poses[3, 3, :3] = 0.0
-    arrays = [f(n, N, 3) - 0.5, f(n, N), RNG.random((n, N)) > 0.2, 1.0 / LAM, f(N, 3), f(n, N) - 0.5,
-              f(n, N) - 0.5, f(n, N), f(N, 3) - 0.5, (f(N, 3) - 0.5) * [0.6, 0.4, 0.2] + [0.0, 0.0, 1.0], poses, K,
-              RNG.random((n, 120, 160, 3)).astype(np.float32), f(n, N, 6), f(N, 3), frame_slots, True,
-              f(9, N), f(3, N, 3), f(3, m, 6, N), f(m, 6, N, 3)]
-    chunks_cpu, chunks_gpu = kernels.chunk_count(N), cuda_kernels.chunk_count(N)
-    cpu, gpu = run_both("accumulate_frames", *arrays, np.zeros((m + 1, chunks_cpu, 6, 6)), np.zeros((m + 1, chunks_cpu, 6)))
-    gpu = [np.copy(a) for a in arrays] + [np.zeros((m + 1, chunks_gpu, 6, 6)), np.zeros((m + 1, chunks_gpu, 6))]
-    cuda_kernels.accumulate_frames(*gpu)
-    loop = [np.copy(a) for a in arrays] + [np.zeros((m + 1, chunks_cpu, 6, 6)), np.zeros((m + 1, chunks_cpu, 6))]
-    (r, shading, usable, inv_lam, q, alpha, beta, gamma, extra_c, points, poses_, K_, images, dshading, albedo, _,
-     parallax, sums, e, rows, F, gram, rhs) = loop
-    for i, (with_jacobian, slot) in enumerate(frame_slots):
-        kernels.accumulate_frame(r[i], shading[i], usable[i], inv_lam, q, alpha[i], beta[i], gamma[i],
-                                 extra_c if i == 0 else np.zeros((0, 3)), points, poses_[i], K_, images[i],
-                                 dshading[i] if with_jacobian else np.zeros((0, 6)), albedo, bool(with_jacobian),
-                                 parallax, sums, e, rows, F, int(slot), gram[slot], rhs[slot])
-    for k in range(17, 21):  # sums, e, rows, F
-        np.testing.assert_array_equal(cpu[k], loop[k])
-        assert_close(gpu[k], cpu[k])
-    for k in (21, 22):  # the partial sums per slot (and of the others), added up
-        np.testing.assert_array_equal(cpu[k], loop[k])
-        assert_close(gpu[k].sum(axis=1), cpu[k].sum(axis=1))
-    assert np.abs(cpu[21][:m].sum(axis=1)).max(axis=(1, 2)).min() > 0.0 and not cpu[21][m].any()  # both slots compared
-
-
-def test_project_twist_rows_matches_cpu():
-    m, N = 2, N_PIXELS
-    (rows, F, *_), (rows_gpu, F_gpu, *_) = run_both("project_twist_rows", RNG.random((3, m, 6, N)),
-                                                    RNG.random((m, 6, N, 3)), RNG.random((3, N, 3)),
-                                                    RNG.random((N, 3)))
-    assert_close(rows_gpu, rows)
-    assert_close(F_gpu, F)
-
-
-def test_sparse_transpose_scatter_matches_cpu():
-    """A forward difference's rows overlap in their columns: the GPU's atomic adds meet."""
-    R, C = N_PIXELS, N_PIXELS + 20
-    A = sp.csr_matrix(sp.diags([-np.ones(R), np.ones(R)], [0, 1], shape=(R, C)) + sp.random(R, C, density=0.01,
-                                                                                            random_state=2))
-    cpu, gpu = run_both("scatter_sparse_transpose_rows", A.indptr, A.indices, A.data, RNG.normal(size=(5, R)),
-                        RNG.normal(size=(5, C)))
-    assert_close(gpu[-1], cpu[-1])
+def run_cpu(kernel_name, *args):
+    """Call the CPU kernel ``kernel_name`` on copies of args (one with no CUDA twin any more: the
+    reference of a fused kernel's test, or the host's path): the copies."""
+    cpu = [np.copy(a) for a in args]
+    getattr(kernels, kernel_name)(*cpu)
+    return cpu
 
 
 @pytest.fixture
@@ -152,19 +65,6 @@ def test_shading_residuals_match_cpu(frames, shared):
     basis = RNG.random((1 if shared else N_FRAMES, N_PIXELS, 4))
     cpu, gpu = run_both("shading_residuals", color, albedo, basis, RNG.random((N_FRAMES, 4)), usable,
                         np.full((N_FRAMES, N_PIXELS), np.nan), np.full((N_FRAMES, N_PIXELS, 3), np.nan))
-    assert_close(gpu[-2], cpu[-2])
-    assert_close(gpu[-1], cpu[-1])
-
-
-def test_weighted_sums_match_cpu(frames):
-    residual, usable, color, shading, albedo = frames
-    empty = lambda *shape: np.full(shape, np.nan)  # noqa: E731
-    cpu, gpu = run_both("weighted_albedo_sums", residual, usable, color, shading, np.float64(1.0 / LAM),
-                        empty(N_PIXELS, 3), empty(N_PIXELS, 3))
-    assert_close(gpu[-2], cpu[-2])
-    assert_close(gpu[-1], cpu[-1])
-    cpu, gpu = run_both("weighted_lighting_sums", residual, usable, color, albedo, np.float64(1.0 / LAM),
-                        empty(N_FRAMES, N_PIXELS), empty(N_FRAMES, N_PIXELS))
     assert_close(gpu[-2], cpu[-2])
     assert_close(gpu[-1], cpu[-1])
 
@@ -620,7 +520,8 @@ def test_twist_system_matches_numpy_and_cpu():
     """The joint step's twist matrix from its sums: a frame is kept where its Gram's condition
     number (Jacobi eigenvalues) is at most 1e12 as NumPy's ``cond`` says (here 1e3 and 1e15
     apart from it, and a singular one), H = blockdiag(Grams) - downdate over the kept frames,
-    identity rows and zero right-hand sides for the others; CPU and CUDA alike."""
+    identity rows and zero right-hand sides for the others (the host's joint step; the GPU's is
+    joint_twist_system, below)."""
     m = 3
     grams = np.zeros((m, 6, 6))
     for f, spread in enumerate((-1.5, -7.5)):
@@ -633,38 +534,13 @@ def test_twist_system_matches_numpy_and_cpu():
     rhs_frames, rhs_projection = RNG.normal(size=6 * m), RNG.normal(size=6 * m)
     args = (grams, rhs_frames, rhs_projection, D @ D.T, kernels.MAX_TWIST_CONDITION, np.zeros((m, 6, 6)),
             np.zeros(m), np.zeros((6 * m, 6 * m)), np.zeros(6 * m), np.ones((6 * m, 6 * m)))
-    cpu, gpu = run_both("twist_system", *args)
+    cpu = run_cpu("twist_system", *args)
     np.testing.assert_array_equal(cpu[6], [1.0, 0.0, 0.0])
     expected = np.eye(6 * m)
     expected[:6, :6] = grams[0] + np.triu(grams[0], 1).T - (D @ D.T)[:6, :6]
     np.testing.assert_array_equal(cpu[7], expected)
     np.testing.assert_array_equal(cpu[8], np.r_[(rhs_frames + rhs_projection)[:6], np.zeros(12)])
     np.testing.assert_array_equal(cpu[9], -np.diag(np.r_[np.ones(6), np.zeros(12)]))
-    for k in (6, 7, 8, 9):
-        np.testing.assert_array_equal(gpu[k], cpu[k])
-
-
-def test_twist_inverse_matches_numpy_and_cpu():
-    """The joint step's X = H^-1 selection and X b in one launch (thread 0 factors, the block's
-    threads substitute the columns): NumPy's solve, CPU and CUDA alike; a semidefinite H takes
-    the fallback shift."""
-    K = 12
-    M = RNG.normal(size=(K, K))
-    H = (M @ M.T)[None]
-    selection = -np.diag(np.r_[np.ones(6), np.zeros(6)])[None]
-    b = RNG.normal(size=K)
-    args = (H, selection, b, 1e-12, np.zeros((1, K, K)), np.zeros((1, K, K)), np.zeros(K), np.zeros(1))
-    cpu, gpu = run_both("twist_inverse", *args)
-    X = np.linalg.solve(H[0], selection[0])
-    assert_close(cpu[5][0], X, rtol=1e-9)
-    assert_close(cpu[6], X @ b, rtol=1e-9)
-    assert cpu[7][0] == 1.0 and not cpu[5][0][:, 6:].any()
-    for k in (5, 6, 7):
-        assert_close(gpu[k], cpu[k])
-    S = np.diag(np.r_[np.ones(K - 1), 0.0])[None]
-    cpu, _ = run_both("twist_inverse", S, -np.eye(K)[None], b, 1e-12, np.zeros((1, K, K)), np.zeros((1, K, K)),
-                      np.zeros(K), np.zeros(1))
-    assert cpu[7][0] == 1.0 and np.isclose(cpu[5][0][-1, -1], -1e12)
 
 
 # --- the data term's evaluation in one launch (gpueval) -----------------------------------------
@@ -868,47 +744,26 @@ def test_lighting_sums_match_cpu_and_the_matrix_formula(frames, shared):
 
 def test_offset_system_matches_cpu_and_the_array_formula(frames):
     """The LED offset's system from every 3rd pixel: the same as lighting._offset_normal_equations
-    (the host's array formula) on those pixels, unusable ones weighted 0."""
+    (the host's array formula) on those pixels, unusable ones weighted 0 (the reference of
+    led_offset_system's test)."""
     from o3d_mvps.model.robust import cauchy_weights
     from o3d_mvps.solver.lighting import _offset_normal_equations
 
     residual, usable, _, _, albedo = frames
     stride = 3
     ds = RNG.normal(size=(N_FRAMES, -(-N_PIXELS // stride), 3))
-    cpu, gpu = run_both("offset_system", ds, residual, usable, albedo, np.float64(1.0 / LAM), stride,
-                        np.full((1, 3, 3), np.nan), np.full((1, 3, 1), np.nan))
+    cpu = run_cpu("offset_system", ds, residual, usable, albedo, np.float64(1.0 / LAM), stride,
+                  np.full((1, 3, 3), np.nan), np.full((1, 3, 1), np.nan))
     spread = slice(None, None, stride)
     H, g = _offset_normal_equations(ds, cauchy_weights(residual[:, spread], LAM) * usable[:, spread, None],
                                     albedo[spread], residual[:, spread])
     assert_close(cpu[-2][0], H)
     assert_close(cpu[-1][0, :, 0], g)
-    assert_close(gpu[-2], cpu[-2])
-    assert_close(gpu[-1], cpu[-1])
-
-
-def test_smoother_scaling_matches_cpu_and_the_krylov_formulas():
-    """1 / diag(A), the Gershgorin bound of D^-1 A and their ratio in one launch: equal to
-    krylov.inverse_diagonal / spectral_bound (the diagonal bit for bit, the bound to rounding: SciPy's
-    product may add in another order; measured 1 ulp)."""
-    from o3d_mvps.solver.krylov import inverse_diagonal, spectral_bound
-
-    n = 150
-    B = sp.random(n, n, density=0.05, random_state=5, format="csr")
-    A = (B @ B.T + sp.diags(np.linspace(1.0, 3.0, n))).tocsr()
-    A.indptr, A.indices = A.indptr.astype(np.int32), A.indices.astype(np.int32)
-    nan = lambda *shape: np.full(shape, np.nan)  # noqa: E731
-    cpu, gpu = run_both("smoother_scaling", A.indptr, A.indices, A.data, nan(n), nan(n), nan(1), nan(8))
-    inv_diag = inverse_diagonal(A)
-    upper = spectral_bound(A, inv_diag)
-    np.testing.assert_array_equal(cpu[3], inv_diag)
-    assert cpu[5][0] == pytest.approx(upper, rel=1e-14)
-    assert_close(cpu[4], inv_diag / upper, rtol=1e-14)
-    for k in (3, 4, 5):
-        assert_close(gpu[k], cpu[k])
 
 
 def test_stencil_transpose_subtract_matches_cpu_and_the_sparse_formula():
-    """y - (Du^T Ba + Dv^T Bb + Bg) in one launch, as normal_equations.stencil_transpose on a grid."""
+    """y - (Du^T Ba + Dv^T Bb + Bg), as normal_equations.stencil_transpose on a grid (the CPU's
+    joint_depth_system's second half)."""
     from o3d_mvps.model.normals import masked_grid
 
     mask = np.ones((9, 11), dtype=bool)
@@ -917,16 +772,16 @@ def test_stencil_transpose_subtract_matches_cpu_and_the_sparse_formula():
     N = grid.size
     DuT, DvT = grid.transposed_difference_operators()
     Ba, Bb, Bg, y = RNG.normal(size=(4, N))
-    cpu, gpu = run_both("stencil_transpose_subtract", DuT.indptr, DuT.indices, DuT.data, DvT.indptr, DvT.indices,
-                        DvT.data, Ba, Bb, Bg, y, np.full(N, np.nan))
+    cpu = run_cpu("stencil_transpose_subtract", DuT.indptr, DuT.indices, DuT.data, DvT.indptr, DvT.indices,
+                  DvT.data, Ba, Bb, Bg, y, np.full(N, np.nan))
     assert_close(cpu[-1], y - (DuT @ Ba + DvT @ Bb + Bg))
-    assert_close(gpu[-1], cpu[-1])
 
 
 def test_depth_block_fill_matches_cpu_and_the_sparse_products():
-    """The depth block (stencil Gram + 2 tau D^T D + 2 mu S^T S) filled into the level's pattern in
-    one launch: the sparse products' matrix to rounding (the CPU's depth_block's measured 2e-16),
-    no entry missing; a pattern without the prior's entries counts the missing ones."""
+    """The depth block (stencil Gram + 2 tau D^T D + 2 mu S^T S) filled into the level's pattern (the
+    CPU's joint_depth_system's first half): the sparse products' matrix to rounding (the CPU's
+    depth_block's measured 2e-16), no entry missing; a pattern without the prior's entries counts
+    the part that lacks some."""
     from o3d_mvps.model.normals import masked_grid
     from o3d_mvps.solver.normal_equations import depth_block_pattern, stencil_normal_matrix
 
@@ -941,21 +796,19 @@ def test_depth_block_fill_matches_cpu_and_the_sparse_products():
     indptr, indices = depth_block_pattern(grid, prior)
     DtD, StS = (D.T @ D).tocsr(), (S.T @ S).tocsr()
     geometry = (grid.fwd_u, grid.bwd_u, grid.wf_u, grid.wb_u, grid.fwd_v, grid.bwd_v, grid.wf_v, grid.wb_v)
-    cpu, gpu = run_both("depth_block_fill", indptr, indices, *geometry, *sums, 1.4, DtD.indptr, DtD.indices, DtD.data,
-                        0.6, StS.indptr, StS.indices, StS.data, np.zeros(indices.size), np.zeros(1))
+    cpu = run_cpu("depth_block_fill", indptr, indices, *geometry, *sums, 1.4, DtD.indptr, DtD.indices, DtD.data,
+                  0.6, StS.indptr, StS.indices, StS.data, np.zeros(indices.size), np.zeros(1))
     expected = (stencil_normal_matrix(grid, *sums) + 1.4 * DtD + 0.6 * StS).toarray()
-    for out in (cpu, gpu):
-        assert out[-1][0] == 0.0
-        M = sp.csr_matrix((out[-2], indices, indptr), shape=(N, N)).toarray()
-        assert_close(M, expected, rtol=1e-13)
+    assert cpu[-1][0] == 0.0
+    assert_close(sp.csr_matrix((cpu[-2], indices, indptr), shape=(N, N)).toarray(), expected, rtol=1e-13)
     # without a second term (no rows) and a pattern of the stencil alone: the first term's entries missing
     no_rows = DtD.indptr[:1]
     touched_only = type("Prior", (), {"D": sp.csr_matrix((1, N)), "smoothness_pattern": None})()
     small_ptr, small_idx = depth_block_pattern(grid, touched_only)
-    _, gpu = run_both("depth_block_fill", small_ptr, small_idx, *geometry, *sums, 1.4, DtD.indptr, DtD.indices,
-                      DtD.data, 0.0, no_rows, DtD.indices, DtD.data, np.zeros(small_idx.size), np.zeros(1))
+    cpu = run_cpu("depth_block_fill", small_ptr, small_idx, *geometry, *sums, 1.4, DtD.indptr, DtD.indices,
+                  DtD.data, 0.0, no_rows, DtD.indices, DtD.data, np.zeros(small_idx.size), np.zeros(1))
     outside = (abs(sp.csr_matrix((np.ones(small_idx.size), small_idx, small_ptr), shape=(N, N))).toarray() == 0)
-    assert gpu[-1][0] == (DtD.toarray()[outside] != 0).sum() > 0
+    assert (DtD.toarray()[outside] != 0).sum() > 0 and cpu[-1][0] == 1.0  # on the host 1 for the one part lacking some
 
 
 def test_levenberg_damp_matches_cpu_and_levenberg_damped():

@@ -31,14 +31,18 @@ one copy): alone against 33f5a07 313 / 314 and 423 launches, 45 / 43 and 58.5 co
 merged: 249 / 256 and 412 launches, 45 / 43 and 58.5 copies. The data term's evaluation in one
 launch, the set-up's, lighting's and albedo's kernels and the trial states' kernels (issue 33,
 2026-11-26; docs/gpu.md): 106 / 119 and 303 launches, 30 / 29 and 54 copies (the room's light
-path keeps more array operations). Three branches of issue 33, merged (2026-11-26, e319018): the
-joint step's assembly, twist system, Schur operator and twists in a few numba-cuda kernels
-(gpujoint); one copy per light state, energies read where used, the LED offset system, the albedo
-step with its re-evaluation and the extrapolation's energies one kernel each (gpueval2); the
-multigrid's set-up in one launch, CG's start in its first launch and the prior's gradient in one
-(gpukrylov; these problems' multigrid is the dense coarsest alone): 51 / 62 and 290 launches,
-18 / 15 and 51 copies. The bounds are these counts with a margin of about 1 % (1-3 launches,
-1 copy).
+path keeps more array operations). The joint step's assembly, twist system, Schur operator and
+twists in a few numba-cuda kernels (issue 33, gpujoint: one per assembly block, no read of the
+frames' pixel counts, the poses the evaluation's copy), alone: 80 / 93 and 291 launches, 28 / 27
+and 52 copies. Issue 33's evaluation, energy, weights and light updates (gpueval2: one copy per
+light state, energies read where used, the LED offset system, the albedo step with its
+re-evaluation, a trial with its albedo refit, the extrapolation's energies and the evidence sums
+one kernel each), alone: 82 / 93 and 297 launches, 20 / 17 and 49 copies. The multigrid's set-up
+in one launch, CG's start in its first launch and the prior's gradient in one (gpukrylov; these
+problems' multigrid is the dense coarsest alone), alone: 100 / 113 and 297.5 launches, copies as
+before. All three merged (51602b1; gpuclean's removal of dead device code changes no count): 51 /
+62 and 290 launches, 18 / 15 and 51 copies. The bounds are these counts with a margin of about
+1 % (1-3 launches, 1 copy).
 """
 
 import shutil

@@ -14,8 +14,8 @@ per-pixel functions in :mod:`.kernels` or :mod:`o3d_mvps.model`, clear the cache
 (``__pycache__/*.nbi``, ``*.nbc``) or touch this file.
 
 Threads take adjacent pixels (the fastest-varying index of the per-pixel arrays), so that
-neighbouring threads read neighbouring memory. Reductions over pixels go to per-thread
-(:func:`accumulate_frames`) or per-block (:func:`log1p_square_sum`) partial sums added up
+neighbouring threads read neighbouring memory. Reductions over pixels go to per-block partial sums
+(:func:`joint_block`, :func:`log1p_square_sum`) added up
 afterwards, never to one shared accumulator; float64 throughout, as on the CPU.
 """
 
@@ -32,22 +32,17 @@ from ..model.robust import log1p_square_term
 from ..model.shading import led_field, led_irradiance, led_point_gradient
 from . import kernels
 
-#: the launchers, the same in :mod:`.kernels` (chunk_count is the size of accumulate_frame's partial sums)
-__all__ = ["chunk_count", "accumulate_frame", "accumulate_frames", "project_twist_rows", "scatter_sparse_transpose_rows",
-           "shading_residuals", "weighted_albedo_sums", "weighted_lighting_sums", "log1p_square_sum",
-           "led_irradiances_into", "led_point_gradients_into", "warp_sample", "warp_sample_frames", "warp_gradients",
-           "chebyshev_update", "chebyshev_start", "restrict_residual", "prolong_restart", "csr_multiply_add", "cg_start",
-           "cg_scalars", "cg_update", "multigrid_cg", "ridge_solves", "led_trial_sums", "twist_system",
-           "twist_inverse", "albedo_update", "lighting_sums", "offset_system",
-           "smoother_scaling", "stencil_transpose_subtract", "depth_block_fill",
-           "levenberg_damp"]
+#: the launchers, the same in :mod:`.kernels`
+__all__ = ["shading_residuals", "log1p_square_sum", "led_irradiances_into", "led_point_gradients_into", "warp_sample",
+           "warp_sample_frames", "warp_gradients", "chebyshev_update", "chebyshev_start", "restrict_residual",
+           "prolong_restart", "csr_multiply_add", "cg_start", "cg_scalars", "cg_update", "multigrid_cg",
+           "ridge_solves", "led_trial_sums", "albedo_update", "lighting_sums", "levenberg_damp"]
 
 #: Threads per block of every kernel.
 THREADS_PER_BLOCK = 128
 
-#: Pixels per thread of :func:`accumulate_frame`: each thread writes its own 6x6 Gram and
-#: right-hand side (42 values, about what one pixel reads and writes), so a few pixels a thread
-#: keep those partial sums a small part of the traffic.
+#: Pixels per thread of :func:`joint_block` (:func:`joint_blocks`: its thread blocks, one row of
+#: partial twist sums each): a few pixels a thread keep those partial sums a small part of the traffic.
 PIXELS_PER_THREAD = 4
 
 #: Terms per thread of :func:`log1p_square_sum` (one partial sum per block comes back to the host).
@@ -75,11 +70,8 @@ def _python(function):
 
 
 _accumulate_pixel = _device(kernels.accumulate_pixel)
-_store_partial_sums = _device(kernels.store_partial_sums)
-_project_twist_pixel = _device(kernels.project_twist_pixel)
 _shading_residual_pixel = _device(kernels.shading_residual_pixel)
 _weighted_albedo_pixel = _device(kernels.weighted_albedo_pixel)
-_weighted_lighting_pixel = _device(kernels.weighted_lighting_pixel)
 _log1p_square_term = _device(log1p_square_term)
 _led_irradiance = _device(led_irradiance)
 _led_point_gradient = _device(led_point_gradient)
@@ -205,107 +197,6 @@ def _blocks(n_threads: int) -> int:
     return max(1, -(-n_threads // THREADS_PER_BLOCK))
 
 
-def chunk_count(n_pixels: int) -> int:
-    """Threads of :func:`accumulate_frame` for ``n_pixels``, a whole number of blocks: the rows of
-    its partial sums (thread t takes pixels t, t + T, t + 2T, ...)."""
-    return _blocks(-(-n_pixels // PIXELS_PER_THREAD)) * THREADS_PER_BLOCK
-
-
-def accumulate_frame(r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, pose, K, image, dshading,
-                     albedo, with_jacobian, parallax, sums, e, rows, F, slot, gram, rhs) -> None:
-    """:func:`.kernels.accumulate_frame` on the GPU, same arguments; gram (T, 6, 6) and rhs (T, 6)
-    get one row per thread, T = :func:`chunk_count` (N). One frame through
-    :func:`_accumulate_frames` (its arrays as views with a leading axis of one, its Jacobian flag
-    and slot in a (1, 2) array, the partial sums in that one row): one kernel for both."""
-    frame_slots = np.array([[1 if with_jacobian else 0, slot]], dtype=np.int64)
-    _accumulate_frames[_blocks(rhs.shape[0]), THREADS_PER_BLOCK](
-        r[None], shading[None], use[None], inv_lam, q, alpha[None], beta[None], gamma[None], extra_c, points_ref,
-        pose[None], K, image[None], dshading[None], albedo, frame_slots, parallax, sums, e, rows, F, gram[None],
-        rhs[None])
-
-
-@cuda.jit(cache=True)
-def _accumulate_frames(residual, shading, usable, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, poses, K, images,
-                       dshading, albedo, frame_slots, parallax, sums, e, rows, F, gram, rhs):  # pragma: no cover - device
-    t_ = cuda.grid(1)
-    n_threads = rhs.shape[1]
-    if t_ >= n_threads:
-        return
-    J = cuda.local.array((3, 6), numba.float64)
-    G = cuda.local.array((6, 6), numba.float64)
-    b = cuda.local.array(6, numba.float64)
-    wqJ = cuda.local.array(6, numba.float64)
-    wcJ = cuda.local.array(6, numba.float64)
-    others = rhs.shape[0] - 1  # the row of the frames without a slot
-    for i in range(residual.shape[0]):  # in frame order: each pixel's sums add up as the host's loop adds them
-        for j in range(6):
-            b[j] = 0.0
-            for k in range(6):
-                G[j, k] = 0.0
-        with_jacobian = frame_slots[i, 0] != 0
-        slot = frame_slots[i, 1]
-        extra = extra_c[:extra_c.shape[0] if i == 0 else 0]
-        r, shading_i, use, alpha_i, beta_i, gamma_i = residual[i], shading[i], usable[i], alpha[i], beta[i], gamma[i]
-        pose, image, dshading_i = poses[i], images[i], dshading[i]
-        for p in range(t_, r.shape[0], n_threads):
-            _accumulate_pixel(p, r, shading_i, use, inv_lam, q, alpha_i, beta_i, gamma_i, extra, points_ref, pose, K,
-                              image, dshading_i, albedo, with_jacobian, parallax, sums, e, rows, F, slot, J, G, b, wqJ,
-                              wcJ)
-        row = others if slot < 0 else min(slot, others)  # accumulate_frame: one row for its one frame
-        _store_partial_sums(G, b, gram[row], rhs[row], t_)
-
-
-def accumulate_frames(residual, shading, usable, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, poses, K, images,
-                      dshading, albedo, frame_slots, parallax, sums, e, rows, F, gram, rhs) -> None:
-    """:func:`.kernels.accumulate_frames` on the GPU, same arguments: every frame in one launch,
-    each thread taking its pixels (thread t: pixels t, t + T, t + 2T, ...) through the frames in
-    order; gram (m + 1, T, 6, 6) and rhs (m + 1, T, 6), T = :func:`chunk_count` (N) (a slot past
-    the last row writes into the last row: :func:`accumulate_frame`'s one)."""
-    _accumulate_frames[_blocks(rhs.shape[1]), THREADS_PER_BLOCK](
-        residual, shading, usable, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, poses, K, images, dshading,
-        albedo, frame_slots, parallax, sums, e, rows, F, gram, rhs)
-
-
-@cuda.jit(cache=True)
-def _project_twist_rows(rows, F, scaled, sqrt_inv_d):  # pragma: no cover - device
-    index = cuda.grid(1)
-    N = F.shape[2]
-    if index < F.shape[0] * 6 * N:
-        fj, p = index // N, index % N
-        _project_twist_pixel(rows, F, scaled, sqrt_inv_d, fj // 6, fj % 6, p)
-
-
-def project_twist_rows(rows, F, scaled, sqrt_inv_d) -> None:
-    """:func:`.kernels.project_twist_rows` on the GPU (one thread per frame slot, twist
-    component and pixel)."""
-    _project_twist_rows[_blocks(F.shape[0] * 6 * F.shape[2]), THREADS_PER_BLOCK](rows, F, scaled, sqrt_inv_d)
-
-
-@cuda.jit(cache=True)
-def _scatter_sparse_transpose_rows(indptr, indices, data, X, out):  # pragma: no cover - device
-    index = cuda.grid(1)
-    R = X.shape[1]
-    if index < X.shape[0] * R:
-        j, row = index // R, index % R
-        x = X[j, row]
-        for nz in range(indptr[row], indptr[row + 1]):
-            cuda.atomic.add(out, (j, indices[nz]), data[nz] * x)
-
-
-def scatter_sparse_transpose_rows(indptr, indices, data, X, out) -> None:
-    """:func:`.kernels.scatter_sparse_transpose_rows` on the GPU: one thread per entry X[j, row],
-    adding ``data x`` to row j of ``out`` at the row's columns with atomic adds.
-
-    The CPU twin's threads own whole output rows; here one thread per X entry (tens of thousands
-    per output row) is what fills a GPU, and the rows of a difference operator overlap in their
-    columns, so two threads may add to one output: atomically. Each output gets only as many
-    additions as its column has entries (a stencil's width), so they rarely contend. A gather
-    (one thread per output) would need A's transpose, which the caller does not have. The order
-    of the additions, so the rounding, varies from run to run.
-    """
-    _scatter_sparse_transpose_rows[_blocks(X.shape[0] * X.shape[1]), THREADS_PER_BLOCK](indptr, indices, data, X, out)
-
-
 @cuda.jit(cache=True)
 def _shading_residuals(color, albedo, basis, lights, usable, shading, residual):  # pragma: no cover - device
     index = cuda.grid(1)
@@ -318,33 +209,6 @@ def shading_residuals(color, albedo, basis, lights, usable, shading, residual) -
     """:func:`.kernels.shading_residuals` on the GPU (one thread per frame and pixel)."""
     _shading_residuals[_blocks(usable.size), THREADS_PER_BLOCK](color, albedo, basis, lights, usable, shading,
                                                                 residual)
-
-
-@cuda.jit(cache=True)
-def _weighted_albedo_sums(residual, usable, values, shading, inv_lam, num, den):  # pragma: no cover - device
-    p = cuda.grid(1)
-    if p < usable.shape[1]:
-        _weighted_albedo_pixel(residual, usable, values, shading, inv_lam, num, den, p)
-
-
-def weighted_albedo_sums(residual, usable, values, shading, inv_lam, num, den) -> None:
-    """:func:`.kernels.weighted_albedo_sums` on the GPU (one thread per pixel)."""
-    _weighted_albedo_sums[_blocks(usable.shape[1]), THREADS_PER_BLOCK](residual, usable, values, shading, inv_lam,
-                                                                       num, den)
-
-
-@cuda.jit(cache=True)
-def _weighted_lighting_sums(residual, usable, color, albedo, inv_lam, wr2, wri):  # pragma: no cover - device
-    index = cuda.grid(1)
-    n, N = usable.shape
-    if index < n * N:
-        _weighted_lighting_pixel(residual, usable, color, albedo, inv_lam, wr2, wri, index // N, index % N)
-
-
-def weighted_lighting_sums(residual, usable, color, albedo, inv_lam, wr2, wri) -> None:
-    """:func:`.kernels.weighted_lighting_sums` on the GPU (one thread per frame and pixel)."""
-    _weighted_lighting_sums[_blocks(usable.size), THREADS_PER_BLOCK](residual, usable, color, albedo, inv_lam, wr2,
-                                                                     wri)
 
 
 @cuda.jit(cache=True)
@@ -619,7 +483,6 @@ def multigrid_cg(n_steps, cycle_first, with_matrix, m_indptr, m_indices, m_data,
 _ridge_solve_system = _device(kernels.ridge_solve_system)
 _ridge_cholesky = _device(kernels.ridge_cholesky)
 _cholesky_column = _device(kernels.cholesky_column)
-_matrix_vector_row = _device(kernels.matrix_vector_row)
 _led_trial_term = _device(kernels.led_trial_term)
 _led_offset_step = _device(kernels.led_offset_step)
 _store_offset_step = _device(kernels.store_offset_step)
@@ -680,55 +543,7 @@ def led_trial_sums(color, usable, albedo, normals, points, poses, start, H, g, l
         out.shape[0] - 2 if current else -1, out)
 
 
-_twist_frame_kept = _device(kernels.twist_frame_kept)
 _twist_entry = _device(kernels.twist_entry)
-
-
-@cuda.jit(cache=True)
-def _twist_system(grams, rhs_frames, rhs_projection, downdate, limit, W, kept, hessian, rhs,
-                  selection):  # pragma: no cover - device
-    """One block: its threads take the frame slots (their Grams' condition numbers), then, after
-    the block's barrier, the matrix's entries."""
-    t = cuda.threadIdx.x
-    for f in range(t, grams.shape[0], THREADS_PER_BLOCK):
-        _twist_frame_kept(grams, limit, W, kept, f)
-    cuda.syncthreads()
-    k = hessian.shape[0]
-    for index in range(t, k * k, THREADS_PER_BLOCK):
-        _twist_entry(grams, rhs_frames, rhs_projection, downdate, kept, hessian, rhs, selection, index // k, index % k)
-
-
-def twist_system(grams, rhs_frames, rhs_projection, downdate, limit, W, kept, hessian, rhs, selection) -> None:
-    """:func:`.kernels.twist_system` on the GPU: one launch of one block (a few thousand
-    entries), its threads one per frame slot (its Gram's condition number), then, after a
-    barrier, strided over the matrix's entries."""
-    _twist_system[1, THREADS_PER_BLOCK](grams, rhs_frames, rhs_projection, downdate, float(limit), W, kept, hessian,
-                                        rhs, selection)
-
-
-@cuda.jit(cache=True)
-def _twist_inverse(hessian, selection, rhs, fallback, L, X, Xb, solved):  # pragma: no cover - device
-    """One block: thread 0 factors, then (after the barrier) the threads take X's columns, then
-    Xb's rows."""
-    t = cuda.threadIdx.x
-    ok = cuda.shared.array(1, numba.int32)
-    if t == 0:
-        done = _ridge_cholesky(hessian, 0.0, fallback, L, 0)
-        solved[0] = 1.0 if done else 0.0
-        ok[0] = 1 if done else 0
-    cuda.syncthreads()
-    K = hessian.shape[1]
-    for c in range(t, K, THREADS_PER_BLOCK):
-        _cholesky_column(L, selection, X, ok[0] != 0, 0, c)
-    cuda.syncthreads()
-    for j in range(t, K, THREADS_PER_BLOCK):
-        _matrix_vector_row(X, rhs, Xb, j)
-
-
-def twist_inverse(hessian, selection, rhs, fallback, L, X, Xb, solved) -> None:
-    """:func:`.kernels.twist_inverse` on the GPU: one launch of one block (thread 0 factors, the
-    block's threads take the columns' substitutions, then Xb's rows)."""
-    _twist_inverse[1, THREADS_PER_BLOCK](hessian, selection, rhs, float(fallback), L, X, Xb, solved)
 
 
 # --- the data term's evaluation in one launch (gpueval, issue #33) -----------------------------
@@ -933,100 +748,7 @@ def lighting_sums(residual, usable, color, albedo, inv_lam, basis, out) -> None:
                                                                         float(inv_lam), basis, out)
 
 
-_offset_system_add = _device(kernels.offset_system_add)
-
-
-@cuda.jit(cache=True)
-def _offset_system(ds, residual, usable, albedo, inv_lam, stride, H, g):  # pragma: no cover - device
-    share = cuda.shared.array(THREADS_PER_BLOCK, numba.float64)
-    acc = cuda.local.array(12, numba.float64)
-    t = cuda.threadIdx.x
-    M = ds.shape[1]
-    for e in range(12):
-        acc[e] = 0.0
-    for index in range(t, ds.shape[0] * M, THREADS_PER_BLOCK):
-        _offset_system_add(ds, residual, usable, albedo, inv_lam, stride, acc, index // M, index % M)
-    for e in range(12):
-        _block_tree_sum(share, t, acc[e])
-        if t == 0:
-            if e < 9:
-                H[0, e // 3, e % 3] = share[0]
-            else:
-                g[0, e - 9, 0] = share[0]
-        cuda.syncthreads()  # the root read before the next tree writes
-
-
-def offset_system(ds, residual, usable, albedo, inv_lam, stride, H, g) -> None:
-    """:func:`.kernels.offset_system` on the GPU: one launch of one block (a few thousand pixels a
-    frame; was ten array operations), its threads strided over the frames' spread pixels, then
-    the block's tree sum of each of the 12 values."""
-    _offset_system[1, THREADS_PER_BLOCK](ds, residual, usable, albedo, float(inv_lam), int(stride), H, g)
-
-
-_inverse_diagonal_row = _device(kernels.inverse_diagonal_row)
-_gershgorin_row = _device(kernels.gershgorin_row)
-
-
-@cuda.jit(cache=True)
-def _smoother_scaling(indptr, indices, data, inv_diag, scaled, upper, partial):  # pragma: no cover - device
-    """Cooperative: the rows' inverse diagonal, the grid's sync, the rows' Gershgorin sums and
-    each block's largest into partial, the grid's sync, every thread's maximum over the blocks
-    (the same in each), then the scaled inverse diagonal."""
-    share = cuda.shared.array(THREADS_PER_BLOCK, numba.float64)
-    t = cuda.threadIdx.x
-    n = indptr.shape[0] - 1
-    start, step = cuda.grid(1), cuda.gridsize(1)
-    for i in range(start, n, step):
-        _inverse_diagonal_row(indptr, indices, data, inv_diag, i)
-    cuda.cg.this_grid().sync()
-    bound = -math.inf
-    for i in range(start, n, step):
-        bound = max(bound, _gershgorin_row(indptr, indices, data, inv_diag, i))
-    share[t] = bound
-    cuda.syncthreads()
-    half = THREADS_PER_BLOCK // 2
-    while half > 0:
-        if t < half:
-            share[t] = max(share[t], share[t + half])
-        cuda.syncthreads()
-        half //= 2
-    if t == 0:
-        partial[cuda.blockIdx.x] = share[0]
-    cuda.cg.this_grid().sync()
-    bound = -math.inf
-    for b in range(cuda.gridDim.x):
-        bound = max(bound, partial[b])
-    if start == 0:
-        upper[0] = bound
-    for i in range(start, n, step):
-        scaled[i] = inv_diag[i] / bound
-
-
-def smoother_scaling(indptr, indices, data, inv_diag, scaled, upper, partial) -> None:
-    """:func:`.kernels.smoother_scaling` on the GPU in one cooperative launch (was six array
-    operations a multigrid level): rows in grid-stride loops over at most ``partial.size``
-    blocks."""
-    args = (indptr, indices, data, inv_diag, scaled, upper, partial)
-    blocks = min(_cooperative_blocks(_smoother_scaling, args, _blocks(indptr.shape[0] - 1)), partial.shape[0])
-    _smoother_scaling[blocks, THREADS_PER_BLOCK](*args)
-
-
 _stencil_transpose_row = _device(kernels.stencil_transpose_row)
-
-
-@cuda.jit(cache=True)
-def _stencil_transpose_subtract(u_indptr, u_indices, u_data, v_indptr, v_indices, v_data, Ba, Bb, Bg, y,
-                                out):  # pragma: no cover - device
-    i = cuda.grid(1)
-    if i < out.shape[0]:
-        _stencil_transpose_row(u_indptr, u_indices, u_data, v_indptr, v_indices, v_data, Ba, Bb, Bg, y, out, i)
-
-
-def stencil_transpose_subtract(u_indptr, u_indices, u_data, v_indptr, v_indices, v_data, Ba, Bb, Bg, y, out) -> None:
-    """:func:`.kernels.stencil_transpose_subtract` on the GPU: one thread per row (was two sparse
-    products and three array operations)."""
-    _stencil_transpose_subtract[_blocks(out.shape[0]), THREADS_PER_BLOCK](u_indptr, u_indices, u_data, v_indptr,
-                                                                          v_indices, v_data, Ba, Bb, Bg, y, out)
 
 
 _stencil_pixel = _device(kernels.stencil_pixel)
@@ -1037,7 +759,7 @@ _csr_position = _device(kernels.csr_position)
 def _depth_block_rows(indptr, indices, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, Saa, Sbb, Sgg, Sab, Sag, Sbg,
                       s1, t1_indptr, t1_indices, t1_data, s2, t2_indptr, t2_indices, t2_data, data, missing, nodes, cu,
                       cv, ce, k):  # pragma: no cover - device
-    """Thread k's share of :func:`depth_block_fill`: pixel k's 5 x 5 stencil block, then row k of
+    """Thread k's share of :func:`.kernels.depth_block_fill`: pixel k's 5 x 5 stencil block, then row k of
     each term, added by atomics (scratch nodes, cu, cv, ce (5,))."""
     if k < fwd_u.shape[0]:
         _stencil_pixel(fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, nodes, cu, cv, ce, k)
@@ -1071,33 +793,6 @@ def _depth_block_rows(indptr, indices, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, w
 
 if not cuda.config.ENABLE_CUDASIM:  # compiled for the device where a kernel calls it (not inline="always":
     _depth_block_rows = numba.njit(_depth_block_rows)  # numba's inlining refuses its 31 arguments)
-
-
-@cuda.jit(cache=True)
-def _depth_block_fill(indptr, indices, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, Saa, Sbb, Sgg, Sab, Sag,
-                      Sbg, s1, t1_indptr, t1_indices, t1_data, s2, t2_indptr, t2_indices, t2_data, data,
-                      missing):  # pragma: no cover - device
-    """Thread k: pixel k's 5 x 5 stencil block, then row k of each term, added by atomics."""
-    nodes = cuda.local.array(5, numba.int64)
-    cu = cuda.local.array(5, numba.float64)
-    cv = cuda.local.array(5, numba.float64)
-    ce = cuda.local.array(5, numba.float64)
-    k = cuda.grid(1)
-    _depth_block_rows(indptr, indices, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, Saa, Sbb, Sgg, Sab, Sag, Sbg,
-                      s1, t1_indptr, t1_indices, t1_data, s2, t2_indptr, t2_indices, t2_data, data, missing, nodes, cu,
-                      cv, ce, k)
-
-
-def depth_block_fill(indptr, indices, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, Saa, Sbb, Sgg, Sab, Sag, Sbg,
-                     s1, t1_indptr, t1_indices, t1_data, s2, t2_indptr, t2_indices, t2_data, data, missing) -> None:
-    """:func:`.kernels.depth_block_fill` on the GPU in one launch (was eight sparse products and
-    the sums of four matrices): one thread per pixel and term row, adding by atomics (pixels
-    share entries: the order of the additions, so the rounding, varies from run to run)."""
-    rows = max(fwd_u.shape[0], t1_indptr.shape[0] - 1, t2_indptr.shape[0] - 1)
-    _depth_block_fill[_blocks(rows), THREADS_PER_BLOCK](indptr, indices, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v,
-                                                        wb_v, Saa, Sbb, Sgg, Sab, Sag, Sbg, float(s1), t1_indptr,
-                                                        t1_indices, t1_data, float(s2), t2_indptr, t2_indices, t2_data,
-                                                        data, missing)
 
 
 _diagonal_value = _device(kernels.diagonal_value)
@@ -1346,7 +1041,7 @@ def _joint_twist_system(partial, products, min_pixels, limit, grams, rhs_frames,
 def joint_twist_system(partial, products, min_pixels, limit, grams, rhs_frames, D, W, kept, hessian, rhs,
                        selection) -> None:
     """:func:`.kernels.joint_twist_system` on the GPU: one launch of one block (was two
-    reductions, a sum and :func:`twist_system`)."""
+    reductions, a sum and a twist-system launch; :func:`.kernels.twist_system`'s values)."""
     _joint_twist_system[1, THREADS_PER_BLOCK](partial, products, float(min_pixels), float(limit), grams, rhs_frames, D,
                                               W, kept, hessian, rhs, selection)
 
@@ -1356,7 +1051,7 @@ def _joint_depth_system(indptr, indices, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v,
                         Sbg, s1, t1_indptr, t1_indices, t1_data, s2, t2_indptr, t2_indices, t2_data, data, missing,
                         u_indptr, u_indices, u_data, v_indptr, v_indices, v_data, Ba, Bb, Bg, y,
                         out):  # pragma: no cover - device
-    """Thread k: :func:`_depth_block_fill`'s pixel k and rows k, then row k of the right-hand side."""
+    """Thread k: :func:`.kernels.depth_block_fill`'s pixel k and rows k, then row k of the right-hand side."""
     nodes = cuda.local.array(5, numba.int64)
     cu = cuda.local.array(5, numba.float64)
     cv = cuda.local.array(5, numba.float64)
@@ -1372,9 +1067,9 @@ def _joint_depth_system(indptr, indices, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v,
 def joint_depth_system(indptr, indices, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, Saa, Sbb, Sgg, Sab, Sag,
                        Sbg, s1, t1_indptr, t1_indices, t1_data, s2, t2_indptr, t2_indices, t2_data, data, missing,
                        u_indptr, u_indices, u_data, v_indptr, v_indices, v_data, Ba, Bb, Bg, y, out) -> None:
-    """:func:`.kernels.joint_depth_system` on the GPU in one launch (was :func:`depth_block_fill`
-    and :func:`stencil_transpose_subtract`): one thread per pixel, term row and right-hand side
-    row."""
+    """:func:`.kernels.joint_depth_system` on the GPU in one launch (the work of
+    :func:`.kernels.depth_block_fill` and :func:`.kernels.stencil_transpose_subtract`): one thread
+    per pixel, term row and right-hand side row."""
     rows = max(fwd_u.shape[0], t1_indptr.shape[0] - 1, t2_indptr.shape[0] - 1, out.shape[0])
     _joint_depth_system[_blocks(rows), THREADS_PER_BLOCK](
         indptr, indices, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, Saa, Sbb, Sgg, Sab, Sag, Sbg, float(s1),
@@ -1461,7 +1156,7 @@ def _led_offset_system(intensities, normals, points, positions, rotations, resid
 def led_offset_system(intensities, normals, points, positions, rotations, residual, usable, albedo, inv_lam, stride, H,
                       g) -> None:
     """:func:`.kernels.led_offset_system` on the GPU: one launch of one block (as
-    :func:`offset_system`), each thread forming its spread pixels' Jacobians (was a Jacobian
+    :func:`.kernels.offset_system`), each thread forming its spread pixels' Jacobians (was a Jacobian
     launch, two array operations, a copy of the rotations and the system's launch)."""
     _led_offset_system[1, THREADS_PER_BLOCK](intensities, normals, points, positions, rotations, residual, usable,
                                              albedo, float(inv_lam), int(stride), H, g)

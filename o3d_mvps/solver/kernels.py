@@ -1292,7 +1292,7 @@ def ridge_solve_system(A, B, ridge, fallback, L, X, solved, i):  # pragma: no co
     float64. The formula of :func:`.linear.ridge_solve` (the host's pose, LED offset and
     lighting steps) and of the GPU's batched solves (:func:`ridge_solves`, and
     :mod:`.cuda_kernels`' twin: one thread per system), the LED offset's step
-    (:func:`led_offset_step`) and the joint step's twist inverse (:func:`twist_inverse`)."""
+    (:func:`led_offset_step`) and the joint step's inverse (:func:`joint_inverse`: the same Cholesky)."""
     ok = ridge_cholesky(A, ridge, fallback, L, i)
     solved[i] = 1.0 if ok else 0.0
     for c in range(B.shape[2]):
@@ -1498,25 +1498,6 @@ def twist_system(grams, rhs_frames, rhs_projection, downdate, limit, W, kept, he
     for j in range(hessian.shape[0]):
         for c in range(hessian.shape[1]):
             twist_entry(grams, rhs_frames, rhs_projection, downdate, kept, hessian, rhs, selection, j, c)
-
-
-@numba.njit(inline="always")
-def matrix_vector_row(X, v, out, j):  # pragma: no cover - compiled
-    """out[j] = X[0, j] . v: X (1, k, k), v (k,)."""
-    total = 0.0
-    for c in range(v.shape[0]):
-        total += X[0, j, c] * v[c]
-    out[j] = total
-
-
-@numba.njit(cache=True)
-def twist_inverse(hessian, selection, rhs, fallback, L, X, Xb, solved):  # pragma: no cover - compiled
-    """The joint step's ``X = H^-1 selection`` (:func:`ridge_solve_system` without a ridge,
-    :func:`.normal_equations._cholesky`'s ``fallback``) and ``Xb = X rhs``: hessian, selection,
-    L, X (1, K, K), rhs, Xb (K,), solved (1,)."""
-    ridge_solve_system(hessian, selection, 0.0, fallback, L, X, solved, 0)
-    for j in range(Xb.shape[0]):
-        matrix_vector_row(X, rhs, Xb, j)
 
 
 # --- the data term's evaluation in one pass (gpueval, issue #33) -------------------------------
@@ -1949,23 +1930,6 @@ def gershgorin_row(indptr, indices, data, inv_diag, i):  # pragma: no cover - co
     return math.sqrt(inv_diag[i]) * total
 
 
-@numba.njit(cache=True)
-def smoother_scaling(indptr, indices, data, inv_diag, scaled, upper, partial):  # pragma: no cover - compiled
-    """A multigrid level's smoother set-up from its CSR matrix A (N, N): inv_diag (N,) = 1 /
-    diag(A), upper (1,) the Gershgorin bound of D^-1 A's spectrum (:func:`.krylov.spectral_bound`)
-    and scaled (N,) = inv_diag / upper (what the smoothers take, :func:`.krylov.make_smoother`);
-    partial (blocks,) scratch of the GPU's launch."""
-    n = indptr.shape[0] - 1
-    for i in range(n):
-        inverse_diagonal_row(indptr, indices, data, inv_diag, i)
-    bound = -math.inf
-    for i in range(n):
-        bound = max(bound, gershgorin_row(indptr, indices, data, inv_diag, i))
-    upper[0] = bound
-    for i in range(n):
-        scaled[i] = inv_diag[i] / bound
-
-
 @numba.njit(inline="always")
 def stencil_transpose_row(u_indptr, u_indices, u_data, v_indptr, v_indices, v_data, Ba, Bb, Bg, y, out,
                           i):  # pragma: no cover - compiled
@@ -2379,9 +2343,11 @@ def joint_inverse_row(X, rhs, j):  # pragma: no cover - compiled
 
 @numba.njit(cache=True)
 def joint_inverse(hessian, selection, rhs, fallback, L, X, solved):  # pragma: no cover - compiled
-    """:func:`twist_inverse` into one augmented matrix X (1, K + 1, K + 1): ``[[H^-1 selection,
-    H^-1 selection rhs], [0, 1]]``, so that ``X^T [U^T; rhs_z^T]`` gives the Schur complement's
-    ``(-U H^-1)^T`` and right-hand side in one product. hessian, selection, L (1, K, K), rhs
+    """The joint step's ``H^-1 selection`` (:func:`ridge_cholesky` without a ridge,
+    :func:`.normal_equations._cholesky`'s ``fallback``) in one augmented matrix X
+    (1, K + 1, K + 1): ``[[H^-1 selection, H^-1 selection rhs], [0, 1]]``, so that
+    ``X^T [U^T; rhs_z^T]`` gives the Schur complement's ``(-U H^-1)^T`` and right-hand side in
+    one product. hessian, selection, L (1, K, K), rhs
     (K,), solved (1,)."""
     ok = ridge_cholesky(hessian, 0.0, fallback, L, 0)
     solved[0] = 1.0 if ok else 0.0
@@ -2445,31 +2411,32 @@ def led_offset_system(intensities, normals, points, positions, rotations, residu
 
 
 @numba.njit(inline="always")
+def evidence_frame_terms(sums, r, s, l0, l1, l2):  # pragma: no cover - compiled
+    """One frame's terms of :func:`.weighting.normal_evidence`'s sums at a pixel added to
+    ``sums`` (g00, g01, g02, g11, g12, g22, v0, v1, v2, d: 10 floats): rho2 ``r``, shading ``s``
+    (float64), light vector (l0, l1, l2); the new 10 sums (the host's ``_evidence_sums`` and
+    :func:`led_evidence_pixel` alike)."""
+    g00, g01, g02, g11, g12, g22, v0, v1, v2, dd = sums
+    us = r * s
+    return (g00 + r * l0 * l0, g01 + r * l0 * l1, g02 + r * l0 * l2, g11 + r * l1 * l1, g12 + r * l1 * l2,
+            g22 + r * l2 * l2, v0 + us * l0, v1 + us * l1, v2 + us * l2, dd + us * s)
+
+
+@numba.njit(inline="always")
 def led_evidence_pixel(usable, albedo, shading, intensities, normals, points, positions, G6, v, d,
                        p):  # pragma: no cover - compiled
     """Pixel p's sums of :func:`.weighting.normal_evidence` (those of its host's
-    ``_evidence_sums``, in the same order) with the LED's fields formed here
-    (:func:`~o3d_mvps.model.shading.led_field_of`), not read from an (n, N, 3) array:
+    ``_evidence_sums``, in the same order: :func:`evidence_frame_terms`) with the LED's fields
+    formed here (:func:`~o3d_mvps.model.shading.led_field_of`), not read from an (n, N, 3) array:
     G6[:, p], v[:, p], d[p] over the frames that see p; rho2 = sum_c albedo[p, c]^2."""
     r = albedo[p, 0] * albedo[p, 0] + albedo[p, 1] * albedo[p, 1] + albedo[p, 2] * albedo[p, 2]
-    g00 = g01 = g02 = g11 = g12 = g22 = v0 = v1 = v2 = dd = 0.0
+    sums = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     for i in range(usable.shape[0]):
         if usable[i, p]:
             l0, l1, l2 = led_field_of(intensities, normals, points, positions, i, p)
-            s = np.float64(shading[i, p])
-            us = r * s
-            g00 += r * l0 * l0
-            g01 += r * l0 * l1
-            g02 += r * l0 * l2
-            g11 += r * l1 * l1
-            g12 += r * l1 * l2
-            g22 += r * l2 * l2
-            v0 += us * l0
-            v1 += us * l1
-            v2 += us * l2
-            dd += us * s
-    G6[0, p], G6[1, p], G6[2, p], G6[3, p], G6[4, p], G6[5, p] = g00, g01, g02, g11, g12, g22
-    v[0, p], v[1, p], v[2, p], d[p] = v0, v1, v2, dd
+            sums = evidence_frame_terms(sums, r, np.float64(shading[i, p]), l0, l1, l2)
+    G6[0, p], G6[1, p], G6[2, p], G6[3, p], G6[4, p], G6[5, p] = sums[:6]
+    v[0, p], v[1, p], v[2, p], d[p] = sums[6:]
 
 
 @numba.njit(parallel=True, cache=True)
@@ -2646,7 +2613,7 @@ def multigrid_setup_steps(m_indptr, m_indices, m_data, a_indptr, a_indices, a_da
             break
         offset = layout[MG_FIELDS * k + MG_VEC]
         diagonal = inv_diag[offset:offset + n]
-        for i in range(start, n, stride):  # the smoother's D^-1 / bound (as kernels.smoother_scaling)
+        for i in range(start, n, stride):  # the smoother's D^-1 / bound (krylov.inverse_diagonal, spectral_bound)
             inverse_diagonal_row(indptr, indices, data, diagonal, i)
         grid_barrier()
         bound = -math.inf
@@ -2714,7 +2681,7 @@ def multigrid_setup(m_indptr, m_indices, m_data, a_indptr, a_indices, a_data, p_
     """The per-solve set-up of the device multigrid (:func:`.krylov.multigrid_preconditioner`) in
     one launch, on the hierarchy's ``layout`` (:data:`MG_FIELDS` ints per level, ``levels``
     above the coarsest): per level k < levels from its CSR matrix (level 0: m_*; then the
-    packed a_*), D^-1 / bound into its slice of inv_diag (:func:`smoother_scaling`'s values),
+    packed a_*), D^-1 / bound into its slice of inv_diag (:func:`.krylov.make_smoother`'s values),
     and its Galerkin product ``P^T A P`` (piecewise-constant P: p_* its packed indptr and indices,
     r_* those of R = P^T; :func:`galerkin_row`) as the next level's CSR matrix in a_* (its
     columns ascending; a_* sized for level k + 1 at most level k's non-zeros) or, for the

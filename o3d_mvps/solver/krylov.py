@@ -528,6 +528,28 @@ def pack_transfers(levels: list, xp) -> tuple:
                                                              ("data", np.float64)))
 
 
+def _hierarchy_layout(sizes: list, nonzeros: list) -> tuple[list, dict]:
+    """The packed hierarchy's layout (:data:`.kernels.MG_FIELDS` ints per level, for
+    :data:`.kernels.MG_MAX_LEVELS` levels) and the packed arrays' lengths: sizes (L + 1,) the
+    levels' unknowns, the coarsest last; nonzeros (L,) per level above the coarsest the
+    non-zeros (or room for them) of its matrix A (None: not packed, level 0's), P and R. Returns
+    (layout, {"vec", "A_ptr", "A_nz", "P_ptr", "P_nz", "R_ptr", "R_nz"}: the lengths)."""
+    layout = [0] * (MG_FIELDS * MG_MAX_LEVELS)
+    ends = dict.fromkeys(("vec", "A_ptr", "A_nz", "P_ptr", "P_nz", "R_ptr", "R_nz"), 0)
+    for k, n in enumerate(sizes):
+        base = MG_FIELDS * k
+        layout[base + MG_VEC], layout[base + MG_N] = ends["vec"], n
+        ends["vec"] += n
+        if k == len(sizes) - 1:
+            break
+        for name, field, rows, nz in zip("APR", (MG_A_PTR, MG_P_PTR, MG_R_PTR), (n, n, sizes[k + 1]), nonzeros[k]):
+            if nz is not None:
+                layout[base + field], layout[base + field + 1] = ends[f"{name}_ptr"], ends[f"{name}_nz"]
+                ends[f"{name}_ptr"] += rows + 1
+                ends[f"{name}_nz"] += int(nz)
+    return layout, ends
+
+
 def pack_hierarchy(levels: list, coarse_inverse, steps: int, transfers: tuple | None = None) -> PackedHierarchy | None:
     """The :class:`PackedHierarchy` of a V-cycle's ``levels`` (:class:`MultigridLevel`, Chebyshev
     smoothers of ``steps`` steps on [CHEBYSHEV_LOWER_FRACTION, 1]) and its coarsest inverse (n, n)
@@ -538,21 +560,8 @@ def pack_hierarchy(levels: list, coarse_inverse, steps: int, transfers: tuple | 
         return None
     xp = array_module(coarse_inverse)
     sizes = [level.A.shape[0] for level in levels] + [coarse_inverse.shape[0]]
-    layout = [0] * (MG_FIELDS * MG_MAX_LEVELS)
-    offsets = dict.fromkeys(("vec", "A_ptr", "A_nz", "P_ptr", "P_nz", "R_ptr", "R_nz"), 0)
-    for k, n in enumerate(sizes):
-        base = MG_FIELDS * k
-        layout[base + MG_VEC], layout[base + MG_N] = offsets["vec"], n
-        offsets["vec"] += n
-        if k == len(levels):
-            break
-        level = levels[k]
-        for name, field, matrix in (("A", MG_A_PTR, level.A if k else None), ("P", MG_P_PTR, level.P),
-                                    ("R", MG_R_PTR, level.R)):
-            if matrix is not None:
-                layout[base + field], layout[base + field + 1] = offsets[f"{name}_ptr"], offsets[f"{name}_nz"]
-                offsets[f"{name}_ptr"] += matrix.shape[0] + 1
-                offsets[f"{name}_nz"] += matrix.data.size
+    layout, offsets = _hierarchy_layout(sizes, [(level.A.data.size if k else None, level.P.data.size,
+                                                 level.R.data.size) for k, level in enumerate(levels)])
     theta, scales, factors = chebyshev_scalars(CHEBYSHEV_LOWER_FRACTION, 1.0, steps)
     n_coarse = coarse_inverse.shape[0]
     arrays = [_joined(xp, [getattr(level.A, name) for level in levels[1:]], dtype)
@@ -709,13 +718,8 @@ def multigrid_preconditioner(A, prolongations: list, *, smoother: str = "chebysh
         return _device_multigrid(A, prolongations, smoothing_steps)
     levels = []
     for k, P in enumerate(prolongations):
-        if xp is not np and not smoothed_prolongation:  # D^-1, its bound and D^-1 / bound in one launch
-            inv_diag, upper = xp.empty(A.shape[0]), None  # inv_diag: D^-1 / bound (make_smoother's None)
-            kernels_for(inv_diag).smoother_scaling(A.indptr, A.indices, A.data, xp.empty(A.shape[0]), inv_diag,
-                                                   xp.empty(1), xp.empty(COOPERATIVE_BLOCKS))
-        else:
-            inv_diag = inverse_diagonal(A)
-            upper = spectral_bound_array(A, inv_diag)  # on a device: not read back
+        inv_diag = inverse_diagonal(A)
+        upper = spectral_bound_array(A, inv_diag)  # on a device: not read back
         if smoothed_prolongation:
             P = (P - (4.0 / (3.0 * float(upper))) * (sparse.diags(inv_diag, format="csr") @ (A @ P))).tocsr()
         R = prolongations.restrictions[k] if kept else P.T.tocsr()
@@ -749,21 +753,8 @@ def _device_multigrid(A, prolongations: "Prolongations", steps: int) -> Multigri
     capacity = [int(A.data.size)]  # level k + 1's non-zeros are at most level k's (each sums some of them)
     for n in sizes[1:]:
         capacity.append(min(capacity[-1], n * n))
-    layout = [0] * (MG_FIELDS * MG_MAX_LEVELS)
-    ends = dict.fromkeys(("vec", "A_ptr", "A_nz", "P_ptr", "P_nz", "R_ptr", "R_nz"), 0)
-    for k, n in enumerate(sizes):
-        base = MG_FIELDS * k
-        layout[base + MG_VEC], layout[base + MG_N] = ends["vec"], n
-        ends["vec"] += n
-        if k == len(levels):
-            break
-        for name, field, rows, nz in (("A", MG_A_PTR, n, capacity[k]), ("P", MG_P_PTR, n, levels[k].P.data.size),
-                                      ("R", MG_R_PTR, sizes[k + 1], levels[k].R.data.size)):
-            if name == "A" and k == 0:
-                continue
-            layout[base + field], layout[base + field + 1] = ends[f"{name}_ptr"], ends[f"{name}_nz"]
-            ends[f"{name}_ptr"] += rows + 1
-            ends[f"{name}_nz"] += int(nz)
+    layout, ends = _hierarchy_layout(sizes, [(capacity[k] if k else None, level.P.data.size, level.R.data.size)
+                                             for k, level in enumerate(levels)])
     n_coarse = sizes[-1]
     a_indptr, a_indices = xp.empty(ends["A_ptr"], dtype=np.int32), xp.empty(ends["A_nz"], dtype=np.int32)
     a_data = xp.empty(ends["A_nz"])

@@ -25,6 +25,7 @@ import numpy as np
 from ..model.arrays import array_module, contiguous, fused
 from ..model.resampling import fill_nearest_valid
 from .device import kernels_for
+from .kernels import evidence_frame_terms
 from .lighting import LEDLight, device_light_state
 from .smoothness import sensor_roughness
 
@@ -164,24 +165,13 @@ def _evidence_sums(usable, rho2, shading, L, G6, v, d):  # pragma: no cover - co
     L (n, N, 3). Written into G6, v, d; frames that do not see p add nothing."""
     n, N = usable.shape
     for p in numba.prange(N):
-        g00 = g01 = g02 = g11 = g12 = g22 = v0 = v1 = v2 = dd = 0.0
+        sums = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
         r = rho2[p]
         for i in range(n):
             if usable[i, p]:
-                us = r * np.float64(shading[i, p])
-                l0, l1, l2 = L[i, p, 0], L[i, p, 1], L[i, p, 2]
-                g00 += r * l0 * l0
-                g01 += r * l0 * l1
-                g02 += r * l0 * l2
-                g11 += r * l1 * l1
-                g12 += r * l1 * l2
-                g22 += r * l2 * l2
-                v0 += us * l0
-                v1 += us * l1
-                v2 += us * l2
-                dd += us * np.float64(shading[i, p])
-        G6[0, p], G6[1, p], G6[2, p], G6[3, p], G6[4, p], G6[5, p] = g00, g01, g02, g11, g12, g22
-        v[0, p], v[1, p], v[2, p], d[p] = v0, v1, v2, dd
+                sums = evidence_frame_terms(sums, r, np.float64(shading[i, p]), L[i, p, 0], L[i, p, 1], L[i, p, 2])
+        G6[0, p], G6[1, p], G6[2, p], G6[3, p], G6[4, p], G6[5, p] = sums[:6]
+        v[0, p], v[1, p], v[2, p], d[p] = sums[6:]
 
 
 @fused
