@@ -4,6 +4,7 @@ differences of the normals do not see. The smoothness's grid-mode rows
 (:mod:`benchmarks.grid_modes`)."""
 
 import numpy as np
+import scipy.sparse as sp
 
 from benchmarks.grid_modes import grid_mode_amplitude
 from o3d_mvps.model.normals import masked_grid
@@ -99,3 +100,25 @@ def test_grid_mode_rows_hold_the_mode_a_mesh_shows(monkeypatch):
     assert on["rows_um"] < 0.5 * off["rows_um"], got
     assert on["mae_forward_deg"] < 0.92 * off["mae_forward_deg"], got
     assert on["mae_central_deg"] < 1.02 * off["mae_central_deg"], got
+
+
+def test_the_device_weighing_keeps_the_grid_mode_rows_as_the_host_does():
+    """On a GPU (the CuPy stand-in) weigh_smoothness scales S's entries in one fused kernel with
+    each row's centre and kept-weight flag, copied once: the same matrix as the host's."""
+    import cupy_emulation as cp
+
+    from o3d_mvps.solver.device import to_host
+
+    grid = masked_grid(_disc())
+    S2 = smoothness.second_differences(grid)
+    S = smoothness.with_grid_modes(grid, S2, np.full((20, 25), 0.5), np.diag([100.0, 100.0, 1.0]), 2.0, weight=9.0)
+    weights = np.random.default_rng(1).uniform(1, 50, grid.size)
+    host = DepthPrior(None, None, S=S)
+    host.weigh_smoothness(weights)
+    with cp.installed():
+        device = DepthPrior(None, None, S=cp.array_device().sparse_matrix(S))
+        device.weigh_smoothness(cp.asarray(weights))
+        data, indptr, indices = (to_host(a) for a in (device.S.data, device.S.indptr, device.S.indices))
+    got = sp.csr_matrix((data, indices, indptr), shape=S.shape)  # the device keeps S's entry order
+    np.testing.assert_allclose(got.toarray(), host.S.toarray(), rtol=1e-14, atol=0)
+    assert not np.allclose(got[S2.shape[0]:].toarray(), 0) and np.allclose(got[S2.shape[0]:].toarray(), S[S2.shape[0]:].toarray())

@@ -23,7 +23,7 @@ from ..model.normals import MaskedGrid, masked_grid
 from ..model.resampling import fill_nearest_valid, resample_valid, resize
 from .device import kernels_for
 from .krylov import multiply_add
-from .smoothness import row_centres, second_differences, smoothness_rows, with_grid_modes
+from .smoothness import grid_mode_row_flags, row_centres, second_differences, smoothness_rows, with_grid_modes
 
 
 def _entry_centres(S: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray]:
@@ -32,11 +32,7 @@ def _entry_centres(S: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray]:
     rows (:meth:`DepthPrior.weigh_smoothness`), 1.0 or 0.0 (nnz,) float64."""
     counts = np.diff(S.indptr)
     return (np.repeat(row_centres(S), counts).astype(np.int32),
-            np.repeat(counts > _SECOND_DIFFERENCE_ENTRIES, counts).astype(np.float64))
-
-
-#: entries of a second-difference row: longer rows are grid-mode rows, which keep their weight
-_SECOND_DIFFERENCE_ENTRIES = 3
+            np.repeat(grid_mode_row_flags(S), counts).astype(np.float64))
 
 
 def to_host_sparse(S):
@@ -98,7 +94,7 @@ class DepthPrior:
             # the grid-mode rows (5 entries) keep their weight: the shading's evidence says nothing of
             # the mode, and the LED's ceiling weight on them flattened the rims (640x480 bunny: RMSE
             # 0.898 -> 1.159 mm at weight 1000, 0.962 without it)
-            weights[np.diff(base.indptr) > _SECOND_DIFFERENCE_ENTRIES] = 1.0
+            weights[grid_mode_row_flags(base)] = 1.0
             self.S = sparse_module(base).csr_matrix(sparse_module(base).diags(weights ** 0.5) @ base)
         self.__dict__["_weighted"] = True
         self.__dict__.pop("StS", None)

@@ -81,6 +81,12 @@ def row_centres(S) -> np.ndarray:
     return S.indices[(S.indptr[:-1] + S.indptr[1:]) // 2]
 
 
+def grid_mode_row_flags(S) -> np.ndarray:
+    """Whether each row (K,) bool of a smoothness matrix S (K, N) on the host is a
+    :func:`grid_mode_rows` row (5 entries; a second difference has 3)."""
+    return np.diff(S.indptr) > 3
+
+
 #: exponent of the smoothness rows' slope weights ``(1 + |grad z|^2)^(-SLOPE_EXPONENT / 2)``: with
 #: 3/2 the squared rows penalise the curvature of a graph surface, z'' / (1 + z'^2)^(3/2)
 SLOPE_EXPONENT = 1.5
