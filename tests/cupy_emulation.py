@@ -13,7 +13,10 @@ CuPy does:
 - a device array where NumPy needs a host array: ``np.asarray``/``np.array``/
   ``np.ascontiguousarray`` of it, writing it into a NumPy array, a SciPy function or a CPU
   (numba) kernel given it (``__array__`` raises, as CuPy's does since CuPy 13);
-- sparse matrices take and give only device arrays.
+- sparse matrices take and give only device arrays;
+- inside :func:`fuse`, the function gets CuPy's fusion proxies (:class:`_FusionProxy`): operators,
+  ufuncs and ``where`` only (builtin ``abs``, ``shape``, NumPy functions and ``float()`` raise);
+- a 0-d array given to a CUDA kernel for a scalar (numba-cuda cannot compile arithmetic with it).
 
 Allowed, as in CuPy: ``.get()``, ``asnumpy``; ``float()``/``int()``/``bool()``/``.item()`` of a
 one-element array (a copy to the host: counted); NumPy arrays and lists as indices, and as the
@@ -123,8 +126,9 @@ def _check(values) -> None:
 
 
 def _host(value):
-    """The NumPy data of device arrays, also inside lists, tuples and dicts."""
-    if isinstance(value, ndarray):
+    """The NumPy data of device arrays (and of :class:`_FusionProxy`'s values), also inside lists,
+    tuples and dicts."""
+    if isinstance(value, (ndarray, _FusionProxy)):
         return value._a
     if isinstance(value, (list, tuple)):
         return type(value)(_host(v) for v in value)
@@ -273,7 +277,8 @@ def _function(f):
             count("elementwise" if elementwise else "function")
         _check(args)
         _check(list(kwargs.values()))
-        return _device(f(*_host(args), **_host(kwargs)))
+        result = f(*_host(args), **_host(kwargs))
+        return _device(result) if _fusing is None else _proxied(result)
 
     wrapped.__name__ = getattr(f, "__name__", "function")
     return wrapped
@@ -298,11 +303,95 @@ class _Fused:
             raise TypeError(f"cupy.fuse: kernel {self.name!r} called inside kernel {_fusing!r}")
         _fusing = self.name
         try:
-            result = self.function(*args)
+            result = self.function(*(_FusionProxy(_host(a)) for a in args))
         finally:
             _fusing = None
         count("fused", name=self.name)
-        return result
+        return _unproxied(result)
+
+
+class _FusionProxy:
+    """What a function fused by :func:`fuse` gets for each argument, as CuPy's fusion gives it
+    (``_VariableProxy`` of cupy/_core/_fusion_interface.py, CuPy 14): the operators below, this
+    module's ufuncs and ``where``, ``dtype``, ``ndim``, ``astype`` and ``copy``. Nothing else:
+    no builtin ``abs`` or unary ``+``, no reflected ``**``, no ``shape`` (NotImplementedError),
+    no NumPy functions, no conversion to a Python scalar or bool (TypeError), as on a GPU.
+    Holds the argument's NumPy data (or the Python scalar)."""
+
+    __slots__ = ("_a",)
+    __array_ufunc__ = None  # NumPy's ufuncs refuse it (CuPy's proxies are no NumPy arrays either)
+
+    def __init__(self, a):
+        self._a = a
+
+    @property
+    def dtype(self):
+        return np.result_type(self._a)
+
+    @property
+    def ndim(self):
+        return np.ndim(self._a)
+
+    @property
+    def shape(self):
+        raise NotImplementedError("`shape` is not supported, currently.")
+
+    def astype(self, dtype, copy=True):
+        return _FusionProxy(np.asarray(self._a).astype(dtype))
+
+    def copy(self):
+        return _FusionProxy(np.copy(self._a))
+
+    def _no_scalar(self):
+        raise TypeError("Cannot convert to Python scalar in cupy.fuse")
+
+    def _reduction(self, *args, **kwargs):
+        count("reduction")  # CuPy fuses a reduction at the end only; this stand-in refuses them all
+
+    sum = prod = max = min = all = any = _reduction
+
+    __bool__ = __int__ = __float__ = __complex__ = _no_scalar
+    __hash__ = None
+
+
+def _fusion_operator(ufunc_name: str, reflected: bool = False, unary: bool = False):
+    def operator(self, other=None):
+        ufunc = getattr(sys.modules[__name__], ufunc_name)
+        if unary:
+            return ufunc(self)
+        return ufunc(other, self) if reflected else ufunc(self, other)
+
+    return operator
+
+
+#: CuPy's fusion operators: Python's name -> (ufunc, also reflected)
+_FUSION_OPERATORS = {"add": ("add", True), "sub": ("subtract", True), "mul": ("multiply", True),
+                     "truediv": ("true_divide", True), "floordiv": ("floor_divide", True),
+                     "mod": ("remainder", True), "pow": ("power", False), "lshift": ("left_shift", True),
+                     "rshift": ("right_shift", True), "and": ("bitwise_and", True), "or": ("bitwise_or", True),
+                     "xor": ("bitwise_xor", True), "lt": ("less", False), "le": ("less_equal", False),
+                     "eq": ("equal", False), "ne": ("not_equal", False), "ge": ("greater_equal", False),
+                     "gt": ("greater", False)}
+for _name, (_ufunc, _reflected) in _FUSION_OPERATORS.items():
+    setattr(_FusionProxy, f"__{_name}__", _fusion_operator(_ufunc))
+    if _reflected:
+        setattr(_FusionProxy, f"__r{_name}__", _fusion_operator(_ufunc, reflected=True))
+_FusionProxy.__neg__ = _fusion_operator("negative", unary=True)
+_FusionProxy.__invert__ = _fusion_operator("invert", unary=True)
+
+
+def _proxied(value):
+    """A fused function's intermediate results as :class:`_FusionProxy` (tuples too)."""
+    if isinstance(value, tuple):
+        return tuple(_proxied(v) for v in value)
+    return _FusionProxy(value)
+
+
+def _unproxied(value):
+    """A fused function's results as device arrays (tuples too)."""
+    if isinstance(value, tuple):
+        return tuple(_unproxied(v) for v in value)
+    return _device(np.asarray(value._a)) if isinstance(value, _FusionProxy) else _device(value)
 
 
 def fuse(*args, kernel_name: str | None = None):
@@ -470,6 +559,10 @@ class _SimulatorArguments:
     ``__cuda_array_interface__``)."""
 
     def prepare_args(self, ty, val, stream=0, retr=None):
+        if isinstance(val, (ndarray, np.ndarray)) and val.ndim == 0:
+            raise TypeError("a 0-d array as a CUDA kernel's argument: numba-cuda types it as an array, and "
+                            "arithmetic with it does not compile on a GPU (KeyError: <ufunc 'multiply'>); "
+                            "pass a Python or NumPy scalar (float(x))")
         return ty, host_data(val)
 
 

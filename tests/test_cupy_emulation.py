@@ -174,6 +174,26 @@ def test_fuse_refuses_what_is_not_elementwise(device, body, message):
     assert cp.operations == before  # nothing counted, no kernel launched
 
 
+@pytest.mark.parametrize("body, error, message", [
+    (lambda x, y: abs(x - y), TypeError, "bad operand type for abs"),  # robust.py's crash on an H100
+    (lambda x, y: +x, TypeError, "bad operand type for unary"),
+    (lambda x, y: 2.0 ** x, TypeError, "unsupported operand"),
+    (lambda x, y: x + y.shape[0], NotImplementedError, "`shape` is not supported"),
+    (lambda x, y: x if x > y else y, TypeError, "Cannot convert to Python scalar in cupy.fuse"),
+    (lambda x, y: x + float(y), TypeError, "Cannot convert to Python scalar in cupy.fuse"),
+    (lambda x, y: np.sqrt(x) + y, TypeError, "does not support ufuncs"),
+])
+def test_fuse_gives_cupys_proxies(device, body, error, message):
+    """Inside cupy.fuse the arguments are CuPy 14's proxies (cupy/_core/_fusion_interface.py):
+    operators, ufuncs of the array module and where, nothing else; what CuPy refuses there is
+    refused here, with CuPy's error type."""
+    with pytest.raises(error, match=message):
+        cp.fuse()(body)(device, device)
+    xp_body = cp.fuse()(lambda x, y: cp.abs(x - y) + cp.where(x > y, x ** 2.0, -y))
+    np.testing.assert_array_equal(xp_body(device, device * 0.5).get(),
+                                  np.abs(0.5 * HOST) + np.where(HOST > 0.5 * HOST, HOST ** 2.0, -0.5 * HOST))
+
+
 def test_fuse_refuses_host_arrays(device):
     with pytest.raises(TypeError, match="host NumPy array"):
         cp.fuse()(lambda x, y: x + y)(device, HOST)
