@@ -17,6 +17,13 @@ Two steps, for a GPU machine without Open3D (the problems travel as files):
 ``run(..., device=ArrayDevice)`` takes another array device instead of cuda:0 (its test: the CuPy
 stand-in of tests/cupy_emulation.py; no memory counted, times meaningless).
 
+- ``python -m benchmarks.gpu levels DIR [--out benchmarks/results]`` (on the GPU machine): each
+  saved problem solved on the CPU, on cuda:0 with every level there, and with the product's split
+  (CUDA_MIN_LEVEL_PIXELS), twice each after a warm-up; writes ``gpu_levels.json``: per problem
+  and case, each run's total seconds, each level's sweep seconds (the device synchronised
+  before and after), the levels' devices, the difference to the CPU's solve (as ``run``'s) and
+  every sweep's energy: the data for CUDA_MIN_LEVEL_PIXELS and for where the paths part.
+
 - ``python -m benchmarks.gpu count DIR [--out benchmarks/results]`` (anywhere, no GPU): counts the
   CUDA path's device operations (kernel launches and copies, each costing 5-20 us from Python on
   a GPU however small the level) per pyramid level and sweep, on that stand-in, with the CPU's
@@ -147,6 +154,63 @@ def run(folder, out="benchmarks/results", device="cuda:0") -> list[dict]:
         (out / "gpu.json").write_text(json.dumps(rows, indent=1))
         print(json.dumps(rows[-1]), flush=True)
     return rows
+
+
+def levels(folder, out="benchmarks/results", device="cuda:0", repeats: int = 2, warm_up: bool = True) -> dict:
+    """Per-level sweep seconds of every saved problem of ``folder`` on the CPU and on ``device``
+    (every level there, and the product's split), each ``repeats`` times after a ``warm_up``
+    solve; see the module's docstring. Writes ``out``/gpu_levels.json after each case and
+    returns its content."""
+    from dataclasses import replace
+
+    from o3d_mvps.solver import driver
+    from o3d_mvps.solver.device import array_device
+    from o3d_mvps.solver.problem_input import read_problem
+
+    device = array_device(device)
+    cuda = getattr(device.xp, "cuda", None)  # None on the stand-in: nothing to wait for
+    records, sweeps = [], driver._sweeps
+
+    def synchronize():
+        if cuda is not None:
+            cuda.Device().synchronize()
+
+    def timed_sweeps(problem, *args, **kwargs):
+        synchronize()
+        t = time.perf_counter()
+        result = sweeps(problem, *args, **kwargs)
+        synchronize()
+        records.append({"level": problem.level.index, "pixels": int(problem.level.grid.size),
+                        "sweeps": len(result), "seconds": time.perf_counter() - t})
+        return result
+
+    cases = {"cpu": "cpu", "device_all": replace(device, min_level_pixels=0), "device_product": device}
+    results = {"device": _cuda_solver(device)[1], "problems": {}}
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    driver._sweeps = timed_sweeps
+    try:
+        for path in sorted(Path(folder).glob("gpu_*.npz")):
+            problem, cpu, rows = read_problem(path), None, results["problems"].setdefault(path.name, {})
+            for name, case in cases.items():
+                if warm_up:
+                    driver.solve(problem, device=case)  # compiles or loads the kernels
+                for _ in range(repeats):
+                    records.clear()
+                    t = time.perf_counter()
+                    result = driver.solve(problem, device=case)
+                    total = time.perf_counter() - t
+                    cpu = result if cpu is None else cpu
+                    rows.setdefault(name, []).append({
+                        "seconds": total, "levels": list(records), "level_devices": result.info["level_devices"],
+                        "against_cpu": compare(cpu, result),
+                        "energies": [[r["level"], r["iteration"], r["energy"]] for r in result.energy]})
+                    print(path.name, name, f"{total:.2f} s", [(r["pixels"], round(r["seconds"], 3)) for r in records],
+                          flush=True)
+                (out / "gpu_levels.json").write_text(json.dumps(results, indent=1))
+    finally:
+        driver._sweeps = sweeps
+    return results
 
 
 def count(folder, out="benchmarks/results", min_level_pixels: int | None = None, sites: bool = False) -> list[dict]:
@@ -347,6 +411,9 @@ def main(argv=None) -> int:
     runner = sub.add_parser("run", help="solve the saved problems on the CPU and on cuda:0; write gpu.json")
     runner.add_argument("folder")
     runner.add_argument("--out", default="benchmarks/results")
+    timer = sub.add_parser("levels", help="per-level seconds on the CPU and on cuda:0; write gpu_levels.json")
+    timer.add_argument("folder")
+    timer.add_argument("--out", default="benchmarks/results")
     counter = sub.add_parser("count", help="count the CUDA path's device operations on the CuPy stand-in (no GPU)")
     counter.add_argument("folder")
     counter.add_argument("--out", default="benchmarks/results")
@@ -361,6 +428,8 @@ def main(argv=None) -> int:
             print(f"wrote {path} ({os.path.getsize(path) / 2**20:.1f} MB)")
     elif args.command == "run":
         run(args.folder, args.out)
+    elif args.command == "levels":
+        levels(args.folder, args.out)
     elif args.command == "sites":
         print(sites_table(args.folder, args.level, args.out))
     else:

@@ -120,6 +120,26 @@ def test_gpu_benchmark_compares_the_cuda_path_with_the_cpu_path(tmp_path):
     (on_cpu,) = gpu.count(tmp_path, tmp_path / "results")
     assert on_cpu["levels"][0]["device"] == "cpu" and on_cpu["levels"][0]["operations"] == 0
 
+    # levels: per-level seconds of the CPU, every level on the device, and the product's split
+    # (a threshold above the level's pixels: on the CPU)
+    if numba.config.ENABLE_CUDASIM:
+        with cupy_emulation.installed():
+            timed = gpu.levels(tmp_path, tmp_path / "results", cupy_emulation.array_device(10**6), repeats=1,
+                                warm_up=False)
+    else:
+        timed = gpu.levels(tmp_path, tmp_path / "results", replace(array_device("cuda:0"), min_level_pixels=10**6),
+                           repeats=1, warm_up=False)
+    assert json.loads((tmp_path / "results" / "gpu_levels.json").read_text()) == timed
+    runs = timed["problems"]["gpu_64x48.npz"]
+    assert [run["level_devices"] for name in ("cpu", "device_all", "device_product") for run in runs[name]] == \
+        [["cpu"], [row["level_devices"][0]], ["cpu"]]
+    for name, (run,) in runs.items():
+        (level,) = run["levels"]
+        assert level["pixels"] == row["object_pixels"] and level["sweeps"] == 2 and 0 < level["seconds"] < run["seconds"]
+        assert [e[:2] for e in run["energies"]] == [[0, 0], [0, 1]]
+    assert runs["device_product"][0]["against_cpu"]["max_depth_diff_mm"] == 0.0
+    assert runs["device_all"][0]["against_cpu"]["max_depth_diff_mm"] < 0.1
+
 
 def test_summary_redraws_the_plots_from_saved_results(tmp_path):
     """``python -m benchmarks summary`` runs nothing: from scaling rows and saved room error maps
