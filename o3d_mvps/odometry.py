@@ -56,10 +56,12 @@ the most accurate and robust; see ``register_frames`` for its figures.
 
 from __future__ import annotations
 
+import math
 import warnings
 from dataclasses import dataclass, field
 
 import cv2
+import numba
 import numpy as np
 import open3d as o3d
 from scipy import ndimage
@@ -68,6 +70,7 @@ from .errors import OdometryError
 from .model.camera import backproject
 from .model.resampling import masked_gaussian
 from .model.se3 import rotation_angle_deg
+from .solver import kernels as _kernels  # noqa: F401 - numba's threading layer (OpenMP first) set before a launch
 
 METHODS = ("point_to_plane",)
 
@@ -200,8 +203,9 @@ def depth_cloud(depth: np.ndarray, K: np.ndarray, max_depth: float = 3.0,
     if keep.sum() >= 3:
         footprint = float(np.median(z[keep])) / K[0, 0]  # metres between neighbouring pixels
         spacing = max(voxel or 0.0, footprint * pixel_stride)  # ... and between the cloud's points
-        half = np.sqrt(NORMAL_MAX_NN / np.pi) * min(spacing, NORMAL_RADIUS) / footprint
-        cloud.normals = o3d.utility.Vector3dVector(window_normals(points, valid, keep, max(1, int(round(half)))))
+        # 1.5 times the radius of NORMAL_MAX_NN points facing the camera: room for a slanted surface's
+        half = min(1.5 * np.sqrt(NORMAL_MAX_NN / np.pi) * spacing, NORMAL_RADIUS) / footprint
+        cloud.normals = o3d.utility.Vector3dVector(window_normals(points, keep, keep, max(1, int(np.ceil(half)))))
     if color is not None:
         low = cv2.resize(np.asarray(color, dtype=np.float32), (z.shape[1], z.shape[0]), interpolation=cv2.INTER_AREA)
         cloud.colors = o3d.utility.Vector3dVector(low[keep].astype(np.float64))
@@ -213,68 +217,153 @@ def depth_cloud(depth: np.ndarray, K: np.ndarray, max_depth: float = 3.0,
     return cloud
 
 
-def window_normals(points: np.ndarray, valid: np.ndarray, at: np.ndarray, half: int) -> np.ndarray:
+def window_normals(points: np.ndarray, valid: np.ndarray, at: np.ndarray, half: int,
+                   neighbours: int = NORMAL_MAX_NN, radius: float = NORMAL_RADIUS) -> np.ndarray:
     """Unit normals, facing the camera, of a back-projected depth image at the pixels ``at``:
-    per pixel the least-variance direction (the total least squares plane) of the ``valid``
-    points in the (2 half + 1)^2 window around it, from box-filtered sums of the points and
-    their products (a constant cost per pixel).
+    per pixel the least-variance direction (the total least squares plane) of its ``neighbours``
+    nearest points (3D distance, at most ``radius`` away, itself included) among the ``valid``
+    pixels of the (2 half + 1)^2 window around it, as Open3D's ``estimate_normals`` with
+    ``KDTreeSearchParamHybrid(radius, neighbours)`` takes them from a k-d tree of the whole
+    cloud (:func:`_window_normals`, compiled, in parallel over pixels).
 
     Parameters
     ----------
     points : (h, w, 3) array
         Camera-frame points (m) of every pixel.
     valid : (h, w) bool array
-        Pixels whose points the windows take.
+        Pixels whose points may be neighbours.
     at : (h, w) bool array
         Pixels whose normals are wanted.
     half : int
-        Half-width of the window (pixels).
+        Half-width of the window searched (pixels): wide enough to hold the nearest points.
+    neighbours, radius : int, float
+        How many nearest points, at most how far (m).
 
     Returns
     -------
     (k, 3) array
-        The normals of the k pixels of ``at`` (row-major order); a window of fewer than three
-        valid points, or of points on a line or in a ball, gives the direction to the camera.
+        The normals of the k pixels of ``at`` (row-major order); where fewer than three
+        neighbours are found, or they lie on a line, the direction to the camera.
     """
-    weight = valid.astype(np.float64)
-    centred = (points - points[valid].mean(axis=0)) * weight[..., None]  # sums of small numbers
-    size = (2 * half + 1, 2 * half + 1)
-
-    def window_sum(image):
-        return cv2.boxFilter(image, cv2.CV_64F, size, normalize=False, borderType=cv2.BORDER_CONSTANT)[at]
-
-    count = np.maximum(window_sum(weight), 1.0)
-    mean = [window_sum(np.ascontiguousarray(centred[..., i])) / count for i in range(3)]
-    c = {(i, j): window_sum(centred[..., i] * centred[..., j]) / count - mean[i] * mean[j]
-         for i in range(3) for j in range(i, 3)}
-    normals = _least_eigenvector(c[0, 0], c[1, 1], c[2, 2], c[0, 1], c[0, 2], c[1, 2])
-    towards = -points[at]
-    flat = ~np.isfinite(normals).all(axis=1) | (window_sum(weight) < 3)
-    normals[flat] = towards[flat] / np.linalg.norm(towards[flat], axis=1, keepdims=True)
-    normals[np.einsum("ij,ij->i", normals, towards) < 0] *= -1.0
-    return normals
+    rows, cols = np.nonzero(at)
+    out = np.empty((rows.size, 3))
+    _window_normals(np.ascontiguousarray(points, dtype=np.float64), np.ascontiguousarray(valid), rows, cols,
+                    int(half), int(neighbours), float(radius) ** 2, out)
+    return out
 
 
-def _least_eigenvector(a, b, c, d, e, f) -> np.ndarray:
-    """(k, 3) unit eigenvectors of the least eigenvalues of the symmetric 3 x 3 matrices
-    [[a, d, e], [d, b, f], [e, f, c]] (each (k,)), in closed form (the eigenvalue by the
-    trigonometric solution of the characteristic cubic, the vector as the longest cross product
-    of two rows of A - lambda I); NaN where the eigenvalue is repeated (no unique direction)."""
+#: pixels per parallel chunk of :func:`_window_normals` (each chunk allocates its scratch once)
+_NORMAL_CHUNK = 2048
+
+
+@numba.njit(parallel=True, cache=True)
+def _window_normals(points, valid, rows, cols, half, k, radius2, out):  # pragma: no cover - compiled
+    """:func:`window_normals`' loop: out (m, 3) the normal at pixel (rows[j], cols[j])."""
+    h, w = valid.shape
+    size = (2 * half + 1) ** 2
+    for chunk in numba.prange((rows.size + _NORMAL_CHUNK - 1) // _NORMAL_CHUNK):
+        d2, work = np.empty(size), np.empty(size)
+        near = np.empty((size, 3))
+        for j in range(chunk * _NORMAL_CHUNK, min(rows.size, (chunk + 1) * _NORMAL_CHUNK)):
+            r, c = rows[j], cols[j]
+            px, py, pz = points[r, c, 0], points[r, c, 1], points[r, c, 2]
+            m = 0
+            for rr in range(max(0, r - half), min(h, r + half + 1)):
+                for cc in range(max(0, c - half), min(w, c + half + 1)):
+                    if valid[rr, cc]:
+                        dx, dy, dz = points[rr, cc, 0] - px, points[rr, cc, 1] - py, points[rr, cc, 2] - pz
+                        d = dx * dx + dy * dy + dz * dz
+                        if d <= radius2:
+                            d2[m] = d
+                            near[m, 0], near[m, 1], near[m, 2] = dx, dy, dz
+                            m += 1
+            limit = radius2
+            if m > k:
+                for q in range(m):
+                    work[q] = d2[q]
+                limit = _kth_smallest(work, m, k - 1)
+            n = 0
+            sx = sy = sz = sxx = syy = szz = sxy = sxz = syz = 0.0
+            for q in range(m):
+                if d2[q] <= limit:
+                    x, y, z = near[q, 0], near[q, 1], near[q, 2]
+                    n += 1
+                    sx += x
+                    sy += y
+                    sz += z
+                    sxx += x * x
+                    syy += y * y
+                    szz += z * z
+                    sxy += x * y
+                    sxz += x * z
+                    syz += y * z
+            nx, ny, nz = 0.0, 0.0, 0.0
+            if n >= 3:
+                mx, my, mz = sx / n, sy / n, sz / n
+                nx, ny, nz = _least_eigenvector(sxx / n - mx * mx, syy / n - my * my, szz / n - mz * mz,
+                                                sxy / n - mx * my, sxz / n - mx * mz, syz / n - my * mz)
+            if not (nx * nx + ny * ny + nz * nz > 0.5):  # no plane (or NaN): toward the camera
+                length = math.sqrt(px * px + py * py + pz * pz)
+                nx, ny, nz = -px / length, -py / length, -pz / length
+            elif nx * px + ny * py + nz * pz > 0.0:
+                nx, ny, nz = -nx, -ny, -nz
+            out[j, 0], out[j, 1], out[j, 2] = nx, ny, nz
+
+
+@numba.njit(cache=True)
+def _kth_smallest(values, m, k):  # pragma: no cover - compiled
+    """The k-th smallest (0-based) of values[:m], by quickselect in place (values[:m] reordered)."""
+    lo, hi = 0, m - 1
+    while lo < hi:
+        pivot = values[(lo + hi) // 2]
+        i, j = lo, hi
+        while i <= j:
+            while values[i] < pivot:
+                i += 1
+            while values[j] > pivot:
+                j -= 1
+            if i <= j:
+                values[i], values[j] = values[j], values[i]
+                i += 1
+                j -= 1
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            break
+    return values[k]
+
+
+@numba.njit(cache=True)
+def _least_eigenvector(a, b, c, d, e, f):  # pragma: no cover - compiled
+    """Unit eigenvector (3 floats) of the least eigenvalue of the symmetric 3 x 3 matrix
+    [[a, d, e], [d, b, f], [e, f, c]], in closed form: the eigenvalue by the trigonometric
+    solution of the characteristic cubic, the vector as the longest cross product of two rows of
+    A - lambda I; (0, 0, 0) where the eigenvalue is repeated (no unique direction)."""
     q = (a + b + c) / 3.0
-    p = np.sqrt(((a - q) ** 2 + (b - q) ** 2 + (c - q) ** 2 + 2.0 * (d * d + e * e + f * f)) / 6.0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        A, B, C = (a - q) / p, (b - q) / p, (c - q) / p
-        D, E, F = d / p, e / p, f / p
-        half_det = 0.5 * (A * (B * C - F * F) - D * (D * C - F * E) + E * (D * F - B * E))
-        phi = np.arccos(np.clip(half_det, -1.0, 1.0)) / 3.0
-        least = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
-        rows = np.stack([np.stack([a - least, d, e], -1), np.stack([d, b - least, f], -1),
-                         np.stack([e, f, c - least], -1)])
-        crosses = np.stack([np.cross(rows[0], rows[1]), np.cross(rows[0], rows[2]), np.cross(rows[1], rows[2])])
-        lengths = np.linalg.norm(crosses, axis=-1)
-        best = np.argmax(lengths, axis=0)
-        k = np.arange(len(a))
-        return crosses[best, k] / lengths[best, k][:, None]
+    p = math.sqrt(((a - q) ** 2 + (b - q) ** 2 + (c - q) ** 2 + 2.0 * (d * d + e * e + f * f)) / 6.0)
+    if not p > 0.0:
+        return 0.0, 0.0, 0.0
+    A, B, C, D, E, F = (a - q) / p, (b - q) / p, (c - q) / p, d / p, e / p, f / p
+    half_det = 0.5 * (A * (B * C - F * F) - D * (D * C - F * E) + E * (D * F - B * E))
+    phi = math.acos(min(1.0, max(-1.0, half_det))) / 3.0
+    least = q + 2.0 * p * math.cos(phi + 2.0 * math.pi / 3.0)
+    r0 = (a - least, d, e)
+    r1 = (d, b - least, f)
+    r2 = (e, f, c - least)
+    best, bx, by, bz = 0.0, 0.0, 0.0, 0.0
+    for u, v in ((r0, r1), (r0, r2), (r1, r2)):
+        x = u[1] * v[2] - u[2] * v[1]
+        y = u[2] * v[0] - u[0] * v[2]
+        z = u[0] * v[1] - u[1] * v[0]
+        length = x * x + y * y + z * z
+        if length > best:
+            best, bx, by, bz = length, x, y, z
+    if best <= 0.0:
+        return 0.0, 0.0, 0.0
+    norm = math.sqrt(best)
+    return bx / norm, by / norm, bz / norm
 
 
 def _judge(step: str, T: np.ndarray, fitness: float, start: np.ndarray) -> Attempt:
