@@ -3,14 +3,7 @@
 Each depth frame (h, w) in metres is lightly denoised (normalised Gaussian convolution over
 valid pixels, ``SMOOTH_PX``), its silhouette is eroded by one pixel (unless that leaves fewer than
 ``4 * MIN_POINTS`` points), and it is back-projected with the depth intrinsics into a point cloud
-with normals and the colour area-averaged onto the depth grid. The normals are Open3D's
-(``estimate_normals`` with ``KDTreeSearchParamHybrid(NORMAL_RADIUS, NORMAL_MAX_NN)``: the plane
-of the 40 nearest points within 2 cm), but the nearest points are searched among the pixels of
-a window around each pixel instead of a k-d tree of the cloud (:func:`window_normals`,
-compiled): at D415 size (640 x 360 depth, ~21k object points a frame) 20 frames' normals took
-1.6-1.7 CPU s and take about 0.85 s. A plane fitted to every pixel of a window (box filters,
-0.2 s) was tried: its normals lean on slanted surfaces (5 deg at 60 deg from the view on a
-sphere, where the nearest points give 1 deg), and the refined D415 result got 1 % worse. When
+with normals (radius ``NORMAL_RADIUS``) and the colour area-averaged onto the depth grid. When
 the frames have object masks (given, or automatic), a cloud keeps the object only
 (:func:`registration_region`): in a room the table and wall outnumber the object's points and
 ICP slid along the table, where a rotation about its normal costs nothing. On a rendered room
@@ -59,29 +52,23 @@ the most accurate and robust; see ``register_frames`` for its figures.
 
 from __future__ import annotations
 
-import math
 import warnings
 from dataclasses import dataclass, field
 
 import cv2
-import numba
 import numpy as np
 import open3d as o3d
 from scipy import ndimage
 
 from .errors import OdometryError
 from .model.camera import backproject
-from .model.resampling import masked_gaussian
 from .model.se3 import rotation_angle_deg
-from .solver import kernels as _kernels  # noqa: F401 - numba's threading layer (OpenMP first) set before a launch
 
 METHODS = ("point_to_plane",)
 
 #: Std (LR pixels) of the normalised Gaussian smoothing of the depth before back-projection.
 SMOOTH_PX = 0.7
-#: Radius (m) and neighbour cap of the normal estimation (the global step's FPFH clouds); a
-#: frame's normals (:func:`window_normals`) take a window of about NORMAL_MAX_NN cloud points,
-#: at most NORMAL_RADIUS wide.
+#: Radius (m) and neighbour cap of the normal estimation.
 NORMAL_RADIUS = 0.02
 NORMAL_MAX_NN = 40
 #: Maximum correspondence distances (m) of the coarse-to-fine ICP levels ...
@@ -188,12 +175,13 @@ def depth_cloud(depth: np.ndarray, K: np.ndarray, max_depth: float = 3.0,
         Points (m) in the frame's camera coordinates, with unit normals facing the camera.
     """
     z = np.asarray(depth, dtype=np.float64).reshape(np.shape(depth)[:2])
-    K = np.asarray(K, dtype=np.float64)
     valid = (z > 0) & (z < max_depth) & np.isfinite(z)
     if region is not None:
         valid &= region
-    smoothed, _ = masked_gaussian(z, valid, SMOOTH_PX)
-    z = np.where(valid, smoothed, 0.0)
+    v = valid.astype(np.float64)
+    num = ndimage.gaussian_filter(np.where(valid, z, 0.0), SMOOTH_PX, mode="constant")
+    den = ndimage.gaussian_filter(v, SMOOTH_PX, mode="constant")
+    z = np.where(valid, num / np.maximum(den, 1e-12), 0.0)
     keep = ndimage.binary_erosion(valid)  # silhouette pixels are the least reliable ...
     if keep.sum() < 4 * MIN_POINTS:  # ... but a small object (e.g. at SF 8) cannot spare them
         keep = valid
@@ -201,172 +189,18 @@ def depth_cloud(depth: np.ndarray, K: np.ndarray, max_depth: float = 3.0,
         grid = np.zeros_like(keep)
         grid[::pixel_stride, ::pixel_stride] = True
         keep = keep & grid
-    points = backproject(z, K)
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points[keep]))
-    if keep.sum() >= 3:
-        footprint = float(np.median(z[keep])) / K[0, 0]  # metres between neighbouring pixels
-        spacing = max(voxel or 0.0, footprint * pixel_stride)  # ... and between the cloud's points
-        # 1.5 times the radius of NORMAL_MAX_NN points facing the camera: room for a slanted surface's
-        half = min(1.5 * np.sqrt(NORMAL_MAX_NN / np.pi) * spacing, NORMAL_RADIUS) / footprint
-        cloud.normals = o3d.utility.Vector3dVector(window_normals(points, keep, keep, max(1, int(np.ceil(half)))))
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(backproject(z, np.asarray(K, dtype=np.float64))[keep]))
     if color is not None:
         low = cv2.resize(np.asarray(color, dtype=np.float32), (z.shape[1], z.shape[0]), interpolation=cv2.INTER_AREA)
         cloud.colors = o3d.utility.Vector3dVector(low[keep].astype(np.float64))
     if voxel is not None:
-        cloud = cloud.voxel_down_sample(voxel)  # normals averaged per voxel ...
-        cloud.normalize_normals()  # ... made unit again
+        cloud = cloud.voxel_down_sample(voxel)
         if len(cloud.points) > MAX_CLOUD_POINTS:  # every k-th point (row-major pixels, so spread evenly)
             cloud = cloud.uniform_down_sample(int(np.ceil(len(cloud.points) / MAX_CLOUD_POINTS)))
+    if len(cloud.points) >= 3:
+        cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=NORMAL_RADIUS, max_nn=NORMAL_MAX_NN))
+        cloud.orient_normals_towards_camera_location(np.zeros(3))
     return cloud
-
-
-def window_normals(points: np.ndarray, valid: np.ndarray, at: np.ndarray, half: int,
-                   neighbours: int = NORMAL_MAX_NN, radius: float = NORMAL_RADIUS) -> np.ndarray:
-    """Unit normals, facing the camera, of a back-projected depth image at the pixels ``at``:
-    per pixel the least-variance direction (the total least squares plane) of its ``neighbours``
-    nearest points (3D distance, at most ``radius`` away, itself included) among the ``valid``
-    pixels of the (2 half + 1)^2 window around it, as Open3D's ``estimate_normals`` with
-    ``KDTreeSearchParamHybrid(radius, neighbours)`` takes them from a k-d tree of the whole
-    cloud (:func:`_window_normals`, compiled, in parallel over pixels).
-
-    Parameters
-    ----------
-    points : (h, w, 3) array
-        Camera-frame points (m) of every pixel.
-    valid : (h, w) bool array
-        Pixels whose points may be neighbours.
-    at : (h, w) bool array
-        Pixels whose normals are wanted.
-    half : int
-        Half-width of the window searched (pixels): wide enough to hold the nearest points.
-    neighbours, radius : int, float
-        How many nearest points, at most how far (m).
-
-    Returns
-    -------
-    (k, 3) array
-        The normals of the k pixels of ``at`` (row-major order); where fewer than three
-        neighbours are found, or they lie on a line, the direction to the camera.
-    """
-    rows, cols = np.nonzero(at)
-    out = np.empty((rows.size, 3))
-    _window_normals(np.ascontiguousarray(points, dtype=np.float64), np.ascontiguousarray(valid), rows, cols,
-                    int(half), int(neighbours), float(radius) ** 2, out)
-    return out
-
-
-#: pixels per parallel chunk of :func:`_window_normals` (each chunk allocates its scratch once)
-_NORMAL_CHUNK = 2048
-
-
-@numba.njit(parallel=True, cache=True)
-def _window_normals(points, valid, rows, cols, half, k, radius2, out):  # pragma: no cover - compiled
-    """:func:`window_normals`' loop: out (m, 3) the normal at pixel (rows[j], cols[j])."""
-    h, w = valid.shape
-    size = (2 * half + 1) ** 2
-    for chunk in numba.prange((rows.size + _NORMAL_CHUNK - 1) // _NORMAL_CHUNK):
-        d2, work = np.empty(size), np.empty(size)
-        near = np.empty((size, 3))
-        for j in range(chunk * _NORMAL_CHUNK, min(rows.size, (chunk + 1) * _NORMAL_CHUNK)):
-            r, c = rows[j], cols[j]
-            px, py, pz = points[r, c, 0], points[r, c, 1], points[r, c, 2]
-            m = 0
-            for rr in range(max(0, r - half), min(h, r + half + 1)):
-                for cc in range(max(0, c - half), min(w, c + half + 1)):
-                    if valid[rr, cc]:
-                        dx, dy, dz = points[rr, cc, 0] - px, points[rr, cc, 1] - py, points[rr, cc, 2] - pz
-                        d = dx * dx + dy * dy + dz * dz
-                        if d <= radius2:
-                            d2[m] = d
-                            near[m, 0], near[m, 1], near[m, 2] = dx, dy, dz
-                            m += 1
-            limit = radius2
-            if m > k:
-                for q in range(m):
-                    work[q] = d2[q]
-                limit = _kth_smallest(work, m, k - 1)
-            n = 0
-            sx = sy = sz = sxx = syy = szz = sxy = sxz = syz = 0.0
-            for q in range(m):
-                if d2[q] <= limit:
-                    x, y, z = near[q, 0], near[q, 1], near[q, 2]
-                    n += 1
-                    sx += x
-                    sy += y
-                    sz += z
-                    sxx += x * x
-                    syy += y * y
-                    szz += z * z
-                    sxy += x * y
-                    sxz += x * z
-                    syz += y * z
-            nx, ny, nz = 0.0, 0.0, 0.0
-            if n >= 3:
-                mx, my, mz = sx / n, sy / n, sz / n
-                nx, ny, nz = _least_eigenvector(sxx / n - mx * mx, syy / n - my * my, szz / n - mz * mz,
-                                                sxy / n - mx * my, sxz / n - mx * mz, syz / n - my * mz)
-            if not (nx * nx + ny * ny + nz * nz > 0.5):  # no plane (or NaN): toward the camera
-                length = math.sqrt(px * px + py * py + pz * pz)
-                nx, ny, nz = -px / length, -py / length, -pz / length
-            elif nx * px + ny * py + nz * pz > 0.0:
-                nx, ny, nz = -nx, -ny, -nz
-            out[j, 0], out[j, 1], out[j, 2] = nx, ny, nz
-
-
-@numba.njit(cache=True)
-def _kth_smallest(values, m, k):  # pragma: no cover - compiled
-    """The k-th smallest (0-based) of values[:m], by quickselect in place (values[:m] reordered)."""
-    lo, hi = 0, m - 1
-    while lo < hi:
-        pivot = values[(lo + hi) // 2]
-        i, j = lo, hi
-        while i <= j:
-            while values[i] < pivot:
-                i += 1
-            while values[j] > pivot:
-                j -= 1
-            if i <= j:
-                values[i], values[j] = values[j], values[i]
-                i += 1
-                j -= 1
-        if k <= j:
-            hi = j
-        elif k >= i:
-            lo = i
-        else:
-            break
-    return values[k]
-
-
-@numba.njit(cache=True)
-def _least_eigenvector(a, b, c, d, e, f):  # pragma: no cover - compiled
-    """Unit eigenvector (3 floats) of the least eigenvalue of the symmetric 3 x 3 matrix
-    [[a, d, e], [d, b, f], [e, f, c]], in closed form: the eigenvalue by the trigonometric
-    solution of the characteristic cubic, the vector as the longest cross product of two rows of
-    A - lambda I; (0, 0, 0) where the eigenvalue is repeated (no unique direction)."""
-    q = (a + b + c) / 3.0
-    p = math.sqrt(((a - q) ** 2 + (b - q) ** 2 + (c - q) ** 2 + 2.0 * (d * d + e * e + f * f)) / 6.0)
-    if not p > 0.0:
-        return 0.0, 0.0, 0.0
-    A, B, C, D, E, F = (a - q) / p, (b - q) / p, (c - q) / p, d / p, e / p, f / p
-    half_det = 0.5 * (A * (B * C - F * F) - D * (D * C - F * E) + E * (D * F - B * E))
-    phi = math.acos(min(1.0, max(-1.0, half_det))) / 3.0
-    least = q + 2.0 * p * math.cos(phi + 2.0 * math.pi / 3.0)
-    r0 = (a - least, d, e)
-    r1 = (d, b - least, f)
-    r2 = (e, f, c - least)
-    best, bx, by, bz = 0.0, 0.0, 0.0, 0.0
-    for u, v in ((r0, r1), (r0, r2), (r1, r2)):
-        x = u[1] * v[2] - u[2] * v[1]
-        y = u[2] * v[0] - u[0] * v[2]
-        z = u[0] * v[1] - u[1] * v[0]
-        length = x * x + y * y + z * z
-        if length > best:
-            best, bx, by, bz = length, x, y, z
-    if best <= 0.0:
-        return 0.0, 0.0, 0.0
-    norm = math.sqrt(best)
-    return bx / norm, by / norm, bz / norm
 
 
 def _judge(step: str, T: np.ndarray, fitness: float, start: np.ndarray) -> Attempt:
