@@ -126,31 +126,28 @@ def test_the_device_weighing_keeps_the_grid_mode_rows_as_the_host_does():
 
 
 def test_the_rows_are_on_by_light_model_frames_and_level():
-    """grid_mode_weight: on the levels finer than the sensor depth, the LED with enough frames
-    and the point lights' finer levels get GRID_MODE_WEIGHT, room light, few LED frames and the
-    lamp-placing levels none; build_level adds rows of the weight it gives for the level's object
-    pixels and SF / 2^index."""
+    """grid_mode_weight: the LED with enough frames and the point lights' finer levels get
+    GRID_MODE_WEIGHT, room light, few LED frames and the lamp-placing levels none; build_level
+    adds rows of the weight it gives for the level's object pixels."""
     w = smoothness.GRID_MODE_WEIGHT
     assert w > 0
-    assert smoothness.grid_mode_weight("led", 20, 100, 2.0) == w
-    assert smoothness.grid_mode_weight("led", 20, 10**6, 1.0) == 0.0  # the depth's own pixels
-    assert smoothness.grid_mode_weight("led", smoothness.GRID_MODE_MIN_FRAMES - 1, 10**6, 4.0) == 0.0
-    assert smoothness.grid_mode_weight("point", 12, 20000, 2.0, lamp_level_pixels=20000) == 0.0
-    assert smoothness.grid_mode_weight("point", 12, 20001, 2.0, lamp_level_pixels=20000) == w
-    assert smoothness.grid_mode_weight("point", 12, 10**6, 1.0, lamp_level_pixels=20000) == 0.0
-    assert all(smoothness.grid_mode_weight(light, 20, 10**6, 4.0) == 0.0 for light in ("room", "sh"))
+    assert smoothness.grid_mode_weight("led", 20, 100) == w
+    assert smoothness.grid_mode_weight("led", smoothness.GRID_MODE_MIN_FRAMES - 1, 10**6) == 0.0
+    assert smoothness.grid_mode_weight("point", 12, 20000, lamp_level_pixels=20000) == 0.0
+    assert smoothness.grid_mode_weight("point", 12, 20001, lamp_level_pixels=20000) == w
+    assert smoothness.grid_mode_weight("room", 20, 10**6) == 0.0 and smoothness.grid_mode_weight("sh", 20, 10**6) == 0.0
     mask = _disc()
     colors = [np.random.default_rng(0).uniform(0.2, 0.8, mask.shape + (3,)).astype(np.float32)]
     K = np.array([[60.0, 0, 25], [0, 60.0, 20], [0, 0, 1]])
     z0 = np.full((20, 25), 0.5)
     asked = []
 
-    def rule(pixels, level_factor):
-        asked.append((pixels, level_factor))
+    def rule(pixels):
+        asked.append(pixels)
         return 9.0 if pixels > 500 else 0.0
 
     fine, coarse = (build_level(i, colors, [None], mask, K, z0, 2, grid_modes=rule) for i in (0, 1))
-    assert asked == [(fine.grid.size, 2.0), (coarse.grid.size, 1.0)] and coarse.grid.size < 500 < fine.grid.size
+    assert asked == [fine.grid.size, coarse.grid.size] and coarse.grid.size < 500 < fine.grid.size
     assert smoothness.grid_mode_row_flags(fine.prior.S).any()
     assert not smoothness.grid_mode_row_flags(coarse.prior.S).any()
     assert not smoothness.grid_mode_row_flags(build_level(0, colors, [None], mask, K, z0, 2).prior.S).any()

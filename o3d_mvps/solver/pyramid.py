@@ -320,8 +320,7 @@ def build_level(index: int, colors: list, masks: list, ref_mask: np.ndarray, K: 
     ``envelope_margin`` None leaves the depth unbounded (see :func:`depth_envelope`);
     ``slope_weighted``: the smoothness rows are :func:`smoothness_rows` (else plain second differences);
     ``grid_modes``: the weight of the grid-mode rows (:func:`.smoothness.with_grid_modes`) given the
-    level's object pixels and SF / 2^index (the driver's :func:`.smoothness.grid_mode_weight`);
-    None: none."""
+    level's object pixels (the driver's :func:`.smoothness.grid_mode_weight`); None: none."""
     size = level_size(ref_mask.shape, index)
     K_level = scale_intrinsics(K, size[1] / ref_mask.shape[1], size[0] / ref_mask.shape[0])
     # the finest level reads the full-resolution float32 colours themselves (no copy: they are
@@ -333,7 +332,7 @@ def build_level(index: int, colors: list, masks: list, ref_mask: np.ndarray, K: 
     mask = resize(ref_mask.astype(np.float32), size) > 0.5
     grid = masked_grid(mask, scheme)
     prior = depth_prior(grid, z0, scale_factor / 2**index)
-    grid_mode_weight = 0.0 if grid_modes is None else grid_modes(grid.size, scale_factor / 2**index)
+    grid_mode_weight = 0.0 if grid_modes is None else grid_modes(grid.size)
 
     def smoothness():
         return with_grid_modes(grid, smoothness_rows(grid, z0, K_level, scale_factor / 2**index) if slope_weighted

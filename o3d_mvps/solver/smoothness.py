@@ -47,20 +47,15 @@ GRID_MODE_WEIGHT = 1000.0
 GRID_MODE_MIN_FRAMES = 4
 
 
-def grid_mode_weight(light: str, frames: int, level_pixels: int, level_factor: float,
-                     lamp_level_pixels: int = 0) -> float:
+def grid_mode_weight(light: str, frames: int, level_pixels: int, lamp_level_pixels: int = 0) -> float:
     """The weight of a level's :func:`grid_mode_rows` (0: none), the one place that decides where
-    they are on. None on a level whose pixels are no finer than the sensor depth's
-    (``level_factor`` = SF / 2^level <= 1: the depth prior's block averages see the modes there);
-    on finer ones :data:`GRID_MODE_WEIGHT` for the LED (``light`` "led") with at least
+    they are on: :data:`GRID_MODE_WEIGHT` for the LED (``light`` "led") with at least
     :data:`GRID_MODE_MIN_FRAMES` ``frames``, and for point lights ("point", a static camera) on
     the levels of more than ``lamp_level_pixels`` object pixels (``level_pixels``), those that no
     longer place the lamps (the driver's ``POINT_FIT_MAX_PIXELS``: on the lamp-placing levels the
     rows held the bend of a quilt a few pixels across and the lamps went out, 98 -> 501 mm off);
     none under room light ("room", "sh": with its large smoothness they flattened the normals,
     a speckled room render's 16.1 deg against a bound of 12.8; docs/method.md, "Grid modes")."""
-    if level_factor <= 1:
-        return 0.0
     if light == "led" and frames >= GRID_MODE_MIN_FRAMES:
         return GRID_MODE_WEIGHT
     if light == "point" and level_pixels > lamp_level_pixels:
