@@ -1,6 +1,7 @@
 """The grid modes (issue #31): depth that alternates from pixel to pixel, which the central
 differences of the normals do not see. The smoothness's grid-mode rows
-(:func:`o3d_mvps.solver.smoothness.grid_mode_rows`, off by default) and the measurement
+(:func:`o3d_mvps.solver.smoothness.grid_mode_rows`, on where
+:func:`~o3d_mvps.solver.smoothness.grid_mode_weight` says) and the measurement
 (:mod:`benchmarks.grid_modes`)."""
 
 import numpy as np
@@ -9,7 +10,7 @@ import scipy.sparse as sp
 from benchmarks.grid_modes import grid_mode_amplitude
 from o3d_mvps.model.normals import masked_grid
 from o3d_mvps.solver import smoothness
-from o3d_mvps.solver.pyramid import DepthPrior
+from o3d_mvps.solver.pyramid import DepthPrior, build_level
 
 
 def _disc(h=40, w=50, r=17):
@@ -83,7 +84,7 @@ def test_grid_mode_amplitude_measures_a_planted_mode():
 
 def test_grid_mode_rows_hold_the_mode_a_mesh_shows(monkeypatch):
     """An LED bunny, 320x240, SF 4, 6 frames, given poses: refined without the grid-mode rows
-    (the default) and with them at weight 1000. The mode's median amplitude along rows and the
+    and with them at weight 1000 (the LED's default with 6 frames). The mode's median amplitude along rows and the
     forward-difference (mesh) normal error fall (measured: rows 16.1 -> 5.0 um, mesh normals
     6.11 -> 5.17 deg); bounds at 0.5 x and 0.92 x the default's. The central-difference error
     does not get worse (5.08 -> 4.89 deg; bound +2 %)."""
@@ -122,3 +123,31 @@ def test_the_device_weighing_keeps_the_grid_mode_rows_as_the_host_does():
     got = sp.csr_matrix((data, indices, indptr), shape=S.shape)  # the device keeps S's entry order
     np.testing.assert_allclose(got.toarray(), host.S.toarray(), rtol=1e-14, atol=0)
     assert not np.allclose(got[S2.shape[0]:].toarray(), 0) and np.allclose(got[S2.shape[0]:].toarray(), S[S2.shape[0]:].toarray())
+
+
+def test_the_rows_are_on_by_light_model_frames_and_level():
+    """grid_mode_weight: the LED with enough frames and the point lights' finer levels get
+    GRID_MODE_WEIGHT, room light, few LED frames and the lamp-placing levels none; build_level
+    adds rows of the weight it gives for the level's object pixels."""
+    w = smoothness.GRID_MODE_WEIGHT
+    assert w > 0
+    assert smoothness.grid_mode_weight("led", 20, 100) == w
+    assert smoothness.grid_mode_weight("led", smoothness.GRID_MODE_MIN_FRAMES - 1, 10**6) == 0.0
+    assert smoothness.grid_mode_weight("point", 12, 20000, lamp_level_pixels=20000) == 0.0
+    assert smoothness.grid_mode_weight("point", 12, 20001, lamp_level_pixels=20000) == w
+    assert smoothness.grid_mode_weight("room", 20, 10**6) == 0.0 and smoothness.grid_mode_weight("sh", 20, 10**6) == 0.0
+    mask = _disc()
+    colors = [np.random.default_rng(0).uniform(0.2, 0.8, mask.shape + (3,)).astype(np.float32)]
+    K = np.array([[60.0, 0, 25], [0, 60.0, 20], [0, 0, 1]])
+    z0 = np.full((20, 25), 0.5)
+    asked = []
+
+    def rule(pixels):
+        asked.append(pixels)
+        return 9.0 if pixels > 500 else 0.0
+
+    fine, coarse = (build_level(i, colors, [None], mask, K, z0, 2, grid_modes=rule) for i in (0, 1))
+    assert asked == [fine.grid.size, coarse.grid.size] and coarse.grid.size < 500 < fine.grid.size
+    assert smoothness.grid_mode_row_flags(fine.prior.S).any()
+    assert not smoothness.grid_mode_row_flags(coarse.prior.S).any()
+    assert not smoothness.grid_mode_row_flags(build_level(0, colors, [None], mask, K, z0, 2).prior.S).any()

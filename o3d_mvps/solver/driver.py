@@ -18,6 +18,7 @@ import warnings
 from collections import defaultdict
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from functools import partial
 
 import cv2
 import numpy as np
@@ -45,7 +46,7 @@ from .problem import Estimate, LevelProblem
 from .problem_input import SolverInput
 from .pyramid import build_level, level_size
 from .reflectance import refit_albedo, update_albedo, update_lighting
-from .smoothness import auto_smoothness
+from .smoothness import auto_smoothness, grid_mode_weight
 from .solution import SolverOutput
 from .weighting import (absolute_evidence_weights, albedo_step_factor, albedo_step_weights, evidence_weights,
                         leans_on_smoothness, lowpass_sigma, normal_evidence, tie_low_frequencies)
@@ -74,8 +75,14 @@ POINT_MIN_PIXELS = 4000
 #: on the levels that refit the point lights every sweep (up to :data:`POINT_FIT_MAX_PIXELS`),
 #: this many times ``max_iterations`` sweeps at most: depth and lamps trade off along a valley
 #: (a nearly flat surface: the lamp's distance against the depth's curvature and the albedo),
-#: down which the alternating sweeps creep a few per cent of the lamp's distance a sweep
-POINT_SWEEP_FACTOR = 3
+#: down which the alternating sweeps creep a few per cent of the lamp's distance a sweep; they stop
+#: at the energy's tolerance only once the lamps no longer creep (:func:`_lamps_creeping`)
+POINT_SWEEP_FACTOR = 6
+#: ... that is, once the lamps moved less than this fraction of their mean distance from the camera
+#: over the last :data:`POINT_CREEP_SWEEPS` sweeps (mean over the lamps): on the one-ring 320x240
+#: quilt (tests/test_static_camera.py) the energy's tolerance stopped them creeping 98 mm off
+POINT_CREEP_TOLERANCE = 0.002
+POINT_CREEP_SWEEPS = 3
 #: on the finer levels (the lamps placed, refitted in the first sweep only) this many sweeps at most
 #: (None: ``max_iterations``). The rendered D415-like quilt (20 frames) took up to 8 there to the
 #: energy's tolerance; 640x480: none 27.8, 4 19.7, 3 17.9 CPU s for normals 0.922-0.923 deg and
@@ -250,6 +257,7 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
     parallax_only = problem.light.fixed_in_world
     _weigh_smoothness(problem, est, ev, options, timings, stats)
     rows = [{"level": level.index, "iteration": 0, "energy": ev.energy}]
+    lamp_history = []  # the point lights at the start of each sweep (_lamps_creeping)
     finest = problem.light.name == "point" and level.index == 0 and lamps_settled
     sweeps = options.max_iterations
     if problem.light.name == "point" and level.grid.size <= POINT_FIT_MAX_PIXELS:
@@ -270,6 +278,7 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
             _weigh_smoothness(problem, est, ev, options, timings, stats)
         previous = ev.energy
         start = _snapshot(est)
+        lamp_history.append(start.led_offset)
         if refine_poses and options.joint_pose_depth and (parallax_only or level.grid.size >= options.joint_min_pixels):
             t = time.perf_counter()
             stepped, ev, cg_iterations = update_pose_depth(problem, est, ev, rtol=options.joint_cg_tolerance,
@@ -314,11 +323,25 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
             timings["extrapolation"] += time.perf_counter() - t
         rows.append({"level": level.index, "iteration": iteration, "energy": ev.energy, "cg_iterations": cg_iterations})
         bar.set_postfix(energy=f"{ev.energy:.5g}")
-        if abs(previous - ev.energy) <= options.tolerance * abs(previous):
+        if abs(previous - ev.energy) <= options.tolerance * abs(previous) and not (
+                problem.light.name == "point" and not settled and _lamps_creeping(est, lamp_history)):
             break
     bar.close()
     stats["frame_rms"] = ev.frame_rms()  # the finest level's stays: the report's per-frame residual
     return rows
+
+
+def _lamps_creeping(est: Estimate, history: list) -> bool:
+    """Whether the point lights (``est.led_offset`` (n, 3), metres) moved, on average, by more
+    than :data:`POINT_CREEP_TOLERANCE` of their mean distance from the camera since the start of
+    the sweep :data:`POINT_CREEP_SWEEPS` - 1 sweeps before the last (``history``: their positions
+    at each sweep's start). A sweep whose lamp refit is refused moves them not at all, and the
+    next one (the depth bent further) moves them again: judged over a few sweeps."""
+    before = history[-POINT_CREEP_SWEEPS] if len(history) >= POINT_CREEP_SWEEPS else history[0]
+    if est.led_offset is None or before is None or np.shape(est.led_offset) != np.shape(before):
+        return False
+    moved = np.linalg.norm(np.asarray(est.led_offset) - np.asarray(before), axis=1).mean()
+    return bool(moved > POINT_CREEP_TOLERANCE * np.linalg.norm(np.asarray(est.led_offset), axis=1).mean())
 
 
 def _weigh_smoothness(problem: LevelProblem, est: Estimate, ev, options: RefineOptions, timings: dict,
@@ -598,7 +621,9 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
         t = time.perf_counter()
         trim_heap()  # the previous level's freed arrays out of the resident set before this level's are made
         level = build_level(level_index, colors, masks, ref_mask, K, z0, sf, options.difference_scheme,
-                            options.depth_envelope, options.model.slope_weighted())
+                            options.depth_envelope, options.model.slope_weighted(),
+                            grid_modes=partial(grid_mode_weight, light.name, n_frames,
+                                               lamp_level_pixels=POINT_FIT_MAX_PIXELS))
         g = level.grid
         if g.size < 16 or (light.name == "point" and g.size < POINT_MIN_PIXELS and level_index > 0):
             return None

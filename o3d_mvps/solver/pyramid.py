@@ -10,6 +10,7 @@ light each row weighted down where the sensor's surface is steep (:mod:`.smoothn
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from functools import cached_property
 
@@ -314,10 +315,12 @@ class Level:
 
 def build_level(index: int, colors: list, masks: list, ref_mask: np.ndarray, K: np.ndarray, z0: np.ndarray,
                 scale_factor: int, scheme: str = "central", envelope_margin: float | None = None,
-                slope_weighted: bool = False) -> Level:
+                slope_weighted: bool = False, grid_modes: Callable[[int], float] | None = None) -> Level:
     """Level ``index`` from full-resolution colours (H, W, 3), masks, reference mask and z0;
     ``envelope_margin`` None leaves the depth unbounded (see :func:`depth_envelope`);
-    ``slope_weighted``: the smoothness rows are :func:`smoothness_rows` (else plain second differences)."""
+    ``slope_weighted``: the smoothness rows are :func:`smoothness_rows` (else plain second differences);
+    ``grid_modes``: the weight of the grid-mode rows (:func:`.smoothness.with_grid_modes`) given the
+    level's object pixels (the driver's :func:`.smoothness.grid_mode_weight`); None: none."""
     size = level_size(ref_mask.shape, index)
     K_level = scale_intrinsics(K, size[1] / ref_mask.shape[1], size[0] / ref_mask.shape[0])
     # the finest level reads the full-resolution float32 colours themselves (no copy: they are
@@ -329,9 +332,12 @@ def build_level(index: int, colors: list, masks: list, ref_mask: np.ndarray, K: 
     mask = resize(ref_mask.astype(np.float32), size) > 0.5
     grid = masked_grid(mask, scheme)
     prior = depth_prior(grid, z0, scale_factor / 2**index)
+    grid_mode_weight = 0.0 if grid_modes is None else grid_modes(grid.size)
+
     def smoothness():
         return with_grid_modes(grid, smoothness_rows(grid, z0, K_level, scale_factor / 2**index) if slope_weighted
-                               else second_differences(grid), z0, K_level, scale_factor / 2**index)
+                               else second_differences(grid), z0, K_level, scale_factor / 2**index,
+                               grid_mode_weight)
 
     prior.S = smoothness()
     prior.rebuild_smoothness_with(smoothness)  # weighed without a copy of the unweighted S kept

@@ -5,7 +5,7 @@ under room light each row is weighted down where the sensor's surface is steep
 (:func:`slope_weights`), and the weight mu~ follows the sensor depth's roughness and the
 colour pixels' footprint (:func:`auto_smoothness`). Fourth-difference rows that see the depth
 alternating from pixel to pixel, which the central-difference normals do not (:func:`grid_mode_rows`,
-:func:`with_grid_modes`), can be added below S; their weight is 0 by default (:data:`GRID_MODE_WEIGHT`).
+:func:`with_grid_modes`), can be added below S; :func:`grid_mode_weight` says where (by light model, frames and level size).
 """
 
 from __future__ import annotations
@@ -35,24 +35,42 @@ def second_differences(grid: MaskedGrid) -> sp.csr_matrix:
 
 
 #: weight of :func:`grid_mode_rows` in the smoothness, relative to the second differences' (their
-#: rows are scaled by its square root); 0: no such rows (the default). At 1000 (LED, D415 render,
-#: 20 frames) the normal MAE fell 1.337 -> 1.292 deg and a mesh's (forward-difference) normals'
-#: 3.29 -> 1.72 deg, the grid mode's median amplitude 8.3 -> 2.2 um, but the depth RMSE rose
-#: 0.516 -> 0.521 mm (+1.1 %, at the ear's depth steps, which the rows straddle): over the 0.5 %
-#: the default may lose, so the rows are off (docs/method.md, "Grid modes").
-GRID_MODE_WEIGHT = 0.0
+#: rows are scaled by its square root), where :func:`grid_mode_weight` turns them on. At 1000 (LED,
+#: D415 render, 20 frames) the normal MAE fell 1.337 -> 1.292 deg and a mesh's (forward-difference)
+#: normals' 3.29 -> 1.72 deg, the grid mode's median amplitude 8.3 -> 2.2 um, for a depth RMSE
+#: 0.516 -> 0.521 mm (+1.1 %, at the ear's depth steps, which the rows straddle; docs/method.md,
+#: "Grid modes").
+GRID_MODE_WEIGHT = 1000.0
+#: the LED's grid-mode rows need at least this many frames: with fewer (an 8-frame ring whose
+#: reference 3 frames see, tests/test_grain.py) the solver leans on the sensor depth and the
+#: rows, relative to its 10x larger smoothness, flattened the normals (12.5 deg against a bound of 10.5)
+GRID_MODE_MIN_FRAMES = 4
 
 
-def grid_mode_rows(grid: MaskedGrid, weight: float | None = None) -> sp.csr_matrix:
+def grid_mode_weight(light: str, frames: int, level_pixels: int, lamp_level_pixels: int = 0) -> float:
+    """The weight of a level's :func:`grid_mode_rows` (0: none), the one place that decides where
+    they are on: :data:`GRID_MODE_WEIGHT` for the LED (``light`` "led") with at least
+    :data:`GRID_MODE_MIN_FRAMES` ``frames``, and for point lights ("point", a static camera) on
+    the levels of more than ``lamp_level_pixels`` object pixels (``level_pixels``), those that no
+    longer place the lamps (the driver's ``POINT_FIT_MAX_PIXELS``: on the lamp-placing levels the
+    rows held the bend of a quilt a few pixels across and the lamps went out, 98 -> 501 mm off);
+    none under room light ("room", "sh": with its large smoothness they flattened the normals,
+    a speckled room render's 16.1 deg against a bound of 12.8; docs/method.md, "Grid modes")."""
+    if light == "led" and frames >= GRID_MODE_MIN_FRAMES:
+        return GRID_MODE_WEIGHT
+    if light == "point" and level_pixels > lamp_level_pixels:
+        return GRID_MODE_WEIGHT
+    return 0.0
+
+
+def grid_mode_rows(grid: MaskedGrid, weight: float) -> sp.csr_matrix:
     """Rows (K, N) that see the grid modes: the depth that alternates from pixel to pixel along
     rows or columns (a (-1)^u, a (-1)^v, a (-1)^(u+v)), which central-difference normals do not
     see (z[p+1] - z[p-1] = 0). Each row is ``sqrt(weight) (z[p-2] - 4 z[p-1] + 6 z[p] - 4 z[p+1]
     + z[p+2]) / 4`` along rows and along columns, at every masked pixel whose four neighbours in
     that direction have both their neighbours masked. A mode of amplitude a gives 4 a sqrt(weight)
     (a second difference's 4 a); a smooth surface of frequency omega (rad/pixel) 4 sin^4(omega/2)
-    times its amplitude, its curvature (omega^2) times omega^2 / 4. ``weight`` None:
-    :data:`GRID_MODE_WEIGHT`."""
-    weight = GRID_MODE_WEIGHT if weight is None else weight
+    times its amplitude, its curvature (omega^2) times omega^2 / 4."""
     rows, cols, vals = [], [], []
     count = 0
     own = np.arange(grid.size)
@@ -124,13 +142,12 @@ def smoothness_rows(grid: MaskedGrid, z0: np.ndarray, K: np.ndarray, level_facto
 
 
 def with_grid_modes(grid: MaskedGrid, S: sp.csr_matrix, z0: np.ndarray, K: np.ndarray,
-                    level_factor: float, weight: float | None = None) -> sp.csr_matrix:
-    """S (K, N) with :func:`grid_mode_rows` of ``weight`` (None: :data:`GRID_MODE_WEIGHT`) below
+                    level_factor: float, weight: float) -> sp.csr_matrix:
+    """S (K, N) with :func:`grid_mode_rows` of ``weight`` (:func:`grid_mode_weight`) below
     it, each weighted by :func:`slope_weights` (the sensor surface's slope at its centre pixel, as
     for the second differences under room light: a rim's legitimate fourth differences are
     large); S itself where the weight is 0. z0, K, level_factor: as :func:`slope_weights`. The
     evidence weights leave these rows alone (:meth:`.pyramid.DepthPrior.weigh_smoothness`)."""
-    weight = GRID_MODE_WEIGHT if weight is None else weight
     if weight <= 0:
         return S
     M = grid_mode_rows(grid, weight)
