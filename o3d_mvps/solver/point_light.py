@@ -8,11 +8,13 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import math
 
+import numba
 import numpy as np
 
 from ..model.robust import cauchy, cauchy_weights
-from ..model.shading import led_vector_jacobian, led_vectors
+from ..model.shading import led_irradiance_at, led_point_gradient_of, led_vector_jacobian, led_vectors
 from .device import to_host
 from .lighting import PointLight, SHLight
 from .reflectance import update_albedo, update_lighting
@@ -50,16 +52,73 @@ POINT_FINE_PIXELS = 8000
 POINT_FINE_ITERATIONS = 12
 
 
-def _frame_energies(X: np.ndarray, colour: np.ndarray, albedo: np.ndarray, u: np.ndarray, normals: np.ndarray,
-                    points: np.ndarray, lam: float) -> tuple:
+@numba.njit(cache=True)
+def _frame_sums(X, colour, albedo, usable, normals, points, lam, frames, system, energy, H, b):  # pragma: no cover - compiled
+    """Per frame i where ``frames`` (n,) bool is set the robust energy ``sum_p,c phi(I - rho s)``
+    over its usable pixels of the light X[i] = (ambient, intensity, position (3,)) written into
+    energy (n,); with ``system`` also the Levenberg-Marquardt model's H (n, 5, 5) and b (n, 5):
+    ``sum_p (sum_c w rho^2) J J^T`` and ``sum_p (sum_c w rho r) J``, J = d(shading)/dX = (1,
+    max(0, <n, v>), d<n, v>/d(position) times the intensity where lit), w the Cauchy weights
+    (:func:`o3d_mvps.model.robust.cauchy_weights`) of the residuals r = I - rho s. float64 X
+    (n, 5), colour (n, M, 3), albedo, normals, points (M, 3); usable (n, M) bool. One pass per
+    frame (NumPy's version made a dozen (n, M, 3) temporaries per call) and one logarithm per
+    pixel: :func:`o3d_mvps.model.robust.cauchy`'s phi summed over the 3 channels as
+    ``lam^2 / 2 log(prod_c (1 + (r_c / lam)^2))``."""
+    inv_lam, half = 1.0 / lam, 0.5 * lam * lam
+    intensities, positions = X[:, 1].copy(), X[:, 2:].copy()
+    J = np.empty(5)
+    for i in range(X.shape[0]):
+        if not frames[i]:
+            continue
+        e = 0.0
+        if system:
+            H[i] = 0.0
+            b[i] = 0.0
+        for p in range(points.shape[0]):
+            if not usable[i, p]:
+                continue
+            g = led_irradiance_at(normals, points, positions[i, 0], positions[i, 1], positions[i, 2], p)
+            lit = max(g, 0.0)
+            s = X[i, 0] + X[i, 1] * lit
+            product, wa2, war = 1.0, 0.0, 0.0
+            for c in range(3):
+                r = colour[i, p, c] - albedo[p, c] * s
+                y = r * inv_lam
+                factor = 1.0 + y * y
+                product *= factor
+                if system:
+                    wa2 += albedo[p, c] * albedo[p, c] / factor
+                    war += albedo[p, c] * r / factor
+            e += math.log(product)
+            if system:
+                d0, d1, d2 = led_point_gradient_of(intensities, normals, points, positions, i, p)
+                J[0], J[1], J[2], J[3], J[4] = 1.0, lit, -d0, -d1, -d2
+                for k in range(5):
+                    b[i, k] += war * J[k]
+                    for m in range(k, 5):
+                        H[i, k, m] += wa2 * J[k] * J[m]
+        if system:
+            for k in range(5):
+                for m in range(k):
+                    H[i, k, m] = H[i, m, k]
+        e *= half
+        energy[i] = e if math.isfinite(e) else math.inf
+
+
+def _frame_energies(X: np.ndarray, colour: np.ndarray, albedo: np.ndarray, usable: np.ndarray, normals: np.ndarray,
+                    points: np.ndarray, lam: float, frames: np.ndarray | None = None, system: bool = False) -> tuple:
     """Per frame the robust energy (n,) of lights X (n, 5) against colour (n, M, 3) with albedo
-    (M, 3), u (n, M, 1) 1 where usable; also the unclamped irradiances g (n, M) and residuals
-    r (n, M, 3)."""
-    shading, g = _frames_shading(X, normals, points)
-    r = (colour - albedo[None] * shading[..., None]) * u
-    with np.errstate(invalid="ignore", over="ignore"):
-        energy = (cauchy(r, lam) * u).sum(axis=(1, 2))
-    return np.where(np.isfinite(energy), energy, np.inf), g, r
+    (M, 3) over the usable (n, M) pixels (:func:`_frame_sums`), of the ``frames`` (n,) bool
+    (default all; inf elsewhere); with ``system`` also the Levenberg-Marquardt model's H (n, 5, 5)
+    and b (n, 5) there (else None, None). The arrays as :func:`_fit_frames` prepares them
+    (float64, contiguous)."""
+    n = len(X)
+    energy = np.full(n, np.inf)
+    H, b = (np.zeros((n, 5, 5)), np.zeros((n, 5))) if system else (np.empty((0, 5, 5)), np.empty((0, 5)))
+    frames = np.ones(n, bool) if frames is None else np.ascontiguousarray(frames, dtype=bool)
+    _frame_sums(np.ascontiguousarray(X, dtype=np.float64), colour, albedo, usable, normals, points, float(lam), frames,
+                system, energy, H, b)
+    return (energy, H, b) if system else (energy, None, None)
 
 
 def _fit_frames(X: np.ndarray, colour: np.ndarray, albedo: np.ndarray, usable: np.ndarray, normals: np.ndarray,
@@ -69,22 +128,19 @@ def _fit_frames(X: np.ndarray, colour: np.ndarray, albedo: np.ndarray, usable: n
     (M, 3), unit normals, points (M, 3)), the albedo fixed: Levenberg-Marquardt on the IRLS model,
     the frames' 5x5 systems solved together, each frame's step kept only where its energy falls
     (its damping grows 8 times per refusal, up to 1e8, and shrinks 4 times after a kept step).
-    Frames with fewer than 8 usable pixels keep their light. Returns (X (n, 5), energies (n,))."""
-    X = X.copy()
-    u = usable[..., None].astype(np.float64)
-    energy, g, r = _frame_energies(X, colour, albedo, u, normals, points, lam)
+    Frames with fewer than 8 usable pixels keep their light. The sums are compiled
+    (:func:`_frame_sums`). Returns (X (n, 5), energies (n,))."""
+    X = np.array(X, dtype=np.float64)
+    colour, albedo, normals, points = (np.ascontiguousarray(a, dtype=np.float64)
+                                       for a in (colour, albedo, normals, points))
+    usable = np.ascontiguousarray(usable, dtype=bool)
+    energy = _frame_energies(X, colour, albedo, usable, normals, points, lam)[0]
     active = usable.sum(axis=1) >= 8
     damping = np.full(len(X), 1e-3)
     for _ in range(iterations):
         if not active.any():
             break
-        w = cauchy_weights(r, lam) * u
-        lit = g > 0
-        dpos = -led_vector_jacobian(points, X[:, 2:], normals) * (X[:, 1:2] * lit)[..., None]  # (n, M, 3)
-        J = np.concatenate([np.ones(g.shape + (1,)), np.maximum(g, 0.0)[..., None], dpos], axis=2)  # (n, M, 5)
-        JT = J.transpose(0, 2, 1)
-        H = np.matmul(JT * (w * albedo[None] ** 2).sum(axis=2)[:, None, :], J)
-        b = np.matmul(JT, (w * albedo[None] * r).sum(axis=2)[..., None])[..., 0]  # r = I - rho s: descent direction
+        _, H, b = _frame_energies(X, colour, albedo, usable, normals, points, lam, active, system=True)
         diagonal = np.maximum(np.diagonal(H, axis1=1, axis2=2),
                               1e-12 * np.maximum(np.trace(H, axis1=1, axis2=2), 1e-300)[:, None])
         trying = active.copy()
@@ -97,11 +153,10 @@ def _fit_frames(X: np.ndarray, colour: np.ndarray, albedo: np.ndarray, usable: n
                     step = np.stack([_solve_or_nan(a, v) for a, v in zip(A, b[trying])])
             trial = X.copy()
             trial[trying] += np.where(np.isfinite(step), step, 0.0)
-            trial_energy, trial_g, trial_r = _frame_energies(trial, colour, albedo, u, normals, points, lam)
+            trial_energy = _frame_energies(trial, colour, albedo, usable, normals, points, lam, trying)[0]
             better = trying & (trial_energy < energy) & _within_reach(trial, X, points)
             better[trying] &= np.isfinite(step).all(axis=1)
-            X[better], energy[better], g[better], r[better] = (trial[better], trial_energy[better], trial_g[better],
-                                                               trial_r[better])
+            X[better], energy[better] = trial[better], trial_energy[better]
             damping[better] = np.maximum(damping[better] / 4.0, 1e-6)
             refused = trying & ~better
             damping[refused] *= 8.0
