@@ -15,7 +15,6 @@ reference, with pixels 83 %). Open3D-free: NumPy arrays in, NumPy arrays out.
 from __future__ import annotations
 
 import logging
-import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -25,6 +24,7 @@ from .errors import CaptureError
 from .model.camera import backproject, project, scale_intrinsics, transform
 from .model.normals import perspective_normals
 from .model.resampling import block_average, harmonic_fill, masked_gaussian, resample_valid
+from .model.robust import nan_median
 from .model.warping import in_view
 
 logger = logging.getLogger(__name__)
@@ -174,13 +174,6 @@ def _frame_differences(depths: np.ndarray, poses: np.ndarray, K: np.ndarray) -> 
     return v, u, outside, difference
 
 
-def _nanmedian(values: np.ndarray, axis: int = 0) -> np.ndarray:
-    """np.nanmedian without the warning for all-NaN slices (NaN there)."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        return np.nanmedian(values, axis=axis)
-
-
 def depth_noise_scale(difference: np.ndarray, z: np.ndarray) -> float:
     """s (1/m) of the depth noise model sigma(z) = s z^2 (metres; stereo and time-of-flight noise
     grows with the depth squared), from the frames' differences (n - 1, m) metres (NaN: not
@@ -191,7 +184,7 @@ def depth_noise_scale(difference: np.ndarray, z: np.ndarray) -> float:
     enough = np.isfinite(difference).sum(axis=0) >= OUTLIER_MIN_FRAMES
     if enough.sum() < 10:
         return 0.0
-    ratio = _nanmedian(difference[:, enough]) / z[enough] ** 2
+    ratio = nan_median(difference[:, enough]) / z[enough] ** 2
     return 1.4826 * float(np.median(np.abs(ratio - np.median(ratio))))
 
 
@@ -233,7 +226,7 @@ def reference_depth_outliers(depths: np.ndarray, poses: np.ndarray, K: np.ndarra
     beyond = (np.abs(np.nan_to_num(outside)) > tolerance).sum(axis=0)
     counts = np.isfinite(outside).sum(axis=0)
     flagged = ((counts >= OUTLIER_MIN_FRAMES) & (beyond >= OUTLIER_MIN_FRAMES)
-               & (np.abs(np.nan_to_num(_nanmedian(outside))) > tolerance))
+               & (np.abs(np.nan_to_num(nan_median(outside))) > tolerance))
     if flagged.any():
         if warped is None:
             warped = frame_depths_in_reference(depths, poses, K)
@@ -284,7 +277,7 @@ def reference_depth_fill(depths: np.ndarray, poses: np.ndarray, K: np.ndarray, f
     if warped is None:
         warped = frame_depths_in_reference(depths, poses, K)
     landed = warped > 0
-    median = np.nan_to_num(_nanmedian(np.where(landed, warped, np.nan)))
+    median = np.nan_to_num(nan_median(np.where(landed, warped, np.nan)))
     tolerance = outlier_tolerance(median, noise_scale)
     agree = (landed & (np.abs(warped - median) <= tolerance)).sum(axis=0)
     consistent = (agree >= OUTLIER_MIN_FRAMES) & (2 * agree >= landed.sum(axis=0)) & (median > 0)

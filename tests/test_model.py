@@ -337,6 +337,28 @@ def test_slope_weights_follow_the_metric_slope_of_the_sensor_surface():
         assert np.median(w[inner]) == pytest.approx(expected, rel=0.05), tilt_deg
 
 
+def test_nan_median_equals_numpys_without_its_warning():
+    """model.robust.nan_median: np.nanmedian over the first axis bit for bit (odd and even counts
+    of measured values, one, none: NaN), a 3-d stack too, and no RuntimeWarning for empty slices."""
+    import warnings
+
+    from o3d_mvps.model.robust import nan_median
+
+    rng = np.random.default_rng(3)
+    for shape in ((20, 5000), (2, 300), (1, 40), (6, 30, 20)):
+        values = rng.normal(size=shape) * rng.choice([1e-3, 1.0, 1e3], size=shape)
+        values[rng.random(shape) < 0.4] = np.nan
+        values[:, :2] = np.nan
+        values[1:, 2] = np.nan  # one measured value
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            expected = np.nanmedian(values, axis=0)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            np.testing.assert_array_equal(nan_median(values), expected)
+        assert np.isnan(nan_median(values)[:2]).all()
+
+
 def test_robust_scale_is_the_standard_deviation_of_gaussian_residuals_despite_outliers():
     from o3d_mvps.model.robust import MIN_SCALE, robust_scale
 

@@ -18,6 +18,7 @@ import numpy as np
 
 from ..model.camera import project, transform
 from ..model.resampling import masked_gaussian, resample_valid
+from ..model.robust import nan_median
 from ..model.se3 import rotation_angle_deg
 from ..odometry import ICP_VOXELS, MAX_CLOUD_POINTS, cloud_pyramid, depth_cloud, frame_region, register
 from .types import Capture
@@ -336,12 +337,7 @@ def _frames_median(depths: np.ndarray) -> tuple:
     depths = np.asarray(depths, dtype=np.float64)
     valid = depths > 0
     counts = valid.sum(axis=0)
-    # the measured depths first, in order, along the frames: the median of c of them is the mean
-    # of their ((c - 1) // 2)-th and (c // 2)-th, as np.nanmedian's (20 frames of 640x480: 0.2 s, not 0.5)
-    ordered = np.sort(np.where(valid, depths, np.inf), axis=0)
-    lower = np.take_along_axis(ordered, (np.maximum(counts, 1) - 1)[None] // 2, axis=0)[0]
-    upper = np.take_along_axis(ordered, (counts // 2)[None], axis=0)[0]
-    median = np.where(counts > 0, (lower + upper) / 2, 0.0)  # inf where no frame measures
+    median = np.where(counts > 0, nan_median(np.where(valid, depths, np.nan)), 0.0)
     return valid, counts, median
 
 
