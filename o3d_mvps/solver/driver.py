@@ -268,10 +268,10 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
             sweeps = min(sweeps, POINT_FINEST_SWEEPS)
     bar = tqdm(range(1, sweeps + 1), desc=f"level {level.index} ({level.size[1]}x{level.size[0]})",
                disable=not options.progress, leave=False)
+    # point lights on a level that no longer places the lamps: their per-pixel fields make the
+    # evidence cost a frames x pixels x 3 x 3 sum, weighed once per level; CG to a looser tolerance
+    settled = problem.light.name == "point" and level.grid.size > POINT_FIT_MAX_PIXELS
     for iteration in bar:
-        # point lights: their per-pixel fields make the evidence cost a frames x pixels x 3 x 3
-        # sum; weighed once per level where the lamps are no longer refitted every sweep
-        settled = problem.light.name == "point" and level.grid.size > POINT_FIT_MAX_PIXELS
         # the first sweep's weights are set before the level's first energy; then held after
         # EVIDENCE_SWEEPS sweeps, so the rest of the level minimises one energy
         if 1 < iteration <= EVIDENCE_SWEEPS and not settled:
@@ -297,10 +297,9 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
                                              anchors, log)
                 timings["poses"] += time.perf_counter() - t
             t = time.perf_counter()
-            settled_cg = problem.light.name == "point" and level.grid.size > POINT_FIT_MAX_PIXELS
             stepped, ev, cg_iterations = update_depth(problem, est, ev,
                                                       rtol=options.cg_tolerance * (POINT_SETTLED_CG_FACTOR
-                                                                                   if settled_cg else 1.0),
+                                                                                   if settled else 1.0),
                                                       maxiter=options.cg_max_iterations,
                                                       project_albedo=project_albedo, parallax=parallax_only)
             est.z, est.albedo = stepped.z, stepped.albedo
