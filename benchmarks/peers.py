@@ -266,7 +266,7 @@ def study_markdown(light: str, study: dict) -> list[str]:
              "MAE against the sensor-like normals = its low-frequency part (the depth smoothed by the same "
              "4 px Gaussian, against them) + its high-frequency part (the depth against its own smoothing), "
              "roughly; true: against the true normals; smoothed sensor: bicubic smoothed by 4 px, against the true "
-             f"normals. Frames seeing a pixel (5th/10th/50th percentile): "
+             "normals. Frames seeing a pixel (5th/10th/50th percentile): "
              + "/".join(f"{v:g}" for v in study["frames_seeing_percentiles"].values()) + ".", "",
              "| region | pixels | smoothed sensor, true | "
              + " | ".join(f"{m}: sensor-like / low / high / true" for m in study["methods"]) + " |",

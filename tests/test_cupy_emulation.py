@@ -10,7 +10,6 @@ import pytest
 import scipy.linalg
 
 import cupy_emulation as cp
-from cupy_emulation import DeviceMixError
 from o3d_mvps.model.arrays import array_module, like
 from o3d_mvps.solver import kernels
 

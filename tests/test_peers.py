@@ -2,15 +2,12 @@
 bicubic on a noisy, dark-speckled, wide-baseline render (docs/fidelity.md, "Against depth fusion").
 """
 
-import warnings
-
 import numpy as np
 import open3d as o3d
 import pytest
 from scipy import ndimage
 
-from o3d_mvps import RefineOptions, refine
-from o3d_mvps.baselines import bicubic, tsdf_fusion
+from o3d_mvps.baselines import tsdf_fusion
 from o3d_mvps.capture import Capture, default_depth_intrinsic
 from o3d_mvps.covisibility import reference_depth_outliers
 from o3d_mvps.synthetic.camera import look_at_pose, synthetic_intrinsics

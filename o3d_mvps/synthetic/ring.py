@@ -10,7 +10,6 @@ the reconstruction and real-capture tests, and the notebook.
 
 from __future__ import annotations
 
-import numpy as np
 import open3d as o3d
 
 from ..capture import Capture, default_depth_intrinsic
