@@ -44,16 +44,19 @@ def test_albedo_relief_sees_a_ridge_along_the_albedo_step_only():
 
 #: measured on the render below (480x360, SF 4, 12 frames, 30 deg orbit, LED, D415-like sensor,
 #: speckled stone, colour integrated over 2 x 2 rays per pixel, given poses) by :func:`albedo_relief`
-#: over the pixels 6 px inside the silhouette: all 4.62 deg, steepest albedo quarter 8.45,
-#: correlation 0.071 (the true depth's 0.001); point-sampled colour: 4.69 / 9.10 / 0.108
-MEASURED = {"mae_deg": 4.62, "steepest_quarter_mae_deg": 8.45, "high_vs_albedo_gradient": 0.071}
+#: over the pixels 6 px inside the silhouette: all 4.53 deg, steepest albedo quarter 7.52,
+#: correlation 0.041 (the true depth's 0.001); when the test was written 4.62 / 8.45 / 0.071
+#: (point-sampled colour then: 4.69 / 9.10 / 0.108)
+MEASURED = {"mae_deg": 4.53, "steepest_quarter_mae_deg": 7.52, "high_vs_albedo_gradient": 0.041}
 
 
 def test_speckles_under_the_led_make_no_more_relief_than_measured():
     """Bounds 5 % above the measured figures (and a correlation 0.03 above): the speckles' rims
-    at most 2.05 x the mean normal error (measured 1.83 x). The render's D415-like depth has flying
+    at most 1.75 x the mean normal error (measured 1.66 x). The render's D415-like depth has flying
     pixels: they are replaced (the default); kept (``drop_depth_outliers=False``), the mean error is
-    8.8 deg (rims 13.9)."""
+    8.3 deg (rims 12.9). These figures move by several per cent under small changes of the solver
+    (docs/fidelity.md, "Albedo edges under the LED": weighting the warped samples by their
+    interpolation error): measure them again when a change moves them."""
     capture = synthetic.render_capture("bunny", frames=12, size=(480, 360), scale_factor=4, light="led",
                                        sensor="d415", albedo="speckled", orbit_deg=30.0, seed=0)
     with warnings.catch_warnings():
@@ -67,6 +70,6 @@ def test_speckles_under_the_led_make_no_more_relief_than_measured():
     print(got, floor)
     assert got["mae_deg"] < 1.05 * MEASURED["mae_deg"], got
     assert got["steepest_quarter_mae_deg"] < 1.05 * MEASURED["steepest_quarter_mae_deg"], got
-    assert got["steepest_quarter_mae_deg"] < 2.05 * got["mae_deg"], got
+    assert got["steepest_quarter_mae_deg"] < 1.75 * got["mae_deg"], got
     assert got["high_vs_albedo_gradient"] < MEASURED["high_vs_albedo_gradient"] + 0.03, got
     assert abs(floor["high_vs_albedo_gradient"]) < 0.05 and floor["mae_deg"] < 2.0, floor  # forward differences: 1.38
