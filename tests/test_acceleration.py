@@ -111,3 +111,13 @@ def test_partway_moves_poses_along_their_twist():
     np.testing.assert_allclose(half.led_offset, 0.5)
     np.testing.assert_allclose(se3.log(half.poses[0]), 0.5 * xi, atol=1e-12)
     np.testing.assert_allclose(se3.log(half.poses[1]), -0.5 * xi, atol=1e-12)
+
+
+def test_levels_accelerated_by_light_model_and_memory(monkeypatch):
+    from o3d_mvps.solver import acceleration
+
+    assert acceleration.level_accelerator("led").memory == acceleration.ANDERSON_MEMORY == 3
+    assert acceleration.level_accelerator("sh") is not None
+    assert acceleration.level_accelerator("point") is None  # static captures: as before (NOT_ACCELERATED)
+    monkeypatch.setattr(acceleration, "ANDERSON_MEMORY", 0)
+    assert acceleration.level_accelerator("led") is None

@@ -48,6 +48,14 @@ HISTORY_DTYPE = np.float32
 ANDERSON_REGULARISATION = 1e-8
 
 
+def level_accelerator(light_name: str) -> Anderson | None:
+    """A level's :class:`Anderson` history (:data:`ANDERSON_MEMORY`, read when called), or None
+    where the acceleration is off (memory 0) or the light model is in :data:`NOT_ACCELERATED`."""
+    if ANDERSON_MEMORY <= 0 or light_name in NOT_ACCELERATED:
+        return None
+    return Anderson(ANDERSON_MEMORY)
+
+
 class Anderson:
     """Anderson type-II mixing over sweeps of one level (history kept between calls).
 
@@ -57,7 +65,7 @@ class Anderson:
         How many differences of consecutive sweeps the least squares uses (at most).
     """
 
-    def __init__(self, memory: int = ANDERSON_MEMORY):
+    def __init__(self, memory: int):
         self.memory = int(memory)
         self.proposed = self.kept = 0  # points proposed, and kept by the caller (its count)
         self.restart()

@@ -33,7 +33,7 @@ from ..model.resampling import fill_nearest_valid, repeat_pixels, resize
 from ..model.robust import robust_scale
 from .depth import envelope_arrays, update_depth
 from .device import CPU, ArrayDevice, array_device, compile_notice, kernels_for, on_gpu, to_host
-from .acceleration import ANDERSON_FRACTIONS, ANDERSON_MEMORY, NOT_ACCELERATED, Anderson, partway
+from .acceleration import ANDERSON_FRACTIONS, Anderson, level_accelerator, partway
 from .joint import update_pose_depth
 from .kernels import MAX_EXTRAPOLATION_FACTORS, extrapolation_blocks
 from .light_selection import select_light_model
@@ -272,8 +272,7 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
     # point lights on a level that no longer places the lamps: their per-pixel fields make the
     # evidence cost a frames x pixels x 3 x 3 sum, weighed once per level; CG to a looser tolerance
     settled = problem.light.name == "point" and level.grid.size > POINT_FIT_MAX_PIXELS
-    accelerator = (Anderson(ANDERSON_MEMORY) if ANDERSON_MEMORY > 0 and problem.light.name not in NOT_ACCELERATED
-                   else None)  # across sweeps, tried before the extrapolation (_accelerated)
+    accelerator = level_accelerator(problem.light.name)  # across sweeps, tried before the extrapolation
     for iteration in bar:
         # the first sweep's weights are set before the level's first energy; then held after
         # EVIDENCE_SWEEPS sweeps, so the rest of the level minimises one energy
