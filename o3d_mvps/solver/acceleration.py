@@ -27,10 +27,10 @@ from .problem import Estimate
 ANDERSON_MEMORY = 3
 #: the blocks whose updates the least squares fits (all blocks are mixed with its coefficients).
 #: D415 render's finest level: the lights move along the valley sweep after sweep (consecutive
-#: updates at cosine 1.00, each 0.85-0.9 times the last: a slow linear mode), the depth's and
-#: albedo's updates carry pixel-level noise (cosine -0.4 to 0.9) and the poses' 0.2-1.0;
+#: updates at cosine 1.00, each 0.76-0.91 times the last: a slow linear mode), the depth's and
+#: albedo's updates carry pixel-level noise (cosine -0.4 to 0.8) and the poses' 0.2-1.0;
 #: fitting every block (each scaled to norm 1) let that noise keep gamma near 0, and the
-#: accelerated solve was no faster (40 -> 41 sweeps)
+#: accelerated solve was no faster (39 -> 41 sweeps)
 ANDERSON_FITTED = ("lights", "led_offset")
 #: fractions of the way from the sweep's result to Anderson's point that the driver tries, in order
 ANDERSON_FRACTIONS = (1.0, 0.5)
