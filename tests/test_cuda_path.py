@@ -67,6 +67,8 @@ def test_cuda_path_matches_the_cpu_path(solutions):
     assert cuda.info["level_devices"] == {"led": ["cpu", device], "room": [device]}[case]
     assert cpu.info["level_devices"] == ["cpu"] * cpu.info["levels"]
     assert [(r["level"], r["iteration"]) for r in cuda.energy] == [(r["level"], r["iteration"]) for r in cpu.energy]
+    # the sweeps' Anderson points (driver._accelerated) proposed and kept alike on both paths
+    assert cuda.info["anderson"] == cpu.info["anderson"]
     energies = np.array([[r["energy"] for r in cpu.energy], [r["energy"] for r in cuda.energy]])
     np.testing.assert_allclose(energies[1], energies[0], rtol=energy_rtol)
     finest = [r["energy"] for r in cpu.energy if r["level"] == 0]

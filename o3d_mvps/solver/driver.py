@@ -33,6 +33,7 @@ from ..model.resampling import fill_nearest_valid, repeat_pixels, resize
 from ..model.robust import robust_scale
 from .depth import envelope_arrays, update_depth
 from .device import CPU, ArrayDevice, array_device, compile_notice, kernels_for, on_gpu, to_host
+from .acceleration import ANDERSON_FRACTIONS, Anderson, level_accelerator, partway
 from .joint import update_pose_depth
 from .kernels import MAX_EXTRAPOLATION_FACTORS, extrapolation_blocks
 from .light_selection import select_light_model
@@ -271,6 +272,7 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
     # point lights on a level that no longer places the lamps: their per-pixel fields make the
     # evidence cost a frames x pixels x 3 x 3 sum, weighed once per level; CG to a looser tolerance
     settled = problem.light.name == "point" and level.grid.size > POINT_FIT_MAX_PIXELS
+    accelerator = level_accelerator(problem.light.name)  # across sweeps, tried before the extrapolation
     for iteration in bar:
         # the first sweep's weights are set before the level's first energy; then held after
         # EVIDENCE_SWEEPS sweeps, so the rest of the level minimises one energy
@@ -318,7 +320,7 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
         timings["albedo_lighting"] += time.perf_counter() - t
         if options.extrapolate and (POINT_SETTLED_EXTRAPOLATE or not settled):
             t = time.perf_counter()
-            ev = _extrapolate(problem, est, ev, start, anchors)
+            ev = _extrapolate(problem, est, ev, start, anchors, accelerator=accelerator)
             timings["extrapolation"] += time.perf_counter() - t
         rows.append({"level": level.index, "iteration": iteration, "energy": ev.energy, "cg_iterations": cg_iterations})
         bar.set_postfix(energy=f"{ev.energy:.5g}")
@@ -326,6 +328,8 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
                 problem.light.name == "point" and not settled and _lamps_creeping(est, lamp_history)):
             break
     bar.close()
+    if accelerator is not None:
+        stats.setdefault("anderson", []).append([level.index, accelerator.proposed, accelerator.kept])
     stats["frame_rms"] = ev.frame_rms()  # the finest level's stays: the report's per-frame residual
     return rows
 
@@ -380,7 +384,7 @@ def _snapshot(est: Estimate) -> Estimate:
 
 
 def _extrapolate(problem: LevelProblem, est: Estimate, ev, before: Estimate, anchors: PoseAnchors | None = None,
-                 factors=(1.0, 2.0, 4.0)):
+                 factors=(1.0, 2.0, 4.0), accelerator: Anderson | None = None):
     """Extrapolate the last sweep's move of every unknown; keep the best energy-lowering factor.
 
     Alternating steps creep along the valley where poses, depth and albedo trade off against
@@ -393,7 +397,9 @@ def _extrapolate(problem: LevelProblem, est: Estimate, ev, before: Estimate, anc
 
     The factors are judged by their energy alone, a few frames at a time (:meth:`.LevelProblem.energy`),
     and only the one kept is evaluated in full, after ``ev`` is released: never two evaluations
-    held at once (at 2 MP and 20 frames 1.2 GB each).
+    held at once (at 2 MP and 20 frames 1.2 GB each). accelerator: the level's Anderson history
+    (:mod:`.acceleration`; None: none): its point is tried first (:func:`_accelerated`), and the
+    factors only where it is not kept.
     """
     best = None
     poses_moved = not np.array_equal(est.poses, before.poses)  # else kept exactly (no log/exp round trip)
@@ -406,6 +412,13 @@ def _extrapolate(problem: LevelProblem, est: Estimate, ev, before: Estimate, anc
                             for i in range(1, len(trial.poses)))
 
     current = anchored(ev.energy, est, ev.usable)
+    if accelerator is not None:  # Anderson's point first; the factors where it does not lower the energy
+        best, current = _accelerated(problem, est, before, accelerator, current, poses_moved, anchored)
+        if best is not None:
+            ev.release()
+            est.z, est.albedo, est.lights, est.poses, est.led_offset = (best.z, best.albedo, best.lights, best.poses,
+                                                                        best.led_offset)
+            return problem.evaluate(est)
     delta_poses = [se3.log(T @ np.linalg.inv(T0)) for T, T0 in zip(est.poses, before.poses)] if poses_moved else []
     trials = _device_trials(problem, est, before, factors)  # None on the CPU
     batch = None  # on a GPU every factor's energy in one launch and one read (and one copy over)
@@ -438,6 +451,31 @@ def _extrapolate(problem: LevelProblem, est: Estimate, ev, before: Estimate, anc
     est.z, est.albedo, est.lights, est.poses, est.led_offset = (best.z, best.albedo, best.lights, best.poses,
                                                                 best.led_offset)
     return problem.evaluate(est)
+
+
+def _accelerated(problem: LevelProblem, est: Estimate, before: Estimate, accelerator: Anderson, current: float,
+                 poses_moved: bool, anchored: Callable) -> tuple:
+    """(Anderson's point (:mod:`.acceleration`) or None, the energy to beat): the point, its depth
+    clipped into the prior's envelope (the poses kept where the sweep did not move them), where its
+    energy (plus anchors: ``anchored``) is below ``current``."""
+    point = accelerator.propose(est, before)
+    if point is None:
+        return None, current
+    for fraction in ANDERSON_FRACTIONS:
+        trial = partway(est, point, fraction)
+        trial.z = problem.level.prior.clip(trial.z)
+        if not poses_moved:
+            trial.poses = est.poses
+        if not np.all(trial.z > 0):
+            continue
+        energy, usable = problem.energy(trial)
+        energy = anchored(energy, trial, usable)
+        if energy < current:
+            break
+    else:
+        return None, current
+    accelerator.kept += 1
+    return trial, energy
 
 
 def _trial(est: Estimate, before: Estimate, factor: float, delta_poses: list, poses_moved: bool) -> tuple:
