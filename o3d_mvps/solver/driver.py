@@ -271,6 +271,10 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
     # point lights on a level that no longer places the lamps: their per-pixel fields make the
     # evidence cost a frames x pixels x 3 x 3 sum, weighed once per level; CG to a looser tolerance
     settled = problem.light.name == "point" and level.grid.size > POINT_FIT_MAX_PIXELS
+    # a static camera (poses held at the identity): the depth steps' plain-aggregation hierarchy
+    # (linear.PLAIN_AMG_OPTIONS); where its smoothness weights are held (settled), S^T S too
+    static = not options.refine_poses and problem.identity_poses(est)
+    level.prior.hold_products(static and settled)
     for iteration in bar:
         # the first sweep's weights are set before the level's first energy; then held after
         # EVIDENCE_SWEEPS sweeps, so the rest of the level minimises one energy
@@ -301,7 +305,8 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
                                                       rtol=options.cg_tolerance * (POINT_SETTLED_CG_FACTOR
                                                                                    if settled else 1.0),
                                                       maxiter=options.cg_max_iterations,
-                                                      project_albedo=project_albedo, parallax=parallax_only)
+                                                      project_albedo=project_albedo, parallax=parallax_only,
+                                                      static=static)
             est.z, est.albedo = stepped.z, stepped.albedo
             timings["depth"] += time.perf_counter() - t
         stats["cg_iterations"].append(cg_iterations)
@@ -326,6 +331,7 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
                 problem.light.name == "point" and not settled and _lamps_creeping(est, lamp_history)):
             break
     bar.close()
+    level.prior.hold_products(False)
     stats["frame_rms"] = ev.frame_rms()  # the finest level's stays: the report's per-frame residual
     return rows
 
