@@ -134,12 +134,18 @@ SMALL_MMAP_THRESHOLD = 8 << 20
 #: default; system CPU 4.4, 2.1 and 1.7 s of ~24 s (1.03 M, 0.22 M, 0.17 M page faults). At 2 MP
 #: (1.94 M) 1 MB lowered the stage peaks by 50-190 MB (8 MB not measured there).
 MMAP_MIN_PIXELS = 1_500_000
+#: ... and for a static camera's frames under :data:`MMAP_MIN_PIXELS` (poses held at the identity):
+#: glibc's own ceiling. The 1280x960 quilt (20 frames, one numba thread): system CPU 8.4 s at 8 MB
+#: (its CG and AMG vectors of 1.13 M float64, 9 MB, each mapped and faulted in anew), 7.1 s at
+#: 16 MB, 6.0 s at 32 MB; process peak 3.03, 3.07, 3.05 GB.
+STATIC_MMAP_THRESHOLD = 32 << 20
 
 
-def return_freed_arrays(pixels: int | None = None) -> bool:
+def return_freed_arrays(pixels: int | None = None, static: bool = False) -> bool:
     """Have glibc's malloc give every block of at least :data:`MMAP_THRESHOLD` (1 MB; 8 MB,
     :data:`SMALL_MMAP_THRESHOLD`, for frames of fewer than :data:`MMAP_MIN_PIXELS` colour
-    pixels ``pixels``) its own mapping, returned to the system when freed
+    pixels ``pixels``, 32 MB, :data:`STATIC_MMAP_THRESHOLD`, where those are a static camera's:
+    ``static``) its own mapping, returned to the system when freed
     (``mallopt(M_MMAP_THRESHOLD)``, process-wide).
 
     By default glibc raises that threshold up to 32 MB as large blocks are freed, and the
@@ -160,7 +166,8 @@ def return_freed_arrays(pixels: int | None = None) -> bool:
         return False
     M_MMAP_THRESHOLD = -3
     small = pixels is not None and pixels < MMAP_MIN_PIXELS
-    return bool(mallopt(M_MMAP_THRESHOLD, SMALL_MMAP_THRESHOLD if small else MMAP_THRESHOLD))
+    threshold = (STATIC_MMAP_THRESHOLD if static else SMALL_MMAP_THRESHOLD) if small else MMAP_THRESHOLD
+    return bool(mallopt(M_MMAP_THRESHOLD, threshold))
 
 
 def trim_heap() -> bool:
@@ -538,12 +545,13 @@ def solve(problem_input: SolverInput, options: RefineOptions | None = None, devi
     that fits clearly worse than another is kept with a warning): ``info["light_selection"]``.
     ``info["pose_updates"]`` says how far each frame's pose moved and how many of its updates
     were rejected (:mod:`.pose_trust`). On Linux with glibc the process's malloc is set to
-    return freed arrays of 1 MB and more (8 MB for frames under 1.5 megapixels) to the system
-    (:func:`return_freed_arrays`).
+    return freed arrays of 1 MB and more (8 MB for frames under 1.5 megapixels, 32 MB for a
+    static camera's) to the system (:func:`return_freed_arrays`).
     """
     options = problem_input.options if options is None else options
     device = array_device(device)
-    return_freed_arrays(int(np.prod(np.shape(problem_input.colors[0])[:2])))
+    return_freed_arrays(int(np.prod(np.shape(problem_input.colors[0])[:2])),
+                        static=not options.refine_poses and bool(np.allclose(problem_input.initial_poses, np.eye(4))))
     if options.progress and (notice := compile_notice(device)):
         print(notice, flush=True)
     # The solver's BLAS calls are vector dots/norms (CG, AMG) and thin products: on a loaded
