@@ -585,3 +585,27 @@ def test_a_static_levels_depth_steps_take_the_plain_hierarchy_and_hold_s_transpo
     options = RefineOptions(levels=1, max_iterations=2, joint_pose_depth=False)
     driver.solve(problem_from_capture(capture, options, capture.groundtruth.poses)[0], options)
     assert built and set(built) == {"smoothed_aggregation"} and True not in holds
+
+
+def test_the_depth_block_pattern_is_the_union_of_the_grams_patterns():
+    """:func:`.normal_equations.depth_block_pattern`, one product of the stacked rows (stencils,
+    D, S) with unit values, holds exactly the entries of the stencil's Gram, D^T D, S^T S and the
+    diagonal (the sum of their products with absolute values it replaced), columns ascending."""
+    from o3d_mvps.solver.normal_equations import depth_block_pattern
+
+    _, _, grid = grid_system()
+    H, W = 40, 56
+    prior = depth_prior(grid, np.ones((H // 2, W // 2)), 2.0)
+    S = second_differences(grid)
+    for smoothness in (S, None):
+        fake = type("Prior", (), {"D": prior.D, "smoothness_pattern": smoothness})()
+        indptr, indices = depth_block_pattern(grid, fake)
+        Du, Dv = grid.difference_operators()
+        touched = abs(Du) + abs(Dv) + sp.identity(grid.size, format="csr")
+        union = touched.T @ touched + abs(prior.D).T @ abs(prior.D)
+        if smoothness is not None:
+            union = union + abs(S).T @ abs(S)
+        union = sp.csr_matrix(union)
+        union.sort_indices()
+        np.testing.assert_array_equal(indptr, union.indptr)
+        np.testing.assert_array_equal(indices, union.indices)
