@@ -401,7 +401,7 @@ def test_identity_visibility_is_the_general_one(static):
         poses = np.tile(np.eye(4), (n, 1, 1))
         poses[:, 0, 3] += moved
         est = Estimate(z, g.gather(colors[0]).astype(float), np.zeros((n, 4)), poses)
-        assert problem._identity(est) == (moved == 0.0)
+        assert problem.identity_poses(est) == (moved == 0.0)
         problem.update_visibility(est, occlusion_test=True, rel_tol=0.02, sensor_depths=depths,
                                   depth_K=static.depth_K())
         seen.append(np.array(problem.visibility))
@@ -430,7 +430,7 @@ def test_static_fast_path_matches_the_general_path(monkeypatch):
         warnings.simplefilter("ignore")
         fast = refine(capture, options)
         with monkeypatch.context() as m:
-            m.setattr(LevelProblem, "_identity", lambda self, est: False)
+            m.setattr(LevelProblem, "identity_poses", lambda self, est: False)
             m.setattr(driver, "POINT_SETTLED_SWEEPS", 3)
             m.setattr(driver, "POINT_SETTLED_CG_FACTOR", 3.0)
             m.setattr(driver, "POINT_SETTLED_EXTRAPOLATE", True)

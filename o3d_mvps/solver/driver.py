@@ -111,6 +111,12 @@ POINT_FINEST_REFIT = False
 #: quilt no extrapolation there was kept at 2 sweeps a level (the same figures to 1e-4 without
 #: it), and each tried costs an energy evaluation of every frame
 POINT_SETTLED_EXTRAPOLATE = False
+#: the CG factor (as :data:`POINT_SETTLED_CG_FACTOR`) of the finest level where a coarser level of
+#: those refitted the lamps (static camera: its depth steps the plain hierarchy's). The 1280x960
+#: D415-like quilt (20 frames, one numba thread): CG 36 -> 23 iterations there, about 1.3 CPU s,
+#: normals 0.3831 -> 0.3836 deg (within 2 px of the image's edge 0.4858 -> 0.4887), albedo
+#: 0.6295 -> 0.6296 %, lamps 3.64 mm either way
+POINT_FINEST_CG_FACTOR = 30.0
 #: pixels per frame read for the image noise of the LED's evidence weights, every sweep (the
 #: median of 20 x 90 000 x 3 residuals took 1.4 of a D415 refine's 17.6 s; 10 000 a frame give
 #: the noise to well under 1 %)
@@ -135,12 +141,18 @@ SMALL_MMAP_THRESHOLD = 8 << 20
 #: default; system CPU 4.4, 2.1 and 1.7 s of ~24 s (1.03 M, 0.22 M, 0.17 M page faults). At 2 MP
 #: (1.94 M) 1 MB lowered the stage peaks by 50-190 MB (8 MB not measured there).
 MMAP_MIN_PIXELS = 1_500_000
+#: ... and for a static camera's frames under :data:`MMAP_MIN_PIXELS` (poses held at the identity):
+#: glibc's own ceiling. The 1280x960 quilt (20 frames, one numba thread): system CPU 8.4 s at 8 MB
+#: (its CG and AMG vectors of 1.13 M float64, 9 MB, each mapped and faulted in anew), 7.1 s at
+#: 16 MB, 6.0 s at 32 MB; process peak 3.03, 3.07, 3.05 GB.
+STATIC_MMAP_THRESHOLD = 32 << 20
 
 
-def return_freed_arrays(pixels: int | None = None) -> bool:
+def return_freed_arrays(pixels: int | None = None, static: bool = False) -> bool:
     """Have glibc's malloc give every block of at least :data:`MMAP_THRESHOLD` (1 MB; 8 MB,
     :data:`SMALL_MMAP_THRESHOLD`, for frames of fewer than :data:`MMAP_MIN_PIXELS` colour
-    pixels ``pixels``) its own mapping, returned to the system when freed
+    pixels ``pixels``, 32 MB, :data:`STATIC_MMAP_THRESHOLD`, where those are a static camera's:
+    ``static``) its own mapping, returned to the system when freed
     (``mallopt(M_MMAP_THRESHOLD)``, process-wide).
 
     By default glibc raises that threshold up to 32 MB as large blocks are freed, and the
@@ -161,7 +173,8 @@ def return_freed_arrays(pixels: int | None = None) -> bool:
         return False
     M_MMAP_THRESHOLD = -3
     small = pixels is not None and pixels < MMAP_MIN_PIXELS
-    return bool(mallopt(M_MMAP_THRESHOLD, SMALL_MMAP_THRESHOLD if small else MMAP_THRESHOLD))
+    threshold = (STATIC_MMAP_THRESHOLD if static else SMALL_MMAP_THRESHOLD) if small else MMAP_THRESHOLD
+    return bool(mallopt(M_MMAP_THRESHOLD, threshold))
 
 
 def trim_heap() -> bool:
@@ -273,6 +286,10 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
     # evidence cost a frames x pixels x 3 x 3 sum, weighed once per level; CG to a looser tolerance
     settled = problem.light.name == "point" and level.grid.size > POINT_FIT_MAX_PIXELS
     accelerator = level_accelerator(problem.light.name)  # across sweeps, tried before the extrapolation
+    # a static camera (poses held at the identity): the depth steps' plain-aggregation hierarchy
+    # (linear.PLAIN_AMG_OPTIONS); where its smoothness weights are held (settled), S^T S too
+    static = not options.refine_poses and problem.identity_poses(est)
+    level.prior.hold_products(static and settled)
     for iteration in bar:
         # the first sweep's weights are set before the level's first energy; then held after
         # EVIDENCE_SWEEPS sweeps, so the rest of the level minimises one energy
@@ -300,10 +317,12 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
                 timings["poses"] += time.perf_counter() - t
             t = time.perf_counter()
             stepped, ev, cg_iterations = update_depth(problem, est, ev,
-                                                      rtol=options.cg_tolerance * (POINT_SETTLED_CG_FACTOR
-                                                                                   if settled else 1.0),
+                                                      rtol=options.cg_tolerance * (
+                                                          POINT_FINEST_CG_FACTOR if finest else
+                                                          POINT_SETTLED_CG_FACTOR if settled else 1.0),
                                                       maxiter=options.cg_max_iterations,
-                                                      project_albedo=project_albedo, parallax=parallax_only)
+                                                      project_albedo=project_albedo, parallax=parallax_only,
+                                                      static=static)
             est.z, est.albedo = stepped.z, stepped.albedo
             timings["depth"] += time.perf_counter() - t
         stats["cg_iterations"].append(cg_iterations)
@@ -330,6 +349,7 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
     bar.close()
     if accelerator is not None:
         stats.setdefault("anderson", []).append([level.index, accelerator.proposed, accelerator.kept])
+    level.prior.hold_products(False)
     stats["frame_rms"] = ev.frame_rms()  # the finest level's stays: the report's per-frame residual
     return rows
 
@@ -570,12 +590,13 @@ def solve(problem_input: SolverInput, options: RefineOptions | None = None, devi
     that fits clearly worse than another is kept with a warning): ``info["light_selection"]``.
     ``info["pose_updates"]`` says how far each frame's pose moved and how many of its updates
     were rejected (:mod:`.pose_trust`). On Linux with glibc the process's malloc is set to
-    return freed arrays of 1 MB and more (8 MB for frames under 1.5 megapixels) to the system
-    (:func:`return_freed_arrays`).
+    return freed arrays of 1 MB and more (8 MB for frames under 1.5 megapixels, 32 MB for a
+    static camera's) to the system (:func:`return_freed_arrays`).
     """
     options = problem_input.options if options is None else options
     device = array_device(device)
-    return_freed_arrays(int(np.prod(np.shape(problem_input.colors[0])[:2])))
+    return_freed_arrays(int(np.prod(np.shape(problem_input.colors[0])[:2])),
+                        static=not options.refine_poses and bool(np.allclose(problem_input.initial_poses, np.eye(4))))
     if options.progress and (notice := compile_notice(device)):
         print(notice, flush=True)
     # The solver's BLAS calls are vector dots/norms (CG, AMG) and thin products: on a loaded

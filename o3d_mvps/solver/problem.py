@@ -265,7 +265,7 @@ class LevelProblem:
             for k, i in enumerate(range(*frames.indices(self.n_frames))):
                 self._warp_sample(i, poses[i], points_ref, color[k], usable[k])
 
-    def _identity(self, est: Estimate) -> bool:
+    def identity_poses(self, est: Estimate) -> bool:
         """Whether every pose of ``est`` is the identity (a static camera: the frames' samples
         do not depend on z, :attr:`_static_samples`)."""
         return bool(np.array_equal(to_host(est.poses), np.broadcast_to(np.eye(4), (self.n_frames, 4, 4))))
@@ -287,7 +287,7 @@ class LevelProblem:
         the warp is made once and no z-buffer is needed (the same visibility)."""
         self._static_samples = None
         P = to_host(self.points(est.z))  # the z-buffer's scatter-min runs on the host
-        identity = self._identity(est)
+        identity = self.identity_poses(est)
         sensor_uv = None  # the sensor's pixel of each point: one for all frames where the poses are the identity
         for i in range(self.n_frames):
             if not identity or i == 0:
@@ -355,7 +355,7 @@ class LevelProblem:
         light = self.light_model(est)
         led = type(light) is LEDLight
         if not (led or type(light) in (SHLight, RoomLight)) or self.level.image_stack is None or (
-                self._static_samples is not None and self._identity(est)):
+                self._static_samples is not None and self.identity_poses(est)):
             return None
         return led, (tuple(float(o) for o in light.offset) if led else (0.0, 0.0, 0.0))
 
@@ -436,7 +436,7 @@ class LevelProblem:
         :func:`.reflectance.update_albedo`'s from the evaluation's IRLS weights, the evaluation
         the one at it) in one launch (:func:`.kernels.evaluate_albedo_partials`); None on the
         host, or where the one-pass kernels do not apply (:meth:`_one_pass_light`)."""
-        if array_module(est.z) is np or self._identity(est):
+        if array_module(est.z) is np or self.identity_poses(est):
             return None
         return self._one_pass_evaluation(est, refit_albedo=True)
 
@@ -490,7 +490,7 @@ class LevelProblem:
         camera) each reference pixel sees its own pixel in every frame, whatever z: the frames
         are sampled once per visibility and the samples shared (read-only) by the evaluations."""
         n, N = self.n_frames, self.level.grid.size
-        identity = self._identity(est)
+        identity = self.identity_poses(est)
         if array_module(est.z) is not np and not identity:  # one launch on a GPU
             found = self._one_pass_evaluation(est)
             if found is not None:
@@ -537,7 +537,7 @@ class LevelProblem:
         light = self.light_model(est)
         per_frame = isinstance(light, LEDLight)  # a basis per frame (else one for all frames, SH)
         basis = None if per_frame else light.bases(normals, P, est.poses[:1], dtype=self.residual_dtype)  # (1, N, k)
-        static = samples if samples is not None else self._static_samples if self._identity(est) else None
+        static = samples if samples is not None else self._static_samples if self.identity_poses(est) else None
         data = 0.0
         for start in range(0, n, batch):
             stop = min(n, start + batch)
