@@ -402,6 +402,40 @@ def test_one_launch_per_block_gives_the_per_frame_system(problem, monkeypatch, p
     assert launches == {"block": 0, "frame": problem.n_frames}  # on one thread: a launch per frame
 
 
+def test_the_projection_gram_on_a_helper_thread_gives_the_same_system(problem, monkeypatch):
+    """On more than one kernel thread, half of each block's albedo-projection Gram runs on a
+    helper thread beside the main thread's half; the halves and their sum are the same on one
+    thread, so the system is the same bit for bit (a launch per frame both times, so that only
+    the helper differs), in one block and in blocks of 700 pixels."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from o3d_mvps.solver import normal_equations
+
+    est = kicked_estimate(problem)
+    ev = problem.evaluate(est)
+    submitted = []
+
+    class Counted(ThreadPoolExecutor):
+        def submit(self, fn, *args, **kwargs):
+            submitted.append(fn)
+            return super().submit(fn, *args, **kwargs)
+
+    monkeypatch.setattr(normal_equations, "ThreadPoolExecutor", Counted)
+    monkeypatch.setattr(normal_equations, "_same_types", lambda images: False)  # a launch per frame
+    for block_pixels in (None, 700):
+        systems = []
+        for threads in (1, 2):
+            monkeypatch.setattr(normal_equations, "current_kernel_threads", lambda threads=threads: threads)
+            submitted.clear()
+            systems.append(joint_system(problem, est, ev, block_pixels=block_pixels))
+            blocks = -(-problem.level.grid.size // (block_pixels or normal_equations.BLOCK_PIXELS))
+            assert len(submitted) == (blocks if threads > 1 else 0)
+        one, two = systems
+        assert (one.matrix != two.matrix).nnz == 0
+        for part in ("rhs_z", "coupling", "hessian", "rhs_xi"):
+            np.testing.assert_array_equal(getattr(one, part), getattr(two, part), err_msg=part)
+
+
 @pytest.mark.parametrize("led, project", [(True, True), (False, False)])
 def test_accumulate_block_equals_accumulate_frame_in_turn_over_several_chunks(led, project):
     """kernels.accumulate_block (every frame in one launch, in parallel over pixel chunks) equals

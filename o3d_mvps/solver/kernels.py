@@ -350,13 +350,22 @@ def rows_times(A, x, out):  # pragma: no cover - compiled
 @numba.njit(parallel=True, cache=True)
 def columns_times(A, y, out):  # pragma: no cover - compiled
     """out (N,) = A^T y for A (k, N) C-ordered (float32 or float64) and y (k,) float64, in
-    float64; in parallel over chunks of :data:`CHUNK` columns, each reading A's rows in order."""
-    N = A.shape[1]
+    float64; in parallel over chunks of :data:`CHUNK` columns, each reading A's rows in order.
+    Each out[p] sums its terms in row order from 0; four rows per pass over the chunk (one load
+    and store of out[p] per four terms, not per term: 7.4 -> 3.0 ms a D415 product, the same
+    sums bit for bit)."""
+    N, k = A.shape[1], A.shape[0]
     for chunk in numba.prange((N + CHUNK - 1) // CHUNK):
         first, last = chunk * CHUNK, min(N, (chunk + 1) * CHUNK)
         for p in range(first, last):
             out[p] = 0.0
-        for j in range(A.shape[0]):
+        j = 0
+        while j + 4 <= k:
+            y0, y1, y2, y3 = y[j], y[j + 1], y[j + 2], y[j + 3]
+            for p in range(first, last):
+                out[p] = (((out[p] + A[j, p] * y0) + A[j + 1, p] * y1) + A[j + 2, p] * y2) + A[j + 3, p] * y3
+            j += 4
+        for j in range(j, k):
             yj = y[j]
             for p in range(first, last):
                 out[p] += A[j, p] * yj
@@ -1141,18 +1150,21 @@ def stencil_gram_value(saa, sbb, sgg, sab, sag, sbg, cu, cv, ce, p, q):  # pragm
             + sbg * (cv[p] * ce[q] + ce[p] * cv[q]))
 
 
-@numba.njit(cache=True)
+@numba.njit(parallel=True, cache=True)
 def add_csr_into_pattern(indptr, indices, data, scale, a_indptr, a_indices, a_data):  # pragma: no cover - compiled
     """data (nnz,) of a CSR pattern (indptr, indices, columns ascending per row) += ``scale`` times
-    the CSR matrix (a_indptr, a_indices, a_data) of the same shape; returns False (data partly
-    written) where the pattern lacks one of its entries."""
-    for row in range(a_indptr.shape[0] - 1):
+    the CSR matrix (a_indptr, a_indices, a_data) of the same shape; returns False (the entries
+    found written) where the pattern lacks one of its entries. In parallel over the rows: each
+    writes its own row's entries only, in its order, so the sums do not depend on the threads."""
+    missing = 0
+    for row in numba.prange(a_indptr.shape[0] - 1):
         for nz in range(a_indptr[row], a_indptr[row + 1]):
             at = csr_position(indptr, indices, row, a_indices[nz])
             if at < 0:
-                return False
-            data[at] += scale * a_data[nz]
-    return True
+                missing += 1
+            else:
+                data[at] += scale * a_data[nz]
+    return missing == 0
 
 
 @numba.njit(cache=True)
