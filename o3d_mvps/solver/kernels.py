@@ -1099,31 +1099,68 @@ def csr_position(indptr, indices, row, column):  # pragma: no cover - compiled
     return -1
 
 
-@numba.njit(cache=True)
+@numba.njit(parallel=True, cache=True)
 def add_stencil_gram(indptr, indices, fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, Saa, Sbb, Sgg, Sab, Sag,
                      Sbg, data):  # pragma: no cover - compiled
     """data (nnz,) += the entries of ``sum_k R_k^T W_k R_k`` on a CSR pattern (indptr, indices,
     columns ascending per row) that holds them: for pixel k the row ``R_k = a Du_k + b Dv_k + c e_k``
     of the central-difference stencil (:class:`o3d_mvps.model.normals.MaskedGrid`: Du_k holds
     wf_u at fwd_u[k], -wb_u at bwd_u[k] and wb_u - wf_u at k), and the per-pixel weighted
-    products Saa = sum w a a, ..., Sbg (N,) each. Returns False (data partly written) where the
-    pattern lacks an entry. One pass over the pixels, adding each one's 5 x 5 block; serial
-    (pixels share entries)."""
-    nodes = np.empty(5, np.int64)
-    cu, cv, ce = np.zeros(5), np.zeros(5), np.zeros(5)
-    for k in range(fwd_u.shape[0]):
-        stencil_pixel(fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, nodes, cu, cv, ce, k)
-        for p in range(5):
-            if cu[p] == 0.0 and cv[p] == 0.0 and ce[p] == 0.0:
-                continue
-            for q in range(5):
-                if cu[q] == 0.0 and cv[q] == 0.0 and ce[q] == 0.0:
+    products Saa = sum w a a, ..., Sbg (N,) each. Returns False (the entries found written) where
+    the pattern lacks an entry.
+
+    Each pixel adds a 5 x 5 block on its stencil's nodes, so pixels share entries. The pattern's
+    rows are taken in parallel: :func:`stencil_incidence` lists, per row, the pixels whose
+    stencil holds it (pixels ascending), and each row adds their blocks' entries in its row in
+    that order: every entry gets its terms in the order of one pass over the pixels, so the
+    same sums bit for bit on any thread count."""
+    N = fwd_u.shape[0]
+    start, members = stencil_incidence(fwd_u, bwd_u, fwd_v, bwd_v)
+    missing = 0
+    for chunk in numba.prange(-(-N // CHUNK)):
+        nodes = np.empty(5, np.int64)
+        cu, cv, ce = np.zeros(5), np.zeros(5), np.zeros(5)
+        for row in range(chunk * CHUNK, min(N, (chunk + 1) * CHUNK)):
+            for at_member in range(start[row], start[row + 1]):
+                k, p = members[at_member] // 5, members[at_member] % 5
+                stencil_pixel(fwd_u, bwd_u, wf_u, wb_u, fwd_v, bwd_v, wf_v, wb_v, nodes, cu, cv, ce, k)
+                if cu[p] == 0.0 and cv[p] == 0.0 and ce[p] == 0.0:
                     continue
-                at = csr_position(indptr, indices, nodes[p], nodes[q])
-                if at < 0:
-                    return False
-                data[at] += stencil_gram_value(Saa[k], Sbb[k], Sgg[k], Sab[k], Sag[k], Sbg[k], cu, cv, ce, p, q)
-    return True
+                for q in range(5):
+                    if cu[q] == 0.0 and cv[q] == 0.0 and ce[q] == 0.0:
+                        continue
+                    at = csr_position(indptr, indices, row, nodes[q])
+                    if at < 0:
+                        missing += 1
+                    else:
+                        data[at] += stencil_gram_value(Saa[k], Sbb[k], Sgg[k], Sab[k], Sag[k], Sbg[k], cu, cv, ce, p,
+                                                       q)
+    return missing == 0
+
+
+@numba.njit(cache=True)
+def stencil_incidence(fwd_u, bwd_u, fwd_v, bwd_v):  # pragma: no cover - compiled
+    """Which pixels' stencils (:func:`stencil_pixel`) hold each grid pixel: (start (N + 1,),
+    members (5N,)) int64, row r's members ``members[start[r]:start[r + 1]]``, each ``5 k + p``
+    for pixel k's node p (pixels ascending, then nodes); a counting sort, one pass each way."""
+    N = fwd_u.shape[0]
+    start = np.zeros(N + 1, np.int64)
+    for k in range(N):
+        start[k + 1] += 1
+        start[fwd_u[k] + 1] += 1
+        start[bwd_u[k] + 1] += 1
+        start[fwd_v[k] + 1] += 1
+        start[bwd_v[k] + 1] += 1
+    for r in range(N):
+        start[r + 1] += start[r]
+    fill = start[:N].copy()
+    members = np.empty(5 * N, np.int64)
+    for k in range(N):
+        for p in range(5):
+            node = k if p == 0 else fwd_u[k] if p == 1 else bwd_u[k] if p == 2 else fwd_v[k] if p == 3 else bwd_v[k]
+            members[fill[node]] = 5 * k + p
+            fill[node] += 1
+    return start, members
 
 
 @numba.njit(inline="always")
