@@ -2173,6 +2173,18 @@ def joint_pixel_rows(p, albedo, dA, L, u, v, K, points_ref, dshading, use0, q, a
             e[k, p, c] = 0.0
 
 
+@numba.njit(parallel=True, cache=True)
+def joint_rows(albedo, dA, L, u, v, K, points_ref, dshading, use0, q, alpha, beta, gamma, extra, sums,
+               e):  # pragma: no cover - compiled
+    """:func:`joint_pixel_rows` of every pixel of a host assembly block (its arguments), in
+    parallel over the pixels: the light rows, q and the reference's parallax the same bit for bit
+    as the array formulas (:func:`.normal_equations._light_rows`, ``albedo / dA``,
+    :func:`.normal_equations._parallax_rows`), with sums and e zeroed."""
+    for k in numba.prange(albedo.shape[0]):
+        p = np.int64(k)  # a signed index (prange's may be unsigned: "p if ... else 0" would type as a float)
+        joint_pixel_rows(p, albedo, dA, L, u, v, K, points_ref, dshading, use0, q, alpha, beta, gamma, extra, sums, e)
+
+
 @numba.njit(inline="always")
 def joint_frame(i, parallax, twists):  # pragma: no cover - compiled
     """(with_jacobian, slot) of frame i in :func:`joint_block`: every frame but the reference

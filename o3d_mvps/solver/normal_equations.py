@@ -238,6 +238,13 @@ BLOCK_PIXELS = 4096
 #: chunk (one thread) to rounding.
 HOST_CHUNK_PIXELS = 1024
 
+#: Grid pixels up to which the host's joint and depth steps keep the prior's S^T S for the next
+#: step (:meth:`.pyramid.DepthPrior.release_products` above): formed again at every step, the
+#: product (33 ms at the D415's 89 619 pixels) was serial and repeated while the evidence
+#: weights, which change S, are held (after a level's first sweeps). At this size it takes some
+#: 30 MB (9 entries a pixel); a 2 MP level (107 MB) still drops it before its AMG set-up.
+HOLD_PRODUCTS_PIXELS = 262_144
+
 #: :data:`BLOCK_PIXELS` on a GPU (:func:`_device_joint_system`), where each block costs three
 #: launches (``python -m benchmarks.gpu sites``): the D415's finest level (about 90 000 object
 #: pixels) in one block, its temporaries some 0.8 GB of GPU memory at 19 refined frames.
@@ -322,7 +329,8 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
     rhs_z = -stencil_transpose(grid, *sums[6:]) + prior.negative_gradient(est.z, problem.tau, problem.mu)
     matrix = depth_block(problem, sums[:6])  # filled into the level's pattern: no sparse products or sums
     del sums
-    prior.release_products()  # S^T S not held through the solve (formed again by the next step)
+    if N > HOLD_PRODUCTS_PIXELS:  # S^T S not held through the solve (formed again by the next step)
+        prior.release_products()
     for row, k in enumerate(kept):  # the kept rows moved up in place (kept is ascending): no second U
         if row != k:
             coupling_t[row] = coupling_t[k]
@@ -494,9 +502,8 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
     none3, none_e = np.empty((0, 3)), np.empty((0, 1, 3))  # the kernel's optional arrays (empty)
     residual, usable, albedo, shading = ev.residual[:, block], ev.usable[:, block], est.albedo[block], ev.shading[:, block]
     normals = ev.normals[block]
-    q = albedo / ev.dA[block, None]  # (B, 3)
     model = problem.light_model(est)
-    block_sums = np.zeros((9, B))
+    block_sums = np.empty((9, B))  # zeroed by kernels.joint_rows
     projection = _AlbedoProjection(residual, usable, shading, problem.lam) if project_albedo else None
     slot = {i: k for k, i in enumerate(candidates)}
     # twist-component-major, so the transposed coupling rows (6m, B) and the projection's rows
@@ -510,14 +517,19 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
     # per refined frame its partial sums of the twist Gram and right-hand side, and one more for
     # the other frames (whose kernel writes them too)
     gram, rhs = np.empty((m + 1, chunks, 6, 6)), np.empty((m + 1, chunks, 6))
-    # every frame's frozen light field and LED shading Jacobian at once: a few dozen array
-    # operations per block rather than per frame
-    _, alpha, beta, gamma = shading_rows(problem, est, normals, points_ref, block)  # (n, B) each
+    # every frame's frozen light field and LED shading Jacobian at once, then in one launch, in
+    # parallel over pixels: q = albedo / dA, the light rows (alpha, beta, gamma (n, B) each: the
+    # formulas of _light_rows) and the reference frame's parallax (extra_c: _parallax_rows')
+    n = problem.n_frames
+    field = like(model.fields(est.lights, normals, points_ref, est.poses)[1], normals).reshape(n, -1, 3)
     dshading = model.shading_jacobians(est.lights, normals, points_ref, est.poses) if parallax or m else None
-    extra_c = none3
-    if parallax and dshading is not None:
-        extra_c = _reference_parallax(albedo, dshading[0], points_ref, usable[0])
     e = none_e if projection is None else projection.e
+    q, alpha, beta, gamma = np.empty((B, 3)), np.empty((n, B)), np.empty((n, B)), np.empty((n, B))
+    extra_c = np.empty((B, 3)) if parallax and dshading is not None else none3
+    grid = problem.level.grid
+    kernels.joint_rows(albedo, ev.dA[block], field, grid.u[block], grid.v[block], problem.device_K, points_ref,
+                       np.empty((n, 0, 6)) if dshading is None else dshading, usable[0], q, alpha, beta, gamma,
+                       extra_c, block_sums, e)
     if host_block:  # every frame in one launch, in parallel over pixel chunks
         kernels.accumulate_block(residual, shading, usable, 1.0 / problem.lam, q, alpha, beta, gamma, extra_c,
                                  points_ref, poses, problem.device_K, tuple(problem.level.images),
@@ -623,24 +635,13 @@ def _projection_downdates(ea0, ea1, ea2, eb0, eb1, eb2, ec0, ec1, ec2, i0, i1, i
             a0 * s0 + a1 * s1 + a2 * s2, b0 * s0 + b1 * s1 + b2 * s2, c0 * s0 + c1 * s1 + c2 * s2)
 
 
-def shading_rows(problem: LevelProblem, est: Estimate, normals: np.ndarray, points_ref: np.ndarray,
-                 pixels: slice = slice(None)):
-    """(c, alpha, beta, gamma) of every frame: c (n,) and (n, N) each, with the light field
-    frozen at the current surface: frame i's shading is
-    ``c_i + (alpha_i Du z + beta_i Dv z + gamma_i z) / dA``. normals, points_ref (N, 3): those
-    of the grid's ``pixels`` (default all)."""
-    g, K = problem.level.grid, problem.level.K
-    u, v = g.u[pixels], g.v[pixels]
-    c, L = problem.light_model(est).fields(est.lights, normals, points_ref, est.poses)
-    n = len(est.lights)
-    L = array_module(normals).broadcast_to(like(L, normals).reshape(n, -1, 3), (n, len(u), 3))  # (n, N, 3)
-    return (c, *_light_rows(L[..., 0], L[..., 1], L[..., 2], u, v, K[0, 0], K[0, 2], K[1, 1], K[1, 2]))
-
-
 @fused
 def _light_rows(L0, L1, L2, u, v, fx, cx, fy, cy):
-    """(alpha, beta, gamma) of :func:`shading_rows` from the frozen light field's components
-    (n, N) each and the pixels' u, v (N,) (one kernel on a GPU)."""
+    """(alpha, beta, gamma) (n, N) each, the light rows of every frame from the frozen light
+    field's components (n, N) each and the pixels' u, v (N,): frame i's shading is
+    ``c_i + (alpha_i Du z + beta_i Dv z + gamma_i z) / dA`` with the light field frozen at the
+    current surface. The array form of :func:`.kernels.joint_pixel_rows`' (which the host's and a
+    GPU's assembly run; tests compare the two)."""
     return fx * L0 - (u - cx) * L2, fy * L1 - (v - cy) * L2, -L2
 
 
