@@ -216,16 +216,3 @@ def twist_row_into(G0, G1, G2, offset, out, i, p):  # pragma: no cover - compile
     out[i, p, 3] = offset[1] * G2 - offset[2] * G1
     out[i, p, 4] = offset[2] * G0 - offset[0] * G2
     out[i, p, 5] = offset[0] * G1 - offset[1] * G0
-
-
-@numba.njit(parallel=True, cache=True)
-def led_twist_jacobians_into(G, offset, out):  # pragma: no cover - compiled
-    """``[G, o x G]`` (m, N, 6) written into out from G (m, N, 3), the shading's gradients with
-    respect to the point in each frame's camera coordinates, and the LED's offset o (3,) in the
-    camera frame (``np.concatenate([G, np.cross(o, G)], axis=-1)`` in one pass, the cross
-    product in NumPy's order of operations: equal bit for bit)."""
-    N = G.shape[1]
-    for k in numba.prange(-(-N // FRAME_CHUNK)):  # chunks of pixels, a frame at a time
-        for i in range(G.shape[0]):
-            for p in range(k * FRAME_CHUNK, min(N, (k + 1) * FRAME_CHUNK)):
-                twist_row_into(G[i, p, 0], G[i, p, 1], G[i, p, 2], offset, out, i, p)

@@ -1839,8 +1839,7 @@ def led_shading_jacobians_into(intensities, normals, points, positions, rotation
     """The LED's shading Jacobians (m, N, 6) written into out in one pass
     (:func:`led_shading_jacobian`): intensities (m,), float64 unit normals and points (N, 3),
     light positions (m, 3) in reference coordinates, the frames' rotations (m, 3, 3), the LED's
-    offset (3,) in the camera frame (metres). The host's solver forms the same from
-    ``lit_point_gradients``, a product and :func:`~o3d_mvps.model.shading.led_twist_jacobians_into`."""
+    offset (3,) in the camera frame (metres). The host's and a GPU's solver both run it."""
     N = points.shape[0]
     for k in numba.prange(-(-N // FRAME_CHUNK)):
         for i in range(positions.shape[0]):
