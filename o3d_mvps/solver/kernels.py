@@ -24,7 +24,7 @@ import numpy as np
 
 from ..model.robust import log1p_square_sum, log1p_square_term  # noqa: F401 - log1p_square_sum re-exported: the same names as .cuda_kernels
 from ..model.normals import unit_normal_at
-from ..model.shading import (FRAME_CHUNK, led_fields_into, led_irradiance_at, led_irradiance_of,  # noqa: F401
+from ..model.shading import (FRAME_CHUNK, frame_chunk, led_fields_into, led_irradiance_at, led_irradiance_of,  # noqa: F401
                              led_field_of, led_irradiances_into, led_point_gradient, led_point_gradient_of,
                              led_point_gradients_into, led_position, twist_row_into)
 
@@ -1841,9 +1841,10 @@ def led_shading_jacobians_into(intensities, normals, points, positions, rotation
     light positions (m, 3) in reference coordinates, the frames' rotations (m, 3, 3), the LED's
     offset (3,) in the camera frame (metres). The host's and a GPU's solver both run it."""
     N = points.shape[0]
-    for k in numba.prange(-(-N // FRAME_CHUNK)):
+    chunk = frame_chunk(N)
+    for k in numba.prange(-(-N // chunk)):
         for i in range(positions.shape[0]):
-            for p in range(k * FRAME_CHUNK, min(N, (k + 1) * FRAME_CHUNK)):
+            for p in range(k * chunk, min(N, (k + 1) * chunk)):
                 led_shading_jacobian(intensities, normals, points, positions, rotations, offset, out, i, p)
 
 
