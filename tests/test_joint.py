@@ -402,6 +402,40 @@ def test_one_launch_per_block_gives_the_per_frame_system(problem, monkeypatch, p
     assert launches == {"block": 0, "frame": problem.n_frames}  # on one thread: a launch per frame
 
 
+def test_the_projection_gram_on_a_helper_thread_gives_the_same_system(problem, monkeypatch):
+    """On more than one kernel thread, half of each block's albedo-projection Gram runs on a
+    helper thread beside the main thread's half; the halves and their sum are the same on one
+    thread, so the system is the same bit for bit (a launch per frame both times, so that only
+    the helper differs), in one block and in blocks of 700 pixels."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from o3d_mvps.solver import normal_equations
+
+    est = kicked_estimate(problem)
+    ev = problem.evaluate(est)
+    submitted = []
+
+    class Counted(ThreadPoolExecutor):
+        def submit(self, fn, *args, **kwargs):
+            submitted.append(fn)
+            return super().submit(fn, *args, **kwargs)
+
+    monkeypatch.setattr(normal_equations, "ThreadPoolExecutor", Counted)
+    monkeypatch.setattr(normal_equations, "_same_types", lambda images: False)  # a launch per frame
+    for block_pixels in (None, 700):
+        systems = []
+        for threads in (1, 2):
+            monkeypatch.setattr(normal_equations, "current_kernel_threads", lambda threads=threads: threads)
+            submitted.clear()
+            systems.append(joint_system(problem, est, ev, block_pixels=block_pixels))
+            blocks = -(-problem.level.grid.size // (block_pixels or normal_equations.BLOCK_PIXELS))
+            assert len(submitted) == (blocks if threads > 1 else 0)
+        one, two = systems
+        assert (one.matrix != two.matrix).nnz == 0
+        for part in ("rhs_z", "coupling", "hessian", "rhs_xi"):
+            np.testing.assert_array_equal(getattr(one, part), getattr(two, part), err_msg=part)
+
+
 @pytest.mark.parametrize("led, project", [(True, True), (False, False)])
 def test_accumulate_block_equals_accumulate_frame_in_turn_over_several_chunks(led, project):
     """kernels.accumulate_block (every frame in one launch, in parallel over pixel chunks) equals
@@ -706,19 +740,32 @@ def test_released_early_the_system_is_the_same_and_colours_go_before_the_couplin
     assert kept.frames == released.frames
 
 
-def test_the_smoothness_hessian_is_not_held_through_the_solve_and_comes_back_the_same(level):
-    """joint_system on the host forms M and its right-hand side from the prior's S^T S, then
-    drops it (DepthPrior.release_products: 107 MB at 2 megapixels, not held beside the AMG
-    set-up): no reference to that matrix is left once the system is formed, and the next system,
-    which forms S^T S again, is the same bit for bit as one formed with S^T S kept."""
+def test_the_smoothness_hessian_is_not_held_through_the_solve_and_comes_back_the_same(level, monkeypatch):
+    """joint_system on the host forms M and its right-hand side from the prior's S^T S, then,
+    on a grid of more than HOLD_PRODUCTS_PIXELS pixels, drops it (DepthPrior.release_products:
+    107 MB at 2 megapixels, not held beside the AMG set-up): no reference to that matrix is left
+    once the system is formed, and the next system, which forms S^T S again, is the same bit for
+    bit as one formed with S^T S kept. On a smaller grid it is kept for the next step (the same
+    matrix object), which then forms the same system bit for bit."""
     import gc
     import weakref
 
+    from o3d_mvps.solver import normal_equations
     from o3d_mvps.solver.smoothness import second_differences
 
     prior = dataclasses.replace(level.prior, S=second_differences(level.grid))
     problem = LevelProblem(dataclasses.replace(level, prior=prior), 1.0, 0.04, smoothness=0.3)
     est = kicked_estimate(problem)
+    assert level.grid.size <= normal_equations.HOLD_PRODUCTS_PIXELS
+    held = joint_system(problem, est, problem.evaluate(est), release=True)
+    product = prior.__dict__["StS"]  # kept on this small grid
+    again = joint_system(problem, est, problem.evaluate(est), release=True)
+    assert prior.__dict__["StS"] is product  # not formed again
+    for name in ("rhs_z", "coupling", "hessian", "rhs_xi"):
+        assert np.array_equal(getattr(held, name), getattr(again, name)), name
+    assert np.array_equal(held.matrix.data, again.matrix.data)
+    prior.release_products()
+    monkeypatch.setattr(normal_equations, "HOLD_PRODUCTS_PIXELS", level.grid.size - 1)  # as on a larger grid
     first = joint_system(problem, est, problem.evaluate(est), release=True)
     assert "StS" not in prior.__dict__
     gone = weakref.ref(prior.StS)  # formed again on demand (the next step's product)
@@ -728,7 +775,7 @@ def test_the_smoothness_hessian_is_not_held_through_the_solve_and_comes_back_the
     del kept
     gc.collect()
     assert gone() is None  # nothing in the system or the problem holds it
-    for a, b in ((first, expected),):
+    for a, b in ((first, expected), (first, held)):
         assert np.array_equal(a.matrix.data, b.matrix.data) and np.array_equal(a.matrix.indices, b.matrix.indices)
         for name in ("rhs_z", "coupling", "hessian", "rhs_xi"):
             assert np.array_equal(getattr(a, name), getattr(b, name)), name

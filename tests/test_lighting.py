@@ -96,7 +96,7 @@ def test_led_fields_and_jacobians_of_several_frames_are_each_frames_own(rng):
 
 def test_led_compiled_fields_and_jacobians_equal_the_array_formulas(rng):
     """The host's one-pass kernels (led_fields_into, led_point_gradients_into,
-    led_twist_jacobians_into) give the fields, the shading Jacobians and the offset Jacobian of
+    led_shading_jacobians_into) give the fields, the shading Jacobians and the offset Jacobian of
     the array formulas the GPU path runs (led_vectors, led_vector_jacobian, a rotation and a
     cross product) to round-off (bit for bit where NumPy sums three terms as they do), with
     points facing away (zero) and more pixels than one chunk of the kernels' loops."""

@@ -19,6 +19,20 @@ from .arrays import array_module, contiguous, like
 #: slower, the same numbers).
 FRAME_CHUNK = 4096
 
+
+#: Chunks that a frames x pixels loop over fewer pixels is cut into at least (:func:`frame_chunk`).
+MIN_FRAME_CHUNKS = 4
+
+
+@numba.njit(inline="always")
+def frame_chunk(n_pixels):  # pragma: no cover - compiled
+    """Pixels per chunk of a frames x pixels loop over ``n_pixels`` pixels: :data:`FRAME_CHUNK`,
+    or fewer (down to 1024) to give the loop :data:`MIN_FRAME_CHUNKS` chunks, so that each
+    thread has one (the joint step's 4096-pixel assembly blocks ran as one chunk, on one
+    thread). Not from the thread count, which numba would not let a cached function read.
+    Each pixel's values do not depend on it."""
+    return max(1024, min(FRAME_CHUNK, -(-n_pixels // MIN_FRAME_CHUNKS)))
+
 #: Initial lighting of every frame: a little ambient plus frontal light (normals point to -z).
 INITIAL_LIGHT = (0.2, 0.0, 0.0, -1.0)
 
@@ -144,9 +158,10 @@ def led_fields_into(intensities, normals, points, positions, out):  # pragma: no
     where ``<n, v_i> <= 0``: intensities (m,), float64 unit normals and points (N, 3), light
     positions (m, 3), one frame (metres); one pass, no temporaries."""
     N = points.shape[0]
-    for k in numba.prange(-(-N // FRAME_CHUNK)):  # chunks of pixels, a frame at a time
+    chunk = frame_chunk(N)
+    for k in numba.prange(-(-N // chunk)):  # chunks of pixels, a frame at a time
         for i in range(positions.shape[0]):
-            for p in range(k * FRAME_CHUNK, min(N, (k + 1) * FRAME_CHUNK)):
+            for p in range(k * chunk, min(N, (k + 1) * chunk)):
                 led_field(intensities, normals, points, positions, out, i, p)
 
 
@@ -216,16 +231,3 @@ def twist_row_into(G0, G1, G2, offset, out, i, p):  # pragma: no cover - compile
     out[i, p, 3] = offset[1] * G2 - offset[2] * G1
     out[i, p, 4] = offset[2] * G0 - offset[0] * G2
     out[i, p, 5] = offset[0] * G1 - offset[1] * G0
-
-
-@numba.njit(parallel=True, cache=True)
-def led_twist_jacobians_into(G, offset, out):  # pragma: no cover - compiled
-    """``[G, o x G]`` (m, N, 6) written into out from G (m, N, 3), the shading's gradients with
-    respect to the point in each frame's camera coordinates, and the LED's offset o (3,) in the
-    camera frame (``np.concatenate([G, np.cross(o, G)], axis=-1)`` in one pass, the cross
-    product in NumPy's order of operations: equal bit for bit)."""
-    N = G.shape[1]
-    for k in numba.prange(-(-N // FRAME_CHUNK)):  # chunks of pixels, a frame at a time
-        for i in range(G.shape[0]):
-            for p in range(k * FRAME_CHUNK, min(N, (k + 1) * FRAME_CHUNK)):
-                twist_row_into(G[i, p, 0], G[i, p, 1], G[i, p, 2], offset, out, i, p)

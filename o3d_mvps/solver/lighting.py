@@ -29,8 +29,7 @@ import numpy as np
 
 from ..model.arrays import array_module, contiguous, like
 from ..model.robust import cauchy_weights
-from ..model.shading import (INITIAL_LIGHT, led_positions_into, led_fields_into, led_irradiances, led_twist_jacobians_into,
-                             sh_basis)
+from ..model.shading import INITIAL_LIGHT, led_fields_into, led_irradiances, led_positions_into, sh_basis
 from .device import DeviceCopies, kernels_for, to_host
 from .line_search import backtrack
 from .linear import ridge_solve
@@ -216,19 +215,21 @@ class LEDLight(FrameFields):
         Moving the camera moves the LED with it: s_i = T^-1 o, so with G the shading's gradient
         with respect to the point in camera coordinates, ``d/dv = G`` and ``d/dw = o x G``.
         """
+        out = array_module(points).empty((len(poses), len(points), 6))
         if array_module(points) is not np:  # one kernel on a GPU (the light state's copy shared: device_light_state)
             state = device_light_state(self, lights, poses, points)
-            out = array_module(points).empty((len(poses), len(points), 6))
             kernels_for(points).led_shading_jacobians_into(
                 state.intensities, contiguous(normals, np.float64), contiguous(points, np.float64), state.positions,
                 state.rotations, state.offset, out)
             return out
-        G = self._camera_gradients(lights, normals, points, poses)
-        if array_module(G) is np:  # one compiled pass on the host
-            out = np.empty(G.shape[:-1] + (6,))
-            led_twist_jacobians_into(contiguous(G, np.float64), self.offset, out)
-            return out
-        return np.concatenate([G, np.cross(like(self.offset, G), G)], axis=-1)
+        # the same compiled pass on the host, in parallel over pixels (were a point-gradient pass,
+        # a NumPy product with the rotations and a pass for [G, o x G]: 4.1 -> 0.9 ms a D415
+        # assembly block of 4096 pixels and 20 frames; the same to round-off, 1e-16)
+        kernels_for(points).led_shading_jacobians_into(
+            _intensities(lights, points), contiguous(normals, np.float64), contiguous(points, np.float64),
+            np.ascontiguousarray(self.positions(poses)), np.ascontiguousarray(poses[:, :3, :3], dtype=np.float64),
+            self.offset, out)
+        return out
 
     def offset_jacobian(self, light: np.ndarray, normals: np.ndarray, points: np.ndarray,
                         pose: np.ndarray) -> np.ndarray:

@@ -24,6 +24,8 @@ the joint step's CG tolerance (1e-2).
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import nullcontext
 from dataclasses import dataclass
 
 import numpy as np
@@ -236,6 +238,13 @@ BLOCK_PIXELS = 4096
 #: chunk (one thread) to rounding.
 HOST_CHUNK_PIXELS = 1024
 
+#: Grid pixels up to which the host's joint and depth steps keep the prior's S^T S for the next
+#: step (:meth:`.pyramid.DepthPrior.release_products` above): formed again at every step, the
+#: product (33 ms at the D415's 89 619 pixels) was serial and repeated while the evidence
+#: weights, which change S, are held (after a level's first sweeps). At this size it takes some
+#: 30 MB (9 entries a pixel); a 2 MP level (107 MB) still drops it before its AMG set-up.
+HOLD_PRODUCTS_PIXELS = 262_144
+
 #: :data:`BLOCK_PIXELS` on a GPU (:func:`_device_joint_system`), where each block costs three
 #: launches (``python -m benchmarks.gpu sites``): the D415's finest level (about 90 000 object
 #: pixels) in one block, its temporaries some 0.8 GB of GPU memory at 19 refined frames.
@@ -291,11 +300,17 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
     with_jacobian = [i > 0 and (parallax or i in slot) for i in range(problem.n_frames)]
     frame_slots = np.array([[jac, slot.get(i, -1)] for i, jac in enumerate(with_jacobian)], dtype=np.int64)
     poses = like(est.poses, points_ref)
-    for start in range(0, N, block_pixels):
-        block = slice(start, min(N, start + block_pixels))
-        _assemble_block(problem, est, ev, block, points_ref[block], candidates, parallax, project_albedo,
-                        sums[:, block], grams, rhs_xi, downdate, coupling_t, Du[block], Dv[block], poses,
-                        with_jacobian, frame_slots)
+    # on more than one kernel thread, a helper thread takes half of each block's projection Gram
+    # (BLAS, which releases the GIL) beside the main thread's half: that Gram was serial
+    threads = current_kernel_threads()
+    with ThreadPoolExecutor(1, thread_name_prefix="o3d_mvps-gram") if threads > 1 else nullcontext() as helper:
+        for start in range(0, N, block_pixels):
+            block = slice(start, min(N, start + block_pixels))
+            # the block's rows of Du and Dv as (indptr, indices, data): its slice of indptr into the whole
+            # arrays (no copy: scipy's row slicing took 0.15 s a D415 refinement)
+            _assemble_block(problem, est, ev, block, points_ref[block], candidates, parallax, project_albedo,
+                            sums[:, block], grams, rhs_xi, downdate, coupling_t, _row_arrays(Du, block),
+                            _row_arrays(Dv, block), poses, with_jacobian, frame_slots, helper)
     # frames whose own Gram is not safely invertible keep their depth rows but take no twist
     # (kernels.twist_system: the frames' condition numbers and H = blockdiag(Grams) - downdate)
     hessian, twist_rhs, frame_kept = np.empty((6 * m, 6 * m)), np.empty(6 * m), np.empty(m)
@@ -314,7 +329,8 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
     rhs_z = -stencil_transpose(grid, *sums[6:]) + prior.negative_gradient(est.z, problem.tau, problem.mu)
     matrix = depth_block(problem, sums[:6])  # filled into the level's pattern: no sparse products or sums
     del sums
-    prior.release_products()  # S^T S not held through the solve (formed again by the next step)
+    if N > HOLD_PRODUCTS_PIXELS:  # S^T S not held through the solve (formed again by the next step)
+        prior.release_products()
     for row, k in enumerate(kept):  # the kept rows moved up in place (kept is ascending): no second U
         if row != k:
             coupling_t[row] = coupling_t[k]
@@ -462,24 +478,32 @@ def _without_zeros(D: sp.csr_matrix) -> sp.csr_matrix:
     return D
 
 
+def _row_arrays(D: sp.csr_matrix, rows: slice) -> tuple:
+    """(indptr, indices, data) of the CSR matrix D's ``rows`` (a slice, step 1): indptr (B + 1,)
+    D's own slice, whose offsets index D's whole indices and data (no copy)."""
+    return D.indptr[rows.start:rows.stop + 1], D.indices, D.data
+
+
 def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, project_albedo, sums, grams,
-                    rhs_xi, downdate, coupling_t, Du_rows, Dv_rows, poses, with_jacobian, frame_slots) -> None:
+                    rhs_xi, downdate, coupling_t, Du_rows, Dv_rows, poses, with_jacobian, frame_slots,
+                    helper=None) -> None:
     """One block of :func:`joint_system`'s pass on the host: the block's pixels' per-pixel sums
     (9, B) written into ``sums``; its share of the frames' Grams (m, 6, 6), their right-hand sides
     rhs_xi (6m,) (the albedo projection's too) and the projection's downdate (6m, 6m) added in
     place; the transposed coupling (6m, N) added in place. Du_rows, Dv_rows: the block's rows
-    (B, N) of the difference operators; poses (n, 4, 4); with_jacobian (n,) bools: the frames
-    whose twist or parallax rows are formed; frame_slots (n, 2) int64: with_jacobian and the
-    refined frame's slot (or -1). (A GPU's pass: :func:`_device_joint_system`.)"""
+    (B, N) of the difference operators as CSR arrays (:func:`_row_arrays`); poses (n, 4, 4);
+    with_jacobian (n,) bools: the frames whose twist or parallax rows are formed; frame_slots
+    (n, 2) int64: with_jacobian and the refined frame's slot (or -1); helper: a one-thread
+    executor for half the projection's Gram (:meth:`_AlbedoProjection.downdate_scaled`), or
+    None. (A GPU's pass: :func:`_device_joint_system`.)"""
     kernels = host_kernels
     B = points_ref.shape[0]
     m = len(candidates)
     none3, none_e = np.empty((0, 3)), np.empty((0, 1, 3))  # the kernel's optional arrays (empty)
     residual, usable, albedo, shading = ev.residual[:, block], ev.usable[:, block], est.albedo[block], ev.shading[:, block]
     normals = ev.normals[block]
-    q = albedo / ev.dA[block, None]  # (B, 3)
     model = problem.light_model(est)
-    block_sums = np.zeros((9, B))
+    block_sums = np.empty((9, B))  # zeroed by kernels.joint_rows
     projection = _AlbedoProjection(residual, usable, shading, problem.lam) if project_albedo else None
     slot = {i: k for k, i in enumerate(candidates)}
     # twist-component-major, so the transposed coupling rows (6m, B) and the projection's rows
@@ -493,14 +517,19 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
     # per refined frame its partial sums of the twist Gram and right-hand side, and one more for
     # the other frames (whose kernel writes them too)
     gram, rhs = np.empty((m + 1, chunks, 6, 6)), np.empty((m + 1, chunks, 6))
-    # every frame's frozen light field and LED shading Jacobian at once: a few dozen array
-    # operations per block rather than per frame
-    _, alpha, beta, gamma = shading_rows(problem, est, normals, points_ref, block)  # (n, B) each
+    # every frame's frozen light field and LED shading Jacobian at once, then in one launch, in
+    # parallel over pixels: q = albedo / dA, the light rows (alpha, beta, gamma (n, B) each: the
+    # formulas of _light_rows) and the reference frame's parallax (extra_c: _parallax_rows')
+    n = problem.n_frames
+    field = like(model.fields(est.lights, normals, points_ref, est.poses)[1], normals).reshape(n, -1, 3)
     dshading = model.shading_jacobians(est.lights, normals, points_ref, est.poses) if parallax or m else None
-    extra_c = none3
-    if parallax and dshading is not None:
-        extra_c = _reference_parallax(albedo, dshading[0], points_ref, usable[0])
     e = none_e if projection is None else projection.e
+    q, alpha, beta, gamma = np.empty((B, 3)), np.empty((n, B)), np.empty((n, B)), np.empty((n, B))
+    extra_c = np.empty((B, 3)) if parallax and dshading is not None else none3
+    grid = problem.level.grid
+    kernels.joint_rows(albedo, ev.dA[block], field, grid.u[block], grid.v[block], problem.device_K, points_ref,
+                       np.empty((n, 0, 6)) if dshading is None else dshading, usable[0], q, alpha, beta, gamma,
+                       extra_c, block_sums, e)
     if host_block:  # every frame in one launch, in parallel over pixel chunks
         kernels.accumulate_block(residual, shading, usable, 1.0 / problem.lam, q, alpha, beta, gamma, extra_c,
                                  points_ref, poses, problem.device_K, tuple(problem.level.images),
@@ -518,13 +547,10 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
     if m and projection is not None:
         # the projection of the rows and their stencil transpose into U^T in one pass
         scaled, sqrt_inv_d = projection.twist_scalings()
-        kernels.project_stencil_rows(rows, F, scaled, sqrt_inv_d, Du_rows.indptr, Du_rows.indices, Du_rows.data,
-                                     Dv_rows.indptr, Dv_rows.indices, Dv_rows.data, block.start, coupling_t)
-        projection.downdate_scaled(F, downdate, rhs_xi, sqrt_inv_d)
+        kernels.project_stencil_rows(rows, F, scaled, sqrt_inv_d, *Du_rows, *Dv_rows, block.start, coupling_t)
+        projection.downdate_scaled(F, downdate, rhs_xi, sqrt_inv_d, helper)
     elif m:  # U^T += the stencil transpose of the rows: Du^T rows_a + Dv^T rows_b + rows_c, in one pass
-        kernels.add_stencil_transpose_rows(Du_rows.indptr, Du_rows.indices, Du_rows.data, Dv_rows.indptr,
-                                           Dv_rows.indices, Dv_rows.data, rows.reshape(3, 6 * m, B), block.start,
-                                           coupling_t)
+        kernels.add_stencil_transpose_rows(*Du_rows, *Dv_rows, rows.reshape(3, 6 * m, B), block.start, coupling_t)
 
 
 class _AlbedoProjection:
@@ -569,14 +595,24 @@ class _AlbedoProjection:
         (:func:`.kernels.project_stencil_rows`), and F's scaling."""
         return self.e * self.inv_d, np.sqrt(self.inv_d)
 
-    def downdate_scaled(self, F: np.ndarray, downdate: np.ndarray, rhs_xi: np.ndarray, sqrt_inv_d: np.ndarray) -> None:
+    def downdate_scaled(self, F: np.ndarray, downdate: np.ndarray, rhs_xi: np.ndarray, sqrt_inv_d: np.ndarray,
+                        helper=None) -> None:
         """The projection's sums over the block's F (m, 6, B, 3) (w s J of the m refined frames)
         once scaled by ``sqrt_inv_d`` (B, 3): ``downdate`` (6m, 6m) gains ``sum f f^T / d`` (the
         Gram's loss) and the right-hand side rhs_xi (6m,) ``sum f (s^T W r) / d`` over the block's
-        pixels and channels."""
+        pixels and channels. helper: a one-thread executor that takes half of ``sum f f^T`` beside
+        the caller's work, or None."""
         f = F.reshape(6 * len(F), -1)  # (6m, 3B): frame j in rows 6j..
+        # f f^T as the Grams of its column halves added, each by BLAS's symmetric rank-k update
+        # (NumPy's product of a matrix with its own transpose: half a product); with a helper
+        # thread the first half runs there beside the rest (BLAS releases the GIL). The same
+        # halves and sum on any thread count, so the same values bit for bit.
+        low, high = f[:, :f.shape[1] // 2], f[:, f.shape[1] // 2:]  # views: BLAS takes the row stride
+        job = None if helper is None else helper.submit(np.matmul, low, low.T)
         rhs_xi += f @ (self.sWr * sqrt_inv_d).reshape(-1)
-        downdate += _gram(f)
+        gram_high = high @ high.T
+        gram = low @ low.T if job is None else job.result()
+        downdate += np.add(gram, gram_high, out=gram)
 
 
 @fused
@@ -599,31 +635,13 @@ def _projection_downdates(ea0, ea1, ea2, eb0, eb1, eb2, ec0, ec1, ec2, i0, i1, i
             a0 * s0 + a1 * s1 + a2 * s2, b0 * s0 + b1 * s1 + b2 * s2, c0 * s0 + c1 * s1 + c2 * s2)
 
 
-def _gram(A: np.ndarray) -> np.ndarray:
-    """A A^T (k, k) of a wide C-ordered (k, R) host array by BLAS's symmetric rank-k update (half
-    a product)."""
-    upper = scipy.linalg.blas.dsyrk(1.0, A.T, trans=1)  # A.T is Fortran-ordered: no copy
-    return np.triu(upper) + np.triu(upper, 1).T
-
-
-def shading_rows(problem: LevelProblem, est: Estimate, normals: np.ndarray, points_ref: np.ndarray,
-                 pixels: slice = slice(None)):
-    """(c, alpha, beta, gamma) of every frame: c (n,) and (n, N) each, with the light field
-    frozen at the current surface: frame i's shading is
-    ``c_i + (alpha_i Du z + beta_i Dv z + gamma_i z) / dA``. normals, points_ref (N, 3): those
-    of the grid's ``pixels`` (default all)."""
-    g, K = problem.level.grid, problem.level.K
-    u, v = g.u[pixels], g.v[pixels]
-    c, L = problem.light_model(est).fields(est.lights, normals, points_ref, est.poses)
-    n = len(est.lights)
-    L = array_module(normals).broadcast_to(like(L, normals).reshape(n, -1, 3), (n, len(u), 3))  # (n, N, 3)
-    return (c, *_light_rows(L[..., 0], L[..., 1], L[..., 2], u, v, K[0, 0], K[0, 2], K[1, 1], K[1, 2]))
-
-
 @fused
 def _light_rows(L0, L1, L2, u, v, fx, cx, fy, cy):
-    """(alpha, beta, gamma) of :func:`shading_rows` from the frozen light field's components
-    (n, N) each and the pixels' u, v (N,) (one kernel on a GPU)."""
+    """(alpha, beta, gamma) (n, N) each, the light rows of every frame from the frozen light
+    field's components (n, N) each and the pixels' u, v (N,): frame i's shading is
+    ``c_i + (alpha_i Du z + beta_i Dv z + gamma_i z) / dA`` with the light field frozen at the
+    current surface. The array form of :func:`.kernels.joint_pixel_rows`' (which the host's and a
+    GPU's assembly run; tests compare the two)."""
     return fx * L0 - (u - cx) * L2, fy * L1 - (v - cy) * L2, -L2
 
 
