@@ -78,6 +78,8 @@ def count(kind: str, n: int = 1, name: str | None = None) -> None:
 
 #: o3d_mvps's helpers that only pass arrays on: a call site is their caller
 _HELPERS = ("model/arrays.py", "solver/device.py")
+#: Python 3.11's own frames of comprehensions: a call site is the function they run in
+_COMPREHENSIONS = frozenset({"<listcomp>", "<dictcomp>", "<setcomp>", "<genexpr>"})
 
 
 def _call_site() -> str:
@@ -86,7 +88,7 @@ def _call_site() -> str:
     frame = sys._getframe(2)
     while frame is not None:
         name = frame.f_code.co_filename
-        if "/o3d_mvps/" in name and not name.endswith(_HELPERS):
+        if "/o3d_mvps/" in name and not name.endswith(_HELPERS) and frame.f_code.co_name not in _COMPREHENSIONS:
             return f"{name.rsplit('/o3d_mvps/', 1)[1]}:{frame.f_lineno} {frame.f_code.co_name}"
         frame = frame.f_back
     return "?"
