@@ -151,3 +151,31 @@ def test_the_rows_are_on_by_light_model_frames_and_level():
     assert smoothness.grid_mode_row_flags(fine.prior.S).any()
     assert not smoothness.grid_mode_row_flags(coarse.prior.S).any()
     assert not smoothness.grid_mode_row_flags(build_level(0, colors, [None], mask, K, z0, 2).prior.S).any()
+
+
+def test_the_stencil_rows_are_those_of_their_triplets():
+    """:func:`.smoothness.second_differences` and :func:`.smoothness.grid_mode_rows`, built as CSR
+    directly, equal the matrices of their (row, column, value) triplets (the COO build they
+    replaced): index arrays and dtypes, columns ascending, values; on a ragged mask, both schemes (the forward one has no such rows)."""
+    mask = _disc() & (np.random.default_rng(1).random((40, 50)) > 0.05)
+    for scheme in ("central", "forward"):
+        grid = masked_grid(mask, scheme)
+        own = np.arange(grid.size)
+        for M, taps, reach in ((smoothness.second_differences(grid), [1.0, -2.0, 1.0], 1),
+                               (smoothness.grid_mode_rows(grid, 4.0), [0.5, -2.0, 3.0, -2.0, 0.5], 2)):
+            rows, cols, vals, count = [], [], [], 0
+            for fwd, bwd, wf, wb in ((grid.fwd_u, grid.bwd_u, grid.wf_u, grid.wb_u),
+                                     (grid.fwd_v, grid.bwd_v, grid.wf_v, grid.wb_v)):
+                inner = (wf == 0.5) & (wb == 0.5)
+                both = own[inner & inner[fwd] & inner[bwd]] if reach == 2 else own[inner]
+                stencil = ([bwd[bwd[both]], bwd[both], both, fwd[both], fwd[fwd[both]]] if reach == 2
+                           else [bwd[both], both, fwd[both]])
+                rows += [count + np.arange(both.size)] * len(taps)
+                cols += stencil
+                vals += [np.full(both.size, t) for t in taps]
+                count += both.size
+            expected = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                                     shape=(count, grid.size))
+            assert M.shape == expected.shape and (M.nnz > 0) == (scheme == "central") and M.has_sorted_indices
+            for a, b in ((M.indptr, expected.indptr), (M.indices, expected.indices), (M.data, expected.data)):
+                assert a.dtype == b.dtype and np.array_equal(a, b)

@@ -609,3 +609,21 @@ def test_the_depth_block_pattern_is_the_union_of_the_grams_patterns():
         union.sort_indices()
         np.testing.assert_array_equal(indptr, union.indptr)
         np.testing.assert_array_equal(indices, union.indices)
+
+
+def test_the_priors_grams_are_those_of_the_csc_product_bit_for_bit():
+    """:func:`.pyramid.gram` (the transpose made CSR, one CSR product) gives S^T S and D^T D of a
+    weighted level exactly as ``(A.T @ A).tocsr()`` did: pattern, sorted columns and values."""
+    from o3d_mvps.solver.pyramid import gram
+
+    _, _, grid = grid_system()
+    H, W = 40, 56
+    prior = depth_prior(grid, np.ones((H // 2, W // 2)), 2.0)
+    S = second_differences(grid)
+    S = sp.csr_matrix(sp.diags(np.random.default_rng(0).uniform(0.1, 3.0, S.shape[0])) @ S)
+    for A in (S, prior.D):
+        expected, found = (A.T @ A).tocsr(), gram(A)
+        assert found.format == "csr" and found.has_sorted_indices
+        np.testing.assert_array_equal(found.indptr, expected.indptr)
+        np.testing.assert_array_equal(found.indices, expected.indices)
+        np.testing.assert_array_equal(found.data, expected.data)

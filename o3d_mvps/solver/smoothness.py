@@ -21,17 +21,21 @@ from ..model.resampling import fill_nearest_valid
 def second_differences(grid: MaskedGrid) -> sp.csr_matrix:
     """S (K, N): the second differences z[p-1] - 2 z[p] + z[p+1] along rows and along columns, at
     every masked pixel whose two neighbours in that direction are masked (metres for z in metres)."""
-    rows, cols, vals = [], [], []
-    count = 0
     own = np.arange(grid.size)
-    for fwd, bwd, wf, wb in ((grid.fwd_u, grid.bwd_u, grid.wf_u, grid.wb_u), (grid.fwd_v, grid.bwd_v, grid.wf_v, grid.wb_v)):
-        both = own[(wf == 0.5) & (wb == 0.5)]
-        r = count + np.arange(both.size)
-        rows += [r, r, r]
-        cols += [bwd[both], both, fwd[both]]
-        vals += [np.ones(both.size), np.full(both.size, -2.0), np.ones(both.size)]
-        count += both.size
-    return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(count, grid.size))
+    centres = [own[(wf == 0.5) & (wb == 0.5)] for wf, wb in ((grid.wf_u, grid.wb_u), (grid.wf_v, grid.wb_v))]
+    return _stencil_rows([[bwd[both], both, fwd[both]] for both, fwd, bwd in
+                          zip(centres, (grid.fwd_u, grid.fwd_v), (grid.bwd_u, grid.bwd_v))],
+                         np.array([1.0, -2.0, 1.0]), grid.size)
+
+
+def _stencil_rows(columns: list, taps: np.ndarray, n: int) -> sp.csr_matrix:
+    """CSR rows (K, n) of one stencil: for each direction's list of tap columns (t arrays (k,),
+    ascending per row: the masked index grows along rows and columns), k rows holding ``taps``
+    (t,) there, the directions' rows one after the other. Built as CSR directly (t entries a
+    row), the same matrix as from COO triplets without coo_tocsr's pass and sort."""
+    cols = np.concatenate([np.stack(c, axis=1) for c in columns]).ravel()
+    K = cols.size // taps.size
+    return sp.csr_matrix((np.tile(taps, K), cols, np.arange(0, cols.size + 1, taps.size)), shape=(K, n))
 
 
 #: weight of :func:`grid_mode_rows` in the smoothness, relative to the second differences' (their
@@ -71,20 +75,15 @@ def grid_mode_rows(grid: MaskedGrid, weight: float) -> sp.csr_matrix:
     that direction have both their neighbours masked. A mode of amplitude a gives 4 a sqrt(weight)
     (a second difference's 4 a); a smooth surface of frequency omega (rad/pixel) 4 sin^4(omega/2)
     times its amplitude, its curvature (omega^2) times omega^2 / 4."""
-    rows, cols, vals = [], [], []
-    count = 0
     own = np.arange(grid.size)
     taps = np.sqrt(weight) * np.array([1.0, -4.0, 6.0, -4.0, 1.0]) / 4.0
+    columns = []
     for fwd, bwd, wf, wb in ((grid.fwd_u, grid.bwd_u, grid.wf_u, grid.wb_u),
                              (grid.fwd_v, grid.bwd_v, grid.wf_v, grid.wb_v)):
         inner = (wf == 0.5) & (wb == 0.5)
         both = own[inner & inner[fwd] & inner[bwd]]
-        r = count + np.arange(both.size)
-        rows += [r] * 5
-        cols += [bwd[bwd[both]], bwd[both], both, fwd[both], fwd[fwd[both]]]
-        vals += [np.full(both.size, t) for t in taps]
-        count += both.size
-    return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(count, grid.size))
+        columns.append([bwd[bwd[both]], bwd[both], both, fwd[both], fwd[fwd[both]]])
+    return _stencil_rows(columns, taps, grid.size)
 
 
 def row_centres(S) -> np.ndarray:
