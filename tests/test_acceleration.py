@@ -113,11 +113,15 @@ def test_partway_moves_poses_along_their_twist():
     np.testing.assert_allclose(se3.log(half.poses[1]), -0.5 * xi, atol=1e-12)
 
 
-def test_levels_accelerated_by_light_model_and_memory(monkeypatch):
+def test_levels_accelerated_by_light_model_size_and_memory(monkeypatch):
     from o3d_mvps.solver import acceleration
 
-    assert acceleration.level_accelerator("led").memory == acceleration.ANDERSON_MEMORY == 3
-    assert acceleration.level_accelerator("sh") is not None
-    assert acceleration.level_accelerator("point") is None  # static captures: as before (NOT_ACCELERATED)
+    small, large = 89_619, 239_552  # the D415 render's finest level; the 2 MP render's level 1
+    assert acceleration.level_accelerator("led", small).memory == acceleration.ANDERSON_MEMORY == 3
+    assert acceleration.level_accelerator("sh", small) is not None
+    assert acceleration.level_accelerator("point", small) is None  # static captures: as before (NOT_ACCELERATED)
+    assert acceleration.level_accelerator("led", acceleration.ANDERSON_MAX_PIXELS) is not None
+    assert acceleration.level_accelerator("led", acceleration.ANDERSON_MAX_PIXELS + 1) is None
+    assert acceleration.level_accelerator("led", large) is None  # its points were never kept
     monkeypatch.setattr(acceleration, "ANDERSON_MEMORY", 0)
-    assert acceleration.level_accelerator("led") is None
+    assert acceleration.level_accelerator("led", small) is None

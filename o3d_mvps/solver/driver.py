@@ -285,7 +285,7 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
     # point lights on a level that no longer places the lamps: their per-pixel fields make the
     # evidence cost a frames x pixels x 3 x 3 sum, weighed once per level; CG to a looser tolerance
     settled = problem.light.name == "point" and level.grid.size > POINT_FIT_MAX_PIXELS
-    accelerator = level_accelerator(problem.light.name)  # across sweeps, tried before the extrapolation
+    accelerator = level_accelerator(problem.light.name, level.grid.size)  # across sweeps, tried before the extrapolation
     # a static camera (poses held at the identity): the depth steps' plain-aggregation hierarchy
     # (linear.PLAIN_AMG_OPTIONS); where its smoothness weights are held (settled), S^T S too
     static = not options.refine_poses and problem.identity_poses(est)
