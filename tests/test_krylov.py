@@ -593,18 +593,17 @@ def test_the_depth_block_pattern_is_the_union_of_the_grams_patterns():
     diagonal (the sum of their products with absolute values it replaced), columns ascending."""
     from o3d_mvps.solver.normal_equations import depth_block_pattern
 
-    _, _, grid = grid_system()
-    H, W = 40, 56
-    prior = depth_prior(grid, np.ones((H // 2, W // 2)), 2.0)
-    S = second_differences(grid)
-    for smoothness in (S, None):
+    for (H, W), smoothness in [((40, 56), True), ((40, 56), False), ((128, 160), True)]:  # 128x160: 4 chunks of rows
+        _, _, grid = grid_system(shape=(H, W))
+        prior = depth_prior(grid, np.ones((H // 2, W // 2)), 2.0)
+        smoothness = second_differences(grid) if smoothness else None
         fake = type("Prior", (), {"D": prior.D, "smoothness_pattern": smoothness})()
         indptr, indices = depth_block_pattern(grid, fake)
         Du, Dv = grid.difference_operators()
         touched = abs(Du) + abs(Dv) + sp.identity(grid.size, format="csr")
         union = touched.T @ touched + abs(prior.D).T @ abs(prior.D)
         if smoothness is not None:
-            union = union + abs(S).T @ abs(S)
+            union = union + abs(smoothness).T @ abs(smoothness)
         union = sp.csr_matrix(union)
         union.sort_indices()
         np.testing.assert_array_equal(indptr, union.indptr)

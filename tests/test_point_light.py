@@ -205,3 +205,29 @@ def test_a_noisy_quilt_has_no_bad_border_band():
     for side in (v < 8, v >= H - 8, u < 8, u >= W - 8):
         assert error[mask & side].mean() < inside + 1.0, (error[mask & side].mean(), inside)
     assert albedo_error(albedo, scene["albedo"], border) < 2 * albedo_error(albedo, scene["albedo"], interior)
+
+
+def test_the_point_light_bases_are_the_clamped_irradiances_bit_for_bit():
+    """:meth:`.LEDLight.bases` on the host (one compiled pass, :func:`.shading.led_bases_into`)
+    equals ``[1, max(0, <n, v_i>)]`` of :func:`.shading.led_irradiances`
+    cast to the dtype, for the point light's own positions and the LED's, float32 and float64;
+    a pixel facing away from its lamp gets 0."""
+    from o3d_mvps.model.shading import led_irradiances
+    from o3d_mvps.solver.lighting import LEDLight
+
+    rng = np.random.default_rng(3)
+    N, n = 5000, 4
+    normals = rng.normal(size=(N, 3))
+    normals /= np.linalg.norm(normals, axis=1)[:, None]
+    points = rng.normal(size=(N, 3)) * 0.05 + [0.0, 0.0, 0.6]
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    poses[1:, :3, 3] = rng.normal(size=(n - 1, 3)) * 0.02
+    for light in (PointLight(rng.normal(size=(n, 3)) * 0.3), LEDLight([0.02, -0.01, 0.0])):
+        g = led_irradiances(normals, points, light.positions(poses))
+        assert (g < 0).any() and (g > 0).any()
+        for dtype in (np.float32, np.float64):
+            expected = np.ones(g.shape + (2,), dtype=dtype)
+            expected[..., 1] = np.maximum(g, 0.0)
+            found = light.bases(normals, points, poses, dtype=dtype)
+            assert found.dtype == dtype and found.shape == (n, N, 2)
+            np.testing.assert_array_equal(found, expected)

@@ -1204,6 +1204,53 @@ def add_csr_into_pattern(indptr, indices, data, scale, a_indptr, a_indices, a_da
     return missing == 0
 
 
+#: Row chunks that :func:`gram_pattern_rows` splits the pattern's rows into (each thread takes
+#: whole chunks, each chunk a marker of one int32 per column; not from the thread count, which a
+#: cached function cannot read).
+GRAM_PATTERN_CHUNKS = 16
+
+
+@numba.njit(inline="always")
+def _gram_pattern_row(p, xt_indptr, xt_indices, x_indptr, x_indices, marker, out, start):  # pragma: no cover - compiled
+    """Row p of the pattern of X^T X: every column of the rows of X (CSR) that hold column p
+    (X^T's row p), each once (``marker[q] == p`` once seen); where ``start`` >= 0 written into
+    ``out[start:]`` in ascending order (an insertion sort: a few dozen columns a row). Returns
+    their count."""
+    c = 0
+    for a in range(xt_indptr[p], xt_indptr[p + 1]):
+        r = xt_indices[a]
+        for b in range(x_indptr[r], x_indptr[r + 1]):
+            q = x_indices[b]
+            if marker[q] != p:
+                marker[q] = p
+                if start >= 0:
+                    j = start + c
+                    while j > start and out[j - 1] > q:
+                        out[j] = out[j - 1]
+                        j -= 1
+                    out[j] = q
+                c += 1
+    return c
+
+
+@numba.njit(parallel=True, cache=True)
+def gram_pattern_rows(xt_indptr, xt_indices, x_indptr, x_indices, indptr, indices, fill):  # pragma: no cover - compiled
+    """The pattern of X^T X (N, N) for X (M, N) given as CSR (x_indptr, x_indices) and its
+    transpose X^T as CSR (xt_indptr, xt_indices): with ``fill`` False the row counts written
+    into indptr[1:] (N + 1,), with ``fill`` True (indptr then the counts' cumulative sum) the
+    columns, ascending per row, into indices (nnz,). A symbolic product: no values, no
+    temporaries but a marker per chunk of rows; in parallel over chunks of rows."""
+    N = indptr.shape[0] - 1
+    chunk = max(4096, -(-N // GRAM_PATTERN_CHUNKS))
+    for k in numba.prange(-(-N // chunk)):
+        marker = np.full(N, -1, np.int32)
+        for p in range(k * chunk, min(N, (k + 1) * chunk)):
+            if fill:
+                _gram_pattern_row(p, xt_indptr, xt_indices, x_indptr, x_indices, marker, indices, indptr[p])
+            else:
+                indptr[p + 1] = _gram_pattern_row(p, xt_indptr, xt_indices, x_indptr, x_indices, marker, indices, -1)
+
+
 @numba.njit(cache=True)
 def add_row_gram_into_pattern(indptr, indices, data, scale, a_indptr, a_indices, a_data):  # pragma: no cover - compiled
     """data (nnz,) of a CSR pattern (columns ascending per row) += ``scale`` times A^T A of the

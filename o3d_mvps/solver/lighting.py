@@ -29,7 +29,8 @@ import numpy as np
 
 from ..model.arrays import array_module, contiguous, like
 from ..model.robust import cauchy_weights
-from ..model.shading import INITIAL_LIGHT, led_fields_into, led_irradiances, led_positions_into, sh_basis
+from ..model.shading import (INITIAL_LIGHT, led_bases_into, led_fields_into, led_irradiances, led_positions_into,
+                             sh_basis)
 from .device import DeviceCopies, kernels_for, to_host
 from .line_search import backtrack
 from .linear import ridge_solve
@@ -181,7 +182,13 @@ class LEDLight(FrameFields):
     def bases(self, normals: np.ndarray, points: np.ndarray, poses: np.ndarray, dtype=np.float64) -> np.ndarray:
         """(m, N, 2) :meth:`basis` of the frames with ``poses`` (m, 4, 4), in ``dtype`` (the
         solver's evaluations keep it in their residuals' float32: 150 MB instead of 300 at 2 MP
-        and 20 frames)."""
+        and 20 frames). On the host one compiled pass (:func:`~o3d_mvps.model.shading.led_bases_into`:
+        no (m, N) float64 temporary, no pass filling ones)."""
+        if array_module(points) is np:
+            out = np.empty((len(poses), len(points), 2), dtype=dtype)
+            led_bases_into(contiguous(normals, np.float64), contiguous(points, np.float64),
+                           np.ascontiguousarray(self.positions(poses), dtype=np.float64), out)
+            return out
         g = self.irradiances(normals, points, poses)
         out = array_module(g).ones(g.shape + (2,), dtype=dtype)
         np.maximum(g, 0.0, out=out[..., 1])

@@ -52,7 +52,7 @@ POINT_FINE_PIXELS = 8000
 POINT_FINE_ITERATIONS = 12
 
 
-@numba.njit(cache=True)
+@numba.njit(parallel=True, cache=True)
 def _frame_sums(X, colour, albedo, usable, normals, points, lam, frames, system, energy, H, b):  # pragma: no cover - compiled
     """Per frame i where ``frames`` (n,) bool is set the robust energy ``sum_p,c phi(I - rho s)``
     over its usable pixels of the light X[i] = (ambient, intensity, position (3,)) written into
@@ -63,13 +63,14 @@ def _frame_sums(X, colour, albedo, usable, normals, points, lam, frames, system,
     (n, 5), colour (n, M, 3), albedo, normals, points (M, 3); usable (n, M) bool. One pass per
     frame (NumPy's version made a dozen (n, M, 3) temporaries per call) and one logarithm per
     pixel: :func:`o3d_mvps.model.robust.cauchy`'s phi summed over the 3 channels as
-    ``lam^2 / 2 log(prod_c (1 + (r_c / lam)^2))``."""
+    ``lam^2 / 2 log(prod_c (1 + (r_c / lam)^2))``. In parallel over the frames (each frame's
+    sums in its own order: the same values on any thread count)."""
     inv_lam, half = 1.0 / lam, 0.5 * lam * lam
     intensities, positions = X[:, 1].copy(), X[:, 2:].copy()
-    J = np.empty(5)
-    for i in range(X.shape[0]):
+    for i in numba.prange(X.shape[0]):
         if not frames[i]:
             continue
+        J = np.empty(5)
         e = 0.0
         if system:
             H[i] = 0.0
