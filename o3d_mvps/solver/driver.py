@@ -117,6 +117,14 @@ POINT_SETTLED_EXTRAPOLATE = False
 #: normals 0.3831 -> 0.3836 deg (within 2 px of the image's edge 0.4858 -> 0.4887), albedo
 #: 0.6295 -> 0.6296 %, lamps 3.64 mm either way
 POINT_FINEST_CG_FACTOR = 30.0
+#: whether that finest level refits the albedo after a depth step whose line search refitted it
+#: already at the accepted depth (the step's albedo projection): a second IRLS round of the same
+#: closed form, an albedo pass and an evaluation of every frame (about 0.35 CPU s a sweep at
+#: 1.13 M pixels and 20 frames). Issue 32's 1280x960 D415-like quilt without it: normals 0.3836
+#: -> 0.3836 deg (within 2 px of the edge 0.4887 -> 0.4896), albedo 0.6296 -> 0.6294 %, lamps
+#: 3.64 mm and low-pass p95 0.0074 per mille either way. Left out on every level of more than
+#: :data:`POINT_FIT_MAX_PIXELS` pixels, the edge's normals went 0.4887 -> 0.4935 deg (+1 %)
+POINT_FINEST_ALBEDO_REFIT = False
 #: pixels per frame read for the image noise of the LED's evidence weights, every sweep (the
 #: median of 20 x 90 000 x 3 residuals took 1.4 of a D415 refine's 17.6 s; 10 000 a frame give
 #: the noise to well under 1 %)
@@ -291,6 +299,7 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
     static = not options.refine_poses and problem.identity_poses(est)
     level.prior.hold_products(static and settled)
     for iteration in bar:
+        refitted = False  # the albedo refitted by this sweep's depth step (below)
         # the first sweep's weights are set before the level's first energy; then held after
         # EVIDENCE_SWEEPS sweeps, so the rest of the level minimises one energy
         if 1 < iteration <= EVIDENCE_SWEEPS and not settled:
@@ -323,11 +332,14 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
                                                       maxiter=options.cg_max_iterations,
                                                       project_albedo=project_albedo, parallax=parallax_only,
                                                       static=static)
+            # the step's line search refitted the albedo at the depth it kept (project_albedo)
+            refitted = project_albedo and stepped is not est
             est.z, est.albedo = stepped.z, stepped.albedo
             timings["depth"] += time.perf_counter() - t
         stats["cg_iterations"].append(cg_iterations)
         t = time.perf_counter()
-        ev = refit_albedo(problem, est, ev)  # (one launch on a GPU)
+        if not (finest and refitted and not POINT_FINEST_ALBEDO_REFIT):
+            ev = refit_albedo(problem, est, ev)  # (one launch on a GPU)
         est.lights = update_lighting(est, ev, problem.lam, problem.light_model(est))
         ev = problem.reevaluate(est, ev, overwrite=True)
         if refine_offset:
