@@ -436,6 +436,47 @@ def test_the_projection_gram_on_a_helper_thread_gives_the_same_system(problem, m
             np.testing.assert_array_equal(getattr(one, part), getattr(two, part), err_msg=part)
 
 
+@pytest.mark.parametrize("led", [False, True])
+def test_the_blocks_share_one_scratch_buffer_and_read_nothing_left_in_it(level, monkeypatch, led):
+    """The host's assembly hands every block the same scratch buffer (fresh arrays of more than
+    glibc's mmap threshold were mapped and faulted in anew per block: 7000 page faults a 2 MP
+    block); filled with NaN before each block, the system is the same bit for bit as with a
+    fresh buffer per block (no block reads what the last left), in blocks of 700 pixels (the
+    last one shorter), for the SH light and the LED (its fields and shading Jacobians written
+    into the buffer)."""
+    from o3d_mvps.solver import normal_equations
+    from o3d_mvps.solver.lighting import LEDLight
+
+    problem = LevelProblem(level, 1.0, 0.04, light=LEDLight(np.array([0.03, -0.02, 0.0])) if led else None)
+    est = kicked_estimate(problem)
+    if led:
+        est.lights = np.tile([0.1, 0.05], (problem.n_frames, 1))
+    ev = problem.evaluate(est)
+    assemble, buffers = normal_equations._assemble_block, []
+
+    def poisoned(*args, scratch=None, **kwargs):
+        buffers.append(scratch)
+        scratch.fill(np.nan)
+        return assemble(*args, scratch=scratch, **kwargs)
+
+    def fresh(*args, scratch=None, **kwargs):
+        return assemble(*args, scratch=None, **kwargs)
+
+    systems = []
+    for wrapper in (poisoned, fresh):
+        with monkeypatch.context() as patch:
+            patch.setattr(normal_equations, "_assemble_block", wrapper)
+            systems.append(joint_system(problem, est, ev, block_pixels=700))
+    blocks = -(-problem.level.grid.size // 700)
+    assert blocks >= 3 and len(buffers) == blocks and all(b is buffers[0] for b in buffers)
+    one, other = systems
+    assert one.frames == other.frames == [1, 2]
+    assert (one.matrix != other.matrix).nnz == 0 and np.isfinite(one.matrix.data).all()
+    for part in ("rhs_z", "coupling", "hessian", "rhs_xi"):
+        assert np.isfinite(getattr(one, part)).all(), part
+        np.testing.assert_array_equal(getattr(one, part), getattr(other, part), err_msg=part)
+
+
 @pytest.mark.parametrize("led, project", [(True, True), (False, False)])
 def test_accumulate_block_equals_accumulate_frame_in_turn_over_several_chunks(led, project):
     """kernels.accumulate_block (every frame in one launch, in parallel over pixel chunks) equals

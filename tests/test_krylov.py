@@ -158,20 +158,27 @@ def test_the_level_by_level_set_up_is_pyamgs_hierarchy_bit_for_bit():
     """:func:`.linear.smoothed_aggregation` (pyamg's set-up one level at a time, each coarse matrix
     passed on as CSR) gives pyamg's one-call hierarchy bit for bit: the same levels (matrices,
     prolongations, restrictions; pyamg's BSR coarse matrices kept), the same V-cycle, without
-    scipy's Python loop over a BSR matrix's entries (``_bsr.sum_duplicates``, not called)."""
+    scipy's Python loop over a BSR matrix's entries (``_bsr.sum_duplicates``, not called), and
+    with every level's smoothed prolongation from the compiled Jacobi rows
+    (kernels.jacobi_scaled_rows, not pyamg's three copies of the matrix; its smoother restored
+    after), also from a matrix whose rows are stored unsorted."""
     from unittest import mock
 
     import pyamg
+    import pyamg.aggregation.aggregation as sa
     import scipy.sparse._bsr as bsr
 
-    from o3d_mvps.solver import linear
+    from o3d_mvps.solver import kernels, linear
 
     M = sp.csr_matrix(grid_system(shape=(80, 112))[0])
     b = np.random.default_rng(3).normal(size=M.shape[0])
+    original = sa.jacobi_prolongation_smoother
     with mock.patch.object(bsr._bsr_base, "sum_duplicates", autospec=True,
-                           side_effect=bsr._bsr_base.sum_duplicates) as loop:
+                           side_effect=bsr._bsr_base.sum_duplicates) as loop, \
+            mock.patch.object(kernels, "jacobi_scaled_rows", side_effect=kernels.jacobi_scaled_rows) as rows:
         ours = linear.smoothed_aggregation(M)
-    assert loop.call_count == 0
+    assert loop.call_count == 0 and rows.call_count == len(ours.levels) - 1
+    assert sa.jacobi_prolongation_smoother is original
     theirs = pyamg.smoothed_aggregation_solver(M, strength=linear.strength_options(M), **linear.AMG_OPTIONS)
     assert len(ours.levels) == len(theirs.levels) >= 3
     for k, (x, y) in enumerate(zip(ours.levels, theirs.levels)):
@@ -182,6 +189,18 @@ def test_the_level_by_level_set_up_is_pyamgs_hierarchy_bit_for_bit():
             for name in ("indptr", "indices", "data"):
                 np.testing.assert_array_equal(getattr(a, name), getattr(c, name))
     np.testing.assert_array_equal(linear._v_cycle(ours, 0, b), linear._v_cycle(theirs, 0, b))
+    # rows stored in reverse order: the smoother makes them canonical first, as pyamg's abs did
+    shuffled = M.copy()
+    for i in range(M.shape[0]):
+        row = slice(M.indptr[i], M.indptr[i + 1])
+        shuffled.indices[row], shuffled.data[row] = M.indices[row][::-1], M.data[row][::-1]
+    shuffled.has_sorted_indices = False
+    T = sp.csr_matrix(theirs.levels[0].P)  # any (N, Nc) matrix in the place of the tentative one
+    expected = original(M.copy(), T, None, None, omega=4.0 / 3.0, weighting="local")
+    got = linear._jacobi_prolongation(original, shuffled, T, None, None, omega=4.0 / 3.0, weighting="local")
+    assert shuffled.has_canonical_format and type(got) is type(expected)
+    for name in ("indptr", "indices", "data"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(expected, name))
 
 
 @contextmanager

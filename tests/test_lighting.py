@@ -238,6 +238,36 @@ def test_update_lighting_recovers_the_led_ambient_and_intensity(led_capture):
     np.testing.assert_allclose(frontal, truth[0] + truth[1] / 0.6**2, rtol=0.03)
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_update_lighting_sums_equal_the_products_of_fresh_arrays_bit_for_bit(led_capture, monkeypatch, dtype):
+    """update_lighting forms each frame's Gram and right-hand side in buffers shared by the
+    frames (fresh arrays were mapped and faulted in anew at 2 MP); the lights it fits come from
+    the same sums bit for bit as ``(m * w).T @ m`` and ``m.T @ wri`` on the frame's basis m
+    (float32 as in the solver's evaluations, and float64)."""
+    from o3d_mvps.solver import kernels, reflectance
+
+    gt = led_capture.groundtruth
+    problem, est = gt_problem(led_capture, gt.light["offset"])
+    ev = problem.evaluate(est)
+    ev.basis = ev.basis.astype(dtype)
+    fitted = []
+    monkeypatch.setattr(type(problem.light_model(est)), "fit",
+                        lambda self, gram, rhs, lights: fitted.append((gram.copy(), rhs.copy())) or lights)
+    update_lighting(est, ev, problem.lam, problem.light_model(est))
+    (gram, rhs), = fitted
+    N = ev.usable.shape[1]
+    wr2, wri = np.empty((1, N)), np.empty((1, N))
+    assert ev.usable.sum(axis=1).min() >= 8
+    for i in range(problem.n_frames):
+        kernels.weighted_lighting_sums(ev.residual[i:i + 1], ev.usable[i:i + 1], ev.color[i:i + 1],
+                                       np.ascontiguousarray(est.albedo), 1.0 / problem.lam, wr2, wri)
+        m = ev.frame_basis(i)
+        assert m.dtype == dtype
+        np.testing.assert_array_equal(gram[i], (m * wr2[0][:, None]).T @ m)
+        np.testing.assert_array_equal(rhs[i], m.T @ wri[0])
+    assert np.abs(gram).min() > 0
+
+
 def test_update_led_offset_moves_a_wrong_offset_toward_the_truth(led_capture):
     """Starting 1.3 cm off sideways, the joint (lighting, offset) steps bring the LED's lateral
     position within a few millimetres and never raise the energy.

@@ -141,13 +141,18 @@ NOISE_SAMPLES_PER_FRAME = 10_000
 EVIDENCE_SWEEPS = 3
 
 
-#: glibc's M_MMAP_THRESHOLD (bytes) that :func:`return_freed_arrays` sets for frames of at least
-#: :data:`MMAP_MIN_PIXELS` colour pixels, and below that size
+#: glibc's M_MMAP_THRESHOLD (bytes) that :func:`return_freed_arrays` sets for a static camera's
+#: frames of at least :data:`MMAP_MIN_PIXELS` colour pixels (or no size given), and for a moving
+#: camera's frames of any size
 MMAP_THRESHOLD = 1 << 20
-SMALL_MMAP_THRESHOLD = 8 << 20
+MOVING_MMAP_THRESHOLD = 8 << 20
 #: D415 x 20 (0.92 M pixels), whole process: peak 938 MB at 1 MB and at 8 MB, 962 MB with glibc's
 #: default; system CPU 4.4, 2.1 and 1.7 s of ~24 s (1.03 M, 0.22 M, 0.17 M page faults). At 2 MP
-#: (1.94 M) 1 MB lowered the stage peaks by 50-190 MB (8 MB not measured there).
+#: (1.94 M) 1 MB had lowered the stage peaks by 50-190 MB, while each joint-step block and lighting
+#: frame took fresh arrays; with those reused (docs/performance.md, "2 MP: fresh pages"), 8 MB
+#: took the 2 MP x 20 solve's system CPU from 24.5 to 19.6 s (3.8 M to 1.6 M page faults) for a
+#: peak 60 MiB higher (2632 -> 2692 MiB, saved problem; the whole command 2827-2925 -> 2877 MiB,
+#: within its run-to-run spread)
 MMAP_MIN_PIXELS = 1_500_000
 #: ... and for a static camera's frames under :data:`MMAP_MIN_PIXELS` (poses held at the identity):
 #: glibc's own ceiling. The 1280x960 quilt (20 frames, one numba thread): system CPU 8.4 s at 8 MB
@@ -157,11 +162,11 @@ STATIC_MMAP_THRESHOLD = 32 << 20
 
 
 def return_freed_arrays(pixels: int | None = None, static: bool = False) -> bool:
-    """Have glibc's malloc give every block of at least :data:`MMAP_THRESHOLD` (1 MB; 8 MB,
-    :data:`SMALL_MMAP_THRESHOLD`, for frames of fewer than :data:`MMAP_MIN_PIXELS` colour
-    pixels ``pixels``, 32 MB, :data:`STATIC_MMAP_THRESHOLD`, where those are a static camera's:
-    ``static``) its own mapping, returned to the system when freed
-    (``mallopt(M_MMAP_THRESHOLD)``, process-wide).
+    """Have glibc's malloc give every block of at least 8 MB (:data:`MOVING_MMAP_THRESHOLD`,
+    a moving camera's frames of any size ``pixels``; for a static camera's, ``static``: 32 MB,
+    :data:`STATIC_MMAP_THRESHOLD`, under :data:`MMAP_MIN_PIXELS` colour pixels, 1 MB,
+    :data:`MMAP_THRESHOLD`, from that size on or with no size given) its own mapping, returned
+    to the system when freed (``mallopt(M_MMAP_THRESHOLD)``, process-wide).
 
     By default glibc raises that threshold up to 32 MB as large blocks are freed, and the
     solver's per-level arrays of 1-32 MB then stay in the heap when freed, resident and
@@ -181,7 +186,10 @@ def return_freed_arrays(pixels: int | None = None, static: bool = False) -> bool
         return False
     M_MMAP_THRESHOLD = -3
     small = pixels is not None and pixels < MMAP_MIN_PIXELS
-    threshold = (STATIC_MMAP_THRESHOLD if static else SMALL_MMAP_THRESHOLD) if small else MMAP_THRESHOLD
+    if static:
+        threshold = STATIC_MMAP_THRESHOLD if small else MMAP_THRESHOLD
+    else:
+        threshold = MOVING_MMAP_THRESHOLD
     return bool(mallopt(M_MMAP_THRESHOLD, threshold))
 
 

@@ -1268,6 +1268,24 @@ def add_row_gram_into_pattern(indptr, indices, data, scale, a_indptr, a_indices,
     return True
 
 
+@numba.njit(parallel=True, cache=True)
+def jacobi_scaled_rows(indptr, data, omega, out):  # pragma: no cover - compiled
+    """The values ``out`` (nnz,) of pyamg's locally weighted Jacobi operator ``omega D^-1 S``
+    (``jacobi_prolongation_smoother``, ``weighting="local"``) of a canonical CSR matrix S (N, N)
+    with float64 ``data``: row i's entries times ``1 / |sum_j |s_ij||`` (0 where that sum is 0),
+    then times omega, in pyamg's order of operations (its row sums of ``abs(S)`` times a column
+    of ones, summed in stored order from 0; its ``scale_rows``; its product with the scalar), so
+    the same values bit for bit, without its three copies of S. In parallel over rows."""
+    n = indptr.shape[0] - 1
+    for i in numba.prange(n):
+        d = 0.0
+        for jj in range(indptr[i], indptr[i + 1]):
+            d += abs(data[jj]) * 1.0
+        inv = 1.0 / abs(d) if d != 0.0 else 0.0
+        for jj in range(indptr[i], indptr[i + 1]):
+            out[jj] = (data[jj] * inv) * omega
+
+
 @numba.njit(cache=True)
 def strong_connections(indptr, indices, data, theta):  # pragma: no cover - compiled
     """The pattern (indptr (N+1,), indices (nnz',)) of pyamg's symmetric strength of connection

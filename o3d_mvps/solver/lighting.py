@@ -78,12 +78,12 @@ class SHLight(FrameFields):
         """(1, N, 4): the one basis every frame shares (in ``dtype``)."""
         return sh_basis(normals)[None].astype(dtype, copy=False)
 
-    def fields(self, lights: np.ndarray, normals: np.ndarray, points: np.ndarray, poses: np.ndarray):
+    def fields(self, lights: np.ndarray, normals: np.ndarray, points: np.ndarray, poses: np.ndarray, out=None):
         """(c, L): frame i's shading is ``c_i + <L_i, n>`` with n in reference coordinates; here
-        c (m,) and L (m, 3) of lights (m, 4), the same for every pixel."""
+        c (m,) and L (m, 3) of lights (m, 4), the same for every pixel (``out`` is not used)."""
         return lights[:, 0], lights[:, 1:]
 
-    def shading_jacobians(self, lights, normals, points, poses) -> None:
+    def shading_jacobians(self, lights, normals, points, poses, out=None) -> None:
         """d(shading)/d(xi): zero, the SH light lives in reference coordinates."""
         return None
 
@@ -194,13 +194,14 @@ class LEDLight(FrameFields):
         np.maximum(g, 0.0, out=out[..., 1])
         return out
 
-    def fields(self, lights: np.ndarray, normals: np.ndarray, points: np.ndarray, poses: np.ndarray):
+    def fields(self, lights: np.ndarray, normals: np.ndarray, points: np.ndarray, poses: np.ndarray, out=None):
         """(c, L): frame i's shading is ``c_i + <L_i, n>``; c (m,) the ambients of lights (m, 2),
         L (m, N, 3) the intensity times v_i, zero where the point faces away (on the host one
-        compiled pass, :func:`~o3d_mvps.model.shading.led_fields_into`; on a GPU its CUDA twin,
-        one launch and one copy of the intensities and positions)."""
+        compiled pass, :func:`~o3d_mvps.model.shading.led_fields_into`, written into ``out``
+        (m, N, 3) C-contiguous float64 where given; on a GPU its CUDA twin, one launch and one
+        copy of the intensities and positions)."""
         if array_module(points) is np:
-            L = np.empty((len(lights), len(points), 3))
+            L = np.empty((len(lights), len(points), 3)) if out is None else out
             led_fields_into(_intensities(lights, points), contiguous(normals, np.float64),
                             contiguous(points, np.float64), np.ascontiguousarray(self.positions(poses)), L)
             return lights[:, 0], L
@@ -216,13 +217,16 @@ class LEDLight(FrameFields):
         return np.matmul(J, like(poses[:, :3, :3].transpose(0, 2, 1), points))
 
     def shading_jacobians(self, lights: np.ndarray, normals: np.ndarray, points: np.ndarray,
-                          poses: np.ndarray) -> np.ndarray:
-        """d(shading)/d(xi) (m, N, 6) for a left update exp(xi) T of each frame, xi = (v, w).
+                          poses: np.ndarray, out=None) -> np.ndarray:
+        """d(shading)/d(xi) (m, N, 6) for a left update exp(xi) T of each frame, xi = (v, w),
+        written into ``out`` (m, N, 6) C-contiguous float64 where given (the joint step's
+        assembly reuses one buffer for its blocks: no fresh pages per block).
 
         Moving the camera moves the LED with it: s_i = T^-1 o, so with G the shading's gradient
         with respect to the point in camera coordinates, ``d/dv = G`` and ``d/dw = o x G``.
         """
-        out = array_module(points).empty((len(poses), len(points), 6))
+        if out is None:
+            out = array_module(points).empty((len(poses), len(points), 6))
         if array_module(points) is not np:  # one kernel on a GPU (the light state's copy shared: device_light_state)
             state = device_light_state(self, lights, poses, points)
             kernels_for(points).led_shading_jacobians_into(
@@ -395,7 +399,7 @@ class PointLight(LEDLight):
                              f"camera, no pose refinement)")
         return self.offset
 
-    def shading_jacobians(self, lights, normals, points, poses) -> None:
+    def shading_jacobians(self, lights, normals, points, poses, out=None) -> None:
         """d(shading)/d(xi): zero, the lights live in reference coordinates."""
         return None
 

@@ -37,6 +37,7 @@ from ..model.parallel import current_kernel_threads
 from . import kernels as host_kernels
 from .device import kernels_for, on_gpu, to_host
 from .krylov import multiply_add
+from .lighting import LEDLight
 from .pose import pose_jacobian
 from .problem import Estimate, Evaluation, LevelProblem
 
@@ -303,6 +304,11 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
     # on more than one kernel thread, a helper thread takes half of each block's projection Gram
     # (BLAS, which releases the GIL) beside the main thread's half: that Gram was serial
     threads = current_kernel_threads()
+    # the blocks' temporaries in one buffer for the whole pass (:func:`_block_shapes`): fresh
+    # per block, each of more than glibc's mmap threshold (driver.return_freed_arrays) was mapped,
+    # faulted in page by page and unmapped again, 7000 page faults a 2 MP block
+    led = isinstance(problem.light_model(est), LEDLight)
+    scratch = np.empty(_size(_block_shapes(problem.n_frames, m, min(N, block_pixels), project_albedo, led)))
     with ThreadPoolExecutor(1, thread_name_prefix="o3d_mvps-gram") if threads > 1 else nullcontext() as helper:
         for start in range(0, N, block_pixels):
             block = slice(start, min(N, start + block_pixels))
@@ -310,7 +316,8 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
             # arrays (no copy: scipy's row slicing took 0.15 s a D415 refinement)
             _assemble_block(problem, est, ev, block, points_ref[block], candidates, parallax, project_albedo,
                             sums[:, block], grams, rhs_xi, downdate, coupling_t, _row_arrays(Du, block),
-                            _row_arrays(Dv, block), poses, with_jacobian, frame_slots, helper)
+                            _row_arrays(Dv, block), poses, with_jacobian, frame_slots, helper, scratch=scratch)
+    del scratch
     # frames whose own Gram is not safely invertible keep their depth rows but take no twist
     # (kernels.twist_system: the frames' condition numbers and H = blockdiag(Grams) - downdate)
     hessian, twist_rhs, frame_kept = np.empty((6 * m, 6 * m)), np.empty(6 * m), np.empty(m)
@@ -484,9 +491,20 @@ def _row_arrays(D: sp.csr_matrix, rows: slice) -> tuple:
     return D.indptr[rows.start:rows.stop + 1], D.indices, D.data
 
 
+def _block_shapes(n: int, m: int, B: int, project_albedo: bool, led: bool) -> tuple:
+    """Shapes of :func:`_assemble_block`'s temporaries for a block of B pixels, n frames and m
+    refined ones: the block's sums (9, B), the light rows q (B, 3), alpha, beta, gamma (n, B)
+    each, the reference's parallax (B, 3), the frames' light fields (n, B, 3) and shading
+    Jacobians (n, B, 6) of a light model with per-pixel fields (``led``: an LEDLight; else
+    none), the rows (3, m, 6, B) and the projection's F (m, 6, B, 3)."""
+    k = n if led else 0
+    return ((9, B), (B, 3), (n, B), (n, B), (n, B), (B, 3), (k, B, 3), (k, B, 6), (3, m, 6, B),
+            (m if project_albedo else 0, 6, B, 3))
+
+
 def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, project_albedo, sums, grams,
                     rhs_xi, downdate, coupling_t, Du_rows, Dv_rows, poses, with_jacobian, frame_slots,
-                    helper=None) -> None:
+                    helper=None, scratch=None) -> None:
     """One block of :func:`joint_system`'s pass on the host: the block's pixels' per-pixel sums
     (9, B) written into ``sums``; its share of the frames' Grams (m, 6, 6), their right-hand sides
     rhs_xi (6m,) (the albedo projection's too) and the projection's downdate (6m, 6m) added in
@@ -495,21 +513,28 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
     with_jacobian (n,) bools: the frames whose twist or parallax rows are formed; frame_slots
     (n, 2) int64: with_jacobian and the refined frame's slot (or -1); helper: a one-thread
     executor for half the projection's Gram (:meth:`_AlbedoProjection.downdate_scaled`), or
-    None. (A GPU's pass: :func:`_device_joint_system`.)"""
+    None; scratch: a flat float64 buffer of at least :func:`_block_shapes`' entries for this
+    block's temporaries, reused from block to block (None: fresh arrays). (A GPU's pass:
+    :func:`_device_joint_system`.)"""
     kernels = host_kernels
     B = points_ref.shape[0]
     m = len(candidates)
+    n = problem.n_frames
     none3, none_e = np.empty((0, 3)), np.empty((0, 1, 3))  # the kernel's optional arrays (empty)
     residual, usable, albedo, shading = ev.residual[:, block], ev.usable[:, block], est.albedo[block], ev.shading[:, block]
     normals = ev.normals[block]
     model = problem.light_model(est)
-    block_sums = np.empty((9, B))  # zeroed by kernels.joint_rows
+    led = isinstance(model, LEDLight)
+    shapes = _block_shapes(n, m, B, project_albedo, led)
+    if scratch is None:
+        scratch = np.empty(_size(shapes))
+    # block_sums zeroed by kernels.joint_rows; rows twist-component-major, so the transposed
+    # coupling rows (6m, B) and the projection's rows (6m, 3B) are views
+    block_sums, q, alpha, beta, gamma, extra, field_out, jacobian_out, rows, F = _views(scratch, shapes)
     projection = _AlbedoProjection(residual, usable, shading, problem.lam) if project_albedo else None
     slot = {i: k for k, i in enumerate(candidates)}
-    # twist-component-major, so the transposed coupling rows (6m, B) and the projection's rows
-    # (6m, 3B) are views
-    rows = np.empty((3, m, 6, B))
-    F = np.empty((m, 6, B, 3)) if projection is not None else np.empty((0, 6, 1, 3))
+    if projection is None:
+        F = np.empty((0, 6, 1, 3))
     # on one thread a launch per frame is faster (measured: 17.2 against 20.6 ms a D415 block)
     host_block = (problem.level.image_stack is None and current_kernel_threads() > 1
                   and _same_types(problem.level.images))
@@ -520,12 +545,13 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
     # every frame's frozen light field and LED shading Jacobian at once, then in one launch, in
     # parallel over pixels: q = albedo / dA, the light rows (alpha, beta, gamma (n, B) each: the
     # formulas of _light_rows) and the reference frame's parallax (extra_c: _parallax_rows')
-    n = problem.n_frames
-    field = like(model.fields(est.lights, normals, points_ref, est.poses)[1], normals).reshape(n, -1, 3)
-    dshading = model.shading_jacobians(est.lights, normals, points_ref, est.poses) if parallax or m else None
+    if not led:
+        field_out = jacobian_out = None
+    field = like(model.fields(est.lights, normals, points_ref, est.poses, out=field_out)[1], normals).reshape(n, -1, 3)
+    dshading = (model.shading_jacobians(est.lights, normals, points_ref, est.poses, out=jacobian_out)
+                if parallax or m else None)
     e = none_e if projection is None else projection.e
-    q, alpha, beta, gamma = np.empty((B, 3)), np.empty((n, B)), np.empty((n, B)), np.empty((n, B))
-    extra_c = np.empty((B, 3)) if parallax and dshading is not None else none3
+    extra_c = extra if parallax and dshading is not None else none3
     grid = problem.level.grid
     kernels.joint_rows(albedo, ev.dA[block], field, grid.u[block], grid.v[block], problem.device_K, points_ref,
                        np.empty((n, 0, 6)) if dshading is None else dshading, usable[0], q, alpha, beta, gamma,

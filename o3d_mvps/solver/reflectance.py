@@ -51,7 +51,13 @@ def update_lighting(est: Estimate, ev: Evaluation, lam: float, light) -> np.ndar
         return light.fit(gram, rhs, est.lights)
     # on the host a frame at a time: the sums of one frame (1, N) each, not of all (2 x 160 MB
     # at 2 MP and 20 frames); the same values
-    wr2, wri = np.empty((1, ev.usable.shape[1])), np.empty((1, ev.usable.shape[1]))
+    N = ev.usable.shape[1]
+    wr2, wri = np.empty((1, N)), np.empty((1, N))
+    # the basis in float64 (transposed, as NumPy's cast inside ``m.T @ wri`` laid it out) and
+    # scaled by the weights, in buffers shared by the frames: fresh per frame, each (15 MB at
+    # 2 MP) was mapped and faulted in anew (three a frame, with the casts inside the products);
+    # the same products on the same layouts, so the same values bit for bit
+    basis_t, scaled = None, np.empty((N, k))
     counts = ev.usable.sum(axis=1)
     for i in range(n):
         if counts[i] >= 8:
@@ -59,5 +65,10 @@ def update_lighting(est: Estimate, ev: Evaluation, lam: float, light) -> np.ndar
             kernels_for(wr2).weighted_lighting_sums(ev.residual[frame], ev.usable[frame], ev.color[frame], albedo,
                                                     1.0 / lam, wr2, wri)
             m = ev.frame_basis(i)  # (N, k)
-            gram[i], rhs[i] = (m * wr2[0][:, None]).T @ m, m.T @ wri[0]
+            if m.dtype != np.float64:
+                basis_t = np.empty((k, N)) if basis_t is None else basis_t
+                basis_t[...] = m.T
+                m = basis_t.T
+            np.multiply(m, wr2[0][:, None], out=scaled)
+            gram[i], rhs[i] = scaled.T @ m, m.T @ wri[0]
     return light.fit(gram, rhs, est.lights)
