@@ -782,12 +782,16 @@ def test_the_smoothness_hessian_is_not_held_through_the_solve_and_comes_back_the
     assert np.array_equal(prior.StS.toarray(), (prior.S.T @ prior.S).toarray())
 
 
-def test_weighing_a_rebuildable_smoothness_keeps_no_copy_and_gives_the_same_rows(level, rng):
+def test_weighing_a_rebuildable_smoothness_keeps_no_copy_and_gives_the_same_rows(level, rng, monkeypatch):
     """build_level's prior makes its unweighted S anew for each weighing (rebuild_smoothness_with)
-    instead of keeping a copy beside the weighted one: the weighted S, its S^T S and the
-    smoothness pattern are the same bit for bit as with the copy kept, and no unweighted copy is held."""
+    instead of keeping a copy beside the weighted one, on grids of more than
+    REBUILD_SMOOTHNESS_PIXELS (here 0): the weighted S, its S^T S and the smoothness pattern are
+    the same bit for bit as with the copy kept, and no unweighted copy is held."""
+    from o3d_mvps.solver import pyramid
     from o3d_mvps.solver.pyramid import build_level
     from o3d_mvps.solver.smoothness import second_differences
+
+    monkeypatch.setattr(pyramid, "REBUILD_SMOOTHNESS_PIXELS", 0)
 
     z0 = bump_depth().reshape(SIZE[0] // 2, 2, SIZE[1] // 2, 2).mean(axis=(1, 3))
     built = build_level(0, level.images, [None] * len(level.images), level.grid.mask, level.K, z0, 2)
@@ -804,3 +808,14 @@ def test_weighing_a_rebuildable_smoothness_keeps_no_copy_and_gives_the_same_rows
         assert "_S_unweighted" not in built.prior.__dict__ and "_S_unweighted" in kept.__dict__
         pattern = built.prior.smoothness_pattern
         assert np.array_equal(pattern.toarray(), kept.smoothness_pattern.toarray())
+    # up to REBUILD_SMOOTHNESS_PIXELS (the default: this grid) the unweighted S is held instead of
+    # made again at each weighing: the same weighted S bit for bit
+    monkeypatch.undo()
+    held = build_level(0, level.images, [None] * len(level.images), level.grid.mask, level.K, z0, 2)
+    assert held.grid.size <= pyramid.REBUILD_SMOOTHNESS_PIXELS
+    for sweep in range(3):
+        weights = rng.uniform(0.1, 1.0, held.grid.size)
+        held.prior.weigh_smoothness(weights)
+        kept.weigh_smoothness(weights)
+        assert "_S_unweighted" in held.prior.__dict__
+        assert np.array_equal(held.prior.S.indices, kept.S.indices) and np.array_equal(held.prior.S.data, kept.S.data)
