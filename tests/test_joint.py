@@ -519,6 +519,41 @@ def test_update_pose_depth_descends_and_recovers_kicked_poses(problem, project_a
     assert np.all(errors[0] < 0.03 * before) and np.all(errors[-1] <= 1.05 * errors[0]), (before, errors)
 
 
+def test_a_levels_joint_steps_keep_the_first_steps_prolongations(problem, monkeypatch):
+    """On a level of at most REUSE_HIERARCHY_MAX_PIXELS pixels the first joint step sets up its
+    AMG hierarchy and the next steps make it over (linear.galerkin_hierarchy), its finest matrix
+    let go between steps; their CG takes as many iterations (within REUSE_EXTRA_ITERATIONS) and
+    the steps the same energies (to 1e-4; CG stops at rtol 1e-2, so not to rounding) as with a
+    fresh set-up each step. Above that size no hierarchy is kept."""
+    from o3d_mvps.solver import joint, linear
+
+    made = []
+    over = linear.galerkin_hierarchy
+    monkeypatch.setattr(joint, "galerkin_hierarchy", lambda ml, m: made.append(m.shape) or over(ml, m))
+
+    def steps(level_problem):
+        est = kicked_estimate(level_problem)
+        ev = level_problem.evaluate(est)
+        rows = []
+        for _ in range(3):
+            est, ev, iterations = update_pose_depth(level_problem, est, ev, rtol=OPTIONS.joint_cg_tolerance,
+                                                    maxiter=OPTIONS.cg_max_iterations)
+            rows.append((ev.energy, iterations))
+        return rows
+
+    kept = steps(problem)
+    assert len(made) == 2  # steps 2 and 3
+    hierarchy, fresh = joint._kept_hierarchies[problem]
+    assert hierarchy.levels[0].A is None and fresh == kept[0][1]
+    monkeypatch.setattr(joint, "REUSE_HIERARCHY_MAX_PIXELS", 0)
+    other = LevelProblem(problem.level, problem.tau, problem.lam)
+    anew = steps(other)
+    assert len(made) == 2 and other not in joint._kept_hierarchies
+    assert kept[0] == anew[0]  # the first step: the same set-up
+    for (e_kept, n_kept), (e_anew, n_anew) in zip(kept[1:], anew[1:]):  # measured: 2e-6 relative, the same counts
+        assert e_kept == pytest.approx(e_anew, rel=1e-4) and n_kept <= n_anew + joint.REUSE_EXTRA_ITERATIONS
+
+
 def test_projecting_the_albedo_out_moves_it_with_the_step(problem):
     """With the albedo also off the truth (5 % ripple), one projected joint step removes over 99 %
     of the energy; the plain step, which holds the albedo, finds no step length that lowers it
