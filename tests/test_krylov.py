@@ -208,6 +208,36 @@ def test_a_hierarchy_made_over_for_its_own_matrix_gives_the_fresh_v_cycle_and_fo
     np.testing.assert_allclose(other @ x_kept, b, atol=1e-7 * np.abs(b).max())
 
 
+def test_sparse_product_into_a_pattern_is_scipys_product_bit_for_bit():
+    """kernels.sparse_product_into writes A B into a given CSR pattern with scipy's sums in
+    scipy's order: the same values bit for bit; a pattern entry the product lacks gets 0. The
+    made-over hierarchy's second R A P (by the kernel, into the first one's patterns) equals the
+    first (by scipy)."""
+    from o3d_mvps.solver import kernels, linear
+
+    rng = np.random.default_rng(5)
+    A = sp.random(300, 200, density=0.03, random_state=1, format="csr")
+    B = sp.random(200, 50, density=0.05, random_state=2, format="csr")
+    C = A @ B
+    C.sort_indices()
+    extra = sp.random(300, 50, density=0.02, random_state=3, format="csr")
+    pattern = sp.csr_matrix(((C != 0) + (extra != 0)).astype(np.float64))  # C's pattern and more
+    pattern.sort_indices()
+    out = rng.normal(size=pattern.nnz)  # overwritten everywhere
+    kernels.sparse_product_into(A.indptr, A.indices, A.data, B.indptr, B.indices, B.data, pattern.indptr,
+                                pattern.indices, out, 50)
+    got = sp.csr_matrix((out, pattern.indices, pattern.indptr), shape=C.shape)
+    assert got.nnz > C.nnz
+    dense, expected = got.toarray(), C.toarray()
+    assert np.array_equal(dense, expected)
+    M = sp.csr_matrix(grid_system(shape=(80, 112))[0])
+    first = linear.galerkin_hierarchy(linear.smoothed_aggregation(M), M)
+    again = linear.galerkin_hierarchy(linear.galerkin_hierarchy(linear.smoothed_aggregation(M), M), M)
+    for x, y in zip(first.levels[1:], again.levels[1:]):
+        for name in ("indptr", "indices", "data"):
+            np.testing.assert_array_equal(getattr(x.A, name), getattr(y.A, name))
+
+
 @contextmanager
 def on_stand_in(simulated: bool):
     """Within: the CuPy stand-in (tests/cupy_emulation.py, yielded), the CUDA kernels run by
