@@ -146,7 +146,8 @@ def registration_region(mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 
 def depth_cloud(depth: np.ndarray, K: np.ndarray, max_depth: float = 3.0,
                 color: np.ndarray | None = None, region: np.ndarray | None = None,
-                voxel: float | None = None, pixel_stride: int = 1) -> o3d.geometry.PointCloud:
+                voxel: float | None = None, pixel_stride: int = 1,
+                normals: bool = True) -> o3d.geometry.PointCloud:
     """Denoised point cloud with camera-facing normals (and colours) of one depth frame.
 
     Parameters
@@ -168,6 +169,9 @@ def depth_cloud(depth: np.ndarray, K: np.ndarray, max_depth: float = 3.0,
     pixel_stride : int, optional
         Keep every k-th pixel of every k-th row only (after the smoothing): a cloud that the
         voxel and ``MAX_CLOUD_POINTS`` thin anyway, made for less (1: every pixel).
+    normals : bool, optional
+        Estimate the normals (:func:`estimate_normals`); False leaves them out (a cloud that is
+        only ever an ICP source needs none).
 
     Returns
     -------
@@ -197,6 +201,14 @@ def depth_cloud(depth: np.ndarray, K: np.ndarray, max_depth: float = 3.0,
         cloud = cloud.voxel_down_sample(voxel)
         if len(cloud.points) > MAX_CLOUD_POINTS:  # every k-th point (row-major pixels, so spread evenly)
             cloud = cloud.uniform_down_sample(int(np.ceil(len(cloud.points) / MAX_CLOUD_POINTS)))
+    if normals:
+        estimate_normals(cloud)
+    return cloud
+
+
+def estimate_normals(cloud: o3d.geometry.PointCloud) -> o3d.geometry.PointCloud:
+    """``cloud`` (camera coordinates, m) given unit normals facing the camera, in place: the plane
+    of each point's ``NORMAL_MAX_NN`` nearest points within ``NORMAL_RADIUS`` (Open3D); returns it."""
     if len(cloud.points) >= 3:
         cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=NORMAL_RADIUS, max_nn=NORMAL_MAX_NN))
         cloud.orient_normals_towards_camera_location(np.zeros(3))
@@ -363,10 +375,10 @@ def register_frames(capture, *, strict: bool = False, max_depth: float = 3.0,
     """
     n = capture.n_frames
     K = np.asarray(capture.depth_K(), dtype=np.float64)
-    clouds = [cloud_pyramid(depth_cloud(capture.depth_array(i), K, max_depth, capture.color_array(i),
-                                        frame_region(capture, i), ICP_VOXELS[-1])) for i in range(n)]
-    if len(clouds[0][-1].points) < MIN_POINTS:
-        raise OdometryError(f"the reference frame 0 has only {len(clouds[0][-1].points)} valid depth points below "
+    clouds = _FramePyramids([depth_cloud(capture.depth_array(i), K, max_depth, capture.color_array(i),
+                                         frame_region(capture, i), ICP_VOXELS[-1], normals=False) for i in range(n)])
+    if len(clouds.finest[0].points) < MIN_POINTS:
+        raise OdometryError(f"the reference frame 0 has only {len(clouds.finest[0].points)} valid depth points below "
                             f"{max_depth} m (at least {MIN_POINTS} are needed): {FIXES['points']}, so that another "
                             "frame becomes the reference")
     result = FrameRegistration(frames=[0], poses=np.eye(4)[None], steps={0: "reference"})
@@ -399,19 +411,59 @@ def frame_region(capture, i: int) -> np.ndarray | None:
     return None if mask is None or not mask.any() else registration_region(mask, capture.depth_size)
 
 
-def _register_frame(clouds: list, i: int, result: FrameRegistration) -> list[Attempt]:
-    """The chain for frame i (see the module docstring); the last attempt is the accepted one if any."""
+class _FramePyramids:
+    """Each frame's :func:`cloud_pyramid`, built once from its finest cloud (``finest``, made without
+    normals), with the normals estimated only for a frame that becomes an ICP target (point-to-plane
+    and coloured ICP use the target's normals only): on a capture every step registers, the
+    reference alone."""
+
+    def __init__(self, finest: list):
+        self.finest = finest
+        self._pyramids: dict = {}
+
+    def source(self, i: int) -> tuple:
+        """Frame i's pyramid, with or without normals."""
+        if i not in self._pyramids:
+            self._pyramids[i] = cloud_pyramid(self.finest[i])
+        return self._pyramids[i]
+
+    def target(self, i: int) -> tuple:
+        """Frame i's pyramid with normals (the coarse levels average the finest level's)."""
+        if not self.finest[i].has_normals() and len(self.finest[i].points) >= 3:
+            estimate_normals(self.finest[i])
+            self._pyramids.pop(i, None)
+        return self.source(i)
+
+
+def _onto(clouds: _FramePyramids, i: int, k: int, start: np.ndarray, step: str) -> Attempt:
+    """ICP of frame i's cloud onto frame k's (so that only k needs normals), returned as the frame k
+    -> frame i transform that ``start`` estimates, judged against ``start``."""
+    found = register(clouds.source(i), clouds.target(k), np.linalg.inv(start), step)
+    T = np.linalg.inv(found.T)
+    if found.kind in (None, "step"):  # judged again in this direction (the same rotation, another shift)
+        return _judge(step, T, found.fitness, start)
+    return Attempt(step, T, found.fitness, found.failure, found.kind)
+
+
+def _register_frame(clouds: _FramePyramids, i: int, result: FrameRegistration) -> list[Attempt]:
+    """The chain for frame i (see the module docstring); the last attempt is the accepted one if any.
+
+    Each step registers frame i's cloud onto the other frame's and inverts the result, so that the
+    frames' normals are estimated only for the reference (and a previous frame a chained step
+    uses): on the D415 render 1 cloud's normals instead of 20.
+    """
     previous, T_previous = result.frames[-1], result.poses[-1]
-    attempts = [register(clouds[0], clouds[i], T_previous, "ICP to the reference frame 0")]
+    attempts = [_onto(clouds, i, 0, T_previous, "ICP to the reference frame 0")]
     if previous != 0 and attempts[-1].failure is not None:
-        chained = register(clouds[previous], clouds[i], np.eye(4), f"ICP to frame {previous}")
+        chained = _onto(clouds, i, previous, np.eye(4), f"ICP to frame {previous}")
         chained.T = chained.T @ T_previous
         attempts.append(chained)
     if attempts[-1].failure is not None:
         # ICP results refused only for their step size are candidates the global step verifies
-        candidates = [a.T for a in attempts if a.kind == "step"]
-        found = register_globally(clouds[0], clouds[i], candidates,
+        candidates = [np.linalg.inv(a.T) for a in attempts if a.kind == "step"]
+        found = register_globally(clouds.source(i), clouds.target(0), candidates,
                                   "global registration (FPFH + RANSAC, coloured ICP) to frame 0")
+        found.T = np.linalg.inv(found.T)
         attempts.append(found)
     return attempts
 
