@@ -13,8 +13,9 @@ are 0.9-4.5 deg off (a margin of table around the object, 8 % of its size, gave 
 
 Each ICP runs coarse to fine on a pyramid of voxel-downsampled clouds (:func:`cloud_pyramid`,
 ``ICP_VOXELS``: 6 mm, 3 mm, 1 mm), built once per frame, with normals estimated once on the finest
-cloud: the cost is bounded by the object's area rather than the pixel count (a rendered
-2-megapixel capture's 20 frames register in 2.7 s of CPU, 2.7x less than full-resolution ICP
+cloud of each frame that is an ICP target (every frame but the reference, only ever a source):
+the cost is bounded by the object's area rather than the pixel count (a rendered 2-megapixel
+capture's 20 frames register in 2.7 s of CPU, 2.7x less than full-resolution ICP
 at aacda76 in the same run, with the same pose errors; ``benchmarks/results/registration.json``).
 Open3D's ICP releases the GIL but already runs on every core (OpenMP), so frames are registered
 one after the other.
@@ -414,8 +415,8 @@ def frame_region(capture, i: int) -> np.ndarray | None:
 class _FramePyramids:
     """Each frame's :func:`cloud_pyramid`, built once from its finest cloud (``finest``, made without
     normals), with the normals estimated only for a frame that becomes an ICP target (point-to-plane
-    and coloured ICP use the target's normals only): on a capture every step registers, the
-    reference alone."""
+    and coloured ICP use the target's normals only): the reference, only ever a source, gets none
+    (the normals of 19 clouds instead of 20 on a 20-frame capture; the same poses to 1e-15)."""
 
     def __init__(self, finest: list):
         self.finest = finest
@@ -435,35 +436,19 @@ class _FramePyramids:
         return self.source(i)
 
 
-def _onto(clouds: _FramePyramids, i: int, k: int, start: np.ndarray, step: str) -> Attempt:
-    """ICP of frame i's cloud onto frame k's (so that only k needs normals), returned as the frame k
-    -> frame i transform that ``start`` estimates, judged against ``start``."""
-    found = register(clouds.source(i), clouds.target(k), np.linalg.inv(start), step)
-    T = np.linalg.inv(found.T)
-    if found.kind in (None, "step"):  # judged again in this direction (the same rotation, another shift)
-        return _judge(step, T, found.fitness, start)
-    return Attempt(step, T, found.fitness, found.failure, found.kind)
-
-
 def _register_frame(clouds: _FramePyramids, i: int, result: FrameRegistration) -> list[Attempt]:
-    """The chain for frame i (see the module docstring); the last attempt is the accepted one if any.
-
-    Each step registers frame i's cloud onto the other frame's and inverts the result, so that the
-    frames' normals are estimated only for the reference (and a previous frame a chained step
-    uses): on the D415 render 1 cloud's normals instead of 20.
-    """
+    """The chain for frame i (see the module docstring); the last attempt is the accepted one if any."""
     previous, T_previous = result.frames[-1], result.poses[-1]
-    attempts = [_onto(clouds, i, 0, T_previous, "ICP to the reference frame 0")]
+    attempts = [register(clouds.source(0), clouds.target(i), T_previous, "ICP to the reference frame 0")]
     if previous != 0 and attempts[-1].failure is not None:
-        chained = _onto(clouds, i, previous, np.eye(4), f"ICP to frame {previous}")
+        chained = register(clouds.source(previous), clouds.target(i), np.eye(4), f"ICP to frame {previous}")
         chained.T = chained.T @ T_previous
         attempts.append(chained)
     if attempts[-1].failure is not None:
         # ICP results refused only for their step size are candidates the global step verifies
-        candidates = [np.linalg.inv(a.T) for a in attempts if a.kind == "step"]
-        found = register_globally(clouds.source(i), clouds.target(0), candidates,
+        candidates = [a.T for a in attempts if a.kind == "step"]
+        found = register_globally(clouds.source(0), clouds.target(i), candidates,
                                   "global registration (FPFH + RANSAC, coloured ICP) to frame 0")
-        found.T = np.linalg.inv(found.T)
         attempts.append(found)
     return attempts
 
