@@ -13,8 +13,9 @@ are 0.9-4.5 deg off (a margin of table around the object, 8 % of its size, gave 
 
 Each ICP runs coarse to fine on a pyramid of voxel-downsampled clouds (:func:`cloud_pyramid`,
 ``ICP_VOXELS``: 6 mm, 3 mm, 1 mm), built once per frame, with normals estimated once on the finest
-cloud: the cost is bounded by the object's area rather than the pixel count (a rendered
-2-megapixel capture's 20 frames register in 2.7 s of CPU, 2.7x less than full-resolution ICP
+cloud of each frame that is an ICP target (every frame but the reference, only ever a source):
+the cost is bounded by the object's area rather than the pixel count (a rendered 2-megapixel
+capture's 20 frames register in 2.7 s of CPU, 2.7x less than full-resolution ICP
 at aacda76 in the same run, with the same pose errors; ``benchmarks/results/registration.json``).
 Open3D's ICP releases the GIL but already runs on every core (OpenMP), so frames are registered
 one after the other.
@@ -146,7 +147,8 @@ def registration_region(mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 
 def depth_cloud(depth: np.ndarray, K: np.ndarray, max_depth: float = 3.0,
                 color: np.ndarray | None = None, region: np.ndarray | None = None,
-                voxel: float | None = None, pixel_stride: int = 1) -> o3d.geometry.PointCloud:
+                voxel: float | None = None, pixel_stride: int = 1,
+                normals: bool = True) -> o3d.geometry.PointCloud:
     """Denoised point cloud with camera-facing normals (and colours) of one depth frame.
 
     Parameters
@@ -168,6 +170,9 @@ def depth_cloud(depth: np.ndarray, K: np.ndarray, max_depth: float = 3.0,
     pixel_stride : int, optional
         Keep every k-th pixel of every k-th row only (after the smoothing): a cloud that the
         voxel and ``MAX_CLOUD_POINTS`` thin anyway, made for less (1: every pixel).
+    normals : bool, optional
+        Estimate the normals (:func:`estimate_normals`); False leaves them out (a cloud that is
+        only ever an ICP source needs none).
 
     Returns
     -------
@@ -197,6 +202,14 @@ def depth_cloud(depth: np.ndarray, K: np.ndarray, max_depth: float = 3.0,
         cloud = cloud.voxel_down_sample(voxel)
         if len(cloud.points) > MAX_CLOUD_POINTS:  # every k-th point (row-major pixels, so spread evenly)
             cloud = cloud.uniform_down_sample(int(np.ceil(len(cloud.points) / MAX_CLOUD_POINTS)))
+    if normals:
+        estimate_normals(cloud)
+    return cloud
+
+
+def estimate_normals(cloud: o3d.geometry.PointCloud) -> o3d.geometry.PointCloud:
+    """``cloud`` (camera coordinates, m) given unit normals facing the camera, in place: the plane
+    of each point's ``NORMAL_MAX_NN`` nearest points within ``NORMAL_RADIUS`` (Open3D); returns it."""
     if len(cloud.points) >= 3:
         cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=NORMAL_RADIUS, max_nn=NORMAL_MAX_NN))
         cloud.orient_normals_towards_camera_location(np.zeros(3))
@@ -363,10 +376,10 @@ def register_frames(capture, *, strict: bool = False, max_depth: float = 3.0,
     """
     n = capture.n_frames
     K = np.asarray(capture.depth_K(), dtype=np.float64)
-    clouds = [cloud_pyramid(depth_cloud(capture.depth_array(i), K, max_depth, capture.color_array(i),
-                                        frame_region(capture, i), ICP_VOXELS[-1])) for i in range(n)]
-    if len(clouds[0][-1].points) < MIN_POINTS:
-        raise OdometryError(f"the reference frame 0 has only {len(clouds[0][-1].points)} valid depth points below "
+    clouds = _FramePyramids([depth_cloud(capture.depth_array(i), K, max_depth, capture.color_array(i),
+                                         frame_region(capture, i), ICP_VOXELS[-1], normals=False) for i in range(n)])
+    if len(clouds.finest[0].points) < MIN_POINTS:
+        raise OdometryError(f"the reference frame 0 has only {len(clouds.finest[0].points)} valid depth points below "
                             f"{max_depth} m (at least {MIN_POINTS} are needed): {FIXES['points']}, so that another "
                             "frame becomes the reference")
     result = FrameRegistration(frames=[0], poses=np.eye(4)[None], steps={0: "reference"})
@@ -399,18 +412,42 @@ def frame_region(capture, i: int) -> np.ndarray | None:
     return None if mask is None or not mask.any() else registration_region(mask, capture.depth_size)
 
 
-def _register_frame(clouds: list, i: int, result: FrameRegistration) -> list[Attempt]:
+class _FramePyramids:
+    """Each frame's :func:`cloud_pyramid`, built once from its finest cloud (``finest``, made without
+    normals), with the normals estimated only for a frame that becomes an ICP target (point-to-plane
+    and coloured ICP use the target's normals only): the reference, only ever a source, gets none
+    (the normals of 19 clouds instead of 20 on a 20-frame capture; the same poses to 1e-15)."""
+
+    def __init__(self, finest: list):
+        self.finest = finest
+        self._pyramids: dict = {}
+
+    def source(self, i: int) -> tuple:
+        """Frame i's pyramid, with or without normals."""
+        if i not in self._pyramids:
+            self._pyramids[i] = cloud_pyramid(self.finest[i])
+        return self._pyramids[i]
+
+    def target(self, i: int) -> tuple:
+        """Frame i's pyramid with normals (the coarse levels average the finest level's)."""
+        if not self.finest[i].has_normals() and len(self.finest[i].points) >= 3:
+            estimate_normals(self.finest[i])
+            self._pyramids.pop(i, None)
+        return self.source(i)
+
+
+def _register_frame(clouds: _FramePyramids, i: int, result: FrameRegistration) -> list[Attempt]:
     """The chain for frame i (see the module docstring); the last attempt is the accepted one if any."""
     previous, T_previous = result.frames[-1], result.poses[-1]
-    attempts = [register(clouds[0], clouds[i], T_previous, "ICP to the reference frame 0")]
+    attempts = [register(clouds.source(0), clouds.target(i), T_previous, "ICP to the reference frame 0")]
     if previous != 0 and attempts[-1].failure is not None:
-        chained = register(clouds[previous], clouds[i], np.eye(4), f"ICP to frame {previous}")
+        chained = register(clouds.source(previous), clouds.target(i), np.eye(4), f"ICP to frame {previous}")
         chained.T = chained.T @ T_previous
         attempts.append(chained)
     if attempts[-1].failure is not None:
         # ICP results refused only for their step size are candidates the global step verifies
         candidates = [a.T for a in attempts if a.kind == "step"]
-        found = register_globally(clouds[0], clouds[i], candidates,
+        found = register_globally(clouds.source(0), clouds.target(i), candidates,
                                   "global registration (FPFH + RANSAC, coloured ICP) to frame 0")
         attempts.append(found)
     return attempts

@@ -116,12 +116,13 @@ def test_partway_moves_poses_along_their_twist():
 def test_levels_accelerated_by_light_model_size_and_memory(monkeypatch):
     from o3d_mvps.solver import acceleration
 
-    small, large = 89_619, 239_552  # the D415 render's finest level; the 2 MP render's level 1
+    small, large = 22_284, 89_619  # the D415 render's level 1 and finest level
     assert acceleration.level_accelerator("led", small).memory == acceleration.ANDERSON_MEMORY == 3
     assert acceleration.level_accelerator("sh", small) is not None
     assert acceleration.level_accelerator("point", small) is None  # static captures: as before (NOT_ACCELERATED)
     assert acceleration.level_accelerator("led", acceleration.ANDERSON_MAX_PIXELS) is not None
     assert acceleration.level_accelerator("led", acceleration.ANDERSON_MAX_PIXELS + 1) is None
-    assert acceleration.level_accelerator("led", large) is None  # its points were never kept
+    assert acceleration.level_accelerator("led", large) is None  # its one kept point left the result worse
+    assert acceleration.level_accelerator("led", 239_552) is None  # the 2 MP render's level 1: its points never kept
     monkeypatch.setattr(acceleration, "ANDERSON_MEMORY", 0)
     assert acceleration.level_accelerator("led", small) is None

@@ -560,6 +560,41 @@ def test_update_pose_depth_descends_and_recovers_kicked_poses(problem, project_a
     assert np.all(errors[0] < 0.03 * before) and np.all(errors[-1] <= 1.05 * errors[0]), (before, errors)
 
 
+def test_a_levels_joint_steps_keep_the_first_steps_prolongations(problem, monkeypatch):
+    """On a level of at most REUSE_HIERARCHY_MAX_PIXELS pixels the first joint step sets up its
+    AMG hierarchy and the next steps make it over (linear.galerkin_hierarchy), its finest matrix
+    let go between steps; their CG takes as many iterations (within REUSE_EXTRA_ITERATIONS) and
+    the steps the same energies (to 1e-4; CG stops at rtol 1e-2, so not to rounding) as with a
+    fresh set-up each step. Above that size no hierarchy is kept."""
+    from o3d_mvps.solver import joint, linear
+
+    made = []
+    over = linear.galerkin_hierarchy
+    monkeypatch.setattr(joint, "galerkin_hierarchy", lambda ml, m: made.append(m.shape) or over(ml, m))
+
+    def steps(level_problem):
+        est = kicked_estimate(level_problem)
+        ev = level_problem.evaluate(est)
+        rows = []
+        for _ in range(3):
+            est, ev, iterations = update_pose_depth(level_problem, est, ev, rtol=OPTIONS.joint_cg_tolerance,
+                                                    maxiter=OPTIONS.cg_max_iterations)
+            rows.append((ev.energy, iterations))
+        return rows
+
+    kept = steps(problem)
+    assert len(made) == 2  # steps 2 and 3
+    hierarchy, fresh = joint._kept_hierarchies[problem]
+    assert hierarchy.levels[0].A is None and fresh == kept[0][1]
+    monkeypatch.setattr(joint, "REUSE_HIERARCHY_MAX_PIXELS", 0)
+    other = LevelProblem(problem.level, problem.tau, problem.lam)
+    anew = steps(other)
+    assert len(made) == 2 and other not in joint._kept_hierarchies
+    assert kept[0] == anew[0]  # the first step: the same set-up
+    for (e_kept, n_kept), (e_anew, n_anew) in zip(kept[1:], anew[1:]):  # measured: 2e-6 relative, the same counts
+        assert e_kept == pytest.approx(e_anew, rel=1e-4) and n_kept <= n_anew + joint.REUSE_EXTRA_ITERATIONS
+
+
 def test_projecting_the_albedo_out_moves_it_with_the_step(problem):
     """With the albedo also off the truth (5 % ripple), one projected joint step removes over 99 %
     of the energy; the plain step, which holds the albedo, finds no step length that lowers it
@@ -823,12 +858,16 @@ def test_the_smoothness_hessian_is_not_held_through_the_solve_and_comes_back_the
     assert np.array_equal(prior.StS.toarray(), (prior.S.T @ prior.S).toarray())
 
 
-def test_weighing_a_rebuildable_smoothness_keeps_no_copy_and_gives_the_same_rows(level, rng):
+def test_weighing_a_rebuildable_smoothness_keeps_no_copy_and_gives_the_same_rows(level, rng, monkeypatch):
     """build_level's prior makes its unweighted S anew for each weighing (rebuild_smoothness_with)
-    instead of keeping a copy beside the weighted one: the weighted S, its S^T S and the
-    smoothness pattern are the same bit for bit as with the copy kept, and no unweighted copy is held."""
+    instead of keeping a copy beside the weighted one, on grids of more than
+    REBUILD_SMOOTHNESS_PIXELS (here 0): the weighted S, its S^T S and the smoothness pattern are
+    the same bit for bit as with the copy kept, and no unweighted copy is held."""
+    from o3d_mvps.solver import pyramid
     from o3d_mvps.solver.pyramid import build_level
     from o3d_mvps.solver.smoothness import second_differences
+
+    monkeypatch.setattr(pyramid, "REBUILD_SMOOTHNESS_PIXELS", 0)
 
     z0 = bump_depth().reshape(SIZE[0] // 2, 2, SIZE[1] // 2, 2).mean(axis=(1, 3))
     built = build_level(0, level.images, [None] * len(level.images), level.grid.mask, level.K, z0, 2)
@@ -845,3 +884,14 @@ def test_weighing_a_rebuildable_smoothness_keeps_no_copy_and_gives_the_same_rows
         assert "_S_unweighted" not in built.prior.__dict__ and "_S_unweighted" in kept.__dict__
         pattern = built.prior.smoothness_pattern
         assert np.array_equal(pattern.toarray(), kept.smoothness_pattern.toarray())
+    # up to REBUILD_SMOOTHNESS_PIXELS (the default: this grid) the unweighted S is held instead of
+    # made again at each weighing: the same weighted S bit for bit
+    monkeypatch.undo()
+    held = build_level(0, level.images, [None] * len(level.images), level.grid.mask, level.K, z0, 2)
+    assert held.grid.size <= pyramid.REBUILD_SMOOTHNESS_PIXELS
+    for sweep in range(3):
+        weights = rng.uniform(0.1, 1.0, held.grid.size)
+        held.prior.weigh_smoothness(weights)
+        kept.weigh_smoothness(weights)
+        assert "_S_unweighted" in held.prior.__dict__
+        assert np.array_equal(held.prior.S.indices, kept.S.indices) and np.array_equal(held.prior.S.data, kept.S.data)

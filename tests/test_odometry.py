@@ -195,3 +195,20 @@ def test_depth_cloud_pixel_stride_reads_every_kth_pixel():
     expected = every[(uu % 2 == 0) & (vv % 2 == 0)]
     np.testing.assert_allclose(strided, expected, atol=1e-12)
     assert 0.2 < len(strided) / len(every) < 0.3
+
+
+def test_reference_cloud_gets_no_normals_and_the_poses_stay(capture, monkeypatch):
+    """The reference, only ever an ICP source, is registered without normals: the other 7 frames'
+    normals are estimated, once each, and the poses equal those with every cloud's normals
+    estimated (as before) to 1e-12 (measured 9e-16: point-to-plane ICP reads the target's only)."""
+    estimated = []
+    estimate = odometry.estimate_normals
+    monkeypatch.setattr(odometry, "estimate_normals", lambda cloud: estimated.append(len(cloud.points)) or estimate(cloud))
+    result = register_frames(capture)
+    assert len(estimated) == capture.n_frames - 1
+    made = odometry.depth_cloud
+    monkeypatch.setattr(odometry, "depth_cloud", lambda *args, **kwargs: made(*args, **{**kwargs, "normals": True}))
+    everywhere = register_frames(capture)
+    assert len(estimated) == 2 * capture.n_frames - 1  # every cloud made with normals, none again
+    assert result.frames == everywhere.frames
+    np.testing.assert_allclose(result.poses, everywhere.poses, rtol=0, atol=1e-12)

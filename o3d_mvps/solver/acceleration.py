@@ -50,11 +50,14 @@ ANDERSON_REGULARISATION = 1e-8
 
 #: object pixels above which a level is not accelerated. Its points were refused on every large
 #: level measured: the 2 MP render's levels of 240k and 958k pixels (0 of 3 and 0 of 5 proposals
-#: kept; 60k: 0 of 4), while the D415 render's finest level (89 619 pixels) kept 1 of 5 and its
-#: coarser ones nearly all. A refused point leaves the sweep as it was, so such a level gives the
-#: same result without it, less the refusals' two energy evaluations each (2 MP: 11 CPU s) and
-#: the history (90 MB at 2 MP, where it took the peak from 3003 to 3091 MiB, past 3 GiB)
-ANDERSON_MAX_PIXELS = 150_000
+#: kept; 60k: 0 of 4). A refused point leaves the sweep as it was, so such a level gives the same
+#: result without it, less the refusals' two energy evaluations each (2 MP: 11 CPU s) and the
+#: history (90 MB at 2 MP, where it took the peak from 3003 to 3091 MiB, past 3 GiB). The D415
+#: render's finest level (89 619 pixels) kept 1 of 5, and that one point left the result worse:
+#: without it 1.29228 deg / 0.51822 mm against 1.29601 / 0.51865, in the same 6 sweeps, and 0.26
+#: main-thread s less (150 000 before). Its coarser levels (22 284 pixels and fewer) keep nearly
+#: all, as does the demo's finest level (640x480, about 22 000)
+ANDERSON_MAX_PIXELS = 50_000
 
 
 def level_accelerator(light_name: str, pixels: int) -> Anderson | None:

@@ -1286,6 +1286,32 @@ def jacobi_scaled_rows(indptr, data, omega, out):  # pragma: no cover - compiled
             out[jj] = (data[jj] * inv) * omega
 
 
+#: rows of A per parallel chunk of :func:`sparse_product_into` (each chunk zeroes one dense row)
+PRODUCT_CHUNK_ROWS = 256
+
+
+@numba.njit(parallel=True, cache=True)
+def sparse_product_into(a_indptr, a_indices, a_data, b_indptr, b_indices, b_data, c_indptr, c_indices, c_data,
+                        columns):  # pragma: no cover - compiled
+    """C = A B written into C's given pattern (CSR arrays; A (m, k), B (k, columns), C (m,
+    columns)): every entry of the product must lie in the pattern (one it lacks is lost), a
+    pattern entry the product lacks gets 0. Each row's entries are summed as scipy's
+    ``csr_matmat`` sums them (A's row in order, each B row in order, into a dense row), in
+    parallel over chunks of :data:`PRODUCT_CHUNK_ROWS` rows of A."""
+    m = a_indptr.size - 1
+    for chunk in numba.prange((m + PRODUCT_CHUNK_ROWS - 1) // PRODUCT_CHUNK_ROWS):
+        acc = np.zeros(columns)
+        for i in range(chunk * PRODUCT_CHUNK_ROWS, min(m, (chunk + 1) * PRODUCT_CHUNK_ROWS)):
+            for k in range(a_indptr[i], a_indptr[i + 1]):
+                a = a_data[k]
+                j = a_indices[k]
+                for l in range(b_indptr[j], b_indptr[j + 1]):
+                    acc[b_indices[l]] += a * b_data[l]
+            for k in range(c_indptr[i], c_indptr[i + 1]):
+                c_data[k] = acc[c_indices[k]]
+                acc[c_indices[k]] = 0.0
+
+
 @numba.njit(cache=True)
 def strong_connections(indptr, indices, data, theta):  # pragma: no cover - compiled
     """The pattern (indptr (N+1,), indices (nnz',)) of pyamg's symmetric strength of connection

@@ -16,6 +16,7 @@ from functools import partial
 import numpy as np
 import pyamg
 import scipy.sparse as sp
+from pyamg.relaxation.smoothing import change_smoothers
 import scipy.sparse.linalg as spla
 
 from ..model.arrays import array_module, contiguous, sparse_module
@@ -93,16 +94,17 @@ PLAIN_AMG_OPTIONS = dict(symmetry="symmetric", max_coarse=300, coarse_solver="sp
                          postsmoother=("gauss_seidel", {"sweep": "symmetric"}), improve_candidates=None)
 
 
-def amg_preconditioner(matrix: sp.csr_matrix, plain: bool = False) -> spla.LinearOperator:
+def amg_preconditioner(matrix: sp.csr_matrix, plain: bool = False, hierarchy=None) -> spla.LinearOperator:
     """One smoothed-aggregation AMG V-cycle (pyamg hierarchy, :data:`AMG_OPTIONS`, built by
-    :func:`smoothed_aggregation`; ``plain``: :func:`plain_aggregation`'s) as an SPD preconditioner.
+    :func:`smoothed_aggregation`; ``plain``: :func:`plain_aggregation`'s; ``hierarchy``: that
+    pyamg ``MultilevelSolver`` of ``matrix``, made by the caller) as an SPD preconditioner.
 
     The cycle is run here rather than through ``MultilevelSolver.aspreconditioner``, whose
     ``solve`` also computes two residuals and three norms per application (two extra
     fine-level products per CG iteration, about a quarter of the depth step's time).
     Aggregation ignores couplings weaker than :data:`STRENGTH_THETA` (rounding residues).
     """
-    ml = plain_aggregation(matrix) if plain else smoothed_aggregation(matrix)
+    ml = hierarchy if hierarchy is not None else plain_aggregation(matrix) if plain else smoothed_aggregation(matrix)
     # a module-level cycle, not a closure that calls itself: that closure is a reference cycle,
     # which kept every hierarchy (and its matrix: 95 MB at D415 size, 20 frames) alive after its
     # solve until the garbage collector's next full pass
@@ -138,9 +140,13 @@ def smoothed_aggregation(matrix: sp.csr_matrix):
 @contextmanager
 def _local_jacobi_smoother():
     """pyamg's prolongation smoother replaced by :func:`_jacobi_prolongation` while a
-    hierarchy is set up (and restored after, also on an error)."""
+    hierarchy is set up (and restored after, also on an error); pyamg's own where its module
+    does not name it so (another pyamg version)."""
     module = importlib.import_module("pyamg.aggregation.aggregation")
-    original = module.jacobi_prolongation_smoother
+    original = getattr(module, "jacobi_prolongation_smoother", None)
+    if original is None:
+        yield
+        return
     module.jacobi_prolongation_smoother = partial(_jacobi_prolongation, original)
     try:
         yield
@@ -166,6 +172,58 @@ def _jacobi_prolongation(original, S, T, C, B, omega=4.0 / 3.0, degree=1, filter
     host_kernels.jacobi_scaled_rows(S.indptr, S.data, float(omega), data)
     scaled = type(S)((data, S.indices, S.indptr), shape=S.shape, copy=False)
     return T - (scaled @ T)
+
+
+#: the smoothers of pyamg's smoothed aggregation (its default, which :data:`AMG_OPTIONS` keeps):
+#: symmetric Gauss-Seidel before and after the coarse correction
+SA_SMOOTHER = ("block_gauss_seidel", {"sweep": "symmetric"})
+
+
+def galerkin_hierarchy(ml, matrix: sp.csr_matrix):
+    """The hierarchy ``ml`` (of :func:`smoothed_aggregation`, for another matrix of the same
+    size and pattern) made over for ``matrix`` (N, N): its prolongations P and restrictions R
+    kept, each coarser matrix formed anew as ``R A P`` (CSR, sorted), the smoothers and the
+    coarse solve set up anew (P and R made CSR; each R A P by :func:`_galerkin_product`). A
+    V-cycle for ``matrix`` without the prolongations' Jacobi smoothing, the candidates'
+    improvement and the aggregation (at the D415's 89 619 unknowns 18 ms against a fresh set-up's
+    86-103, once the products' patterns are held); a preconditioner as good as the fresh one where the
+    matrices differ little (the joint steps of a level: :mod:`.joint`). ``ml``'s levels are
+    taken over (not copied). Returns a ``pyamg.multilevel.MultilevelSolver``."""
+    levels = ml.levels
+    levels[0].A = matrix
+    for fine, coarse in zip(levels[:-1], levels[1:]):
+        coarse.A = _galerkin_product(fine, sp.csr_matrix(fine.A))
+    made = pyamg.multilevel.MultilevelSolver(levels, coarse_solver=AMG_OPTIONS["coarse_solver"])
+    change_smoothers(made, AMG_OPTIONS.get("presmoother", SA_SMOOTHER), AMG_OPTIONS.get("postsmoother", SA_SMOOTHER))
+    return made
+
+
+def _galerkin_product(level, A: sp.csr_matrix) -> sp.csr_matrix:
+    """``R A P`` (n, n) CSR, sorted, of a pyamg level's P and R (made CSR once, held on the
+    level) and A (N, N) CSR: the first time by scipy's products, whose patterns (of A P and of R A
+    P) the level then holds with A's, and for an A of that same pattern again by
+    :func:`.kernels.sparse_product_into` on both kernel threads, into those patterns (the same
+    sums as scipy's in the same order)."""
+    if not isinstance(level.P, sp.csr_matrix):
+        level.P, level.R = sp.csr_matrix(level.P), sp.csr_matrix(level.R)
+    P, R = level.P, level.R
+    held = getattr(level, "galerkin_patterns", None)
+    if held is None or not (np.array_equal(held[0], A.indptr) and np.array_equal(held[1], A.indices)):
+        AP = A @ P
+        AP.sort_indices()
+        RAP = R @ AP
+        RAP.sort_indices()
+        level.galerkin_patterns = (A.indptr, A.indices, AP.indptr, AP.indices, RAP.indptr, RAP.indices)
+        return RAP
+    _, _, ap_indptr, ap_indices, rap_indptr, rap_indices = held
+    n = P.shape[1]
+    ap = np.empty(ap_indices.size)
+    host_kernels.sparse_product_into(A.indptr, A.indices, A.data, P.indptr, P.indices, P.data, ap_indptr, ap_indices,
+                                     ap, n)
+    rap = np.empty(rap_indices.size)
+    host_kernels.sparse_product_into(R.indptr, R.indices, R.data, ap_indptr, ap_indices, ap, rap_indptr, rap_indices,
+                                     rap, n)
+    return sp.csr_matrix((rap, rap_indices, rap_indptr), shape=(n, n), copy=False)
 
 
 def plain_aggregation(matrix: sp.csr_matrix):
@@ -241,11 +299,13 @@ FIRST_CHECK = 6
 
 
 def solve_spd(matrix, rhs: np.ndarray, rtol: float, maxiter: int, sparse_part=None,
-              pixel_prolongations: Callable[[], list] | None = None, plain: bool = False) -> tuple[np.ndarray, int]:
+              pixel_prolongations: Callable[[], list] | None = None, plain: bool = False,
+              hierarchy=None) -> tuple[np.ndarray, int]:
     """PCG from zero on ``matrix`` ((N, N) sparse SPD, or an operator whose sparse part
     ``sparse_part`` the AMG hierarchy is built from), preconditioned by a hierarchy built for
     this system; returns (x, iterations). plain: on the host, a plain-aggregation hierarchy
-    (:func:`plain_aggregation`: a static camera's depth steps).
+    (:func:`plain_aggregation`: a static camera's depth steps). hierarchy: on the host, the
+    pyamg hierarchy of ``sparse_part`` to use instead (the caller's: :func:`galerkin_hierarchy`).
 
     On the CUDA path (:func:`.device.on_gpu`), where pyamg cannot run, the hierarchy is the
     geometric multigrid of :mod:`.krylov` (3 Chebyshev steps before and after, the measured
@@ -260,7 +320,8 @@ def solve_spd(matrix, rhs: np.ndarray, rtol: float, maxiter: int, sparse_part=No
     (docs/performance.md, "2 MP joint step: AMG set-up per sweep") matched a fresh hierarchy's
     iterations on saved 2 MP systems at an eighth of the set-up, but on 2 MP x 20 frames its
     1-3-iteration solves on the two finest levels took other, worse steps (why is not known):
-    45 sweeps against 37, 4.93 deg against 4.42.
+    45 sweeps against 37, 4.93 deg against 4.42. The joint step does so on smaller levels
+    (:data:`.joint.REUSE_HIERARCHY_MAX_PIXELS`), passing the hierarchy in.
     """
     sparse = matrix if sparse_part is None else sparse_part
     if on_gpu(rhs):
@@ -272,7 +333,7 @@ def solve_spd(matrix, rhs: np.ndarray, rtol: float, maxiter: int, sparse_part=No
                                       first_check=max(2, _CG_ITERATIONS.get(kind, FIRST_CHECK + 1) - 1))
         _CG_ITERATIONS[kind] = max(iterations, 1)
         return x, iterations
-    x, iterations, _ = pcg(matrix, rhs, np.zeros_like(rhs), rtol, maxiter, amg_preconditioner(sparse, plain))
+    x, iterations, _ = pcg(matrix, rhs, np.zeros_like(rhs), rtol, maxiter, amg_preconditioner(sparse, plain, hierarchy))
     return x, iterations
 
 

@@ -68,6 +68,14 @@ def gram(A) -> sp.csr_matrix:
     product.sort_indices()
     return product
 
+#: Grid pixels up to which a prior that can make its unweighted S again
+#: (:meth:`DepthPrior.rebuild_smoothness_with`) holds it instead: made anew at each weighing, the
+#: slope-weighted rows took 44 ms of serial work at the D415's 89 619 pixels, twice a level
+#: (:data:`.driver.EVIDENCE_SWEEPS`), for some 18 MB held there (1.4 M entries); a 2 MP level
+#: (77 MB) still makes it anew. The same matrix bit for bit either way.
+REBUILD_SMOOTHNESS_PIXELS = 262_144
+
+
 @dataclass
 class DepthPrior:
     """tau * || D z - z0 ||^2 + mu * || S z ||^2 on one level: D (M, N) sparse, z0 (M,) metres;
@@ -84,13 +92,13 @@ class DepthPrior:
         """Weight each second-difference row of the unweighted S by ``pixel_weights`` (N,) at its
         centre pixel (:func:`.smoothness.row_centres`; grid-mode rows keep theirs): the energy's
         mu ||S z||^2 becomes mu sum_k w_k (S z)_k^2; replaces the last weights. Where the prior
-        can make its unweighted S again (:meth:`rebuild_smoothness_with`)
-        it does so for each weighing instead of holding it beside the weighted one (77 MB at 2
-        megapixels, through the level's joint steps)."""
+        can make its unweighted S again (:meth:`rebuild_smoothness_with`) and its grid has more
+        than :data:`REBUILD_SMOOTHNESS_PIXELS` pixels it does so for each weighing instead of
+        holding it beside the weighted one (77 MB at 2 megapixels, through the level's joint steps)."""
         if self.S is None:
             return
         base = self._unweighted_smoothness()
-        if self.__dict__.get("_S_build") is None:
+        if self.__dict__.get("_S_build") is None or base.shape[1] <= REBUILD_SMOOTHNESS_PIXELS:
             self.__dict__.setdefault("_S_unweighted", base)
         entries = None
         if array_module(pixel_weights) is not np:  # once per level (set by on_device): each entry's row centre
@@ -121,8 +129,9 @@ class DepthPrior:
         """S before any weights: S itself until weighed, then the copy kept or made anew."""
         if not self.__dict__.get("_weighted"):
             return self.S
-        build = self.__dict__.get("_S_build")
-        return build() if build is not None else self.__dict__["_S_unweighted"]
+        if "_S_unweighted" in self.__dict__:
+            return self.__dict__["_S_unweighted"]
+        return self.__dict__["_S_build"]()
 
     def energy(self, z: np.ndarray, tau: float, mu: float) -> float:
         """tau ||D z - z0||^2 + mu ||S z||^2 of depth z (N,) metres."""
