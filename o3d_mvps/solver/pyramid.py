@@ -68,6 +68,7 @@ def gram(A) -> sp.csr_matrix:
     product.sort_indices()
     return product
 
+
 #: Grid pixels up to which a prior that can make its unweighted S again
 #: (:meth:`DepthPrior.rebuild_smoothness_with`) holds it instead: made anew at each weighing, the
 #: slope-weighted rows took 44 ms of serial work at the D415's 89 619 pixels, twice a level
