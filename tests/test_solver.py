@@ -225,13 +225,14 @@ def test_coarse_to_fine_runs_coarsest_first_and_passes_skipped_levels_on():
         coarse_to_fine(2, lambda index, carried: None)
 
 
-@pytest.mark.parametrize("static, megabytes", [(True, 2), (False, 9)])
+@pytest.mark.parametrize("static, megabytes", [(True, 4), (False, 9)])
 def test_return_freed_arrays_gives_freed_megabyte_arrays_back_to_the_system(static, megabytes):
     """After return_freed_arrays (glibc), arrays over its threshold (1 MB for a static camera's
     large frames, 8 MB for a moving camera's) freed between live ones leave the resident size
     (with glibc's default, once a 16 MB block has been freed, they stay in the heap, resident);
     24 of them freed must lower it by at least 75 % of their size (a margin for other threads of
-    the test process)."""
+    the test process: in the whole suite 16 MB of 48 came back late once, with 2 MB arrays; 4 MB
+    ones still lie between the two thresholds)."""
     from o3d_mvps.solver.driver import MMAP_MIN_PIXELS, return_freed_arrays
 
     def resident_mb() -> float:
