@@ -699,3 +699,31 @@ def test_the_priors_grams_are_those_of_the_csc_product_bit_for_bit():
         np.testing.assert_array_equal(found.indptr, expected.indptr)
         np.testing.assert_array_equal(found.indices, expected.indices)
         np.testing.assert_array_equal(found.data, expected.data)
+
+
+def test_galerkin_product_keeps_entries_the_first_product_cancelled():
+    """A first A whose stored zeros make some entries of A P and R A P sum to exactly 0 (scipy
+    drops them) must not leave the held patterns short: a second A of the same pattern without
+    those zeros gives R A P equal to scipy's (a pattern without them lost those entries and
+    carried their sums into the next row)."""
+    from types import SimpleNamespace
+
+    from o3d_mvps.solver import linear
+
+    rng = np.random.default_rng(3)
+    N, n = 60, 12
+    A2 = sp.random(N, N, density=0.15, random_state=4, format="csr") + sp.eye(N, format="csr")
+    A2.sort_indices()
+    A1 = A2.copy()
+    A1.data[rng.random(A1.data.size) < 0.5] = 0.0  # stored zeros: the same pattern, cancelled products
+    P = sp.random(N, n, density=0.1, random_state=5, format="csr")
+    level = SimpleNamespace(P=P, R=P.T.tocsr())
+    assert (A1 @ P).nnz < _structural_nnz(A1, P)  # scipy drops entries of the first A P
+    linear._galerkin_product(level, A1)
+    again = linear._galerkin_product(level, A2)
+    assert np.array_equal(again.toarray(), (level.R @ (A2 @ P)).toarray())
+
+
+def _structural_nnz(A, P) -> int:
+    ones = [sp.csr_matrix((np.ones(M.nnz), M.indices, M.indptr), shape=M.shape) for M in (A, P)]
+    return (ones[0] @ ones[1]).nnz

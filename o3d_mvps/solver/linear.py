@@ -200,10 +200,11 @@ def galerkin_hierarchy(ml, matrix: sp.csr_matrix):
 
 def _galerkin_product(level, A: sp.csr_matrix) -> sp.csr_matrix:
     """``R A P`` (n, n) CSR, sorted, of a pyamg level's P and R (made CSR once, held on the
-    level) and A (N, N) CSR: the first time by scipy's products, whose patterns (of A P and of R A
-    P) the level then holds with A's, and for an A of that same pattern again by
-    :func:`.kernels.sparse_product_into` on both kernel threads, into those patterns (the same
-    sums as scipy's in the same order)."""
+    level) and A (N, N) CSR: the first time by scipy's products, the level then holding A's pattern
+    and the structural patterns of A P and R A P (:func:`_product_pattern`: scipy drops the entries
+    whose sum is exactly 0, which a later A's values may not cancel), and for an A of that same
+    pattern again by :func:`.kernels.sparse_product_into` on both kernel threads, into those
+    patterns (the same sums as scipy's in the same order; an entry scipy drops is stored as 0)."""
     if not isinstance(level.P, sp.csr_matrix):
         level.P, level.R = sp.csr_matrix(level.P), sp.csr_matrix(level.R)
     P, R = level.P, level.R
@@ -213,7 +214,8 @@ def _galerkin_product(level, A: sp.csr_matrix) -> sp.csr_matrix:
         AP.sort_indices()
         RAP = R @ AP
         RAP.sort_indices()
-        level.galerkin_patterns = (A.indptr, A.indices, AP.indptr, AP.indices, RAP.indptr, RAP.indices)
+        ap_pattern = _product_pattern(A, P)
+        level.galerkin_patterns = (A.indptr, A.indices, *ap_pattern, *_product_pattern(R, ap_pattern, P.shape[1]))
         return RAP
     _, _, ap_indptr, ap_indices, rap_indptr, rap_indices = held
     n = P.shape[1]
@@ -224,6 +226,20 @@ def _galerkin_product(level, A: sp.csr_matrix) -> sp.csr_matrix:
     host_kernels.sparse_product_into(R.indptr, R.indices, R.data, ap_indptr, ap_indices, ap, rap_indptr, rap_indices,
                                      rap, n)
     return sp.csr_matrix((rap, rap_indices, rap_indptr), shape=(n, n), copy=False)
+
+
+def _product_pattern(X: sp.csr_matrix, Y, columns: int | None = None) -> tuple:
+    """(indptr, indices), columns sorted, of the structural pattern of X Y: every entry some pair
+    of stored entries reaches, also where their values would cancel (the product of X's and Y's
+    patterns with positive values). Y: a CSR matrix or an (indptr, indices) pattern of
+    ``columns`` columns."""
+    def ones(indptr, indices, shape):
+        return sp.csr_matrix((np.ones(indices.size), indices, indptr), shape=shape)
+
+    Y = ones(*Y, (X.shape[1], columns)) if isinstance(Y, tuple) else ones(Y.indptr, Y.indices, Y.shape)
+    product = ones(X.indptr, X.indices, X.shape) @ Y
+    product.sort_indices()
+    return product.indptr, product.indices
 
 
 def plain_aggregation(matrix: sp.csr_matrix):
