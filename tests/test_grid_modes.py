@@ -67,6 +67,35 @@ def test_evidence_weights_leave_the_grid_mode_rows_alone():
     assert smoothness.with_grid_modes(grid, S2, z0, np.eye(3), 1.0, weight=0.0) is S2
 
 
+def test_weighing_in_place_keeps_the_pattern_and_the_taps_come_back_bit_for_bit():
+    """weigh_smoothness scales each row's entries in place (S's index arrays shared, its
+    columns in order): the values of diags(w^0.5) @ S exactly; and from that weighted S
+    unweighted_second_differences gives the built S (second differences and grid-mode rows)
+    again bit for bit, sharing its index arrays, for each of three weighings in turn."""
+    grid = masked_grid(_disc())
+    z0 = 0.5 + 1e-3 * np.random.default_rng(1).normal(size=(20, 25))
+    K = np.array([[60.0, 0, 25], [0, 60.0, 20], [0, 0, 1]])
+    built = smoothness.with_grid_modes(grid, smoothness.second_differences(grid), z0, K, 2.0, weight=1000.0)
+    prior = DepthPrior(None, None, S=built.copy())
+    prior.rebuild_smoothness_with(lambda: smoothness.unweighted_second_differences(prior.S))
+    rng = np.random.default_rng(0)
+    for _ in range(3):
+        weights = rng.uniform(1, 50, grid.size)
+        prior.weigh_smoothness(weights)
+        row_weights = weights[smoothness.row_centres(built)]
+        row_weights[smoothness.grid_mode_row_flags(built)] = 1.0
+        assert np.array_equal(prior.S.indptr, built.indptr) and np.array_equal(prior.S.indices, built.indices)
+        product = sp.csr_matrix(sp.diags(row_weights ** 0.5) @ built)  # its columns come reversed
+        weighted = prior.S.copy()
+        for matrix in (product, weighted):
+            matrix.has_sorted_indices = False
+            matrix.sort_indices()
+        assert np.array_equal(weighted.data, product.data) and np.array_equal(weighted.indices, product.indices)
+        restored = smoothness.unweighted_second_differences(prior.S)
+        assert np.shares_memory(restored.indices, prior.S.indices) and np.array_equal(restored.data, built.data)
+        assert not np.array_equal(prior.S.data, built.data)
+
+
 def test_grid_mode_amplitude_measures_a_planted_mode():
     """On a tilted, curved surface (depth 0.5 m) the measure is below 0.01 um; planted modes of
     3 um (checkerboard) and 2 um (along rows) read back to 1 %."""

@@ -18,6 +18,10 @@ from ..model.normals import MaskedGrid
 from ..model.resampling import fill_nearest_valid
 
 
+#: the taps of a :func:`second_differences` row, on its columns in ascending order
+SECOND_DIFFERENCE_TAPS = (1.0, -2.0, 1.0)
+
+
 def second_differences(grid: MaskedGrid) -> sp.csr_matrix:
     """S (K, N): the second differences z[p-1] - 2 z[p] + z[p+1] along rows and along columns, at
     every masked pixel whose two neighbours in that direction are masked (metres for z in metres)."""
@@ -25,7 +29,22 @@ def second_differences(grid: MaskedGrid) -> sp.csr_matrix:
     centres = [own[(wf == 0.5) & (wb == 0.5)] for wf, wb in ((grid.wf_u, grid.wb_u), (grid.wf_v, grid.wb_v))]
     return _stencil_rows([[bwd[both], both, fwd[both]] for both, fwd, bwd in
                           zip(centres, (grid.fwd_u, grid.fwd_v), (grid.bwd_u, grid.bwd_v))],
-                         np.array([1.0, -2.0, 1.0]), grid.size)
+                         np.array(SECOND_DIFFERENCE_TAPS), grid.size)
+
+
+def unweighted_second_differences(S: sp.csr_matrix) -> sp.csr_matrix:
+    """The smoothness matrix (K, N) of :func:`second_differences` (and :func:`with_grid_modes`'
+    rows below it) again from ``S``, the same rows weighted in place (each row's entries scaled by
+    its weight, the columns kept in order; the grid-mode rows, of 5 entries, by exactly 1): the
+    taps :data:`SECOND_DIFFERENCE_TAPS` put back in every 3-entry row, the other rows as they are.
+    The same matrix bit for bit as the one built, sharing ``S``'s index arrays (a new data array
+    only). Not for slope-weighted rows (:func:`smoothness_rows`), whose values are not taps."""
+    data = S.data.copy()
+    counts = np.diff(S.indptr)
+    starts = S.indptr[:-1][counts == 3]
+    for k, tap in enumerate(SECOND_DIFFERENCE_TAPS):
+        data[starts + k] = tap
+    return sp.csr_matrix((data, S.indices, S.indptr), shape=S.shape)
 
 
 def _stencil_rows(columns: list, taps: np.ndarray, n: int) -> sp.csr_matrix:
