@@ -29,7 +29,7 @@ from .lighting import LIGHT_MODELS, make_light_model, update_led_offset
 from .point_light import fit_point_lights, initial_point_lights
 from .problem import Estimate, LevelProblem
 from .problem_input import SolverInput
-from .pyramid import build_level, level_size
+from .pyramid import build_level, level_mask, level_size
 from .reflectance import update_albedo, update_lighting
 
 #: object pixels of the level the models are fitted on (the coarsest level with at least this many)
@@ -109,17 +109,17 @@ def select_light_model(problem_input: SolverInput, ref_mask: np.ndarray, declare
 
 
 def _selection_level(problem_input: SolverInput, ref_mask: np.ndarray):
-    """The coarsest pyramid level with at least :data:`LEVEL_PIXELS` object pixels (else the finest)."""
-    z0 = problem_input.depths[0].astype(np.float64)
+    """The coarsest pyramid level with at least :data:`LEVEL_PIXELS` object pixels (else the finest),
+    found from the reference mask alone (:func:`.pyramid.level_mask`) and then built: the levels
+    passed over are not built (each one every frame's images resized: 2 MP, 20 frames, 0.7 of the
+    selection's 1.2 CPU s)."""
     index = 0
     while min(level_size(ref_mask.shape, index + 1)) >= 8:
         index += 1
-    while True:
-        level = build_level(index, problem_input.colors, problem_input.masks, ref_mask, problem_input.K, z0,
-                            problem_input.scale_factor)
-        if level.grid.size >= LEVEL_PIXELS or index == 0:
-            return level
+    while index > 0 and np.count_nonzero(level_mask(ref_mask, index)) < LEVEL_PIXELS:
         index -= 1
+    return build_level(index, problem_input.colors, problem_input.masks, ref_mask, problem_input.K,
+                       problem_input.depths[0].astype(np.float64), problem_input.scale_factor)
 
 
 def _held_out_score(problem_input: SolverInput, level, name: str, held_out: np.ndarray, samples,

@@ -351,6 +351,12 @@ class Level:
                        image_stack=stack, prior=self.prior.on_device(device))
 
 
+def level_mask(ref_mask: np.ndarray, index: int) -> np.ndarray:
+    """The reference mask (H, W) bool on level ``index``: area-averaged, more than half inside
+    (the object pixels of :func:`build_level`'s grid)."""
+    return resize(ref_mask.astype(np.float32), level_size(ref_mask.shape, index)) > 0.5
+
+
 def build_level(index: int, colors: list, masks: list, ref_mask: np.ndarray, K: np.ndarray, z0: np.ndarray,
                 scale_factor: int, scheme: str = "central", envelope_margin: float | None = None,
                 slope_weighted: bool = False, grid_modes: Callable[[int], float] | None = None) -> Level:
@@ -367,8 +373,7 @@ def build_level(index: int, colors: list, masks: list, ref_mask: np.ndarray, K: 
               else resize(color, size).astype(np.float32) for color in colors]
     frame_masks = [m if m is None or m.shape == tuple(size) else resize(m.astype(np.float32), size) > 0.5
                    for m in masks]  # the finest level reads the masks themselves
-    mask = resize(ref_mask.astype(np.float32), size) > 0.5
-    grid = masked_grid(mask, scheme)
+    grid = masked_grid(level_mask(ref_mask, index), scheme)
     prior = depth_prior(grid, z0, scale_factor / 2**index)
     grid_mode_weight = 0.0 if grid_modes is None else grid_modes(grid.size)
 
