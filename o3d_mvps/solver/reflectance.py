@@ -36,39 +36,18 @@ def refit_albedo(problem, est: Estimate, ev: Evaluation) -> Evaluation:
 def update_lighting(est: Estimate, ev: Evaluation, lam: float, light) -> np.ndarray:
     """The lights (n, k) minimising sum_{i,p,c} w (I~ - rho_c <l_i, B_i>)^2 under the light
     model ``light``'s constraint (:meth:`~.lighting.SHLight.fit`: per frame, or one light for
-    all), B_i the light basis; frames with fewer than 8 usable pixels keep their light."""
+    all), B_i the light basis; frames with fewer than 8 usable pixels keep their light.
+
+    Every frame's system in one compiled pass (:func:`.kernels.lighting_sums`; on a GPU one launch
+    and one copy): on the host it replaced a loop of five passes a frame (the IRLS weights'
+    sums, a cast and a scaling of the basis, two BLAS products): 2 MP, 20 frames 0.26 -> 0.05 CPU s
+    a call, the same systems to round-off (their sums in another order)."""
     xp = array_module(ev.residual)
-    albedo = contiguous(est.albedo)
     n, k = est.lights.shape
-    gram, rhs = np.zeros((n, k, k)), np.zeros((n, k))
-    if on_gpu(ev.residual):  # every frame's system in one launch and one copy (the host's loop: 5 a frame)
-        kernels = kernels_for(ev.residual)
-        partials = xp.empty((n, kernels.lighting_blocks(ev.usable.shape[1]), k * k + k + 1))
-        kernels.lighting_sums(ev.residual, ev.usable, ev.color, albedo, 1.0 / lam, ev.basis, partials)
-        sums = to_host(partials).sum(axis=1)  # (n, k k + k + 1)
-        gram, rhs, counts = sums[:, :k * k].reshape(n, k, k), sums[:, k * k:k * k + k], sums[:, -1]
-        gram[counts < 8], rhs[counts < 8] = 0.0, 0.0
-        return light.fit(gram, rhs, est.lights)
-    # on the host a frame at a time: the sums of one frame (1, N) each, not of all (2 x 160 MB
-    # at 2 MP and 20 frames); the same values
-    N = ev.usable.shape[1]
-    wr2, wri = np.empty((1, N)), np.empty((1, N))
-    # the basis in float64 (transposed, as NumPy's cast inside ``m.T @ wri`` laid it out) and
-    # scaled by the weights, in buffers shared by the frames: fresh per frame, each (15 MB at
-    # 2 MP) was mapped and faulted in anew (three a frame, with the casts inside the products);
-    # the same products on the same layouts, so the same values bit for bit
-    basis_t, scaled = None, np.empty((N, k))
-    counts = ev.usable.sum(axis=1)
-    for i in range(n):
-        if counts[i] >= 8:
-            frame = slice(i, i + 1)
-            kernels_for(wr2).weighted_lighting_sums(ev.residual[frame], ev.usable[frame], ev.color[frame], albedo,
-                                                    1.0 / lam, wr2, wri)
-            m = ev.frame_basis(i)  # (N, k)
-            if m.dtype != np.float64:
-                basis_t = np.empty((k, N)) if basis_t is None else basis_t
-                basis_t[...] = m.T
-                m = basis_t.T
-            np.multiply(m, wr2[0][:, None], out=scaled)
-            gram[i], rhs[i] = scaled.T @ m, m.T @ wri[0]
+    kernels = kernels_for(ev.residual)
+    partials = xp.empty((n, kernels.lighting_blocks(ev.usable.shape[1]), k * k + k + 1))
+    kernels.lighting_sums(ev.residual, ev.usable, ev.color, contiguous(est.albedo), 1.0 / lam, ev.basis, partials)
+    sums = to_host(partials).sum(axis=1)  # (n, k k + k + 1)
+    gram, rhs, counts = sums[:, :k * k].reshape(n, k, k), sums[:, k * k:k * k + k], sums[:, -1]
+    gram[counts < 8], rhs[counts < 8] = 0.0, 0.0
     return light.fit(gram, rhs, est.lights)
