@@ -172,6 +172,52 @@ def test_warp_with_identity_and_occlusion_test():
     assert not visible(u, v, Z, SIZE, sensor_depth=sensor, sensor_uv=(su, sv)).any()
 
 
+def _visible_by_arrays(u, v, Z, size, rel_tol, sensor_depth, sensor_uv, frame_mask, zbuffer):
+    """The occlusion test of ``visible`` written with NumPy arrays (its form before the compiled
+    pass): the reference the compiled pass must equal bit for bit."""
+    H, W = size
+    with np.errstate(invalid="ignore"):
+        ok = (Z > 1e-6) & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
+    iu = np.rint(np.where(ok, u, 0)).astype(np.int64)
+    iv = np.rint(np.where(ok, v, 0)).astype(np.int64)
+    tol = rel_tol * np.abs(Z)
+    if zbuffer:
+        zbuf = np.full(H * W, np.inf)
+        np.minimum.at(zbuf, (iv * W + iu)[ok], Z[ok])
+        ok &= Z <= zbuf[iv * W + iu] + tol
+    if sensor_depth is not None:
+        h, w = sensor_depth.shape
+        with np.errstate(invalid="ignore"):
+            su = np.clip(np.rint(np.where(ok, sensor_uv[0], 0)), 0, w - 1).astype(np.int64)
+            sv = np.clip(np.rint(np.where(ok, sensor_uv[1], 0)), 0, h - 1).astype(np.int64)
+        d = sensor_depth[sv, su]
+        ok &= (d <= 0) | (Z <= d + tol)
+    if frame_mask is not None:
+        ok &= frame_mask[iv, iu]
+    return ok
+
+
+@pytest.mark.parametrize("zbuffer", [True, False])
+def test_visible_is_the_array_formula_bit_for_bit(zbuffer):
+    """The compiled occlusion test gives the mask of the NumPy formula on 200 000 random points:
+    outside the image and behind the camera, NaN depths, pixel ties (x.5: rint rounds half to even),
+    many points a pixel (the z-buffer), with and without a sensor depth and a frame mask."""
+    rng = np.random.default_rng(0)
+    H, W, N = 60, 80, 200_000
+    u, v, Z = rng.uniform(-5, W + 5, N), rng.uniform(-5, H + 5, N), rng.uniform(-0.1, 1.0, N)
+    u[::97], Z[::1001] = np.round(u[::97]) + 0.5, np.nan
+    sensor = rng.uniform(-0.1, 1.0, (12, 16)).astype(np.float32)
+    sensor_uv = (u / 5 + rng.normal(0, 2, N), v / 5 + rng.normal(0, 2, N))
+    mask = rng.uniform(size=(H, W)) > 0.3
+    for depth, uv, frame_mask in ((None, None, None), (sensor, sensor_uv, None), (sensor, sensor_uv, mask),
+                                  (None, None, mask)):
+        expected = _visible_by_arrays(u, v, Z, (H, W), 0.02, depth, uv, frame_mask, zbuffer)
+        found = visible(u, v, Z, (H, W), rel_tol=0.02, sensor_depth=depth, sensor_uv=uv, frame_mask=frame_mask,
+                        zbuffer=zbuffer)
+        assert found.dtype == bool and 1000 < found.sum() < 0.9 * N
+        np.testing.assert_array_equal(found, expected)
+
+
 def test_pose_jacobian_matches_finite_differences():
     problem, est = make_problem()
     P = problem.points(est.z)
