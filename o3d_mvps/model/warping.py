@@ -107,7 +107,7 @@ def visible(u: np.ndarray, v: np.ndarray, Z: np.ndarray, size: tuple[int, int], 
 def _visible_into(u, v, Z, H, W, rel_tol, zbuffer, sensor_depth, su, sv, sensor, frame_mask, masked,
                   ok):  # pragma: no cover - compiled
     """:func:`visible` written into ok (N,) bool in compiled passes (the NumPy form's dozen
-    temporaries and ``np.minimum.at`` took 1 CPU s of a 2 MP level's set-up): the same tests,
+    temporaries and ``np.minimum.at``: twice the time on 200 000 points): the same tests,
     comparisons and roundings (``np.rint``, half to even), so the same mask bit for bit. su, sv
     (N,): the sensor's pixel of each point where ``sensor``; frame_mask (H, W) where ``masked``."""
     N = Z.shape[0]

@@ -40,8 +40,8 @@ def update_lighting(est: Estimate, ev: Evaluation, lam: float, light) -> np.ndar
 
     Every frame's system in one compiled pass (:func:`.kernels.lighting_sums`; on a GPU one launch
     and one copy): on the host it replaced a loop of five passes a frame (the IRLS weights'
-    sums, a cast and a scaling of the basis, two BLAS products): 2 MP, 20 frames 0.26 -> 0.05 CPU s
-    a call, the same systems to round-off (their sums in another order)."""
+    sums, a cast and a scaling of the basis, two BLAS products): 2 MP, 20 frames 0.33 -> 0.19 CPU s
+    a call (one thread), the same systems to round-off (their sums in another order)."""
     xp = array_module(ev.residual)
     n, k = est.lights.shape
     kernels = kernels_for(ev.residual)
