@@ -49,6 +49,34 @@ def test_frame_at_a_time_energy_is_the_evaluation_energy(light, frames_per_batch
 
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_the_led_s_one_pass_energy_is_the_batched_energy(dtype, monkeypatch):
+    """On the host the LED's energy is one compiled pass over the pixels (kernels.led_energy_sum,
+    no frames x pixels arrays): the batched sums' energy (that of the stored residuals, float32 as
+    in the solver or float64) and usable mask, to 1e-12 of the energy, for poses that put part of
+    the reference out of a frame's view; and it moves with the estimate as they do."""
+    problem, est = frames_problem(4, "led")
+    problem = LevelProblem(problem.level, problem.tau, problem.lam, problem.light, residual_dtype=dtype)
+    calls = []
+    kernel = problem_module.led_energy_sum
+    monkeypatch.setattr(problem_module, "led_energy_sum", lambda *args: calls.append(1) or kernel(*args))
+
+    class Batched(LEDLight):  # not the LED itself: the frame-at-a-time sums
+        pass
+
+    batched = Batched(problem.light.offset)
+    for scale in (1.0, 1.1):
+        est.albedo = est.albedo * scale
+        one_pass, usable = problem.energy(est)
+        with monkeypatch.context() as patch:
+            patch.setattr(problem, "light_model", lambda e: batched)
+            energy, batched_usable = problem.energy(est)
+        assert 0 < usable.sum() < usable.size and np.array_equal(usable, batched_usable)
+        assert one_pass == pytest.approx(energy, rel=1e-12) and one_pass - problem.prior_energy(est.z) > 1e-3
+        assert one_pass == pytest.approx(problem.evaluate(est).energy, rel=1e-12)
+    assert len(calls) == 2
+
+
 def test_a_static_camera_s_energy_reuses_the_samples_of_its_evaluation(monkeypatch):
     """Identity poses (a static camera): after one evaluation the energy reads the frames' cached
     samples, warping no frame again, and agrees with the evaluation for another z."""

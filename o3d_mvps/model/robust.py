@@ -73,7 +73,7 @@ LOG_BLOCK = 8
 
 
 @numba.njit(inline="always")
-def _square_factor(x, scale):  # pragma: no cover - compiled
+def square_factor(x, scale):  # pragma: no cover - compiled
     """1 + y^2 in float64 of y = float32(scale x), the y of :func:`log1p_square_term`."""
     y = np.float64(np.float32(x * scale))
     return 1.0 + y * y
@@ -95,10 +95,10 @@ def log1p_square_sum(x, scale):  # pragma: no cover - compiled
     for b in numba.prange(blocks):
         product = 1.0
         for k in range(b * LOG_BLOCK, (b + 1) * LOG_BLOCK):
-            product *= _square_factor(x[k], scale)
+            product *= square_factor(x[k], scale)
         total += math.log(product)
     for k in range(blocks * LOG_BLOCK, x.size):
-        total += math.log(_square_factor(x[k], scale))
+        total += math.log(square_factor(x[k], scale))
     return total
 
 

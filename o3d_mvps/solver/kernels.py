@@ -22,11 +22,11 @@ import math
 import numba
 import numpy as np
 
-from ..model.robust import log1p_square_sum, log1p_square_term  # noqa: F401 - log1p_square_sum re-exported: the same names as .cuda_kernels
+from ..model.robust import log1p_square_sum, log1p_square_term, square_factor  # noqa: F401 - log1p_square_sum re-exported: the same names as .cuda_kernels
 from ..model.normals import unit_normal_at
 from ..model.shading import (FRAME_CHUNK, frame_chunk, led_fields_into, led_irradiance_at, led_irradiance_of,  # noqa: F401
-                             led_field_of, led_irradiances_into, led_point_gradient, led_point_gradient_of,
-                             led_point_gradients_into, led_position, twist_row_into)
+                             led_field_of, led_irradiance, led_irradiances_into, led_point_gradient,
+                             led_point_gradient_of, led_point_gradients_into, led_position, twist_row_into)
 
 # OpenMP first: the TBB that Open3D's wheels may put on the path can be too old for numba,
 # which then warns on every first parallel call.
@@ -1060,6 +1060,78 @@ def warp_sample_frames(points_ref, poses, K, images, visible, color, usable):  #
     for index in numba.prange(n * N):
         i, p = index // N, index % N
         warp_sample_pixel(points_ref, poses[i], K, images[i], visible[i], color[i], usable[i], p)
+
+
+#: :func:`led_energy_sum` takes the logarithm of a pixel's running product of factors ``1 + y^2``
+#: before it passes this (a frame's three factors are each below 1.2e77: y is a float32), so the
+#: product never overflows
+PRODUCT_LOG_LIMIT = 1e150
+
+
+@numba.njit(parallel=True, cache=True)
+def led_energy_sum(points_ref, normals, poses, K, images, visible, albedo, lights, positions, scale, single,
+                   usable):  # pragma: no cover - compiled
+    """The data energy's ``sum_{i,p,c} log(1 + (scale r)^2)`` of every frame under the LED in one
+    pass over the pixels (:func:`led_pixel_log_sum`), without the frames x pixels arrays of an
+    evaluation (the host's :meth:`.LevelProblem.energy`); equal to
+    :func:`~o3d_mvps.model.robust.log1p_square_sum` over the stored residuals to ~1e-14 of it.
+    points_ref, normals (N, 3) float64; poses (n, 4, 4); K (3, 3); images: a typed list of the n
+    frames' (H, W, 3) float32 images; visible (n, N) bool; albedo (N, 3); lights (n, 2);
+    positions (n, 3) the LED in reference coordinates per frame; single: the basis and residuals
+    rounded to float32 as the evaluations store them; usable (n, N) bool, written."""
+    N = visible.shape[1]
+    chunk = frame_chunk(N)
+    total = 0.0
+    for k in numba.prange(-(-N // chunk)):
+        total += led_chunk_log_sum(points_ref, normals, poses, K, images, visible, albedo, lights, positions, scale,
+                                   single, usable, k * chunk, min(N, (k + 1) * chunk))
+    return total
+
+
+@numba.njit
+def led_chunk_log_sum(points_ref, normals, poses, K, images, visible, albedo, lights, positions, scale, single,
+                      usable, start, stop):  # pragma: no cover - compiled
+    """:func:`led_energy_sum` over the pixels ``start:stop``, a frame at a time (each frame's
+    image read along the pixels, as :func:`warp_sample` reads it): per pixel p and frame i the
+    warp and usable test (:func:`warp_sample_pixel`'s, written into ``usable[i, p]``), the
+    colour's bilinear sample (rounded to float32, as stored), the basis ``[1, max(0, <n, v_i>)]``
+    (:func:`~o3d_mvps.model.shading.led_bases_into`'s) and shading ``<B, l_i>``
+    (:func:`shading_residual_pixel`'s sum) and the residuals ``I - rho_c s``. The factors
+    ``1 + y^2`` (:func:`~o3d_mvps.model.robust.square_factor`) of a pixel's frames and channels
+    are multiplied and the product's logarithm taken once (or before it passes
+    :data:`PRODUCT_LOG_LIMIT`)."""
+    part = 0.0
+    products = np.ones(stop - start)
+    for i in range(visible.shape[0]):
+        image = images[i]
+        H, W = image.shape[0], image.shape[1]
+        for p in range(start, stop):
+            _, _, Z, u, v = project_point(poses[i], K, points_ref[p, 0], points_ref[p, 1], points_ref[p, 2])
+            use = visible[i, p] and Z > 1e-6 and u >= 0.0 and u <= W - 1.0 and v >= 0.0 and v <= H - 1.0
+            usable[i, p] = use
+            if not use:  # residuals 0: factors 1
+                continue
+            g = led_irradiance(normals, points_ref, positions, i, p)
+            b = g if g > 0.0 else 0.0
+            if single:
+                b = np.float64(np.float32(b))
+            s = 0.0
+            s += 1.0 * lights[i, 0]
+            s += b * lights[i, 1]
+            u0, v0, a, w = bilinear_cell(image, u, v)
+            product = products[p - start]
+            if product > PRODUCT_LOG_LIMIT:
+                part += math.log(product)
+                product = 1.0
+            for c in range(3):
+                r = np.float64(np.float32(bilinear_in_cell(image, u0, v0, a, w, c))) - albedo[p, c] * s
+                if single:
+                    r = np.float64(np.float32(r))
+                product *= square_factor(r, scale)
+            products[p - start] = product
+    for q in range(stop - start):
+        part += math.log(products[q])
+    return part
 
 
 @numba.njit(inline="always")

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from ..model.arrays import array_module, contiguous, like
@@ -17,7 +18,7 @@ from ..model.normals import unit_normals
 from ..model.robust import cauchy_energy
 from ..model.warping import in_view, visible, warp
 from .device import kernels_for, to_host
-from .kernels import energy_blocks
+from .kernels import energy_blocks, led_energy_sum
 from .krylov import pixel_prolongations
 from .lighting import LEDLight, RoomLight, SHLight, device_light_state, preload_light_states
 from .pyramid import Level
@@ -208,6 +209,7 @@ class LevelProblem:
         self.device_K = like(level.K, level.grid.u)
         self._no_frames = None  # on a GPU: empty frames x pixels arrays, for the prior's energy alone
         self._grid_arrays = None  # on a GPU: the grid's per-pixel arrays, C-contiguous, for the kernels
+        self._image_list = None  # on the host: the level's images as a numba typed list (:meth:`_led_energy`)
 
     def pixel_prolongations(self) -> list:
         """The level's pixel aggregation for the GPU path's multigrid (:func:`.krylov.pixel_prolongations`),
@@ -530,11 +532,13 @@ class LevelProblem:
         if normals is None:
             normals, _ = self.normals(est.z)
         poses, lights = like(est.poses, P), like(est.lights, P, dtype=np.float64)
+        light = self.light_model(est)
+        if xp is np and samples is None and type(light) is LEDLight and not self.identity_poses(est):
+            return self._led_energy(est, P, normals, poses, lights, light, prior)
         batch = min(n, max(1, ENERGY_BATCH_PIXELS // max(N, 1)))
         usable = xp.empty((n, N), dtype=bool) if samples is None else samples[1]
         color = xp.empty((batch, N, 3), dtype=np.float32) if samples is None else None
         shading, residual = xp.empty((batch, N), self.residual_dtype), xp.empty((batch, N, 3), self.residual_dtype)
-        light = self.light_model(est)
         per_frame = isinstance(light, LEDLight)  # a basis per frame (else one for all frames, SH)
         basis = None if per_frame else light.bases(normals, P, est.poses[:1], dtype=self.residual_dtype)  # (1, N, k)
         static = samples if samples is not None else self._static_samples if self.identity_poses(est) else None
@@ -555,6 +559,21 @@ class LevelProblem:
                                       residual[:m])
             data += cauchy_energy(residual[:m], self.lam, kernels.log1p_square_sum)
         return data + (self.prior_energy(est.z) if prior is None else prior), usable
+
+    def _led_energy(self, est: Estimate, points: np.ndarray, normals: np.ndarray, poses: np.ndarray,
+                    lights: np.ndarray, light, prior: float | None) -> tuple[float, np.ndarray]:
+        """:meth:`energy` on the host under the LED in one compiled pass over the pixels
+        (:func:`.kernels.led_energy_sum`: no frames x pixels arrays but the usable mask; 2 MP, 20
+        frames, one thread: 0.90 -> 0.73 CPU s); equal to the batched sums to ~1e-14 of them."""
+        if self._image_list is None:  # the level's images in a typed list, once per level (no copy)
+            self._image_list = numba.typed.List(self.level.images)
+        usable = np.empty((self.n_frames, self.level.grid.size), dtype=bool)
+        data = led_energy_sum(contiguous(points, np.float64), contiguous(normals, np.float64),
+                              np.ascontiguousarray(poses, dtype=np.float64), self.device_K, self._image_list,
+                              self.visibility, contiguous(est.albedo, np.float64), contiguous(lights, np.float64),
+                              np.ascontiguousarray(light.positions(poses), dtype=np.float64), 1.0 / self.lam,
+                              self.residual_dtype == np.float32, usable)
+        return 0.5 * self.lam * self.lam * data + (self.prior_energy(est.z) if prior is None else prior), usable
 
     def evaluate_samples(self, est: Estimate, color: np.ndarray, usable: np.ndarray, normals: np.ndarray,
                          dA: np.ndarray) -> Evaluation:
