@@ -51,15 +51,15 @@ def test_frame_at_a_time_energy_is_the_evaluation_energy(light, frames_per_batch
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_the_led_s_one_pass_energy_is_the_batched_energy(dtype, monkeypatch):
-    """On the host the LED's energy is one compiled pass over the pixels (kernels.led_energy_sum,
+    """On the host the LED's energy is a compiled pass over the pixels a frame (kernels.led_energy_frame,
     no frames x pixels arrays): the batched sums' energy (that of the stored residuals, float32 as
     in the solver or float64) and usable mask, to 1e-12 of the energy, for poses that put part of
     the reference out of a frame's view; and it moves with the estimate as they do."""
     problem, est = frames_problem(4, "led")
     problem = LevelProblem(problem.level, problem.tau, problem.lam, problem.light, residual_dtype=dtype)
     calls = []
-    kernel = problem_module.led_energy_sum
-    monkeypatch.setattr(problem_module, "led_energy_sum", lambda *args: calls.append(1) or kernel(*args))
+    kernel = problem_module.log_products_sum
+    monkeypatch.setattr(problem_module, "log_products_sum", lambda *args: calls.append(1) or kernel(*args))
 
     class Batched(LEDLight):  # not the LED itself: the frame-at-a-time sums
         pass

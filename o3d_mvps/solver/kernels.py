@@ -1062,76 +1062,83 @@ def warp_sample_frames(points_ref, poses, K, images, visible, color, usable):  #
         warp_sample_pixel(points_ref, poses[i], K, images[i], visible[i], color[i], usable[i], p)
 
 
-#: :func:`led_energy_sum` takes the logarithm of a pixel's running product of factors ``1 + y^2``
+#: :func:`led_energy_frame` takes the logarithm of a pixel's running product of factors ``1 + y^2``
 #: before it passes this (a frame's three factors are each below 1.2e77: y is a float32), so the
 #: product never overflows
 PRODUCT_LOG_LIMIT = 1e150
 
 
 @numba.njit(parallel=True, cache=True)
-def led_energy_sum(points_ref, normals, poses, K, images, visible, albedo, lights, positions, scale, single,
-                   usable):  # pragma: no cover - compiled
-    """The data energy's ``sum_{i,p,c} log(1 + (scale r)^2)`` of every frame under the LED in one
-    pass over the pixels (:func:`led_pixel_log_sum`), without the frames x pixels arrays of an
-    evaluation (the host's :meth:`.LevelProblem.energy`); equal to
-    :func:`~o3d_mvps.model.robust.log1p_square_sum` over the stored residuals to ~1e-14 of it.
-    points_ref, normals (N, 3) float64; poses (n, 4, 4); K (3, 3); images: a typed list of the n
-    frames' (H, W, 3) float32 images; visible (n, N) bool; albedo (N, 3); lights (n, 2);
-    positions (n, 3) the LED in reference coordinates per frame; single: the basis and residuals
-    rounded to float32 as the evaluations store them; usable (n, N) bool, written."""
+def led_energy_frame(points_ref, normals, poses, K, image, visible, albedo, lights, positions, scale, single, i,
+                     usable, products, parts):  # pragma: no cover - compiled
+    """Frame i's share of the data energy ``sum_{i,p,c} log(1 + (scale r)^2)`` under the LED in one
+    pass over the pixels, without the frame's colour, basis, shading and residual arrays (the
+    host's :meth:`.LevelProblem.energy`; :func:`log_products_sum` ends it): per pixel p the warp
+    and usable test (:func:`warp_sample_pixel`'s, written into ``usable[i, p]``), the colour's
+    bilinear sample (rounded to float32, as stored), the basis ``[1, max(0, <n, v_i>)]``
+    (:func:`~o3d_mvps.model.shading.led_bases_into`'s), the shading ``<B, l_i>``
+    (:func:`shading_residual_pixel`'s sum) and the residuals ``I - rho_c s``; ``single``: the basis
+    and residuals rounded to float32 as the evaluations store them. Their factors ``1 + y^2``
+    (:func:`~o3d_mvps.model.robust.square_factor`) multiply the pixel's running product
+    ``products[p]`` (N,), whose logarithm is added to ``parts[k]`` (per chunk k of
+    :func:`~o3d_mvps.model.shading.frame_chunk` pixels) before it passes :data:`PRODUCT_LOG_LIMIT`.
+    points_ref, normals (N, 3) float64; poses (n, 4, 4); K (3, 3); image (H, W, 3) float32;
+    visible, usable (n, N) bool; albedo (N, 3); lights (n, 2); positions (n, 3) the LED in
+    reference coordinates per frame."""
     N = visible.shape[1]
     chunk = frame_chunk(N)
-    total = 0.0
+    H, W = image.shape[0], image.shape[1]
     for k in numba.prange(-(-N // chunk)):
-        total += led_chunk_log_sum(points_ref, normals, poses, K, images, visible, albedo, lights, positions, scale,
-                                   single, usable, k * chunk, min(N, (k + 1) * chunk))
-    return total
-
-
-@numba.njit
-def led_chunk_log_sum(points_ref, normals, poses, K, images, visible, albedo, lights, positions, scale, single,
-                      usable, start, stop):  # pragma: no cover - compiled
-    """:func:`led_energy_sum` over the pixels ``start:stop``, a frame at a time (each frame's
-    image read along the pixels, as :func:`warp_sample` reads it): per pixel p and frame i the
-    warp and usable test (:func:`warp_sample_pixel`'s, written into ``usable[i, p]``), the
-    colour's bilinear sample (rounded to float32, as stored), the basis ``[1, max(0, <n, v_i>)]``
-    (:func:`~o3d_mvps.model.shading.led_bases_into`'s) and shading ``<B, l_i>``
-    (:func:`shading_residual_pixel`'s sum) and the residuals ``I - rho_c s``. The factors
-    ``1 + y^2`` (:func:`~o3d_mvps.model.robust.square_factor`) of a pixel's frames and channels
-    are multiplied and the product's logarithm taken once (or before it passes
-    :data:`PRODUCT_LOG_LIMIT`)."""
-    part = 0.0
-    products = np.ones(stop - start)
-    for i in range(visible.shape[0]):
-        image = images[i]
-        H, W = image.shape[0], image.shape[1]
-        for p in range(start, stop):
+        for p in range(k * chunk, min(N, (k + 1) * chunk)):
             _, _, Z, u, v = project_point(poses[i], K, points_ref[p, 0], points_ref[p, 1], points_ref[p, 2])
             use = visible[i, p] and Z > 1e-6 and u >= 0.0 and u <= W - 1.0 and v >= 0.0 and v <= H - 1.0
             usable[i, p] = use
-            if not use:  # residuals 0: factors 1
-                continue
-            g = led_irradiance(normals, points_ref, positions, i, p)
-            b = g if g > 0.0 else 0.0
-            if single:
-                b = np.float64(np.float32(b))
-            s = 0.0
-            s += 1.0 * lights[i, 0]
-            s += b * lights[i, 1]
-            u0, v0, a, w = bilinear_cell(image, u, v)
-            product = products[p - start]
-            if product > PRODUCT_LOG_LIMIT:
-                part += math.log(product)
-                product = 1.0
-            for c in range(3):
-                r = np.float64(np.float32(bilinear_in_cell(image, u0, v0, a, w, c))) - albedo[p, c] * s
-                if single:
-                    r = np.float64(np.float32(r))
-                product *= square_factor(r, scale)
-            products[p - start] = product
-    for q in range(stop - start):
-        part += math.log(products[q])
-    return part
+            if use:  # else residuals 0: factors 1
+                parts[k] += led_pixel_factors(image, u, v, normals, points_ref, positions, albedo, lights, scale,
+                                              single, i, p, products)
+
+
+@numba.njit(inline="always")
+def led_pixel_factors(image, u, v, normals, points_ref, positions, albedo, lights, scale, single, i, p,
+                      products):  # pragma: no cover - compiled
+    """:func:`led_energy_frame` at a usable pixel p of frame i seen at (u, v): its three factors
+    multiplied into ``products[p]``; returns the logarithm taken of the product before (0 where
+    it stayed below :data:`PRODUCT_LOG_LIMIT`)."""
+    g = led_irradiance(normals, points_ref, positions, i, p)
+    b = g if g > 0.0 else 0.0
+    if single:
+        b = np.float64(np.float32(b))
+    s = 0.0
+    s += 1.0 * lights[i, 0]
+    s += b * lights[i, 1]
+    u0, v0, a, w = bilinear_cell(image, u, v)
+    product = products[p]
+    flushed = 0.0
+    if product > PRODUCT_LOG_LIMIT:
+        flushed = math.log(product)
+        product = 1.0
+    for c in range(3):
+        r = np.float64(np.float32(bilinear_in_cell(image, u0, v0, a, w, c))) - albedo[p, c] * s
+        if single:
+            r = np.float64(np.float32(r))
+        product *= square_factor(r, scale)
+    products[p] = product
+    return flushed
+
+
+@numba.njit(parallel=True, cache=True)
+def log_products_sum(products, parts):  # pragma: no cover - compiled
+    """The data energy's sum that :func:`led_energy_frame` left: ``parts`` (chunks,) plus the
+    logarithms of the pixels' products (N,), chunk by chunk (its chunks)."""
+    N = products.shape[0]
+    chunk = frame_chunk(N)
+    total = 0.0
+    for k in numba.prange(-(-N // chunk)):
+        part = parts[k]
+        for p in range(k * chunk, min(N, (k + 1) * chunk)):
+            part += math.log(products[p])
+        total += part
+    return total
 
 
 @numba.njit(inline="always")
