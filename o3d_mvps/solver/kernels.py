@@ -1104,13 +1104,7 @@ def led_pixel_factors(image, u, v, normals, points_ref, positions, albedo, light
     """:func:`led_energy_frame` at a usable pixel p of frame i seen at (u, v): its three factors
     multiplied into ``products[p]``; returns the logarithm taken of the product before (0 where
     it stayed below :data:`PRODUCT_LOG_LIMIT`)."""
-    g = led_irradiance(normals, points_ref, positions, i, p)
-    b = g if g > 0.0 else 0.0
-    if single:
-        b = np.float64(np.float32(b))
-    s = 0.0
-    s += 1.0 * lights[i, 0]
-    s += b * lights[i, 1]
+    s = led_shading_at(led_irradiance(normals, points_ref, positions, i, p), lights, single, i)
     u0, v0, a, w = bilinear_cell(image, u, v)
     product = products[p]
     flushed = 0.0
@@ -1124,6 +1118,20 @@ def led_pixel_factors(image, u, v, normals, points_ref, positions, albedo, light
         product *= square_factor(r, scale)
     products[p] = product
     return flushed
+
+
+@numba.njit(inline="always")
+def led_shading_at(g, lights, single, i):  # pragma: no cover - compiled
+    """Frame i's LED shading ``<[1, max(0, g)], l_i>`` of a pixel whose ``<n, v_i>`` is g, summed
+    as :func:`shading_residual_pixel` sums it, the basis rounded to float32 first where ``single``
+    (as the evaluations store it)."""
+    b = g if g > 0.0 else 0.0
+    if single:
+        b = np.float64(np.float32(b))
+    s = 0.0
+    s += 1.0 * lights[i, 0]
+    s += b * lights[i, 1]
+    return s
 
 
 @numba.njit(parallel=True, cache=True)
@@ -1546,12 +1554,7 @@ def led_trial_term(color, usable, albedo, normals, points, poses, start, x0, x1,
     o2 = start[2] - length * x2
     g = led_irradiance_at(normals, points, led_position(poses, o0, o1, o2, i, 0), led_position(poses, o0, o1, o2, i, 1),
                           led_position(poses, o0, o1, o2, i, 2), p)
-    b = g if g > 0.0 else 0.0
-    if single:
-        b = np.float64(np.float32(b))
-    s = 0.0
-    s += 1.0 * lights[i, 0]
-    s += b * lights[i, 1]
+    s = led_shading_at(g, lights, single, i)
     total = 0.0
     for c in range(3):
         r = color[i, p, c] - albedo[p, c] * s
