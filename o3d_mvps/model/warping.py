@@ -111,18 +111,18 @@ def _visible_into(u, v, Z, H, W, rel_tol, zbuffer, sensor_depth, su, sv, sensor,
     comparisons and roundings (``np.rint``, half to even), so the same mask bit for bit. su, sv
     (N,): the sensor's pixel of each point where ``sensor``; frame_mask (H, W) where ``masked``."""
     N = Z.shape[0]
-    iu, iv = np.zeros(N, np.int64), np.zeros(N, np.int64)
     for p in range(N):
         ok[p] = Z[p] > 1e-6 and u[p] >= 0 and u[p] <= W - 1 and v[p] >= 0 and v[p] <= H - 1
-        if ok[p]:
-            iu[p], iv[p] = np.int64(np.rint(u[p])), np.int64(np.rint(v[p]))
-    if zbuffer:  # the nearest point landing on each pixel
+    if zbuffer:  # the nearest point landing on each pixel (its pixel rounded where it is read: no index arrays)
         zbuf = np.full(H * W, np.inf)
         for p in range(N):
-            if ok[p] and Z[p] < zbuf[iv[p] * W + iu[p]]:
-                zbuf[iv[p] * W + iu[p]] = Z[p]
+            if ok[p]:
+                f = np.int64(np.rint(v[p])) * W + np.int64(np.rint(u[p]))
+                if Z[p] < zbuf[f]:
+                    zbuf[f] = Z[p]
         for p in range(N):
-            ok[p] = ok[p] and Z[p] <= zbuf[iv[p] * W + iu[p]] + rel_tol * abs(Z[p])
+            if ok[p]:
+                ok[p] = Z[p] <= zbuf[np.int64(np.rint(v[p])) * W + np.int64(np.rint(u[p]))] + rel_tol * abs(Z[p])
     h, w = sensor_depth.shape
     for p in range(N):
         if ok[p] and sensor:  # the frame's own depth not in front of the point
@@ -131,4 +131,4 @@ def _visible_into(u, v, Z, H, W, rel_tol, zbuffer, sensor_depth, su, sv, sensor,
                              np.int64(0.0 if x < 0 else (w - 1.0 if x > w - 1 else x))]
             ok[p] = d <= 0 or Z[p] <= d + rel_tol * abs(Z[p])
         if ok[p] and masked:
-            ok[p] = frame_mask[iv[p], iu[p]]
+            ok[p] = frame_mask[np.int64(np.rint(v[p])), np.int64(np.rint(u[p]))]
