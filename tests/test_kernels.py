@@ -85,6 +85,33 @@ def test_stencil_transpose_rows_are_both_scatters_and_the_identity_part():
         np.testing.assert_allclose(out, expected, rtol=tolerance, atol=tolerance * np.abs(expected).max())
 
 
+def test_stencil_rows_of_two_entries_add_in_stored_order():
+    """Rows of exactly two entries (the solver's stencils, unrolled) and rows of 0, 1 or 3 (the
+    loop) add each entry in stored order into a float32 output, bit for bit as a loop over the
+    entries does."""
+    B, N, k = 200, 260, 3
+    counts = np.full(B, 2)
+    counts[::7], counts[3::11], counts[5::13] = 1, 3, 0
+    operators = []
+    for seed in (8, 9):
+        rng = np.random.default_rng(seed)
+        indptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.int32)
+        indices = np.concatenate([rng.choice(N, c, replace=False) for c in counts]).astype(np.int32)
+        operators.append((indptr, indices, rng.normal(size=indices.size)))
+    rows = RNG.normal(size=(3, k, B))
+    start = RNG.normal(size=(k, N)).astype(np.float32)
+    expected = start.copy()
+    for j in range(k):
+        for p in range(B):
+            expected[j, 30 + p] = np.float32(np.float64(expected[j, 30 + p]) + rows[2, j, p])
+            for (indptr, indices, data), x in zip(operators, rows[:2, j, p]):
+                for nz in range(indptr[p], indptr[p + 1]):
+                    expected[j, indices[nz]] = np.float32(np.float64(expected[j, indices[nz]]) + data[nz] * x)
+    out = start.copy()
+    add_stencil_transpose_rows(*operators[0], *operators[1], rows, 30, out)
+    np.testing.assert_array_equal(out, expected)
+    assert not np.array_equal(out, start)
+
 def test_fused_projection_and_stencil_equal_the_two_kernels():
     """project_stencil_rows gives the very values (float32 U, scaled F) of project_twist_rows
     followed by add_stencil_transpose_rows, and leaves the rows unwritten."""

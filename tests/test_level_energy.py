@@ -77,6 +77,27 @@ def test_the_led_s_one_pass_energy_is_the_batched_energy(dtype, monkeypatch):
     assert len(calls) == 2
 
 
+@pytest.mark.parametrize("light", ["sh", "led"])
+def test_an_unscored_trial_refits_to_the_scored_evaluation(light):
+    """evaluate(scored=False), the line search's trial before its albedo refit, has the scored
+    evaluation's residuals, shading and prior bit for bit; reading its data energy raises; the
+    refitted evaluation (reflectance.refit_albedo) is the same, energy included, either way."""
+    from dataclasses import replace
+
+    from o3d_mvps.solver.reflectance import refit_albedo
+
+    problem, est = frames_problem(4, light)
+    scored, unscored = problem.evaluate(est), problem.evaluate(est, scored=False)
+    for name in ("residual", "shading", "usable"):
+        assert np.array_equal(getattr(scored, name), getattr(unscored, name))
+    assert unscored.prior == scored.prior
+    with pytest.raises(RuntimeError, match="without its data energy"):
+        unscored.energy
+    one, other = replace(est), replace(est)
+    refitted, refitted_unscored = refit_albedo(problem, one, scored), refit_albedo(problem, other, unscored)
+    assert np.array_equal(one.albedo, other.albedo) and not np.array_equal(one.albedo, est.albedo)
+    assert refitted_unscored.energy == refitted.energy < scored.energy
+
 def test_a_static_camera_s_energy_reuses_the_samples_of_its_evaluation(monkeypatch):
     """Identity poses (a static camera): after one evaluation the energy reads the frames' cached
     samples, warping no frame again, and agrees with the evaluation for another z."""

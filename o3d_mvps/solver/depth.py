@@ -62,8 +62,8 @@ def search_estimates(problem: LevelProblem, est: Estimate, energy: float, moved:
         if candidate is None:
             return None
         candidate_ev = problem.evaluate_refit(candidate) if refit_albedo else None  # one launch on a GPU
-        if candidate_ev is None:
-            candidate_ev = problem.evaluate(candidate)
+        if candidate_ev is None:  # refitted at once: the energy at the old albedo is not read
+            candidate_ev = problem.evaluate(candidate, scored=not refit_albedo)
             if refit_albedo:
                 candidate_ev = refit_albedo_at(problem, candidate, candidate_ev)
         return (candidate, candidate_ev), candidate_ev.energy

@@ -293,22 +293,42 @@ def scatter_sparse_transpose_rows(indptr, indices, data, X, out):  # pragma: no 
                 out[j, indices[nz]] += data[nz] * x
 
 
+@numba.njit(inline="always")
+def scatter_row(indptr, indices, data, p, x, out):  # pragma: no cover - compiled
+    """out (N,) += x A[p]^T: row p's entries of the CSR matrix A (its arrays) scaled by x, in
+    stored order. A row of exactly two entries (the central and one-sided differences once
+    their stored zeros are gone: every row on the solver's grids) is unrolled: the same additions
+    in the same order, without the entry loop's bounds."""
+    start, stop = indptr[p], indptr[p + 1]
+    if stop - start == 2:
+        out[indices[start]] += data[start] * x
+        out[indices[start + 1]] += data[start + 1] * x
+    else:
+        for nz in range(start, stop):
+            out[indices[nz]] += data[nz] * x
+
+
+@numba.njit(inline="always")
+def scatter_stencil_row(u_indptr, u_indices, u_data, v_indptr, v_indices, v_data, p, a, b, out):  # pragma: no cover
+    """out (N,) += a Du[p]^T + b Dv[p]^T (:func:`scatter_row` of each difference operator, Du's
+    first; project_stencil_rows 5.6 -> 4.9 ms a 2 MP block on one thread with the unrolled rows)."""
+    scatter_row(u_indptr, u_indices, u_data, p, a, out)
+    scatter_row(v_indptr, v_indices, v_data, p, b, out)
+
+
 @numba.njit(parallel=True, cache=True)
 def add_stencil_transpose_rows(u_indptr, u_indices, u_data, v_indptr, v_indices, v_data, rows, first, out):  # pragma: no cover
     """out (k, N) += the rows' stencil transpose ``Du_b^T a + Dv_b^T b + c`` per row of
     ``rows`` (3, k, B) = (a, b, c), for the rows Du_b, Dv_b (B, N) (CSR arrays) of the difference
     operators at the block of pixels first..first+B, whose c lands on columns first..first+B:
-    :func:`scatter_sparse_transpose_rows` of both operators and the identity part in one pass;
-    in parallel over the k rows, so threads never share an output row."""
+    :func:`scatter_sparse_transpose_rows` of both operators and the identity part in one pass
+    (:func:`scatter_stencil_row`); in parallel over the k rows, so threads never share an output row."""
     for j in numba.prange(rows.shape[1]):
+        out_j = out[j]
         for p in range(rows.shape[2]):
-            a = rows[0, j, p]
-            b = rows[1, j, p]
-            out[j, first + p] += rows[2, j, p]
-            for nz in range(u_indptr[p], u_indptr[p + 1]):
-                out[j, u_indices[nz]] += u_data[nz] * a
-            for nz in range(v_indptr[p], v_indptr[p + 1]):
-                out[j, v_indices[nz]] += v_data[nz] * b
+            out_j[first + p] += rows[2, j, p]
+            scatter_stencil_row(u_indptr, u_indices, u_data, v_indptr, v_indices, v_data, p, rows[0, j, p],
+                                rows[1, j, p], out_j)
 
 
 @numba.njit(parallel=True, cache=True)
@@ -321,6 +341,7 @@ def project_stencil_rows(rows, F, scaled, sqrt_inv_d, u_indptr, u_indices, u_dat
     m, B = F.shape[0], F.shape[2]
     for row in numba.prange(6 * m):
         f, j = row // 6, row % 6
+        out_row = out[row]
         for p in range(B):
             F0, F1, F2 = F[f, j, p, 0], F[f, j, p, 1], F[f, j, p, 2]
             a = rows[0, f, j, p] - (scaled[0, p, 0] * F0 + scaled[0, p, 1] * F1 + scaled[0, p, 2] * F2)
@@ -329,11 +350,8 @@ def project_stencil_rows(rows, F, scaled, sqrt_inv_d, u_indptr, u_indices, u_dat
             F[f, j, p, 0] = F0 * sqrt_inv_d[p, 0]
             F[f, j, p, 1] = F1 * sqrt_inv_d[p, 1]
             F[f, j, p, 2] = F2 * sqrt_inv_d[p, 2]
-            out[row, first + p] += c
-            for nz in range(u_indptr[p], u_indptr[p + 1]):
-                out[row, u_indices[nz]] += u_data[nz] * a
-            for nz in range(v_indptr[p], v_indptr[p + 1]):
-                out[row, v_indices[nz]] += v_data[nz] * b
+            out_row[first + p] += c
+            scatter_stencil_row(u_indptr, u_indices, u_data, v_indptr, v_indices, v_data, p, a, b, out_row)
 
 
 @numba.njit(parallel=True, cache=True, fastmath={"reassoc"})

@@ -91,6 +91,20 @@ class PendingSums:
         return self._values[index]
 
 
+class Unscored(PendingSums):
+    """The data energy of an evaluation made without it (:meth:`LevelProblem.evaluate` with
+    ``scored=False``): reading it is an error. For a line search's trial whose albedo is refitted
+    at once: only the refitted evaluation's energy is compared, and the trial's own (a pass of
+    logarithms over every residual, 0.15 of a 2 MP trial's 2.1 CPU s) went unread."""
+
+    def __init__(self):
+        super().__init__(None, 0.0)
+
+    def value(self, index: int) -> float:
+        raise RuntimeError("the evaluation was made without its data energy (LevelProblem.evaluate(scored=False)); "
+                           "reevaluate it (LevelProblem.reevaluate) before reading its energy")
+
+
 class _Energy:
     """A data descriptor of :class:`Evaluation`'s ``data`` and ``prior``: a float, or a
     :class:`PendingSums` read at the first get (and then kept as the float)."""
@@ -485,11 +499,13 @@ class LevelProblem:
         r = sample.color - albedo * shading[:, None]
         return cauchy_energy(r[sample.usable], self.lam, kernels_for(r).log1p_square_sum)
 
-    def evaluate(self, est: Estimate) -> Evaluation:
+    def evaluate(self, est: Estimate, *, scored: bool = True) -> Evaluation:
         """Residuals and energy of the estimate over all frames (each frame warped and sampled in
         one pass: :func:`.kernels.warp_sample`). Where every pose is the identity (a static
         camera) each reference pixel sees its own pixel in every frame, whatever z: the frames
-        are sampled once per visibility and the samples shared (read-only) by the evaluations."""
+        are sampled once per visibility and the samples shared (read-only) by the evaluations.
+        scored: False leaves the host's data energy uncomputed (:class:`Unscored`; its prior
+        energy is computed), for a caller that reevaluates before it reads the energy."""
         n, N = self.n_frames, self.level.grid.size
         identity = self.identity_poses(est)
         if array_module(est.z) is not np and not identity:  # one launch on a GPU
@@ -499,13 +515,13 @@ class LevelProblem:
         P = self.points(est.z)
         xp = array_module(P)
         if identity and self._static_samples is not None:
-            return self.evaluate_samples(est, *self._static_samples, *self.normals(est.z))
+            return self.evaluate_samples(est, *self._static_samples, *self.normals(est.z), scored=scored)
         color = xp.empty((n, N, 3), dtype=np.float32)  # sampled from float32 images
         usable = xp.empty((n, N), dtype=bool)
         self._sample_frames(P, like(est.poses, P), slice(0, n), color, usable)
         if identity:
             self._static_samples = (color, usable)
-        return self.evaluate_samples(est, color, usable, *self.normals(est.z))
+        return self.evaluate_samples(est, color, usable, *self.normals(est.z), scored=scored)
 
     def energy(self, est: Estimate, samples: tuple | None = None, normals: np.ndarray | None = None,
                prior: float | None = None) -> tuple[float, np.ndarray]:
@@ -579,18 +595,19 @@ class LevelProblem:
         return 0.5 * self.lam * self.lam * data + (self.prior_energy(est.z) if prior is None else prior), usable
 
     def evaluate_samples(self, est: Estimate, color: np.ndarray, usable: np.ndarray, normals: np.ndarray,
-                         dA: np.ndarray) -> Evaluation:
-        """The evaluation of ``est`` from its warped colours (n, N, 3), usable (n, N) and normals.
+                         dA: np.ndarray, *, scored: bool = True) -> Evaluation:
+        """The evaluation of ``est`` from its warped colours (n, N, 3), usable (n, N) and normals
+        (scored: as :meth:`evaluate`'s).
 
         Steps that leave z and the poses alone (albedo, lighting) or that sampled the frames
         already (poses) reuse the samples instead of warping every frame again.
         """
-        return self._evaluation(est, color, usable, normals, dA, self.bases(est, normals))
+        return self._evaluation(est, color, usable, normals, dA, self.bases(est, normals), scored=scored)
 
     def _evaluation(self, est, color, usable, normals, dA, basis, reuse: Evaluation | None = None,
-                    prior: float | None = None) -> Evaluation:
+                    prior: float | None = None, scored: bool = True) -> Evaluation:
         """The evaluation from the samples; ``prior``: the prior energy of ``est.z`` where the caller
-        has it (None: computed)."""
+        has it (None: computed); scored: as :meth:`evaluate`'s."""
         n, N = usable.shape
         xp, kernels = array_module(color), kernels_for(color)
         if reuse is None:
@@ -603,7 +620,7 @@ class LevelProblem:
             return Evaluation(residual, usable, color, shading, normals, dA, basis, sums, sums)
         kernels.shading_residuals(color, est.albedo, basis, like(est.lights, color, dtype=np.float64), usable, shading,
                                   residual)
-        data = cauchy_energy(residual, self.lam, kernels.log1p_square_sum)
+        data = cauchy_energy(residual, self.lam, kernels.log1p_square_sum) if scored else Unscored()
         return Evaluation(residual, usable, color, shading, normals, dA, basis, data,
                           self.prior_energy(est.z) if prior is None else prior)
 
