@@ -633,9 +633,6 @@ def mesh_viewer_html(mesh, *, view: str = "camera", max_triangles: int = MAX_PAG
 
     from .export import mesh_arrays, simplify_mesh
     from .viz import _place_camera, _vtk_faces
-    from .solver.memory import release_library_pages
-
-    release_library_pages()  # pyvista's and VTK's libraries: 120 MiB of their files mapped by the import
 
     total = len(mesh_arrays(mesh)[1])
     positions, tri, _, colours, _, _ = mesh_arrays(simplify_mesh(mesh, max_triangles))

@@ -26,7 +26,6 @@ from .refinement import Refinement
 from .run_report import NOT_PICKED, peak_memory_mb, recorded_warnings
 from .solver.device import check_device
 from .solver.driver import return_freed_arrays, solve, trim_heap
-from .solver.memory import release_library_pages
 from .solver.options import AUTO, ConvergenceCriteria, ModelOptions, RefineOptions
 from .solver.pose_trust import DEFAULT_POSE_TRUST
 from .solver.problem_input import SolverInput, write_problem
@@ -81,7 +80,6 @@ def refine(capture: Capture, options: RefineOptions | None = None, device="auto"
     if save_problem is not None:
         check_output_files([save_problem], overwrite)
     return_freed_arrays(int(np.prod(capture.color_size)))  # before the registration too (the solver sets it again)
-    release_library_pages()  # the imports' library pages that the registration and the checks do not run
     t0 = time.perf_counter()
     said, dropped, memory = [], {}, {}
     with recorded_warnings(said):

@@ -2,7 +2,6 @@
 energy descent, joint pose refinement, result files and the refine CLI."""
 
 import json
-import sys
 
 import numpy as np
 import pytest
@@ -251,60 +250,6 @@ def test_return_freed_arrays_gives_freed_megabyte_arrays_back_to_the_system(stat
     before = _resident_mb()
     del arrays[::2]
     assert before - _resident_mb() >= 0.75 * 24 * megabytes
-
-
-def _mapping_resident_kb(address: int) -> int:
-    """Resident kB of the mapping in /proc/self/smaps that starts at ``address``."""
-    inside = False
-    with open("/proc/self/smaps") as smaps:
-        for line in smaps:
-            field = line.split()
-            if not field[0].endswith(":"):
-                inside = int(field[0].split("-")[0], 16) == address
-            elif inside and field[0] == "Rss:":
-                return int(field[1])
-    raise LookupError(f"no mapping starts at {address:#x}")
-
-
-@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="madvise and /proc/self/smaps: Linux")
-def test_release_library_pages_unmaps_clean_file_pages_and_keeps_copied_ones(tmp_path):
-    """Two private mappings of a 16 MiB file, both read-only when released: one only read (as a
-    library's code: all 4096 pages resident, then none after release_library_pages, and read
-    again from the file with the same values), one written first and then made read-only (as a
-    library's relocated data: its copy-on-write pages, which the file does not hold, stay
-    resident with the written values)."""
-    import ctypes
-    import mmap
-
-    from o3d_mvps.solver.memory import release_library_pages
-
-    values = np.arange(2 << 20, dtype=np.float64)  # 16 MiB
-    path = tmp_path / "pages.bin"
-    values.tofile(path)
-    size = values.nbytes
-    with open(path, "rb") as f:
-        clean = mmap.mmap(f.fileno(), size, flags=mmap.MAP_PRIVATE, prot=mmap.PROT_READ)
-        copied = mmap.mmap(f.fileno(), size, flags=mmap.MAP_PRIVATE, prot=mmap.PROT_READ | mmap.PROT_WRITE)
-    read = np.frombuffer(clean, np.float64)
-    written = np.frombuffer(copied, np.float64)
-    written[::512] = -1.0  # one value in every 4 kB page: each page copied
-    mprotect = ctypes.CDLL(None, use_errno=True).mprotect
-    mprotect.argtypes = (ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int)
-    assert mprotect(written.ctypes.data, size, mmap.PROT_READ) == 0
-    assert float(read.sum()) == float(values.sum())  # every page read
-    assert _mapping_resident_kb(read.ctypes.data) == size // 1024
-    try:
-        assert release_library_pages() >= size / 2**20
-        assert _mapping_resident_kb(read.ctypes.data) == 0
-        assert _mapping_resident_kb(written.ctypes.data) == size // 1024
-        assert np.array_equal(read, values)
-        expected = values.copy()
-        expected[::512] = -1.0
-        assert np.array_equal(written, expected)
-    finally:
-        del read, written
-        clean.close()
-        copied.close()
 
 
 def test_kernel_threads_follow_the_level_size_and_are_restored(capture, monkeypatch):

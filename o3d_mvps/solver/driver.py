@@ -38,7 +38,6 @@ from .joint import update_pose_depth
 from .kernels import MAX_EXTRAPOLATION_FACTORS, extrapolation_blocks
 from .light_selection import select_light_model
 from .lighting import make_light_model, preload_light_states, update_led_offset
-from .memory import release_library_pages
 from .normal_equations import prepare_depth_block
 from .options import AUTO, DEFAULT_CAUCHY_LAMBDA, RefineOptions
 from .pose import keep_agreeing_poses, pose_information, update_poses
@@ -699,8 +698,6 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
         for a level too small to solve, which passes ``carried`` on)."""
         t = time.perf_counter()
         trim_heap()  # the previous level's freed arrays out of the resident set before this level's are made
-        if level_index == 0:  # the finest level, where the solve peaks: not the library pages mapped before it
-            release_library_pages()  # (the registration's Open3D, llvmlite as numba loads the kernels, OpenCV)
         level = build_level(level_index, colors, masks, ref_mask, K, z0, sf, options.difference_scheme,
                             options.depth_envelope, options.model.slope_weighted(),
                             grid_modes=partial(grid_mode_weight, light.name, n_frames,
