@@ -99,6 +99,9 @@ class DepthPrior:
         holding it beside the weighted one (77 MB at 2 megapixels, through the level's joint steps)."""
         if self.S is None:
             return
+        self.__dict__.pop("StS", None)
+        if self.__dict__.get("_weighted"):  # the last weighted S goes before the next is made (77 MB at 2 MP)
+            self.S = None
         base = self._unweighted_smoothness()
         if self.__dict__.get("_S_build") is None or base.shape[1] <= REBUILD_SMOOTHNESS_PIXELS:
             self.__dict__.setdefault("_S_unweighted", base)
@@ -124,7 +127,6 @@ class DepthPrior:
             scaled = base.data * np.repeat(weights ** 0.5, np.diff(base.indptr))
             self.S = sp.csr_matrix((scaled, base.indices, base.indptr), shape=base.shape)
         self.__dict__["_weighted"] = True
-        self.__dict__.pop("StS", None)
 
     def rebuild_smoothness_with(self, build) -> None:
         """Give the prior ``build()``, which returns its unweighted S anew (the same matrix bit for
