@@ -94,11 +94,9 @@ def read_capture(path, mask: str | None = None, depth_range=None) -> Capture:
     color, bit_depths = [], set()
     decoded = _in_threads(lambda file: _decode_color(_read_image(file), settings["color_encoding"], file),
                           list(color_files.values()))
-    while decoded:  # each decoded frame freed once copied into its image: not all held twice (221 MB at D415 size)
-        array, bits = decoded.pop(0)
+    for array, bits in decoded:
         color.append(image_from_array(array))
         bit_depths.add(bits)
-        del array
     if len(bit_depths) > 1:
         raise CaptureError(f"{root / COLOR_DIR} mixes 8- and 16-bit frames; save every colour frame at one bit depth")
     depth = [image_from_array(z) for z in _in_threads(
