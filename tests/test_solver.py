@@ -225,6 +225,47 @@ def test_coarse_to_fine_runs_coarsest_first_and_passes_skipped_levels_on():
         coarse_to_fine(2, lambda index, carried: None)
 
 
+def _sweeps_run(energies, level_index=0, tolerance=1e-3, settled=False):
+    """How many sweeps a level runs whose energy after each sweep is ``energies`` (the first: the
+    level's start), as driver._sweeps decides after each sweep (driver._stalled)."""
+    from o3d_mvps.solver.driver import _stalled
+
+    drop = None
+    for iteration in range(1, len(energies)):
+        drop, last_drop = (energies[iteration - 1] - energies[iteration]) / energies[iteration - 1], drop
+        if _stalled(level_index, iteration, settled, last_drop, drop, tolerance):
+            return iteration
+    return len(energies) - 1
+
+
+def _energies(drops, start=100.0):
+    """A level's energies: ``start``, then each sweep's lowered by its relative drop in ``drops``."""
+    energies = [start]
+    for drop in drops:
+        energies.append(energies[-1] * (1 - drop))
+    return energies
+
+
+# the finest level's energies, sweep by sweep, of the saved 2 MP and D415 problems (20 frames);
+# on 2 MP the smoothness weights are re-weighed before sweeps 2 and 3 (EVIDENCE_SWEEPS), hence the rise
+MP2_FINEST = [46246.0, 6278.653, 49297.92, 15004.61, 12755.66, 12603.38, 12602.13]
+D415_FINEST = [484.5679, 412.6804, 404.3845, 402.0523, 400.9809, 400.5392, 400.2650]
+
+
+def test_finest_level_stops_once_its_energy_stalls_not_while_it_still_falls():
+    """2 MP's finest drops 0.150 then 0.0119 (ratio 0.079): its sixth sweep, predicted 9.5e-4
+    (actual 9.9e-5), is not run; D415's still falls slowly (ratios 0.46, 0.41) and runs until a
+    drop is within the tolerance (6.9e-4 at the sixth); a coarser level, or one whose last two
+    drops straddle the re-weighing, only stops at the tolerance; drops halving each sweep run on."""
+    assert _sweeps_run(MP2_FINEST) == 5
+    assert _sweeps_run(D415_FINEST) == 6
+    assert _sweeps_run(MP2_FINEST, level_index=1) == 6
+    assert _sweeps_run(_energies([0.3, 0.2, 0.1, 0.05, 0.025, 0.0125, 0.006, 0.003, 0.0015, 0.0008])) == 10
+    straddling = _energies([0.1, 0.05, 0.004, 0.003, 0.002, 0.0009])  # ratio 0.08 at the third
+    assert _sweeps_run(straddling) == 6  # the second's drop was of the energy before the re-weighing
+    assert _sweeps_run(straddling, settled=True) == 3  # weights held from the start: predicted 3e-4
+
+
 def _resident_mb() -> float:
     """This process's resident size, MB, counted exactly from its page tables (smaps_rollup).
     /proc/self/status's VmRSS is not: the kernel sums per-CPU counters lazily (proc(5)), and in
