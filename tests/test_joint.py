@@ -859,10 +859,11 @@ def test_the_smoothness_hessian_is_not_held_through_the_solve_and_comes_back_the
 
 
 def test_weighing_lets_the_last_weighted_smoothness_go_before_making_the_next(level, rng, monkeypatch):
-    """At each weighing after the first the prior drops its last weighted S (and S^T S) before it
-    makes its unweighted S anew and weighs it, so that two weighted S are not held at once (77 MB
-    at 2 MP, where the 2 MP solve peaked): when the unweighted S is made, the last weighted one
-    is already freed (a weak reference)."""
+    """At each weighing after the first the prior drops its last weighted S (and S^T S) once its
+    unweighted S is back (made anew or put back from the weighted one) and before it weighs it, so
+    that two weighted S are not held at once (77 MB at 2 MP, where the 2 MP solve peaked): when
+    the rows' weights are read (row_centres), the last weighted S is already freed (a weak
+    reference)."""
     import weakref
 
     from o3d_mvps.solver import pyramid
@@ -871,19 +872,19 @@ def test_weighing_lets_the_last_weighted_smoothness_go_before_making_the_next(le
     monkeypatch.setattr(pyramid, "REBUILD_SMOOTHNESS_PIXELS", 0)
     z0 = bump_depth().reshape(SIZE[0] // 2, 2, SIZE[1] // 2, 2).mean(axis=(1, 3))
     prior = build_level(0, level.images, [None] * len(level.images), level.grid.mask, level.K, z0, 2).prior
-    build = prior.__dict__["_S_build"]
-    last, alive_at_build = [], []
+    last, alive_at_weighing = [], []
+    centres = pyramid.row_centres
 
-    def recording_build():
-        alive_at_build.append([ref() is not None for ref in last])
-        return build()
+    def recording_centres(S):
+        alive_at_weighing.append([ref() is not None for ref in last])
+        return centres(S)
 
-    prior.rebuild_smoothness_with(recording_build)
+    monkeypatch.setattr(pyramid, "row_centres", recording_centres)
     for sweep in range(3):
         prior.weigh_smoothness(rng.uniform(0.1, 1.0, prior.S.shape[1]))
         assert prior.StS is not None  # formed from the weighted S, as a step does
         last.append(weakref.ref(prior.S))
-    assert alive_at_build == [[False], [False, False]]  # the first weighing weighs S itself
+    assert alive_at_weighing == [[], [False], [False, False]]
 
 
 def test_weighing_a_rebuildable_smoothness_keeps_no_copy_and_gives_the_same_rows(level, rng, monkeypatch):

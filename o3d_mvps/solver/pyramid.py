@@ -100,9 +100,8 @@ class DepthPrior:
         if self.S is None:
             return
         self.__dict__.pop("StS", None)
-        if self.__dict__.get("_weighted"):  # the last weighted S goes before the next is made (77 MB at 2 MP)
-            self.S = None
-        base = self._unweighted_smoothness()
+        base = self._unweighted_smoothness()  # may be put back from the last weighted S
+        self.S = None  # the last weighted S goes before the next is made (77 MB at 2 MP)
         if self.__dict__.get("_S_build") is None or base.shape[1] <= REBUILD_SMOOTHNESS_PIXELS:
             self.__dict__.setdefault("_S_unweighted", base)
         entries = None
