@@ -128,8 +128,11 @@ class DepthPrior:
         self.__dict__["_weighted"] = True
 
     def rebuild_smoothness_with(self, build) -> None:
-        """Give the prior ``build()``, which returns its unweighted S anew (the same matrix bit for
-        bit: a pure function of the level), so that weighing it does not keep a copy."""
+        """Give the prior ``build(S)``, which returns its unweighted S anew from its last weighted
+        ``S`` (the same matrix bit for bit: made again from the level, or the taps put back), so
+        that weighing it does not keep a copy. Handed S rather than closing over the prior: a
+        closure would make a reference cycle that keeps a dropped level's matrices alive until
+        the garbage collector runs."""
         self.__dict__["_S_build"] = build
 
     def _unweighted_smoothness(self) -> sp.csr_matrix:
@@ -138,7 +141,7 @@ class DepthPrior:
             return self.S
         if "_S_unweighted" in self.__dict__:
             return self.__dict__["_S_unweighted"]
-        return self.__dict__["_S_build"]()
+        return self.__dict__["_S_build"](self.S)
 
     def energy(self, z: np.ndarray, tau: float, mu: float) -> float:
         """tau ||D z - z0||^2 + mu ||S z||^2 of depth z (N,) metres."""
@@ -387,7 +390,7 @@ def build_level(index: int, colors: list, masks: list, ref_mask: np.ndarray, K: 
     # weighed without a copy of the unweighted S kept: made anew, or where its rows are plain second
     # differences their taps put back into the weighted S (2 MP: a weighing 0.67 -> 0.26 CPU s with the
     # scaling in place)
-    prior.rebuild_smoothness_with(smoothness if slope_weighted else lambda: unweighted_second_differences(prior.S))
+    prior.rebuild_smoothness_with((lambda S: smoothness()) if slope_weighted else unweighted_second_differences)
     if envelope_margin is not None:
         prior.lower, prior.upper = (grid.gather(b) for b in depth_envelope(z0, size, envelope_margin))
     return Level(index, grid, K_level, size, images, frame_masks, prior)
