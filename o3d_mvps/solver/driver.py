@@ -183,7 +183,8 @@ def return_freed_arrays(pixels: int | None = None, static: bool = False) -> bool
     solver's per-level arrays of 1-32 MB then stay in the heap when freed, resident and
     fragmented: 24 MB of the D415 process's peak, 50-190 MB of the stage peaks at 2 MP. Each
     mapped array costs page faults when it is allocated: at D415 size the 1 MB threshold cost
-    2.7 s of system CPU, 8 MB 0.4 s, for the same peak. A no-op returning False where the C
+    2.7 s of system CPU, 8 MB 0.4 s, for the same peak. A block that fits free space already
+    in the heap is still carved from it, so call this before the large work. A no-op returning False where the C
     library is not glibc, or where the user set ``MALLOC_MMAP_THRESHOLD_`` (theirs is kept)."""
     import ctypes
     import os
