@@ -580,10 +580,12 @@ class LevelProblem:
         """:meth:`energy` on the host under the LED, a compiled pass over the pixels a frame
         (:func:`.kernels.led_energy_frame`: no frames x pixels arrays but the usable mask, a
         running product per pixel; 2 MP, 20 frames, one thread: 0.90 -> 0.73 CPU s); equal to the
-        batched sums to ~1e-14 of them."""
+        batched sums to ~1e-14 of them. The chunk count comes from ``frame_chunk``'s Python
+        function: called through its dispatcher, that inline-only (uncached) function was compiled
+        in every process (0.14 CPU s, on the critical path)."""
         n, N = self.n_frames, self.level.grid.size
         usable = np.empty((n, N), dtype=bool)
-        products, parts = np.ones(N), np.zeros(-(-N // frame_chunk(N)))
+        products, parts = np.ones(N), np.zeros(-(-N // frame_chunk.py_func(N)))
         args = (contiguous(points, np.float64), contiguous(normals, np.float64),
                 np.ascontiguousarray(poses, dtype=np.float64), self.device_K)
         rest = (self.visibility, contiguous(est.albedo, np.float64), contiguous(lights, np.float64),
