@@ -18,6 +18,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 import compile_cuda_kernels
+from helpers import weighted_lighting_sums
 from o3d_mvps.solver import cuda_kernels, kernels
 
 RNG = np.random.default_rng(11)
@@ -741,15 +742,14 @@ def test_albedo_update_matches_cpu_and_the_ratio(frames):
 @pytest.mark.parametrize("shared", [True, False])
 def test_lighting_sums_match_cpu_and_the_matrix_formula(frames, shared):
     """Frame i's Gram sum_p a_p B_p B_p^T, rhs sum_p b_p B_p and usable count (a, b the weighted
-    channel sums of weighted_lighting_sums), blocks' shares added; float32 basis as the solver's."""
+    channel sums of the NumPy reference helpers.weighted_lighting_sums), blocks' shares added; float32 basis as the solver's."""
     residual, usable, color, _, albedo = frames
     k = 4 if shared else 2
     basis = RNG.random((1 if shared else N_FRAMES, N_PIXELS, k)).astype(np.float32)
     blocks = 3
     cpu, gpu = run_both("lighting_sums", residual, usable, color, albedo, np.float64(1.0 / LAM), basis,
                         np.full((N_FRAMES, blocks, k * k + k + 1), np.nan))
-    a, b = np.empty((N_FRAMES, N_PIXELS)), np.empty((N_FRAMES, N_PIXELS))
-    kernels.weighted_lighting_sums(residual, usable, color, albedo, 1.0 / LAM, a, b)
+    a, b = weighted_lighting_sums(residual, usable, color, albedo, LAM)
     B = np.broadcast_to(basis.astype(np.float64), (N_FRAMES, N_PIXELS, k))
     expected = np.concatenate([np.einsum("ip,ipr,ipc->irc", a, B, B).reshape(N_FRAMES, -1),
                                np.einsum("ip,ipr->ir", b, B), usable.sum(axis=1)[:, None]], axis=1)

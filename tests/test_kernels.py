@@ -12,8 +12,7 @@ from o3d_mvps.model.shading import led_irradiance, led_irradiances, led_irradian
 from o3d_mvps.solver.kernels import (FRAME_CHUNK, add_stencil_transpose_rows, columns_times, project_stencil_rows,
                                      project_twist_rows, rows_times,
                                      scatter_sparse_transpose_rows, shading_residual_pixel, shading_residuals,
-                                     weighted_albedo_pixel, weighted_albedo_sums, weighted_lighting_pixel,
-                                     weighted_lighting_sums)
+                                     weighted_albedo_pixel, weighted_albedo_sums)
 
 RNG = np.random.default_rng(7)
 N_FRAMES, N_PIXELS, LAM = 4, 3000, 0.1
@@ -42,10 +41,6 @@ def test_weighted_sums_match_numpy(data):
     weighted_albedo_sums(residual, usable, color, shading, 1.0 / LAM, num, den)
     np.testing.assert_allclose(num, np.sum(w * color * shading[..., None], axis=0), rtol=1e-12)
     np.testing.assert_allclose(den, np.sum(w * shading[..., None] ** 2, axis=0), rtol=1e-12)
-    wr2, wri = np.empty((N_FRAMES, N_PIXELS)), np.empty((N_FRAMES, N_PIXELS))
-    weighted_lighting_sums(residual, usable, color, albedo, 1.0 / LAM, wr2, wri)
-    np.testing.assert_allclose(wr2, np.einsum("inc,nc->in", w, albedo**2), rtol=1e-12)
-    np.testing.assert_allclose(wri, np.einsum("inc,nc,inc->in", w, albedo, color), rtol=1e-12)
 
 
 @pytest.mark.parametrize("shared", [True, False])
@@ -213,14 +208,13 @@ def test_warp_gradients_are_warp_and_central_differences_of_the_bilinear_image()
 
 @numba.njit
 def _pixel_by_pixel(color, albedo, basis, lights, usable, residual_in, values, shading_in, inv_lam, positions,
-                    normals, points, shading, residual, num, den, wr2, wri, irradiance):  # pragma: no cover
+                    normals, points, shading, residual, num, den, irradiance):  # pragma: no cover
     """The kernels' per-pixel functions in their first loop order (every frame inside each pixel):
     what the chunked launchers must reproduce bit for bit."""
     n, N = usable.shape
     for p in range(N):
         for i in range(n):
             shading_residual_pixel(color, albedo, basis, lights, usable, shading, residual, i, p)
-            weighted_lighting_pixel(residual_in, usable, values, albedo, inv_lam, wr2, wri, i, p)
         weighted_albedo_pixel(residual_in, usable, values, shading_in, inv_lam, num, den, p)
         for i in range(positions.shape[0]):
             irradiance[i, p] = led_irradiance(normals, points, positions, i, p)
@@ -244,15 +238,14 @@ def test_chunked_frame_loops_equal_the_per_pixel_loop(n_pixels):
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
     positions = RNG.normal(size=(n, 3)) * 0.05
     expected = [np.full((n, n_pixels), np.nan), np.full((n, n_pixels, 3), np.nan),
-                *(np.full((n_pixels, 3), np.nan) for _ in range(2)), *(np.full((n, n_pixels), np.nan) for _ in range(3))]
+                *(np.full((n_pixels, 3), np.nan) for _ in range(2)), np.full((n, n_pixels), np.nan)]
     _pixel_by_pixel(color, albedo, basis, lights, usable, residual, values, shading_in, 1.0 / LAM, positions, normals,
                     points, *expected)
     got = [np.full_like(a, np.nan) for a in expected]
     shading_residuals(color, albedo, basis, lights, usable, got[0], got[1])
     weighted_albedo_sums(residual, usable, values, shading_in, 1.0 / LAM, got[2], got[3])
-    weighted_lighting_sums(residual, usable, values, albedo, 1.0 / LAM, got[4], got[5])
-    led_irradiances_into(normals, points, positions, got[6])
-    for name, a, b in zip(("shading", "residual", "num", "den", "wr2", "wri", "irradiance"), got, expected):
+    led_irradiances_into(normals, points, positions, got[4])
+    for name, a, b in zip(("shading", "residual", "num", "den", "irradiance"), got, expected):
         assert np.array_equal(a, b), name
 
 

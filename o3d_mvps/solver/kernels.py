@@ -941,16 +941,10 @@ def weighted_albedo_sums(residual, usable, values, shading, inv_lam, num, den): 
 
 
 @numba.njit(inline="always")
-def weighted_lighting_pixel(residual, usable, color, albedo, inv_lam, wr2, wri, i, p):  # pragma: no cover
-    """:func:`weighted_lighting_sums` on pixel p of frame i."""
-    a, b = weighted_lighting_terms(residual, usable, color, albedo, inv_lam, i, p)
-    wr2[i, p] = a
-    wri[i, p] = b
-
-
-@numba.njit(inline="always")
 def weighted_lighting_terms(residual, usable, color, albedo, inv_lam, i, p):  # pragma: no cover - compiled
-    """(sum_c w rho^2, sum_c w rho I) of :func:`weighted_lighting_sums` at pixel p of frame i."""
+    """(sum_c w rho^2, sum_c w rho I) at pixel p of frame i (the lighting's per-pixel weights,
+    :func:`lighting_sums`), with the Cauchy IRLS weight w = usable / (1 + (r inv_lam)^2) of
+    residual (n, N, 3), albedo rho (N, 3) and warped colour I (n, N, 3)."""
     a = 0.0
     b = 0.0
     if usable[i, p]:
@@ -960,17 +954,6 @@ def weighted_lighting_terms(residual, usable, color, albedo, inv_lam, i, p):  # 
             a += w * albedo[p, c] * albedo[p, c]
             b += w * albedo[p, c] * color[i, p, c]
     return a, b
-
-
-@numba.njit(parallel=True, cache=True)
-def weighted_lighting_sums(residual, usable, color, albedo, inv_lam, wr2, wri):  # pragma: no cover - compiled
-    """wr2 (n, N) = sum_c w rho^2 and wri (n, N) = sum_c w rho I over the channels, with the
-    Cauchy IRLS weight w = usable / (1 + (r inv_lam)^2) of residual (n, N, 3)."""
-    n, N = usable.shape
-    for k in numba.prange(-(-N // FRAME_CHUNK)):
-        for i in range(n):
-            for p in range(k * FRAME_CHUNK, min(N, (k + 1) * FRAME_CHUNK)):
-                weighted_lighting_pixel(residual, usable, color, albedo, inv_lam, wr2, wri, i, p)
 
 
 @numba.njit(inline="always")
