@@ -9,8 +9,8 @@ import scipy.sparse as sp
 
 from o3d_mvps.model.robust import cauchy, cauchy_energy, cauchy_weights
 from o3d_mvps.model.shading import led_irradiance, led_irradiances, led_irradiances_into, led_vectors
-from o3d_mvps.solver.kernels import (FRAME_CHUNK, add_stencil_transpose_rows, columns_times, project_stencil_rows,
-                                     project_twist_rows, rows_times,
+from o3d_mvps.solver.kernels import (FRAME_CHUNK, add_stencil_transpose_rows, albedo_refit_residuals, albedo_update,
+                                     columns_times, project_stencil_rows, project_twist_rows, rows_times,
                                      scatter_sparse_transpose_rows, shading_residual_pixel, shading_residuals,
                                      weighted_albedo_pixel, weighted_albedo_sums)
 
@@ -247,6 +247,37 @@ def test_chunked_frame_loops_equal_the_per_pixel_loop(n_pixels):
     led_irradiances_into(normals, points, positions, got[4])
     for name, a, b in zip(("shading", "residual", "num", "den", "irradiance"), got, expected):
         assert np.array_equal(a, b), name
+
+
+@pytest.mark.parametrize("shared", [True, False])
+@pytest.mark.parametrize("n_pixels", [5, FRAME_CHUNK + 123])
+def test_albedo_refit_in_one_pass_equals_the_update_and_reevaluation(shared, n_pixels):
+    """kernels.albedo_refit_residuals (the host's albedo refit and re-evaluation in one pass)
+    against albedo_update, shading_residuals and cauchy_energy in turn, on float32 residuals,
+    colours and basis as the solver stores them: the albedo, shading and residuals the same bit
+    for bit, the energy to 1e-13 (its factors grouped per pixel, not per 8 stored terms; measured
+    ~1e-15); a pixel that no frame sees keeps its albedo."""
+    n, f32 = 6, np.float32
+    usable = RNG.random((n, n_pixels)) > 0.2
+    usable[:, 0] = False
+    color = RNG.random((n, n_pixels, 3)).astype(f32)
+    basis = RNG.random((1 if shared else n, n_pixels, 2)).astype(f32)
+    lights, albedo = RNG.random((n, 2)), RNG.random((n_pixels, 3))
+    shading, residual = np.empty((n, n_pixels), f32), np.empty((n, n_pixels, 3), f32)
+    shading_residuals(color, albedo, basis, lights, usable, shading, residual)
+    residual *= 3.0  # residuals away from the fit, so that the IRLS weights vary
+    expected = [a.copy() for a in (shading, residual)]
+    num, den, refit = (np.empty((n_pixels, 3)) for _ in range(3))
+    albedo_update(expected[1], usable, color, expected[0], 1.0 / LAM, albedo, num, den, refit)
+    shading_residuals(color, refit, basis, lights, usable, *expected)
+    energy = cauchy_energy(expected[1], LAM)
+    got, products, parts = np.full((n_pixels, 3), np.nan), np.ones(n_pixels), np.zeros(-(-n_pixels // FRAME_CHUNK))
+    albedo_refit_residuals(residual, usable, color, shading, 1.0 / LAM, albedo, basis, lights, num, den, got,
+                           products, parts)
+    assert np.array_equal(got, refit) and np.array_equal(got[0], albedo[0])
+    assert np.array_equal(shading, expected[0]) and np.array_equal(residual, expected[1])
+    assert 0.5 * LAM * LAM * parts.sum() == pytest.approx(energy, rel=1e-13, abs=0)
+    assert not np.array_equal(refit, albedo)
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])

@@ -2042,6 +2042,48 @@ def albedo_update(residual, usable, values, shading, inv_lam, fallback, num, den
             out[p, c] = num[p, c] / d if d > 1e-8 else fallback[p, c]
 
 
+@numba.njit(parallel=True, cache=True)
+def albedo_refit_residuals(residual, usable, color, shading, inv_lam, fallback, basis, lights, num, den, albedo,
+                           products, parts):  # pragma: no cover - compiled
+    """The host's albedo refit and re-evaluation in one pass over chunks of ``FRAME_CHUNK`` pixels:
+    :func:`albedo_update` (albedo (N, 3) written; num, den (N, 3) its sums) from the IRLS weights of
+    ``residual`` (n, N, 3), then :func:`shading_residual_pixel` at that albedo (shading (n, N) and
+    residual written: the residual is read first and overwritten), and the data energy's
+    ``sum log(1 + (inv_lam r)^2)`` of the residuals as stored: each pixel's factors multiplied
+    into ``products[p]`` (N,, ones on entry; its logarithm taken before it passes
+    :data:`PRODUCT_LOG_LIMIT`), chunk k's logarithms in ``parts[k]`` (zeros on entry); the energy is
+    ``parts.sum()``. Albedo, shading and residuals the same bit for bit as the two steps (each
+    pixel's frames in the same order); the energy equal to :func:`log1p_square_sum`'s to ~1e-14
+    (another grouping of the factors). basis (n or 1, N, k), lights (n, k)."""
+    n, N = usable.shape
+    for k in numba.prange(-(-N // FRAME_CHUNK)):
+        start, stop = k * FRAME_CHUNK, min(N, (k + 1) * FRAME_CHUNK)
+        for p in range(start, stop):
+            for c in range(3):
+                num[p, c] = 0.0
+                den[p, c] = 0.0
+        for i in range(n):  # the frames in turn over the chunk (weighted_albedo_sums' order)
+            for p in range(start, stop):
+                weighted_albedo_add(residual, usable, color, shading, inv_lam, num, den, i, p)
+        for p in range(start, stop):
+            albedo_ratio_pixel(num, den, fallback, albedo, p)
+        flushed = 0.0
+        for i in range(n):
+            for p in range(start, stop):
+                shading_residual_pixel(color, albedo, basis, lights, usable, shading, residual, i, p)
+                if usable[i, p]:  # else residuals 0: factors 1
+                    product = products[p]
+                    if product > PRODUCT_LOG_LIMIT:
+                        flushed += math.log(product)
+                        product = 1.0
+                    for c in range(3):
+                        product *= square_factor(residual[i, p, c], inv_lam)
+                    products[p] = product
+        for p in range(start, stop):
+            flushed += math.log(products[p])
+        parts[k] = flushed
+
+
 def lighting_blocks(n_pixels: int) -> int:
     """The middle axis of :func:`lighting_sums`' out: its blocks per frame on the GPU (not a launch)."""
     return min(REDUCTION_BLOCKS, max(1, -(-n_pixels // (16 * 128))))
