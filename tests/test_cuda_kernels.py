@@ -760,12 +760,22 @@ def test_lighting_sums_match_cpu_and_the_matrix_formula(frames, shared):
                                    np.zeros((N_FRAMES, 1, 31)))
 
 
+def _offset_normal_equations(ds: np.ndarray, w: np.ndarray, albedo: np.ndarray, residual: np.ndarray):
+    """NumPy reference of the LED offset's Gauss-Newton Gram H (3, 3) and gradient g (3,) summed
+    over pixels and frames (the host's array formula before kernels.led_offset_system ran there):
+    ds (..., M, 3) d(shading)/d(offset), w (..., M, 3) IRLS weights, albedo (M, 3), residual
+    (..., M, 3) ``I - rho s``, so dr/do = -rho ds."""
+    rho_w = albedo ** 2 * w
+    ds_flat = ds.reshape(-1, 3)
+    H = (ds * rho_w.sum(axis=-1)[..., None]).reshape(-1, 3).T @ ds_flat
+    return H, -(ds_flat.T @ np.sum(w * albedo * residual, axis=-1).reshape(-1))
+
+
 def test_offset_system_matches_cpu_and_the_array_formula(frames):
-    """The LED offset's system from every 3rd pixel: the same as lighting._offset_normal_equations
-    (the host's array formula) on those pixels, unusable ones weighted 0 (the reference of
+    """The LED offset's system from every 3rd pixel: the same as the array formula
+    (_offset_normal_equations) on those pixels, unusable ones weighted 0 (the reference of
     led_offset_system's test)."""
     from o3d_mvps.model.robust import cauchy_weights
-    from o3d_mvps.solver.lighting import _offset_normal_equations
 
     residual, usable, _, _, albedo = frames
     stride = 3
