@@ -928,16 +928,24 @@ def weighted_albedo_sums(residual, usable, values, shading, inv_lam, num, den): 
     IRLS weight w = usable / (1 + (r inv_lam)^2) of residual (n, N, 3), shading s (n, N) and
     values x (n, N, 3): the warped colours for the albedo's weighted least squares, the
     residuals for its variable projection; usable (n, N) bool."""
-    n, N = usable.shape
+    N = usable.shape[1]
     for k in numba.prange(-(-N // FRAME_CHUNK)):
-        start, stop = k * FRAME_CHUNK, min(N, (k + 1) * FRAME_CHUNK)
+        weighted_albedo_chunk(residual, usable, values, shading, inv_lam, num, den, k * FRAME_CHUNK,
+                              min(N, (k + 1) * FRAME_CHUNK))
+
+
+@numba.njit(inline="always")
+def weighted_albedo_chunk(residual, usable, values, shading, inv_lam, num, den, start,
+                          stop):  # pragma: no cover - compiled
+    """:func:`weighted_albedo_sums` on the pixels start..stop-1, the frames in turn over them
+    (each pixel's sums in frame order, as :func:`weighted_albedo_pixel`'s)."""
+    for p in range(start, stop):
+        for c in range(3):
+            num[p, c] = 0.0
+            den[p, c] = 0.0
+    for i in range(usable.shape[0]):
         for p in range(start, stop):
-            for c in range(3):
-                num[p, c] = 0.0
-                den[p, c] = 0.0
-        for i in range(n):  # the frames in turn over the chunk (the same sums, in the same order)
-            for p in range(start, stop):
-                weighted_albedo_add(residual, usable, values, shading, inv_lam, num, den, i, p)
+            weighted_albedo_add(residual, usable, values, shading, inv_lam, num, den, i, p)
 
 
 @numba.njit(inline="always")
@@ -2058,13 +2066,7 @@ def albedo_refit_residuals(residual, usable, color, shading, inv_lam, fallback, 
     n, N = usable.shape
     for k in numba.prange(-(-N // FRAME_CHUNK)):
         start, stop = k * FRAME_CHUNK, min(N, (k + 1) * FRAME_CHUNK)
-        for p in range(start, stop):
-            for c in range(3):
-                num[p, c] = 0.0
-                den[p, c] = 0.0
-        for i in range(n):  # the frames in turn over the chunk (weighted_albedo_sums' order)
-            for p in range(start, stop):
-                weighted_albedo_add(residual, usable, color, shading, inv_lam, num, den, i, p)
+        weighted_albedo_chunk(residual, usable, color, shading, inv_lam, num, den, start, stop)
         for p in range(start, stop):
             albedo_ratio_pixel(num, den, fallback, albedo, p)
         flushed = 0.0
