@@ -742,7 +742,8 @@ def test_albedo_update_matches_cpu_and_the_ratio(frames):
 @pytest.mark.parametrize("shared", [True, False])
 def test_lighting_sums_match_cpu_and_the_matrix_formula(frames, shared):
     """Frame i's Gram sum_p a_p B_p B_p^T, rhs sum_p b_p B_p and usable count (a, b the weighted
-    channel sums of the NumPy reference helpers.weighted_lighting_sums), blocks' shares added; float32 basis as the solver's."""
+    channel sums of the NumPy reference helpers.weighted_lighting_sums), blocks' shares added;
+    float32 basis as the solver's."""
     residual, usable, color, _, albedo = frames
     k = 4 if shared else 2
     basis = RNG.random((1 if shared else N_FRAMES, N_PIXELS, k)).astype(np.float32)
