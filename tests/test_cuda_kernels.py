@@ -18,6 +18,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 import compile_cuda_kernels
+from helpers import weighted_lighting_sums
 from o3d_mvps.solver import cuda_kernels, kernels
 
 RNG = np.random.default_rng(11)
@@ -741,15 +742,15 @@ def test_albedo_update_matches_cpu_and_the_ratio(frames):
 @pytest.mark.parametrize("shared", [True, False])
 def test_lighting_sums_match_cpu_and_the_matrix_formula(frames, shared):
     """Frame i's Gram sum_p a_p B_p B_p^T, rhs sum_p b_p B_p and usable count (a, b the weighted
-    channel sums of weighted_lighting_sums), blocks' shares added; float32 basis as the solver's."""
+    channel sums of the NumPy reference helpers.weighted_lighting_sums), blocks' shares added;
+    float32 basis as the solver's."""
     residual, usable, color, _, albedo = frames
     k = 4 if shared else 2
     basis = RNG.random((1 if shared else N_FRAMES, N_PIXELS, k)).astype(np.float32)
     blocks = 3
     cpu, gpu = run_both("lighting_sums", residual, usable, color, albedo, np.float64(1.0 / LAM), basis,
                         np.full((N_FRAMES, blocks, k * k + k + 1), np.nan))
-    a, b = np.empty((N_FRAMES, N_PIXELS)), np.empty((N_FRAMES, N_PIXELS))
-    kernels.weighted_lighting_sums(residual, usable, color, albedo, 1.0 / LAM, a, b)
+    a, b = weighted_lighting_sums(residual, usable, color, albedo, LAM)
     B = np.broadcast_to(basis.astype(np.float64), (N_FRAMES, N_PIXELS, k))
     expected = np.concatenate([np.einsum("ip,ipr,ipc->irc", a, B, B).reshape(N_FRAMES, -1),
                                np.einsum("ip,ipr->ir", b, B), usable.sum(axis=1)[:, None]], axis=1)
@@ -760,12 +761,22 @@ def test_lighting_sums_match_cpu_and_the_matrix_formula(frames, shared):
                                    np.zeros((N_FRAMES, 1, 31)))
 
 
+def _offset_normal_equations(ds: np.ndarray, w: np.ndarray, albedo: np.ndarray, residual: np.ndarray):
+    """NumPy reference of the LED offset's Gauss-Newton Gram H (3, 3) and gradient g (3,) summed
+    over pixels and frames (the host's array formula before kernels.led_offset_system ran there):
+    ds (..., M, 3) d(shading)/d(offset), w (..., M, 3) IRLS weights, albedo (M, 3), residual
+    (..., M, 3) ``I - rho s``, so dr/do = -rho ds."""
+    rho_w = albedo ** 2 * w
+    ds_flat = ds.reshape(-1, 3)
+    H = (ds * rho_w.sum(axis=-1)[..., None]).reshape(-1, 3).T @ ds_flat
+    return H, -(ds_flat.T @ np.sum(w * albedo * residual, axis=-1).reshape(-1))
+
+
 def test_offset_system_matches_cpu_and_the_array_formula(frames):
-    """The LED offset's system from every 3rd pixel: the same as lighting._offset_normal_equations
-    (the host's array formula) on those pixels, unusable ones weighted 0 (the reference of
+    """The LED offset's system from every 3rd pixel: the same as the array formula
+    (_offset_normal_equations) on those pixels, unusable ones weighted 0 (the reference of
     led_offset_system's test)."""
     from o3d_mvps.model.robust import cauchy_weights
-    from o3d_mvps.solver.lighting import _offset_normal_equations
 
     residual, usable, _, _, albedo = frames
     stride = 3

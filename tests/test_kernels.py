@@ -9,11 +9,10 @@ import scipy.sparse as sp
 
 from o3d_mvps.model.robust import cauchy, cauchy_energy, cauchy_weights
 from o3d_mvps.model.shading import led_irradiance, led_irradiances, led_irradiances_into, led_vectors
-from o3d_mvps.solver.kernels import (FRAME_CHUNK, add_stencil_transpose_rows, columns_times, project_stencil_rows,
-                                     project_twist_rows, rows_times,
+from o3d_mvps.solver.kernels import (FRAME_CHUNK, add_stencil_transpose_rows, albedo_refit_residuals, albedo_update,
+                                     columns_times, project_stencil_rows, project_twist_rows, rows_times,
                                      scatter_sparse_transpose_rows, shading_residual_pixel, shading_residuals,
-                                     weighted_albedo_pixel, weighted_albedo_sums, weighted_lighting_pixel,
-                                     weighted_lighting_sums)
+                                     weighted_albedo_pixel, weighted_albedo_sums)
 
 RNG = np.random.default_rng(7)
 N_FRAMES, N_PIXELS, LAM = 4, 3000, 0.1
@@ -42,10 +41,6 @@ def test_weighted_sums_match_numpy(data):
     weighted_albedo_sums(residual, usable, color, shading, 1.0 / LAM, num, den)
     np.testing.assert_allclose(num, np.sum(w * color * shading[..., None], axis=0), rtol=1e-12)
     np.testing.assert_allclose(den, np.sum(w * shading[..., None] ** 2, axis=0), rtol=1e-12)
-    wr2, wri = np.empty((N_FRAMES, N_PIXELS)), np.empty((N_FRAMES, N_PIXELS))
-    weighted_lighting_sums(residual, usable, color, albedo, 1.0 / LAM, wr2, wri)
-    np.testing.assert_allclose(wr2, np.einsum("inc,nc->in", w, albedo**2), rtol=1e-12)
-    np.testing.assert_allclose(wri, np.einsum("inc,nc,inc->in", w, albedo, color), rtol=1e-12)
 
 
 @pytest.mark.parametrize("shared", [True, False])
@@ -213,14 +208,13 @@ def test_warp_gradients_are_warp_and_central_differences_of_the_bilinear_image()
 
 @numba.njit
 def _pixel_by_pixel(color, albedo, basis, lights, usable, residual_in, values, shading_in, inv_lam, positions,
-                    normals, points, shading, residual, num, den, wr2, wri, irradiance):  # pragma: no cover
+                    normals, points, shading, residual, num, den, irradiance):  # pragma: no cover
     """The kernels' per-pixel functions in their first loop order (every frame inside each pixel):
     what the chunked launchers must reproduce bit for bit."""
     n, N = usable.shape
     for p in range(N):
         for i in range(n):
             shading_residual_pixel(color, albedo, basis, lights, usable, shading, residual, i, p)
-            weighted_lighting_pixel(residual_in, usable, values, albedo, inv_lam, wr2, wri, i, p)
         weighted_albedo_pixel(residual_in, usable, values, shading_in, inv_lam, num, den, p)
         for i in range(positions.shape[0]):
             irradiance[i, p] = led_irradiance(normals, points, positions, i, p)
@@ -244,16 +238,46 @@ def test_chunked_frame_loops_equal_the_per_pixel_loop(n_pixels):
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
     positions = RNG.normal(size=(n, 3)) * 0.05
     expected = [np.full((n, n_pixels), np.nan), np.full((n, n_pixels, 3), np.nan),
-                *(np.full((n_pixels, 3), np.nan) for _ in range(2)), *(np.full((n, n_pixels), np.nan) for _ in range(3))]
+                *(np.full((n_pixels, 3), np.nan) for _ in range(2)), np.full((n, n_pixels), np.nan)]
     _pixel_by_pixel(color, albedo, basis, lights, usable, residual, values, shading_in, 1.0 / LAM, positions, normals,
                     points, *expected)
     got = [np.full_like(a, np.nan) for a in expected]
     shading_residuals(color, albedo, basis, lights, usable, got[0], got[1])
     weighted_albedo_sums(residual, usable, values, shading_in, 1.0 / LAM, got[2], got[3])
-    weighted_lighting_sums(residual, usable, values, albedo, 1.0 / LAM, got[4], got[5])
-    led_irradiances_into(normals, points, positions, got[6])
-    for name, a, b in zip(("shading", "residual", "num", "den", "wr2", "wri", "irradiance"), got, expected):
+    led_irradiances_into(normals, points, positions, got[4])
+    for name, a, b in zip(("shading", "residual", "num", "den", "irradiance"), got, expected):
         assert np.array_equal(a, b), name
+
+
+@pytest.mark.parametrize("shared", [True, False])
+@pytest.mark.parametrize("n_pixels", [5, FRAME_CHUNK + 123])
+def test_albedo_refit_in_one_pass_equals_the_update_and_reevaluation(shared, n_pixels):
+    """kernels.albedo_refit_residuals (the host's albedo refit and re-evaluation in one pass)
+    against albedo_update, shading_residuals and cauchy_energy in turn, on float32 residuals,
+    colours and basis as the solver stores them: the albedo, shading and residuals the same bit
+    for bit, the energy to 1e-13 (its factors grouped per pixel, not per 8 stored terms; measured
+    ~1e-15); a pixel that no frame sees keeps its albedo."""
+    n, f32 = 6, np.float32
+    usable = RNG.random((n, n_pixels)) > 0.2
+    usable[:, 0] = False
+    color = RNG.random((n, n_pixels, 3)).astype(f32)
+    basis = RNG.random((1 if shared else n, n_pixels, 2)).astype(f32)
+    lights, albedo = RNG.random((n, 2)), RNG.random((n_pixels, 3))
+    shading, residual = np.empty((n, n_pixels), f32), np.empty((n, n_pixels, 3), f32)
+    shading_residuals(color, albedo, basis, lights, usable, shading, residual)
+    residual *= 3.0  # residuals away from the fit, so that the IRLS weights vary
+    expected = [a.copy() for a in (shading, residual)]
+    num, den, refit = (np.empty((n_pixels, 3)) for _ in range(3))
+    albedo_update(expected[1], usable, color, expected[0], 1.0 / LAM, albedo, num, den, refit)
+    shading_residuals(color, refit, basis, lights, usable, *expected)
+    energy = cauchy_energy(expected[1], LAM)
+    got, products, parts = np.full((n_pixels, 3), np.nan), np.ones(n_pixels), np.zeros(-(-n_pixels // FRAME_CHUNK))
+    albedo_refit_residuals(residual, usable, color, shading, 1.0 / LAM, albedo, basis, lights, num, den, got,
+                           products, parts)
+    assert np.array_equal(got, refit) and np.array_equal(got[0], albedo[0])
+    assert np.array_equal(shading, expected[0]) and np.array_equal(residual, expected[1])
+    assert 0.5 * LAM * LAM * parts.sum() == pytest.approx(energy, rel=1e-13, abs=0)
+    assert not np.array_equal(refit, albedo)
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 # pytest puts tests/ (no __init__.py) on sys.path, so the model tests' helpers import directly
-from helpers import K, assert_gradient_at_random_pixels, make_problem, perturb_and_refine_poses
+from helpers import (K, assert_gradient_at_random_pixels, make_problem, perturb_and_refine_poses,
+                     weighted_lighting_sums)
 
 from o3d_mvps import RefineOptions, refine
 from o3d_mvps.errors import CaptureError
@@ -243,9 +244,8 @@ def test_update_lighting_sums_equal_the_products_of_the_weighted_basis(led_captu
     """update_lighting forms every frame's Gram and right-hand side in one compiled pass
     (kernels.lighting_sums); the lights it fits come from the sums ``(m * w).T @ m`` and
     ``m.T @ wri`` on the frame's basis m (float32 as in the solver's evaluations, and float64)
-    to round-off (1e-12 of the largest entry: the same terms summed in another order)."""
-    from o3d_mvps.solver import kernels
-
+    to round-off (1e-12 of the largest entry: the same terms summed in another order), the
+    per-pixel weights from the NumPy reference (helpers.weighted_lighting_sums)."""
     gt = led_capture.groundtruth
     problem, est = gt_problem(led_capture, gt.light["offset"])
     ev = problem.evaluate(est)
@@ -255,14 +255,11 @@ def test_update_lighting_sums_equal_the_products_of_the_weighted_basis(led_captu
                         lambda self, gram, rhs, lights: fitted.append((gram.copy(), rhs.copy())) or lights)
     update_lighting(est, ev, problem.lam, problem.light_model(est))
     (gram, rhs), = fitted
-    N = ev.usable.shape[1]
-    wr2, wri = np.empty((1, N)), np.empty((1, N))
     assert ev.usable.sum(axis=1).min() >= 8
+    wr2, wri = weighted_lighting_sums(ev.residual, ev.usable, ev.color, est.albedo, problem.lam)
     for i in range(problem.n_frames):
-        kernels.weighted_lighting_sums(ev.residual[i:i + 1], ev.usable[i:i + 1], ev.color[i:i + 1],
-                                       np.ascontiguousarray(est.albedo), 1.0 / problem.lam, wr2, wri)
         m = ev.frame_basis(i).astype(np.float64)
-        expected_gram, expected_rhs = (m * wr2[0][:, None]).T @ m, m.T @ wri[0]
+        expected_gram, expected_rhs = (m * wr2[i][:, None]).T @ m, m.T @ wri[i]
         np.testing.assert_allclose(gram[i], expected_gram, rtol=0, atol=1e-12 * np.abs(expected_gram).max())
         np.testing.assert_allclose(rhs[i], expected_rhs, rtol=0, atol=1e-12 * np.abs(expected_rhs).max())
     assert np.abs(gram).min() > 0

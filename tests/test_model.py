@@ -14,8 +14,10 @@ from o3d_mvps.model.normals import (
 from o3d_mvps.model.robust import cauchy, cauchy_weights
 from o3d_mvps.model.shading import sh_basis, shading
 from o3d_mvps.model.warping import sample_bilinear, visible, warp
+from o3d_mvps.solver.lighting import LEDLight
 from o3d_mvps.solver.normal_equations import joint_system
-from o3d_mvps.solver.pose import pose_jacobian
+from o3d_mvps.solver.pose import pose_jacobian, pose_system
+from o3d_mvps.solver.problem import LevelProblem
 
 from helpers import SIZE, K, assert_gradient_at_random_pixels, bump_depth, make_problem
 
@@ -234,6 +236,37 @@ def test_pose_jacobian_matches_finite_differences():
         err = np.abs(fd[keep] - J[keep, :, k])
         scale = np.abs(fd[keep]).mean()
         assert np.median(err) < 0.05 * scale
+
+
+@pytest.mark.parametrize("light", ["sh", "led"])
+def test_pose_system_on_the_host_equals_the_array_formula(light):
+    """pose_system's compiled pass (pose._pose_sums) against the array formula it replaced on
+    the host (pose_jacobian, minus albedo x the LED's shading Jacobian, Cauchy weights, wJ^T J and
+    wJ^T r): the same H and g to 1e-12 of their largest entries (another summation order)."""
+    problem, est = make_problem(n_frames=2)
+    if light == "led":
+        problem = LevelProblem(problem.level, problem.tau, problem.lam, LEDLight(np.array([0.03, -0.02, 0.0])))
+        est.lights = np.array([[0.2, 0.4], [0.1, 0.35]])
+    P = problem.points(est.z)
+    normals = problem.normals(est.z)[0]
+    pose = est.poses[1]
+    sample = problem.sample(1, pose, P)
+    H, g = pose_system(problem, est, 1, pose, sample, P, normals)
+    use, model = sample.usable, problem.light_model(est)
+    points = P[use]
+    shading = model.basis(normals[use], points, pose) @ est.lights[1]
+    r = sample.color[use] - est.albedo[use] * shading[:, None]
+    J = pose_jacobian(problem.warped_gradients(1, pose, points), K)
+    dshading = model.shading_jacobian(est.lights[1], normals[use], points, pose)
+    assert (dshading is None) == (light == "sh")
+    if dshading is not None:
+        J -= est.albedo[use][:, :, None] * dshading[:, None, :]
+    J = J.reshape(-1, 6)
+    wJ = J * cauchy_weights(r, problem.lam).reshape(-1, 1)
+    expected_H, expected_g = wJ.T @ J, wJ.T @ r.reshape(-1)
+    assert use.sum() > 100
+    np.testing.assert_allclose(H, expected_H, rtol=0, atol=1e-12 * np.abs(expected_H).max())
+    np.testing.assert_allclose(g, expected_g, rtol=0, atol=1e-12 * np.abs(expected_g).max())
 
 
 def test_depth_system_gradient_matches_finite_differences_of_the_frozen_energy():

@@ -738,7 +738,7 @@ def lighting_sums(residual, usable, color, albedo, inv_lam, basis, out) -> None:
     """The lighting's per-frame weighted normal equations in one launch: out (n,
     :func:`lighting_blocks`, k k + k + 1) the blocks' shares (their sum over axis 1: frame i's
     Gram sum_p (sum_c w rho^2) B B^T (k, k), right-hand side sum_p (sum_c w rho I~) B (k) and
-    usable count), w the Cauchy IRLS weights of residual (n, N, 3) (:func:`.kernels.weighted_lighting_sums`),
+    usable count), w the Cauchy IRLS weights of residual (n, N, 3) (:func:`.kernels.weighted_lighting_terms`),
     basis (n or 1, N, k), k at most :data:`MAX_LIGHT_TERMS`. Grid: blocks x frames."""
     k = basis.shape[2]
     if k > MAX_LIGHT_TERMS or out.shape[2] != k * k + k + 1:

@@ -928,29 +928,31 @@ def weighted_albedo_sums(residual, usable, values, shading, inv_lam, num, den): 
     IRLS weight w = usable / (1 + (r inv_lam)^2) of residual (n, N, 3), shading s (n, N) and
     values x (n, N, 3): the warped colours for the albedo's weighted least squares, the
     residuals for its variable projection; usable (n, N) bool."""
-    n, N = usable.shape
+    N = usable.shape[1]
     for k in numba.prange(-(-N // FRAME_CHUNK)):
-        start, stop = k * FRAME_CHUNK, min(N, (k + 1) * FRAME_CHUNK)
-        for p in range(start, stop):
-            for c in range(3):
-                num[p, c] = 0.0
-                den[p, c] = 0.0
-        for i in range(n):  # the frames in turn over the chunk (the same sums, in the same order)
-            for p in range(start, stop):
-                weighted_albedo_add(residual, usable, values, shading, inv_lam, num, den, i, p)
+        weighted_albedo_chunk(residual, usable, values, shading, inv_lam, num, den, k * FRAME_CHUNK,
+                              min(N, (k + 1) * FRAME_CHUNK))
 
 
 @numba.njit(inline="always")
-def weighted_lighting_pixel(residual, usable, color, albedo, inv_lam, wr2, wri, i, p):  # pragma: no cover
-    """:func:`weighted_lighting_sums` on pixel p of frame i."""
-    a, b = weighted_lighting_terms(residual, usable, color, albedo, inv_lam, i, p)
-    wr2[i, p] = a
-    wri[i, p] = b
+def weighted_albedo_chunk(residual, usable, values, shading, inv_lam, num, den, start,
+                          stop):  # pragma: no cover - compiled
+    """:func:`weighted_albedo_sums` on the pixels start..stop-1, the frames in turn over them
+    (each pixel's sums in frame order, as :func:`weighted_albedo_pixel`'s)."""
+    for p in range(start, stop):
+        for c in range(3):
+            num[p, c] = 0.0
+            den[p, c] = 0.0
+    for i in range(usable.shape[0]):
+        for p in range(start, stop):
+            weighted_albedo_add(residual, usable, values, shading, inv_lam, num, den, i, p)
 
 
 @numba.njit(inline="always")
 def weighted_lighting_terms(residual, usable, color, albedo, inv_lam, i, p):  # pragma: no cover - compiled
-    """(sum_c w rho^2, sum_c w rho I) of :func:`weighted_lighting_sums` at pixel p of frame i."""
+    """(sum_c w rho^2, sum_c w rho I) at pixel p of frame i (the lighting's per-pixel weights,
+    :func:`lighting_sums`), with the Cauchy IRLS weight w = usable / (1 + (r inv_lam)^2) of
+    residual (n, N, 3), albedo rho (N, 3) and warped colour I (n, N, 3)."""
     a = 0.0
     b = 0.0
     if usable[i, p]:
@@ -960,17 +962,6 @@ def weighted_lighting_terms(residual, usable, color, albedo, inv_lam, i, p):  # 
             a += w * albedo[p, c] * albedo[p, c]
             b += w * albedo[p, c] * color[i, p, c]
     return a, b
-
-
-@numba.njit(parallel=True, cache=True)
-def weighted_lighting_sums(residual, usable, color, albedo, inv_lam, wr2, wri):  # pragma: no cover - compiled
-    """wr2 (n, N) = sum_c w rho^2 and wri (n, N) = sum_c w rho I over the channels, with the
-    Cauchy IRLS weight w = usable / (1 + (r inv_lam)^2) of residual (n, N, 3)."""
-    n, N = usable.shape
-    for k in numba.prange(-(-N // FRAME_CHUNK)):
-        for i in range(n):
-            for p in range(k * FRAME_CHUNK, min(N, (k + 1) * FRAME_CHUNK)):
-                weighted_lighting_pixel(residual, usable, color, albedo, inv_lam, wr2, wri, i, p)
 
 
 @numba.njit(inline="always")
@@ -2057,6 +2048,42 @@ def albedo_update(residual, usable, values, shading, inv_lam, fallback, num, den
         for c in range(3):
             d = den[p, c]
             out[p, c] = num[p, c] / d if d > 1e-8 else fallback[p, c]
+
+
+@numba.njit(parallel=True, cache=True)
+def albedo_refit_residuals(residual, usable, color, shading, inv_lam, fallback, basis, lights, num, den, albedo,
+                           products, parts):  # pragma: no cover - compiled
+    """The host's albedo refit and re-evaluation in one pass over chunks of ``FRAME_CHUNK`` pixels:
+    :func:`albedo_update` (albedo (N, 3) written; num, den (N, 3) its sums) from the IRLS weights of
+    ``residual`` (n, N, 3), then :func:`shading_residual_pixel` at that albedo (shading (n, N) and
+    residual written: the residual is read first and overwritten), and the data energy's
+    ``sum log(1 + (inv_lam r)^2)`` of the residuals as stored: each pixel's factors multiplied
+    into ``products[p]`` (N,, ones on entry; its logarithm taken before it passes
+    :data:`PRODUCT_LOG_LIMIT`), chunk k's logarithms in ``parts[k]`` (zeros on entry); the energy is
+    ``parts.sum()``. Albedo, shading and residuals the same bit for bit as the two steps (each
+    pixel's frames in the same order); the energy equal to :func:`log1p_square_sum`'s to ~1e-14
+    (another grouping of the factors). basis (n or 1, N, k), lights (n, k)."""
+    n, N = usable.shape
+    for k in numba.prange(-(-N // FRAME_CHUNK)):
+        start, stop = k * FRAME_CHUNK, min(N, (k + 1) * FRAME_CHUNK)
+        weighted_albedo_chunk(residual, usable, color, shading, inv_lam, num, den, start, stop)
+        for p in range(start, stop):
+            albedo_ratio_pixel(num, den, fallback, albedo, p)
+        flushed = 0.0
+        for i in range(n):
+            for p in range(start, stop):
+                shading_residual_pixel(color, albedo, basis, lights, usable, shading, residual, i, p)
+                if usable[i, p]:  # else residuals 0: factors 1
+                    product = products[p]
+                    if product > PRODUCT_LOG_LIMIT:
+                        flushed += math.log(product)
+                        product = 1.0
+                    for c in range(3):
+                        product *= square_factor(residual[i, p, c], inv_lam)
+                    products[p] = product
+        for p in range(start, stop):
+            flushed += math.log(products[p])
+        parts[k] = flushed
 
 
 def lighting_blocks(n_pixels: int) -> int:

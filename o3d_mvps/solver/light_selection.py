@@ -30,7 +30,7 @@ from .point_light import fit_point_lights, initial_point_lights
 from .problem import Estimate, LevelProblem
 from .problem_input import SolverInput
 from .pyramid import build_level, level_mask, level_size
-from .reflectance import update_albedo, update_lighting
+from .reflectance import refit_albedo, update_lighting
 
 #: object pixels of the level the models are fitted on (the coarsest level with at least this many)
 LEVEL_PIXELS = 1000
@@ -148,8 +148,7 @@ def _held_out_score(problem_input: SolverInput, level, name: str, held_out: np.n
     if name == "point":
         ev = initial_point_lights(problem, est, ev)
     for _ in range(SWEEPS):
-        est.albedo = update_albedo(est, ev, problem.lam)
-        ev = problem.reevaluate(est, ev, overwrite=True)
+        ev = refit_albedo(problem, est, ev)
         est.lights = update_lighting(est, ev, problem.lam, problem.light_model(est))
         ev = problem.reevaluate(est, ev, overwrite=True)
         if name == "led":
@@ -158,8 +157,7 @@ def _held_out_score(problem_input: SolverInput, level, name: str, held_out: np.n
             ev = fit_point_lights(problem, est, ev)
     ev = problem.evaluate_samples(est, color, usable, normals, dA)  # the held-out pixels' albedo under these lights
     for _ in range(2):  # the albedo's IRLS weights settle
-        est.albedo = update_albedo(est, ev, problem.lam)
-        ev = problem.reevaluate(est, ev, overwrite=True)
+        ev = refit_albedo(problem, est, ev)
     use = to_host(ev.usable) & held_out[None, :]
     r = to_host(ev.residual)[use]
     return (float(np.sqrt(2.0 * cauchy(r, SCORE_CAUCHY_LAMBDA).mean())) if r.size else float("inf")), samples

@@ -15,10 +15,10 @@ from ..model.arrays import array_module, contiguous, like
 from ..model.camera import backproject
 from ..model.normals import unit_normals
 from ..model.robust import cauchy_energy
-from ..model.shading import frame_chunk
+from ..model.shading import FRAME_CHUNK, frame_chunk
 from ..model.warping import in_view, visible, warp
 from .device import kernels_for, to_host
-from .kernels import energy_blocks, led_energy_frame, log_products_sum
+from .kernels import albedo_refit_residuals, energy_blocks, led_energy_frame, log_products_sum
 from .krylov import pixel_prolongations
 from .lighting import LEDLight, RoomLight, SHLight, device_light_state, preload_light_states
 from .pyramid import Level
@@ -580,10 +580,12 @@ class LevelProblem:
         """:meth:`energy` on the host under the LED, a compiled pass over the pixels a frame
         (:func:`.kernels.led_energy_frame`: no frames x pixels arrays but the usable mask, a
         running product per pixel; 2 MP, 20 frames, one thread: 0.90 -> 0.73 CPU s); equal to the
-        batched sums to ~1e-14 of them."""
+        batched sums to ~1e-14 of them. The chunk count comes from ``frame_chunk``'s Python
+        function: called through its dispatcher, that inline-only (uncached) function was compiled
+        in every process (0.14 CPU s, on the critical path)."""
         n, N = self.n_frames, self.level.grid.size
         usable = np.empty((n, N), dtype=bool)
-        products, parts = np.ones(N), np.zeros(-(-N // frame_chunk(N)))
+        products, parts = np.ones(N), np.zeros(-(-N // frame_chunk.py_func(N)))
         args = (contiguous(points, np.float64), contiguous(normals, np.float64),
                 np.ascontiguousarray(poses, dtype=np.float64), self.device_K)
         rest = (self.visibility, contiguous(est.albedo, np.float64), contiguous(lights, np.float64),
@@ -625,11 +627,16 @@ class LevelProblem:
                           self.prior_energy(est.z) if prior is None else prior)
 
     def albedo_reevaluation(self, est: Estimate, ev: Evaluation) -> Evaluation:
-        """On a GPU: ``est.albedo`` set to its closed form from ``ev``'s IRLS weights
+        """``est.albedo`` set to its closed form from ``ev``'s IRLS weights
         (:func:`.reflectance.update_albedo`) and the evaluation at it written into ``ev``'s arrays
-        (:meth:`reevaluate` with overwrite), in one launch (:func:`.kernels.albedo_evaluation_partials`),
-        its energy read when first used (``ev`` is given up)."""
+        (:meth:`reevaluate` with overwrite; ``ev`` is given up). On a GPU in one launch
+        (:func:`.kernels.albedo_evaluation_partials`), its energy read when first used; on the host
+        in one compiled pass (:func:`.kernels.albedo_refit_residuals`: the same albedo and residuals
+        bit for bit as the two steps, the energy to ~1e-14; it was three passes over the frames'
+        arrays: the albedo's sums, the residuals, their logarithms)."""
         xp = array_module(ev.residual)
+        if xp is np:
+            return self._host_albedo_reevaluation(est, ev)
         num, den, albedo = (xp.empty_like(est.albedo) for _ in range(3))
         lights = self._device_poses_lights(est)[1]
         given = PendingSums.known_prior(ev.pending("prior"))
@@ -640,6 +647,20 @@ class LevelProblem:
         est.albedo = albedo
         sums = PendingSums(partial, 0.5 * self.lam * self.lam, given)
         return Evaluation(ev.residual, ev.usable, ev.color, ev.shading, ev.normals, ev.dA, ev.basis, sums, sums)
+
+    def _host_albedo_reevaluation(self, est: Estimate, ev: Evaluation) -> Evaluation:
+        """:meth:`albedo_reevaluation` on the host."""
+        N = ev.usable.shape[1]
+        num, den, albedo = (np.empty((N, 3)) for _ in range(3))
+        products, parts = np.ones(N), np.zeros(-(-N // FRAME_CHUNK))
+        albedo_refit_residuals(ev.residual, ev.usable, ev.color, ev.shading, 1.0 / self.lam,
+                               contiguous(est.albedo, np.float64), ev.basis,
+                               like(est.lights, ev.color, dtype=np.float64), num, den, albedo, products, parts)
+        est.albedo = albedo
+        prior = ev.pending("prior")
+        return Evaluation(ev.residual, ev.usable, ev.color, ev.shading, ev.normals, ev.dA, ev.basis,
+                          0.5 * self.lam * self.lam * float(parts.sum()),
+                          self.prior_energy(est.z) if prior is None else prior)
 
     def relit(self, est: Estimate, ev: Evaluation) -> Evaluation:
         """The evaluation of ``est``, whose z and poses are those ``ev`` was computed at but whose

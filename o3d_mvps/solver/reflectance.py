@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..model.arrays import array_module, contiguous
-from .device import kernels_for, on_gpu, to_host
+from .device import kernels_for, to_host
 from .problem import Estimate, Evaluation
 
 
@@ -25,12 +25,10 @@ def update_albedo(est: Estimate, ev: Evaluation, lam: float) -> np.ndarray:
 
 def refit_albedo(problem, est: Estimate, ev: Evaluation) -> Evaluation:
     """``est.albedo`` set to :func:`update_albedo`'s and the evaluation at it written into
-    ``ev``'s arrays (``problem.reevaluate(est, ev, overwrite=True)``; ``ev`` is given up): on a
-    GPU in one launch (:meth:`.LevelProblem.albedo_reevaluation`), on the host the two steps."""
-    if on_gpu(ev.residual):
-        return problem.albedo_reevaluation(est, ev)
-    est.albedo = update_albedo(est, ev, problem.lam)
-    return problem.reevaluate(est, ev, overwrite=True)
+    ``ev``'s arrays (``problem.reevaluate(est, ev, overwrite=True)``; ``ev`` is given up), in one
+    pass (:meth:`.LevelProblem.albedo_reevaluation`: one launch on a GPU, one compiled pass on
+    the host)."""
+    return problem.albedo_reevaluation(est, ev)
 
 
 def update_lighting(est: Estimate, ev: Evaluation, lam: float, light) -> np.ndarray:
