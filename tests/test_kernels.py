@@ -9,8 +9,9 @@ import scipy.sparse as sp
 
 from o3d_mvps.model.robust import cauchy, cauchy_energy, cauchy_weights
 from o3d_mvps.model.shading import led_irradiance, led_irradiances, led_irradiances_into, led_vectors
-from o3d_mvps.solver.kernels import (FRAME_CHUNK, add_stencil_transpose_rows, columns_times, project_stencil_rows,
-                                     project_twist_rows, rows_times,
+from o3d_mvps.solver.kernels import (FRAME_CHUNK, add_csr_into_pattern, add_row_gram_into_pattern,
+                                     add_stencil_transpose_rows, columns_times, project_stencil_rows,
+                                     project_twist_rows, rows_times, strong_connections,
                                      scatter_sparse_transpose_rows, shading_residual_pixel, shading_residuals,
                                      weighted_albedo_pixel, weighted_albedo_sums, weighted_lighting_pixel,
                                      weighted_lighting_sums)
@@ -145,6 +146,46 @@ def test_products_with_a_stored_matrix_sum_in_float64(dtype):
     columns_times(A, y, out_n)
     np.testing.assert_allclose(out_k, exact @ x, rtol=1e-12, atol=1e-12 * np.abs(exact).sum(1).max())
     np.testing.assert_allclose(out_n, exact.T @ y, rtol=1e-12, atol=1e-14)
+
+
+def test_strong_connections_are_the_symmetric_strength_test():
+    """strong_connections (three passes in parallel over rows) keeps the diagonal and every
+    (i, j) with a_ij^2 >= theta^2 |a_ii| |a_jj| of a CSR matrix, columns in stored order, and
+    hands back the matrix's own arrays where every entry is kept."""
+    n = 5000
+    A = sp.diags([RNG.normal(size=n - k) * RNG.random(n - k) ** 3 for k in (1, 70)], [1, 70], shape=(n, n))
+    A = sp.csr_matrix(A + A.T + sp.diags(RNG.random(n) + 0.5))
+    A.sort_indices()
+    indptr, indices = strong_connections(A.indptr, A.indices, A.data, 0.25)
+    coo = A.tocoo()
+    d = np.abs(A.diagonal())
+    keep = (coo.row == coo.col) | (coo.data**2 >= 0.25**2 * d[coo.row] * d[coo.col])
+    assert 0 < keep.sum() < A.nnz  # the test drops some entries and keeps others
+    expected = sp.csr_matrix((np.ones(keep.sum()), (coo.row[keep], coo.col[keep])), shape=A.shape)
+    expected.sort_indices()
+    np.testing.assert_array_equal(indptr, expected.indptr)
+    np.testing.assert_array_equal(indices, expected.indices)
+    same = strong_connections(A.indptr, A.indices, A.data, 0.0)
+    assert same[0] is A.indptr and same[1] is A.indices
+
+
+def test_row_gram_into_pattern_is_the_sparse_gram_bit_for_bit():
+    """add_row_gram_into_pattern of a block average A (each column in one row; rows in parallel)
+    adds scale A^T A into a pattern bit for bit as add_csr_into_pattern of the product, and
+    reports a pattern that lacks one of its entries."""
+    n, width = 6000, 4
+    A = sp.csr_matrix((RNG.random(n), (np.arange(n) // width, RNG.permutation(n))), shape=(n // width, n))
+    gram = sp.csr_matrix(A.T @ A + sp.identity(n))
+    gram.sort_indices()
+    expected, actual = np.zeros(gram.nnz), np.zeros(gram.nnz)
+    product = sp.csr_matrix(A.T @ A)
+    assert add_csr_into_pattern(gram.indptr, gram.indices, expected, 0.7, product.indptr, product.indices,
+                                product.data)
+    assert add_row_gram_into_pattern(gram.indptr, gram.indices, actual, 0.7, A.indptr, A.indices, A.data)
+    np.testing.assert_array_equal(actual, expected)
+    diagonal = sp.identity(n, format="csr")
+    assert not add_row_gram_into_pattern(diagonal.indptr, diagonal.indices, np.zeros(n), 0.7, A.indptr, A.indices,
+                                         A.data)
 
 
 def test_led_irradiances_match_led_vectors():

@@ -1356,21 +1356,24 @@ def gram_pattern_rows(xt_indptr, xt_indices, x_indptr, x_indices, indptr, indice
                 indptr[p + 1] = _gram_pattern_row(p, xt_indptr, xt_indices, x_indptr, x_indices, marker, indices, -1)
 
 
-@numba.njit(cache=True)
+@numba.njit(parallel=True, cache=True)
 def add_row_gram_into_pattern(indptr, indices, data, scale, a_indptr, a_indices, a_data):  # pragma: no cover - compiled
     """data (nnz,) of a CSR pattern (columns ascending per row) += ``scale`` times A^T A of the
     CSR matrix A (M, N) (a_indptr, a_indices, a_data), without forming A^T A: each row's outer
-    product added. Where every column of A holds at most one entry, each entry of A^T A is one
-    product, and the sums equal :func:`add_csr_into_pattern` of ``A.T @ A`` bit for bit. Returns
-    False (data partly written) where the pattern lacks one of its entries."""
-    for r in range(a_indptr.shape[0] - 1):
+    product added. Every column of A must hold at most one entry (a block average's rows): then
+    each entry of A^T A is one product, written by one row, so the rows run in parallel without
+    sharing an entry, and the sums equal :func:`add_csr_into_pattern` of ``A.T @ A`` bit for bit.
+    Returns False (data partly written) where the pattern lacks one of its entries."""
+    missing = 0
+    for r in numba.prange(a_indptr.shape[0] - 1):
         for x in range(a_indptr[r], a_indptr[r + 1]):
             for y in range(a_indptr[r], a_indptr[r + 1]):
                 at = csr_position(indptr, indices, a_indices[x], a_indices[y])
                 if at < 0:
-                    return False
-                data[at] += scale * (a_data[x] * a_data[y])
-    return True
+                    missing += 1
+                else:
+                    data[at] += scale * (a_data[x] * a_data[y])
+    return missing == 0
 
 
 @numba.njit(parallel=True, cache=True)
@@ -1417,41 +1420,48 @@ def sparse_product_into(a_indptr, a_indices, a_data, b_indptr, b_indices, b_data
                 acc[c_indices[k]] = 0.0
 
 
-@numba.njit(cache=True)
+@numba.njit(inline="always")
+def strong_in_row(indptr, indices, data, diags, theta, i, kept, start):  # pragma: no cover - compiled
+    """Row i's strong connections of :func:`strong_connections` (pyamg's test, the diagonal
+    always): their count, and where ``start`` >= 0 their columns written from ``kept[start]``."""
+    eps = theta * theta * diags[i]
+    c = 0
+    for jj in range(indptr[i], indptr[i + 1]):
+        j = indices[jj]
+        if j == i or data[jj] * data[jj] >= eps * diags[j]:
+            if start >= 0:
+                kept[start + c] = j
+            c += 1
+    return c
+
+
+@numba.njit(parallel=True, cache=True)
 def strong_connections(indptr, indices, data, theta):  # pragma: no cover - compiled
     """The pattern (indptr (N+1,), indices (nnz',)) of pyamg's symmetric strength of connection
     of a CSR matrix (N, N) with float64 ``data``: the diagonal, and every (i, j) with
     ``a_ij^2 >= theta^2 |a_ii| |a_jj|``, in pyamg's order of operations (``amg_core``'s
     ``symmetric_strength_of_connection``, whose values smoothed aggregation does not read).
-    Returns the input arrays themselves where every stored entry is kept."""
+    Returns the input arrays themselves where every stored entry is kept. Three passes in
+    parallel over rows (the diagonal, the rows' counts, their columns), the counts' running sum
+    between them: the same pattern on any thread count."""
     n = indptr.shape[0] - 1
     diags = np.zeros(n)
-    for i in range(n):
+    for i in numba.prange(n):
         d = 0.0
         for jj in range(indptr[i], indptr[i + 1]):
             if indices[jj] == i:
                 d += data[jj]
         diags[i] = abs(d)
     counts = np.zeros(n + 1, indptr.dtype)
+    for i in numba.prange(n):
+        counts[i + 1] = strong_in_row(indptr, indices, data, diags, theta, i, indices, -1)
     for i in range(n):
-        eps = theta * theta * diags[i]
-        c = 0
-        for jj in range(indptr[i], indptr[i + 1]):
-            j = indices[jj]
-            if j == i or data[jj] * data[jj] >= eps * diags[j]:
-                c += 1
-        counts[i + 1] = counts[i] + c
+        counts[i + 1] += counts[i]
     if counts[n] == indptr[n]:
         return indptr, indices
     kept = np.empty(counts[n], indices.dtype)
-    k = 0
-    for i in range(n):
-        eps = theta * theta * diags[i]
-        for jj in range(indptr[i], indptr[i + 1]):
-            j = indices[jj]
-            if j == i or data[jj] * data[jj] >= eps * diags[j]:
-                kept[k] = j
-                k += 1
+    for i in numba.prange(n):
+        strong_in_row(indptr, indices, data, diags, theta, i, kept, counts[i])
     return counts, kept
 
 
