@@ -11,7 +11,7 @@ from o3d_mvps.model.robust import cauchy, cauchy_energy, cauchy_weights
 from o3d_mvps.model.shading import led_irradiance, led_irradiances, led_irradiances_into, led_vectors
 from o3d_mvps.solver.kernels import (FRAME_CHUNK, add_csr_into_pattern, add_row_gram_into_pattern,
                                      add_stencil_transpose_rows, columns_times, project_stencil_rows,
-                                     project_twist_rows, rows_times, strong_connections,
+                                     project_twist_rows, rows_times, strong_connections, two_entry_stencil,
                                      scatter_sparse_transpose_rows, shading_residual_pixel, shading_residuals,
                                      weighted_albedo_pixel, weighted_albedo_sums, weighted_lighting_pixel,
                                      weighted_lighting_sums)
@@ -113,11 +113,26 @@ def test_stencil_rows_of_two_entries_add_in_stored_order():
     np.testing.assert_array_equal(out, expected)
     assert not np.array_equal(out, start)
 
-def test_fused_projection_and_stencil_equal_the_two_kernels():
+def _two_entry_rows(B: int, N: int, seed: int) -> sp.csr_matrix:
+    """A (B, N) CSR operator with exactly two entries a row (in either column order), as the
+    solver's difference operators without their stored zeros."""
+    rng = np.random.default_rng(seed)
+    indices = np.concatenate([rng.choice(N, 2, replace=False) for _ in range(B)]).astype(np.int32)
+    return sp.csr_matrix((rng.normal(size=2 * B), indices, np.arange(0, 2 * B + 1, 2, dtype=np.int32)), shape=(B, N))
+
+
+@pytest.mark.parametrize("two_entries", [False, True])
+def test_fused_projection_and_stencil_equal_the_two_kernels(two_entries):
     """project_stencil_rows gives the very values (float32 U, scaled F) of project_twist_rows
-    followed by add_stencil_transpose_rows, and leaves the rows unwritten."""
+    followed by add_stencil_transpose_rows, and leaves the rows unwritten: on stencil rows of
+    any length (the CSR rows read) and of two entries each (two_entry_stencil's arrays read)."""
     m, B, N = 2, 300, 700
-    Du, Dv = (sp.random(B, N, density=0.01, random_state=seed, format="csr") for seed in (4, 5))
+    if two_entries:
+        Du, Dv = (_two_entry_rows(B, N, seed) for seed in (4, 5))
+        assert two_entry_stencil(Du.indptr, Du.indices, Du.data, Dv.indptr, Dv.indices, Dv.data)[0].shape == (B, 4)
+    else:
+        Du, Dv = (sp.random(B, N, density=0.01, random_state=seed, format="csr") for seed in (4, 5))
+        assert two_entry_stencil(Du.indptr, Du.indices, Du.data, Dv.indptr, Dv.indices, Dv.data)[0].shape == (0, 4)
     rows, F = RNG.normal(size=(3, m, 6, B)), RNG.normal(size=(m, 6, B, 3))
     scaled, sqrt_inv_d = RNG.normal(size=(3, B, 3)), RNG.random((B, 3))
     start = RNG.normal(size=(6 * m, N)).astype(np.float32)
