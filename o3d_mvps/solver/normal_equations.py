@@ -47,10 +47,11 @@ COUPLING_DTYPE = np.float32
 
 #: Type in which the host's albedo projection forms its downdate ``sum f f^T`` of each block
 #: (:meth:`_AlbedoProjection.downdate_scaled`: BLAS's SSYRK on a float32 copy of F, each block's
-#: Gram then added to the float64 downdate). A 2 MP block's two half-Grams (114 x 12288 each) took
-#: 4.8 ms in float64, 3.0 ms in float32 with the copy: some 2.8 of a 2 MP refine's CPU seconds.
-#: The Gram's entries move by 4e-7 of their rows' norms; the saved 2 MP problem's final energy by
-#: 4e-5 (the path drifts from level 2 on, as any rounding of H moves it), the D415 problem's by 4e-10.
+#: Gram then added to the float64 downdate). A 2 MP block's two half-Grams (114 x 6144 each) took
+#: 4.8 ms in float64, 3.0 ms in float32 with the copy: the saved 2 MP problem's assembly 37.5 ->
+#: 35.4 CPU s (one thread). The Gram's entries move by 4e-7 of their rows' norms; the saved 2 MP
+#: problem's final energy by -4e-5 (the path drifts from level 2 on, as any rounding of H moves
+#: it), the D415 problem's by 4e-10 (docs/performance.md, "the downdate in float32").
 DOWNDATE_DTYPE = np.float32
 
 
