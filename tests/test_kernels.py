@@ -9,8 +9,10 @@ import scipy.sparse as sp
 
 from o3d_mvps.model.robust import cauchy, cauchy_energy, cauchy_weights
 from o3d_mvps.model.shading import led_irradiance, led_irradiances, led_irradiances_into, led_vectors
-from o3d_mvps.solver.kernels import (FRAME_CHUNK, add_stencil_transpose_rows, albedo_refit_residuals, albedo_update,
+from o3d_mvps.solver.kernels import (FRAME_CHUNK, add_csr_into_pattern, add_row_gram_into_pattern,
+                                     add_stencil_transpose_rows, albedo_refit_residuals, albedo_update,
                                      columns_times, project_stencil_rows, project_twist_rows, rows_times,
+                                     strong_connections, two_entry_stencil,
                                      scatter_sparse_transpose_rows, shading_residual_pixel, shading_residuals,
                                      weighted_albedo_pixel, weighted_albedo_sums)
 
@@ -107,11 +109,26 @@ def test_stencil_rows_of_two_entries_add_in_stored_order():
     np.testing.assert_array_equal(out, expected)
     assert not np.array_equal(out, start)
 
-def test_fused_projection_and_stencil_equal_the_two_kernels():
+def _two_entry_rows(B: int, N: int, seed: int) -> sp.csr_matrix:
+    """A (B, N) CSR operator with exactly two entries a row (in either column order), as the
+    solver's difference operators without their stored zeros."""
+    rng = np.random.default_rng(seed)
+    indices = np.concatenate([rng.choice(N, 2, replace=False) for _ in range(B)]).astype(np.int32)
+    return sp.csr_matrix((rng.normal(size=2 * B), indices, np.arange(0, 2 * B + 1, 2, dtype=np.int32)), shape=(B, N))
+
+
+@pytest.mark.parametrize("two_entries", [False, True])
+def test_fused_projection_and_stencil_equal_the_two_kernels(two_entries):
     """project_stencil_rows gives the very values (float32 U, scaled F) of project_twist_rows
-    followed by add_stencil_transpose_rows, and leaves the rows unwritten."""
+    followed by add_stencil_transpose_rows, and leaves the rows unwritten: on stencil rows of
+    any length (the CSR rows read) and of two entries each (two_entry_stencil's arrays read)."""
     m, B, N = 2, 300, 700
-    Du, Dv = (sp.random(B, N, density=0.01, random_state=seed, format="csr") for seed in (4, 5))
+    if two_entries:
+        Du, Dv = (_two_entry_rows(B, N, seed) for seed in (4, 5))
+        assert two_entry_stencil(Du.indptr, Du.indices, Du.data, Dv.indptr, Dv.indices, Dv.data)[0].shape == (B, 4)
+    else:
+        Du, Dv = (sp.random(B, N, density=0.01, random_state=seed, format="csr") for seed in (4, 5))
+        assert two_entry_stencil(Du.indptr, Du.indices, Du.data, Dv.indptr, Dv.indices, Dv.data)[0].shape == (0, 4)
     rows, F = RNG.normal(size=(3, m, 6, B)), RNG.normal(size=(m, 6, B, 3))
     scaled, sqrt_inv_d = RNG.normal(size=(3, B, 3)), RNG.random((B, 3))
     start = RNG.normal(size=(6 * m, N)).astype(np.float32)
@@ -140,6 +157,46 @@ def test_products_with_a_stored_matrix_sum_in_float64(dtype):
     columns_times(A, y, out_n)
     np.testing.assert_allclose(out_k, exact @ x, rtol=1e-12, atol=1e-12 * np.abs(exact).sum(1).max())
     np.testing.assert_allclose(out_n, exact.T @ y, rtol=1e-12, atol=1e-14)
+
+
+def test_strong_connections_are_the_symmetric_strength_test():
+    """strong_connections (three passes in parallel over rows) keeps the diagonal and every
+    (i, j) with a_ij^2 >= theta^2 |a_ii| |a_jj| of a CSR matrix, columns in stored order, and
+    hands back the matrix's own arrays where every entry is kept."""
+    n = 5000
+    A = sp.diags([RNG.normal(size=n - k) * RNG.random(n - k) ** 3 for k in (1, 70)], [1, 70], shape=(n, n))
+    A = sp.csr_matrix(A + A.T + sp.diags(RNG.random(n) + 0.5))
+    A.sort_indices()
+    indptr, indices = strong_connections(A.indptr, A.indices, A.data, 0.25)
+    coo = A.tocoo()
+    d = np.abs(A.diagonal())
+    keep = (coo.row == coo.col) | (coo.data**2 >= 0.25**2 * d[coo.row] * d[coo.col])
+    assert 0 < keep.sum() < A.nnz  # the test drops some entries and keeps others
+    expected = sp.csr_matrix((np.ones(keep.sum()), (coo.row[keep], coo.col[keep])), shape=A.shape)
+    expected.sort_indices()
+    np.testing.assert_array_equal(indptr, expected.indptr)
+    np.testing.assert_array_equal(indices, expected.indices)
+    same = strong_connections(A.indptr, A.indices, A.data, 0.0)
+    assert same[0] is A.indptr and same[1] is A.indices
+
+
+def test_row_gram_into_pattern_is_the_sparse_gram_bit_for_bit():
+    """add_row_gram_into_pattern of a block average A (each column in one row; rows in parallel)
+    adds scale A^T A into a pattern bit for bit as add_csr_into_pattern of the product, and
+    reports a pattern that lacks one of its entries."""
+    n, width = 6000, 4
+    A = sp.csr_matrix((RNG.random(n), (np.arange(n) // width, RNG.permutation(n))), shape=(n // width, n))
+    gram = sp.csr_matrix(A.T @ A + sp.identity(n))
+    gram.sort_indices()
+    expected, actual = np.zeros(gram.nnz), np.zeros(gram.nnz)
+    product = sp.csr_matrix(A.T @ A)
+    assert add_csr_into_pattern(gram.indptr, gram.indices, expected, 0.7, product.indptr, product.indices,
+                                product.data)
+    assert add_row_gram_into_pattern(gram.indptr, gram.indices, actual, 0.7, A.indptr, A.indices, A.data)
+    np.testing.assert_array_equal(actual, expected)
+    diagonal = sp.identity(n, format="csr")
+    assert not add_row_gram_into_pattern(diagonal.indptr, diagonal.indices, np.zeros(n), 0.7, A.indptr, A.indices,
+                                         A.data)
 
 
 def test_led_irradiances_match_led_vectors():
