@@ -312,3 +312,41 @@ def test_coded_frames_sample_as_their_decoded_frames(dtype):
     assert 0.3 * N_PIXELS < results[0][1].sum() < 0.95 * N_PIXELS and np.abs(results[0][2]).max() > 0.1
     for got, expected in zip(*results):
         np.testing.assert_array_equal(got, expected)
+
+
+def test_coded_frames_assemble_as_their_decoded_frames():
+    """The joint step's per-pixel assembly reads coded frames as their decoded float32 frames:
+    every frame in one launch (:func:`accumulate_block`, codes and tables as two tuples) and a
+    frame at a time (:func:`accumulate_frame`) write the same sums, rows and twist sums bit for bit."""
+    from o3d_mvps.colour import CodedColours, frames_and_tables
+    from o3d_mvps.model.se3 import exp
+    from o3d_mvps.solver import kernels
+
+    rng = np.random.default_rng(5)
+    H, W, N, n, m = 30, 40, 3000, 3, 2
+    K = np.array([[50.0, 0.0, 19.5], [0.0, 50.0, 14.5], [0.0, 0.0, 1.0]])
+    coded = CodedColours.from_codes([rng.integers(0, 256, (H, W, 3)).astype(np.uint8) for _ in range(n)])
+    f = lambda *shape: rng.random(shape)  # noqa: E731
+    poses = np.stack([np.eye(4)] + [exp(0.02 * (f(6) - 0.5)) for _ in range(n - 1)])
+    points = np.column_stack([(f(N, 2) - 0.5) * 0.5, 0.6 + 0.05 * f(N)])
+    r, shading, usable, q = f(n, N, 3) - 0.5, f(n, N), rng.random((n, N)) > 0.2, f(N, 3)
+    alpha, beta, gamma, extra_c, albedo = f(n, N) - 0.5, f(n, N) - 0.5, f(n, N), f(N, 3) - 0.5, f(N, 3)
+    dshading, frame_slots = f(n, N, 6) - 0.5, np.array([[0, -1], [1, 1], [1, 0]], dtype=np.int64)
+    chunks = kernels.chunk_count(N)
+    outputs = []
+    for frames in ([coded.frame(i) for i in range(n)], list(coded)):
+        block = [np.zeros((9, N)), np.zeros((3, N, 3)), np.zeros((3, m, 6, N)), np.zeros((m, 6, N, 3)),
+                 np.zeros((m + 1, chunks, 6, 6)), np.zeros((m + 1, chunks, 6))]
+        images, tables = frames_and_tables(frames)
+        kernels.accumulate_block(r, shading, usable, 25.0, q, alpha, beta, gamma, extra_c, points, poses, K, images,
+                                 dshading, albedo, frame_slots, True, *block, kernels.CHUNK, tables)
+        single = [np.zeros_like(a) for a in block]
+        for i, (with_jacobian, slot) in enumerate(frame_slots):
+            kernels.accumulate_frame(r[i], shading[i], usable[i], 25.0, q, alpha[i], beta[i], gamma[i],
+                                     extra_c if i == 0 else np.zeros((0, 3)), points, poses[i], K, frames[i],
+                                     dshading[i], albedo, bool(with_jacobian), True, *single[:4], int(slot),
+                                     single[4][slot], single[5][slot])
+        outputs.append(block + single)
+    assert np.abs(outputs[0][2]).max() > 0 and np.abs(outputs[0][4][:m]).max() > 0  # rows and Grams written
+    for got, expected in zip(*outputs):
+        np.testing.assert_array_equal(got, expected)

@@ -208,8 +208,8 @@ def accumulate_frame(r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, p
 
 @numba.njit(parallel=True, cache=True)
 def accumulate_block(residual, shading, usable, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, poses, K, images,
-                     tables, dshading, albedo, frame_slots, parallax, sums, e, rows, F, gram, rhs,
-                     chunk_pixels):  # pragma: no cover
+                     dshading, albedo, frame_slots, parallax, sums, e, rows, F, gram, rhs, chunk_pixels,
+                     tables=None):  # pragma: no cover
     """:func:`accumulate_frame` of every frame in one launch (the host's assembly block), in
     parallel over chunks of ``chunk_pixels`` pixels, each taking the frames in turn: each
     pixel's sums take the frames in the same order as one launch per frame, so sums, e, rows and

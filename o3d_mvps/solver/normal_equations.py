@@ -590,10 +590,11 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
                        np.empty((n, 0, 6)) if dshading is None else dshading, usable[0], q, alpha, beta, gamma,
                        extra_c, block_sums, e)
     if host_block:  # every frame in one launch, in parallel over pixel chunks
+        images, tables = frames_and_tables(problem.level.images)  # coded frames: codes and tables apart
         kernels.accumulate_block(residual, shading, usable, 1.0 / problem.lam, q, alpha, beta, gamma, extra_c,
-                                 points_ref, poses, problem.device_K, *frames_and_tables(problem.level.images),
+                                 points_ref, poses, problem.device_K, images,
                                  np.empty((problem.n_frames, 0, 6)) if dshading is None else dshading, albedo,
-                                 frame_slots, parallax, block_sums, e, rows, F, gram, rhs, HOST_CHUNK_PIXELS)
+                                 frame_slots, parallax, block_sums, e, rows, F, gram, rhs, HOST_CHUNK_PIXELS, tables)
     else:
         _accumulate_frames(kernels, problem, residual, shading, usable, q, alpha, beta, gamma, extra_c, points_ref,
                            poses, dshading, albedo, with_jacobian, parallax, block_sums, e, rows, F, slot, gram, rhs)
