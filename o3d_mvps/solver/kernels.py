@@ -995,14 +995,26 @@ def project_point(pose, K, x, y, z):  # pragma: no cover - compiled
     return X, Y, Z, u, v
 
 
+@numba.njit(inline="always")
+def float_frame_size(image):  # pragma: no cover - compiled
+    """(H, W) of an (H, W, C) float colour frame (:func:`frame_size`'s float form)."""
+    return image.shape[0], image.shape[1]
+
+
+@numba.njit(inline="always")
+def float_frame_value(image, v, u, c):  # pragma: no cover - compiled
+    """Channel c of an (H, W, C) float frame's pixel (u, v) as float64 (:func:`frame_value`'s float form)."""
+    return np.float64(image[v, u, c])
+
+
 @numba.njit  # not inlined in numba's IR: compiled per frame type, its type test decided there
 def frame_size(image):  # pragma: no cover - compiled
     """(H, W) of a colour frame: an (H, W, C) float array, or a coded frame ``(codes (H, W, C),
     table (C, K))`` (:meth:`o3d_mvps.colour.CodedColours.frame`; the CPU's only: a GPU's
-    frames are decoded on upload)."""
+    frames are decoded on upload, and its kernels read :data:`FLOAT_FRAME_FORMS`)."""
     if isinstance(image, tuple):
         return image[0].shape[0], image[0].shape[1]
-    return image.shape[0], image.shape[1]
+    return float_frame_size(image)
 
 
 @numba.njit  # not inlined in numba's IR: compiled per frame type, its type test decided there
@@ -1012,7 +1024,12 @@ def frame_value(image, v, u, c):  # pragma: no cover - compiled
     (:func:`o3d_mvps.colour.decode_frame`), so every sample is the same bit for bit."""
     if isinstance(image, tuple):
         return np.float64(image[1][c, image[0][v, u, c]])
-    return np.float64(image[v, u, c])
+    return float_frame_value(image, v, u, c)
+
+
+#: the float-frame forms of the frame readers, which the CUDA kernels compile in their place
+#: (:func:`.cuda_kernels._float_frames`): numba-cuda types both branches of the type test
+FLOAT_FRAME_FORMS = {frame_size: float_frame_size, frame_value: float_frame_value}
 
 
 @numba.njit  # not inlined in numba's IR: compiled per frame type, its type test decided there
