@@ -15,7 +15,6 @@ import open3d as o3d
 
 from .capture import Capture, default_depth_intrinsic, image_from_array, to_host, validate_capture
 from .capture.validation import check_light
-from .colour import codes_to_linear
 from .errors import CaptureError
 from .model.camera import as_intrinsic_matrix
 from .model.resampling import resample_valid
@@ -137,7 +136,7 @@ def capture_from_rgbd(rgbd_images, intrinsic, *, scale_factor: int | None = None
     """The validated :class:`~o3d_mvps.capture.Capture` of a list of RGB-D frames.
 
     Conversions and arguments as in :func:`refine_rgbd`: colour becomes (H, W, 3) float32
-    linear RGB, depth (H/SF, W/SF, 1) float32 metres; colour intrinsics (3, 3) float64, depth
+    linear RGB (uint8/uint16 sRGB kept as codes, which the capture decodes), depth (H/SF, W/SF, 1) float32 metres; colour intrinsics (3, 3) float64, depth
     intrinsics those of the area-averaged grid.
 
     Raises
@@ -252,12 +251,14 @@ def _depth_metres(depth: np.ndarray, depth_scale: float, i: int) -> np.ndarray:
 
 
 def _linear_colour(colour: np.ndarray, i: int) -> np.ndarray:
-    """(H, W, 3) float32 linear RGB in [0, 1] from uint8/uint16 sRGB or float linear colour."""
+    """(H, W, 3) colour of a capture: uint8/uint16 sRGB codes kept as they are (the capture's
+    ``color_encoding`` "srgb" decodes them: :meth:`~o3d_mvps.capture.Capture.color_array`), float
+    linear colour as float32."""
     if colour.ndim != 3 or colour.shape[2] not in (3, 4):
         raise CaptureError(f"colour of rgbd_images[{i}] has shape {colour.shape}; colour must be (H, W, 3) RGB")
     rgb = colour[..., :3]
     if rgb.dtype in (np.uint8, np.uint16):
-        return codes_to_linear(rgb)
+        return rgb
     if rgb.dtype in (np.float32, np.float64):
         return rgb.astype(np.float32)  # range checked by validate_capture
     raise CaptureError(f"colour of rgbd_images[{i}] is {rgb.dtype}; use uint8 sRGB or float32 linear RGB in [0, 1]")

@@ -19,6 +19,7 @@ from .capture.static import MIN_FRAMES_FOR_MEDIAN, reference_depth_mean, referen
 from .capture.checks import check_inputs
 from .capture.layout import COLOR_DIR
 from .capture.poses import GivenPoses
+from .colour import CodedColours
 from .errors import CaptureError
 from .fileio import check_output_files
 from .model import se3
@@ -195,13 +196,14 @@ def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses
     report["frames_report"] = [{"index": i, "file": name, "used": i in frames, "reason": why.get(i)}
                                for i, name in enumerate(all_frames)]
     n = capture.n_frames
-    colors = [capture.color_array(i) for i in range(n)]  # the capture's frames, not a copy
+    colors = capture_colours(capture)
     masks = [capture.mask_array(i) for i in range(n)]
     if camera.static and n > 1:
         # the light models have one intensity per frame: a white balance that drifts between
         # frames would stay in the albedo (D415-like drift of +-4 %: 640x480 bunny 0.8 % -> 0.5 %)
         balance = frame_white_balance(colors, masks)
-        colors = [(c / balance[i].astype(np.float32)).astype(np.float32) for i, c in enumerate(colors)]
+        colors = (colors.divided(balance) if isinstance(colors, CodedColours) else
+                  [(c / balance[i].astype(np.float32)).astype(np.float32) for i, c in enumerate(colors)])
         report["white_balance"] = {"frames": np.round(balance, 6).tolist(),
                                    "detail": "each frame's colour divided by its white balance relative to the "
                                              "frames' mean (o3d_mvps.capture.frame_white_balance)"}
@@ -251,6 +253,17 @@ def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses
         initial_poses=initial_poses, led_offset=_led_offset(options, capture), frames=frames, options=options,
         report=report, pose_trust=trust,
     ), views
+
+
+def capture_colours(capture: Capture) -> CodedColours | list:
+    """The capture's colour frames as the solver reads them, not copied: frames read from files
+    (codes) as :class:`~o3d_mvps.colour.CodedColours` decoded by the capture's
+    ``color_encoding`` (a quarter of the float32 frames' memory for 8-bit files), float frames
+    as a list of (H, W, 3) float32 arrays."""
+    codes = [capture.color_codes(i) for i in range(capture.n_frames)]
+    if codes and all(c is not None for c in codes):
+        return CodedColours.from_codes(codes, srgb=capture.color_encoding == "srgb")
+    return [capture.color_array(i) for i in range(capture.n_frames)]
 
 
 #: how many times the depth prior's weight tau~ a refinement of a reference few frames see

@@ -99,7 +99,10 @@ def test_round_trip_reproduces_every_array(tmp_path, encoding, bits):
     for i in range(N):
         np.testing.assert_array_equal(back.color_array(i), original.color_array(i))
         np.testing.assert_allclose(back.depth_array(i), original.depth_array(i), rtol=0, atol=1e-3)
-        assert back.color[i].as_tensor().numpy().dtype == np.float32
+        # kept as the files' codes (a quarter of float32's memory at 8 bits), written back as they were
+        assert back.color[i].as_tensor().numpy().dtype == (np.uint8 if bits == 8 else np.uint16)
+        np.testing.assert_array_equal(back.color_codes(i), capture_writing._encode_color(
+            original.color_array(i), encoding, bits))
     assert back.mask_array(1) is None
     for i in (0, 2):
         np.testing.assert_array_equal(back.masks[i].as_tensor().numpy(), original.masks[i].as_tensor().numpy())
@@ -157,6 +160,24 @@ def test_single_frame_capture_round_trips(tmp_path):
     one = make_capture().select([0])
     write_capture(one, tmp_path / "one")
     assert read_capture(tmp_path / "one").n_frames == 1
+
+
+def test_coded_capture_writes_its_codes_and_refuses_mixed_frames(tmp_path, folder):
+    """A capture read from files writes its codes back unchanged (a second round trip changes no
+    file); integer colour other than uint8/uint16 codes, or codes mixed with float frames, is refused."""
+    back = read_capture(folder)
+    assert back.color_codes(0).dtype == np.uint8 and back.color_codes(0).shape == (H, W, 3)
+    write_capture(back, tmp_path / "again")
+    for i in range(N):
+        again = cv2.imread(str(tmp_path / "again" / "color" / f"{i:06d}.png"), cv2.IMREAD_UNCHANGED)
+        np.testing.assert_array_equal(again[..., ::-1], back.color_codes(i))
+    float_frame = image_from_array(back.color_array(1))
+    with pytest.raises(CaptureError, match="mix float32 and uint8"):
+        validate_capture(replace(back, color=[back.color[0], float_frame, back.color[2]]))
+    with pytest.raises(CaptureError, match="integer colour must be uint8 or uint16 codes"):
+        validate_capture(replace(back, color=[image_from_array(back.color_codes(i).astype(np.int32))
+                                              for i in range(N)]))
+    assert make_capture().color_codes(0) is None  # float frames
 
 
 def test_reference_only_keeps_frame_0_and_the_whole_ground_truth(capture_dir):

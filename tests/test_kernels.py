@@ -356,3 +356,78 @@ def test_log1p_square_sum_blocks_equal_the_per_term_float32_logarithms(dtype, si
     assert got == pytest.approx(np.log1p((x.astype(np.float64) / LAM) ** 2).sum(), rel=1e-6)
     big = np.full(2 * LOG_BLOCK, 1e18 * LAM, dtype)  # y = 1e18: each factor 1e36, a block's product 1e288
     assert log1p_square_sum(big, 1.0 / LAM) == pytest.approx(2 * LOG_BLOCK * np.log(1e36), rel=1e-6)
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_coded_frames_sample_as_their_decoded_frames(dtype):
+    """The sampling kernels read a coded frame ``(codes, table)`` as the float32 frame it decodes
+    to: the warped colours, their gradients and the LED's data energy are the same bit for bit
+    (per-frame tables with a white balance folded in, points inside, at the border and outside)."""
+    from o3d_mvps.colour import CodedColours
+    from o3d_mvps.model.se3 import exp
+    from o3d_mvps.solver.kernels import led_energy_frame, log_products_sum, warp_gradients, warp_sample
+
+    H, W = 30, 40
+    K = np.array([[50.0, 0.0, 19.5], [0.0, 50.0, 14.5], [0.0, 0.0, 1.0]])
+    top = np.iinfo(dtype).max
+    codes = [RNG.integers(0, top + 1, size=(H, W, 3)).astype(dtype) for _ in range(2)]
+    coded = CodedColours.from_codes(codes).divided(RNG.uniform(0.9, 1.1, size=(2, 3)))
+    points = RNG.normal(size=(N_PIXELS, 3)) * [0.3, 0.2, 0.3] + [0.0, 0.0, 0.6]
+    points[:20, 2] = -0.1  # behind the camera
+    poses = np.stack([np.eye(4), exp(np.array([0.02, -0.01, 0.03, 0.05, -0.04, 0.02]))])
+    visible = RNG.random((2, N_PIXELS)) > 0.1
+    normals = RNG.normal(size=(N_PIXELS, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    albedo, lights, positions = RNG.random((N_PIXELS, 3)), RNG.random((2, 2)), RNG.normal(size=(2, 3)) * 0.05
+    results = []
+    for image in (coded.frame(1), coded[1]):
+        color, usable = np.full((N_PIXELS, 3), np.nan, np.float32), np.zeros(N_PIXELS, bool)
+        warp_sample(points, poses[1], K, image, visible[1], color, usable)
+        front = points[:, 2] > 0.05
+        frame_points, grad_u, grad_v = (np.full((int(front.sum()), 3), np.nan) for _ in range(3))
+        warp_gradients(np.ascontiguousarray(points[front]), poses[1], K, image, frame_points, grad_u, grad_v)
+        products, parts, seen = np.ones(N_PIXELS), np.zeros(N_PIXELS), np.zeros((2, N_PIXELS), bool)
+        led_energy_frame(points, normals, poses, K, image, visible, albedo, lights, positions, 3.0, True, 1, seen,
+                         products, parts)
+        results.append((color, usable, grad_u, grad_v, seen, log_products_sum(products, parts)))
+    assert 0.3 * N_PIXELS < results[0][1].sum() < 0.95 * N_PIXELS and np.abs(results[0][2]).max() > 0.1
+    for got, expected in zip(*results):
+        np.testing.assert_array_equal(got, expected)
+
+
+def test_coded_frames_assemble_as_their_decoded_frames():
+    """The joint step's per-pixel assembly reads coded frames as their decoded float32 frames:
+    every frame in one launch (:func:`accumulate_block`, codes and tables as two tuples) and a
+    frame at a time (:func:`accumulate_frame`) write the same sums, rows and twist sums bit for bit."""
+    from o3d_mvps.colour import CodedColours, frames_and_tables
+    from o3d_mvps.model.se3 import exp
+    from o3d_mvps.solver import kernels
+
+    rng = np.random.default_rng(5)
+    H, W, N, n, m = 30, 40, 3000, 3, 2
+    K = np.array([[50.0, 0.0, 19.5], [0.0, 50.0, 14.5], [0.0, 0.0, 1.0]])
+    coded = CodedColours.from_codes([rng.integers(0, 256, (H, W, 3)).astype(np.uint8) for _ in range(n)])
+    f = lambda *shape: rng.random(shape)  # noqa: E731
+    poses = np.stack([np.eye(4)] + [exp(0.02 * (f(6) - 0.5)) for _ in range(n - 1)])
+    points = np.column_stack([(f(N, 2) - 0.5) * 0.5, 0.6 + 0.05 * f(N)])
+    r, shading, usable, q = f(n, N, 3) - 0.5, f(n, N), rng.random((n, N)) > 0.2, f(N, 3)
+    alpha, beta, gamma, extra_c, albedo = f(n, N) - 0.5, f(n, N) - 0.5, f(n, N), f(N, 3) - 0.5, f(N, 3)
+    dshading, frame_slots = f(n, N, 6) - 0.5, np.array([[0, -1], [1, 1], [1, 0]], dtype=np.int64)
+    chunks = kernels.chunk_count(N)
+    outputs = []
+    for frames in ([coded.frame(i) for i in range(n)], list(coded)):
+        block = [np.zeros((9, N)), np.zeros((3, N, 3)), np.zeros((3, m, 6, N)), np.zeros((m, 6, N, 3)),
+                 np.zeros((m + 1, chunks, 6, 6)), np.zeros((m + 1, chunks, 6))]
+        images, tables = frames_and_tables(frames)
+        kernels.accumulate_block(r, shading, usable, 25.0, q, alpha, beta, gamma, extra_c, points, poses, K, images,
+                                 dshading, albedo, frame_slots, True, *block, kernels.CHUNK, tables)
+        single = [np.zeros_like(a) for a in block]
+        for i, (with_jacobian, slot) in enumerate(frame_slots):
+            kernels.accumulate_frame(r[i], shading[i], usable[i], 25.0, q, alpha[i], beta[i], gamma[i],
+                                     extra_c if i == 0 else np.zeros((0, 3)), points, poses[i], K, frames[i],
+                                     dshading[i], albedo, bool(with_jacobian), True, *single[:4], int(slot),
+                                     single[4][slot], single[5][slot])
+        outputs.append(block + single)
+    assert np.abs(outputs[0][2]).max() > 0 and np.abs(outputs[0][4][:m]).max() > 0  # rows and Grams written
+    for got, expected in zip(*outputs):
+        np.testing.assert_array_equal(got, expected)

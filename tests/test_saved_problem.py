@@ -17,6 +17,7 @@ import pytest
 
 from o3d_mvps import RefineOptions, read_refinement, refine
 from o3d_mvps.cli import main
+from o3d_mvps.colour import CodedColours, codes_to_linear
 from o3d_mvps.cli import refine as refine_cli
 from o3d_mvps.errors import DeviceError, MVPSError, OutputExistsError
 from o3d_mvps.solver import __main__ as solver_main
@@ -113,6 +114,14 @@ def test_problem_round_trip(capture, tmp_path):
     np.testing.assert_array_equal(again.colors, problem.colors)
     with pytest.raises(ValueError, match=r"colors\[1\] has shape \(12, 15, 3\), not \(12, 16, 3\)"):
         replace(problem, colors=[frames[0], frames[1][:, :15], frames[2]])
+    # coded frames (read from files): kept coded, sized without decoding, saved decoded
+    codes = [rng.integers(0, 256, (H, W, 3)).astype(np.uint8) for _ in range(n)]
+    coded = replace(problem, colors=CodedColours.from_codes(codes))
+    assert isinstance(coded.colors, CodedColours) and coded.colors.codes[2] is codes[2] and coded.color_size == (H, W)
+    saved = read_problem(write_problem(coded, tmp_path / "coded.npz"))
+    np.testing.assert_array_equal(saved.colors, np.stack([codes_to_linear(c) for c in codes]))
+    with pytest.raises(ValueError, match=r"colors\[1\] has shape \(12, 15, 3\), not \(12, 16, 3\)"):
+        replace(problem, colors=CodedColours.from_codes([codes[0], codes[1][:, :15], codes[2]]))
 
 
 def saved_problem(capture, path: Path) -> Path:

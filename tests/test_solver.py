@@ -350,3 +350,27 @@ def test_trim_heap_gives_freed_heap_arrays_back_to_the_system():
     assert trim_heap()
     assert before - _resident_mb() >= 60.0
     assert all(np.all(a == 2 * k + 1) for k, a in enumerate(arrays))
+
+
+def test_frames_read_from_files_solve_as_their_decoded_floats(capture, tmp_path):
+    """A capture read from PNGs keeps its colour as uint8 codes (a quarter of float32's memory);
+    its solver input holds them coded (the kernels decode per sample) and solves to the very
+    depth, albedo, poses, lighting and energies of the same frames decoded to float32."""
+    from dataclasses import replace
+
+    from o3d_mvps.capture import read_capture
+    from o3d_mvps.colour import CodedColours
+    from o3d_mvps.solver.driver import solve
+    from o3d_mvps.solving import problem_from_capture
+
+    write_capture(capture, tmp_path / "capture")
+    read = read_capture(tmp_path / "capture")
+    problem, _ = problem_from_capture(read, RefineOptions(**FAST), initial_poses=capture.groundtruth.poses)
+    assert isinstance(problem.colors, CodedColours) and problem.colors.codes[0].dtype == np.uint8
+    assert problem.colors.nbytes < 0.3 * problem.float_colors().nbytes
+    coded = solve(problem)
+    decoded = solve(replace(problem, colors=list(problem.float_colors())))
+    for name in ("depth", "albedo", "poses", "lighting"):
+        np.testing.assert_array_equal(getattr(coded, name), getattr(decoded, name), err_msg=name)
+    assert [row["energy"] for row in coded.energy] == [row["energy"] for row in decoded.energy]
+    assert len(coded.energy) > 4

@@ -487,3 +487,21 @@ def test_lamps_creeping_is_judged_over_the_last_sweeps():
     history.append(lamps + step)
     assert not driver._lamps_creeping(SimpleNamespace(led_offset=lamps + step), history)
     assert not driver._lamps_creeping(SimpleNamespace(led_offset=None), [None])
+
+
+def test_white_balance_folds_into_the_coded_frames_tables(static, tmp_path):
+    """Read from its PNGs, the static capture's frames stay uint8 codes and its white balance goes
+    into their tables: the solver's frames are those of the capture held as floats (the render's
+    8-bit values) divided by the same balance, bit for bit."""
+    from o3d_mvps.colour import CodedColours
+
+    write_capture(static, tmp_path / "c")
+    options = RefineOptions(progress=False)
+    coded, _ = problem_from_capture(read_capture(tmp_path / "c"), options)
+    floats, _ = problem_from_capture(static, options)
+    assert isinstance(coded.colors, CodedColours) and not isinstance(floats.colors, CodedColours)
+    balance = np.array(coded.report["white_balance"]["frames"])
+    assert balance.shape == (12, 3) and np.abs(balance - 1).max() > 1e-3  # frames really rebalanced
+    assert coded.report["white_balance"] == floats.report["white_balance"]
+    for i in range(12):
+        np.testing.assert_array_equal(coded.colors[i], floats.colors[i])

@@ -13,7 +13,6 @@ import cv2
 import numpy as np
 import open3d as o3d
 
-from ..colour import codes_to_linear
 from ..errors import CaptureError
 from .layout import (
     CAPTURE_JSON,
@@ -46,8 +45,10 @@ MASK_SOURCES = ("auto", "none", "folder")
 def read_capture(path, mask: str | None = None, depth_range=None) -> Capture:
     """Read a capture folder (layout in the ``o3d_mvps.capture`` docstring).
 
-    Colour PNGs (8- or 16-bit; .jpg also read) become float32 linear RGB in [0, 1] (sRGB ones
-    are linearised); their bit depth goes to ``metadata["color_bit_depth"]``. Depth PNGs
+    Colour PNGs (8- or 16-bit; .jpg also read) are kept as their uint8/uint16 codes, which
+    :meth:`Capture.color_array` decodes to float32 linear RGB in [0, 1] (sRGB ones linearised;
+    the solver decodes them where it samples them); their bit depth goes to
+    ``metadata["color_bit_depth"]``. Depth PNGs
     (uint16) become float32 metres (value / depth_scale; 0 = missing). Frames are paired by
     file name in natural order (:func:`natural_key`: ``frame_2`` before ``frame_10``); files that
     are not frames (``._*``, hidden files, folders, broken links, other suffixes) are skipped with
@@ -303,13 +304,13 @@ def _read_image(path: Path) -> np.ndarray:
 
 
 def _decode_color(raw: np.ndarray, encoding: str, path: Path) -> tuple[np.ndarray, int]:
-    """Stored colour -> ((H, W, 3) float32 linear RGB in [0, 1], bit depth)."""
+    """Stored colour -> ((H, W, 3) uint8/uint16 codes as stored, bit depth): kept as codes, which
+    :meth:`Capture.color_array` decodes by table (``encoding``; linear RGB in [0, 1])."""
     if raw.dtype not in (np.uint8, np.uint16) or raw.ndim != 3:
         raise CaptureError(
             f"colour frame {path} is {raw.dtype} with shape {raw.shape}; save colour as 8- or 16-bit RGB PNG"
         )
-    # a table look-up, equal to decoding k / 255 (float64) for every pixel
-    return codes_to_linear(raw[..., :3], srgb=encoding == "srgb"), 8 * raw.dtype.itemsize
+    return raw[..., :3], 8 * raw.dtype.itemsize
 
 
 def _decode_depth(raw: np.ndarray, depth_scale: float, path: Path) -> np.ndarray:

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import open3d as o3d
 
+from ..colour import codes_to_linear
 from ..model.camera import as_intrinsic_matrix, scale_intrinsics
 from ..model.sensor import choose_scale_factor
 
@@ -42,7 +43,9 @@ class GroundTruth:
 class Capture:
     """n RGB-D frames; frame 0 is the reference.
 
-    color: n images (H, W, 3) float32 linear RGB in [0, 1].
+    color: n images (H, W, 3): float32 linear RGB in [0, 1], or the uint8/uint16 codes of the
+    files they were read from (all of one dtype; :meth:`color_array` decodes them by
+    ``color_encoding``: a quarter of the memory for 8-bit files).
     depth: n images (h, w, 1) float32 metres, 0 = no measurement; h = H/SF, w = W/SF.
     color_intrinsic, depth_intrinsic: (3, 3) float64 tensors (pixels).
     masks: None, or n entries each None or an (H, W, 1) uint8 image (nonzero = object).
@@ -97,8 +100,19 @@ class Capture:
 
     # --- numpy views (what the solver works on) ----------------------------------------
     def color_array(self, i: int) -> np.ndarray:
-        """Frame i colour, (H, W, 3) float32 linear RGB."""
+        """Frame i colour, (H, W, 3) float32 linear RGB (integer codes decoded: a new array)."""
+        codes = self.color_codes(i)
+        if codes is not None:
+            return codes_to_linear(codes, srgb=self.color_encoding == "srgb")
         return np.asarray(to_host(self.color[i].as_tensor()), dtype=np.float32).reshape(*self.color_size, 3)
+
+    def color_codes(self, i: int) -> np.ndarray | None:
+        """Frame i's colour codes, (H, W, 3) uint8/uint16 (the image's own memory on the CPU), or
+        None where the frame holds floats."""
+        pixels = to_host(self.color[i].as_tensor())
+        if pixels.dtype not in (np.uint8, np.uint16):
+            return None
+        return pixels.reshape(*self.color_size, 3)
 
     def depth_array(self, i: int) -> np.ndarray:
         """Frame i depth, (h, w) float32 metres, 0 = missing."""

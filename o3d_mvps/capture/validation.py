@@ -20,7 +20,7 @@ def validate_capture(capture: Capture, frame_names: list[str] | None = None) -> 
     """Check that a capture is complete and consistent; raise CaptureError naming problem and fix.
 
     Checks: at least one frame; as many depth as colour frames; colour (H, W, 3) finite in
-    [0, 1] and depth (h, w[, 1]) finite and >= 0, each the same size in every frame; an integer
+    [0, 1] (or uint8/uint16 codes, every frame of one dtype) and depth (h, w[, 1]) finite and >= 0, each the same size in every frame; an integer
     SF = H/h = W/w >= 1 (:func:`integer_scale_factor`); some depth in every frame and a
     plausible median depth (0.05-20 m, else the unit is wrong); masks (H, W[, 1]) with at least
     one object pixel; finite intrinsics; the settings fields; the ground-truth shapes.
@@ -44,6 +44,10 @@ def validate_capture(capture: Capture, frame_names: list[str] | None = None) -> 
         return f"frame {i}" if frame_names is None else f"frame {i} ({frame_names[i]})"
 
     color_size = _check_frames(capture.color, "colour", (3,), label, (0.0, 1.0))
+    dtypes = sorted({str(pixels(frame).dtype) for frame in capture.color})
+    if len(dtypes) > 1 and any(d in ("uint8", "uint16") for d in dtypes):
+        raise CaptureError(f"the colour frames mix {' and '.join(dtypes)}; give every frame as codes of one bit depth "
+                           "or every frame as float32 linear RGB")
     depth_size = _check_frames(capture.depth, "depth", (None, 1), label, (0.0, None))
     integer_scale_factor(color_size, depth_size)
     _check_depth_unit(capture.depth, label)
@@ -141,6 +145,11 @@ def _check_frames(frames, kind, channels, label, value_range) -> tuple[int, int]
                 f"{kind} {label(i)} is {size_text(a.shape)} but {label(0)} is {size_text(first)} (WxH); "
                 f"every {kind} frame must have the same size, resample or drop the odd one"
             )
+        if a.dtype.kind in "ui" and kind == "colour":
+            if a.dtype not in (np.uint8, np.uint16):
+                raise CaptureError(f"{kind} {label(i)} is {a.dtype}; integer colour must be uint8 or uint16 codes "
+                                   "(decoded by color_encoding), else float32 linear RGB in [0, 1]")
+            continue  # codes as stored in files: any value is a colour
         if not np.all(np.isfinite(a)):
             raise CaptureError(f"{kind} {label(i)} contains NaN or inf; replace them (0 = missing for depth)")
         lo, hi = value_range

@@ -78,7 +78,10 @@ def _write_folder(capture: Capture, root: Path, bits: int) -> None:
     for sub in (COLOR_DIR, DEPTH_DIR):
         (root / sub).mkdir()
     for i, name in enumerate(names):
-        _write_png(root / COLOR_DIR / name, _encode_color(capture.color_array(i), capture.color_encoding, bits))
+        codes = capture.color_codes(i)
+        if codes is None or codes.dtype.itemsize * 8 != bits:  # floats, or codes of another bit depth
+            codes = _encode_color(capture.color_array(i), capture.color_encoding, bits)
+        _write_png(root / COLOR_DIR / name, codes)  # codes read from files: written as they were
         depth = np.rint(capture.depth_array(i).astype(np.float64) * capture.depth_scale).astype(np.uint16)
         _write_png(root / DEPTH_DIR / name, depth)
     if capture.masks is not None and any(m is not None for m in capture.masks):

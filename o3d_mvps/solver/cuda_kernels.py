@@ -52,10 +52,35 @@ TERMS_PER_THREAD = 16
 def _device(body):
     """A ``numba.njit`` per-pixel function of :mod:`.kernels` for the CUDA kernels: the function
     itself, which numba's CUDA target compiles for the device from its Python source where a
-    kernel calls it (with the njit functions it calls); under numba's CUDA simulator, which runs
-    kernels as Python, its Python source calling the Python source of those (a CPU function
-    cannot take the simulator's arrays)."""
-    return _python(body) if cuda.config.ENABLE_CUDASIM else body
+    kernel calls it (with the njit functions it calls), reading colour frames through their
+    float forms (:func:`_float_frames`); under numba's CUDA simulator, which runs kernels as
+    Python, its Python source calling the Python source of those (a CPU function cannot take the
+    simulator's arrays)."""
+    return _python(body) if cuda.config.ENABLE_CUDASIM else _float_frames(body)
+
+
+#: :func:`_float_frames`' functions made so far, by the function they stand for
+_FLOAT_FRAME_FUNCTIONS = {}
+
+
+def _float_frames(function):
+    """A ``numba.njit`` function whose calls (its own and those of the njit functions it calls)
+    to :data:`.kernels.FLOAT_FRAME_FORMS`' frame readers go to their float forms: a GPU's frames
+    are float32 (decoded on upload), and numba-cuda types the coded frame's branch of their type
+    test too (it does not prune it), which cannot index a float array. The function itself where
+    it reads no frame."""
+    forms = kernels.FLOAT_FRAME_FORMS
+    if function in forms:
+        return forms[function]
+    made = _FLOAT_FRAME_FUNCTIONS
+    if function not in made:
+        py = function.py_func
+        calls = {name: _float_frames(callee) for name in py.__code__.co_names
+                 if isinstance(callee := py.__globals__.get(name), numba.core.registry.CPUDispatcher)}
+        calls = {name: new for name, new in calls.items() if new is not py.__globals__[name]}
+        made[function] = function if not calls else numba.njit(inline=function.targetoptions.get("inline", "never"))(
+            types.FunctionType(py.__code__, {**py.__globals__, **calls}, py.__name__, py.__defaults__, py.__closure__))
+    return made[function]
 
 
 def _python(function):

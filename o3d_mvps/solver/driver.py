@@ -26,6 +26,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 from tqdm.auto import tqdm
 
+from ..colour import float_frame
 from ..errors import CaptureError
 from ..model import se3
 from ..model.arrays import array_module, contiguous, fused, like
@@ -647,7 +648,7 @@ def solve(problem_input: SolverInput, options: RefineOptions | None = None, devi
     """
     options = problem_input.options if options is None else options
     device = array_device(device)
-    return_freed_arrays(int(np.prod(np.shape(problem_input.colors[0])[:2])),
+    return_freed_arrays(int(np.prod(problem_input.color_size)),
                         static=not options.refine_poses and bool(np.allclose(problem_input.initial_poses, np.eye(4))))
     if options.progress and (notice := compile_notice(device)):
         print(notice, flush=True)
@@ -744,7 +745,7 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
             # the LED offset and the point lights' positions are unknowns, like the rest
             offset = (light.offset.copy() if light.name == "led" else np.zeros((n_frames, 3)) if light.name == "point"
                       else None)
-            carried = Carried(z_full, level.images[0].astype(np.float64), light.initial_lights(n_frames, mean_z0),
+            carried = Carried(z_full, float_frame(level.images[0]).astype(np.float64), light.initial_lights(n_frames, mean_z0),
                               problem_input.initial_poses.copy(), offset)
         else:
             carried = carried.resized(level.size)

@@ -208,7 +208,8 @@ def accumulate_frame(r, shading, use, inv_lam, q, alpha, beta, gamma, extra_c, p
 
 @numba.njit(parallel=True, cache=True)
 def accumulate_block(residual, shading, usable, inv_lam, q, alpha, beta, gamma, extra_c, points_ref, poses, K, images,
-                     dshading, albedo, frame_slots, parallax, sums, e, rows, F, gram, rhs, chunk_pixels):  # pragma: no cover
+                     dshading, albedo, frame_slots, parallax, sums, e, rows, F, gram, rhs, chunk_pixels,
+                     tables=None):  # pragma: no cover
     """:func:`accumulate_frame` of every frame in one launch (the host's assembly block), in
     parallel over chunks of ``chunk_pixels`` pixels, each taking the frames in turn: each
     pixel's sums take the frames in the same order as one launch per frame, so sums, e, rows and
@@ -216,7 +217,10 @@ def accumulate_block(residual, shading, usable, inv_lam, q, alpha, beta, gamma, 
     ``chunk_pixels`` = :data:`CHUNK` they are too (smaller chunks add the pixels' terms in another
     order: the same to rounding).
 
-    images: a tuple of the frames' (H, W, 3) images; dshading (n, N, 6) or (n, 0, 6) for none
+    images: a tuple of the frames' (H, W, 3) images; tables: None, or for coded frames a tuple of
+    their (3, K) tables, ``images`` then holding their codes (:func:`frame_at`: a tuple of
+    ``(codes, table)`` pairs is a nested tuple, which numba's parallel loops cannot take);
+    dshading (n, N, 6) or (n, 0, 6) for none
     (frames without a Jacobian do not read theirs); gram (m + 1, chunks, 6, 6) and rhs
     (m + 1, chunks, 6) with chunks = ceil(N / chunk_pixels); frames without a slot write no
     twist sums. The other arguments as :func:`accumulate_frames`'s."""
@@ -234,7 +238,7 @@ def accumulate_block(residual, shading, usable, inv_lam, q, alpha, beta, gamma, 
             b[:] = 0.0
             r_i, sh_i, use_i = residual[i], shading[i], usable[i]
             al_i, be_i, ga_i = alpha[i], beta[i], gamma[i]
-            pose, image, ds = poses[i], images[i], dshading[i]
+            pose, image, ds = poses[i], frame_at(images, tables, i), dshading[i]
             for p in range(first, last):
                 accumulate_pixel(p, r_i, sh_i, use_i, inv_lam, q, al_i, be_i, ga_i, ex, points_ref, pose, K, image,
                                  ds, albedo, jac, parallax, sums, e, rows, F, slot, J, G, b, wqJ, wcJ)
@@ -1022,11 +1026,59 @@ def project_point(pose, K, x, y, z):  # pragma: no cover - compiled
 
 
 @numba.njit(inline="always")
+def float_frame_size(image):  # pragma: no cover - compiled
+    """(H, W) of an (H, W, C) float colour frame (:func:`frame_size`'s float form)."""
+    return image.shape[0], image.shape[1]
+
+
+@numba.njit(inline="always")
+def float_frame_value(image, v, u, c):  # pragma: no cover - compiled
+    """Channel c of an (H, W, C) float frame's pixel (u, v) as float64 (:func:`frame_value`'s float form)."""
+    return np.float64(image[v, u, c])
+
+
+@numba.njit  # not inlined in numba's IR: compiled per frame type, its type test decided there
+def frame_size(image):  # pragma: no cover - compiled
+    """(H, W) of a colour frame: an (H, W, C) float array, or a coded frame ``(codes (H, W, C),
+    table (C, K))`` (:meth:`o3d_mvps.colour.CodedColours.frame`; the CPU's only: a GPU's
+    frames are decoded on upload, and its kernels read :data:`FLOAT_FRAME_FORMS`)."""
+    if isinstance(image, tuple):
+        return image[0].shape[0], image[0].shape[1]
+    return float_frame_size(image)
+
+
+@numba.njit  # not inlined in numba's IR: compiled per frame type, its type test decided there
+def frame_value(image, v, u, c):  # pragma: no cover - compiled
+    """Channel c of a colour frame's pixel (u, v) (integers) as float64: the float array's value,
+    or a coded frame's ``table[c, codes[v, u, c]]``, the float32 its decoded frame holds
+    (:func:`o3d_mvps.colour.decode_frame`), so every sample is the same bit for bit."""
+    if isinstance(image, tuple):
+        return np.float64(image[1][c, image[0][v, u, c]])
+    return float_frame_value(image, v, u, c)
+
+
+#: the float-frame forms of the frame readers, which the CUDA kernels compile in their place
+#: (:func:`.cuda_kernels._float_frames`): numba-cuda types both branches of the type test
+FLOAT_FRAME_FORMS = {frame_size: float_frame_size, frame_value: float_frame_value}
+
+
+@numba.njit  # not inlined in numba's IR: compiled per frame type, its type test decided there
+def frame_at(images, tables, i):  # pragma: no cover - compiled
+    """Frame i of a tuple of colour frames as :func:`frame_value` reads it: ``images[i]``, or
+    where ``tables`` (a tuple of (C, K) tables) is not None the coded frame
+    ``(images[i], tables[i])``."""
+    if isinstance(tables, tuple):  # a type test, decided when compiled (no branch at run time)
+        return images[i], tables[i]
+    return images[i]
+
+
+@numba.njit(inline="always")
 def bilinear_cell(image, u, v):  # pragma: no cover - compiled
     """The (H, W, C) image's bilinear cell at pixel (u, v), clamped to the image (the border
     repeats; pixel centres at integers): its top-left pixel (u0, v0) and the weights (a, b) in
-    [0, 1] towards the next column and row, for :func:`bilinear_in_cell`. H, W >= 2."""
-    H, W = image.shape[0], image.shape[1]
+    [0, 1] towards the next column and row, for :func:`bilinear_in_cell`. H, W >= 2. ``image``:
+    any colour frame of :func:`frame_size`."""
+    H, W = frame_size(image)
     # no min, max or int(): numba 0.68's own CUDA target needs a driver to type those,
     # numba-cuda does not
     u = 0.0 if u < 0.0 else (W - 1.0 if u > W - 1.0 else u)
@@ -1044,8 +1096,8 @@ def bilinear_cell(image, u, v):  # pragma: no cover - compiled
 def bilinear_in_cell(image, u0, v0, a, b, c):  # pragma: no cover - compiled
     """Channel c of the image's bilinear sample in the cell (u0, v0, a, b) of :func:`bilinear_cell`,
     in float64."""
-    i00, i01 = np.float64(image[v0, u0, c]), np.float64(image[v0, u0 + 1, c])  # float64 differences
-    i10, i11 = np.float64(image[v0 + 1, u0, c]), np.float64(image[v0 + 1, u0 + 1, c])
+    i00, i01 = frame_value(image, v0, u0, c), frame_value(image, v0, u0 + 1, c)  # float64 differences
+    i10, i11 = frame_value(image, v0 + 1, u0, c), frame_value(image, v0 + 1, u0 + 1, c)
     top = i00 + a * (i01 - i00)
     bottom = i10 + a * (i11 - i10)
     return top + b * (bottom - top)
@@ -1067,7 +1119,7 @@ def image_gradients_at(image, u, v, c):  # pragma: no cover - compiled
     Bilinear interpolation commutes with whole-pixel shifts, so these are the bilinear samples
     of the image's central-difference gradient images, without computing and storing those
     (two float32 copies of every frame): exactly so from one pixel inside the border on."""
-    H, W = image.shape[0], image.shape[1]
+    H, W = frame_size(image)
     u = 0.0 if u < 0.0 else (W - 1.0 if u > W - 1.0 else u)
     v = 0.0 if v < 0.0 else (H - 1.0 if v > H - 1.0 else v)
     return (0.5 * (bilinear_at(image, u + 1.0, v, c) - bilinear_at(image, u - 1.0, v, c)),
@@ -1080,7 +1132,7 @@ def warp_sample_pixel(points_ref, pose, K, image, visible, color, usable, p):  #
     sees it there, and the image's bilinear sample at it (at the clamped position; 0 where the
     point is behind the camera)."""
     _, _, Z, u, v = project_point(pose, K, points_ref[p, 0], points_ref[p, 1], points_ref[p, 2])
-    H, W = image.shape[0], image.shape[1]
+    H, W = frame_size(image)
     usable[p] = visible[p] and Z > 1e-6 and u >= 0.0 and u <= W - 1.0 and v >= 0.0 and v <= H - 1.0
     u0, v0, a, b = bilinear_cell(image, u, v)  # once for the three channels
     for c in range(3):
@@ -1135,7 +1187,7 @@ def led_energy_frame(points_ref, normals, poses, K, image, visible, albedo, ligh
     reference coordinates per frame."""
     N = visible.shape[1]
     chunk = frame_chunk(N)
-    H, W = image.shape[0], image.shape[1]
+    H, W = frame_size(image)
     for k in numba.prange(-(-N // chunk)):
         for p in range(k * chunk, min(N, (k + 1) * chunk)):
             _, _, Z, u, v = project_point(poses[i], K, points_ref[p, 0], points_ref[p, 1], points_ref[p, 2])

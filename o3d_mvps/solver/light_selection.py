@@ -22,6 +22,7 @@ import warnings
 import cv2
 import numpy as np
 
+from ..colour import float_frame
 from ..model.resampling import fill_nearest_valid, resize
 from ..model.robust import cauchy
 from .device import to_host
@@ -133,7 +134,7 @@ def _held_out_score(problem_input: SolverInput, level, name: str, held_out: np.n
     light = make_light_model(name, initial_sh=problem_input.options.initial_light, led_offset=problem_input.led_offset)
     g = level.grid
     z = resize(fill_nearest_valid(z0, z0 > 0), level.size, interpolation=cv2.INTER_LINEAR)
-    est = Estimate(level.prior.clip(g.gather(z)), g.gather(level.images[0]).astype(np.float64),
+    est = Estimate(level.prior.clip(g.gather(z)), g.gather(float_frame(level.images[0])).astype(np.float64),
                    light.initial_lights(problem_input.n_frames, mean_z0), problem_input.initial_poses.copy(),
                    light.offset.copy() if name == "led"
                    else np.zeros((problem_input.n_frames, 3)) if name == "point" else None)

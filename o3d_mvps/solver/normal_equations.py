@@ -32,6 +32,7 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse as sp
 
+from ..colour import frames_and_tables
 from ..model.arrays import array_module, fused, like, linear_operator, sparse_module
 from ..model.parallel import current_kernel_threads
 from . import kernels as host_kernels
@@ -489,10 +490,18 @@ def _gapped_size(rows: int, shape: tuple) -> int:
 
 def _same_types(images: list) -> bool:
     """Whether the host images (H, W, 3) share shape class, dtype and memory layout, so that
-    :func:`.kernels.accumulate_block` takes them as one tuple."""
-    first = images[0]
-    return all(a.dtype == first.dtype and a.ndim == 3 and a.flags.c_contiguous
-               and a.flags.writeable == first.flags.writeable for a in images)
+    :func:`.kernels.accumulate_block` takes them as one tuple (coded frames: their codes and,
+    as a second tuple, their tables: :func:`~o3d_mvps.colour.frames_and_tables`)."""
+    frames, tables = frames_and_tables(images)
+    return _alike(frames, 3) and (tables is None or _alike(tables, 2))
+
+
+def _alike(arrays: tuple, ndim: int) -> bool:
+    """Whether the arrays share dtype, C order and writeability, each of ``ndim`` dimensions
+    (numba types them alike)."""
+    first = arrays[0]
+    return all(a.dtype == first.dtype and a.ndim == ndim and a.flags.c_contiguous
+               and a.flags.writeable == first.flags.writeable for a in arrays)
 
 
 def _accumulate_frames(kernels, problem, residual, shading, usable, q, alpha, beta, gamma, extra_c, points_ref, poses,
@@ -590,10 +599,11 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
                        np.empty((n, 0, 6)) if dshading is None else dshading, usable[0], q, alpha, beta, gamma,
                        extra_c, block_sums, e)
     if host_block:  # every frame in one launch, in parallel over pixel chunks
+        images, tables = frames_and_tables(problem.level.images)  # coded frames: codes and tables apart
         kernels.accumulate_block(residual, shading, usable, 1.0 / problem.lam, q, alpha, beta, gamma, extra_c,
-                                 points_ref, poses, problem.device_K, tuple(problem.level.images),
+                                 points_ref, poses, problem.device_K, images,
                                  np.empty((problem.n_frames, 0, 6)) if dshading is None else dshading, albedo,
-                                 frame_slots, parallax, block_sums, e, rows, F, gram, rhs, HOST_CHUNK_PIXELS)
+                                 frame_slots, parallax, block_sums, e, rows, F, gram, rhs, HOST_CHUNK_PIXELS, tables)
     else:
         _accumulate_frames(kernels, problem, residual, shading, usable, q, alpha, beta, gamma, extra_c, points_ref,
                            poses, dshading, albedo, with_jacobian, parallax, block_sums, e, rows, F, slot, gram, rhs)

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..colour import CodedColours
 from ..errors import MVPSError
 from ..fileio import atomic_files, json_text
 from .options import RefineOptions
@@ -29,7 +30,9 @@ class SolverInput:
     """n frames of one object (frame 0 the reference) as the solver reads them.
 
     colors: (n, H, W, 3) float32 linear RGB in [0, 1], or a list of n (H, W, 3) frames (then
-    not copied where they are float32 and C-ordered: a capture's own frames). depths: (n, h, w) float32 metres at the
+    not copied where they are float32 and C-ordered: a capture's own frames), or a
+    :class:`~o3d_mvps.colour.CodedColours` (frames read from files, kept as their codes and
+    decoded where the solver samples them; indexing it gives float32 frames too). depths: (n, h, w) float32 metres at the
     depth sensor's resolution (h = H / scale_factor), 0 = no measurement. masks: n entries, each
     None or an (H, W) bool object mask. K, depth_K: (3, 3) float64 colour and depth intrinsics
     (pixels). scale_factor: integer H / h. initial_poses: (n, 4, 4) float64 reference -> frame i,
@@ -58,7 +61,7 @@ class SolverInput:
     def __post_init__(self):
         if isinstance(self.colors, np.ndarray):
             self.colors = np.ascontiguousarray(self.colors, dtype=np.float32)
-        else:
+        elif not isinstance(self.colors, CodedColours):
             self.colors = [np.ascontiguousarray(c, dtype=np.float32) for c in self.colors]
         self.depths = np.ascontiguousarray(self.depths, dtype=np.float32)
         self.K, self.depth_K = (np.asarray(a, dtype=np.float64) for a in (self.K, self.depth_K))
@@ -72,12 +75,13 @@ class SolverInput:
                 raise ValueError(f"pose_trust must be (metres, radians), both > 0, got {self.pose_trust!r}")
             self.pose_trust = (float(trust[0]), float(trust[1]))
         n = len(self.colors)
-        H, W = self.colors[0].shape[:2] if n and self.colors[0].ndim == 3 else (0, 0)
+        shapes = self._frame_shapes()
+        H, W = shapes[0][:2] if n and len(shapes[0]) == 3 else (0, 0)
         sf = max(self.scale_factor, 1)
         expected = {"depths": (n, H // sf, W // sf), "K": (3, 3), "depth_K": (3, 3), "initial_poses": (n, 4, 4),
                     "led_offset": (3,)}
-        wrong = [f"colors[{i}] has shape {c.shape}, not {(H, W, 3)}" for i, c in enumerate(self.colors)
-                 if c.shape != (H, W, 3)]
+        wrong = [f"colors[{i}] has shape {shape}, not {(H, W, 3)}" for i, shape in enumerate(shapes)
+                 if shape != (H, W, 3)]
         wrong += [f"{name} has shape {getattr(self, name).shape}, not {shape}" for name, shape in expected.items()
                   if getattr(self, name).shape != shape]
         wrong += [f"masks[{i}] has shape {m.shape}, not {(H, W)}" for i, m in enumerate(self.masks)
@@ -99,7 +103,20 @@ class SolverInput:
     @property
     def color_size(self) -> tuple[int, int]:
         """(H, W) of the colour frames."""
-        return self.colors[0].shape[:2]
+        return self._frame_shapes()[0][:2]
+
+    def _frame_shapes(self) -> list[tuple]:
+        """Each colour frame's shape (read without decoding coded frames)."""
+        if isinstance(self.colors, CodedColours):
+            return [c.shape for c in self.colors.codes]
+        return [c.shape for c in self.colors]
+
+    def float_colors(self) -> np.ndarray | list:
+        """The colour frames as float32 (H, W, 3) arrays: ``colors`` itself, or coded frames
+        decoded (a new (n, H, W, 3) array)."""
+        if isinstance(self.colors, CodedColours):
+            return np.stack(list(self.colors)) if len(self.colors) else np.zeros((0, 0, 0, 3), np.float32)
+        return self.colors
 
 
 #: SolverInput fields stored as one array each under their own name.
@@ -115,7 +132,9 @@ def write_problem(problem: SolverInput, path, *, overwrite: bool = False) -> Pat
     """
     path = Path(path)
     H, W = problem.color_size
-    arrays = {name: np.asarray(getattr(problem, name)) for name in _ARRAYS}
+    # coded frames saved decoded: the file's format is that of float frames
+    arrays = {name: np.asarray(problem.float_colors() if name == "colors" else getattr(problem, name))
+              for name in _ARRAYS}
     arrays["masks"] = np.stack([np.zeros((H, W), bool) if m is None else m for m in problem.masks])
     arrays["has_mask"] = np.array([m is not None for m in problem.masks])
     arrays["options"] = np.array(json_text(problem.options.to_dict(), "the options"))

@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 import scipy.sparse as sp
 
+from ..colour import CodedColours, float_frame
 from ..model.arrays import array_module, fused, like, sparse_module
 from ..model.camera import scale_intrinsics
 from ..model.normals import MaskedGrid, masked_grid
@@ -328,8 +329,10 @@ class Level:
     """Everything one pyramid level of the solver reads.
 
     grid: masked reference pixels. K: (3, 3) level intrinsics. size: (H, W).
-    images: per frame an (H, W, 3) float32 linear RGB image (its gradients are sampled from it:
-        :func:`.kernels.image_gradients_at`).
+    images: per frame an (H, W, 3) float32 linear RGB image, or on the finest level of coded
+        frames the frame's ``(codes, table)`` (:meth:`~o3d_mvps.colour.CodedColours.frame`,
+        decoded where sampled: :func:`.kernels.frame_value`); its gradients are sampled from it
+        (:func:`.kernels.image_gradients_at`).
     frame_masks: per frame an (H, W) bool mask or None. prior: the depth prior.
     image_stack: on a GPU, the images as one (n, H, W, 3) array (``images`` are its frames),
         for kernels over every frame at once; None on the host.
@@ -350,7 +353,8 @@ class Level:
         host (the visibility test runs there)."""
         if device.xp is np:
             return self
-        stack = device.asarray(np.stack(self.images))  # one copy; the frames' images are views of it
+        # one copy (coded frames decoded: the GPU's kernels read float32); the frames' images are views of it
+        stack = device.asarray(np.stack([float_frame(image) for image in self.images]))
         return replace(self, grid=self.grid.on_device(device), images=[stack[i] for i in range(len(stack))],
                        image_stack=stack, prior=self.prior.on_device(device))
 
@@ -364,17 +368,22 @@ def level_mask(ref_mask: np.ndarray, index: int) -> np.ndarray:
 def build_level(index: int, colors: list, masks: list, ref_mask: np.ndarray, K: np.ndarray, z0: np.ndarray,
                 scale_factor: int, scheme: str = "central", envelope_margin: float | None = None,
                 slope_weighted: bool = False, grid_modes: Callable[[int], float] | None = None) -> Level:
-    """Level ``index`` from full-resolution colours (H, W, 3), masks, reference mask and z0;
+    """Level ``index`` from full-resolution colours (n (H, W, 3) float32 frames, or a
+    :class:`~o3d_mvps.colour.CodedColours`), masks, reference mask and z0;
     ``envelope_margin`` None leaves the depth unbounded (see :func:`depth_envelope`);
     ``slope_weighted``: the smoothness rows are :func:`smoothness_rows` (else plain second differences);
     ``grid_modes``: the weight of the grid-mode rows (:func:`.smoothness.with_grid_modes`) given the
     level's object pixels (the driver's :func:`.smoothness.grid_mode_weight`); None: none."""
     size = level_size(ref_mask.shape, index)
     K_level = scale_intrinsics(K, size[1] / ref_mask.shape[1], size[0] / ref_mask.shape[0])
-    # the finest level reads the full-resolution float32 colours themselves (no copy: they are
-    # only read), coarser levels area-averaged copies
-    images = [color if color.shape[:2] == tuple(size) and color.dtype == np.float32
-              else resize(color, size).astype(np.float32) for color in colors]
+    # the finest level reads the full-resolution colours themselves (no copy: they are only read;
+    # coded frames as their codes and table), coarser levels area-averaged float32 copies
+    if isinstance(colors, CodedColours):
+        images = [colors.frame(i) if colors.codes[i].shape[:2] == tuple(size)
+                  else resize(colors[i], size).astype(np.float32) for i in range(len(colors))]
+    else:
+        images = [color if color.shape[:2] == tuple(size) and color.dtype == np.float32
+                  else resize(color, size).astype(np.float32) for color in colors]
     frame_masks = [m if m is None or m.shape == tuple(size) else resize(m.astype(np.float32), size) > 0.5
                    for m in masks]  # the finest level reads the masks themselves
     grid = masked_grid(level_mask(ref_mask, index), scheme)
