@@ -46,15 +46,6 @@ from .problem import Estimate, Evaluation, LevelProblem
 #: Storage type of the coupling U on the host (:mod:`numpy` arrays); on the GPU it stays float64.
 COUPLING_DTYPE = np.float32
 
-#: Type in which the host's albedo projection forms its downdate ``sum f f^T`` of each block
-#: (:meth:`_AlbedoProjection.downdate_scaled`: BLAS's SSYRK on a float32 copy of F, each block's
-#: Gram then added to the float64 downdate). A 2 MP block's two half-Grams (114 x 6144 each) took
-#: 4.8 ms in float64, 3.0 ms in float32 with the copy: the saved 2 MP problem's assembly 37.5 ->
-#: 35.4 CPU s (one thread). The Gram's entries move by 4e-7 of their rows' norms; the saved 2 MP
-#: problem's final energy by -4e-5 (the path drifts from level 2 on, as any rounding of H moves
-#: it), the D415 problem's by 4e-10 (docs/performance.md, "the downdate in float32").
-DOWNDATE_DTYPE = np.float32
-
 
 @dataclass
 class JointSystem:
@@ -617,8 +608,7 @@ def _assemble_block(problem, est, ev, block, points_ref, candidates, parallax, p
         # the projection of the rows and their stencil transpose into U^T in one pass
         scaled, sqrt_inv_d = projection.twist_scalings()
         kernels.project_stencil_rows(rows, F, scaled, sqrt_inv_d, *Du_rows, *Dv_rows, block.start, coupling_t)
-        # the rows are read: their buffer (twice F's size) takes F's float32 copy for the downdate
-        projection.downdate_scaled(F, downdate, rhs_xi, sqrt_inv_d, helper, work=rows.reshape(-1).view(np.float32))
+        projection.downdate_scaled(F, downdate, rhs_xi, sqrt_inv_d, helper)
     elif m:  # U^T += the stencil transpose of the rows: Du^T rows_a + Dv^T rows_b + rows_c, in one pass
         kernels.add_stencil_transpose_rows(*Du_rows, *Dv_rows, rows.reshape(3, 6 * m, B), block.start, coupling_t)
 
@@ -666,35 +656,23 @@ class _AlbedoProjection:
         return self.e * self.inv_d, np.sqrt(self.inv_d)
 
     def downdate_scaled(self, F: np.ndarray, downdate: np.ndarray, rhs_xi: np.ndarray, sqrt_inv_d: np.ndarray,
-                        helper=None, work: np.ndarray | None = None) -> None:
+                        helper=None) -> None:
         """The projection's sums over the block's F (m, 6, B, 3) (w s J of the m refined frames)
         once scaled by ``sqrt_inv_d`` (B, 3): ``downdate`` (6m, 6m) gains ``sum f f^T / d`` (the
         Gram's loss) and the right-hand side rhs_xi (6m,) ``sum f (s^T W r) / d`` over the block's
         pixels and channels. helper: a one-thread executor that takes half of ``sum f f^T`` beside
-        the caller's work, or None; work: a float32 buffer of at least F's entries for its copy
-        (:data:`DOWNDATE_DTYPE`), or None (a fresh one)."""
+        the caller's work, or None."""
         f = F.reshape(6 * len(F), -1)  # (6m, 3B): frame j in rows 6j..
-        rhs_xi += f @ (self.sWr * sqrt_inv_d).reshape(-1)
-        f = _cast_into(f, DOWNDATE_DTYPE, work)
         # f f^T as the Grams of its column halves added, each by BLAS's symmetric rank-k update
         # (NumPy's product of a matrix with its own transpose: half a product); with a helper
         # thread the first half runs there beside the rest (BLAS releases the GIL). The same
         # halves and sum on any thread count, so the same values bit for bit.
         low, high = f[:, :f.shape[1] // 2], f[:, f.shape[1] // 2:]  # views: BLAS takes the row stride
         job = None if helper is None else helper.submit(np.matmul, low, low.T)
+        rhs_xi += f @ (self.sWr * sqrt_inv_d).reshape(-1)
         gram_high = high @ high.T
         gram = low @ low.T if job is None else job.result()
         downdate += np.add(gram, gram_high, out=gram)
-
-
-def _cast_into(a: np.ndarray, dtype, work: np.ndarray | None) -> np.ndarray:
-    """``a`` converted to ``dtype``: into the front of the flat buffer ``work`` (no allocation)
-    where it is given, else a fresh array; ``a`` itself where it has that type."""
-    if a.dtype == dtype:
-        return a
-    out = np.empty(a.shape, dtype) if work is None else work[:a.size].reshape(a.shape)
-    np.copyto(out, a, casting="same_kind")
-    return out
 
 
 @fused
