@@ -240,7 +240,7 @@ def test_pose_jacobian_matches_finite_differences():
 
 @pytest.mark.parametrize("light", ["sh", "led"])
 def test_pose_system_on_the_host_equals_the_array_formula(light):
-    """pose_system's compiled pass (pose._pose_sums) against the array formula it replaced on
+    """pose_system's compiled pass (kernels.pose_sums) against the array formula it replaced on
     the host (pose_jacobian, minus albedo x the LED's shading Jacobian, Cauchy weights, wJ^T J and
     wJ^T r): the same H and g to 1e-12 of their largest entries (another summation order)."""
     problem, est = make_problem(n_frames=2)

@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 
 from ..model import se3
 from ..model.arrays import array_module, like
 from ..model.robust import cauchy_weights
 from .device import to_host_together
+from .kernels import pose_sums
 from .line_search import backtrack
 from .linear import ridge_solve
 from .pose_trust import PoseAnchors, PoseLog
@@ -56,7 +56,7 @@ def pose_system(problem: LevelProblem, est: Estimate, i: int, pose: np.ndarray, 
         gradients = problem.warped_gradients(i, pose, points)
         dshading = model.shading_jacobian(light, normals[use], points, pose)
         H, g = np.empty((6, 6)), np.empty(6)
-        _pose_sums(gradients.points, gradients.grad_u, gradients.grad_v, problem.level.K, sample.color[use],
+        pose_sums(gradients.points, gradients.grad_u, gradients.grad_v, problem.level.K, sample.color[use],
                    np.ascontiguousarray(albedo[use], dtype=np.float64), shading,
                    np.zeros((1, 6)) if dshading is None else np.ascontiguousarray(dshading, dtype=np.float64),
                    dshading is not None, 1.0 / problem.lam, H, g)
@@ -70,43 +70,6 @@ def pose_system(problem: LevelProblem, est: Estimate, i: int, pose: np.ndarray, 
     J = J.reshape(-1, 6)
     wJ = J * w.reshape(-1, 1)
     return to_host_together(wJ.T @ J, wJ.T @ r.reshape(-1))  # on a GPU one copy for both
-
-
-@numba.njit(cache=True)
-def _pose_sums(points, grad_u, grad_v, K, color, albedo, shading, dshading, shaded, inv_lam, H,
-               g):  # pragma: no cover - compiled
-    """:func:`pose_system`'s H (6, 6) and g (6,) on the host, written, in one pass over the usable
-    pixels (N of them): each pixel's Jacobian rows (:func:`pose_jacobian`'s, the same values; minus
-    albedo x ``dshading`` (N, 6) where ``shaded``), its residuals ``color - albedo shading``
-    (color (N, 3) float32, albedo (N, 3), shading (N,)) and their Cauchy IRLS weights
-    (:func:`~o3d_mvps.model.robust.cauchy_weights`), summed pixel by pixel: the same sums as the
-    NumPy form's BLAS products in another order (round-off). points, grad_u, grad_v (N, 3): the
-    warped gradients (:class:`.problem.FrameGradients`); K (3, 3). Was some 30 NumPy calls a
-    system: the coarse levels' pose steps, 492 systems of 340-22 000 pixels a D415 refine."""
-    H[:] = 0.0
-    g[:] = 0.0
-    j = np.empty(6)
-    fx, fy = K[0, 0], K[1, 1]
-    for p in range(points.shape[0]):
-        X, Y, Z = points[p, 0], points[p, 1], points[p, 2]
-        iz = 1.0 / Z
-        for c in range(3):
-            a = grad_u[p, c] * (fx * iz)
-            b = grad_v[p, c] * (fy * iz)
-            d = -iz * (a * X + b * Y)
-            j[0], j[1], j[2] = a, b, d
-            j[3], j[4], j[5] = Y * d - Z * b, Z * a - X * d, X * b - Y * a
-            if shaded:
-                for k in range(6):
-                    j[k] -= albedo[p, c] * dshading[p, k]
-            r = np.float64(color[p, c]) - albedo[p, c] * shading[p]
-            y = r * inv_lam
-            w = 1.0 / (y * y + 1.0)
-            for k in range(6):
-                wj = j[k] * w
-                g[k] += wj * r
-                for m in range(6):
-                    H[k, m] += wj * j[m]
 
 
 def pose_information(problem: LevelProblem, est: Estimate, ev: Evaluation) -> np.ndarray:
