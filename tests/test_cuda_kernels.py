@@ -12,13 +12,14 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numba
 import numpy as np
 import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 import compile_cuda_kernels
-from helpers import weighted_lighting_sums
+from lighting_reference import weighted_lighting_sums
 from o3d_mvps.solver import cuda_kernels, kernels
 
 RNG = np.random.default_rng(11)
@@ -505,7 +506,13 @@ def test_led_trial_sums_match_the_formula_and_cpu():
         kernels.led_trial_sums(*args, single, cpu)
         cuda_kernels.led_trial_sums(*args, single, gpu)
         np.testing.assert_array_equal(cpu[K, :7], np.r_[x, 1.0, g[0, :, 0]])
-        np.testing.assert_array_equal(gpu[K, :7], cpu[K, :7])
+        # the step's solve: bit for bit in the simulator; a GPU's fused multiply-adds part it by
+        # round-off times the condition number (an H200: 4.1e-15 relative at cond(H) 246; the shared
+        # RNG draws cond 20 to 250 by which tests ran before)
+        if numba.config.ENABLE_CUDASIM:
+            np.testing.assert_array_equal(gpu[K, :7], cpu[K, :7])
+        else:
+            assert_close(gpu[K, :7], cpu[K, :7], rtol=1e-14 * np.linalg.cond(H[0]))
         for k in range(K):
             positions = LEDLight(start - 0.5**k * x).positions(poses)
             np.testing.assert_array_equal(positions, np.einsum("mji,mj->mi", poses[:, :3, :3],
@@ -742,7 +749,7 @@ def test_albedo_update_matches_cpu_and_the_ratio(frames):
 @pytest.mark.parametrize("shared", [True, False])
 def test_lighting_sums_match_cpu_and_the_matrix_formula(frames, shared):
     """Frame i's Gram sum_p a_p B_p B_p^T, rhs sum_p b_p B_p and usable count (a, b the weighted
-    channel sums of the NumPy reference helpers.weighted_lighting_sums), blocks' shares added;
+    channel sums of the NumPy reference lighting_reference.weighted_lighting_sums), blocks' shares added;
     float32 basis as the solver's."""
     residual, usable, color, _, albedo = frames
     k = 4 if shared else 2

@@ -8,6 +8,7 @@ kernels in numba's CUDA simulator (tests/conftest.py turns it on where no GPU is
 of the path's Python runs as on a GPU, only CuPy itself is not exercised.
 """
 
+from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 
@@ -49,6 +50,25 @@ def solve_on_cuda_path(problem_input, options, min_level_pixels: int):
         with cupy_emulation.installed():
             return solve(problem_input, options, cupy_emulation.array_device(min_level_pixels))
     return solve(problem_input, options, replace(array_device("cuda:0"), min_level_pixels=min_level_pixels))
+
+
+@contextmanager
+def device_arrays():
+    """(to the device, to the host, the operations counted so far or None): where numba's CUDA
+    simulator is on, the CuPy stand-in's, whose counts the tests check; on a GPU, CuPy's own
+    (its kernels take no stand-in arrays; nothing counts there)."""
+    if numba.config.ENABLE_CUDASIM:
+        with cupy_emulation.installed():
+            yield cupy_emulation.asarray, cupy_emulation.asnumpy, cupy_emulation.operations
+    else:
+        import cupy
+
+        yield cupy.asarray, cupy.asnumpy, None
+
+
+def operations_since(counted):
+    """The stand-in's operations since ``counted`` (a copy of its counter), as a dict; None on a GPU."""
+    return None if counted is None else dict(cupy_emulation.operations - counted)
 
 
 @pytest.fixture(scope="module", params=CASES)
@@ -126,18 +146,18 @@ def test_extrapolation_trials_and_snapshot_on_the_cuda_path_match_the_cpu_path(e
     lights, poses = rng.random((2, 2)), np.stack([np.eye(4)] * 2)
     assert _device_trials(SimpleNamespace(level=SimpleNamespace(prior=cpu_prior)), Estimate(z, albedo, lights, poses),
                           Estimate(z0, albedo0, lights, poses), factors) is None  # the CPU: its own formulas
-    with cupy_emulation.installed():
-        d = cupy_emulation.asarray
+    with device_arrays() as (d, to_host, operations):
         prior = SimpleNamespace(lower=None if bounds[0] is None else d(bounds[0]),
                                 upper=None if bounds[1] is None else d(bounds[1]))
         est, start = Estimate(d(z), d(albedo), lights, poses), Estimate(d(z0), d(albedo0), lights, poses)
-        counted = cupy_emulation.operations.copy()
+        counted = None if operations is None else operations.copy()
         snap = _snapshot(start)
         trials = _device_trials(SimpleNamespace(level=SimpleNamespace(prior=prior)), est, snap, factors)
-        counted = cupy_emulation.operations - counted  # the simulator's kernel launch is not counted here
-        snap_z, snap_albedo = cupy_emulation.asnumpy(snap.z), cupy_emulation.asnumpy(snap.albedo)
-        got = [(cupy_emulation.asnumpy(trials[0][j]), cupy_emulation.asnumpy(trials[1][j])) for j in range(3)]
-    assert dict(counted) == {"to_host": 1}  # the counts' one read; the snapshot no launch
+        counted = operations_since(counted)  # the simulator's kernel launch is not counted here
+        snap_z, snap_albedo = to_host(snap.z), to_host(snap.albedo)
+        got = [(to_host(trials[0][j]), to_host(trials[1][j])) for j in range(3)]
+    # the counts' one read; the snapshot no launch
+    assert counted == ({"to_host": 1} if numba.config.ENABLE_CUDASIM else None)
     assert snap.z is start.z and snap.albedo is start.albedo and snap.lights is not start.lights
     np.testing.assert_array_equal(snap_z, z0)
     np.testing.assert_array_equal(snap_albedo, albedo0)
@@ -162,17 +182,16 @@ def test_stepped_depth_on_the_cuda_path_matches_the_cpu_path():
     dz[3] = -1.0  # negative at t = 1, positive at t = 0.25
     lower, upper = z - 0.7, z + 0.001  # the upper bound clips some steps up
     cpu_prior = SimpleNamespace(lower=lower, upper=upper, clip=lambda x: np.clip(x, lower, upper))
-    with cupy_emulation.installed():
-        d = cupy_emulation.asarray
+    with device_arrays() as (d, to_host, operations):
         prior = SimpleNamespace(lower=d(lower), upper=d(upper))
         z_d, dz_d = d(z), d(dz)
-        counted = cupy_emulation.operations.copy()
+        counted = None if operations is None else operations.copy()
         got = [stepped_depth(prior, z_d, t, dz_d) for t in (1.0, 0.25)]
-        counted = cupy_emulation.operations - counted
-        got = [None if g is None else cupy_emulation.asnumpy(g) for g in got]
+        counted = operations_since(counted)
+        got = [None if g is None else to_host(g) for g in got]
         unclipped = SimpleNamespace(lower=None, upper=None)
-        free = cupy_emulation.asnumpy(stepped_depth(unclipped, d(z), 0.25, d(dz)))
-    assert dict(counted) == {"to_host": 2}  # each trial: one read (the simulator's launch not counted)
+        free = to_host(stepped_depth(unclipped, d(z), 0.25, d(dz)))
+    assert counted == ({"to_host": 2} if numba.config.ENABLE_CUDASIM else None)  # each trial: one read
     assert stepped_depth(cpu_prior, z, 1.0, dz) is None and got[0] is None
     np.testing.assert_allclose(got[1], stepped_depth(cpu_prior, z, 0.25, dz), rtol=1e-15)
     assert np.any(got[1] < z + 0.25 * dz)  # the clip was applied

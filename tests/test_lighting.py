@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 # pytest puts tests/ (no __init__.py) on sys.path, so the model tests' helpers import directly
-from helpers import (K, assert_gradient_at_random_pixels, make_problem, perturb_and_refine_poses,
-                     weighted_lighting_sums)
+from helpers import K, assert_gradient_at_random_pixels, make_problem, perturb_and_refine_poses
+from lighting_reference import weighted_lighting_sums
 
 from o3d_mvps import RefineOptions, refine
 from o3d_mvps.errors import CaptureError
@@ -245,7 +245,7 @@ def test_update_lighting_sums_equal_the_products_of_the_weighted_basis(led_captu
     (kernels.lighting_sums); the lights it fits come from the sums ``(m * w).T @ m`` and
     ``m.T @ wri`` on the frame's basis m (float32 as in the solver's evaluations, and float64)
     to round-off (1e-12 of the largest entry: the same terms summed in another order), the
-    per-pixel weights from the NumPy reference (helpers.weighted_lighting_sums)."""
+    per-pixel weights from the NumPy reference (lighting_reference.weighted_lighting_sums)."""
     gt = led_capture.groundtruth
     problem, est = gt_problem(led_capture, gt.light["offset"])
     ev = problem.evaluate(est)

@@ -59,6 +59,22 @@ def test_model_and_solver_import_without_open3d(tmp_path, without_open3d):
     assert "open3d is not installed here" in blocked.stderr  # the blocker does block
 
 
+#: The test files a GPU machine runs (docs/gpu.md): they must import where Open3D cannot.
+GPU_TEST_FILES = ("test_cuda_kernels.py", "test_cuda_path.py", "test_gpu_evaluation.py", "test_gpu_counts.py",
+                  "test_cupy_emulation.py")
+
+
+def test_gpu_test_files_collect_without_open3d(tmp_path, without_open3d):
+    """The GPU's test files collect on a machine without Open3D (GPU images rarely have its 0.9 GB):
+    a helper that imports Open3D (tests/helpers.py) once kept test_cuda_kernels.py from loading."""
+    files = [str(REPO / "tests" / name) for name in GPU_TEST_FILES]
+    run = subprocess.run([sys.executable, "-m", "pytest", "--collect-only", "-q", "-p", "no:cacheprovider",
+                          "-p", "no:dash", *files], capture_output=True, text=True, cwd=REPO, env=without_open3d,
+                         timeout=300)
+    assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-2000:]
+    assert " error" not in run.stdout.splitlines()[-1], run.stdout[-3000:]
+
+
 def test_saved_problem_solves_to_refines_depth_without_open3d(capture_dir, tmp_path, without_open3d):
     """`refine --save-problem` then `python -m o3d_mvps.solver` (Open3D unimportable) gives the
     refinement's depth, poses and lighting bit for bit (same code, same deterministic AMG set-up)."""
