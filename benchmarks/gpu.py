@@ -4,15 +4,17 @@ Two steps, for a GPU machine without Open3D (the problems travel as files):
 
 - ``python -m benchmarks.gpu make DIR`` (here, with Open3D): renders the bunny under the LED,
   20 frames, at 640x480 / 160x120 and at the D415's 1280x720 / 640x360, and writes each solver
-  input as a saved problem (``DIR/gpu_WxH.npz``, true poses; 14 and 43 MB with the renders'
-  sensor noise, so a machine reached through 64 MB transfers takes one at a time).
+  input as a saved problem (``DIR/gpu_WxH.npz``, true poses, the colour as 8-bit codes as a read
+  capture holds it; 10 and 30 MB with the renders' sensor noise, 14 and 43 MB saved decoded).
 - ``python -m benchmarks.gpu run DIR [--out benchmarks/results]`` (on the GPU machine): solves
-  each on the CPU once and on ``cuda:0`` twice (the first run compiles the CUDA kernels) and
-  writes ``gpu.json``: rows {color, depth, frames, object_pixels, device (the GPU's name),
-  seconds (solve, after warm-up), seconds_first (with compilation), cpu_seconds (the CPU solve,
+  each on the CPU once and on ``cuda:0`` twice (the first run compiles the CUDA kernels), once
+  more there from the frames decoded first, and writes ``gpu.json``: rows {color, depth, frames,
+  object_pixels, device (the GPU's name), seconds (solve, after warm-up), seconds_first (with
+  compilation), seconds_float (the frames decoded before the solve), cpu_seconds (the CPU solve,
   same machine, same run), peak_gpu_mb, max_depth_diff_mm, mae_diff_deg, energy_rel_diff (the
-  largest over every sweep's energy), level_devices (where each level ran, coarsest first: levels
-  below o3d_mvps.solver.device.CUDA_MIN_LEVEL_PIXELS run on the CPU)}.
+  largest over every sweep's energy), coded_vs_float (the same three of the two GPU solves),
+  level_devices (where each level ran, coarsest first: levels below
+  o3d_mvps.solver.device.CUDA_MIN_LEVEL_PIXELS run on the CPU)}.
 
 ``run(..., device=ArrayDevice)`` takes another array device instead of cuda:0 (its test: the CuPy
 stand-in of tests/cupy_emulation.py; no memory counted, times meaningless).
@@ -62,7 +64,10 @@ FRAMES = 20
 
 
 def make(folder, cases=CASES, frames: int = FRAMES, options: dict | None = None) -> list[Path]:
-    """Render each case and write its solver input (true poses) to ``folder``/gpu_WxH.npz."""
+    """Render each case and write its solver input (true poses) to ``folder``/gpu_WxH.npz, the
+    colour as the 8-bit sRGB codes a read capture holds (saved-problem format 2)."""
+    from dataclasses import replace
+
     from o3d_mvps import RefineOptions
     from o3d_mvps.solver.problem_input import write_problem
     from o3d_mvps.solving import problem_from_capture
@@ -75,8 +80,24 @@ def make(folder, cases=CASES, frames: int = FRAMES, options: dict | None = None)
         capture = render_capture("bunny", frames=frames, scale_factor=sf, size=(w, h), seed=0, progress=False)
         problem, _ = problem_from_capture(capture, RefineOptions(progress=False, **(options or {})),
                                           capture.groundtruth.poses)
+        problem = replace(problem, colors=srgb8_coded(problem.colors))
         paths.append(write_problem(problem, folder / f"gpu_{w}x{h}.npz", overwrite=True))
     return paths
+
+
+def srgb8_coded(colors):
+    """Float frames (n, H, W, 3) whose values are all decoded 8-bit sRGB codes (the renderer's
+    camera) as the :class:`~o3d_mvps.colour.CodedColours` of those codes; ValueError otherwise."""
+    from o3d_mvps.colour import CodedColours, decode_table
+
+    table = decode_table(8)
+    coded = []
+    for frame in colors:
+        codes = np.clip(np.searchsorted(table, frame), 0, table.size - 1).astype(np.uint8)
+        if not np.array_equal(table[codes], frame):
+            raise ValueError("the frames hold values that are not 8-bit sRGB codes: save them as floats")
+        coded.append(codes)
+    return CodedColours.from_codes(coded)
 
 
 def _cuda_solver(device):
@@ -119,8 +140,10 @@ def compare(cpu, cuda) -> dict:
 
 
 def run(folder, out="benchmarks/results", device="cuda:0") -> list[dict]:
-    """Solve every saved problem of ``folder`` on the CPU and on ``device`` (the CUDA path);
-    writes ``out``/gpu.json after each and returns its rows."""
+    """Solve every saved problem of ``folder`` on the CPU and on ``device`` (the CUDA path),
+    there also from its frames decoded first; writes ``out``/gpu.json after each and returns its rows."""
+    from dataclasses import replace
+
     from o3d_mvps.solver.driver import solve
     from o3d_mvps.solver.problem_input import read_problem
 
@@ -146,11 +169,17 @@ def run(folder, out="benchmarks/results", device="cuda:0") -> list[dict]:
         t = time.perf_counter()
         cuda = solve_cuda(problem)
         seconds = time.perf_counter() - t
+        # the same frames decoded first: a GPU level decodes coded frames on upload, so only the
+        # device's own run-to-run differences (its atomic sums' order) may part the two
+        t = time.perf_counter()
+        decoded = solve_cuda(replace(problem, colors=problem.float_colors()))
+        seconds_float = time.perf_counter() - t
         (h, w), depth = problem.color_size, problem.depths[0].shape
         rows.append({"color": f"{w}x{h}", "depth": f"{depth[1]}x{depth[0]}", "frames": problem.n_frames,
                      "object_pixels": int(cpu.mask.sum()), "device": device_name, "seconds": seconds,
-                     "seconds_first": seconds_first, "cpu_seconds": cpu_seconds, "peak_gpu_mb": peak_gpu_mb,
-                     **compare(cpu, cuda), "level_devices": cuda.info["level_devices"]})
+                     "seconds_first": seconds_first, "seconds_float": seconds_float, "cpu_seconds": cpu_seconds,
+                     "peak_gpu_mb": peak_gpu_mb, **compare(cpu, cuda), "coded_vs_float": compare(decoded, cuda),
+                     "level_devices": cuda.info["level_devices"]})
         (out / "gpu.json").write_text(json.dumps(rows, indent=1))
         print(json.dumps(rows[-1]), flush=True)
     return rows

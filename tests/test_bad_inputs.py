@@ -505,6 +505,11 @@ def test_bad_saved_problem_values_are_named(problem_file, tmp_path, capsys):
         "scaled": ({"initial_poses": scaled}, "key 'initial_poses': pose 2 is not a rigid transform"),
         "version0": ({"format_version": np.array(0)}, "format_version 0 is not a version o3d_mvps ever wrote"),
         "version-5": ({"format_version": np.array(-5)}, "format_version -5 is not a version"),
+        "nan_tables": ({"colors": np.zeros(arrays["colors"].shape, np.uint8),
+                        "color_tables": np.full((len(poses), 3, 256), np.nan, np.float32)},
+                       "key 'color_tables' holds NaN"),
+        "float_codes": ({"color_tables": np.ones((len(poses), 3, 256), np.float32)},
+                        "codes must all be uint8 or all uint16, got ['float32']"),
     }
     read_problem(problem_file)  # the good one reads
     for name, (change, expected) in cases.items():

@@ -87,7 +87,9 @@ def test_gpu_benchmark_compares_the_cuda_path_with_the_cpu_path(tmp_path):
     import numba
 
     from benchmarks import gpu
+    from o3d_mvps.colour import CodedColours
     from o3d_mvps.solver.device import array_device
+    from o3d_mvps.solver.problem_input import read_problem
 
     gpu.make(tmp_path, cases=(((64, 48), 2),), frames=3, options={"levels": 1, "max_iterations": 1})
     if numba.config.ENABLE_CUDASIM:
@@ -102,6 +104,14 @@ def test_gpu_benchmark_compares_the_cuda_path_with_the_cpu_path(tmp_path):
     assert (row["color"], row["depth"], row["frames"]) == ("64x48", "32x24", 3)
     assert row["object_pixels"] > 200 and row["sweeps_cpu"] == row["sweeps_cuda"] == 2
     assert row["max_depth_diff_mm"] < 0.1 and row["mae_diff_deg"] < 0.1 and row["energy_rel_diff"] < 1e-3
+    # the saved problem holds the frames as 8-bit codes; decoded first, the device solves the same
+    # (the stand-in: bit for bit; an H200 parted them by 7.5e-6 mm at 640x480, its atomic sums' order)
+    assert isinstance(read_problem(tmp_path / "gpu_64x48.npz").colors, CodedColours)
+    same = row["coded_vs_float"]
+    if numba.config.ENABLE_CUDASIM:
+        assert same["max_depth_diff_mm"] == same["mae_diff_deg"] == same["energy_rel_diff"] == 0.0, same
+    else:
+        assert same["max_depth_diff_mm"] < 1e-3 and same["energy_rel_diff"] < 1e-6, same
 
     (counted,) = gpu.count(tmp_path, tmp_path / "results", min_level_pixels=0)
     (level,) = counted["levels"]

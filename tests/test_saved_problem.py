@@ -130,12 +130,21 @@ def test_problem_round_trip(capture, tmp_path):
     np.testing.assert_array_equal(again.colors, problem.colors)
     with pytest.raises(ValueError, match=r"colors\[1\] has shape \(12, 15, 3\), not \(12, 16, 3\)"):
         replace(problem, colors=[frames[0], frames[1][:, :15], frames[2]])
-    # coded frames (read from files): kept coded, sized without decoding, saved decoded
+    # coded frames (read from files): kept coded, sized without decoding, saved as codes and tables
     codes = [rng.integers(0, 256, (H, W, 3)).astype(np.uint8) for _ in range(n)]
-    coded = replace(problem, colors=CodedColours.from_codes(codes))
+    coded = replace(problem, colors=CodedColours.from_codes(codes).divided(rng.uniform(0.8, 1.2, (n, 3))))
     assert isinstance(coded.colors, CodedColours) and coded.colors.codes[2] is codes[2] and coded.color_size == (H, W)
     saved = read_problem(write_problem(coded, tmp_path / "coded.npz"))
-    np.testing.assert_array_equal(saved.colors, np.stack([codes_to_linear(c) for c in codes]))
+    assert isinstance(saved.colors, CodedColours)
+    np.testing.assert_array_equal(np.stack(saved.colors.codes), np.stack(codes))
+    np.testing.assert_array_equal(saved.colors.tables, coded.colors.tables)  # white balance folded in
+    np.testing.assert_array_equal(np.stack(list(saved.colors)), np.stack(list(coded.colors)))
+    np.testing.assert_array_equal(CodedColours.from_codes(codes)[1], codes_to_linear(codes[1]))
+    decoded = read_problem(write_problem(replace(coded, colors=coded.float_colors()), tmp_path / "decoded.npz"))
+    np.testing.assert_array_equal(decoded.colors, np.stack(list(coded.colors)))
+    with zipfile.ZipFile(tmp_path / "coded.npz") as z:  # the codes stored as uint8: a quarter of float32's bytes
+        assert z.getinfo("colors.npy").file_size < 0.3 * zipfile.ZipFile(tmp_path / "decoded.npz").getinfo(
+            "colors.npy").file_size
     with pytest.raises(ValueError, match=r"colors\[1\] has shape \(12, 15, 3\), not \(12, 16, 3\)"):
         replace(problem, colors=CodedColours.from_codes([codes[0], codes[1][:, :15], codes[2]]))
 
@@ -154,11 +163,11 @@ def test_unreadable_problem_files_name_the_file_and_the_fix(capture, tmp_path):
     np.savez(tmp_path / "foreign.npz", depth=np.zeros(3))
     with np.load(good) as npz:
         arrays = dict(npz)
-    np.savez(tmp_path / "newer.npz", **{**arrays, "format_version": np.array(2)})
+    np.savez(tmp_path / "newer.npz", **{**arrays, "format_version": np.array(3)})
     np.savez(tmp_path / "truncated.npz", **{k: v for k, v in arrays.items() if k != "depths"})
     expected = {"missing.npz": "no such file", "junk.npz": "is not a saved o3d_mvps problem",
                 "foreign.npz": "is an .npz but not a saved o3d_mvps problem",
-                "newer.npz": r"format version 2, newer than this o3d_mvps reads \(1\); upgrade",
+                "newer.npz": r"format version 3, newer than this o3d_mvps reads \(2\); upgrade",
                 "truncated.npz": "lacks the array 'depths'; the file is damaged: write it again"}
     for name, problem in expected.items():
         with pytest.raises(MVPSError, match=problem) as error:
