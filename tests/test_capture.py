@@ -172,12 +172,20 @@ def test_coded_capture_writes_its_codes_and_refuses_mixed_frames(tmp_path, folde
         again = cv2.imread(str(tmp_path / "again" / "color" / f"{i:06d}.png"), cv2.IMREAD_UNCHANGED)
         np.testing.assert_array_equal(again[..., ::-1], back.color_codes(i))
     float_frame = image_from_array(back.color_array(1))
-    with pytest.raises(CaptureError, match="mix float32 and uint8"):
-        validate_capture(replace(back, color=[back.color[0], float_frame, back.color[2]]))
+    with pytest.raises(CaptureError, match=r"mix float32 \(first: frame 1 \(000001.png\)\) and uint8 \(first: frame 0 "
+                                           r"\(000000.png\)\); give every frame as codes of one bit depth"):
+        validate_capture(replace(back, color=[back.color[0], float_frame, back.color[2]]),
+                         frame_names=back.frame_names)
     with pytest.raises(CaptureError, match="integer colour must be uint8 or uint16 codes"):
         validate_capture(replace(back, color=[image_from_array(back.color_codes(i).astype(np.int32))
                                               for i in range(N)]))
     assert make_capture().color_codes(0) is None  # float frames
+    # a folder whose frame 2 was saved as 16-bit: named by its file before any work
+    frame = cv2.imread(str(folder / "color" / "000002.png"), cv2.IMREAD_UNCHANGED)
+    cv2.imwrite(str(folder / "color" / "000002.png"), frame.astype(np.uint16) * 257)
+    with pytest.raises(CaptureError, match=r"color mixes 8-bit frames \(first: 000000.png\) and 16-bit frames "
+                                           r"\(first: 000002.png\); save every colour frame at one bit depth"):
+        read_capture(folder)
 
 
 def test_reference_only_keeps_frame_0_and_the_whole_ground_truth(capture_dir):

@@ -92,14 +92,15 @@ def read_capture(path, mask: str | None = None, depth_range=None) -> Capture:
     color_files, depth_files = paired_frame_files(root, settings["frames"])
     names = list(color_files)
 
-    color, bit_depths = [], set()
+    color, first_of = [], {}  # bit depth -> the first file holding it
     decoded = _in_threads(lambda file: _decode_color(_read_image(file), settings["color_encoding"], file),
                           list(color_files.values()))
-    for array, bits in decoded:
+    for (array, bits), file in zip(decoded, color_files.values()):
         color.append(image_from_array(array))
-        bit_depths.add(bits)
-    if len(bit_depths) > 1:
-        raise CaptureError(f"{root / COLOR_DIR} mixes 8- and 16-bit frames; save every colour frame at one bit depth")
+        first_of.setdefault(bits, Path(file).name)
+    if len(first_of) > 1:
+        mixed = " and ".join(f"{bits}-bit frames (first: {name})" for bits, name in sorted(first_of.items()))
+        raise CaptureError(f"{root / COLOR_DIR} mixes {mixed}; save every colour frame at one bit depth")
     depth = [image_from_array(z) for z in _in_threads(
         lambda f: _decode_depth(_read_image(f), settings["depth_scale"], f), list(depth_files.values()))]
     capture = Capture(
@@ -112,7 +113,7 @@ def read_capture(path, mask: str | None = None, depth_range=None) -> Capture:
         depth_trunc=settings["depth_trunc"],
         color_encoding=settings["color_encoding"],
         sensor=settings["sensor"],
-        metadata={**settings["metadata"], "color_bit_depth": bit_depths.pop()},
+        metadata={**settings["metadata"], "color_bit_depth": next(iter(first_of))},
         light=settings["light"],
         camera=settings["camera"],
         frame_names=[p.name for p in color_files.values()],

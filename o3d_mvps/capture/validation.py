@@ -44,10 +44,13 @@ def validate_capture(capture: Capture, frame_names: list[str] | None = None) -> 
         return f"frame {i}" if frame_names is None else f"frame {i} ({frame_names[i]})"
 
     color_size = _check_frames(capture.color, "colour", (3,), label, (0.0, 1.0))
-    dtypes = sorted({str(pixels(frame).dtype) for frame in capture.color})
-    if len(dtypes) > 1 and any(d in ("uint8", "uint16") for d in dtypes):
-        raise CaptureError(f"the colour frames mix {' and '.join(dtypes)}; give every frame as codes of one bit depth "
-                           "or every frame as float32 linear RGB")
+    first_of = {}  # dtype -> the first frame holding it
+    for i, frame in enumerate(capture.color):
+        first_of.setdefault(str(pixels(frame).dtype), i)
+    if len(first_of) > 1 and any(d in ("uint8", "uint16") for d in first_of):
+        mixed = " and ".join(f"{d} (first: {label(i)})" for d, i in sorted(first_of.items()))
+        raise CaptureError(f"the colour frames mix {mixed}; give every frame as codes of one bit depth "
+                           "(8-bit or 16-bit image files alike) or every frame as float32 linear RGB")
     depth_size = _check_frames(capture.depth, "depth", (None, 1), label, (0.0, None))
     integer_scale_factor(color_size, depth_size)
     _check_depth_unit(capture.depth, label)
