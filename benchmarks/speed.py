@@ -276,12 +276,13 @@ def memory_curve_plot(rows: list[dict], path: Path) -> None:
 
     fig, ax = plt.subplots(figsize=(6, 4))
     revisions = list(dict.fromkeys(r.get("revision") for r in rows))
-    for color in dict.fromkeys(r["color"] for r in rows):
+    for j, color in enumerate(dict.fromkeys(r["color"] for r in rows)):
         for k, revision in enumerate(revisions):
             mine = sorted((r["frames"], r["peak_mb"]) for r in rows if r["color"] == color
                           and r.get("revision") == revision)
-            if mine:
-                ax.plot(*zip(*mine), marker="o", linestyle="-" if k == 0 else "--",
+            if mine:  # one colour per size, the older revisions dashed
+                ax.plot(*zip(*mine), marker="o", color=f"C{j}", linestyle="-" if k == 0 else "--",
+                        alpha=1.0 if k == 0 else 0.6,
                         label=f"{color} colour" + ("" if revision is None else f" ({revision})"))
     ax.set_xlabel("frames")
     ax.set_ylabel("peak resident memory (MB)")
