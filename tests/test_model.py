@@ -385,6 +385,12 @@ def test_smoothness_prior_is_zero_on_planes_and_its_gradient_matches_finite_diff
     plane = 0.6 + 0.002 * grid.u - 0.001 * grid.v
     np.testing.assert_allclose(S @ plane, 0.0, atol=1e-12)
     assert S.shape[0] > 0 and np.all(np.abs(S).sum(axis=1) == 4)  # 1, -2, 1 on three masked pixels
+    # the forward scheme's grid (normals from forward differences) has the same rows: it once had
+    # none (rows were picked by the central scheme's 1/2 weights), so its smoothness did nothing
+    assert (second_differences(masked_grid(mask, "forward")) != S).nnz == 0
+    from o3d_mvps.solver.smoothness import grid_mode_rows
+    modes = grid_mode_rows(grid, 4.0)
+    assert modes.shape[0] > 0 and (grid_mode_rows(masked_grid(mask, "forward"), 4.0) != modes).nnz == 0
     prior = depth_prior(grid, rng.uniform(0.55, 0.65, (6, 8)), 4.0)
     prior.S = S
     z = plane + 0.001 * rng.normal(size=grid.size)

@@ -58,6 +58,13 @@ class MaskedGrid:
     def shape(self) -> tuple[int, int]:
         return self.mask.shape
 
+    def interior(self) -> tuple[np.ndarray, np.ndarray]:
+        """(along u, along v) (N,) bool: the pixels whose two neighbours in that direction are both
+        masked (the centres of second differences), whatever the scheme's weights (a forward
+        scheme's pixel with both neighbours weighs only the forward one)."""
+        own = np.arange(self.size)
+        return (self.fwd_u != own) & (self.bwd_u != own), (self.fwd_v != own) & (self.bwd_v != own)
+
     def gather(self, image: np.ndarray) -> np.ndarray:
         """Values (N, ...) of an (H, W, ...) image at the masked pixels."""
         return image[self.v, self.u]

@@ -26,7 +26,7 @@ def second_differences(grid: MaskedGrid) -> sp.csr_matrix:
     """S (K, N): the second differences z[p-1] - 2 z[p] + z[p+1] along rows and along columns, at
     every masked pixel whose two neighbours in that direction are masked (metres for z in metres)."""
     own = np.arange(grid.size)
-    centres = [own[(wf == 0.5) & (wb == 0.5)] for wf, wb in ((grid.wf_u, grid.wb_u), (grid.wf_v, grid.wb_v))]
+    centres = [own[inner] for inner in grid.interior()]
     return _stencil_rows([[bwd[both], both, fwd[both]] for both, fwd, bwd in
                           zip(centres, (grid.fwd_u, grid.fwd_v), (grid.bwd_u, grid.bwd_v))],
                          np.array(SECOND_DIFFERENCE_TAPS), grid.size)
@@ -97,9 +97,7 @@ def grid_mode_rows(grid: MaskedGrid, weight: float) -> sp.csr_matrix:
     own = np.arange(grid.size)
     taps = np.sqrt(weight) * np.array([1.0, -4.0, 6.0, -4.0, 1.0]) / 4.0
     columns = []
-    for fwd, bwd, wf, wb in ((grid.fwd_u, grid.bwd_u, grid.wf_u, grid.wb_u),
-                             (grid.fwd_v, grid.bwd_v, grid.wf_v, grid.wb_v)):
-        inner = (wf == 0.5) & (wb == 0.5)
+    for fwd, bwd, inner in zip((grid.fwd_u, grid.fwd_v), (grid.bwd_u, grid.bwd_v), grid.interior()):
         both = own[inner & inner[fwd] & inner[bwd]]
         columns.append([bwd[bwd[both]], bwd[both], both, fwd[both], fwd[fwd[both]]])
     return _stencil_rows(columns, taps, grid.size)
