@@ -374,3 +374,29 @@ def test_frames_read_from_files_solve_as_their_decoded_floats(capture, tmp_path)
         np.testing.assert_array_equal(getattr(coded, name), getattr(decoded, name), err_msg=name)
     assert [row["energy"] for row in coded.energy] == [row["energy"] for row in decoded.energy]
     assert len(coded.energy) > 4
+
+
+@pytest.mark.parametrize("coded", [True, False])
+def test_coarse_images_are_the_levels_own(coded):
+    """Each frame decoded once for every coarse level (pyramid.coarse_images): the levels built from
+    them hold the same images, bit for bit, as those built from the colours; the full size is not
+    made again (the finest level reads the colours themselves); a wrong level's images are refused."""
+    from o3d_mvps.colour import CodedColours
+    from o3d_mvps.solver.pyramid import coarse_images, level_size
+
+    rng = np.random.default_rng(3)
+    codes = [rng.integers(0, 256, size=(96, 128, 3), dtype=np.uint8) for _ in range(3)]
+    colors = CodedColours.from_codes(codes) if coded else [c.astype(np.float32) / 255 for c in codes]
+    ref_mask = np.zeros((96, 128), bool)
+    ref_mask[20:80, 30:110] = True
+    K = np.array([[100.0, 0, 64], [0, 100.0, 48], [0, 0, 1]])
+    z0 = np.full((24, 32), 0.5)
+    sizes = [level_size(ref_mask.shape, index) for index in range(4)]
+    found = coarse_images(colors, sizes)
+    assert list(found) == sizes[1:]
+    for index in range(1, 4):
+        own = build_level(index, colors, [None] * 3, ref_mask, K, z0, 4)
+        given = build_level(index, colors, [None] * 3, ref_mask, K, z0, 4, images=found[sizes[index]])
+        assert all(a.dtype == np.float32 and np.array_equal(a, b) for a, b in zip(own.images, given.images))
+    with pytest.raises(ValueError, match="images must be"):
+        build_level(1, colors, [None] * 3, ref_mask, K, z0, 4, images=found[sizes[2]])

@@ -47,7 +47,7 @@ from .point_light import fit_point_lights, initial_point_lights
 from .pose_trust import PoseAnchors, PoseLog
 from .problem import Estimate, LevelProblem
 from .problem_input import SolverInput
-from .pyramid import build_level, level_size
+from .pyramid import build_level, coarse_images, level_size
 from .reflectance import refit_albedo, update_albedo, update_lighting
 from .smoothness import auto_smoothness, grid_mode_weight
 from .solution import SolverOutput
@@ -668,9 +668,15 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
     masks = problem_input.masks
     ref_mask = _reference_mask(problem_input)
     declared = None if options.light_model is None else str(options.light_model)
+    n_levels = int(options.levels)
+    while n_levels > 1 and min(level_size(size, n_levels - 1)) < 8:
+        n_levels -= 1
+    # the coarse levels' frames, each frame decoded once for all of them (the light selection's
+    # level is one of them); a level's are dropped once it is built
+    images = coarse_images(colors, [level_size(ref_mask.shape, index) for index in range(1, n_levels)])
     selection = select_light_model(problem_input, ref_mask, declared, occlusion_test=options.occlusion_test,
                                    occlusion_tolerance=options.occlusion_tolerance,
-                                   static=bool(np.allclose(problem_input.initial_poses, np.eye(4))))
+                                   static=bool(np.allclose(problem_input.initial_poses, np.eye(4))), images=images)
     options = replace(options, light_model=selection["chosen"])
     timings["light_selection"] = time.perf_counter() - t0
     if options.progress:
@@ -685,9 +691,6 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
     mean_z0 = float(z0[z0 > 0].mean())
     mean_I = float(colors[0][ref_mask].mean())
 
-    n_levels = int(options.levels)
-    while n_levels > 1 and min(level_size(size, n_levels - 1)) < 8:
-        n_levels -= 1
     light = make_light_model(options.light_model, initial_sh=options.initial_light,
                              led_offset=problem_input.led_offset)
     if light.name == "point" and options.refine_poses and n_frames > 1:
@@ -734,7 +737,8 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
         level = build_level(level_index, colors, masks, ref_mask, K, z0, sf, options.difference_scheme,
                             options.depth_envelope, options.model.slope_weighted(),
                             grid_modes=partial(grid_mode_weight, light.name, n_frames,
-                                               lamp_level_pixels=POINT_FIT_MAX_PIXELS))
+                                               lamp_level_pixels=POINT_FIT_MAX_PIXELS),
+                            images=images.pop(level_size(ref_mask.shape, level_index), None))
         g = level.grid
         if g.size < 16 or (light.name == "point" and g.size < POINT_MIN_PIXELS and level_index > 0):
             return None

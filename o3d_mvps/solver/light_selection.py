@@ -59,7 +59,8 @@ MOVING_CANDIDATES = tuple(name for name in LIGHT_MODELS if name != "point")
 
 
 def select_light_model(problem_input: SolverInput, ref_mask: np.ndarray, declared: str | None = None, *,
-                       occlusion_test: bool = True, occlusion_tolerance: float = 0.02, static: bool = False) -> dict:
+                       occlusion_test: bool = True, occlusion_tolerance: float = 0.02, static: bool = False,
+                       images: dict | None = None) -> dict:
     """Fit every light model on a coarse level and pick the one that explains the images best.
 
     problem_input: the solver's input (n >= 2 frames; its initial poses and LED offset are
@@ -68,7 +69,8 @@ def select_light_model(problem_input: SolverInput, ref_mask: np.ndarray, declare
     held-out robust RMS residual}, "parameters" {model: count}, "level" (H, W), "why"}; with a
     declared model "chosen" is the declared one (a warning says when another fits clearly better).
     static: the camera stands still (identity poses): the candidates are :data:`STATIC_CANDIDATES`,
-    else :data:`MOVING_CANDIDATES` (and the declared model).
+    else :data:`MOVING_CANDIDATES` (and the declared model). images: coarse levels' frames by
+    level size (:func:`.pyramid.coarse_images`), read where the selection's level is among them.
     """
     n = problem_input.n_frames
     if n < 2:
@@ -76,7 +78,7 @@ def select_light_model(problem_input: SolverInput, ref_mask: np.ndarray, declare
         return {"chosen": chosen, "declared": declared, "scores": {}, "parameters": {}, "level": None,
                 "why": "one frame: its albedo explains any shading, the images cannot tell light models apart; "
                        + ("as declared" if declared else "the LED model by default")}
-    level = _selection_level(problem_input, ref_mask)
+    level = _selection_level(problem_input, ref_mask, images or {})
     g = level.grid
     held_out = to_host((g.u + g.v) % 2 == 1)
     samples = None  # the same depth and poses for every model: the frames warped once
@@ -109,7 +111,7 @@ def select_light_model(problem_input: SolverInput, ref_mask: np.ndarray, declare
             "level": list(level.size), "why": why}
 
 
-def _selection_level(problem_input: SolverInput, ref_mask: np.ndarray):
+def _selection_level(problem_input: SolverInput, ref_mask: np.ndarray, images: dict):
     """The coarsest pyramid level with at least :data:`LEVEL_PIXELS` object pixels (else the finest),
     found from the reference mask alone (:func:`.pyramid.level_mask`) and then built: the levels
     passed over are not built (each one every frame's images resized: 2 MP, 20 frames, 0.7 of the
@@ -120,7 +122,8 @@ def _selection_level(problem_input: SolverInput, ref_mask: np.ndarray):
     while index > 0 and np.count_nonzero(level_mask(ref_mask, index)) < LEVEL_PIXELS:
         index -= 1
     return build_level(index, problem_input.colors, problem_input.masks, ref_mask, problem_input.K,
-                       problem_input.depths[0].astype(np.float64), problem_input.scale_factor)
+                       problem_input.depths[0].astype(np.float64), problem_input.scale_factor,
+                       images=images.get(tuple(level_size(ref_mask.shape, index))))
 
 
 def _held_out_score(problem_input: SolverInput, level, name: str, held_out: np.ndarray, samples,

@@ -365,20 +365,42 @@ def level_mask(ref_mask: np.ndarray, index: int) -> np.ndarray:
     return resize(ref_mask.astype(np.float32), level_size(ref_mask.shape, index)) > 0.5
 
 
+def coarse_images(colors, sizes: list) -> dict:
+    """{size: n (h, w, 3) float32 frames} for each (h, w) of ``sizes`` smaller than the colours
+    (n frames, or a :class:`~o3d_mvps.colour.CodedColours`): each frame area-averaged as
+    :func:`build_level` makes a coarse level's images, but decoded once for all the sizes instead
+    of once a level (D415, 20 frames, 4 coarse levels and the light selection's: 100 decodes of
+    2.4 ms -> 20). The same arrays bit for bit; ``build_level(..., images=...)`` takes them."""
+    full = tuple(colors.codes[0].shape[:2] if isinstance(colors, CodedColours) else colors[0].shape[:2])
+    sizes = [tuple(size) for size in dict.fromkeys(map(tuple, sizes)) if tuple(size) != full]
+    found = {size: [] for size in sizes}
+    for i in range(len(colors) if sizes else 0):
+        frame = colors[i]  # decoded (a new float32 array) or the float frame itself
+        for size in sizes:
+            found[size].append(resize(frame, size).astype(np.float32))
+    return found
+
+
 def build_level(index: int, colors: list, masks: list, ref_mask: np.ndarray, K: np.ndarray, z0: np.ndarray,
                 scale_factor: int, scheme: str = "central", envelope_margin: float | None = None,
-                slope_weighted: bool = False, grid_modes: Callable[[int], float] | None = None) -> Level:
+                slope_weighted: bool = False, grid_modes: Callable[[int], float] | None = None,
+                images: list | None = None) -> Level:
     """Level ``index`` from full-resolution colours (n (H, W, 3) float32 frames, or a
     :class:`~o3d_mvps.colour.CodedColours`), masks, reference mask and z0;
     ``envelope_margin`` None leaves the depth unbounded (see :func:`depth_envelope`);
     ``slope_weighted``: the smoothness rows are :func:`smoothness_rows` (else plain second differences);
     ``grid_modes``: the weight of the grid-mode rows (:func:`.smoothness.with_grid_modes`) given the
-    level's object pixels (the driver's :func:`.smoothness.grid_mode_weight`); None: none."""
+    level's object pixels (the driver's :func:`.smoothness.grid_mode_weight`); None: none.
+    images: the level's n (h, w, 3) float32 frames where the caller made them (:func:`coarse_images`),
+    None: made here from ``colors``."""
     size = level_size(ref_mask.shape, index)
     K_level = scale_intrinsics(K, size[1] / ref_mask.shape[1], size[0] / ref_mask.shape[0])
     # the finest level reads the full-resolution colours themselves (no copy: they are only read;
     # coded frames as their codes and table), coarser levels area-averaged float32 copies
-    if isinstance(colors, CodedColours):
+    if images is not None:
+        if len(images) != len(colors) or any(image.shape[:2] != tuple(size) for image in images):
+            raise ValueError(f"build_level: images must be {len(colors)} frames of {size}")
+    elif isinstance(colors, CodedColours):
         images = [colors.frame(i) if colors.codes[i].shape[:2] == tuple(size)
                   else resize(colors[i], size).astype(np.float32) for i in range(len(colors))]
     else:
