@@ -111,6 +111,7 @@ def test_gpu_benchmark_compares_the_cuda_path_with_the_cpu_path(tmp_path):
     if numba.config.ENABLE_CUDASIM:
         assert same["max_depth_diff_mm"] == same["mae_diff_deg"] == same["energy_rel_diff"] == 0.0, same
     else:
+        assert same["sweeps_cpu"] == same["sweeps_cuda"], same  # else no energy to compare sweep by sweep
         assert same["max_depth_diff_mm"] < 1e-3 and same["energy_rel_diff"] < 1e-6, same
 
     (counted,) = gpu.count(tmp_path, tmp_path / "results", min_level_pixels=0)
