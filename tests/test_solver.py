@@ -378,10 +378,12 @@ def test_frames_read_from_files_solve_as_their_decoded_floats(capture, tmp_path)
 
 @pytest.mark.parametrize("coded", [True, False])
 def test_coarse_images_are_the_levels_own(coded):
-    """Each frame decoded once for every coarse level (pyramid.coarse_images): the levels built from
-    them hold the same images, bit for bit, as those built from the colours; the full size is not
-    made again (the finest level reads the colours themselves); a wrong level's images are refused."""
-    from o3d_mvps.colour import CodedColours
+    """Each frame decoded once for every coarse level (pyramid.coarse_images): every coarse level,
+    built from them or from the colours, holds each frame decoded (colour.codes_to_linear) and
+    area-averaged to its size, bit for bit; the full size is not made again (the finest level
+    reads the colours themselves); a wrong level's images are refused."""
+    from o3d_mvps.colour import CodedColours, codes_to_linear
+    from o3d_mvps.model.resampling import resize
     from o3d_mvps.solver.pyramid import coarse_images, level_size
 
     rng = np.random.default_rng(3)
@@ -394,9 +396,15 @@ def test_coarse_images_are_the_levels_own(coded):
     sizes = [level_size(ref_mask.shape, index) for index in range(4)]
     found = coarse_images(colors, sizes)
     assert list(found) == sizes[1:]
+    decoded = [codes_to_linear(c) for c in codes] if coded else colors
     for index in range(1, 4):
+        expected = [resize(frame, sizes[index]).astype(np.float32) for frame in decoded]
         own = build_level(index, colors, [None] * 3, ref_mask, K, z0, 4)
         given = build_level(index, colors, [None] * 3, ref_mask, K, z0, 4, images=found[sizes[index]])
-        assert all(a.dtype == np.float32 and np.array_equal(a, b) for a, b in zip(own.images, given.images))
+        for level in (own, given):
+            assert all(a.dtype == np.float32 and np.array_equal(a, b) for a, b in zip(level.images, expected))
+    finest = build_level(0, colors, [None] * 3, ref_mask, K, z0, 4)
+    assert all(a is b for a, b in zip(finest.images, colors)) if not coded else \
+        all(a[0] is c for a, c in zip(finest.images, codes))
     with pytest.raises(ValueError, match="images must be"):
         build_level(1, colors, [None] * 3, ref_mask, K, z0, 4, images=found[sizes[2]])

@@ -367,10 +367,11 @@ def level_mask(ref_mask: np.ndarray, index: int) -> np.ndarray:
 
 def coarse_images(colors, sizes: list) -> dict:
     """{size: n (h, w, 3) float32 frames} for each (h, w) of ``sizes`` smaller than the colours
-    (n frames, or a :class:`~o3d_mvps.colour.CodedColours`): each frame area-averaged as
-    :func:`build_level` makes a coarse level's images, but decoded once for all the sizes instead
-    of once a level (D415, 20 frames, 4 coarse levels and the light selection's: 100 decodes of
-    2.4 ms -> 20). The same arrays bit for bit; ``build_level(..., images=...)`` takes them."""
+    (n frames, or a :class:`~o3d_mvps.colour.CodedColours`): each frame area-averaged, a coarse
+    level's images (:func:`build_level` makes one level's here). Asked for every coarse size at
+    once, each frame is decoded once for all of them instead of once a level (D415, 20 frames, 4
+    coarse levels and the light selection's: 100 decodes of 2.4 ms -> 20); ``build_level(...,
+    images=...)`` takes them."""
     full = tuple(colors.codes[0].shape[:2] if isinstance(colors, CodedColours) else colors[0].shape[:2])
     sizes = [tuple(size) for size in dict.fromkeys(map(tuple, sizes)) if tuple(size) != full]
     found = {size: [] for size in sizes}
@@ -400,12 +401,12 @@ def build_level(index: int, colors: list, masks: list, ref_mask: np.ndarray, K: 
     if images is not None:
         if len(images) != len(colors) or any(image.shape[:2] != tuple(size) for image in images):
             raise ValueError(f"build_level: images must be {len(colors)} frames of {size}")
+    elif tuple(size) != tuple(ref_mask.shape):
+        images = coarse_images(colors, [size])[tuple(size)]
     elif isinstance(colors, CodedColours):
-        images = [colors.frame(i) if colors.codes[i].shape[:2] == tuple(size)
-                  else resize(colors[i], size).astype(np.float32) for i in range(len(colors))]
+        images = [colors.frame(i) for i in range(len(colors))]
     else:
-        images = [color if color.shape[:2] == tuple(size) and color.dtype == np.float32
-                  else resize(color, size).astype(np.float32) for color in colors]
+        images = [color if color.dtype == np.float32 else color.astype(np.float32) for color in colors]
     frame_masks = [m if m is None or m.shape == tuple(size) else resize(m.astype(np.float32), size) > 0.5
                    for m in masks]  # the finest level reads the masks themselves
     grid = masked_grid(level_mask(ref_mask, index), scheme)
