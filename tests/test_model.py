@@ -335,6 +335,20 @@ def test_block_average_and_valid_resampling_agree_on_full_blocks():
     np.testing.assert_allclose(lenient[0, 0], depth[:4, :4].sum() / 15, rtol=1e-12)  # mean of the 15 valid pixels
 
 
+def test_full_blocks_stay_valid_at_a_ratio_that_is_not_a_whole_number():
+    # a 2 MP capture's depth (1709x1139 colour / 4) onto the pose checks' 80-px grid: cv2 weighs such
+    # areas in float32, and the strict test once kept 2 % of a fully valid map (true poses refused)
+    from o3d_mvps.model.resampling import resample_valid
+
+    depth = np.full((284, 427), 0.25)
+    for size in [(47, 71), (94, 142), (71, 106)]:
+        values, ok = resample_valid(depth, depth > 0, size, min_valid_fraction=1.0)
+        assert ok.all() and np.allclose(values, 0.25, rtol=1e-6)
+    depth[100, 200] = 0.0  # one missing pixel still drops the blocks it falls in
+    _, ok = resample_valid(depth, depth > 0, (47, 71), min_valid_fraction=1.0)
+    assert 1 <= (~ok).sum() <= 4 and not ok[100 * 47 // 284, 200 * 71 // 427]
+
+
 def test_repeat_pixels_is_undone_by_block_averaging():
     from o3d_mvps.model.resampling import block_average, repeat_pixels
 
