@@ -21,7 +21,6 @@ import numpy as np
 import open3d as o3d
 
 from o3d_mvps import RefineOptions
-from o3d_mvps.datasets import load_mesh
 from o3d_mvps.fileio import json_text
 from o3d_mvps.reconstruct import ReconstructOptions, reconstruct
 
@@ -39,13 +38,13 @@ def add_arguments(parser) -> None:
     parser.add_argument("--lights", nargs="+", default=list(LIGHTS), choices=LIGHTS)
 
 
-def scores(mesh: o3d.t.geometry.TriangleMesh, capture, scene, name: str, samples: int = 50000) -> dict:
+def scores(mesh: o3d.t.geometry.TriangleMesh, capture, scene, samples: int = 50000) -> dict:
     """Accuracy, completeness, Chamfer (mm) and normal consistency of ``mesh`` (frame-0 metres)."""
     to_scene = np.linalg.inv(np.asarray(capture.metadata["world_to_camera"][0]))
     legacy = mesh.to_legacy().transform(to_scene)
     vertices = np.asarray(legacy.vertices, dtype=np.float32)
     accuracy = scene.raycaster.compute_distance(o3d.core.Tensor(vertices)).numpy()
-    true_points = _true_samples(scene, name, samples)
+    true_points = _true_samples(scene, samples)
     target = o3d.t.geometry.RaycastingScene()
     target.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(legacy))
     completeness = target.compute_distance(o3d.core.Tensor(true_points)).numpy()
@@ -58,24 +57,15 @@ def scores(mesh: o3d.t.geometry.TriangleMesh, capture, scene, name: str, samples
             "normal_consistency": float(consistency.mean()), "vertices": len(vertices)}
 
 
-def _true_samples(scene, name: str, n: int) -> np.ndarray:
-    """n points (float32, scene frame) sampled uniformly on the true mesh's area."""
-    positions = _scene_vertices(scene, name)
-    tri = scene.triangles
+def _true_samples(scene, n: int) -> np.ndarray:
+    """n points (float32, scene frame) sampled uniformly on the true (ray-cast) surface's area."""
+    positions, tri = scene.vertices, scene.triangles
     a, b, c = (positions[tri[:, k]] for k in range(3))
     area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
     rng = np.random.default_rng(0)
     pick = rng.choice(len(tri), n, p=area / area.sum())
     r1, r2 = np.sqrt(rng.random(n))[:, None], rng.random(n)[:, None]
     return ((1 - r1) * a[pick] + r1 * (1 - r2) * b[pick] + r1 * r2 * c[pick]).astype(np.float32)
-
-
-def _scene_vertices(scene, name: str) -> np.ndarray:
-    """The true mesh's vertices (n, 3) in the scene frame."""
-    mesh = load_mesh(name)
-    v = mesh.vertex.positions.numpy().astype(np.float64)
-    M = scene.mesh_to_reference
-    return v @ M[:3, :3].T + M[:3, 3]
 
 
 def run(args) -> None:
@@ -98,7 +88,7 @@ def run(args) -> None:
                 row["seconds_by_workers"][workers] = seconds
             if workers > 1:
                 continue
-            row[depth] = {**scores(result.mesh, capture, scene, name), "seconds": seconds}
+            row[depth] = {**scores(result.mesh, capture, scene), "seconds": seconds}
             if depth == "refined":
                 import trimesh
 

@@ -163,6 +163,7 @@ def render_capture(
                 "distance": float(distance),
                 "albedo": albedo,
                 "orbit_deg": float(orbit_deg),
+                "subdivisions": scene.subdivisions,
                 **rendered.sensor_metadata(),
             }
         },

@@ -3,18 +3,26 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cached_property
+from functools import cached_property, lru_cache
 from pathlib import Path
+import warnings
 
 import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
 
+from ..export.topology import vertex_normals
 from .camera import camera_rays, synthetic_intrinsics
 from .surroundings import Surroundings, add_surroundings
 
 # Rotations turning a shipped mesh's front toward its +z axis (the side the camera sees).
 FRONT_ROTATIONS = {"armadillo": np.diag([-1.0, 1.0, -1.0])}
+
+#: the renders' facets: the mesh is Loop-subdivided until its mean edge spans at most this many
+#: pixels of the reference camera (at most :data:`MAX_SUBDIVISIONS` times), so that the rendered
+#: depth's own normals are the normals its colour is shaded with (see :func:`build_scene`)
+MAX_FACET_PX = 1.5
+MAX_SUBDIVISIONS = 3
 
 # Linear-RGB palette of the albedo cells (distinct hues, all within [0.2, 0.9]).
 PALETTE = np.array(
@@ -173,6 +181,8 @@ class SyntheticScene:
     intrinsics for ``size`` = (W, H). ``mesh_to_reference`` (4, 4) similarity;
     ``object_size`` metres; ``albedo`` the surface texture (object coordinates
     ``q = R^T (x_ref - t) / object_size`` with R, t the rotation/translation of the placement).
+    ``vertices`` (V, 3) reference-frame metres and ``triangles`` (F, 3) the ray-cast surface: the
+    mesh after ``subdivisions`` Loop subdivisions; ``vertex_normals`` (V, 3) its unit normals.
     ``object_id``: the mesh's geometry id in the ray caster; ``surroundings``: scene mode's table
     and wall, or None for the object alone.
     """
@@ -184,16 +194,18 @@ class SyntheticScene:
     object_size: float
     distance: float
     albedo: ProceduralAlbedo | SpeckledAlbedo
-    triangles: np.ndarray | None = None
-    vertex_normals: np.ndarray | None = None
+    vertices: np.ndarray
+    triangles: np.ndarray
+    vertex_normals: np.ndarray
     object_id: int = 0
     surroundings: Surroundings | None = None
+    subdivisions: int = 0
 
     def smooth_normals(self, primitive_ids: np.ndarray, primitive_uvs: np.ndarray) -> np.ndarray:
         """Unit normals (N, 3), reference frame, interpolated from vertex normals at hit points.
 
-        Like a camera integrating over its pixel, this avoids the aliasing of scanned meshes'
-        per-face normals (bumpy below a pixel), which no depth map at pixel resolution explains.
+        The surface is subdivided below about a pixel (:data:`MAX_FACET_PX`), so these are the
+        normals of the rendered depth, without the per-face steps no pixel could resolve.
         """
         tri = self.triangles[primitive_ids]
         a, b = primitive_uvs[:, :1], primitive_uvs[:, 1:2]
@@ -219,33 +231,100 @@ class SyntheticScene:
 
 
 def build_scene(mesh, *, size=(640, 480), object_size=0.2, distance=0.6, seed=0,
-                surroundings: bool = False, albedo: str = "patches") -> SyntheticScene:
+                surroundings: bool = False, albedo: str = "patches",
+                subdivisions: int | None = None) -> SyntheticScene:
     """Place ``mesh`` (tensor/legacy TriangleMesh, name or path) in front of the reference camera.
 
     ``size`` (W, H) pixels; ``object_size``, ``distance`` metres; ``seed`` draws the albedo;
     ``surroundings`` stands the object on a table in front of a wall (:mod:`.surroundings`);
     ``albedo`` the texture: "patches" (:class:`ProceduralAlbedo`) or "speckled" (:class:`SpeckledAlbedo`).
+
+    The colour is shaded with normals interpolated from the vertex normals while the depth is the
+    facets', which a scanned mesh's facets of a few pixels part by 2-4 degrees: no depth would
+    explain such an image. So the mesh is Loop-subdivided ``subdivisions`` times (None: until its
+    mean edge spans at most :data:`MAX_FACET_PX` pixels at ``distance``, at most
+    :data:`MAX_SUBDIVISIONS` times), a smooth surface whose depth has the shading's normals.
+    The placement is the given mesh's, so the object sits where it would unsubdivided.
     """
     if albedo not in ALBEDOS:
         raise ValueError(f"unknown albedo {albedo!r}; choose one of {list(ALBEDOS)}")
     front = FRONT_ROTATIONS.get(mesh) if isinstance(mesh, str) else None
     legacy = _as_legacy_mesh(mesh)
-    vertices = np.asarray(legacy.vertices, dtype=np.float64)
-    M = placement_transform(vertices, object_size, distance, front)
+    M = placement_transform(np.asarray(legacy.vertices, dtype=np.float64), object_size, distance, front)
+    W, H = (int(s) for s in size)
+    K = synthetic_intrinsics(W, H)
+    vertices, triangles = _referenced(legacy)
+    if subdivisions is None:
+        subdivisions = facet_subdivisions(vertices, triangles, float(np.cbrt(np.linalg.det(M[:3, :3])))
+                                          * K[0, 0] / float(distance))
+    if subdivisions:
+        given = len(triangles)
+        vertices, triangles = (_shipped_subdivided(mesh, int(subdivisions)) if _is_shipped_name(mesh)
+                               else loop_subdivide(vertices, triangles, int(subdivisions)))
+        subdivisions = subdivisions if len(triangles) > given else 0  # VTK could not: rendered as given
     placed = apply_matrix(M[:3, :3], vertices) + M[:3, 3]
     raycaster = o3d.t.geometry.RaycastingScene()
     object_id = raycaster.add_triangles(
         o3d.core.Tensor(placed.astype(np.float32)),
-        o3d.core.Tensor(np.asarray(legacy.triangles, dtype=np.uint32)),
+        o3d.core.Tensor(triangles.astype(np.uint32)),
     )
     room = add_surroundings(raycaster, float(placed[:, 1].max()), float(distance)) if surroundings else None
     texture = ALBEDOS[albedo].random(random_stream(seed, "albedo"))
-    W, H = (int(s) for s in size)
-    legacy.compute_vertex_normals()
-    vertex_normals = apply_matrix(M[:3, :3], np.asarray(legacy.vertex_normals, dtype=np.float64))
-    vertex_normals /= np.maximum(np.linalg.norm(vertex_normals, axis=1, keepdims=True), 1e-12)
-    return SyntheticScene(raycaster, synthetic_intrinsics(W, H), (W, H), M, float(object_size), float(distance),
-                          texture, np.asarray(legacy.triangles, dtype=np.int64), vertex_normals, int(object_id), room)
+    return SyntheticScene(raycaster, K, (W, H), M, float(object_size), float(distance), texture, placed,
+                          triangles, vertex_normals(placed, triangles), int(object_id), room,
+                          int(subdivisions))
+
+
+def facet_subdivisions(vertices: np.ndarray, triangles: np.ndarray, pixels_per_unit: float) -> int:
+    """Loop subdivisions (0..:data:`MAX_SUBDIVISIONS`) that bring the mean edge of ``triangles``
+    (F, 3) over ``vertices`` (V, 3) to at most :data:`MAX_FACET_PX` pixels; each halves it.
+    ``pixels_per_unit``: image pixels per mesh unit at the object's distance."""
+    edges = vertices[triangles] - vertices[np.roll(triangles, 1, axis=1)]
+    edge_px = float(np.linalg.norm(edges, axis=2).mean()) * pixels_per_unit
+    k = 0
+    while k < MAX_SUBDIVISIONS and edge_px / 2**k > MAX_FACET_PX:
+        k += 1
+    return k
+
+
+def loop_subdivide(vertices: np.ndarray, triangles: np.ndarray, iterations: int) -> tuple[np.ndarray, np.ndarray]:
+    """``iterations`` Loop subdivisions of a triangle mesh (V, 3) float, (F, 3) int: VTK's filter
+    through pyvista (Open3D's gives NaN vertices on the shipped bunny). A mesh VTK cannot subdivide
+    (not manifold) is returned as given, with a warning."""
+    import pyvista as pv  # imported here: VTK is heavy and only renders of coarse meshes need it
+    from pyvista.core.utilities import VtkErrorCatcher
+
+    with VtkErrorCatcher(send_to_logging=False):  # a failure is said once, below, not as VTK's log
+        surface = pv.PolyData.from_regular_faces(vertices, triangles).subdivide(iterations, "loop")
+    points, faces = np.asarray(surface.points, dtype=np.float64), surface.regular_faces.astype(np.int64)
+    if len(faces) == 0 or not np.isfinite(points).all():
+        warnings.warn(f"the mesh ({len(triangles)} triangles) could not be Loop-subdivided (not manifold?); it is "
+                      f"rendered as given, so its depth's normals may differ from the shading's by a few degrees",
+                      RuntimeWarning, stacklevel=3)
+        return vertices, triangles
+    return points, faces
+
+
+def _referenced(legacy: o3d.geometry.TriangleMesh) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (V, 3) float64 and triangles (F, 3) int64 of ``legacy`` without unreferenced vertices."""
+    triangles = np.asarray(legacy.triangles, dtype=np.int64)
+    used, remapped = np.unique(triangles, return_inverse=True)
+    return np.asarray(legacy.vertices, dtype=np.float64)[used], remapped.reshape(triangles.shape)
+
+
+def _is_shipped_name(mesh) -> bool:
+    from ..datasets import MESHES
+
+    return isinstance(mesh, str) and mesh in MESHES
+
+
+@lru_cache(maxsize=4)
+def _shipped_subdivided(name: str, iterations: int) -> tuple[np.ndarray, np.ndarray]:
+    """A shipped mesh's referenced vertices and triangles after ``iterations`` Loop subdivisions
+    (cached: the suite renders the bunny many times); read-only arrays."""
+    vertices, triangles = loop_subdivide(*_referenced(_as_legacy_mesh(name)), iterations)
+    vertices.flags.writeable = triangles.flags.writeable = False
+    return vertices, triangles
 
 
 def random_stream(seed: int, stream: str) -> np.random.Generator:

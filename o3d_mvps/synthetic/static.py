@@ -95,7 +95,7 @@ def render_static_capture(mesh="bunny", *, frames: int = 20, scale_factor: int =
             "mesh": str(mesh) if isinstance(mesh, (str, Path)) else type(mesh).__name__, "frames": int(frames),
             "scale_factor": int(scale_factor), "size": [W, H], "camera": "static", "light": "handheld",
             "light_radius": list(radius), "seed": int(seed), "object_size": float(object_size),
-            "distance": float(distance), **rendered.sensor_metadata()}},
+            "distance": float(distance), "subdivisions": scene.subdivisions, **rendered.sensor_metadata()}},
     )
 
 
