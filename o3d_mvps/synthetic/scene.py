@@ -292,9 +292,8 @@ def loop_subdivide(vertices: np.ndarray, triangles: np.ndarray, iterations: int)
     through pyvista (Open3D's gives NaN vertices on the shipped bunny). A mesh VTK cannot subdivide
     (not manifold) is returned as given, with a warning."""
     import pyvista as pv  # imported here: VTK is heavy and only renders of coarse meshes need it
-    from pyvista.core.utilities import VtkErrorCatcher
 
-    with VtkErrorCatcher(send_to_logging=False):  # a failure is said once, below, not as VTK's log
+    with pv.vtk_verbosity("off"):  # a failure is said once, below, not as VTK's log on stderr
         surface = pv.PolyData.from_regular_faces(vertices, triangles).subdivide(iterations, "loop")
     points, faces = np.asarray(surface.points, dtype=np.float64), surface.regular_faces.astype(np.int64)
     if len(faces) == 0 or not np.isfinite(points).all():
