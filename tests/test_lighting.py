@@ -369,3 +369,26 @@ def test_room_light_fit_recovers_one_light_and_the_frames_gains(rng):
     grams[2], noisy[2] = 0.0, 0.0  # frame 2 sees no pixel
     kept = RoomLight().fit(grams, noisy, start * [[1.0], [1.0], [0.5], [1.0]])
     np.testing.assert_allclose(kept[2], 0.5 * kept[0], rtol=1e-9)
+
+
+def test_the_led_fit_moves_the_ambient_at_close_range():
+    """The LED basis is [1, irradiance]: at 0.25 m the irradiance is ~16 m^-2, and the gram's
+    ambient direction (eigenvalue 2.8e-4 of its largest here) fell under LIGHT_MIN_EIGENVALUE:
+    the ambient stayed where it started (0.2 -> 0.197). Judged on the unit-free gram, the exact
+    light comes back from that start; at 0.6 m (irradiance ~2.8) both forms find it."""
+    from o3d_mvps.solver.lighting import LIGHT_MIN_EIGENVALUE, LEDLight, PointLight, fit_per_frame
+
+    rng = np.random.default_rng(0)
+    truth, start = np.array([0.03, 0.02]), np.array([[0.2, 0.0625]])
+    for low, high, unscaled_finds_it in [(8.0, 24.0, False), (2.0, 3.5, True)]:  # irradiance at 0.25 m, 0.6 m
+        basis = np.column_stack([np.ones(5000), rng.uniform(low, high, 5000)])
+        gram, rhs = (basis.T @ basis)[None], (basis.T @ (basis @ truth))[None]
+        values = np.linalg.eigvalsh(gram[0])
+        assert (values[0] > LIGHT_MIN_EIGENVALUE * values[1]) == unscaled_finds_it
+        np.testing.assert_allclose(fit_per_frame(gram, rhs, start, scaled=True)[0], truth, rtol=1e-9)
+        for model in (LEDLight(), PointLight()):
+            np.testing.assert_allclose(model.fit(gram, rhs, start)[0], truth, rtol=1e-9)
+        unscaled = fit_per_frame(gram, rhs, start)[0]
+        assert np.allclose(unscaled, truth, rtol=1e-9) == unscaled_finds_it
+        if not unscaled_finds_it:
+            assert abs(unscaled[0] - start[0, 0]) < 0.01  # the old fit: the ambient hardly moved
