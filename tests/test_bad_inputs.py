@@ -4,6 +4,7 @@ leave every input file unchanged, and never give a confident wrong result. And t
 a correct capture with correct poses passes every check (no false alarm), LED- and room-lit.
 """
 
+import dataclasses
 import json
 import re
 import shutil
@@ -15,7 +16,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from o3d_mvps.capture import read_capture, write_capture
+from o3d_mvps.capture import image_from_array, read_capture, write_capture
 from o3d_mvps.capture.checks import check_inputs
 from o3d_mvps.capture.poses import GivenPoses, given_poses
 from o3d_mvps.cli import main
@@ -443,6 +444,24 @@ def test_bad_frames_are_dropped_and_reported(folder, tmp_path):
     assert report[3]["used"] is False and report[3]["reason"].startswith("saturated")
     assert report[5]["used"] is False and report[5]["reason"].startswith("blurred")
     assert all(report[i]["used"] for i in (0, 1, 4))
+
+
+def test_an_over_exposed_frame_is_kept_and_named(led):
+    """A frame with a tenth of its pixels clipped is kept (the light fit can live with it) but the
+    check says which frame and what to do; 1 % clipped passes (renders as lit: 0-0.3 %)."""
+    from o3d_mvps.capture.checks import OVEREXPOSED
+
+    frames = [np.asarray(led.color_array(k)).copy() for k in range(N)]
+    frames[4][: frames[4].shape[0] // 10] = 1.0  # the top tenth clipped
+    frames[2][: max(1, frames[2].shape[0] // 100)] = 1.0  # about 1 %, under the threshold
+    capture = dataclasses.replace(led, color=[image_from_array(f) for f in frames])
+    with pytest.warns(UserWarning, match="over-exposed"):
+        report = check_inputs(capture)
+    quality = next(c for c in report.checks if c["name"] == "frame quality")
+    assert OVEREXPOSED < 0.1 and quality["status"] == "warning", quality
+    assert re.search(r"^frame 4\b.* kept over-exposed \(10% of its pixels clipped\).*shorter exposure",
+                     quality["detail"]), quality["detail"]
+    assert report.usable == list(range(N))
 
 
 def test_a_frame_written_twice_is_dropped_and_named(folder):

@@ -2,6 +2,7 @@
 with the reference's within the coarse tolerance, so a capture the depth finds static is confirmed by
 ICP of a few frames onto the reference (o3d_mvps.capture.static._confirm_static)."""
 
+import re
 import warnings
 from dataclasses import replace
 
@@ -100,7 +101,8 @@ def test_a_declared_static_camera_that_moved_is_a_warning_check(slow_orbit, stat
     checks = problem.report["inputs"]["checks"]
     assert [c for c in checks if c["name"] == "camera"] == [row]
     lines = summary_lines(summarise({"inputs": {"checks": checks}, "peak_memory_mb": 1.0}))
-    assert any("input checks:" in line and "warning" in line and "(camera" in line for line in lines), lines
+    # the slow orbit at 0.25 m is also over-exposed in part (a "frame quality" warning): named too
+    assert any(re.search(r"input checks: .*warnings? \((.*, )?camera\b", line) for line in lines), lines
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         ok = camera_setting(replace(static, camera="static"))
