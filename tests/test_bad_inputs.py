@@ -113,8 +113,11 @@ def test_true_poses_pass_on_a_2mp_capture_s_depth_size():
     area weights in float32 once left 2 % of the coarse depth valid, and the true poses were refused
     ("do not place frame 1, frame 2, ..."). Rendered here at that depth size directly (SF 1)."""
     capture = render_capture("bunny", frames=5, scale_factor=1, size=(427, 284), distance=0.25, seed=0)
-    report = check_inputs(capture, GivenPoses.from_array(capture.groundtruth.poses))
-    assert [c["status"] for c in report.checks] == ["ok"] * 5, report.checks
+    with pytest.warns(UserWarning, match="over-exposed"):  # the LED at 0.25 m clips a few % of each frame
+        report = check_inputs(capture, GivenPoses.from_array(capture.groundtruth.poses))
+    statuses = {c["name"]: c["status"] for c in report.checks}
+    assert statuses.pop("frame quality") == "warning" and set(statuses.values()) == {"ok"}, report.checks
+    assert "poses" in statuses and report.usable == list(range(5))
     assert report.conventions["poses"]["agreement"]["as given"] > 0.9  # measured 0.948
 
 
