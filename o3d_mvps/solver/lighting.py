@@ -442,7 +442,7 @@ def fit_per_frame(gram: np.ndarray, rhs: np.ndarray, lights: np.ndarray, scaled:
     ``scaled``: the directions are judged with the basis columns scaled to a unit diagonal of
     gram_i, for a basis whose columns carry different units (the LED's 1 and irradiance in
     m^-2): unscaled, the threshold depends on the units. At 0.25 m (irradiance ~16 m^-2) the
-    ambient's direction fell under it: the ambient stayed at its start, 2.3x the truth's share,
+    ambient's direction fell under it: the ambient stayed at its start, 2-3.6x the truth's share,
     and the poses and the LED offset took up the difference (2 MP bunny: normals 2.46 deg,
     poses 0.17 deg and the offset 12 mm from the truth; scaled: 1.13 deg, 0.03 deg, 2 mm).
     """

@@ -53,5 +53,5 @@ def render_ring(mesh="bunny", *, frames: int = 12, size=(160, 120), scale_factor
                       depth_intrinsic=o3d.core.Tensor(default_depth_intrinsic(K, scale_factor)), masks=rendered.masks,
                       depth_scale=DEPTH_SCALE, sensor="synthetic", light=capture_light(light), groundtruth=gt,
                       metadata={**offset, "world_to_camera": world.tolist(),
-                                "synthetic": rendered.sensor_metadata()})
+                                "synthetic": {**rendered.sensor_metadata(), "subdivisions": scene.subdivisions}})
     return capture, scene
