@@ -143,7 +143,7 @@ def test_subdivision_keeps_the_surface_and_follows_the_pixel_size():
     surface.add_triangles(o3d.core.Tensor(coarse.vertices.astype(np.float32)),
                           o3d.core.Tensor(coarse.triangles.astype(np.uint32)))
     moved_mm = 1000 * surface.compute_distance(o3d.core.Tensor(fine.vertices.astype(np.float32))).numpy()
-    assert np.median(moved_mm) < 0.05 and moved_mm.max() < 0.5  # Loop smoothing: 0.015 / 0.41 mm at two
+    assert np.median(moved_mm) < 0.02 and moved_mm.max() < 0.4  # Loop smoothing, measured 0.014 / 0.32 mm
     # the shipped bunny's facets (mean edge 1.6 px at 640x480 and 0.6 m) against MAX_FACET_PX = 1.5
     chosen = {(size, distance): synthetic.build_scene("bunny", size=size, distance=distance).subdivisions
               for size, distance in [((160, 120), 0.6), ((640, 480), 0.6), ((640, 480), 0.25), ((1708, 1136), 0.25)]}
