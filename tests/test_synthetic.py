@@ -150,6 +150,19 @@ def test_subdivision_keeps_the_surface_and_follows_the_pixel_size():
     assert list(chosen.values()) == [0, 1, 2, 3]
 
 
+def test_subdivisions_stop_short_of_too_many_triangles_and_bad_counts_are_named():
+    from o3d_mvps.synthetic.scene import MAX_TRIANGLES, facet_subdivisions
+
+    vertices = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    one = np.array([[0, 1, 2]])
+    assert facet_subdivisions(vertices, one, 100.0) == 3  # edges of ~100 px: as many as allowed
+    many = np.repeat(one, MAX_TRIANGLES // 8, axis=0)  # one subdivision more would pass the cap
+    assert facet_subdivisions(vertices, many, 100.0) == 1
+    for bad in (-1, 1.5, True):
+        with pytest.raises(ValueError, match="subdivisions must be None .* or an integer >= 0"):
+            synthetic.build_scene("bunny", size=(160, 120), subdivisions=bad)
+
+
 def test_a_mesh_vtk_cannot_subdivide_is_rendered_as_given():
     # three triangles on one edge: not manifold, which Loop subdivision refuses
     vertices = np.array([[0, 0, 0], [1, 0, 0], [0.5, 1, 0], [0.5, -1, 0], [0.5, 0, 1]], dtype=float)

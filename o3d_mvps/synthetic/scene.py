@@ -23,6 +23,9 @@ FRONT_ROTATIONS = {"armadillo": np.diag([-1.0, 1.0, -1.0])}
 #: depth's own normals are the normals its colour is shaded with (see :func:`build_scene`)
 MAX_FACET_PX = 1.5
 MAX_SUBDIVISIONS = 3
+#: ... and never to more triangles than this (each subdivision makes four of one; the bunny's
+#: three are 4.4 M, the ray caster's memory grows with them)
+MAX_TRIANGLES = 8_000_000
 
 # Linear-RGB palette of the albedo cells (distinct hues, all within [0.2, 0.9]).
 PALETTE = np.array(
@@ -248,6 +251,10 @@ def build_scene(mesh, *, size=(640, 480), object_size=0.2, distance=0.6, seed=0,
     """
     if albedo not in ALBEDOS:
         raise ValueError(f"unknown albedo {albedo!r}; choose one of {list(ALBEDOS)}")
+    if subdivisions is not None and (isinstance(subdivisions, bool) or not isinstance(subdivisions, (int, np.integer))
+                                     or subdivisions < 0):
+        raise ValueError(f"subdivisions must be None (chosen from the pixel size) or an integer >= 0, got "
+                         f"{subdivisions!r}; e.g. 0 (the mesh as given) or 2")
     front = FRONT_ROTATIONS.get(mesh) if isinstance(mesh, str) else None
     legacy = _as_legacy_mesh(mesh)
     M = placement_transform(np.asarray(legacy.vertices, dtype=np.float64), object_size, distance, front)
@@ -277,12 +284,13 @@ def build_scene(mesh, *, size=(640, 480), object_size=0.2, distance=0.6, seed=0,
 
 def facet_subdivisions(vertices: np.ndarray, triangles: np.ndarray, pixels_per_unit: float) -> int:
     """Loop subdivisions (0..:data:`MAX_SUBDIVISIONS`) that bring the mean edge of ``triangles``
-    (F, 3) over ``vertices`` (V, 3) to at most :data:`MAX_FACET_PX` pixels; each halves it.
+    (F, 3) over ``vertices`` (V, 3) to at most :data:`MAX_FACET_PX` pixels (each halves it), short
+    of more than :data:`MAX_TRIANGLES` triangles (each quadruples them).
     ``pixels_per_unit``: image pixels per mesh unit at the object's distance."""
     edges = vertices[triangles] - vertices[np.roll(triangles, 1, axis=1)]
     edge_px = float(np.linalg.norm(edges, axis=2).mean()) * pixels_per_unit
     k = 0
-    while k < MAX_SUBDIVISIONS and edge_px / 2**k > MAX_FACET_PX:
+    while k < MAX_SUBDIVISIONS and edge_px / 2**k > MAX_FACET_PX and len(triangles) * 4 ** (k + 1) <= MAX_TRIANGLES:
         k += 1
     return k
 
@@ -317,10 +325,11 @@ def _is_shipped_name(mesh) -> bool:
     return isinstance(mesh, str) and mesh in MESHES
 
 
-@lru_cache(maxsize=4)
+@lru_cache(maxsize=2)
 def _shipped_subdivided(name: str, iterations: int) -> tuple[np.ndarray, np.ndarray]:
     """A shipped mesh's referenced vertices and triangles after ``iterations`` Loop subdivisions
-    (cached: the suite renders the bunny many times); read-only arrays."""
+    (cached: the suite renders the bunny many times; two entries, for the bunny's three
+    subdivisions hold 160 MB); read-only arrays."""
     vertices, triangles = loop_subdivide(*_referenced(_as_legacy_mesh(name)), iterations)
     vertices.flags.writeable = triangles.flags.writeable = False
     return vertices, triangles
