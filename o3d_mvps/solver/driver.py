@@ -2,8 +2,9 @@
 Open3D-facing ``refine(capture) -> Refinement`` is :func:`o3d_mvps.solving.refine`).
 
 Per level, sweeps of poses -> depth -> albedo -> lighting (paper section 4) until the
-relative energy change falls below the tolerance (the finest level: or the next one's, predicted
-from the last two, where they contract fast: :func:`_stalled`) or the sweep cap is reached.
+relative energy change falls below the tolerance (the finest level: or the data term's alone, or
+the next change, predicted from the last two, where they contract fast: :func:`_stalled`) or the
+sweep cap is reached.
 Where poses are refined, poses and depth take one joint Gauss-Newton step (:mod:`.joint`); the depth and
 joint steps move the albedo along (variable projection) and keep z inside the sensor's depth
 envelope (:func:`.pyramid.depth_envelope`). Each sweep starts by weighting the smoothness per pixel
@@ -151,6 +152,16 @@ EVIDENCE_SWEEPS = 3
 #: ratio), its sixth sweep (drop 6.9e-4) was skipped and cost normals 1.2923 -> 1.3156 deg,
 #: depth 0.5182 -> 0.5255 mm. Fitted on these two captures (the bound between 0.079 and 0.41).
 FINEST_FAST_CONTRACTION = 0.2
+#: whether the finest level also stops once its data term (the images' robust misfit; the
+#: smoothness weights do not enter it) falls by at most the tolerance in a sweep with the weights
+#: held (:func:`_stalled`; on a coarser level the priors' settling is part of the next level's
+#: start). At 2 MP (0.18 mm pixels) the priors outweigh the data term 18 to 1 on the finest level:
+#: its sweeps 4-6 lowered the energy by 7.4 %, 1.9 % and 0.13 % but the data term by 9.3e-4,
+#: 4.3e-4 and 7.8e-4, and the normals went 1.3824, 1.3845, 1.3835 deg (27 CPU s for nothing). On
+#: D415 and the 640x480 demo, whose data term still falls by 2e-3 to 1e-2 a sweep while the
+#: normals improve, it stops no level earlier: the same results bit for bit (docs/performance.md,
+#: "The finest level's data term")
+DATA_STALL = True
 
 
 #: glibc's M_MMAP_THRESHOLD (bytes) that :func:`return_freed_arrays` sets for a static camera's
@@ -327,7 +338,7 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
         # EVIDENCE_SWEEPS sweeps, so the rest of the level minimises one energy
         if 1 < iteration <= EVIDENCE_SWEEPS and not settled:
             _weigh_smoothness(problem, est, ev, options, timings, stats)
-        previous = ev.energy
+        previous, previous_data = ev.energy, ev.data
         start = _snapshot(est)
         lamp_history.append(start.led_offset)
         if refine_poses and options.joint_pose_depth and (parallax_only or level.grid.size >= options.joint_min_pixels):
@@ -379,7 +390,8 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
         rows.append({"level": level.index, "iteration": iteration, "energy": ev.energy, "cg_iterations": cg_iterations})
         bar.set_postfix(energy=f"{ev.energy:.5g}")
         drop, last_drop = (previous - ev.energy) / abs(previous) if previous else 0.0, drop  # relative
-        if _stalled(level.index, iteration, settled, last_drop, drop, options.tolerance) and not (
+        data_drop = (previous_data - ev.data) / abs(previous_data) if previous_data else 0.0
+        if _stalled(level.index, iteration, settled, last_drop, drop, options.tolerance, data_drop) and not (
                 problem.light.name == "point" and not settled and _lamps_creeping(est, lamp_history)):
             break
     bar.close()
@@ -391,17 +403,22 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
 
 
 def _stalled(level_index: int, iteration: int, settled: bool, last_drop: float | None, drop: float,
-             tolerance: float) -> bool:
+             tolerance: float, data_drop: float | None = None) -> bool:
     """Whether a level's sweeps stop after sweep ``iteration`` (from 1): its relative energy drop
-    ``drop`` ((previous - new) / previous) is within ``tolerance``, or, on the finest level
-    (``level_index`` 0) once the smoothness weights are held (``settled``, or after
+    ``drop`` ((previous - new) / previous) is within ``tolerance``. On the finest level
+    (``level_index`` 0), once the smoothness weights are held (``settled``, or after
     :data:`EVIDENCE_SWEEPS` sweeps, so ``last_drop``, the sweep before's, is of the same energy),
-    the next drop predicted as geometric, ``drop**2 / last_drop``, is within ``tolerance`` where
-    the drops contract faster than :data:`FINEST_FAST_CONTRACTION`."""
+    also where the data term's relative drop ``data_drop`` is in [0, ``tolerance``] (the images
+    explained as well as they will be, only the priors' energy still falling: :data:`DATA_STALL`),
+    or where the next drop, predicted as geometric, ``drop**2 / last_drop``, is within
+    ``tolerance`` and the drops contract faster than :data:`FINEST_FAST_CONTRACTION`."""
     if abs(drop) <= tolerance:
         return True
-    if level_index != 0 or not (settled or iteration > EVIDENCE_SWEEPS) or last_drop is None \
-            or last_drop <= 0 or drop <= 0:
+    if level_index != 0 or not (settled or iteration > EVIDENCE_SWEEPS):
+        return False
+    if DATA_STALL and data_drop is not None and 0.0 <= data_drop <= tolerance:
+        return True
+    if last_drop is None or last_drop <= 0 or drop <= 0:
         return False
     ratio = drop / last_drop
     return ratio < FINEST_FAST_CONTRACTION and drop * ratio <= tolerance
