@@ -153,13 +153,16 @@ EVIDENCE_SWEEPS = 3
 #: depth 0.5182 -> 0.5255 mm. Fitted on these two captures (the bound between 0.079 and 0.41).
 FINEST_FAST_CONTRACTION = 0.2
 #: whether the finest level also stops once its data term (the images' robust misfit; the
-#: smoothness weights do not enter it) falls by at most the tolerance in a sweep with the weights
-#: held (:func:`_stalled`; on a coarser level the priors' settling is part of the next level's
-#: start). At 2 MP (0.18 mm pixels) the priors outweigh the data term 18 to 1 on the finest level:
-#: its sweeps 4-6 lowered the energy by 7.4 %, 1.9 % and 0.13 % but the data term by 9.3e-4,
-#: 4.3e-4 and 7.8e-4, and the normals went 1.3824, 1.3845, 1.3835 deg (27 CPU s for nothing). On
-#: D415 and the 640x480 demo, whose data term still falls by 2e-3 to 1e-2 a sweep while the
-#: normals improve, it stops no level earlier: the same results bit for bit (docs/performance.md,
+#: smoothness weights do not enter it) falls by at most the tolerance in a sweep after the
+#: :data:`EVIDENCE_SWEEPS` (:func:`_stalled`). At 2 MP (0.18 mm pixels) the priors outweigh the
+#: data term 18 to 1 there: its sweeps 4-6 lowered the energy by 7.4 %, 1.9 % and 0.13 % but the
+#: data term by 9.3e-4, 4.3e-4 and 7.8e-4, and the normals went 1.3824, 1.3845, 1.3835 deg (27 CPU s
+#: for nothing). On D415 and the 640x480 demo, whose data term still falls by 2e-3 to 1e-2 a sweep
+#: while the normals improve, it stops no level earlier: the same results bit for bit. A static
+#: camera's finest level (weights held from the start) runs at most :data:`POINT_SETTLED_SWEEPS`.
+#: Not on a coarser level: there the priors' settling is the next level's start (2 MP, a rule that
+#: also stopped level 1 where a sweep raised its data term: the finest level then ran a sweep more,
+#: 68.9 against 60.9 s, 1.3854 deg / 0.7896 mm against 1.3824 / 0.7791; docs/performance.md,
 #: "The finest level's data term")
 DATA_STALL = True
 
@@ -406,17 +409,18 @@ def _stalled(level_index: int, iteration: int, settled: bool, last_drop: float |
              tolerance: float, data_drop: float | None = None) -> bool:
     """Whether a level's sweeps stop after sweep ``iteration`` (from 1): its relative energy drop
     ``drop`` ((previous - new) / previous) is within ``tolerance``. On the finest level
-    (``level_index`` 0), once the smoothness weights are held (``settled``, or after
-    :data:`EVIDENCE_SWEEPS` sweeps, so ``last_drop``, the sweep before's, is of the same energy),
-    also where the data term's relative drop ``data_drop`` is in [0, ``tolerance``] (the images
-    explained as well as they will be, only the priors' energy still falling: :data:`DATA_STALL`),
-    or where the next drop, predicted as geometric, ``drop**2 / last_drop``, is within
-    ``tolerance`` and the drops contract faster than :data:`FINEST_FAST_CONTRACTION`."""
+    (``level_index`` 0) also, after :data:`EVIDENCE_SWEEPS` sweeps (the smoothness weights held
+    since), where the data term's relative drop ``data_drop`` is in [0, ``tolerance``] (the images
+    explained as well as they will be, only the priors' energy still falling: :data:`DATA_STALL`);
+    and, once the weights are held (``settled``, or after those sweeps, so ``last_drop``, the
+    sweep before's, is of the same energy), where the next drop, predicted as geometric,
+    ``drop**2 / last_drop``, is within ``tolerance`` and the drops contract faster than
+    :data:`FINEST_FAST_CONTRACTION`."""
     if abs(drop) <= tolerance:
         return True
     if level_index != 0 or not (settled or iteration > EVIDENCE_SWEEPS):
         return False
-    if DATA_STALL and data_drop is not None and 0.0 <= data_drop <= tolerance:
+    if DATA_STALL and iteration > EVIDENCE_SWEEPS and data_drop is not None and 0.0 <= data_drop <= tolerance:
         return True
     if last_drop is None or last_drop <= 0 or drop <= 0:
         return False

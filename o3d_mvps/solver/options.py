@@ -256,8 +256,8 @@ class ConvergenceCriteria:
     max_iterations: sweep cap per level, >= 1 (one sweep = poses, depth, albedo, lighting); point
         lights: 3 times that on the levels that refit the lamps every sweep (``driver.POINT_SWEEP_FACTOR``).
     tolerance: stop a level when the relative energy change falls below it, in [0, 1) (the finest
-        level, its smoothness weights held: or the data term's, or the next sweep's, predicted from
-        two fast-contracting drops; ``driver._stalled``).
+        level: or, its smoothness weights held, the data term's, or the next sweep's, predicted
+        from two fast-contracting drops; ``driver._stalled``).
     pose_iterations: Gauss-Newton iterations per frame and sweep, >= 1.
     pose_tolerance: stop a frame's Gauss-Newton iterations once one lowers its energy by less than
         this fraction, in [0, 1) (0: always run ``pose_iterations``).
