@@ -76,6 +76,13 @@ def joint_result(capture):
 
 @pytest.mark.parametrize("name", ["result", "joint_result"])
 def test_energy_never_increases_within_a_level(name, request):
+    """Each level's energy after its sweeps falls below its start, and, from the sweep on which its
+    smoothness weights are last re-weighed (driver.EVIDENCE_SWEEPS) on, never rises: before it
+    the rows are of different energies (a re-weighing raised the finest level's energy of
+    ``joint_result`` by 2 % at the start of its second sweep, 16.050 -> 16.366, which the sweep
+    lowered to 16.053)."""
+    from o3d_mvps.solver.driver import EVIDENCE_SWEEPS
+
     result = request.getfixturevalue(name)
     if name == "joint_result":
         assert result.timings["poses_depth"] > 0
@@ -85,7 +92,8 @@ def test_energy_never_increases_within_a_level(name, request):
     assert len(levels) == 4
     for energies in levels.values():
         e = np.array(energies)
-        assert np.all(np.diff(e) <= 1e-5 * e[:-1]), energies
+        held = e[EVIDENCE_SWEEPS:]
+        assert len(held) >= 2 and np.all(np.diff(held) <= 1e-5 * held[:-1]), energies
         assert e[-1] < e[0]
 
 
@@ -283,6 +291,30 @@ def test_a_level_stops_once_its_data_term_stalls_with_the_weights_held():
     assert _sweeps_run(falling, level_index=1, data=stalled) == 5  # a coarser level: the energy alone
     assert _sweeps_run(falling, data=[100.0, 90.0, 85.0, 82.0, 80.0, 79.0]) == 5
     assert _sweeps_run(falling, data=[100.0, 99.0, 99.5, 100.0, 100.5, 101.0]) == 5  # rising
+
+
+def test_albedo_and_lighting_rounds_settle_the_light_in_fewer_sweeps(monkeypatch):
+    """A sweep refits the albedo and the lights in turn until the data term settles
+    (driver.LIGHT_ROUNDS): the LED ambient's slow trade with the albedo is no longer left to the
+    sweeps. The 320x240 LED bunny (10 frames, true poses): one round a sweep took 28 sweeps to
+    3.785 deg, the rounds 19 to 3.734 (D415: 33 -> 26 sweeps, 1.177 -> 1.082 deg). Asserted: a
+    quarter fewer sweeps at least, and normals no worse."""
+    from o3d_mvps.solver import driver
+
+    capture = render_capture("bunny", frames=10, scale_factor=2, size=(320, 240), seed=0, progress=False)
+    poses = np.asarray(capture.groundtruth.poses)
+
+    def run():
+        result = refine(capture, RefineOptions(progress=False), initial_poses=poses)
+        sweeps = sum(1 for row in result.energy if row["iteration"] > 0)
+        return evaluate(result, capture)["mae_deg"], sweeps, result.info["light_rounds"]
+
+    mae, sweeps, rounds = run()
+    monkeypatch.setattr(driver, "LIGHT_ROUNDS", 1)
+    one_mae, one_sweeps, one_rounds = run()
+    assert max(rounds) > 1 and max(one_rounds) == 1
+    assert sweeps <= 0.75 * one_sweeps, (sweeps, one_sweeps)
+    assert mae <= one_mae, (mae, one_mae)
 
 
 def test_finest_level_stops_once_its_energy_stalls_not_while_it_still_falls():
