@@ -106,7 +106,8 @@ def test_led_offset_update_on_the_cuda_path_matches_the_cpu_path():
     """The LED problem with poses and the LED offset refined on its finest level (226 object
     pixels; the product refines them from 1000) and a tolerance small enough that the offset's
     step is taken: its Gauss-Newton system is summed over every frame on the device (one copy to
-    the host) and its line search scored there; the offset moves (measured 0.87 mm), as on the CPU
+    the host) and its line search scored there; the offset moves (measured 0.41 mm; 0.87 mm
+    before the albedo and lights were refitted in turn, driver.LIGHT_ROUNDS), as on the CPU
     (measured 1.6e-9 m apart)."""
     problem_input = read_problem(DATA / "cuda_path_led.npz")
     settings = problem_input.options.to_dict()
@@ -117,7 +118,7 @@ def test_led_offset_update_on_the_cuda_path_matches_the_cpu_path():
     cuda = solve_on_cuda_path(problem_input, options, MIN_LEVEL_PIXELS["led"])
     assert cuda.info["level_devices"][-1] != "cpu"
     moved = np.array(cpu.info["light_model"]["offset_m"])
-    assert np.linalg.norm(moved - problem_input.led_offset) > 5e-4, moved
+    assert np.linalg.norm(moved - problem_input.led_offset) > 2e-4, moved
     energy_rtol, _, _, poses_atol, _ = TOLERANCES
     np.testing.assert_allclose(cuda.info["light_model"]["offset_m"], moved, atol=poses_atol)
     np.testing.assert_allclose([r["energy"] for r in cuda.energy], [r["energy"] for r in cpu.energy], rtol=energy_rtol)

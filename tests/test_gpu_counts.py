@@ -47,8 +47,12 @@ changes of 2026-11-26 add launches on purpose: Anderson's acceleration across sw
 from a level's second sweep, forms and scores its point (the room problem: +12.5 launches and
 +2.5 copies a sweep); the depth block's pattern as one product of the stacked rows (once per
 level: +4 on each LED level here, whose one sweep carries it; +2.5 a room sweep). Merged: 57 / 68
-and 295 launches, 18 / 15 and 49.5 copies. The bounds are these counts with a margin of about
-1 % (1-3 launches, 1 copy).
+and 295 launches, 18 / 15 and 49.5 copies. The albedo and lights refitted in turn until the data
+term settles (2026-11-27, driver.LIGHT_ROUNDS: each round a lighting kernel, its sums read, the
+lights' state copied, a re-evaluation, an albedo refit and the data energy read; these problems
+take 5-8 rounds a sweep): 74 / 89 and 273 launches, 36 / 36 and 60.5 copies (the room problem's
+fewer launches: its Anderson point is proposed less). The bounds are these counts with a margin
+of about 1 % (1-3 launches, 1 copy).
 """
 
 import shutil
@@ -58,7 +62,7 @@ import pytest
 from benchmarks import gpu
 
 #: (problem, level) -> (launches per sweep, copies per sweep, host reads per linear solve): at most
-BOUNDS = {("led", 1): (58, 19, 2), ("led", 0): (69, 16, 2), ("room", 0): (298, 51, 1)}
+BOUNDS = {("led", 1): (75, 37, 2), ("led", 0): (90, 37, 2), ("room", 0): (276, 62, 1)}
 
 
 @pytest.fixture(scope="module")
