@@ -168,7 +168,7 @@ DATA_STALL = True
 
 
 #: rounds of albedo and lighting refits a sweep takes at most (:func:`_fit_albedo_lighting`;
-#: :func:`light_rounds` says where). One round (an albedo fit, then the lights') leaves a slow mode:
+#: :func:`_light_rounds` says where). One round (an albedo fit, then the lights') leaves a slow mode:
 #: with the depth held, the ambient trades against the albedo and the LED's strength, and one
 #: round a sweep moved it a few per cent a sweep, so the levels ended before it had (the D415
 #: render's lights: consecutive updates at cosine 1.00, each 0.76-0.91 times the last). Rounds
@@ -176,7 +176,7 @@ DATA_STALL = True
 #: normals 1.1773 -> 1.0816, 1.0740 -> 1.0294, 1.1365 -> 1.0827 deg, depth 0.5316 -> 0.5257,
 #: 0.5228 -> 0.5307, 0.5425 -> 0.5447 mm, sweeps 33 -> 26, refine 10.05-11.11 -> 10.66-11.02 s;
 #: 4 rounds at most: 1.0860, 1.0386, 1.1000 deg; a round tolerance of 1e-3: 1.1147, 1.0566, 1.1222
-#: deg. The 640x480 demo: 2.1827 -> 2.1930 deg, 0.9613 -> 0.9564 mm, 36 -> 27 sweeps
+#: deg. `make demo` (640x480): 2.1929 -> 2.1553 deg, 0.9840 -> 0.9752 mm, 35 -> 29 sweeps
 LIGHT_ROUNDS = 8
 #: ... until a round lowers the data term by at most this fraction
 LIGHT_ROUND_TOLERANCE = 1e-4
@@ -429,7 +429,7 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
     return rows
 
 
-def light_rounds(light_name: str, object_pixels: int) -> int:
+def _light_rounds(light_name: str, object_pixels: int) -> int:
     """The albedo-and-lighting rounds a sweep takes at most (:func:`_fit_albedo_lighting`):
     :data:`LIGHT_ROUNDS` for the light models in :data:`LIGHT_ROUND_MODELS` on a capture whose
     reference sees the object in at most :data:`LIGHT_ROUND_MAX_PIXELS` colour pixels, else 1."""
@@ -440,20 +440,20 @@ def _fit_albedo_lighting(problem: LevelProblem, est: Estimate, ev, refit_first: 
     """The albedo and the lights refitted in turn at the sweep's depth and poses, in place on
     ``est`` (the albedo first where ``refit_first``; a sweep's last step is the lights'), until a
     round lowers the data term by at most :data:`LIGHT_ROUND_TOLERANCE` (relative), or after
-    ``rounds`` rounds (:func:`light_rounds`); returns the evaluation at the result (``ev`` is given
+    ``rounds`` rounds (:func:`_light_rounds`); returns the evaluation at the result (``ev`` is given
     up) and the rounds taken."""
     previous = ev.data if rounds > 1 else None
-    for round in range(rounds):
-        if refit_first or round:
+    for taken in range(1, rounds + 1):
+        if refit_first or taken > 1:
             ev = refit_albedo(problem, est, ev)  # (one launch on a GPU)
         est.lights = update_lighting(est, ev, problem.lam, problem.light_model(est))
         ev = problem.reevaluate(est, ev, overwrite=True)
-        if round + 1 < rounds:
+        if taken < rounds:
             current = ev.data
             if previous - current <= LIGHT_ROUND_TOLERANCE * abs(previous):
                 break
             previous = current
-    return ev, round + 1
+    return ev, taken
 
 
 def _stalled(level_index: int, iteration: int, settled: bool, last_drop: float | None, drop: float,
@@ -769,7 +769,7 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
         warnings.warn("the point light model (a lamp per frame, for a static camera) keeps the initial poses: "
                       "they are not refined; for a camera that moved with its own LED use --light-model led "
                       "(RefineOptions(light_model='led'))", stacklevel=3)
-    rounds = light_rounds(light.name, int(ref_mask.sum()))
+    rounds = _light_rounds(light.name, int(ref_mask.sum()))
     smoothness = options.model.smoothness_weight()
     sensor_smoothness = auto_smoothness(options.tau, z0, ref_mask, sf, K)
     if smoothness == AUTO:
