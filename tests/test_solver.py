@@ -268,7 +268,8 @@ D415_FINEST = [484.5679, 412.6804, 404.3845, 402.0523, 400.9809, 400.5392, 400.2
 
 # the finest level of the 2 MP and D415 (seed 1) benchmark captures of 2026-11-27 (LED, 20 frames):
 # the energy at the level's start and after each sweep, and its data term (benchmarks/sweeps.py);
-# the starts are the sweeps' first drops (0.80, 0.15) taken back
+# the energies' starts are the first sweeps' drops (0.80, 0.15) taken back, the data terms' are
+# placeholders (no rule reads the first sweep's data drop)
 MP2_FINEST_2 = [344720.0, 68943.873, 56901.738, 57715.001, 53442.731, 52442.549, 52376.883]
 MP2_FINEST_2_DATA = [3700.0, 3583.407, 3554.607, 3545.81, 3542.503, 3540.985, 3538.235]
 D415_FINEST_2 = [474.5, 403.318, 394.52, 391.934, 390.583, 389.968, 389.61]
