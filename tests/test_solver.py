@@ -294,6 +294,38 @@ def test_a_level_stops_once_its_data_term_stalls_with_the_weights_held():
     assert _sweeps_run(falling, data=[100.0, 99.0, 99.5, 100.0, 100.5, 101.0]) == 5  # rising
 
 
+def test_the_sweeps_hand_the_data_term_s_drop_to_the_stopping_rule(capture, monkeypatch):
+    """driver._sweeps gives _stalled each sweep's relative drop of the data term, the end of the
+    sweep before against this one's (a re-weighing does not change the data term), as the
+    sweep ends it (after the extrapolation)."""
+    from o3d_mvps.solver import driver
+
+    ends, drops = [], []
+    extrapolate, stalled = driver._extrapolate, driver._stalled
+
+    def recorded_extrapolate(problem, *args, **kwargs):
+        ev = extrapolate(problem, *args, **kwargs)
+        ends.append((problem.level.index, ev.data))
+        return ev
+
+    def recorded_stalled(level_index, iteration, *args):
+        drops.append((level_index, iteration, args[-1]))
+        return stalled(level_index, iteration, *args)
+
+    monkeypatch.setattr(driver, "_extrapolate", recorded_extrapolate)
+    monkeypatch.setattr(driver, "_stalled", recorded_stalled)
+    refine(capture, RefineOptions(**FAST), initial_poses=capture.groundtruth.poses)
+    assert len(ends) == len(drops) >= 8
+    checked = 0
+    for k, (level, iteration, data_drop) in enumerate(drops):
+        assert ends[k][0] == level and np.isfinite(data_drop)
+        if iteration > 1:
+            before = ends[k - 1][1]
+            assert data_drop == pytest.approx((before - ends[k][1]) / before, rel=1e-9, abs=1e-15)
+            checked += 1
+    assert checked >= 4
+
+
 def test_albedo_and_lighting_rounds_settle_the_light_in_fewer_sweeps(monkeypatch):
     """A sweep refits the albedo and the lights in turn until the data term settles
     (driver.LIGHT_ROUNDS): the LED ambient's slow trade with the albedo is no longer left to the
