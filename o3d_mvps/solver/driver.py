@@ -165,6 +165,19 @@ FINEST_FAST_CONTRACTION = 0.2
 #: 68.9 against 60.9 s, 1.3854 deg / 0.7896 mm against 1.3824 / 0.7791; docs/performance.md,
 #: "The finest level's data term")
 DATA_STALL = True
+#: whether the finest level holds the poses where a coarser level of at least ``joint_min_pixels``
+#: object pixels refined them by joint steps (:func:`_sweeps`' ``hold_poses``): its sweeps take
+#: the joint step's depth rows (the warp's parallax, the albedo projected out) at the joint CG
+#: tolerance, without the twists. The twists' rows, their albedo projection and coupling were
+#: half the finest level's assembly (2 MP: 4.7 of 6.4 s a sweep with the solve), while that
+#: level's pose steps moved the frames 0.015 deg a sweep, under their error. Three D415 renders
+#: (level 1: 22 000 object pixels): finest level 4.1-5.1 -> 3.3-3.7 s, normals 1.0816 -> 1.0752,
+#: 1.0294 -> 1.0298, 1.0827 -> 1.0882 deg, poses (mean) 0.039 -> 0.042, 0.064 -> 0.062, 0.038
+#: -> 0.045 deg; 2 MP (level 1: 240 000): finest level 35.6-36.4 -> 30.3-31.0 s, normals
+#: 0.9830 -> 0.9860 and 1.3824 -> 1.3827 deg. Where the level above took alternating steps (the
+#: 640x480 demo's, 5 000 pixels), its finest level settles the poses: held there, its poses ended
+#: 0.29 deg off instead of 0.07 and its normals 2.61 deg instead of 2.19
+FINEST_HOLDS_POSES = True
 
 
 #: rounds of albedo and lighting refits a sweep takes at most (:func:`_fit_albedo_lighting`;
@@ -290,7 +303,7 @@ def _reference_mask(problem_input: SolverInput) -> np.ndarray:
 
 def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timings: dict, stats: dict,
             anchors: PoseAnchors | None = None, log: PoseLog | None = None, lamps_settled: bool = False,
-            light_rounds: int = 1) -> list:
+            light_rounds: int = 1, hold_poses: bool = False) -> list:
     """Run one level's sweeps in place on ``est``: the albedo fitted to the level's images, then
     sweeps of poses and depth (one joint step, or the paper's two), albedo, lighting, LED offset,
     extrapolation. The level's evaluations live here only (no caller holds a stale one: each
@@ -298,7 +311,10 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
     photometric energy (:mod:`.pose_trust`; calibrated here per level), log: the rejections.
     lamps_settled: a coarser level of more than :data:`POINT_FIT_MAX_PIXELS` object pixels has
     refitted the point lights (the finest level then takes :data:`POINT_FINEST_SWEEPS` and
-    :data:`POINT_FINEST_REFIT`).
+    :data:`POINT_FINEST_REFIT`). hold_poses: keep the poses (a coarser level settled them by joint
+    steps: :data:`FINEST_HOLDS_POSES`); the depth steps take the joint step's parallax rows and
+    CG tolerance. ``stats["pose_steps"]`` gains the level's [index, object pixels, how its poses
+    were updated: "joint", "alternating", "held" or "none"].
 
     Returns the level's energy rows; stops at the relative energy change ``options.tolerance``
     (:func:`_stalled`).
@@ -321,6 +337,15 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
     # pose step's per-frame shading cannot name its light (and a free light absorbs the pose's)
     refine_poses = (options.refine_poses and problem.n_frames > 1 and level.grid.size >= options.pose_min_pixels
                     and problem.light.name != "point")
+    held = refine_poses and hold_poses  # the depth steps keep the joint step's rows and tolerance
+    refine_poses = refine_poses and not held
+    # a light fixed in the world shades every frame alike: the depth learns from the parallax
+    # alone, so every depth step takes it, on every level (the joint step's size limit is for
+    # lights that also inform the normals)
+    parallax_only = problem.light.fixed_in_world
+    joint = refine_poses and options.joint_pose_depth and (parallax_only or level.grid.size >= options.joint_min_pixels)
+    stats["pose_steps"].append([level.index, int(level.grid.size),
+                                "joint" if joint else "alternating" if refine_poses else "held" if held else "none"])
     if refine_poses and anchors is not None:
         t = time.perf_counter()
         anchors.calibrate(problem.lam, est.poses, problem.points(est.z), ev.usable,
@@ -334,10 +359,6 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
                      and level.grid.size >= options.pose_min_pixels)
     # one image cannot tell albedo from shading: projected out, the albedo would absorb all shading
     project_albedo = options.project_albedo and problem.n_frames > 1
-    # a light fixed in the world shades every frame alike: the depth learns from the parallax
-    # alone, so every depth step takes it, on every level (the joint step's size limit is for
-    # lights that also inform the normals)
-    parallax_only = problem.light.fixed_in_world
     _weigh_smoothness(problem, est, ev, options, timings, stats)
     rows = [{"level": level.index, "iteration": 0, "energy": ev.energy}]
     lamp_history = []  # the point lights at the start of each sweep (_lamps_creeping)
@@ -369,7 +390,7 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
         previous, previous_data = ev.energy, ev.data
         start = _snapshot(est)
         lamp_history.append(start.led_offset)
-        if refine_poses and options.joint_pose_depth and (parallax_only or level.grid.size >= options.joint_min_pixels):
+        if joint:
             t = time.perf_counter()
             stepped, ev, cg_iterations = update_pose_depth(problem, est, ev, rtol=options.joint_cg_tolerance,
                                                            maxiter=options.cg_max_iterations,
@@ -388,11 +409,12 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
                 timings["poses"] += time.perf_counter() - t
             t = time.perf_counter()
             stepped, ev, cg_iterations = update_depth(problem, est, ev,
-                                                      rtol=options.cg_tolerance * (
+                                                      rtol=options.joint_cg_tolerance if held else
+                                                      options.cg_tolerance * (
                                                           POINT_FINEST_CG_FACTOR if finest else
                                                           POINT_SETTLED_CG_FACTOR if settled else 1.0),
                                                       maxiter=options.cg_max_iterations,
-                                                      project_albedo=project_albedo, parallax=parallax_only,
+                                                      project_albedo=project_albedo, parallax=parallax_only or held,
                                                       static=static)
             # the step's line search refitted the albedo at the depth it kept (project_albedo)
             refitted = project_albedo and stepped is not est
@@ -787,7 +809,7 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
                            scale_factor=sf) if given else None)
     pose_log = PoseLog()
     settled_levels = []  # the levels that refitted the point lights with the albedo projected out
-    stats = {"cg_iterations": [], "light_rounds": [], "cauchy_lambda": [], "smoothness": smoothness,
+    stats = {"cg_iterations": [], "light_rounds": [], "pose_steps": [], "cauchy_lambda": [], "smoothness": smoothness,
              "sensor_smoothness": sensor_smoothness,
              "levels": n_levels,
              "level_devices": [], "sensor_lowpass_sigma": tie_sigma}
@@ -847,8 +869,11 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
             t = time.perf_counter()
             initial_point_lights(problem, est, problem.evaluate(est)).release()
             timings["point_lights"] += time.perf_counter() - t
+        # the finest level after a coarser level's joint steps on at least joint_min_pixels
+        hold = FINEST_HOLDS_POSES and level_index == 0 and any(
+            kind == "joint" and pixels >= options.joint_min_pixels for _, pixels, kind in stats["pose_steps"])
         history.extend(_sweeps(problem, est, options, timings, stats, anchors, pose_log,
-                               lamps_settled=bool(settled_levels), light_rounds=rounds))
+                               lamps_settled=bool(settled_levels), light_rounds=rounds, hold_poses=hold))
         if light.name == "point" and g.size > POINT_FIT_MAX_PIXELS:
             settled_levels.append(level_index)
         if tie_sigma is not None:
