@@ -165,8 +165,8 @@ FINEST_FAST_CONTRACTION = 0.2
 #: 68.9 against 60.9 s, 1.3854 deg / 0.7896 mm against 1.3824 / 0.7791; docs/performance.md,
 #: "The finest level's data term")
 DATA_STALL = True
-#: whether the finest level holds the poses where a coarser level of at least ``joint_min_pixels``
-#: object pixels refined them by joint steps (:func:`_sweeps`' ``hold_poses``): its sweeps take
+#: the finest level holds the poses where a coarser level of at least this many object pixels
+#: refined them by joint steps (:func:`_sweeps`' ``hold_poses``): its sweeps take
 #: the joint step's depth rows (the warp's parallax, the albedo projected out) at the joint CG
 #: tolerance, without the twists. The twists' rows, their albedo projection and coupling were
 #: half the finest level's assembly (2 MP: 4.7 of 6.4 s a sweep with the solve), while that
@@ -174,10 +174,12 @@ DATA_STALL = True
 #: (level 1: 22 000 object pixels): finest level 4.1-5.1 -> 3.3-3.7 s, normals 1.0816 -> 1.0752,
 #: 1.0294 -> 1.0298, 1.0827 -> 1.0882 deg, poses (mean) 0.039 -> 0.042, 0.064 -> 0.062, 0.038
 #: -> 0.045 deg; 2 MP (level 1: 240 000): finest level 35.6-36.4 -> 30.3-31.0 s, normals
-#: 0.9830 -> 0.9860 and 1.3824 -> 1.3827 deg. Where the level above took alternating steps (the
-#: 640x480 demo's, 5 000 pixels), its finest level settles the poses: held there, its poses ended
-#: 0.29 deg off instead of 0.07 and its normals 2.61 deg instead of 2.19
-FINEST_HOLDS_POSES = True
+#: 0.9830 -> 0.9860 and 1.3824 -> 1.3827 deg, 2258 against 2406-2416 MB peak. A smaller level 1
+#: leaves the poses less settled: 960x540 (12 000 pixels), held, normals 1.3126 -> 1.3384 deg and
+#: poses 0.041 -> 0.059 deg (so not held: it is under this threshold); the 640x480 demo (5 000,
+#: alternating steps there), held, 2.19 -> 2.61 deg and 0.07 -> 0.29 deg. Not on level 1 too
+#: (2 MP): its sweeps then ran to their cap, 98.3 against 63.0 s, normals 0.9830 -> 1.0165 deg
+FINEST_HOLD_MIN_PIXELS = 16_000
 
 
 #: rounds of albedo and lighting refits a sweep takes at most (:func:`_fit_albedo_lighting`;
@@ -312,7 +314,7 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
     lamps_settled: a coarser level of more than :data:`POINT_FIT_MAX_PIXELS` object pixels has
     refitted the point lights (the finest level then takes :data:`POINT_FINEST_SWEEPS` and
     :data:`POINT_FINEST_REFIT`). hold_poses: keep the poses (a coarser level settled them by joint
-    steps: :data:`FINEST_HOLDS_POSES`); the depth steps take the joint step's parallax rows and
+    steps: :data:`FINEST_HOLD_MIN_PIXELS`); the depth steps take the joint step's parallax rows and
     CG tolerance. ``stats["pose_steps"]`` gains the level's [index, object pixels, how its poses
     were updated: "joint", "alternating", "held" or "none"].
 
@@ -869,9 +871,9 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
             t = time.perf_counter()
             initial_point_lights(problem, est, problem.evaluate(est)).release()
             timings["point_lights"] += time.perf_counter() - t
-        # the finest level after a coarser level's joint steps on at least joint_min_pixels
-        hold = FINEST_HOLDS_POSES and level_index == 0 and any(
-            kind == "joint" and pixels >= options.joint_min_pixels for _, pixels, kind in stats["pose_steps"])
+        # the finest level after a coarser level's joint steps on enough pixels to settle the poses
+        hold = level_index == 0 and any(kind == "joint" and pixels >= FINEST_HOLD_MIN_PIXELS
+                                        for _, pixels, kind in stats["pose_steps"])
         history.extend(_sweeps(problem, est, options, timings, stats, anchors, pose_log,
                                lamps_settled=bool(settled_levels), light_rounds=rounds, hold_poses=hold))
         if light.name == "point" and g.size > POINT_FIT_MAX_PIXELS:
