@@ -741,7 +741,8 @@ def solve(problem_input: SolverInput, options: RefineOptions | None = None, devi
     images best on a coarse level (:func:`.light_selection.select_light_model`; a declared model
     that fits clearly worse than another is kept with a warning): ``info["light_selection"]``.
     ``info["pose_updates"]`` says how far each frame's pose moved and how many of its updates
-    were rejected (:mod:`.pose_trust`). On Linux with glibc the process's malloc is set to
+    were rejected (:mod:`.pose_trust`); ``info["pose_steps"]`` how each level updated them
+    ([level, object pixels, "joint", "alternating", "held" or "none"], coarsest first). On Linux with glibc the process's malloc is set to
     return freed arrays of 1 MB and more (8 MB for frames under 1.5 megapixels, 32 MB for a
     static camera's) to the system (:func:`return_freed_arrays`).
     """
