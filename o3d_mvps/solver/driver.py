@@ -166,9 +166,9 @@ FINEST_FAST_CONTRACTION = 0.2
 #: "The finest level's data term")
 DATA_STALL = True
 #: the finest level holds the poses where a coarser level of at least this many object pixels
-#: refined them by joint steps, under a light that moves with the camera (:func:`_sweeps`' ``hold_poses``): its sweeps take
-#: the joint step's depth rows (the warp's parallax, the albedo projected out) at the joint CG
-#: tolerance, without the twists. The twists' rows, their albedo projection and coupling were
+#: refined them by joint steps, under a light that moves with the camera (:func:`_sweeps`'
+#: ``hold_poses``): its sweeps take the joint step's depth rows (the warp's parallax, the albedo
+#: projected out) at the joint CG tolerance, without the twists. The twists' rows, their albedo projection and coupling were
 #: half the finest level's assembly (2 MP: 4.7 of 6.4 s a sweep with the solve), while that
 #: level's pose steps moved the frames 0.015 deg a sweep, under their error. Three D415 renders
 #: (level 1: 22 000 object pixels): finest level 4.1-5.1 -> 3.3-3.7 s, normals 1.0816 -> 1.0752,
@@ -742,9 +742,10 @@ def solve(problem_input: SolverInput, options: RefineOptions | None = None, devi
     that fits clearly worse than another is kept with a warning): ``info["light_selection"]``.
     ``info["pose_updates"]`` says how far each frame's pose moved and how many of its updates
     were rejected (:mod:`.pose_trust`); ``info["pose_steps"]`` how each level updated them
-    ([level, object pixels, "joint", "alternating", "held" or "none"], coarsest first). On Linux with glibc the process's malloc is set to
-    return freed arrays of 1 MB and more (8 MB for frames under 1.5 megapixels, 32 MB for a
-    static camera's) to the system (:func:`return_freed_arrays`).
+    ([level, object pixels, "joint", "alternating", "held" or "none"], coarsest first). On Linux
+    with glibc the process's malloc is set to return freed arrays of 1 MB and more (8 MB for
+    frames under 1.5 megapixels, 32 MB for a static camera's) to the system
+    (:func:`return_freed_arrays`).
     """
     options = problem_input.options if options is None else options
     device = array_device(device)
@@ -815,7 +816,8 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
                            scale_factor=sf) if given else None)
     pose_log = PoseLog()
     settled_levels = []  # the levels that refitted the point lights with the albedo projected out
-    stats = {"cg_iterations": [], "light_rounds": [], "pose_steps": [], "cauchy_lambda": [], "smoothness": smoothness,
+    stats = {"cg_iterations": [], "light_rounds": [], "pose_steps": [], "cauchy_lambda": [],
+             "smoothness": smoothness,
              "sensor_smoothness": sensor_smoothness,
              "levels": n_levels,
              "level_devices": [], "sensor_lowpass_sigma": tie_sigma}
