@@ -356,8 +356,8 @@ def test_the_finest_level_holds_the_poses_a_coarser_level_settled(capture, joint
     joint step's parallax rows and CG tolerance (D415 and 2 MP: a quarter and a seventh less
     time there, normals within 0.6 %). This capture's level 1 (about 1 200 pixels) is far under
     the threshold, so joint_result's finest level still refines them; lowered under it, it
-    holds them, but not under room light. Measured here: normals 4.51 deg held against 4.43 refined (this level 1 settles
-    the poses less than a D415's 22 000 pixels do); bound +5 %."""
+    holds them, but not under room light. Measured here: normals 4.51 deg held against 4.43 refined
+    (this level 1 settles the poses less than a D415's 22 000 pixels do); bound +5 %."""
     from o3d_mvps.solver import driver
 
     assert [kind for _, _, kind in joint_result.info["pose_steps"]][-2:] == ["joint", "joint"]

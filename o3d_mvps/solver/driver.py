@@ -168,20 +168,20 @@ DATA_STALL = True
 #: the finest level holds the poses where a coarser level of at least this many object pixels
 #: refined them by joint steps, under a light that moves with the camera (:func:`_sweeps`'
 #: ``hold_poses``): its sweeps take the joint step's depth rows (the warp's parallax, the albedo
-#: projected out) at the joint CG tolerance, without the twists. The twists' rows, their albedo projection and coupling were
-#: half the finest level's assembly (2 MP: 4.7 of 6.4 s a sweep with the solve), while that
-#: level's pose steps moved the frames 0.015 deg a sweep, under their error. Three D415 renders
-#: (level 1: 22 000 object pixels): finest level 4.1-5.1 -> 3.3-3.7 s, normals 1.0816 -> 1.0752,
-#: 1.0294 -> 1.0298, 1.0827 -> 1.0882 deg, poses (mean) 0.039 -> 0.042, 0.064 -> 0.062, 0.038
-#: -> 0.045 deg; 2 MP (level 1: 240 000): finest level 35.6-36.4 -> 30.3-31.0 s, normals
-#: 0.9830 -> 0.9860 and 1.3824 -> 1.3827 deg, 2258 against 2406-2416 MB peak. A smaller level 1
-#: leaves the poses less settled: 960x540 (12 000 pixels), held, normals 1.3126 -> 1.3384 deg and
-#: poses 0.041 -> 0.059 deg (so not held: it is under this threshold); the 640x480 demo (5 000,
-#: alternating steps there), held, 2.19 -> 2.61 deg and 0.07 -> 0.29 deg. Not on level 1 too
-#: (2 MP): its sweeps then ran to their cap, 98.3 against 63.0 s, normals 0.9830 -> 1.0165 deg.
-#: Not under a light fixed in the world (room light), where the poses rest on the parallax alone
-#: and the finest level still improves them: a D415 room-light render, held, poses 0.304 -> 0.339
-#: deg (mean), normals 8.923 -> 8.993 deg
+#: projected out) at the joint CG tolerance, without the twists. The twists' rows, their albedo
+#: projection and coupling were half the finest level's assembly (2 MP: 4.7 of 6.4 s a sweep with
+#: the solve), while that level's pose steps moved the frames 0.015 deg a sweep, under their error.
+#: Three D415 renders (level 1: 22 000 object pixels): finest level 4.1-5.1 -> 3.3-3.7 s, normals
+#: 1.0816 -> 1.0752, 1.0294 -> 1.0298, 1.0827 -> 1.0882 deg, poses (mean) 0.039 -> 0.042, 0.064 ->
+#: 0.062, 0.038 -> 0.045 deg; 2 MP (level 1: 240 000): finest level 35.6-36.4 -> 30.3-31.0 s,
+#: normals 0.9830 -> 0.9860 and 1.3824 -> 1.3827 deg, 2258 against 2406-2416 MB peak. A smaller
+#: level 1 leaves the poses less settled: 960x540 (12 000 pixels), held, normals 1.3126 -> 1.3384
+#: deg and poses 0.041 -> 0.059 deg (so not held: it is under this threshold); the 640x480 demo
+#: (5 000, alternating steps there), held, 2.19 -> 2.61 deg and 0.07 -> 0.29 deg. Not on level 1 too
+#: (2 MP): its sweeps then ran to their cap, 98.3 against 63.0 s, normals 0.9830 -> 1.0165 deg. Not
+#: under a light fixed in the world (room light), where the poses rest on the parallax alone and
+#: the finest level still improves them: a D415 room-light render, held, poses 0.304 -> 0.339 deg
+#: (mean), normals 8.923 -> 8.993 deg
 FINEST_HOLD_MIN_PIXELS = 16_000
 
 
