@@ -560,6 +560,13 @@ def _energy_figure(report: dict) -> str | None:
     return _png(energy_figure(energy), "energy per sweep")
 
 
+#: how a pyramid level updated the poses (``info["pose_steps"]``, :func:`.solver.driver._sweeps`), in words
+POSE_STEPS = {"joint": "joint pose-depth steps",
+              "alternating": "a pose step, then a depth step",
+              "held": "held: settled by a coarser level's joint steps",
+              "none": "not refined (too few object pixels, one frame, point lights or refine_poses off)"}
+
+
 def _pose_figures(refinement, capture, info: dict) -> str | None:
     if refinement.poses is None:
         return None
@@ -575,6 +582,9 @@ def _pose_figures(refinement, capture, info: dict) -> str | None:
         parts.append(_table(["frame", "moved (mm)", "moved (deg)", "rejected updates", "note"],
                             [[u.get("frame"), u.get("moved_mm"), u.get("moved_deg"), u.get("rejected_updates"),
                               u.get("note")] for u in updates]))
+    if info.get("pose_steps"):  # coarsest level first
+        parts.append(_table(["level", "object pixels", "pose update"],
+                            [[level, pixels, POSE_STEPS.get(kind, kind)] for level, pixels, kind in info["pose_steps"]]))
     return "".join(parts)
 
 

@@ -124,8 +124,8 @@ def test_page_is_self_contained(refine_page):
 
 
 def test_contract_sections_appear_when_present(refine_page):
-    # The report.json keys other engineers fill (frames_report, inputs, pose_updates, residuals,
-    # warnings) show as tables and plots; absent ones are left out (the page above has none).
+    # The report.json keys other engineers fill (frames_report, inputs, pose_updates, pose_steps,
+    # residuals, warnings) show as tables and plots; absent ones are left out (the page above has none).
     from o3d_mvps.refinement import read_refinement
 
     refinement = read_refinement(refine_page.parent)
@@ -137,12 +137,14 @@ def test_contract_sections_appear_when_present(refine_page):
             "pose_updates": [{"frame": 1, "moved_mm": 1.5, "moved_deg": 0.2, "rejected_updates": 0, "note": None},
                              {"frame": 2, "moved_mm": 9.0, "moved_deg": 1.1, "rejected_updates": 2,
                               "note": "kept the odometry pose"}],
-            "residuals": [{"frame": 0, "rms": 0.01}, {"frame": 1, "rms": 0.02}, {"frame": 2, "rms": 0.03}]}
+            "residuals": [{"frame": 0, "rms": 0.01}, {"frame": 1, "rms": 0.02}, {"frame": 2, "rms": 0.03}],
+            "pose_steps": [[1, 22259, "joint"], [0, 89512, "held"]]}
     report = {"method": "ours", "energy": [], "timings": {"total": 1.0}, "info": info,
               "warnings": ["frame 3 dropped: blurred frame"]}
     text = report_page_html(report, refinement=refinement)
     for expected in ("color/000003.png", "blurred frame", "depth looks like cm", "reference -&gt; frame i",
-                     "kept the odometry pose", 'alt="per-frame RMS residual"', "frame 3 dropped"):
+                     "kept the odometry pose", 'alt="per-frame RMS residual"', "frame 3 dropped",
+                     "joint pose-depth steps", "held: settled by a coarser level&#x27;s joint steps", "89512"):
         assert expected in text, expected
     bare = report_page_html({"method": "ours"}, refinement=refinement)
     assert "Input checks" not in bare and "per-frame RMS residual" not in bare and "Warnings" in bare
