@@ -124,6 +124,28 @@ def test_led_offset_update_on_the_cuda_path_matches_the_cpu_path():
     np.testing.assert_allclose([r["energy"] for r in cuda.energy], [r["energy"] for r in cpu.energy], rtol=energy_rtol)
 
 
+def test_a_held_finest_level_on_the_cuda_path_matches_the_cpu_path(monkeypatch):
+    """The LED problem with driver.FINEST_HOLD_MIN_PIXELS lowered under its coarse level (52
+    object pixels, joint steps, on the CPU): the finest level (226 pixels, on the device) holds the
+    poses and its depth steps carry the parallax without twists (the device's joint system with
+    no twist rows), as on the CPU. Measured: energies 3.8e-8 apart (relative), depth 6.7e-10 m,
+    poses equal."""
+    from o3d_mvps.solver import driver
+
+    monkeypatch.setattr(driver, "FINEST_HOLD_MIN_PIXELS", 50)
+    problem_input = read_problem(DATA / "cuda_path_led.npz")
+    cpu = solve(problem_input)
+    cuda = solve_on_cuda_path(problem_input, problem_input.options, MIN_LEVEL_PIXELS["led"])
+    assert [step[2] for step in cuda.info["pose_steps"]] == [step[2] for step in cpu.info["pose_steps"]] == [
+        "joint", "held"]
+    assert cuda.info["level_devices"][-1] != "cpu"
+    energy_rtol, depth_m, _, poses_atol, _ = TOLERANCES
+    np.testing.assert_allclose([r["energy"] for r in cuda.energy], [r["energy"] for r in cpu.energy],
+                               rtol=energy_rtol)
+    assert np.abs(cuda.depth - cpu.depth)[cpu.mask].max() < depth_m
+    np.testing.assert_allclose(cuda.poses, cpu.poses, atol=poses_atol)
+
+
 @pytest.mark.parametrize("envelope", [True, False])
 def test_extrapolation_trials_and_snapshot_on_the_cuda_path_match_the_cpu_path(envelope):
     """The driver's device branches: the snapshot's z and albedo without a launch (the arrays
