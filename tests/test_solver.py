@@ -6,6 +6,7 @@ import json
 import os
 import subprocess
 import sys
+import types
 
 import numpy as np
 import pytest
@@ -357,12 +358,14 @@ def test_the_finest_level_holds_the_poses_a_coarser_level_settled(capture, joint
     time there, normals within 0.6 %). This capture's level 1 (about 1 200 pixels) is far under
     the threshold, so joint_result's finest level still refines them; lowered under it, it
     holds them, but not under room light. Measured here: normals 4.51 deg held against 4.43 refined
-    (this level 1 settles the poses less than a D415's 22 000 pixels do); bound +5 %."""
+    (this level 1 settles the poses less than a D415's 22 000 pixels do); bound +5 %. The held
+    level's depth steps take the plain-aggregation hierarchy, and its extrapolation never raises
+    the data term (here it did without that guard: sweep 2, 36.22 -> 36.26)."""
     from o3d_mvps.solver import driver
 
     assert [kind for _, _, kind in joint_result.info["pose_steps"]][-2:] == ["joint", "joint"]
-    level_poses, depth_steps = {}, []
-    sweeps, update_depth = driver._sweeps, driver.update_depth
+    level_poses, depth_steps, extrapolations = {}, [], []
+    sweeps, update_depth, extrapolate = driver._sweeps, driver.update_depth, driver._extrapolate
 
     def recorded_sweeps(problem, est, *args, **kwargs):
         rows = sweeps(problem, est, *args, **kwargs)
@@ -370,11 +373,18 @@ def test_the_finest_level_holds_the_poses_a_coarser_level_settled(capture, joint
         return rows
 
     def recorded_depth(problem, est, ev, **kwargs):
-        depth_steps.append((problem.level.index, kwargs["parallax"], kwargs["rtol"]))
+        depth_steps.append((problem.level.index, kwargs["parallax"], kwargs["rtol"], kwargs["plain"]))
         return update_depth(problem, est, ev, **kwargs)
+
+    def recorded_extrapolation(problem, est, ev, *args, **kwargs):
+        data = ev.data
+        kept = extrapolate(problem, est, ev, *args, **kwargs)
+        extrapolations.append((problem.level.index, kwargs.get("keep_data", False), data, kept.data))
+        return kept
 
     monkeypatch.setattr(driver, "_sweeps", recorded_sweeps)
     monkeypatch.setattr(driver, "update_depth", recorded_depth)
+    monkeypatch.setattr(driver, "_extrapolate", recorded_extrapolation)
     monkeypatch.setattr(driver, "FINEST_HOLD_MIN_PIXELS", 500)
     options = RefineOptions(**FAST, joint_min_pixels=0)
     held = refine(capture, options, initial_poses=capture.groundtruth.poses)
@@ -384,12 +394,58 @@ def test_the_finest_level_holds_the_poses_a_coarser_level_settled(capture, joint
     np.testing.assert_array_equal(level_poses[0], level_poses[1])
     np.testing.assert_array_equal(held.poses.numpy(), level_poses[1])
     finest = [step for step in depth_steps if step[0] == 0]
-    assert finest and all(parallax and rtol == options.joint_cg_tolerance for _, parallax, rtol in finest)
+    assert finest and all(parallax and rtol == options.joint_cg_tolerance and plain for _, parallax, rtol, plain in finest)
+    held_extrapolations = [step for step in extrapolations if step[0] == 0]
+    assert held_extrapolations and all(keep and after <= before for _, keep, before, after in held_extrapolations)
+    assert not any(keep for level, keep, _, _ in extrapolations if level > 0)
     assert evaluate(held, capture)["mae_deg"] < 1.05 * evaluate(joint_result, capture)["mae_deg"]
     # under a light fixed in the world the poses rest on the parallax: the finest level refines them
     room = refine(capture, RefineOptions(**FAST, joint_min_pixels=0, light_model="room"),
                   initial_poses=capture.groundtruth.poses)
     assert room.info["pose_steps"][-1][2] == "joint" and room.info["pose_steps"][-2][2] == "joint"
+
+
+def test_a_held_levels_extrapolation_keeps_no_factor_that_raises_the_data_term():
+    """driver._extrapolate on a two-term energy (data (z - 1)^2, prior 10 (z - 2)^2 per pixel)
+    whose sweep moved z from 1.10 to 1.15, towards the prior: the factors 1, 2 and 4 lower the
+    energy while raising the data term, so the extrapolation keeps factor 4 (z 1.35), but with
+    keep_data (a held finest level) none; a sweep that lowered both (2.50 -> 2.45) keeps factor 4."""
+    from o3d_mvps.solver import driver
+
+    class Ev:
+        def __init__(self, problem, z):
+            self.data, self.prior = problem.data_energy(z), problem.prior_energy(z)
+            self.energy, self.usable = self.data + self.prior, np.ones((1, z.size), bool)
+
+        def release(self):
+            pass
+
+    class TwoTerms:  # the parts of a LevelProblem that _extrapolate reads on the host
+        level = types.SimpleNamespace(prior=types.SimpleNamespace(clip=lambda z: z))
+
+        def data_energy(self, z):
+            return float(np.sum((z - 1.0) ** 2))
+
+        def prior_energy(self, z):
+            return float(10.0 * np.sum((z - 2.0) ** 2))
+
+        def energy(self, est, prior=None):
+            prior = self.prior_energy(est.z) if prior is None else prior
+            return self.data_energy(est.z) + prior, np.ones((1, est.z.size), bool)
+
+        def evaluate(self, est):
+            return Ev(self, est.z)
+
+    def extrapolated(z_before, z_after, keep_data):
+        problem = TwoTerms()
+        estimate = lambda z: Estimate(np.full(4, z), np.ones((4, 3)), np.zeros((2, 4)), np.stack([np.eye(4)] * 2), None)
+        est = estimate(z_after)
+        ev = driver._extrapolate(problem, est, Ev(problem, est.z), estimate(z_before), keep_data=keep_data)
+        return est.z[0], ev.data
+
+    assert extrapolated(1.10, 1.15, keep_data=False) == pytest.approx((1.35, 4 * 0.35**2))
+    assert extrapolated(1.10, 1.15, keep_data=True) == pytest.approx((1.15, 4 * 0.15**2))
+    assert extrapolated(2.50, 2.45, keep_data=True)[0] == pytest.approx(2.25)  # both terms fall: factor 4 kept
 
 
 def test_finest_level_stops_once_its_energy_stalls_not_while_it_still_falls():

@@ -25,19 +25,20 @@ from .reflectance import refit_albedo as refit_albedo_at
 
 def update_depth(problem: LevelProblem, est: Estimate, ev: Evaluation, *, rtol: float, maxiter: int,
                  project_albedo: bool = True, parallax: bool = False,
-                 max_halvings: int = 5, static: bool = False) -> tuple[Estimate, Evaluation, int]:
+                 max_halvings: int = 5, plain: bool = False) -> tuple[Estimate, Evaluation, int]:
     """One depth step (warp frozen, or with ``parallax`` linearised in z like the joint step's
     depth rows; with ``project_albedo`` the albedo eliminated and refitted at every trial):
     returns (estimate, its evaluation, CG iterations); never raises the energy. ``ev``, the
-    evaluation of ``est``, is released once read (:meth:`.Evaluation.release`). static: a static
-    camera's step (poses held at the identity), solved with the plain-aggregation hierarchy
-    (:func:`.linear.plain_aggregation`)."""
+    evaluation of ``est``, is released once read (:meth:`.Evaluation.release`). plain: solved
+    with the plain-aggregation hierarchy (:func:`.linear.plain_aggregation`), for levels whose
+    poses do not move (a static camera's, a held finest level's: no twists that its rounding
+    could reach)."""
     energy = ev.energy
     # ev released once read: not held while the matrices are formed, nor through the solve and line search
     system = joint_system(problem, est, ev, parallax=parallax, twists=False, project_albedo=project_albedo,
                           release=True)
     step, iterations = solve_spd(levenberg_damped(system.matrix, overwrite=True), system.rhs_z, rtol, maxiter,
-                                 pixel_prolongations=problem.pixel_prolongations, plain=static)
+                                 pixel_prolongations=problem.pixel_prolongations, plain=plain)
     del system
 
     def moved(t: float):

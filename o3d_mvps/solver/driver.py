@@ -181,7 +181,18 @@ DATA_STALL = True
 #: (2 MP): its sweeps then ran to their cap, 98.3 against 63.0 s, normals 0.9830 -> 1.0165 deg. Not
 #: under a light fixed in the world (room light), where the poses rest on the parallax alone and
 #: the finest level still improves them: a D415 room-light render, held, poses 0.304 -> 0.339 deg
-#: (mean), normals 8.923 -> 8.993 deg
+#: (mean), normals 8.923 -> 8.993 deg.
+#: A held level's depth steps take the plain-aggregation hierarchy (:func:`.linear.plain_aggregation`:
+#: no twists its rounding could reach; set-up about 0.3 against 1.2 s at 958 000 pixels), and its
+#: extrapolation keeps a factor only where the data term does not rise (:func:`_extrapolate`'s
+#: ``keep_data``): there the energy is mostly the priors' (2 MP: 88 000 of 89 400), the sweep's
+#: move mostly a few hundred pixels its inexact step moved by millimetres, and extrapolating it
+#: lowered the priors' energy while raising the data term 2-3 %, which the next depth step took
+#: back (a 2 MP finest level ran 10 sweeps between data terms of 1380 and 1420 and normals of
+#: 0.98 and 1.01 deg). Both, on five captures (docs/performance.md, "The held finest level's
+#: hierarchy and extrapolation"): D415 refine 9.6-10.0 -> 9.2-9.6 s, normals 1.0752 -> 1.0740,
+#: 1.0298 -> 1.0295, 1.0882 -> 1.0864 deg; 2 MP 61.1 -> 56.2 and 56.0 -> 49.9 s, normals 0.9860
+#: -> 0.9808 and 1.3827 -> 1.3778 deg
 FINEST_HOLD_MIN_PIXELS = 16_000
 
 
@@ -420,7 +431,7 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
                                                           POINT_SETTLED_CG_FACTOR if settled else 1.0),
                                                       maxiter=options.cg_max_iterations,
                                                       project_albedo=project_albedo, parallax=parallax_only or held,
-                                                      static=static)
+                                                      plain=static or held)
             # the step's line search refitted the albedo at the depth it kept (project_albedo)
             refitted = project_albedo and stepped is not est
             est.z, est.albedo = stepped.z, stepped.albedo
@@ -439,7 +450,7 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
         timings["albedo_lighting"] += time.perf_counter() - t
         if options.extrapolate and (POINT_SETTLED_EXTRAPOLATE or not settled):
             t = time.perf_counter()
-            ev = _extrapolate(problem, est, ev, start, anchors, accelerator=accelerator)
+            ev = _extrapolate(problem, est, ev, start, anchors, accelerator=accelerator, keep_data=held)
             timings["extrapolation"] += time.perf_counter() - t
         rows.append({"level": level.index, "iteration": iteration, "energy": ev.energy, "cg_iterations": cg_iterations})
         bar.set_postfix(energy=f"{ev.energy:.5g}")
@@ -556,7 +567,7 @@ def _snapshot(est: Estimate) -> Estimate:
 
 
 def _extrapolate(problem: LevelProblem, est: Estimate, ev, before: Estimate, anchors: PoseAnchors | None = None,
-                 factors=(1.0, 2.0, 4.0), accelerator: Anderson | None = None):
+                 factors=(1.0, 2.0, 4.0), accelerator: Anderson | None = None, keep_data: bool = False):
     """Extrapolate the last sweep's move of every unknown; keep the best energy-lowering factor.
 
     Alternating steps creep along the valley where poses, depth and albedo trade off against
@@ -571,7 +582,9 @@ def _extrapolate(problem: LevelProblem, est: Estimate, ev, before: Estimate, anc
     and only the one kept is evaluated in full, after ``ev`` is released: never two evaluations
     held at once (at 2 MP and 20 frames 1.2 GB each). accelerator: the level's Anderson history
     (:mod:`.acceleration`; None: none): its point is tried first (:func:`_accelerated`), and the
-    factors only where it is not kept.
+    factors only where it is not kept. keep_data: a factor is kept only where the data term
+    (the energy less the prior's) does not rise above ``ev``'s either, and Anderson's point is
+    not tried (a held finest level: :data:`FINEST_HOLD_MIN_PIXELS`).
     """
     best = None
     poses_moved = not np.array_equal(est.poses, before.poses)  # else kept exactly (no log/exp round trip)
@@ -584,7 +597,7 @@ def _extrapolate(problem: LevelProblem, est: Estimate, ev, before: Estimate, anc
                             for i in range(1, len(trial.poses)))
 
     current = anchored(ev.energy, est, ev.usable)
-    if accelerator is not None:  # Anderson's point first; the factors where it does not lower the energy
+    if accelerator is not None and not keep_data:  # Anderson's point first; the factors where it is not kept
         best, current = _accelerated(problem, est, before, accelerator, current, poses_moved, anchored)
         if best is not None:
             ev.release()
@@ -611,9 +624,10 @@ def _extrapolate(problem: LevelProblem, est: Estimate, ev, before: Estimate, anc
         else:
             break
         trial = Estimate(z, albedo, *_trial(est, before, factor, delta_poses, poses_moved))
-        energy, usable = problem.energy(trial) if batch is None else (float(batch[0][j]), batch[1][j])
+        prior = problem.prior_energy(z) if keep_data else None
+        energy, usable = problem.energy(trial, prior=prior) if batch is None else (float(batch[0][j]), batch[1][j])
         trial_energy = anchored(energy, trial, usable)
-        if trial_energy < current:
+        if trial_energy < current and (not keep_data or energy - prior <= ev.data):
             best, current = trial, trial_energy
         else:
             break
