@@ -189,10 +189,10 @@ DATA_STALL = True
 #: move mostly a few hundred pixels its inexact step moved by millimetres, and extrapolating it
 #: lowered the priors' energy while raising the data term 2-3 %, which the next depth step took
 #: back (a 2 MP finest level ran 10 sweeps between data terms of 1380 and 1420 and normals of
-#: 0.98 and 1.01 deg). Both, on five captures (docs/performance.md, "The held finest level's
-#: hierarchy and extrapolation"): D415 refine 9.6-10.0 -> 9.2-9.6 s, normals 1.0752 -> 1.0740,
-#: 1.0298 -> 1.0295, 1.0882 -> 1.0864 deg; 2 MP 61.1 -> 56.2 and 56.0 -> 49.9 s, normals 0.9860
-#: -> 0.9808 and 1.3827 -> 1.3778 deg
+#: 0.98 and 1.01 deg). Both, on eight renders (docs/performance.md, "The held finest level's
+#: hierarchy and extrapolation"): four D415 refine x0.96-0.99, normals -0.2 % to +0.2 %; four 2 MP
+#: 57.3-105.1 -> 53.9-61.1 s, normals 0.4-9.7 % better (the finest level's sweeps no longer
+#: follow the extrapolation's swings)
 FINEST_HOLD_MIN_PIXELS = 16_000
 
 
