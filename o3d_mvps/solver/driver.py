@@ -167,32 +167,16 @@ FINEST_FAST_CONTRACTION = 0.2
 DATA_STALL = True
 #: the finest level holds the poses where a coarser level of at least this many object pixels
 #: refined them by joint steps, under a light that moves with the camera (:func:`_sweeps`'
-#: ``hold_poses``): its sweeps take the joint step's depth rows (the warp's parallax, the albedo
-#: projected out) at the joint CG tolerance, without the twists. The twists' rows, their albedo
-#: projection and coupling were half the finest level's assembly (2 MP: 4.7 of 6.4 s a sweep with
-#: the solve), while that level's pose steps moved the frames 0.015 deg a sweep, under their error.
-#: Three D415 renders (level 1: 22 000 object pixels): finest level 4.1-5.1 -> 3.3-3.7 s, normals
-#: 1.0816 -> 1.0752, 1.0294 -> 1.0298, 1.0827 -> 1.0882 deg, poses (mean) 0.039 -> 0.042, 0.064 ->
-#: 0.062, 0.038 -> 0.045 deg; 2 MP (level 1: 240 000): finest level 35.6-36.4 -> 30.3-31.0 s,
-#: normals 0.9830 -> 0.9860 and 1.3824 -> 1.3827 deg, 2258 against 2406-2416 MB peak. A smaller
-#: level 1 leaves the poses less settled: 960x540 (12 000 pixels), held, normals 1.3126 -> 1.3384
-#: deg and poses 0.041 -> 0.059 deg (so not held: it is under this threshold); the 640x480 demo
-#: (5 000, alternating steps there), held, 2.19 -> 2.61 deg and 0.07 -> 0.29 deg. Not on level 1 too
-#: (2 MP): its sweeps then ran to their cap, 98.3 against 63.0 s, normals 0.9830 -> 1.0165 deg. Not
-#: under a light fixed in the world (room light), where the poses rest on the parallax alone and
-#: the finest level still improves them: a D415 room-light render, held, poses 0.304 -> 0.339 deg
-#: (mean), normals 8.923 -> 8.993 deg.
-#: A held level's depth steps take the plain-aggregation hierarchy (:func:`.linear.plain_aggregation`:
-#: no twists its rounding could reach; set-up about 0.3 against 1.2 s at 958 000 pixels), and its
-#: extrapolation keeps a factor only where the data term does not rise (:func:`_extrapolate`'s
-#: ``keep_data``): there the energy is mostly the priors' (2 MP: 88 000 of 89 400), the sweep's
-#: move mostly a few hundred pixels its inexact step moved by millimetres, and extrapolating it
-#: lowered the priors' energy while raising the data term 2-3 %, which the next depth step took
-#: back (a 2 MP finest level ran 10 sweeps between data terms of 1380 and 1420 and normals of
-#: 0.98 and 1.01 deg). Both, on eight renders (docs/performance.md, "The held finest level's
-#: hierarchy and extrapolation"): four D415 refine x0.96-0.99, normals -0.2 % to +0.2 %; four 2 MP
-#: 57.3-105.1 -> 53.9-61.1 s, normals 0.4-9.7 % better (the finest level's sweeps no longer
-#: follow the extrapolation's swings)
+#: ``hold_poses``). Its sweeps take the joint step's depth rows alone (the warp's parallax, the
+#: albedo projected out, the joint CG tolerance), solved with the plain-aggregation hierarchy (no
+#: twists its rounding could reach), and its extrapolation keeps no factor that raises the data
+#: term (:func:`_extrapolate`'s ``keep_data``: there the energy is mostly the priors', and
+#: extrapolations that lowered them at the images' expense were undone by the next step, sweep
+#: after sweep). The twists had been half that level's assembly while moving the frames under
+#: their error. A smaller level 1 (960x540: 12 000 pixels) leaves the poses less settled, and a
+#: light fixed in the world leaves them to the parallax, which the finest level still improves.
+#: Measurements: docs/performance.md, "The finest level holds the poses a coarser level settled"
+#: and "The held finest level's hierarchy and extrapolation"
 FINEST_HOLD_MIN_PIXELS = 16_000
 
 
