@@ -1152,17 +1152,32 @@ def test_led_offset_system_matches_the_jacobians_and_offset_system(frames):
     assert_close(gpu[-1], cpu[-1])
 
 
-def test_led_evidence_sums_match_the_hosts_evidence_sums(frames):
-    """normal_evidence's sums with the LED's fields formed per pixel (one launch on a GPU): equal
-    bit for bit on the CPU to the host's _evidence_sums of the light model's fields."""
-    from o3d_mvps.solver.weighting import _evidence_sums
+def _evidence_sums_by_frame(usable, rho2, shading, L) -> tuple:
+    """normal_evidence's sums in NumPy from the fields L (n, N, 3): G6 (6, N) the entries 00, 01,
+    02, 11, 12, 22 of sum u L L^T, v (3, N) sum u s L, d (N,) sum u s^2 (u = usable rho2), each
+    pixel's frames added in order, as the compiled kernels add them."""
+    N = usable.shape[1]
+    G6, v, d = np.zeros((6, N)), np.zeros((3, N)), np.zeros(N)
+    for i in range(usable.shape[0]):
+        seen, s = usable[i], shading[i].astype(np.float64)
+        us = rho2 * s
+        for k, (a, b) in enumerate(((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))):
+            G6[k] = np.where(seen, G6[k] + rho2 * L[i, :, a] * L[i, :, b], G6[k])
+        for a in range(3):
+            v[a] = np.where(seen, v[a] + us * L[i, :, a], v[a])
+        d = np.where(seen, d + us * s, d)
+    return G6, v, d
 
+
+def test_led_evidence_sums_match_the_sums_over_the_light_models_fields(frames):
+    """normal_evidence's sums with the LED's fields formed per pixel (one compiled pass on the
+    host, one launch on a GPU): on the CPU equal bit for bit to the sums, frame by frame, of the
+    light model's own fields (LEDLight.fields), unusable frames and a float32 shading included."""
     _, usable, _, shading, albedo = frames
     usable, shading = np.concatenate([usable, usable[:1]]), np.concatenate([shading, shading[:1]]).astype(np.float32)
     normals, points, poses, light, lights = _led_surface()
     _, L = light.fields(lights, normals, points, poses)
-    expected = np.empty((6, N_PIXELS)), np.empty((3, N_PIXELS)), np.empty(N_PIXELS)
-    _evidence_sums(usable, (albedo ** 2).sum(axis=1), shading, L, *expected)
+    expected = _evidence_sums_by_frame(usable, (albedo ** 2).sum(axis=1), shading, L)
     nan = lambda *shape: np.full(shape, np.nan)  # noqa: E731
     cpu, gpu = run_both("led_evidence_sums", usable, albedo, shading, lights[:, 1].copy(), normals, points,
                         light.positions(poses), nan(6, N_PIXELS), nan(3, N_PIXELS), nan(N_PIXELS))

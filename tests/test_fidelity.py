@@ -226,40 +226,38 @@ def test_static_capture_with_sensor_noise_follows_the_sensors_coarse_shape():
     assert evaluate(result, truth)["mae_deg"] < 0.6 * evaluate(bicubic(capture), truth)["mae_deg"]
 
 
-def test_normal_evidence_per_pixel_fields_compiled_sums_equal_the_einsums(monkeypatch):
-    """With a field per frame and pixel (the LED's, L (n, N, 3)) the host sums G, v, d in
-    compiled passes over chunks of pixels (weighting._evidence_sums): equal to the GPU path's
-    einsums to 1e-12 of the largest evidence (summation order only), unusable frames and a
-    float32 shading included; chunks of 1000 pixels give the one-chunk result bit for bit."""
-    from o3d_mvps.solver import weighting
+def test_normal_evidence_under_the_led_equals_the_einsums_over_its_fields():
+    """Under the LED (a field per frame and pixel) normal_evidence sums G, v, d in one compiled
+    pass that forms the fields per pixel (kernels.led_evidence_sums, the GPU path's kernel): equal
+    to the einsums over the light model's own fields (LEDLight.fields, (n, N, 3)) to 1e-12 of the
+    largest evidence (summation order only), unusable frames, unlit pixels and a float32
+    shading included; a pixel no frame sees has none."""
+    from o3d_mvps.solver.lighting import LEDLight
     from o3d_mvps.solver.weighting import _tangent_min_eigenvalue
 
     rng = np.random.default_rng(3)
     n, N = 7, 5003
-    L = rng.normal(size=(n, N, 3))
     usable = rng.random((n, N)) > 0.3
     usable[:, 0] = False  # a pixel no frame sees: zero evidence
     normals = rng.normal(size=(N, 3))
+    normals[:, 2] = -np.abs(normals[:, 2])  # most face the camera: lit and unlit pixels
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    points = rng.normal(size=(N, 3)) * 0.05 + [0.0, 0.0, 0.6]
     albedo = rng.random((N, 3))
     shading = rng.random((n, N)).astype(np.float32)
-
-    class PerPixelFields:  # the fields of the pixels asked for (their index in points[:, 0])
-        def fields(self, lights, normals, points, poses):
-            return lights[:, 0], L[:, points[:, 0].astype(int)]
-
+    light = LEDLight(np.array([0.03, -0.02, 0.01]))
+    lights = np.column_stack([rng.random(n) * 0.2, rng.random(n) * 0.4 + 0.1])
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    poses[:, :3, 3] = rng.normal(size=(n, 3)) * 0.05
     ev = Evaluation(np.zeros((n, N, 3), np.float32), usable, np.zeros((n, N, 3), np.float32), shading, normals,
                     np.ones(N), None, 0.0, 0.0)
-    est = Estimate(np.full(N, 0.5), albedo, np.zeros((n, 2)), np.tile(np.eye(4), (n, 1, 1)))
-    points = np.zeros((N, 3))
-    points[:, 0] = np.arange(N)
-    got = normal_evidence(PerPixelFields(), est, ev, points)
-    monkeypatch.setattr(weighting, "EVIDENCE_CHUNK_PIXELS", 1000)
-    np.testing.assert_array_equal(normal_evidence(PerPixelFields(), est, ev, points), got)
+    got = normal_evidence(light, Estimate(np.full(N, 0.6), albedo, lights, poses), ev, points)
+    _, L = light.fields(lights, normals, points, poses)
     u = usable * (albedo**2).sum(axis=1)
     us = u * shading
     G, v = np.einsum("in,inj,ink->njk", u, L, L), np.einsum("in,inj->nj", us, L)
     expected = _tangent_min_eigenvalue(*normals.T, G[:, 0, 0], G[:, 0, 1], G[:, 0, 2], G[:, 1, 1], G[:, 1, 2],
                                        G[:, 2, 2], *v.T, (us * shading).sum(axis=0))
+    assert (L == 0).any() and (L != 0).any()
     assert got[0] == 0.0 and expected.max() > 0
     np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12 * expected.max())

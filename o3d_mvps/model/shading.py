@@ -188,8 +188,8 @@ def led_field(intensities, normals, points, positions, out, i, p):  # pragma: no
 
 @numba.njit(inline="always")
 def led_field_of(intensities, normals, points, positions, i, p):  # pragma: no cover - compiled
-    """:func:`led_field`'s values (3 floats) for light i and point p, not stored (the GPU's
-    evidence sums form them per pixel, :func:`o3d_mvps.solver.kernels.led_evidence_sums`)."""
+    """:func:`led_field`'s values (3 floats) for light i and point p, not stored (the evidence
+    sums form them per pixel, :func:`o3d_mvps.solver.kernels.led_evidence_sums`)."""
     d0 = positions[i, 0] - points[p, 0]
     d1 = positions[i, 1] - points[p, 1]
     d2 = positions[i, 2] - points[p, 2]

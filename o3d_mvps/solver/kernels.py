@@ -2840,8 +2840,7 @@ def led_offset_system(intensities, normals, points, positions, rotations, residu
 def evidence_frame_terms(sums, r, s, l0, l1, l2):  # pragma: no cover - compiled
     """One frame's terms of :func:`.weighting.normal_evidence`'s sums at a pixel added to
     ``sums`` (g00, g01, g02, g11, g12, g22, v0, v1, v2, d: 10 floats): rho2 ``r``, shading ``s``
-    (float64), light vector (l0, l1, l2); the new 10 sums (the host's ``_evidence_sums`` and
-    :func:`led_evidence_pixel` alike)."""
+    (float64), light vector (l0, l1, l2); the new 10 sums (:func:`led_evidence_pixel`'s)."""
     g00, g01, g02, g11, g12, g22, v0, v1, v2, dd = sums
     us = r * s
     return (g00 + r * l0 * l0, g01 + r * l0 * l1, g02 + r * l0 * l2, g11 + r * l1 * l1, g12 + r * l1 * l2,
@@ -2851,8 +2850,8 @@ def evidence_frame_terms(sums, r, s, l0, l1, l2):  # pragma: no cover - compiled
 @numba.njit(inline="always")
 def led_evidence_pixel(usable, albedo, shading, intensities, normals, points, positions, G6, v, d,
                        p):  # pragma: no cover - compiled
-    """Pixel p's sums of :func:`.weighting.normal_evidence` (those of its host's
-    ``_evidence_sums``, in the same order: :func:`evidence_frame_terms`) with the LED's fields
+    """Pixel p's sums of :func:`.weighting.normal_evidence`, its frames in order
+    (:func:`evidence_frame_terms`), with the LED's fields
     formed here (:func:`~o3d_mvps.model.shading.led_field_of`), not read from an (n, N, 3) array:
     G6[:, p], v[:, p], d[p] over the frames that see p; rho2 = sum_c albedo[p, c]^2."""
     r = albedo[p, 0] * albedo[p, 0] + albedo[p, 1] * albedo[p, 1] + albedo[p, 2] * albedo[p, 2]

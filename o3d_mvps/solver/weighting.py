@@ -19,13 +19,11 @@ Two pieces, both set from the data (README/docs "Fidelity"):
 from __future__ import annotations
 
 import cv2
-import numba
 import numpy as np
 
 from ..model.arrays import array_module, contiguous, fused
 from ..model.resampling import fill_nearest_valid
 from .device import kernels_for
-from .kernels import evidence_frame_terms
 from .lighting import LEDLight, device_light_state
 from .smoothness import sensor_roughness
 
@@ -100,12 +98,6 @@ def tie_low_frequencies(z: np.ndarray, mask: np.ndarray, z0: np.ndarray, sigma: 
 EVIDENCE_MAX_WEIGHT = 100.0
 
 
-#: :func:`normal_evidence` on the host forms the LED fields (n, B, 3) float64 for this many
-#: pixels at a time (each pixel's sums do not depend on the chunks): all at once they were
-#: 460 MB at 2 megapixels and 20 frames, the process's peak, beside the sweep's evaluation.
-EVIDENCE_CHUNK_PIXELS = 65536
-
-
 def normal_evidence(light_model, est, ev, points: np.ndarray) -> np.ndarray:
     """How well the frames' shading determines each pixel's normal: (N,) the smaller eigenvalue
     (intensity^2 per radian^2) of the shading system's information on the normal's two tangent
@@ -121,28 +113,14 @@ def normal_evidence(light_model, est, ev, points: np.ndarray) -> np.ndarray:
     xp = array_module(ev.normals)
     normals = ev.normals
     N = normals.shape[0]
-    rho2 = (est.albedo ** 2).sum(axis=1) if xp is np or not isinstance(light_model, LEDLight) else None
-    if xp is np:
-        first = slice(0, min(N, EVIDENCE_CHUNK_PIXELS))
-        _, L = light_model.fields(est.lights, normals[first], points[first], est.poses)
-        if np.ndim(L) == 3:  # a field per frame and pixel (LED) on the host: compiled passes over chunks of pixels
-            G6, v, d = np.empty((6, N)), np.empty((3, N)), np.empty(N)
-            for start in range(0, N, EVIDENCE_CHUNK_PIXELS):
-                c = slice(start, min(N, start + EVIDENCE_CHUNK_PIXELS))
-                if start:
-                    _, L = light_model.fields(est.lights, normals[c], points[c], est.poses)
-                sums = np.empty((6, c.stop - start)), np.empty((3, c.stop - start)), np.empty(c.stop - start)
-                _evidence_sums(np.ascontiguousarray(ev.usable[:, c]), np.ascontiguousarray(rho2[c], dtype=np.float64),
-                               np.ascontiguousarray(ev.shading[:, c]), np.ascontiguousarray(L, dtype=np.float64), *sums)
-                G6[:, c], v[:, c], d[c] = sums
-            return _tangent_min_eigenvalue(normals[:, 0], normals[:, 1], normals[:, 2], *G6, *v, d)
-    if isinstance(light_model, LEDLight):  # on a GPU the sums in one launch, the fields formed per pixel
+    if isinstance(light_model, LEDLight):  # the sums in one compiled pass (a launch on a GPU), the fields formed per pixel
         state = device_light_state(light_model, est.lights, est.poses, points)
         G6, v, d = xp.empty((6, N)), xp.empty((3, N)), xp.empty(N)
         kernels_for(points).led_evidence_sums(ev.usable, contiguous(est.albedo, np.float64), ev.shading,
                                               state.intensities, contiguous(normals, np.float64),
                                               contiguous(points, np.float64), state.positions, G6, v, d)
         return _tangent_min_eigenvalue(normals[:, 0], normals[:, 1], normals[:, 2], *G6, *v, d)
+    rho2 = (est.albedo ** 2).sum(axis=1)
     _, L = light_model.fields(est.lights, normals, points, est.poses)
     L = xp.asarray(L, dtype=np.float64)
     u = ev.usable * rho2  # (n, N)
@@ -155,23 +133,6 @@ def normal_evidence(light_model, est, ev, points: np.ndarray) -> np.ndarray:
     d = (us * ev.shading).sum(axis=0)
     return _tangent_min_eigenvalue(normals[:, 0], normals[:, 1], normals[:, 2], G[:, 0, 0], G[:, 0, 1], G[:, 0, 2],
                                    G[:, 1, 1], G[:, 1, 2], G[:, 2, 2], v[:, 0], v[:, 1], v[:, 2], d)
-
-
-@numba.njit(parallel=True, cache=True)
-def _evidence_sums(usable, rho2, shading, L, G6, v, d):  # pragma: no cover - compiled
-    """:func:`normal_evidence`'s sums over the frames i, per pixel p, with u = usable rho2 (the
-    einsums of the GPU path): G6 (6, N) the entries 00, 01, 02, 11, 12, 22 of sum u L L^T,
-    v (3, N) sum u s L, d (N,) sum u s^2; usable (n, N) bool, rho2 (N,), shading s (n, N),
-    L (n, N, 3). Written into G6, v, d; frames that do not see p add nothing."""
-    n, N = usable.shape
-    for p in numba.prange(N):
-        sums = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-        r = rho2[p]
-        for i in range(n):
-            if usable[i, p]:
-                sums = evidence_frame_terms(sums, r, np.float64(shading[i, p]), L[i, p, 0], L[i, p, 1], L[i, p, 2])
-        G6[0, p], G6[1, p], G6[2, p], G6[3, p], G6[4, p], G6[5, p] = sums[:6]
-        v[0, p], v[1, p], v[2, p], d[p] = sums[6:]
 
 
 @fused
