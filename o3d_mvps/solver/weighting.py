@@ -113,7 +113,7 @@ def normal_evidence(light_model, est, ev, points: np.ndarray) -> np.ndarray:
     xp = array_module(ev.normals)
     normals = ev.normals
     N = normals.shape[0]
-    if isinstance(light_model, LEDLight):  # the sums in one compiled pass (a launch on a GPU), the fields formed per pixel
+    if isinstance(light_model, LEDLight):  # one compiled pass (a launch on a GPU), the fields formed per pixel
         state = device_light_state(light_model, est.lights, est.poses, points)
         G6, v, d = xp.empty((6, N)), xp.empty((3, N)), xp.empty(N)
         kernels_for(points).led_evidence_sums(ev.usable, contiguous(est.albedo, np.float64), ev.shading,
