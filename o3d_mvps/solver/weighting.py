@@ -120,16 +120,14 @@ def normal_evidence(light_model, est, ev, points: np.ndarray) -> np.ndarray:
                                               state.intensities, contiguous(normals, np.float64),
                                               contiguous(points, np.float64), state.positions, G6, v, d)
         return _tangent_min_eigenvalue(normals[:, 0], normals[:, 1], normals[:, 2], *G6, *v, d)
-    rho2 = (est.albedo ** 2).sum(axis=1)
+    # SH and room light: one field per frame, L (n, 3); the sums over the frames as products with
+    # (n, 9) and (n, 3)
     _, L = light_model.fields(est.lights, normals, points, est.poses)
     L = xp.asarray(L, dtype=np.float64)
-    u = ev.usable * rho2  # (n, N)
+    u = ev.usable * (est.albedo ** 2).sum(axis=1)  # (n, N)
     us = u * ev.shading
-    if L.ndim == 2:  # one field per frame (SH): sums over the frames as products with (n, 9) and (n, 3)
-        G = u.T.astype(np.float64) @ (L[:, :, None] * L[:, None, :]).reshape(-1, 9)
-        G, v = G.reshape(N, 3, 3), us.T.astype(np.float64) @ L
-    else:
-        G, v = xp.einsum("in,inj,ink->njk", u, L, L, optimize=True), xp.einsum("in,inj->nj", us, L, optimize=True)
+    G = (u.T.astype(np.float64) @ (L[:, :, None] * L[:, None, :]).reshape(-1, 9)).reshape(N, 3, 3)
+    v = us.T.astype(np.float64) @ L
     d = (us * ev.shading).sum(axis=0)
     return _tangent_min_eigenvalue(normals[:, 0], normals[:, 1], normals[:, 2], G[:, 0, 0], G[:, 0, 1], G[:, 0, 2],
                                    G[:, 1, 1], G[:, 1, 2], G[:, 2, 2], v[:, 0], v[:, 1], v[:, 2], d)
