@@ -35,6 +35,7 @@ from .covisibility import (MIN_OTHER_FRAMES, OUTLIER_MIN_FRAMES, WEAK_COVERAGE_N
                            frames_seeing_reference)
 from .covisibility import flying_pixels_check, frame_depths_in_reference
 from .covisibility import reference_depth_fill as moving_reference_fill
+from .covisibility import reference_depth_mean as moving_reference_mean
 from .covisibility import reference_depth_outliers as moving_reference_outliers
 
 #: the depth step's CG tolerance for a static camera, where ``cg_tolerance`` is left at its default
@@ -242,6 +243,11 @@ def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses
         valid = int((depths[0] > 0).sum())
         if from_frames is not None:
             depths[0][flying] = values[flying]
+        if options.average_frames_depth:
+            # then the frames' mean where they agree: a noisy sensor's error, new in every frame,
+            # averages out instead of reaching the normals through the prior (docs/fidelity.md)
+            depths[0], averaged = moving_reference_mean(depths, initial_poses, K_depth, noise)
+            found.update(averaged=int(averaged.sum()))
         report["reference_depth_outliers"] = {**found, "seconds": round(time.perf_counter() - t0, 4)}
         inputs = report.setdefault("inputs", {"checks": [], "conventions": {}})
         inputs["checks"].append(flying_pixels_check(flying, from_frames, valid, noise, foreground))

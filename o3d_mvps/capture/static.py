@@ -17,7 +17,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from ..model.camera import project, transform
-from ..model.resampling import masked_gaussian, resample_valid
+from ..model.resampling import blend_into_mean, resample_valid
 from ..model.robust import nan_median
 from ..model.se3 import rotation_angle_deg
 from ..odometry import ICP_VOXELS, MAX_CLOUD_POINTS, cloud_pyramid, depth_cloud, frame_region, register
@@ -395,7 +395,4 @@ def reference_depth_mean(depths: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     k = agree.sum(axis=0)
     use = k >= max(MIN_FRAMES_FOR_MEDIAN, FILL_MIN_FRACTION * n)
     mean = np.where(use, (depths * agree).sum(axis=0) / np.maximum(k, 1), 0.0)
-    both = valid[0] & use
-    offset, weight = masked_gaussian(depths[0] - mean, both, FILL_OFFSET_SIGMA_PX)
-    kept = valid[0] & ~use
-    return np.where(use, mean, np.where(kept, depths[0] - np.where(weight > 1e-3, offset, 0.0), 0.0)), use & ~valid[0]
+    return blend_into_mean(depths[0], mean, use, FILL_OFFSET_SIGMA_PX), use & ~valid[0]

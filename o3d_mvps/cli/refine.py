@@ -72,6 +72,9 @@ def add_solver_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--keep-flying-pixels", action="store_true",
                    help="keep the reference depth pixels the other frames contradict (only reported; by default "
                         "they are replaced: docs/fidelity.md, flying pixels of a moving camera)")
+    g.add_argument("--average-frames-depth", action="store_true",
+                   help="tie the depth to the frames' mean depth where they agree, not to the reference frame's "
+                        "alone: for a noisy sensor such as a RealSense (docs/fidelity.md, the frames' mean depth)")
     g.add_argument("--light-model", choices=LIGHT_MODELS, default=None,
                    help="near-field LED, one SH light fixed in the room (room) or the paper's first-order SH "
                         "per frame (sh), or a point light per frame at its own position, a lamp moved around a static camera "
@@ -106,6 +109,7 @@ def options_from_args(args) -> RefineOptions:
                          max_iterations=args.iterations, tolerance=args.tolerance,
                          refine_poses=not args.no_pose_refinement, occlusion_test=not args.no_occlusion_test,
                          drop_depth_outliers=not args.keep_flying_pixels,
+                         average_frames_depth=args.average_frames_depth,
                          light_model=args.light_model,
                          led_offset=None if args.led_offset is None else tuple(args.led_offset),
                          progress=not args.quiet)

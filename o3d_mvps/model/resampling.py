@@ -74,6 +74,19 @@ def masked_gaussian(values: np.ndarray, valid: np.ndarray, sigma: float) -> tupl
     return total / np.maximum(weight, 1e-12), weight
 
 
+def blend_into_mean(z0: np.ndarray, mean: np.ndarray, use: np.ndarray, sigma: float) -> np.ndarray:
+    """(h, w) metres: ``mean`` (h, w) where ``use`` (h, w) bool, elsewhere the valid (> 0) pixels
+    of ``z0`` (h, w) less their offset from the mean nearby (``z0 - mean`` over the pixels both
+    have, a :func:`masked_gaussian` of ``sigma`` pixels), so that no step forms where the mean
+    ends; 0 where neither. The reference depth a capture's frames average (a static camera's,
+    :func:`o3d_mvps.capture.static.reference_depth_mean`; a moving one's,
+    :func:`o3d_mvps.covisibility.reference_depth_mean`)."""
+    valid = z0 > 0
+    offset, weight = masked_gaussian(z0 - mean, valid & use, sigma)
+    kept = valid & ~use
+    return np.where(use, mean, np.where(kept, z0 - np.where(weight > 1e-3, offset, 0.0), 0.0))
+
+
 #: weight of each unknown pixel's pull toward its nearest known value in :func:`harmonic_fill`
 #: (against 1 per neighbour difference): it settles regions no known pixel borders
 HARMONIC_ANCHOR = 1e-6

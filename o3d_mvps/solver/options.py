@@ -180,6 +180,13 @@ class ModelOptions:
         static camera's are always left out). False keeps them (they are counted and reported
         either way). On the D415-like peers render 3.31 -> 1.56 mm, the clean D415 render
         unchanged (none flagged) (docs/fidelity.md, "Flying pixels of a moving camera").
+    average_frames_depth: a moving camera's reference depth becomes the frames' mean where they
+        agree (:func:`o3d_mvps.covisibility.reference_depth_mean`, at the initial poses, 4 frames or
+        more), for a noisy sensor: its noise, new in every frame, averages out instead of reaching
+        the normals through the depth prior (D415-like renders: normals 1.07 -> 0.85 deg). Off by
+        default: a frame's depth interpolated between its pixels misses detail steep at the depth
+        pixel's scale, which a noise-free sensor's own depth keeps (a 40x30 depth of a relief:
+        0.28 -> 0.87 deg) (docs/fidelity.md, "The frames' mean depth for a moving camera").
     """
 
     tau: float = 10.0
@@ -196,6 +203,7 @@ class ModelOptions:
     sensor_lowpass: float | str | None = None
     evidence_weights: bool | None = None
     drop_depth_outliers: bool = True
+    average_frames_depth: bool = False
 
     def smoothness_weight(self) -> float | str:
         """mu~, or :data:`AUTO`: ``smoothness``, else the light model's default (the light model
@@ -242,7 +250,8 @@ class ModelOptions:
                  "sensor_lowpass", self.sensor_lowpass, 0, math.inf, high_open=True, auto_ok=True),
              evidence_weights=None if self.evidence_weights is None else _flag("evidence_weights",
                                                                                 self.evidence_weights),
-             drop_depth_outliers=_flag("drop_depth_outliers", self.drop_depth_outliers))
+             drop_depth_outliers=_flag("drop_depth_outliers", self.drop_depth_outliers),
+             average_frames_depth=_flag("average_frames_depth", self.average_frames_depth))
 
 
 @dataclass(frozen=True)
