@@ -441,6 +441,17 @@ def flying_pixels_check(flagged: np.ndarray, from_frames: np.ndarray | None, val
     return {"name": "flying pixels", "status": "ok", "detail": detail}
 
 
+def frames_mean_check(averaged: np.ndarray, valid: int) -> dict:
+    """The run report's row ``{"name", "status", "detail"}`` of :func:`reference_depth_mean`:
+    averaged (h, w) bool, the pixels that took the frames' mean; valid: the reference's valid depth
+    pixels."""
+    count = int(averaged.sum())
+    return {"name": "frames' mean depth", "status": "ok",
+            "detail": f"{count} of the reference's {valid} depth pixels ({count / max(valid, 1):.2%}) took the mean "
+                      "of the frames that agree there (RefineOptions(average_frames_depth=True)); the rest keep "
+                      "frame 0's depth"}
+
+
 @dataclass
 class ViewSelection:
     """The frames chosen for a reference and why the others were left out.

@@ -33,7 +33,7 @@ from .solver.problem_input import SolverInput, write_problem
 from .solver.smoothness import sensor_noise_smoothness
 from .covisibility import (MIN_OTHER_FRAMES, OUTLIER_MIN_FRAMES, WEAK_COVERAGE_NOTE, ViewSelection,
                            frames_seeing_reference)
-from .covisibility import flying_pixels_check, frame_depths_in_reference
+from .covisibility import flying_pixels_check, frame_depths_in_reference, frames_mean_check
 from .covisibility import reference_depth_fill as moving_reference_fill
 from .covisibility import reference_depth_mean as moving_reference_mean
 from .covisibility import reference_depth_outliers as moving_reference_outliers
@@ -251,6 +251,8 @@ def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses
         report["reference_depth_outliers"] = {**found, "seconds": round(time.perf_counter() - t0, 4)}
         inputs = report.setdefault("inputs", {"checks": [], "conventions": {}})
         inputs["checks"].append(flying_pixels_check(flying, from_frames, valid, noise, foreground))
+        if options.average_frames_depth:
+            inputs["checks"].append(frames_mean_check(averaged, valid))
     return SolverInput(
         colors=colors,
         depths=depths,

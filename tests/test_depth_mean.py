@@ -112,8 +112,9 @@ def test_the_mean_averages_the_frames_low_frequency_error(d415):
 def test_the_option_ties_the_depth_to_the_frames_mean_and_says_how_much(d415):
     """``average_frames_depth=True``: the solver's reference depth is the frames' mean at the given
     poses, and the run report counts the pixels it averaged (before any solve): 929 of frame 0's
-    1402 depth pixels (the rest along the silhouette or seen by fewer than four frames; bound 60 %).
-    Off (the default), frame 0's depth stays as it is and nothing is counted."""
+    1402 depth pixels (the rest along the silhouette or seen by fewer than four frames; bound 60 %),
+    and its input checks say so. Off (the default), frame 0's depth stays as it is and nothing is
+    counted."""
     depths = np.stack([d415.depth_array(i) for i in range(d415.n_frames)]).astype(np.float64)
     problem, _ = problem_from_capture(d415, RefineOptions(progress=False, average_frames_depth=True),
                                       initial_poses=d415.groundtruth.poses)
@@ -121,8 +122,11 @@ def test_the_option_ties_the_depth_to_the_frames_mean_and_says_how_much(d415):
     assert row["averaged"] > 0.6 * int((depths[0] > 0).sum())
     changed = np.abs(problem.depths[0] - depths[0]) > 1e-4
     assert changed.sum() > 0.5 * row["averaged"]
+    said = [c for c in problem.report["inputs"]["checks"] if c["name"] == "frames' mean depth"]
+    assert len(said) == 1 and said[0]["detail"].startswith(f"{row['averaged']} of the reference's")
     default, _ = problem_from_capture(d415, RefineOptions(progress=False), initial_poses=d415.groundtruth.poses)
     assert "averaged" not in default.report["reference_depth_outliers"]
+    assert not [c for c in default.report["inputs"]["checks"] if c["name"] == "frames' mean depth"]
     flying = reference_depth_outliers(depths, np.asarray(d415.groundtruth.poses, np.float64),
                                       np.asarray(d415.depth_K(), np.float64))
     assert np.array_equal(default.depths[0][~flying], depths[0][~flying])
