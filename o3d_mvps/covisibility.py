@@ -305,6 +305,30 @@ RAY_NORMAL_SIGMA_PX = 2.0
 MIN_RAY_COSINE = 0.2
 
 
+def surface_frame(depth: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, ...]:
+    """What carries a frame's depth onto the rays of ``depth`` (h, w) metres (0 = none; intrinsics K
+    (3, 3)): its valid pixels (v, u) (m,) each, their points (m, 3), the normals of the depth
+    smoothed by :data:`RAY_NORMAL_SIGMA_PX` (m, 3), each normal's product with its ray of depth 1
+    (m,) and ``steep`` (m,) bool, the pixels seen within :data:`MIN_RAY_COSINE` of edge-on."""
+    v, u = np.nonzero(depth > 0)
+    smooth, _ = masked_gaussian(depth, depth > 0, RAY_NORMAL_SIGMA_PX)
+    normals = perspective_normals(np.where(depth > 0, smooth, 0.0), K)[0][v, u]
+    rays = backproject(np.ones(len(v)), K, u.astype(np.float64), v.astype(np.float64))  # z = 1
+    along = np.einsum("ij,ij->i", normals, rays)
+    steep = np.abs(along) < MIN_RAY_COSINE * np.linalg.norm(rays, axis=1)
+    return v, u, rays * depth[v, u][:, None], normals, along, steep
+
+
+def carried_onto_rays(q: np.ndarray, scale: np.ndarray, T: np.ndarray, normals: np.ndarray, along: np.ndarray,
+                      steep: np.ndarray) -> np.ndarray:
+    """(m,) metres: the points ``q`` (m, 3) of frame T's camera (T: reference -> frame) moved along
+    the frame's rays by ``scale`` (m,) (``q * scale``), carried onto the reference's rays along the
+    planes of :func:`surface_frame`'s normals, as reference depths (NaN-free; meaningless where
+    ``steep``)."""
+    on_ray = transform(np.linalg.inv(T), q * scale[:, None])
+    return np.einsum("ij,ij->i", normals, on_ray) / np.where(steep, 1.0, along)
+
+
 def frame_depths_on_reference_rays(depths: np.ndarray, poses: np.ndarray, K: np.ndarray,
                                    noise_scale: float = 0.0) -> np.ndarray:
     """(n - 1, h, w) metres: what every other frame measures along the reference's rays; 0 where it
@@ -313,28 +337,18 @@ def frame_depths_on_reference_rays(depths: np.ndarray, poses: np.ndarray, K: np.
     Each valid reference pixel's point is moved into frame i (``poses``: (n, 4, 4) reference ->
     frame i) and frame i's depth interpolated bilinearly there (its four depth pixels valid and
     within :func:`outlier_tolerance` of each other: not across a depth edge); the point frame i
-    measures on its own ray is carried onto the reference's ray along the surface, the plane of
-    the reference's normal there (its depth smoothed by :data:`RAY_NORMAL_SIGMA_PX`). Unlike a
-    z-buffered splat (:func:`frame_depths_in_reference`, which keeps the nearest sample in a
-    pixel: D415-like render, 1280x720, true poses, 0.07 to 0.69 mm nearer than the truth, more
-    the more a frame is turned), a plane is carried exactly.
+    measures on its own ray is carried onto the reference's ray along the surface
+    (:func:`carried_onto_rays`). Unlike a z-buffered splat (:func:`frame_depths_in_reference`,
+    which keeps the nearest sample in a pixel: D415-like render, 1280x720, true poses, 0.07 to 0.69
+    mm nearer than the truth, more the more a frame is turned), a plane is carried exactly.
 
     depths: (n, h, w) metres (0 = missing); K: (3, 3) the depth grid's intrinsics; noise_scale:
     s (1/m) of :func:`depth_noise_scale`.
     """
     depths = np.asarray(depths, dtype=np.float64)
-    z0 = depths[0]
-    size = z0.shape
+    size = depths[0].shape
     out = np.zeros((len(depths) - 1, *size))
-    v, u = np.nonzero(z0 > 0)
-    if not len(v):
-        return out
-    smooth, _ = masked_gaussian(z0, z0 > 0, RAY_NORMAL_SIGMA_PX)
-    normals = perspective_normals(np.where(z0 > 0, smooth, 0.0), K)[0][v, u]
-    rays = backproject(np.ones(len(v)), K, u.astype(np.float64), v.astype(np.float64))  # z = 1
-    along = np.einsum("ij,ij->i", normals, rays)
-    steep = np.abs(along) < MIN_RAY_COSINE * np.linalg.norm(rays, axis=1)
-    points = rays * z0[v, u][:, None]
+    v, u, points, normals, along, steep = surface_frame(depths[0], K)
     for k, (T, depth) in enumerate(zip(poses[1:], depths[1:])):
         q = transform(T, points)
         pu, pv, Z = project(q, K)
@@ -347,8 +361,7 @@ def frame_depths_on_reference_rays(depths: np.ndarray, poses: np.ndarray, K: np.
         high = np.maximum(np.maximum(c00, c01), np.maximum(c10, c11))
         seen &= (low > 0) & (high - low <= outlier_tolerance(low, noise_scale))
         measured = (1 - fv) * ((1 - fu) * c00 + fu * c01) + fv * ((1 - fu) * c10 + fu * c11)
-        on_ray = transform(np.linalg.inv(T), q * (measured / np.where(seen, Z, 1.0))[:, None])
-        t = np.einsum("ij,ij->i", normals, on_ray) / np.where(steep, 1.0, along)
+        t = carried_onto_rays(q, measured / np.where(seen, Z, 1.0), T, normals, along, steep)
         seen &= t > 0
         out[k, v[seen], u[seen]] = t[seen]
     return out
@@ -367,7 +380,7 @@ def reference_depth_mean(depths: np.ndarray, poses: np.ndarray, K: np.ndarray,
     and a low-frequency error of about 1 mm at 0.6 m), so the frames average it where frame 0
     alone would pass its own to the surface (docs/fidelity.md, "The frames' mean depth for a moving
     camera"). Frame 0's holes stay holes; its flying pixels best replaced first
-    (:func:`reference_depth_fill`). ``RefineOptions(average_frames_depth=True)`` ties the depth to it.
+    (:func:`reference_depth_fill`). ``RefineOptions(average_frames_depth="initial")`` ties the depth to it.
 
     depths: (n, h, w) metres (0 = missing); poses: (n, 4, 4) reference -> frame i; K: (3, 3) the
     depth grid's intrinsics; noise_scale: s (1/m) of :func:`depth_noise_scale`.
@@ -448,7 +461,7 @@ def frames_mean_check(averaged: np.ndarray, valid: int) -> dict:
     count = int(averaged.sum())
     return {"name": "frames' mean depth", "status": "ok",
             "detail": f"{count} of the reference's {valid} depth pixels ({count / max(valid, 1):.2%}) took the mean "
-                      "of the frames that agree there (RefineOptions(average_frames_depth=True)); the rest keep "
+                      "of the frames that agree there (RefineOptions(average_frames_depth='initial')); the rest keep "
                       "frame 0's depth"}
 
 

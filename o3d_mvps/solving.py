@@ -27,7 +27,7 @@ from .refinement import Refinement
 from .run_report import NOT_PICKED, peak_memory_mb, recorded_warnings
 from .solver.device import check_device
 from .solver.driver import return_freed_arrays, solve, trim_heap
-from .solver.options import AUTO, ConvergenceCriteria, ModelOptions, RefineOptions
+from .solver.options import AUTO, ConvergenceCriteria, FramesDepth, ModelOptions, RefineOptions
 from .solver.pose_trust import DEFAULT_POSE_TRUST
 from .solver.problem_input import SolverInput, write_problem
 from .solver.smoothness import sensor_noise_smoothness
@@ -243,7 +243,7 @@ def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses
         valid = int((depths[0] > 0).sum())
         if from_frames is not None:
             depths[0][flying] = values[flying]
-        if options.average_frames_depth:
+        if options.average_frames_depth == FramesDepth.INITIAL:
             # then the frames' mean where they agree: a noisy sensor's error, new in every frame,
             # averages out instead of reaching the normals through the prior (docs/fidelity.md)
             depths[0], averaged = moving_reference_mean(depths, initial_poses, K_depth, noise)
@@ -251,7 +251,7 @@ def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses
         report["reference_depth_outliers"] = {**found, "seconds": round(time.perf_counter() - t0, 4)}
         inputs = report.setdefault("inputs", {"checks": [], "conventions": {}})
         inputs["checks"].append(flying_pixels_check(flying, from_frames, valid, noise, foreground))
-        if options.average_frames_depth:
+        if options.average_frames_depth == FramesDepth.INITIAL:
             inputs["checks"].append(frames_mean_check(averaged, valid))
     return SolverInput(
         colors=colors,

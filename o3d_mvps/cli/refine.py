@@ -13,7 +13,7 @@ from ..report import accuracy_rows, markdown_table
 from ..report_page import write_report_page
 from ..solver.device import DEVICE_HELP, resolve_device
 from ..solver.lighting import LIGHT_MODELS
-from ..solver.options import AUTO, RefineOptions
+from ..solver.options import AUTO, FramesDepth, RefineOptions
 from ..solving import refine
 from ..covisibility import ViewSelection
 from .argtypes import frame_count_fits, metres_offset, positive_float, positive_int, unit_interval
@@ -72,9 +72,12 @@ def add_solver_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--keep-flying-pixels", action="store_true",
                    help="keep the reference depth pixels the other frames contradict (only reported; by default "
                         "they are replaced: docs/fidelity.md, flying pixels of a moving camera)")
-    g.add_argument("--average-frames-depth", action="store_true",
-                   help="tie the depth to the frames' mean depth where they agree, not to the reference frame's "
-                        "alone: for a noisy sensor such as a RealSense (docs/fidelity.md, the frames' mean depth)")
+    g.add_argument("--average-frames-depth", choices=[m.value for m in FramesDepth],
+                   default=str(d.average_frames_depth),
+                   help="how the other frames' depth enters the depth prior: off (the default: frame 0's depth "
+                        "alone), finest (the finest level's prior from every frame's residual against the surface; "
+                        "for 20 frames of a noisy sensor) or initial (the frames' mean before any level, for a noisy "
+                        "sensor whose poses fit its depth); docs/fidelity.md, the frames' mean depth")
     g.add_argument("--light-model", choices=LIGHT_MODELS, default=None,
                    help="near-field LED, one SH light fixed in the room (room) or the paper's first-order SH "
                         "per frame (sh), or a point light per frame at its own position, a lamp moved around a static camera "

@@ -28,6 +28,7 @@ from threadpoolctl import threadpool_limits
 from tqdm.auto import tqdm
 
 from ..colour import float_frame
+from ..covisibility import MEAN_MIN_FRAMES
 from ..errors import CaptureError
 from ..model import se3
 from ..model.arrays import array_module, contiguous, fused, like
@@ -37,18 +38,19 @@ from ..model.robust import robust_scale
 from .depth import envelope_arrays, update_depth
 from .device import CPU, ArrayDevice, array_device, compile_notice, kernels_for, on_gpu, to_host
 from .acceleration import ANDERSON_FRACTIONS, Anderson, level_accelerator, partway
+from .frames_depth import RETARGET_SWEEP, frames_depth_target
 from .joint import update_pose_depth
 from .kernels import MAX_EXTRAPOLATION_FACTORS, extrapolation_blocks
 from .light_selection import select_light_model
 from .lighting import make_light_model, preload_light_states, update_led_offset
 from .normal_equations import prepare_depth_block
-from .options import AUTO, DEFAULT_CAUCHY_LAMBDA, RefineOptions
+from .options import AUTO, DEFAULT_CAUCHY_LAMBDA, FramesDepth, RefineOptions
 from .pose import keep_agreeing_poses, pose_information, update_poses
 from .point_light import fit_point_lights, initial_point_lights
 from .pose_trust import PoseAnchors, PoseLog
 from .problem import Estimate, LevelProblem
 from .problem_input import SolverInput
-from .pyramid import build_level, coarse_images, level_size
+from .pyramid import build_level, coarse_images, depth_prior, level_size
 from .reflectance import refit_albedo, update_albedo, update_lighting
 from .smoothness import auto_smoothness, grid_mode_weight
 from .solution import SolverOutput
@@ -303,7 +305,7 @@ def _reference_mask(problem_input: SolverInput) -> np.ndarray:
 
 def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timings: dict, stats: dict,
             anchors: PoseAnchors | None = None, log: PoseLog | None = None, lamps_settled: bool = False,
-            light_rounds: int = 1, hold_poses: bool = False) -> list:
+            light_rounds: int = 1, hold_poses: bool = False, retarget: Callable | None = None) -> list:
     """Run one level's sweeps in place on ``est``: the albedo fitted to the level's images, then
     sweeps of poses and depth (one joint step, or the paper's two), albedo, lighting, LED offset,
     extrapolation. The level's evaluations live here only (no caller holds a stale one: each
@@ -313,8 +315,10 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
     refitted the point lights (the finest level then takes :data:`POINT_FINEST_SWEEPS` and
     :data:`POINT_FINEST_REFIT`). hold_poses: keep the poses (a coarser level settled them by joint
     steps: :data:`FINEST_HOLD_MIN_PIXELS`); the depth steps take the joint step's parallax rows and
-    CG tolerance. ``stats["pose_steps"]`` gains the level's [index, object pixels, how its poses
-    were updated: "joint", "alternating", "held" or "none"].
+    CG tolerance. retarget: ``retarget(problem, est)`` re-makes the level's depth prior from every
+    frame's depth at the start of sweep :data:`.frames_depth.RETARGET_SWEEP` (the finest level's,
+    :func:`.frames_depth.frames_depth_target`), or None. ``stats["pose_steps"]`` gains the level's
+    [index, object pixels, how its poses were updated: "joint", "alternating", "held" or "none"].
 
     Returns the level's energy rows; stops at the relative energy change ``options.tolerance``
     (:func:`_stalled`).
@@ -383,6 +387,11 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
     drop = None  # the last sweep's relative energy drop (_stalled)
     for iteration in bar:
         refitted = False  # the albedo refitted by this sweep's depth step (below)
+        if retarget is not None and iteration == RETARGET_SWEEP:  # before the sweep's first energy
+            t = time.perf_counter()
+            retarget(problem, est)
+            ev.prior = problem.prior_energy(est.z, pending=True)
+            timings["frames_depth"] += time.perf_counter() - t
         # the first sweep's weights are set before the level's first energy; then held after
         # EVIDENCE_SWEEPS sweeps, so the rest of the level minimises one energy
         if 1 < iteration <= EVIDENCE_SWEEPS and not settled:
@@ -820,6 +829,24 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
              "levels": n_levels,
              "level_devices": [], "sensor_lowpass_sigma": tie_sigma}
 
+    noise = problem_input.report.get("reference_depth_outliers", {}).get("noise_mm_at_1m")
+    moving = options.refine_poses and not np.allclose(problem_input.initial_poses, np.eye(4))
+
+    def retarget(g, problem: LevelProblem, est: Estimate) -> None:
+        """The finest level's depth prior from every frame's depth at the current surface and poses
+        (:func:`.frames_depth.frames_depth_target`; g: the level's grid on the host);
+        ``stats["frames_depth"]`` says how many of frame 0's depth pixels took the frames' mean."""
+        target, averaged = frames_depth_target(g.scatter(to_host(est.z)), ref_mask, K, depth_K, sf,
+                                               np.asarray(sensor_depths, dtype=np.float64), np.asarray(est.poses),
+                                               noise / 1000.0, z0)
+        prior = depth_prior(g, target, sf / 2**problem.level.index)
+        if prior.z0.shape == problem.level.prior.z0.shape:
+            problem.level.prior.retarget(prior.z0)
+            stats["frames_depth"] = {"averaged": int(averaged.sum()), "of": int((z0 > 0).sum())}
+
+    frames_retarget = (retarget if options.average_frames_depth == FramesDepth.FINEST and moving and noise is not None
+                       and n_frames >= MEAN_MIN_FRAMES else None)
+
     def solve_level(level_index: int, carried: Carried | None) -> Carried | None:
         """:func:`level_solve`, its compiled kernels on as many threads as its size earns
         (:func:`~o3d_mvps.model.parallel.kernel_threads`; the count is restored after)."""
@@ -879,7 +906,8 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
         hold = level_index == 0 and not light.fixed_in_world and any(
             kind == "joint" and pixels >= FINEST_HOLD_MIN_PIXELS for _, pixels, kind in stats["pose_steps"])
         history.extend(_sweeps(problem, est, options, timings, stats, anchors, pose_log,
-                               lamps_settled=bool(settled_levels), light_rounds=rounds, hold_poses=hold))
+                               lamps_settled=bool(settled_levels), light_rounds=rounds, hold_poses=hold,
+                               retarget=partial(frames_retarget, g) if level_index == 0 and frames_retarget else None))
         if light.name == "point" and g.size > POINT_FIT_MAX_PIXELS:
             settled_levels.append(level_index)
         if tie_sigma is not None:

@@ -37,6 +37,14 @@ class _Choice(str, Enum):
             raise ValueError(f"{name} must be one of {[m.value for m in cls]}, got {value!r}") from None
 
 
+class FramesDepth(_Choice):
+    """Where a moving camera's other frames' depth enters the depth prior (``average_frames_depth``)."""
+
+    FINEST = "finest"
+    INITIAL = "initial"
+    OFF = "off"
+
+
 #: smoothness (mu~) per light model when none is given. With the LED, 0.3 keeps the pixels that
 #: only the reference frame sees (they carry no data once the albedo is projected out) near the
 #: smooth fit: an LED scene of the bunny on a table (640x480, SF 4, 360-degree ring) went from
@@ -180,13 +188,17 @@ class ModelOptions:
         static camera's are always left out). False keeps them (they are counted and reported
         either way). On the D415-like peers render 3.31 -> 1.56 mm, the clean D415 render
         unchanged (none flagged) (docs/fidelity.md, "Flying pixels of a moving camera").
-    average_frames_depth: a moving camera's reference depth becomes the frames' mean where they
-        agree (:func:`o3d_mvps.covisibility.reference_depth_mean`, at the initial poses, 4 frames or
-        more), for a noisy sensor: its noise, new in every frame, averages out instead of reaching
-        the normals through the depth prior (D415-like renders: normals 1.07 -> 0.85 deg). Off by
-        default: a frame's depth interpolated between its pixels misses detail steep at the depth
-        pixel's scale, which a noise-free sensor's own depth keeps (a 40x30 depth of a relief:
-        0.28 -> 0.87 deg) (docs/fidelity.md, "The frames' mean depth for a moving camera").
+    average_frames_depth: how a moving camera's other frames' depth enters the depth prior (4
+        frames or more, poses refined). "off" (the default): frame 0's depth alone, the paper's
+        prior. "finest": the finest level's prior is re-made after its first sweep from every
+        frame's depth, each compared with the surface as that frame's own pixels see it, their
+        residuals averaged (:func:`o3d_mvps.solver.frames_depth.frames_depth_target`; 20-frame
+        renders: normals 2.16 -> 1.56 deg at 640x480, 1.07 -> 0.86 at D415 size; not the default:
+        10 speckled frames at 320x240 lose a little). "initial": the reference depth is the frames'
+        mean at the initial poses before any level (:func:`o3d_mvps.covisibility.reference_depth_mean`),
+        for a noisy sensor with poses consistent with its depth (a room-lit D415 render 8.9 -> 5.0
+        deg, but a frame whose pose is millimetres off moves the target). docs/fidelity.md, "The
+        frames' mean depth for a moving camera".
     """
 
     tau: float = 10.0
@@ -203,7 +215,7 @@ class ModelOptions:
     sensor_lowpass: float | str | None = None
     evidence_weights: bool | None = None
     drop_depth_outliers: bool = True
-    average_frames_depth: bool = False
+    average_frames_depth: FramesDepth = FramesDepth.OFF
 
     def smoothness_weight(self) -> float | str:
         """mu~, or :data:`AUTO`: ``smoothness``, else the light model's default (the light model
@@ -251,7 +263,7 @@ class ModelOptions:
              evidence_weights=None if self.evidence_weights is None else _flag("evidence_weights",
                                                                                 self.evidence_weights),
              drop_depth_outliers=_flag("drop_depth_outliers", self.drop_depth_outliers),
-             average_frames_depth=_flag("average_frames_depth", self.average_frames_depth))
+             average_frames_depth=FramesDepth.parse("average_frames_depth", self.average_frames_depth))
 
 
 @dataclass(frozen=True)

@@ -155,6 +155,12 @@ class DepthPrior:
             return float(_weighted_sum(tau, d @ d, mu, s @ s))  # one copy to the host (a synchronisation on a GPU)
         return float(tau * (d @ d))
 
+    def retarget(self, z0: np.ndarray) -> None:
+        """The target replaced by ``z0`` (M,) metres (host; the same rows, kept where the prior's
+        arrays are: on a GPU copied there)."""
+        self.z0 = like(np.asarray(z0, dtype=np.float64), self.z0)
+        self.__dict__.pop("_negative_z0", None)
+
     @cached_property
     def _negative_z0(self) -> np.ndarray:
         """-z0 (M,), formed once (:meth:`energy` on a GPU)."""
