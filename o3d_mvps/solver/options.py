@@ -189,10 +189,10 @@ class ModelOptions:
         either way). On the D415-like peers render 3.31 -> 1.56 mm, the clean D415 render
         unchanged (none flagged) (docs/fidelity.md, "Flying pixels of a moving camera").
     average_frames_depth: how a moving camera's other frames' depth enters the depth prior (4
-        frames or more, poses refined). "off" (the default): frame 0's depth alone, the paper's
-        prior. "finest": the finest level's prior is re-made after its first sweep from every
-        frame's depth, each compared with the surface as that frame's own pixels see it, their
-        residuals averaged (:func:`o3d_mvps.solver.frames_depth.frames_depth_target`; 20-frame
+        frames or more). "off" (the default): frame 0's depth alone, the paper's prior. "finest"
+        (where the poses are refined): the finest level's prior is re-made after its first sweep
+        from every frame's depth, each compared with the surface as that frame's own pixels see
+        it, their residuals averaged (:func:`o3d_mvps.solver.frames_depth.frames_depth_target`; 20-frame
         renders: normals 2.16 -> 1.56 deg at 640x480, 1.07 -> 0.86 at D415 size; not the default:
         10 speckled frames at 320x240 lose a little). "initial": the reference depth is the frames'
         mean at the initial poses before any level (:func:`o3d_mvps.covisibility.reference_depth_mean`),
