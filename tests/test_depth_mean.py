@@ -225,3 +225,42 @@ def test_finest_re_makes_the_finest_prior_and_the_normals_gain(demo_render):
     assert counted["averaged"] > 0.8 * counted["of"]
     assert finest["mae_deg"] < 0.85 * off["mae_deg"], got
     assert finest["rmse_mm"] <= off["rmse_mm"], got
+
+
+def test_a_retargeted_prior_on_the_device_scores_its_new_target():
+    """``DepthPrior.retarget`` on a prior moved to the GPU (or, where numba's CUDA simulator is on,
+    the CuPy stand-in, which refuses host arrays as CuPy does): the new target is copied there and
+    the device's cached -z0 is formed anew, so its energy is the host prior's with that target (to
+    1e-12 relative), not the old one's (the old target scores 1.0, the new 0.25)."""
+    import numba
+    import scipy.sparse as sp
+
+    from o3d_mvps.solver.pyramid import DepthPrior
+
+    z, old, new = np.full(4, 0.5), np.full(4, 1.0), np.full(4, 0.75)
+    host = DepthPrior(sp.identity(4, format="csr"), new)
+    if numba.config.ENABLE_CUDASIM:
+        import cupy_emulation
+
+        with cupy_emulation.installed():
+            energy = _retargeted_energy(cupy_emulation.array_device(), old, new, z)
+    else:
+        from o3d_mvps.solver.device import array_device
+
+        energy = _retargeted_energy(array_device("cuda:0"), old, new, z)
+    assert energy[0] == pytest.approx(1.0, rel=1e-12)
+    assert energy[1] == pytest.approx(host.energy(z, 1.0, 0.0), rel=1e-12) == pytest.approx(0.25, rel=1e-12)
+
+
+def _retargeted_energy(device, old: np.ndarray, new: np.ndarray, z: np.ndarray) -> tuple[float, float]:
+    """The energy (tau 1, no smoothness) of a device prior at z before and after its target goes
+    from ``old`` to ``new``."""
+    import scipy.sparse as sp
+
+    from o3d_mvps.solver.pyramid import DepthPrior
+
+    moved = DepthPrior(sp.identity(4, format="csr"), old).on_device(device)
+    z_device = device.asarray(z)
+    before = moved.energy(z_device, 1.0, 0.0)
+    moved.retarget(new)
+    return before, moved.energy(z_device, 1.0, 0.0)

@@ -9,8 +9,8 @@ residual is the frame's noise, not a difference of sampling (a frame's depth int
 its pixels misses detail steep at the pixel's scale). The residuals, carried onto the reference's
 rays, are averaged where frame 0 and enough frames agree, and the prior's target becomes the
 surface's own depth pixels plus that mean. Each frame's rigid part is replaced by frame 0's: a pose
-that is off (a registration's shared error, a light fixed in the room) moves a frame's residual
-rigidly, and frame 0 keeps holding the surface where its depth says.
+that is off (the registration's shared error; poses moved by a room-lit level's parallax) moves a
+frame's residual rigidly, and frame 0 keeps holding the surface where its depth says.
 """
 
 from __future__ import annotations
