@@ -19,6 +19,7 @@ import numpy as np
 
 from ..covisibility import MEAN_MIN_FRAMES, carried_onto_rays, outlier_tolerance, surface_frame
 from ..model.camera import backproject, project, transform
+from ..model.warping import in_view, sample_bilinear
 
 #: the finest level's sweep at whose start its prior is re-made (after one sweep: the surface has
 #: the level's detail; from level 1's surface, upsampled, a 40x30 depth of a 4 mm relief kept
@@ -56,7 +57,9 @@ def frames_depth_target(z: np.ndarray, mask: np.ndarray, K: np.ndarray, depth_K:
         residual = np.where((predicted > 0) & (depth > 0), depth - predicted, np.nan)
         q = transform(T, centres)
         qu, qv, qz = project(q, depth_K)
-        carried = _bilinear(residual, qu, qv) / np.where(qz > 0, qz, np.inf)
+        # NaN outside the frame and wherever a corner's residual is NaN
+        carried = np.where(in_view(qu, qv, qz, residual.shape),
+                           sample_bilinear(residual[..., None], qu, qv)[:, 0], np.nan) / np.where(qz > 0, qz, np.inf)
         moved = carried_onto_rays(q, 1.0 + np.nan_to_num(carried), T, normals, along, steep) - own[v, u]
         residuals.append(np.where(np.isfinite(carried) & (qz > 0) & ~steep, moved, np.nan))
     stack = _rigid_as_frame_0(np.array(residuals), centres, normals, along, steep,
@@ -83,8 +86,7 @@ def _depth_pixels(pu: np.ndarray, pv: np.ndarray, Z: np.ndarray, keep: np.ndarra
     centre (0.07 mm median on a plane at 0.6 m, 4 mm colour pixels, a 30 degree tilt)."""
     h, w = size
     k = scale_factor
-    iu = np.floor((pu + 0.5) / k).astype(np.int64)
-    iv = np.floor((pv + 0.5) / k).astype(np.int64)
+    iu, iv = _depth_pixel_of(pu, pv, k)
     keep = keep & (iu >= 0) & (iu < w) & (iv >= 0) & (iv < h)
     index = iv[keep] * w + iu[keep]
     du = pu[keep] - (k * iu[keep] + (k - 1) / 2)  # from the depth pixel's centre, colour pixels
@@ -117,23 +119,16 @@ def _depth_pixels(pu: np.ndarray, pv: np.ndarray, Z: np.ndarray, keep: np.ndarra
 def _sample(depth: np.ndarray, pu: np.ndarray, pv: np.ndarray, scale_factor: int) -> np.ndarray:
     """(m,) metres: the depth pixel (h, w) each colour pixel (pu, pv) (m,) falls in; 0 outside."""
     h, w = depth.shape
-    iu = np.floor((pu + 0.5) / scale_factor).astype(np.int64)
-    iv = np.floor((pv + 0.5) / scale_factor).astype(np.int64)
+    iu, iv = _depth_pixel_of(pu, pv, scale_factor)
     inside = (iu >= 0) & (iu < w) & (iv >= 0) & (iv < h)
     return np.where(inside, depth[np.clip(iv, 0, h - 1), np.clip(iu, 0, w - 1)], 0.0)
 
 
-def _bilinear(values: np.ndarray, pu: np.ndarray, pv: np.ndarray) -> np.ndarray:
-    """(m,) ``values`` (h, w) interpolated bilinearly at pixels (pu, pv) (m,); NaN outside or where
-    a corner is NaN."""
-    h, w = values.shape
-    iu, iv = np.floor(pu).astype(np.int64), np.floor(pv).astype(np.int64)
-    inside = (iu >= 0) & (iu < w - 1) & (iv >= 0) & (iv < h - 1)
-    iu, iv = np.clip(iu, 0, w - 2), np.clip(iv, 0, h - 2)
-    fu, fv = np.where(inside, pu - iu, 0.0), np.where(inside, pv - iv, 0.0)
-    out = ((1 - fv) * ((1 - fu) * values[iv, iu] + fu * values[iv, iu + 1])
-           + fv * ((1 - fu) * values[iv + 1, iu] + fu * values[iv + 1, iu + 1]))
-    return np.where(inside, out, np.nan)
+def _depth_pixel_of(pu: np.ndarray, pv: np.ndarray, scale_factor: int) -> tuple[np.ndarray, np.ndarray]:
+    """(column, row) (m,) int each: the depth pixel whose scale_factor x scale_factor colour pixels
+    hold the colour pixel coordinates (pu, pv) (m,) (colour pixel centres at integers)."""
+    return (np.floor((pu + 0.5) / scale_factor).astype(np.int64),
+            np.floor((pv + 0.5) / scale_factor).astype(np.int64))
 
 
 def _rigid_as_frame_0(stack: np.ndarray, points: np.ndarray, normals: np.ndarray, along: np.ndarray,
