@@ -27,15 +27,14 @@ from .refinement import Refinement
 from .run_report import NOT_PICKED, peak_memory_mb, recorded_warnings
 from .solver.device import check_device
 from .solver.driver import return_freed_arrays, solve, trim_heap
-from .solver.options import AUTO, ConvergenceCriteria, FramesDepth, ModelOptions, RefineOptions
+from .solver.options import AUTO, ConvergenceCriteria, ModelOptions, RefineOptions
 from .solver.pose_trust import DEFAULT_POSE_TRUST
 from .solver.problem_input import SolverInput, write_problem
 from .solver.smoothness import sensor_noise_smoothness
 from .covisibility import (MIN_OTHER_FRAMES, OUTLIER_MIN_FRAMES, WEAK_COVERAGE_NOTE, ViewSelection,
                            frames_seeing_reference)
-from .covisibility import flying_pixels_check, frame_depths_in_reference, frames_mean_check
+from .covisibility import flying_pixels_check, frame_depths_in_reference
 from .covisibility import reference_depth_fill as moving_reference_fill
-from .covisibility import reference_depth_mean as moving_reference_mean
 from .covisibility import reference_depth_outliers as moving_reference_outliers
 
 #: the depth step's CG tolerance for a static camera, where ``cg_tolerance`` is left at its default
@@ -209,6 +208,7 @@ def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses
                                    "detail": "each frame's colour divided by its white balance relative to the "
                                              "frames' mean (o3d_mvps.capture.frame_white_balance)"}
     depths = np.stack([capture.depth_array(i) for i in range(n)])
+    depth_noise = None  # measured by a moving camera's flying-pixel check
     if camera.static and n >= MIN_FRAMES_FOR_MEDIAN:
         # flying pixels of the reference (the depth prior's) left out: at the 640x480 D415-like
         # bunny's silhouette they pulled the rim back and brightened its albedo
@@ -232,6 +232,7 @@ def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses
         K_depth = capture.depth_K()
         warped = frame_depths_in_reference(depths, initial_poses, K_depth)
         flying, noise = moving_reference_outliers(depths, initial_poses, K_depth, warped=warped, return_noise=True)
+        depth_noise = noise
         found = {"pixels": int(flying.sum()), "fraction": round(float(flying.mean()), 6),
                  "noise_mm_at_1m": round(1000 * noise, 4), "replaced": bool(options.drop_depth_outliers)}
         from_frames = foreground = None
@@ -243,23 +244,16 @@ def problem_from_capture(capture: Capture, options: RefineOptions, initial_poses
         valid = int((depths[0] > 0).sum())
         if from_frames is not None:
             depths[0][flying] = values[flying]
-        if options.average_frames_depth == FramesDepth.INITIAL:
-            # then the frames' mean where they agree: a noisy sensor's error, new in every frame,
-            # averages out instead of reaching the normals through the prior (docs/fidelity.md)
-            depths[0], averaged = moving_reference_mean(depths, initial_poses, K_depth, noise)
-            found.update(averaged=int(averaged.sum()))
         report["reference_depth_outliers"] = {**found, "seconds": round(time.perf_counter() - t0, 4)}
         inputs = report.setdefault("inputs", {"checks": [], "conventions": {}})
         inputs["checks"].append(flying_pixels_check(flying, from_frames, valid, noise, foreground))
-        if options.average_frames_depth == FramesDepth.INITIAL:
-            inputs["checks"].append(frames_mean_check(averaged, valid))
     return SolverInput(
         colors=colors,
         depths=depths,
         masks=masks,
         K=capture.color_K(), depth_K=capture.depth_K(), scale_factor=capture.scale_factor,
         initial_poses=initial_poses, led_offset=_led_offset(options, capture), frames=frames, options=options,
-        report=report, pose_trust=trust,
+        report=report, pose_trust=trust, depth_noise=depth_noise,
     ), views
 
 

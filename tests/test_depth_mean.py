@@ -4,6 +4,8 @@ reference's rays and averaged where they agree (o3d_mvps.covisibility.frame_dept
 current surface in its own pixels at the finest level (o3d_mvps.solver.frames_depth, "finest");
 docs/fidelity.md, "The frames' mean depth for a moving camera"."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy import ndimage
@@ -14,6 +16,8 @@ from o3d_mvps.covisibility import (frame_depths_in_reference, frame_depths_on_re
                                    reference_depth_outliers)
 from o3d_mvps.model.camera import scale_intrinsics
 from o3d_mvps.model.resampling import block_average, masked_gaussian, resample_valid
+from o3d_mvps.solver.driver import frames_mean_depths
+from o3d_mvps.solver.options import FramesDepth
 from o3d_mvps.solver.frames_depth import frames_depth_target
 from o3d_mvps.solving import problem_from_capture
 
@@ -114,21 +118,30 @@ def test_the_mean_averages_the_frames_low_frequency_error(d415):
 
 
 def test_the_option_ties_the_depth_to_the_frames_mean_and_says_how_much(d415):
-    """``average_frames_depth="initial"``: the solver's reference depth is the frames' mean at the given
-    poses, and the run report counts the pixels it averaged (before any solve): 929 of frame 0's
-    1402 depth pixels (the rest along the silhouette or seen by fewer than four frames; bound 60 %),
-    and its input checks say so. Off (the default), frame 0's depth stays as it is and nothing is
-    counted."""
+    """``average_frames_depth="initial"``: the solver ties the depth to the frames' mean at the given
+    poses (:func:`o3d_mvps.solver.driver.frames_mean_depths`; the saved problem keeps the sensor's
+    own depth), and the run report counts the pixels it averaged: 929 of frame 0's 1402 depth
+    pixels (the rest along the silhouette or seen by fewer than four frames; bound 60 %), and its
+    input checks say so. Off (the default), or without a measured depth noise, frame 0's depth
+    stays as it is (the input's own array, not a copy) and nothing is counted."""
     depths = np.stack([d415.depth_array(i) for i in range(d415.n_frames)]).astype(np.float64)
     problem, _ = problem_from_capture(d415, RefineOptions(progress=False, average_frames_depth="initial"),
                                       initial_poses=d415.groundtruth.poses)
+    assert problem.depth_noise > 0
+    tied = frames_mean_depths(problem, problem.options.average_frames_depth)
     row = problem.report["reference_depth_outliers"]
     assert row["averaged"] > 0.6 * int((depths[0] > 0).sum())
-    changed = np.abs(problem.depths[0] - depths[0]) > 1e-4
+    changed = np.abs(tied[0] - problem.depths[0]) > 1e-4
     assert changed.sum() > 0.5 * row["averaged"]
+    np.testing.assert_array_equal(tied[1:], problem.depths[1:])
     said = [c for c in problem.report["inputs"]["checks"] if c["name"] == "frames' mean depth"]
     assert len(said) == 1 and said[0]["detail"].startswith(f"{row['averaged']} of the reference's")
+    unmeasured = replace(problem, depth_noise=None)
+    for mode in ("initial", "finest"):  # asked for, but no noise to judge the frames by: said, not silent
+        with pytest.warns(UserWarning, match=f"average_frames_depth='{mode}' needs 4 frames or more.*not measured"):
+            assert frames_mean_depths(unmeasured, FramesDepth(mode)) is unmeasured.depths
     default, _ = problem_from_capture(d415, RefineOptions(progress=False), initial_poses=d415.groundtruth.poses)
+    assert frames_mean_depths(default, default.options.average_frames_depth) is default.depths
     assert "averaged" not in default.report["reference_depth_outliers"]
     assert not [c for c in default.report["inputs"]["checks"] if c["name"] == "frames' mean depth"]
     flying = reference_depth_outliers(depths, np.asarray(d415.groundtruth.poses, np.float64),

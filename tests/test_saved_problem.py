@@ -16,13 +16,16 @@ import open3d as o3d
 import pytest
 
 from o3d_mvps import RefineOptions, read_refinement, refine
+from o3d_mvps.capture import write_capture
 from o3d_mvps.cli import main
 from o3d_mvps.colour import CodedColours, codes_to_linear
 from o3d_mvps.cli import refine as refine_cli
 from o3d_mvps.errors import DeviceError, MVPSError, OutputExistsError
 from o3d_mvps.solver import __main__ as solver_main
 from o3d_mvps.solver.device import check_device
+from o3d_mvps.solver.driver import solve
 from o3d_mvps.solver.problem_input import SolverInput, read_problem, write_problem
+from o3d_mvps.synthetic import render_capture
 
 REPO = Path(__file__).resolve().parents[1]
 TINY_SOLVER = ["--levels", "2", "--iterations", "2"]
@@ -99,7 +102,8 @@ def test_saved_problem_solves_to_refines_depth_without_open3d(capture_dir, tmp_p
 
 
 def test_problem_round_trip(capture, tmp_path):
-    """write_problem -> read_problem: every array equal, a frame without mask stays without, options equal."""
+    """write_problem -> read_problem: every array equal, a frame without mask stays without, options
+    and the measured depth noise equal."""
     rng = np.random.default_rng(0)
     n, H, W, sf = 3, 12, 16, 2
     poses = np.stack([np.eye(4)] * n)
@@ -109,8 +113,12 @@ def test_problem_round_trip(capture, tmp_path):
     problem = SolverInput(colors=rng.random((n, H, W, 3)), depths=rng.uniform(0.4, 0.6, (n, H // sf, W // sf)),
                           masks=[rng.random((H, W)) > 0.5, None, np.ones((H, W), bool)], K=capture.color_K(),
                           depth_K=capture.depth_K(), scale_factor=sf, initial_poses=poses,
-                          led_offset=[0.03, -0.02, 0.0], frames=[0, 2, 4], options=options)
+                          led_offset=[0.03, -0.02, 0.0], frames=[0, 2, 4], options=options, depth_noise=0.0123)
     back = read_problem(write_problem(problem, tmp_path / "p.npz"))
+    assert back.depth_noise == 0.0123  # what the frames' mean depth is judged by
+    assert read_problem(write_problem(replace(problem, depth_noise=None), tmp_path / "q.npz")).depth_noise is None
+    with pytest.raises(ValueError, match="depth_noise must be a finite s"):
+        replace(problem, depth_noise=float("nan"))
     for name in ("colors", "depths", "K", "depth_K", "initial_poses", "led_offset"):
         np.testing.assert_array_equal(getattr(back, name), getattr(problem, name), err_msg=name)
         assert getattr(back, name).dtype == getattr(problem, name).dtype
@@ -246,3 +254,30 @@ def test_cuda_device_is_refused_before_any_work(monkeypatch, capture, capture_di
         refine(capture, device="CUDA:0")
     assert solver_main.main([str(tmp_path / "missing.npz"), str(tmp_path / "s.npz"), "--device", "cuda"]) == 1
     assert "pip install o3d-mvps[cuda]" in capsys.readouterr().err  # the device before the problem file
+
+
+@pytest.mark.parametrize("mode", ["initial", "finest"])
+def test_a_saved_problem_averages_the_frames_depth_as_refine_did(tmp_path, mode):
+    """The frames' mean depth is judged by the depth noise that the frames' disagreement gave; the
+    saved problem carries it (``depth_noise``), so that its solve averages as ``refine`` did:
+    the same depth bit for bit, and the averaged pixels counted alike. Without it ("initial" and
+    "finest" both need it) the solve ties the depth to frame 0 alone, and says so."""
+    capture = render_capture("bunny", frames=5, scale_factor=2, size=(160, 120), seed=2, progress=False)
+    folder, problem, out = tmp_path / "capture", tmp_path / "problem.npz", tmp_path / "refined"
+    write_capture(capture, folder)
+    assert main(["--quiet", "refine", str(folder), str(out), "--save-problem", str(problem), "--levels", "2",
+                 "--iterations", "4", "--average-frames-depth", mode]) == 0
+    saved = read_problem(problem)
+    assert saved.depth_noise is not None and saved.depth_noise > 0
+    refined = read_refinement(out)
+    solved = solve(saved)
+    np.testing.assert_array_equal(solved.depth.astype(np.float32), refined.depth_array())
+    if mode == "initial":
+        assert saved.report["reference_depth_outliers"]["averaged"] == \
+            refined.info["reference_depth_outliers"]["averaged"] > 0
+    else:
+        assert solved.info["frames_depth"] == refined.info["frames_depth"]
+        assert solved.info["frames_depth"]["averaged"] > 0
+    with pytest.warns(UserWarning, match=f"average_frames_depth='{mode}' needs .* noise not measured"):
+        without = solve(replace(read_problem(problem), depth_noise=None))  # as a file saved without it
+    assert not np.array_equal(without.depth, solved.depth)

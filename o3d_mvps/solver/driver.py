@@ -28,7 +28,7 @@ from threadpoolctl import threadpool_limits
 from tqdm.auto import tqdm
 
 from ..colour import float_frame
-from ..covisibility import MEAN_MIN_FRAMES
+from ..covisibility import MEAN_MIN_FRAMES, frames_mean_check, reference_depth_mean
 from ..errors import CaptureError
 from ..model import se3
 from ..model.arrays import array_module, contiguous, fused, like
@@ -767,6 +767,39 @@ def solve(problem_input: SolverInput, options: RefineOptions | None = None, devi
         return _solve(problem_input, options, device)
 
 
+def frames_mean_depths(problem_input: SolverInput, mode: FramesDepth) -> np.ndarray:
+    """The sensor depths (n, h, w) metres the solve ties to: ``problem_input.depths``, or where
+    ``mode`` (``average_frames_depth``) is "initial" a copy whose frame 0 is the frames' mean at the
+    initial poses (:func:`~o3d_mvps.covisibility.reference_depth_mean`), judged by the depth noise
+    the frames' disagreement gave (``problem_input.depth_noise``: a moving camera of 4 frames or
+    more; none measured, nothing averaged). Made here, by the solver, so that a saved problem holds
+    the sensor's own depth and solves as ``refine`` did. The report's "reference_depth_outliers"
+    then counts the averaged pixels ("averaged") and its input checks gain a "frames' mean depth"
+    row. A moving camera asked for the frames' depth ("initial" or "finest") without a measured
+    noise or with fewer than :data:`~o3d_mvps.covisibility.MEAN_MIN_FRAMES` frames is warned that
+    frame 0's depth alone is used (a static camera's reference depth is the frames' already)."""
+    depths, noise = problem_input.depths, problem_input.depth_noise
+    usable = noise is not None and problem_input.n_frames >= MEAN_MIN_FRAMES
+    if mode != FramesDepth.OFF and not usable and not np.allclose(problem_input.initial_poses, np.eye(4)):
+        warnings.warn(f"average_frames_depth={mode.value!r} needs {MEAN_MIN_FRAMES} frames or more and the depth "
+                      f"noise their disagreement gives ({problem_input.n_frames} frames, noise "
+                      f"{'not measured' if noise is None else 'measured'}; refine measures it, and a problem saved "
+                      "without it must be saved again with --save-problem): the depth is tied to frame 0's alone",
+                      stacklevel=3)
+    if mode != FramesDepth.INITIAL or not usable:
+        return depths
+    t = time.perf_counter()
+    depths = np.array(depths, copy=True)
+    valid = int((depths[0] > 0).sum())
+    mean, averaged = reference_depth_mean(depths, problem_input.initial_poses, problem_input.depth_K, noise)
+    depths[0] = mean
+    report = problem_input.report
+    report.setdefault("reference_depth_outliers", {}).update(averaged=int(averaged.sum()),
+                                                             averaging_seconds=round(time.perf_counter() - t, 4))
+    report.setdefault("inputs", {"checks": [], "conventions": {}})["checks"].append(frames_mean_check(averaged, valid))
+    return depths
+
+
 def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevice) -> SolverOutput:
     timings = defaultdict(float)
     t0 = time.perf_counter()
@@ -789,10 +822,11 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
     timings["light_selection"] = time.perf_counter() - t0
     if options.progress:
         print(f"light model: {selection['chosen']} ({selection['why']})")
-    z0 = problem_input.depths[0].astype(np.float64)
-    if not (z0 > 0).any():
+    if not (problem_input.depths[0] > 0).any():
         raise CaptureError("the reference depth has no valid pixel; check the depth image of frame 0")
-    sensor_depths = problem_input.depths
+    noise = problem_input.depth_noise
+    sensor_depths = frames_mean_depths(problem_input, options.average_frames_depth)
+    z0 = sensor_depths[0].astype(np.float64)
     depth_K = problem_input.depth_K
     sf = problem_input.scale_factor
     n_frames = problem_input.n_frames
@@ -829,7 +863,6 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
              "levels": n_levels,
              "level_devices": [], "sensor_lowpass_sigma": tie_sigma}
 
-    noise = problem_input.report.get("reference_depth_outliers", {}).get("noise_mm_at_1m")
     moving = options.refine_poses and not np.allclose(problem_input.initial_poses, np.eye(4))
 
     def retarget(g, problem: LevelProblem, est: Estimate) -> None:
@@ -838,7 +871,7 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
         ``stats["frames_depth"]`` says how many of frame 0's depth pixels took the frames' mean."""
         target, averaged = frames_depth_target(g.scatter(to_host(est.z)), ref_mask, K, depth_K, sf,
                                                np.asarray(sensor_depths, dtype=np.float64), np.asarray(est.poses),
-                                               noise / 1000.0, z0)
+                                               noise, z0)
         prior = depth_prior(g, target, sf / 2**problem.level.index)
         if prior.z0.shape == problem.level.prior.z0.shape:
             problem.level.prior.retarget(prior.z0)

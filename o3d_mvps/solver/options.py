@@ -197,8 +197,10 @@ class ModelOptions:
         10 speckled frames at 320x240 lose a little). "initial": the reference depth is the frames'
         mean at the initial poses before any level (:func:`o3d_mvps.covisibility.reference_depth_mean`),
         for a noisy sensor with poses consistent with its depth (a room-lit D415 render 8.9 -> 5.0
-        deg, but a frame whose pose is millimetres off moves the target). docs/fidelity.md, "The
-        frames' mean depth for a moving camera".
+        deg, but a frame whose pose is millimetres off moves the target; under the LED, where the
+        images carry the detail, a 40x30 relief with kicked poses lost it), applied by the solver
+        (:func:`o3d_mvps.solver.driver.frames_mean_depths`). docs/fidelity.md, "The frames' mean
+        depth for a moving camera".
     """
 
     tau: float = 10.0

@@ -43,7 +43,10 @@ class SolverInput:
     report: JSON-ready notes on how the input was made (``inputs``: the input checks,
     ``frames_report``: every capture frame, used or why not); passed on to the refinement's info,
     not saved. pose_trust: None where the initial poses were registered; for given poses, how far
-    they are trusted, (metres, radians) (:mod:`o3d_mvps.solver.pose_trust`).
+    they are trusted, (metres, radians) (:mod:`o3d_mvps.solver.pose_trust`). depth_noise: s (1/m)
+    of the depth noise sigma(z) = s z^2 that the frames' disagreement at the initial poses gave
+    (:func:`o3d_mvps.covisibility.depth_noise_scale`; a moving camera of 4 frames or more), which
+    the frames' mean depth is judged by (``average_frames_depth``); None where not measured.
     """
 
     colors: np.ndarray | list
@@ -58,6 +61,7 @@ class SolverInput:
     options: RefineOptions
     report: dict = field(default_factory=dict)
     pose_trust: tuple | None = None
+    depth_noise: float | None = None
 
     def __post_init__(self):
         if isinstance(self.colors, np.ndarray):
@@ -75,6 +79,10 @@ class SolverInput:
             if trust.shape != (2,) or not np.all(np.isfinite(trust)) or not np.all(trust > 0):
                 raise ValueError(f"pose_trust must be (metres, radians), both > 0, got {self.pose_trust!r}")
             self.pose_trust = (float(trust[0]), float(trust[1]))
+        if self.depth_noise is not None:
+            if not (np.isfinite(self.depth_noise) and self.depth_noise >= 0):
+                raise ValueError(f"depth_noise must be a finite s (1/m) >= 0 or None, got {self.depth_noise!r}")
+            self.depth_noise = float(self.depth_noise)
         n = len(self.colors)
         shapes = self._frame_shapes()
         H, W = shapes[0][:2] if n and len(shapes[0]) == 3 else (0, 0)
@@ -129,9 +137,10 @@ def write_problem(problem: SolverInput, path, *, overwrite: bool = False) -> Pat
 
     Keys: format, format_version, the arrays of :class:`SolverInput` under their names, masks
     (n, H, W) bool with has_mask (n,) bool (False: the frame had no mask), options (JSON),
-    pose_trust (2,) where the poses were given. Coded frames (:class:`~o3d_mvps.colour.CodedColours`)
-    are saved as they are held: colors (n, H, W, 3) uint8/uint16 codes and color_tables (n, 3, K)
-    float32 (a quarter of the float frames' bytes for 8-bit files).
+    pose_trust (2,) where the poses were given, depth_noise () where measured. Coded frames
+    (:class:`~o3d_mvps.colour.CodedColours`) are saved as they are held: colors (n, H, W, 3)
+    uint8/uint16 codes and color_tables (n, 3, K) float32 (a quarter of the float frames' bytes
+    for 8-bit files).
     """
     path = Path(path)
     H, W = problem.color_size
@@ -145,6 +154,8 @@ def write_problem(problem: SolverInput, path, *, overwrite: bool = False) -> Pat
     arrays["options"] = np.array(json_text(problem.options.to_dict(), "the options"))
     if problem.pose_trust is not None:
         arrays["pose_trust"] = np.asarray(problem.pose_trust)
+    if problem.depth_noise is not None:
+        arrays["depth_noise"] = np.array(problem.depth_noise)
     with atomic_files([path], overwrite) as (tmp,), open(tmp, "wb") as file:
         np.savez_compressed(file, format=np.array(PROBLEM_FORMAT), format_version=np.array(PROBLEM_VERSION), **arrays)
     return path
@@ -182,12 +193,13 @@ def read_problem(path) -> SolverInput:
     try:
         masks = [m if has else None for m, has in zip(data["masks"], data["has_mask"])]
         options = RefineOptions.from_dict(json.loads(str(data["options"])))
-        trust = data.get("pose_trust")
+        trust, noise = data.get("pose_trust"), data.get("depth_noise")
         arrays = {name: data[name] for name in _ARRAYS}
         if "color_tables" in data:
             arrays["colors"] = CodedColours(list(arrays["colors"]), data["color_tables"])
         return SolverInput(**arrays, masks=list(masks), options=options,
-                           pose_trust=None if trust is None else tuple(trust.tolist()))
+                           pose_trust=None if trust is None else tuple(trust.tolist()),
+                           depth_noise=None if noise is None else float(noise))
     except KeyError as e:
         raise MVPSError(f"{path} lacks the array {e}; {remake}") from None
     except (TypeError, ValueError) as e:
