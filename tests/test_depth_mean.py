@@ -11,7 +11,7 @@ import pytest
 from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
-from o3d_mvps import RefineOptions, synthetic
+from o3d_mvps import RefineOptions, refine, synthetic
 from o3d_mvps.covisibility import (frame_depths_in_reference, frame_depths_on_reference_rays, reference_depth_mean,
                                    reference_depth_outliers)
 from o3d_mvps.model.camera import scale_intrinsics
@@ -147,6 +147,19 @@ def test_the_option_ties_the_depth_to_the_frames_mean_and_says_how_much(d415):
     flying = reference_depth_outliers(depths, np.asarray(d415.groundtruth.poses, np.float64),
                                       np.asarray(d415.depth_K(), np.float64))
     assert np.array_equal(default.depths[0][~flying], depths[0][~flying])
+
+
+def test_finest_with_the_poses_held_says_it_is_not_made(d415):
+    """"finest" compares the frames at the poses the solve refines: with the poses held it is not
+    made, and the solve says so (naming "initial" instead) rather than tying the depth to frame 0
+    without a word; the result is the default's."""
+    options = dict(progress=False, refine_poses=False, levels=2, max_iterations=2)
+    with pytest.warns(UserWarning, match="'finest' compares the frames at the poses the solve refines.*'initial'"):
+        held = refine(d415, RefineOptions(average_frames_depth="finest", **options),
+                      initial_poses=d415.groundtruth.poses)
+    assert "frames_depth" not in held.info
+    default = refine(d415, RefineOptions(**options), initial_poses=d415.groundtruth.poses)
+    np.testing.assert_array_equal(held.depth_array(), default.depth_array())
 
 
 def test_the_cli_flag_is_the_option():

@@ -879,6 +879,12 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
 
     frames_retarget = (retarget if options.average_frames_depth == FramesDepth.FINEST and moving and noise is not None
                        and n_frames >= MEAN_MIN_FRAMES else None)
+    if options.average_frames_depth == FramesDepth.FINEST and noise is not None and n_frames >= MEAN_MIN_FRAMES \
+            and not moving:  # the poses held: said, not silent
+        warnings.warn("average_frames_depth='finest' compares the frames at the poses the solve refines; with the "
+                      "poses held (refine_poses=False, --no-pose-refinement) it is not made and the depth is tied "
+                      "to frame 0's alone: 'initial' (--average-frames-depth initial) averages the frames at the "
+                      "given poses", stacklevel=3)
 
     def solve_level(level_index: int, carried: Carried | None) -> Carried | None:
         """:func:`level_solve`, its compiled kernels on as many threads as its size earns
