@@ -779,13 +779,13 @@ def frames_mean_depths(problem_input: SolverInput, mode: FramesDepth) -> np.ndar
     noise or with fewer than :data:`~o3d_mvps.covisibility.MEAN_MIN_FRAMES` frames is warned that
     frame 0's depth alone is used (a static camera's reference depth is the frames' already)."""
     depths, noise = problem_input.depths, problem_input.depth_noise
-    usable = noise is not None and problem_input.n_frames >= MEAN_MIN_FRAMES
+    usable = _frames_depth_usable(problem_input)
     if mode != FramesDepth.OFF and not usable and not np.allclose(problem_input.initial_poses, np.eye(4)):
         warnings.warn(f"average_frames_depth={mode.value!r} needs {MEAN_MIN_FRAMES} frames or more and the depth "
                       f"noise their disagreement gives ({problem_input.n_frames} frames, noise "
                       f"{'not measured' if noise is None else 'measured'}; refine measures it, and a problem saved "
                       "without it must be saved again with --save-problem): the depth is tied to frame 0's alone",
-                      stacklevel=3)
+                      stacklevel=4)
     if mode != FramesDepth.INITIAL or not usable:
         return depths
     t = time.perf_counter()
@@ -798,6 +798,13 @@ def frames_mean_depths(problem_input: SolverInput, mode: FramesDepth) -> np.ndar
                                                              averaging_seconds=round(time.perf_counter() - t, 4))
     report.setdefault("inputs", {"checks": [], "conventions": {}})["checks"].append(frames_mean_check(averaged, valid))
     return depths
+
+
+def _frames_depth_usable(problem_input: SolverInput) -> bool:
+    """Whether the frames' depth can enter the prior (either mode of ``average_frames_depth``): their
+    disagreement measured the depth noise that judges them, over at least
+    :data:`~o3d_mvps.covisibility.MEAN_MIN_FRAMES` frames."""
+    return problem_input.depth_noise is not None and problem_input.n_frames >= MEAN_MIN_FRAMES
 
 
 def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevice) -> SolverOutput:
@@ -877,10 +884,9 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
             problem.level.prior.retarget(prior.z0)
             stats["frames_depth"] = {"averaged": int(averaged.sum()), "of": int((z0 > 0).sum())}
 
-    frames_retarget = (retarget if options.average_frames_depth == FramesDepth.FINEST and moving and noise is not None
-                       and n_frames >= MEAN_MIN_FRAMES else None)
-    if options.average_frames_depth == FramesDepth.FINEST and noise is not None and n_frames >= MEAN_MIN_FRAMES \
-            and not moving:  # the poses held: said, not silent
+    finest = options.average_frames_depth == FramesDepth.FINEST and _frames_depth_usable(problem_input)
+    frames_retarget = retarget if finest and moving else None
+    if finest and not moving:  # the poses held: said, not silent
         warnings.warn("average_frames_depth='finest' compares the frames at the poses the solve refines; with the "
                       "poses held (refine_poses=False, --no-pose-refinement) it is not made and the depth is tied "
                       "to frame 0's alone: 'initial' (--average-frames-depth initial) averages the frames at the "
