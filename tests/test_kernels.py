@@ -306,14 +306,16 @@ def test_chunked_frame_loops_equal_the_per_pixel_loop(n_pixels):
         assert np.array_equal(a, b), name
 
 
+@pytest.mark.parametrize("scored", [True, False])
 @pytest.mark.parametrize("shared", [True, False])
 @pytest.mark.parametrize("n_pixels", [5, FRAME_CHUNK + 123])
-def test_albedo_refit_in_one_pass_equals_the_update_and_reevaluation(shared, n_pixels):
+def test_albedo_refit_in_one_pass_equals_the_update_and_reevaluation(shared, n_pixels, scored):
     """kernels.albedo_refit_residuals (the host's albedo refit and re-evaluation in one pass)
     against albedo_update, shading_residuals and cauchy_energy in turn, on float32 residuals,
     colours and basis as the solver stores them: the albedo, shading and residuals the same bit
     for bit, the energy to 1e-13 (its factors grouped per pixel, not per 8 stored terms; measured
-    ~1e-15); a pixel that no frame sees keeps its albedo."""
+    ~1e-15); a pixel that no frame sees keeps its albedo. Not ``scored``: the same albedo, shading
+    and residuals, and the energy's arrays left as they were."""
     n, f32 = 6, np.float32
     usable = RNG.random((n, n_pixels)) > 0.2
     usable[:, 0] = False
@@ -330,10 +332,13 @@ def test_albedo_refit_in_one_pass_equals_the_update_and_reevaluation(shared, n_p
     energy = cauchy_energy(expected[1], LAM)
     got, products, parts = np.full((n_pixels, 3), np.nan), np.ones(n_pixels), np.zeros(-(-n_pixels // FRAME_CHUNK))
     albedo_refit_residuals(residual, usable, color, shading, 1.0 / LAM, albedo, basis, lights, num, den, got,
-                           products, parts)
+                           products, parts, scored)
     assert np.array_equal(got, refit) and np.array_equal(got[0], albedo[0])
     assert np.array_equal(shading, expected[0]) and np.array_equal(residual, expected[1])
-    assert 0.5 * LAM * LAM * parts.sum() == pytest.approx(energy, rel=1e-13, abs=0)
+    if scored:
+        assert 0.5 * LAM * LAM * parts.sum() == pytest.approx(energy, rel=1e-13, abs=0)
+    else:
+        assert np.array_equal(products, np.ones(n_pixels)) and not parts.any()
     assert not np.array_equal(refit, albedo)
 
 

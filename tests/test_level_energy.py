@@ -98,6 +98,29 @@ def test_an_unscored_trial_refits_to_the_scored_evaluation(light):
     assert np.array_equal(one.albedo, other.albedo) and not np.array_equal(one.albedo, est.albedo)
     assert refitted_unscored.energy == refitted.energy < scored.energy
 
+@pytest.mark.parametrize("light", ["sh", "led"])
+def test_a_refit_without_its_energy_is_the_same_evaluation(light):
+    """reflectance.refit_albedo(scored=False), a light round's refit (the lights' energy is read,
+    not this one): the scored refit's albedo, residuals, shading and prior bit for bit; reading its
+    data energy raises; re-evaluated, its energy is the scored refit's (to the 1e-13 of the
+    refit's other grouping of the factors)."""
+    from dataclasses import replace
+
+    from o3d_mvps.solver.reflectance import refit_albedo
+
+    problem, est = frames_problem(4, light)
+    one, other = replace(est), replace(est)
+    scored = refit_albedo(problem, one, problem.evaluate(one))
+    unscored = refit_albedo(problem, other, problem.evaluate(other), scored=False)
+    assert np.array_equal(one.albedo, other.albedo) and not np.array_equal(one.albedo, est.albedo)
+    for name in ("residual", "shading", "usable"):
+        assert np.array_equal(getattr(scored, name), getattr(unscored, name))
+    assert unscored.prior == scored.prior
+    with pytest.raises(RuntimeError, match="without its data energy"):
+        unscored.energy
+    assert problem.reevaluate(other, unscored).energy == pytest.approx(scored.energy, rel=1e-12)
+
+
 def test_a_static_camera_s_energy_reuses_the_samples_of_its_evaluation(monkeypatch):
     """Identity poses (a static camera): after one evaluation the energy reads the frames' cached
     samples, warping no frame again, and agrees with the evaluation for another z."""

@@ -476,7 +476,7 @@ def _fit_albedo_lighting(problem: LevelProblem, est: Estimate, ev, refit_first: 
     previous = ev.data if rounds > 1 else None
     for taken in range(1, rounds + 1):
         if refit_first or taken > 1:
-            ev = refit_albedo(problem, est, ev)  # (one launch on a GPU)
+            ev = refit_albedo(problem, est, ev, scored=False)  # the lights' energy is read, not this one
         est.lights = update_lighting(est, ev, problem.lam, problem.light_model(est))
         ev = problem.reevaluate(est, ev, overwrite=True)
         if taken < rounds:

@@ -2207,7 +2207,7 @@ def albedo_update(residual, usable, values, shading, inv_lam, fallback, num, den
 
 @numba.njit(parallel=True, cache=True)
 def albedo_refit_residuals(residual, usable, color, shading, inv_lam, fallback, basis, lights, num, den, albedo,
-                           products, parts):  # pragma: no cover - compiled
+                           products, parts, scored):  # pragma: no cover - compiled
     """The host's albedo refit and re-evaluation in one pass over chunks of ``FRAME_CHUNK`` pixels:
     :func:`albedo_update` (albedo (N, 3) written; num, den (N, 3) its sums) from the IRLS weights of
     ``residual`` (n, N, 3), then :func:`shading_residual_pixel` at that albedo (shading (n, N) and
@@ -2217,7 +2217,8 @@ def albedo_refit_residuals(residual, usable, color, shading, inv_lam, fallback, 
     :data:`PRODUCT_LOG_LIMIT`), chunk k's logarithms in ``parts[k]`` (zeros on entry); the energy is
     ``parts.sum()``. Albedo, shading and residuals the same bit for bit as the two steps (each
     pixel's frames in the same order); the energy equal to :func:`log1p_square_sum`'s to ~1e-14
-    (another grouping of the factors). basis (n or 1, N, k), lights (n, k)."""
+    (another grouping of the factors). basis (n or 1, N, k), lights (n, k). ``scored`` False:
+    no energy (products and parts left as they are), for a caller that refits the lights next."""
     n, N = usable.shape
     for k in numba.prange(-(-N // FRAME_CHUNK)):
         start, stop = k * FRAME_CHUNK, min(N, (k + 1) * FRAME_CHUNK)
@@ -2228,15 +2229,16 @@ def albedo_refit_residuals(residual, usable, color, shading, inv_lam, fallback, 
         for i in range(n):
             for p in range(start, stop):
                 shading_residual_pixel(color, albedo, basis, lights, usable, shading, residual, i, p)
-                if usable[i, p]:  # else residuals 0: factors 1
+                if scored and usable[i, p]:  # else residuals 0: factors 1
                     product, taken = flushed_product(products[p])
                     flushed += taken
                     for c in range(3):
                         product *= square_factor(residual[i, p, c], inv_lam)
                     products[p] = product
-        for p in range(start, stop):
-            flushed += math.log(products[p])
-        parts[k] = flushed
+        if scored:
+            for p in range(start, stop):
+                flushed += math.log(products[p])
+            parts[k] = flushed
 
 
 def lighting_blocks(n_pixels: int) -> int:

@@ -152,7 +152,7 @@ def _held_out_score(problem_input: SolverInput, level, name: str, held_out: np.n
     if name == "point":
         ev = initial_point_lights(problem, est, ev)
     for _ in range(SWEEPS):
-        ev = refit_albedo(problem, est, ev)
+        ev = refit_albedo(problem, est, ev, scored=False)  # the lights' refit follows
         est.lights = update_lighting(est, ev, problem.lam, problem.light_model(est))
         ev = problem.reevaluate(est, ev, overwrite=True)
         if name == "led":
@@ -160,8 +160,8 @@ def _held_out_score(problem_input: SolverInput, level, name: str, held_out: np.n
         if name == "point":
             ev = fit_point_lights(problem, est, ev)
     ev = problem.evaluate_samples(est, color, usable, normals, dA)  # the held-out pixels' albedo under these lights
-    for _ in range(2):  # the albedo's IRLS weights settle
-        ev = refit_albedo(problem, est, ev)
+    for _ in range(2):  # the albedo's IRLS weights settle (the score reads the residuals alone)
+        ev = refit_albedo(problem, est, ev, scored=False)
     use = to_host(ev.usable) & held_out[None, :]
     r = to_host(ev.residual)[use]
     return (float(np.sqrt(2.0 * cauchy(r, SCORE_CAUCHY_LAMBDA).mean())) if r.size else float("inf")), samples

@@ -626,17 +626,19 @@ class LevelProblem:
         return Evaluation(residual, usable, color, shading, normals, dA, basis, data,
                           self.prior_energy(est.z) if prior is None else prior)
 
-    def albedo_reevaluation(self, est: Estimate, ev: Evaluation) -> Evaluation:
+    def albedo_reevaluation(self, est: Estimate, ev: Evaluation, *, scored: bool = True) -> Evaluation:
         """``est.albedo`` set to its closed form from ``ev``'s IRLS weights
         (:func:`.reflectance.update_albedo`) and the evaluation at it written into ``ev``'s arrays
         (:meth:`reevaluate` with overwrite; ``ev`` is given up). On a GPU in one launch
         (:func:`.kernels.albedo_evaluation_partials`), its energy read when first used; on the host
         in one compiled pass (:func:`.kernels.albedo_refit_residuals`: the same albedo and residuals
         bit for bit as the two steps, the energy to ~1e-14; it was three passes over the frames'
-        arrays: the albedo's sums, the residuals, their logarithms)."""
+        arrays: the albedo's sums, the residuals, their logarithms). ``scored`` False: on the host
+        without its data energy (:class:`Unscored`), for a caller that refits the lights next and
+        reads the energy of that (a GPU's is read only when used anyway)."""
         xp = array_module(ev.residual)
         if xp is np:
-            return self._host_albedo_reevaluation(est, ev)
+            return self._host_albedo_reevaluation(est, ev, scored)
         num, den, albedo = (xp.empty_like(est.albedo) for _ in range(3))
         lights = self._device_poses_lights(est)[1]
         given = PendingSums.known_prior(ev.pending("prior"))
@@ -648,18 +650,19 @@ class LevelProblem:
         sums = PendingSums(partial, 0.5 * self.lam * self.lam, given)
         return Evaluation(ev.residual, ev.usable, ev.color, ev.shading, ev.normals, ev.dA, ev.basis, sums, sums)
 
-    def _host_albedo_reevaluation(self, est: Estimate, ev: Evaluation) -> Evaluation:
+    def _host_albedo_reevaluation(self, est: Estimate, ev: Evaluation, scored: bool = True) -> Evaluation:
         """:meth:`albedo_reevaluation` on the host."""
         N = ev.usable.shape[1]
         num, den, albedo = (np.empty((N, 3)) for _ in range(3))
         products, parts = np.ones(N), np.zeros(-(-N // FRAME_CHUNK))
         albedo_refit_residuals(ev.residual, ev.usable, ev.color, ev.shading, 1.0 / self.lam,
                                contiguous(est.albedo, np.float64), ev.basis,
-                               like(est.lights, ev.color, dtype=np.float64), num, den, albedo, products, parts)
+                               like(est.lights, ev.color, dtype=np.float64), num, den, albedo, products, parts,
+                               scored)
         est.albedo = albedo
         prior = ev.pending("prior")
         return Evaluation(ev.residual, ev.usable, ev.color, ev.shading, ev.normals, ev.dA, ev.basis,
-                          0.5 * self.lam * self.lam * float(parts.sum()),
+                          0.5 * self.lam * self.lam * float(parts.sum()) if scored else Unscored(),
                           self.prior_energy(est.z) if prior is None else prior)
 
     def relit(self, est: Estimate, ev: Evaluation) -> Evaluation:

@@ -23,12 +23,13 @@ def update_albedo(est: Estimate, ev: Evaluation, lam: float) -> np.ndarray:
     return out
 
 
-def refit_albedo(problem, est: Estimate, ev: Evaluation) -> Evaluation:
+def refit_albedo(problem, est: Estimate, ev: Evaluation, *, scored: bool = True) -> Evaluation:
     """``est.albedo`` set to :func:`update_albedo`'s and the evaluation at it written into
     ``ev``'s arrays (``problem.reevaluate(est, ev, overwrite=True)``; ``ev`` is given up), in one
     pass (:meth:`.LevelProblem.albedo_reevaluation`: one launch on a GPU, one compiled pass on
-    the host)."""
-    return problem.albedo_reevaluation(est, ev)
+    the host). ``scored`` False: without its data energy on the host, for a caller that refits the
+    lights next (the energy reads then raise)."""
+    return problem.albedo_reevaluation(est, ev, scored=scored)
 
 
 def update_lighting(est: Estimate, ev: Evaluation, lam: float, light) -> np.ndarray:
