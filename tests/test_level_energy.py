@@ -98,6 +98,7 @@ def test_an_unscored_trial_refits_to_the_scored_evaluation(light):
     assert np.array_equal(one.albedo, other.albedo) and not np.array_equal(one.albedo, est.albedo)
     assert refitted_unscored.energy == refitted.energy < scored.energy
 
+
 @pytest.mark.parametrize("light", ["sh", "led"])
 def test_a_refit_without_its_energy_is_the_same_evaluation(light):
     """reflectance.refit_albedo(scored=False), a light round's refit (the lights' energy is read,
