@@ -666,8 +666,16 @@ def test_the_depth_block_pattern_is_the_union_of_the_grams_patterns():
     diagonal (the sum of their products with absolute values it replaced), columns ascending."""
     from o3d_mvps.solver.normal_equations import depth_block_pattern
 
-    for (H, W), smoothness in [((40, 56), True), ((40, 56), False), ((128, 160), True)]:  # 128x160: 4 chunks of rows
-        _, _, grid = grid_system(shape=(H, W))
+    def holed(H, W, scheme):  # a disc with holes and one-pixel spurs: one-sided and missing neighbours
+        v, u = np.mgrid[:H, :W]
+        mask = (u - W / 2) ** 2 / (0.45 * W) ** 2 + (v - H / 2) ** 2 / (0.45 * H) ** 2 < 1
+        mask &= np.random.default_rng(1).uniform(size=(H, W)) > 0.15
+        return masked_grid(mask, scheme)
+
+    cases = [((40, 56), True, None), ((40, 56), False, None), ((128, 160), True, None),  # 128x160: 4 chunks of rows
+             ((40, 56), True, "central"), ((40, 56), True, "forward")]
+    for (H, W), smoothness, scheme in cases:
+        grid = grid_system(shape=(H, W))[2] if scheme is None else holed(H, W, scheme)
         prior = depth_prior(grid, np.ones((H // 2, W // 2)), 2.0)
         smoothness = second_differences(grid) if smoothness else None
         fake = type("Prior", (), {"D": prior.D, "smoothness_pattern": smoothness})()

@@ -224,39 +224,72 @@ MMAP_MIN_PIXELS = 1_500_000
 #: (its CG and AMG vectors of 1.13 M float64, 9 MB, each mapped and faulted in anew), 7.1 s at
 #: 16 MB, 6.0 s at 32 MB; process peak 3.03, 3.07, 3.05 GB.
 STATIC_MMAP_THRESHOLD = 32 << 20
+#: ... and there no block mapped at all (``M_MMAP_MAX`` 0) and the heap's top kept
+#: (``M_TRIM_THRESHOLD`` at :data:`KEPT_TRIM_THRESHOLD`), for the blocks over that ceiling too:
+#: the frames x pixels arrays (272 MB a float32 (20, 1.13 M, 3)) that each sweep makes and frees
+#: were mapped anew each time, and each of their pages zeroed by the kernel at its first touch
+#: (the quilt, two numba threads, three alternating pairs: system CPU 9.3-11.8 -> 6.6-7.1 s,
+#: refine 32.4-38.3 -> 29.2-33.0 s, process peak 3.05 -> 3.28-3.29 GB). The solve sets glibc's
+#: defaults back when it ends (:func:`solve`). At D415 size (moving camera) the same halved the
+#: system CPU (2.1-2.8 -> 1.2 s) but not the refine's wall time, for 30-50 MB more: not done there
+STATIC_HEAP_ONLY = True
+KEPT_TRIM_THRESHOLD = (1 << 31) - 1  # mallopt's int: 2 GB
+#: glibc's M_MMAP_MAX default, set back by :func:`return_freed_arrays` after a heap-only solve
+DEFAULT_MMAP_MAX = 65536
+#: whether :func:`return_freed_arrays` has made every block come from the heap (a static
+#: camera's solve), so that the next call maps large blocks again
+_heap_only = [False]
+
+
+def _malloc_set_by_user() -> bool:
+    """Whether the environment sets glibc's malloc (``MALLOC_MMAP_THRESHOLD_``, ``MALLOC_MMAP_MAX_``,
+    ``MALLOC_TRIM_THRESHOLD_`` or a ``glibc.malloc`` tunable): then the user's settings are kept."""
+    import os
+
+    return (any(key in os.environ for key in ("MALLOC_MMAP_THRESHOLD_", "MALLOC_MMAP_MAX_", "MALLOC_TRIM_THRESHOLD_"))
+            or "glibc.malloc." in os.environ.get("GLIBC_TUNABLES", ""))
 
 
 def return_freed_arrays(pixels: int | None = None, static: bool = False) -> bool:
     """Have glibc's malloc give every block of at least 8 MB (:data:`MOVING_MMAP_THRESHOLD`,
-    a moving camera's frames of any size ``pixels``; for a static camera's, ``static``: 32 MB,
-    :data:`STATIC_MMAP_THRESHOLD`, under :data:`MMAP_MIN_PIXELS` colour pixels, 1 MB,
-    :data:`MMAP_THRESHOLD`, from that size on or with no size given) its own mapping, returned
-    to the system when freed (``mallopt(M_MMAP_THRESHOLD)``, process-wide).
+    a moving camera's frames of any size ``pixels``; for a static camera's, ``static``: 1 MB,
+    :data:`MMAP_THRESHOLD`, from :data:`MMAP_MIN_PIXELS` colour pixels on or with no size given)
+    its own mapping, returned to the system when freed (``mallopt(M_MMAP_THRESHOLD)``,
+    process-wide). A static camera's frames under that size take every block from the heap
+    instead and keep the heap's top (:data:`STATIC_HEAP_ONLY`: its freed blocks are reused, not
+    faulted in anew); the next call that is not such a static camera's maps large blocks again.
 
     By default glibc raises that threshold up to 32 MB as large blocks are freed, and the
     solver's per-level arrays of 1-32 MB then stay in the heap when freed, resident and
     fragmented: 24 MB of the D415 process's peak, 50-190 MB of the stage peaks at 2 MP. Each
     mapped array costs page faults when it is allocated: at D415 size the 1 MB threshold cost
     2.7 s of system CPU, 8 MB 0.4 s, for the same peak. A block that fits free space already
-    in the heap is still carved from it, so call this before the large work. A no-op returning False where the C
-    library is not glibc, or where the user set ``MALLOC_MMAP_THRESHOLD_`` (theirs is kept)."""
+    in the heap is still carved from it, so call this before the large work. A no-op returning
+    False where the C library is not glibc, or where the user set glibc's malloc
+    (:func:`_malloc_set_by_user`: theirs is kept)."""
     import ctypes
-    import os
     import sys
 
-    if not sys.platform.startswith("linux") or "MALLOC_MMAP_THRESHOLD_" in os.environ:
+    if not sys.platform.startswith("linux") or _malloc_set_by_user():
         return False
     try:
         mallopt = ctypes.CDLL("libc.so.6").mallopt
     except (OSError, AttributeError):
         return False
-    M_MMAP_THRESHOLD = -3
+    M_TRIM_THRESHOLD, M_MMAP_THRESHOLD, M_MMAP_MAX = -1, -3, -4
     small = pixels is not None and pixels < MMAP_MIN_PIXELS
     if static:
         threshold = STATIC_MMAP_THRESHOLD if small else MMAP_THRESHOLD
     else:
         threshold = MOVING_MMAP_THRESHOLD
-    return bool(mallopt(M_MMAP_THRESHOLD, threshold))
+    done = bool(mallopt(M_MMAP_THRESHOLD, threshold))
+    if static and small and STATIC_HEAP_ONLY:
+        _heap_only[0] = True
+        return done and bool(mallopt(M_MMAP_MAX, 0)) and bool(mallopt(M_TRIM_THRESHOLD, KEPT_TRIM_THRESHOLD))
+    if _heap_only[0]:  # glibc's defaults again: the trim threshold its dynamic rule pairs with this one
+        _heap_only[0] = False
+        done = done and bool(mallopt(M_MMAP_MAX, DEFAULT_MMAP_MAX)) and bool(mallopt(M_TRIM_THRESHOLD, 2 * threshold))
+    return done
 
 
 def trim_heap() -> bool:
@@ -698,7 +731,7 @@ def _tie_to_sensor(problem: LevelProblem, g, est: Estimate, z0: np.ndarray, sigm
     on the host."""
     tied = tie_low_frequencies(g.scatter(to_host(est.z)), g.mask, z0, sigma)
     est.z = problem.level.prior.clip(like(g.gather(tied), est.z))
-    ev = problem.evaluate(est)
+    ev = problem.evaluate(est, scored=False)  # its residuals' weights alone are read
     est.albedo = update_albedo(est, ev, problem.lam)
     ev.release()
 
@@ -751,20 +784,26 @@ def solve(problem_input: SolverInput, options: RefineOptions | None = None, devi
     were rejected (:mod:`.pose_trust`); ``info["pose_steps"]`` how each level updated them
     ([level, object pixels, "joint", "alternating", "held" or "none"], coarsest first). On Linux
     with glibc the process's malloc is set to return freed arrays of 1 MB and more (8 MB for
-    frames under 1.5 megapixels, 32 MB for a static camera's) to the system
-    (:func:`return_freed_arrays`).
+    frames under 1.5 megapixels) to the system; a static camera's frames under that size take
+    every block from its heap through the solve, glibc's mapping of large blocks set back after
+    it (:func:`return_freed_arrays`).
     """
     options = problem_input.options if options is None else options
     device = array_device(device)
-    return_freed_arrays(int(np.prod(problem_input.color_size)),
-                        static=not options.refine_poses and bool(np.allclose(problem_input.initial_poses, np.eye(4))))
+    pixels = int(np.prod(problem_input.color_size))
+    static = not options.refine_poses and bool(np.allclose(problem_input.initial_poses, np.eye(4)))
+    return_freed_arrays(pixels, static=static)
     if options.progress and (notice := compile_notice(device)):
         print(notice, flush=True)
     # The solver's BLAS calls are vector dots/norms (CG, AMG) and thin products: on a loaded
     # 2-core machine OpenBLAS's threads made each 60k-vector norm take ~5 ms instead of 30 us
     # (~20 % of a 640x480 refinement); one thread loses nothing on an idle machine.
-    with threadpool_limits(1, user_api="blas"):
-        return _solve(problem_input, options, device)
+    try:
+        with threadpool_limits(1, user_api="blas"):
+            return _solve(problem_input, options, device)
+    finally:
+        if static:  # large blocks mapped again (a static camera's solve took them all from the heap)
+            return_freed_arrays(pixels)
 
 
 def frames_mean_depths(problem_input: SolverInput, mode: FramesDepth) -> np.ndarray:
@@ -945,7 +984,7 @@ def _solve(problem_input: SolverInput, options: RefineOptions, device: ArrayDevi
         timings["setup"] += time.perf_counter() - t
         if first and light.name == "point":  # the lights' start, from per-frame SH on the first level
             t = time.perf_counter()
-            initial_point_lights(problem, est, problem.evaluate(est)).release()
+            initial_point_lights(problem, est, problem.evaluate(est, scored=False)).release()  # its samples read
             timings["point_lights"] += time.perf_counter() - t
         # the finest level after a coarser level's joint steps on enough pixels to settle the poses
         hold = level_index == 0 and not light.fixed_in_world and any(

@@ -1445,6 +1445,54 @@ def add_csr_into_pattern(indptr, indices, data, scale, a_indptr, a_indices, a_da
     return missing == 0
 
 
+@numba.njit(inline="always")
+def _add_column(columns, p, count, q):  # pragma: no cover - compiled
+    """columns[p, :count] with column q added where absent; returns the new count."""
+    for k in range(count):
+        if columns[p, k] == q:
+            return count
+    columns[p, count] = q
+    return count + 1
+
+
+@numba.njit(parallel=True, cache=True)
+def stencil_rows(u_indptr, u_indices, u_data, v_indptr, v_indices, v_data, columns, counts):  # pragma: no cover
+    """The rows of the pattern of ``|Du| + |Dv| + I`` (N, N), whose Gram holds the depth block's
+    stencil Gram, from the CSR arrays of Du and Dv (N, N): row p's columns, each once and not
+    sorted (p first, then Du's and Dv's columns whose values are not zero: the entries the sum
+    of absolute values keeps), into ``columns[p, :counts[p]]`` (columns (N, K), K at least the
+    longest row of Du plus that of Dv plus one; counts (N,)). In parallel over rows."""
+    for p in numba.prange(counts.shape[0]):
+        columns[p, 0] = p
+        count = 1
+        for nz in range(u_indptr[p], u_indptr[p + 1]):
+            if u_data[nz] != 0.0:
+                count = _add_column(columns, p, count, u_indices[nz])
+        for nz in range(v_indptr[p], v_indptr[p + 1]):
+            if v_data[nz] != 0.0:
+                count = _add_column(columns, p, count, v_indices[nz])
+        counts[p] = count
+
+
+@numba.njit(cache=True)
+def pattern_transpose(indptr, indices, t_indptr, t_indices):  # pragma: no cover - compiled
+    """The pattern of X^T (N, M) from that of a CSR matrix X (M, N) (indptr (M + 1,), indices
+    (nnz,)), without values: X^T's row q lists the rows of X that hold column q, ascending, into
+    t_indices (nnz,), its offsets into t_indptr (N + 1,). Serial: a count, its cumulative sum
+    and one pass over X's rows in order."""
+    t_indptr[:] = 0
+    for nz in range(indices.shape[0]):
+        t_indptr[indices[nz] + 1] += 1
+    for q in range(t_indptr.shape[0] - 1):
+        t_indptr[q + 1] += t_indptr[q]
+    fill = t_indptr[:-1].copy()
+    for r in range(indptr.shape[0] - 1):
+        for nz in range(indptr[r], indptr[r + 1]):
+            q = indices[nz]
+            t_indices[fill[q]] = r
+            fill[q] += 1
+
+
 #: Row chunks that :func:`gram_pattern_rows` splits the pattern's rows into (each thread takes
 #: whole chunks, each chunk a marker of one int32 per column; not from the thread count, which a
 #: cached function cannot read).

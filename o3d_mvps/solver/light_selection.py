@@ -145,10 +145,11 @@ def _held_out_score(problem_input: SolverInput, level, name: str, held_out: np.n
     if samples is None:
         problem.update_visibility(est, occlusion_test=occlusion_test, rel_tol=occlusion_tolerance,
                                   sensor_depths=problem_input.depths, depth_K=problem_input.depth_K)
-        ev = problem.evaluate(est)
+        ev = problem.evaluate(est, scored=False)  # for its samples
         samples = (ev.color, ev.usable, ev.normals, ev.dA)
     color, usable, normals, dA = samples
-    ev = problem.evaluate_samples(est, color, usable & ~held_out[None, :], normals, dA)  # fit on the other half
+    # fit on the other half (its albedo refitted before any energy is read)
+    ev = problem.evaluate_samples(est, color, usable & ~held_out[None, :], normals, dA, scored=False)
     if name == "point":
         ev = initial_point_lights(problem, est, ev)
     for _ in range(SWEEPS):
@@ -159,7 +160,8 @@ def _held_out_score(problem_input: SolverInput, level, name: str, held_out: np.n
             est.led_offset, ev = update_led_offset(problem, est, ev)
         if name == "point":
             ev = fit_point_lights(problem, est, ev)
-    ev = problem.evaluate_samples(est, color, usable, normals, dA)  # the held-out pixels' albedo under these lights
+    # the held-out pixels' albedo under these lights
+    ev = problem.evaluate_samples(est, color, usable, normals, dA, scored=False)
     for _ in range(2):  # the albedo's IRLS weights settle (the score reads the residuals alone)
         ev = refit_albedo(problem, est, ev, scored=False)
     use = to_host(ev.usable) & held_out[None, :]

@@ -759,45 +759,66 @@ def depth_block_pattern(grid, prior) -> tuple[np.ndarray, np.ndarray]:
     prior's D^T D and S^T S (for any smoothness weights) and the diagonal, (N, N); arrays of the
     grid's device (on a GPU by a few sparse products there, once per level).
 
-    One product ``X^T X`` of the rows of the stencils, D and S stacked, their values all 1
-    (float32): the union of the three Grams' patterns, without their sum's two passes or the
-    absolute values' copies (1.13 M pixels, the static quilt's finest level: 0.55 against
-    2.3-3.1 CPU s, the same pattern)."""
+    The pattern of one product ``X^T X`` of the rows of ``|Du| + |Dv| + I``, D and S stacked: the
+    union of the three Grams' patterns, without their sum's two passes or the absolute values'
+    copies (1.13 M pixels, the static quilt's finest level: 0.55 against 2.3-3.1 CPU s, the same
+    pattern). On the host a symbolic product of the patterns alone (:func:`_gram_pattern`)."""
     Du, Dv = grid.difference_operators()
-    sparse = sparse_module(Du)
+    S = prior.smoothness_pattern
     xp = array_module(grid.u)
+    if xp is np:
+        return _gram_pattern(_stacked_rows(Du, Dv, [prior.D] + ([] if S is None else [S])), grid.size)
+    sparse = sparse_module(Du)
     # the sum stores no zeros (the stencils' stored zeros lie on the diagonal, where the identity is)
     touched = abs(Du) + abs(Dv) + sparse.diags(xp.ones(grid.size), format="csr")
-    S = prior.smoothness_pattern
     parts = [sparse.csr_matrix(m) for m in [touched, prior.D] + ([] if S is None else [S])]
     ends = np.cumsum([0] + [int(m.nnz) for m in parts])
     indptr = xp.concatenate([parts[0].indptr[:1]] + [m.indptr[1:] + int(end) for m, end in zip(parts, ends)])
     indices = xp.concatenate([m.indices for m in parts])  # the rows stacked, as CSR (M', N)
     ones = sparse.csr_matrix((xp.ones(indices.size, dtype=np.float32), indices, indptr),
                              shape=(sum(m.shape[0] for m in parts), grid.size))
-    if xp is np:  # a compiled symbolic product (kernels.gram_pattern_rows), in parallel
-        return _gram_pattern(ones)
     pattern = sparse.csr_matrix(ones.T.tocsr() @ ones)  # positive sums: no entry cancels
     pattern.sort_indices()
     return pattern.indptr, pattern.indices
 
 
-def _gram_pattern(X: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray]:
-    """(indptr, indices) of the pattern of X^T X (N, N), columns ascending per row, for a CSR
-    matrix X (M, N) on the host: :func:`.kernels.gram_pattern_rows`, two passes (the rows'
-    counts, then their columns), in parallel over rows. The same pattern and index dtype (int32
-    where it fits) as SciPy's ``X.T.tocsr() @ X`` sorted, without its values, its serial product
-    or the sort (the 1280x960 static quilt's five levels: 1.6 against 1.9 CPU s a refine, on a
-    loaded machine; the parallel passes shorten the wall time more)."""
-    XT = X.T.tocsr()
-    N = X.shape[1]
-    counts = np.zeros(N + 1, dtype=np.int64)
-    host_kernels.gram_pattern_rows(XT.indptr, XT.indices, X.indptr, X.indices, counts, np.empty(0, np.int32), False)
+def _stacked_rows(Du: sp.csr_matrix, Dv: sp.csr_matrix, others: list) -> tuple[np.ndarray, np.ndarray]:
+    """(indptr, indices) of the rows of ``|Du| + |Dv| + I`` (N, N) (:func:`.kernels.stencil_rows`:
+    the entries that sum keeps, not sorted) followed by those of the host sparse matrices
+    ``others`` (each (M_k, N)), stacked as one CSR pattern (N + sum M_k, N), without values."""
+    Du, Dv = (sp.csr_matrix(D) for D in (Du, Dv))
+    N = Du.shape[0]
+    width = int(np.diff(Du.indptr).max(initial=0)) + int(np.diff(Dv.indptr).max(initial=0)) + 1
+    columns, counts = np.empty((N, width), dtype=Du.indices.dtype), np.empty(N, dtype=np.int64)
+    host_kernels.stencil_rows(Du.indptr, Du.indices, Du.data, Dv.indptr, Dv.indices, Dv.data, columns, counts)
+    parts = [sp.csr_matrix(m) for m in others]
+    rows_nnz = int(counts.sum())
+    ends = np.cumsum([rows_nnz] + [int(m.nnz) for m in parts])
+    indptr = np.concatenate([[0], np.cumsum(counts)] + [m.indptr[1:] + int(end) for m, end in zip(parts, ends)])
+    indices = np.concatenate([columns[np.arange(width) < counts[:, None]]] + [m.indices for m in parts])
+    dtype = np.int32 if indices.size <= np.iinfo(np.int32).max else np.int64
+    return indptr.astype(dtype), indices.astype(dtype, copy=False)
+
+
+def _gram_pattern(X: tuple[np.ndarray, np.ndarray], columns: int) -> tuple[np.ndarray, np.ndarray]:
+    """(indptr, indices) of the pattern of X^T X (N, N), columns ascending per row, for the
+    pattern (indptr, indices) of a CSR matrix X (M, N = ``columns``) on the host, duplicate
+    columns in a row allowed: X^T's pattern (:func:`.kernels.pattern_transpose`), then
+    :func:`.kernels.gram_pattern_rows`, two passes (the rows' counts, then their columns), in
+    parallel over rows. The same pattern and index dtype (int32 where it fits) as SciPy's
+    ``X.T.tocsr() @ X`` sorted, without its values, its serial product or the sort (the 1280x960
+    static quilt's five levels: 1.6 against 1.9 CPU s a refine, on a loaded machine; the
+    parallel passes shorten the wall time more)."""
+    x_indptr, x_indices = X
+    t_indptr, t_indices = np.empty(columns + 1, dtype=x_indptr.dtype), np.empty_like(x_indices)
+    host_kernels.pattern_transpose(x_indptr, x_indices, t_indptr, t_indices)
+    counts = np.zeros(columns + 1, dtype=np.int64)
+    host_kernels.gram_pattern_rows(t_indptr, t_indices, x_indptr, x_indices, counts, np.empty(0, np.int32), False)
     np.cumsum(counts, out=counts)
     dtype = np.int32 if counts[-1] <= np.iinfo(np.int32).max else np.int64
     indptr = counts.astype(dtype)
     indices = np.empty(int(counts[-1]), dtype=dtype)
-    host_kernels.gram_pattern_rows(XT.indptr, XT.indices, X.indptr, X.indices, indptr, indices, True)
+    host_kernels.gram_pattern_rows(t_indptr, t_indices, x_indptr, x_indices, indptr, indices, True)
     return indptr, indices
 
 

@@ -313,7 +313,8 @@ def fit_point_lights(problem, est, ev, *, iterations: int | None = None, max_pix
             r = (colour - albedo[None] * shading[..., None]) * u
             albedo = _projected_albedo(colour, shading, cauchy_weights(r, problem.lam) * u)
     moved = dataclasses.replace(est, lights=X[:, :2].copy(), led_offset=X[:, 2:].copy())
-    trial = problem.evaluate_samples(moved, ev.color, ev.usable, ev.normals, ev.dA)
+    # its energy unread: the albedo is refitted and the trial evaluated again at it
+    trial = problem.evaluate_samples(moved, ev.color, ev.usable, ev.normals, ev.dA, scored=False)
     moved.albedo = update_albedo(moved, trial, problem.lam)
     trial = problem.reevaluate(moved, trial, overwrite=True)
     if trial.energy < ev.energy:
@@ -334,7 +335,7 @@ def initial_point_lights(problem, est, ev, *, sweeps: int = 4, max_pixels: int =
     sh_problem.light = SHLight()
     sh_est = dataclasses.replace(est, albedo=est.albedo.copy(), led_offset=None,
                                  lights=sh_problem.light.initial_lights(problem.n_frames, 0.0))
-    sh_ev = sh_problem.evaluate_samples(sh_est, ev.color, ev.usable, ev.normals, ev.dA)
+    sh_ev = sh_problem.evaluate_samples(sh_est, ev.color, ev.usable, ev.normals, ev.dA, scored=False)  # refitted first
     for _ in range(sweeps):
         sh_est.albedo = update_albedo(sh_est, sh_ev, problem.lam)
         sh_ev = sh_problem.reevaluate(sh_est, sh_ev, overwrite=True)
