@@ -241,13 +241,23 @@ DEFAULT_MMAP_MAX = 65536
 _heap_only = [False]
 
 
-def _malloc_set_by_user() -> bool:
-    """Whether the environment sets glibc's malloc (``MALLOC_MMAP_THRESHOLD_``, ``MALLOC_MMAP_MAX_``,
-    ``MALLOC_TRIM_THRESHOLD_`` or a ``glibc.malloc`` tunable): then the user's settings are kept."""
+def _malloc_set_by_user() -> set:
+    """glibc's malloc parameters that this process's environment set when it started ("mmap_threshold",
+    "mmap_max", "trim_threshold": ``MALLOC_MMAP_THRESHOLD_``, ... or their ``glibc.malloc``
+    tunables): the user's, which :func:`return_freed_arrays` keeps. Read from /proc/self/environ,
+    the environment glibc read: a variable set later (Dask's nanny sets ``MALLOC_TRIM_THRESHOLD_``
+    in its own process for the workers it spawns) did not reach this process's malloc."""
     import os
 
-    return (any(key in os.environ for key in ("MALLOC_MMAP_THRESHOLD_", "MALLOC_MMAP_MAX_", "MALLOC_TRIM_THRESHOLD_"))
-            or "glibc.malloc." in os.environ.get("GLIBC_TUNABLES", ""))
+    try:
+        with open("/proc/self/environ", "rb") as f:
+            entries = [entry.decode(errors="replace") for entry in f.read().split(b"\0") if entry]
+        environ = dict(entry.split("=", 1) for entry in entries if "=" in entry)
+    except OSError:
+        environ = dict(os.environ)
+    tunables = environ.get("GLIBC_TUNABLES", "")
+    return {name for name in ("mmap_threshold", "mmap_max", "trim_threshold")
+            if f"MALLOC_{name.upper()}_" in environ or f"glibc.malloc.{name}=" in tunables}
 
 
 def return_freed_arrays(pixels: int | None = None, static: bool = False) -> bool:
@@ -265,12 +275,16 @@ def return_freed_arrays(pixels: int | None = None, static: bool = False) -> bool
     mapped array costs page faults when it is allocated: at D415 size the 1 MB threshold cost
     2.7 s of system CPU, 8 MB 0.4 s, for the same peak. A block that fits free space already
     in the heap is still carved from it, so call this before the large work. A no-op returning
-    False where the C library is not glibc, or where the user set glibc's malloc
-    (:func:`_malloc_set_by_user`: theirs is kept)."""
+    False where the C library is not glibc, or where the user set glibc's mmap threshold when the
+    process started (:func:`_malloc_set_by_user`; the heap-only mode, likewise, where they set
+    its mmap count or trim threshold)."""
     import ctypes
     import sys
 
-    if not sys.platform.startswith("linux") or _malloc_set_by_user():
+    if not sys.platform.startswith("linux"):
+        return False
+    users = _malloc_set_by_user()
+    if "mmap_threshold" in users:
         return False
     try:
         mallopt = ctypes.CDLL("libc.so.6").mallopt
@@ -283,7 +297,7 @@ def return_freed_arrays(pixels: int | None = None, static: bool = False) -> bool
     else:
         threshold = MOVING_MMAP_THRESHOLD
     done = bool(mallopt(M_MMAP_THRESHOLD, threshold))
-    if static and small and STATIC_HEAP_ONLY:
+    if static and small and STATIC_HEAP_ONLY and not users & {"mmap_max", "trim_threshold"}:
         _heap_only[0] = True
         return done and bool(mallopt(M_MMAP_MAX, 0)) and bool(mallopt(M_TRIM_THRESHOLD, KEPT_TRIM_THRESHOLD))
     if _heap_only[0]:  # glibc's defaults again: the trim threshold its dynamic rule pairs with this one
