@@ -228,10 +228,11 @@ STATIC_MMAP_THRESHOLD = 32 << 20
 #: (``M_TRIM_THRESHOLD`` at :data:`KEPT_TRIM_THRESHOLD`), for the blocks over that ceiling too:
 #: the frames x pixels arrays (272 MB a float32 (20, 1.13 M, 3)) that each sweep makes and frees
 #: were mapped anew each time, and each of their pages zeroed by the kernel at its first touch
-#: (the quilt, two numba threads, three alternating pairs: system CPU 9.3-11.8 -> 6.6-7.1 s,
-#: refine 32.4-38.3 -> 29.2-33.0 s, process peak 3.05 -> 3.28-3.29 GB). The solve sets glibc's
-#: defaults back when it ends (:func:`solve`). At D415 size (moving camera) the same halved the
-#: system CPU (2.1-2.8 -> 1.2 s) but not the refine's wall time, for 30-50 MB more: not done there
+#: (the 1280x960 quilt, two numba threads, this mode off and on in alternation: system CPU 9.1,
+#: 9.5 -> 6.5, 7.0 s, refine 29.2, 30.5 -> 27.4, 27.8 s, process peak 3.03-3.09 -> 3.29 GB). The
+#: solve sets glibc's defaults back when it ends (:func:`solve`). At D415 size (moving camera)
+#: the same halved the system CPU (2.1-2.8 -> 1.2 s) but not the refine's wall time, for 30-50 MB
+#: more: not done there (docs/performance.md, "A static camera's arrays kept in the heap")
 STATIC_HEAP_ONLY = True
 KEPT_TRIM_THRESHOLD = (1 << 31) - 1  # mallopt's int: 2 GB
 #: glibc's M_MMAP_MAX default, set back by :func:`return_freed_arrays` after a heap-only solve
