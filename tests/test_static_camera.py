@@ -156,11 +156,17 @@ def test_refine_a_static_capture(monkeypatch):
     upsampling. Measured: normal MAE 4.81 deg against bicubic's 14.0 (per-frame SH: 6.5), low-pass
     shape difference 1.26 per mille (against the frames' mean depth, which refine ties the coarse
     shape to), albedo error 2.1 % (SH 9.4 %); bounds 6.5 deg, a factor 2
-    below bicubic's, 2 per mille (issue 32's target) and 4 %."""
+    below bicubic's, 2 per mille (issue 32's target) and 4 %. The solve takes its blocks from the
+    heap (driver.STATIC_HEAP_ONLY) and maps large ones again when it ends."""
     from benchmarks.static import QUICK, markdown_case, measure
+    from o3d_mvps.solver import driver
 
     monkeypatch.setattr("o3d_mvps.odometry.register_frames", lambda *a, **k: pytest.fail("registered"))
+    calls, real = [], driver.return_freed_arrays
+    monkeypatch.setattr(driver, "return_freed_arrays",
+                        lambda pixels=None, static=False: calls.append(static) or real(pixels, static))
     result = measure("bunny", **QUICK)
+    assert calls == [True, False] and not driver._heap_only[0], calls
     assert result["camera"]["static"] and result["camera"]["detected"] and result["camera"]["declared"] is None
     assert any("no camera motion" in w for w in result["warnings"])
     assert result["max_pose_deviation"] == 0.0
