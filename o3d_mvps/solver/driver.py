@@ -242,7 +242,7 @@ DEFAULT_MMAP_MAX = 65536
 _heap_only = [False]
 
 
-def _malloc_set_by_user() -> set:
+def _user_malloc_settings() -> set:
     """glibc's malloc parameters that this process's environment set when it started ("mmap_threshold",
     "mmap_max", "trim_threshold": ``MALLOC_MMAP_THRESHOLD_``, ... or their ``glibc.malloc``
     tunables): the user's, which :func:`return_freed_arrays` keeps. Read from /proc/self/environ,
@@ -264,11 +264,12 @@ def _malloc_set_by_user() -> set:
 def return_freed_arrays(pixels: int | None = None, static: bool = False) -> bool:
     """Have glibc's malloc give every block of at least 8 MB (:data:`MOVING_MMAP_THRESHOLD`,
     a moving camera's frames of any size ``pixels``; for a static camera's, ``static``: 1 MB,
-    :data:`MMAP_THRESHOLD`, from :data:`MMAP_MIN_PIXELS` colour pixels on or with no size given)
-    its own mapping, returned to the system when freed (``mallopt(M_MMAP_THRESHOLD)``,
-    process-wide). A static camera's frames under that size take every block from the heap
-    instead and keep the heap's top (:data:`STATIC_HEAP_ONLY`: its freed blocks are reused, not
-    faulted in anew); the next call that is not such a static camera's maps large blocks again.
+    :data:`MMAP_THRESHOLD`, from :data:`MMAP_MIN_PIXELS` colour pixels on or with no size given,
+    32 MB, :data:`STATIC_MMAP_THRESHOLD`, under that size) its own mapping, returned to the
+    system when freed (``mallopt(M_MMAP_THRESHOLD)``, process-wide). A static camera's frames
+    under that size take every block from the heap instead and keep the heap's top
+    (:data:`STATIC_HEAP_ONLY`: its freed blocks are reused, not faulted in anew); the next call
+    that is not such a static camera's maps large blocks again.
 
     By default glibc raises that threshold up to 32 MB as large blocks are freed, and the
     solver's per-level arrays of 1-32 MB then stay in the heap when freed, resident and
@@ -277,14 +278,14 @@ def return_freed_arrays(pixels: int | None = None, static: bool = False) -> bool
     2.7 s of system CPU, 8 MB 0.4 s, for the same peak. A block that fits free space already
     in the heap is still carved from it, so call this before the large work. A no-op returning
     False where the C library is not glibc, or where the user set glibc's mmap threshold when the
-    process started (:func:`_malloc_set_by_user`; the heap-only mode, likewise, where they set
+    process started (:func:`_user_malloc_settings`; the heap-only mode, likewise, where they set
     its mmap count or trim threshold)."""
     import ctypes
     import sys
 
     if not sys.platform.startswith("linux"):
         return False
-    users = _malloc_set_by_user()
+    users = _user_malloc_settings()
     if "mmap_threshold" in users:
         return False
     try:
