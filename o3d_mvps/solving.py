@@ -25,8 +25,9 @@ from .fileio import check_output_files
 from .model import se3
 from .refinement import Refinement
 from .run_report import NOT_PICKED, peak_memory_mb, recorded_warnings
+from .solver.allocator import map_large_blocks, return_freed_arrays, trim_heap
 from .solver.device import check_device
-from .solver.driver import return_freed_arrays, solve, trim_heap
+from .solver.driver import solve
 from .solver.options import AUTO, ConvergenceCriteria, ModelOptions, RefineOptions
 from .solver.pose_trust import DEFAULT_POSE_TRUST
 from .solver.problem_input import SolverInput, write_problem
@@ -80,23 +81,28 @@ def refine(capture: Capture, options: RefineOptions | None = None, device="auto"
     device = check_device(device)
     if save_problem is not None:
         check_output_files([save_problem], overwrite)
-    return_freed_arrays(int(np.prod(capture.color_size)))  # before the registration too (the solver sets it again)
+    # before the registration too (the solver sets it again); a heap-only mode (2 MP moving frames)
+    # ends however the refine does
+    return_freed_arrays(int(np.prod(capture.color_size)))
     t0 = time.perf_counter()
     said, dropped, memory = [], {}, {}
-    with recorded_warnings(said):
-        camera = camera_setting(capture, _host_poses(initial_poses))
-        problem_input, views = problem_from_capture(capture, options, initial_poses, camera=camera, dropped=dropped,
-                                                    checks=checks, pose_trust=pose_trust)
-        # the solver's input holds what the solve reads of the capture (its colour frames, not
-        # copied): where the caller lets go of the capture too (the command line), its masks,
-        # depth images and ground truth are freed before the solve
-        capture_frames, capture = capture.n_frames, None
-        odometry = time.perf_counter() - t0
-        memory["odometry"] = peak_memory_mb()
-        if save_problem is not None:
-            write_problem(problem_input, save_problem, overwrite=overwrite)
-        output = solve(problem_input, problem_input.options, device)
-        memory["solve"] = peak_memory_mb()
+    try:
+        with recorded_warnings(said):
+            camera = camera_setting(capture, _host_poses(initial_poses))
+            problem_input, views = problem_from_capture(capture, options, initial_poses, camera=camera,
+                                                        dropped=dropped, checks=checks, pose_trust=pose_trust)
+            # the solver's input holds what the solve reads of the capture (its colour frames, not
+            # copied): where the caller lets go of the capture too (the command line), its masks,
+            # depth images and ground truth are freed before the solve
+            capture_frames, capture = capture.n_frames, None
+            odometry = time.perf_counter() - t0
+            memory["odometry"] = peak_memory_mb()
+            if save_problem is not None:
+                write_problem(problem_input, save_problem, overwrite=overwrite)
+            output = solve(problem_input, problem_input.options, device)
+            memory["solve"] = peak_memory_mb()
+    finally:
+        map_large_blocks()
     # the solver's input goes, and with it the frames where the caller let go of the capture: their
     # pages given back now (glibc keeps freed heap blocks resident: 210 MB at D415 size)
     report, problem_input = problem_input.report, None

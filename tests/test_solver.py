@@ -474,10 +474,10 @@ def _resident_mb() -> float:
         return next(int(line.split()[1]) / 1024 for line in rollup if line.startswith("Rss:"))
 
 
-@pytest.mark.parametrize("static, megabytes", [(True, 4), (False, 9)])
-def test_return_freed_arrays_gives_freed_megabyte_arrays_back_to_the_system(static, megabytes):
+@pytest.mark.parametrize("static, pixels, megabytes", [(True, "MMAP_MIN_PIXELS", 4), (False, "MMAP_MIN_PIXELS - 1", 9)])
+def test_return_freed_arrays_gives_freed_megabyte_arrays_back_to_the_system(static, pixels, megabytes):
     """After return_freed_arrays (glibc), arrays over its threshold (1 MB for a static camera's
-    large frames, 8 MB for a moving camera's) freed between live ones leave the resident size
+    large frames, 8 MB for a moving camera's under 1.5 MP) freed between live ones leave the resident size
     (with glibc's default, once a 16 MB block has been freed, they stay in the heap, resident);
     24 of them freed must lower it by at least 75 % of their size (a margin for the
     interpreter's own allocations; alone it measures 100 %).
@@ -487,9 +487,9 @@ def test_return_freed_arrays_gives_freed_megabyte_arrays_back_to_the_system(stat
     that only 64 of 96 MB came back (CI, 2026-11-27; 0 of 96 with 384 MB freed beforehand)."""
     script = inspect.getsource(_resident_mb) + f"""
 import numpy as np
-from o3d_mvps.solver.driver import MMAP_MIN_PIXELS, return_freed_arrays
+from o3d_mvps.solver.allocator import MMAP_MIN_PIXELS, return_freed_arrays
 
-assert return_freed_arrays(MMAP_MIN_PIXELS - 1) and return_freed_arrays(MMAP_MIN_PIXELS, static={static})
+assert return_freed_arrays(MMAP_MIN_PIXELS - 1) and return_freed_arrays({pixels}, static={static})
 big = np.ones(2 << 20)  # 16 MB freed: glibc's default would raise its threshold to it
 del big
 arrays = [np.ones({megabytes} << 17) for _ in range(48)]  # 48 arrays, touched
@@ -504,21 +504,26 @@ print(before - _resident_mb())
     assert float(done.stdout) >= 0.75 * 24 * megabytes
 
 
-@pytest.mark.parametrize("at_start", [False, True])
-def test_a_small_static_cameras_solve_keeps_freed_arrays_in_the_heap_until_it_ends(at_start):
-    """For a static camera's frames under MMAP_MIN_PIXELS, return_freed_arrays takes every block
-    from glibc's heap and keeps its top (driver.STATIC_HEAP_ONLY): a freed 64 MB array (over
-    glibc's 32 MB mmap ceiling) stays resident, to be reused without its pages faulted and zeroed
-    anew; the next call for a moving camera maps large blocks again: a freed 128 MB one (more than
-    the heap's free space, which glibc would carve it from whatever the settings) leaves the
-    resident size (by at least 75 % of its size). MALLOC_TRIM_THRESHOLD_ set after the process
-    started (as Dask's nanny does in its own process) did not reach glibc and changes nothing;
-    set when it started (``at_start``), it is the user's: the heap-only mode is not taken and the
-    freed array leaves at once. Run in a fresh interpreter (as the test above)."""
-    script = inspect.getsource(_resident_mb) + """
+@pytest.mark.parametrize("frames, ends, at_start", [
+    ("MMAP_MIN_PIXELS - 1, static=True", "return_freed_arrays(MMAP_MIN_PIXELS - 1)", False),
+    ("MMAP_MIN_PIXELS", "map_large_blocks()", False),
+    ("MMAP_MIN_PIXELS - 1, static=True", "map_large_blocks()", True),
+])
+def test_heap_only_frames_keep_freed_arrays_in_the_heap_until_the_mode_ends(frames, ends, at_start):
+    """For a static camera's frames under MMAP_MIN_PIXELS and a moving camera's from that size on,
+    return_freed_arrays takes every block from glibc's heap and keeps its top (allocator.heap_only):
+    a freed 64 MB array (over glibc's 32 MB mmap ceiling) stays resident, to be reused without its
+    pages faulted and zeroed anew; map_large_blocks (the solve's end), or a call for frames that
+    do not take the mode, maps large blocks again: a freed 128 MB one (more than the heap's free
+    space, which glibc would carve it from whatever the settings) leaves the resident size (by at
+    least 75 % of its size). MALLOC_TRIM_THRESHOLD_ set after the process started (as Dask's nanny
+    does in its own process) did not reach glibc and changes nothing; set when it started
+    (``at_start``), it is the user's: the heap-only mode is not taken and the freed array leaves at
+    once. Run in a fresh interpreter (as the test above)."""
+    script = inspect.getsource(_resident_mb) + f"""
 import os
 import numpy as np
-from o3d_mvps.solver.driver import MMAP_MIN_PIXELS, return_freed_arrays
+from o3d_mvps.solver.allocator import MMAP_MIN_PIXELS, map_large_blocks, return_freed_arrays
 
 def freed_mb(megabytes):
     big = np.ones(megabytes << 17)  # touched
@@ -527,9 +532,9 @@ def freed_mb(megabytes):
     return before - _resident_mb()
 
 os.environ["MALLOC_TRIM_THRESHOLD_"] = "65536"
-assert return_freed_arrays(MMAP_MIN_PIXELS - 1, static=True)
+assert return_freed_arrays({frames})
 kept = freed_mb(64)
-assert return_freed_arrays(MMAP_MIN_PIXELS - 1)
+assert {ends}
 print(kept, freed_mb(128))
 """
     env = {key: value for key, value in os.environ.items()
@@ -544,6 +549,30 @@ print(kept, freed_mb(128))
     else:
         assert kept < 16.0, kept
     assert returned >= 0.75 * 128, returned
+
+
+def test_a_large_moving_captures_heap_only_mode_ends_with_a_failed_refine(capture, monkeypatch):
+    """refine sets the malloc policy before the registration: for a moving camera's frames from
+    MMAP_MIN_PIXELS on (here lowered to the 320x240 render's size) every block comes from the heap
+    (allocator.MOVING_HEAP_ONLY) through the registration, and the mode ends however the refine
+    does: here with the input checks' CaptureError."""
+    from o3d_mvps import solving
+    from o3d_mvps.solver import allocator
+
+    seen = []
+
+    def failing(*args, **kwargs):
+        seen.append(allocator._heap_only[0])
+        raise CaptureError("checked")
+
+    monkeypatch.setattr(allocator, "MMAP_MIN_PIXELS", 320 * 240)
+    monkeypatch.setattr(solving, "problem_from_capture", failing)
+    with pytest.raises(CaptureError, match="checked"):
+        refine(capture, RefineOptions(**FAST))
+    users = allocator._user_malloc_settings()  # the mode is not taken against the user's settings
+    taken = allocator._libc_function("mallopt") is not None and not users & {"mmap_threshold", "mmap_max", "trim_threshold"}
+    assert seen == [allocator.MOVING_MMAP_THRESHOLD if taken else None], seen
+    assert allocator._heap_only[0] is None
 
 
 def test_kernel_threads_follow_the_level_size_and_are_restored(capture, monkeypatch):
@@ -580,7 +609,7 @@ def test_trim_heap_gives_freed_heap_arrays_back_to_the_system():
     between live ones stay resident in glibc's heap; trim_heap (malloc_trim) returns their pages:
     80 MB freed must lower the resident size by at least 60 MB (a 25 % margin for other threads
     of the test process), and the live arrays keep their values."""
-    from o3d_mvps.solver.driver import return_freed_arrays, trim_heap
+    from o3d_mvps.solver.allocator import return_freed_arrays, trim_heap
 
     assert return_freed_arrays()
     arrays = [np.full(1 << 15, float(k)) for k in range(640)]  # 640 x 256 kB from the heap, touched

@@ -157,16 +157,19 @@ def test_refine_a_static_capture(monkeypatch):
     shape difference 1.26 per mille (against the frames' mean depth, which refine ties the coarse
     shape to), albedo error 2.1 % (SH 9.4 %); bounds 6.5 deg, a factor 2
     below bicubic's, 2 per mille (issue 32's target) and 4 %. The solve takes its blocks from the
-    heap (driver.STATIC_HEAP_ONLY) and maps large ones again when it ends."""
+    heap (allocator.STATIC_HEAP_ONLY) and maps large ones again when it ends."""
     from benchmarks.static import QUICK, markdown_case, measure
-    from o3d_mvps.solver import driver
+    from o3d_mvps.solver import allocator, driver
+    from o3d_mvps.solver.allocator import heap_only
 
     monkeypatch.setattr("o3d_mvps.odometry.register_frames", lambda *a, **k: pytest.fail("registered"))
-    calls, real = [], driver.return_freed_arrays
+    calls, real, real_end = [], driver.return_freed_arrays, driver.map_large_blocks
     monkeypatch.setattr(driver, "return_freed_arrays",
-                        lambda pixels=None, static=False: calls.append(static) or real(pixels, static))
+                        lambda pixels=None, static=False: calls.append((static, heap_only(pixels, static)))
+                        or real(pixels, static))
+    monkeypatch.setattr(driver, "map_large_blocks", lambda: calls.append("mapped") or real_end())
     result = measure("bunny", **QUICK)
-    assert calls == [True, False] and not driver._heap_only[0], calls
+    assert calls == [(True, True), "mapped"] and allocator._heap_only[0] is None, calls
     assert result["camera"]["static"] and result["camera"]["detected"] and result["camera"]["declared"] is None
     assert any("no camera motion" in w for w in result["warnings"])
     assert result["max_pose_deviation"] == 0.0

@@ -38,6 +38,7 @@ from ..model.robust import robust_scale
 from .depth import envelope_arrays, update_depth
 from .device import CPU, ArrayDevice, array_device, compile_notice, kernels_for, on_gpu, to_host
 from .acceleration import ANDERSON_FRACTIONS, Anderson, level_accelerator, partway
+from .allocator import map_large_blocks, return_freed_arrays, trim_heap
 from .frames_depth import RETARGET_SWEEP, frames_depth_target
 from .joint import update_pose_depth
 from .kernels import MAX_EXTRAPOLATION_FACTORS, extrapolation_blocks
@@ -204,128 +205,6 @@ LIGHT_ROUND_MODELS = ("led", "sh", "room")
 #: its start: 4 -> 8 sweeps on one); rounds on their levels of at most 200 000 pixels only: 85.8
 #: and 115.6 s. D415's reference sees 86 000, the demo's 22 000
 LIGHT_ROUND_MAX_PIXELS = 500_000
-
-
-#: glibc's M_MMAP_THRESHOLD (bytes) that :func:`return_freed_arrays` sets for a static camera's
-#: frames of at least :data:`MMAP_MIN_PIXELS` colour pixels (or no size given), and for a moving
-#: camera's frames of any size
-MMAP_THRESHOLD = 1 << 20
-MOVING_MMAP_THRESHOLD = 8 << 20
-#: D415 x 20 (0.92 M pixels), whole process: peak 938 MB at 1 MB and at 8 MB, 962 MB with glibc's
-#: default; system CPU 4.4, 2.1 and 1.7 s of ~24 s (1.03 M, 0.22 M, 0.17 M page faults). At 2 MP
-#: (1.94 M) 1 MB had lowered the stage peaks by 50-190 MB, while each joint-step block and lighting
-#: frame took fresh arrays; with those reused (docs/performance.md, "2 MP: fresh pages"), 8 MB
-#: took the 2 MP x 20 solve's system CPU from 24.5 to 19.6 s (3.8 M to 1.6 M page faults) for a
-#: peak 60 MiB higher (2632 -> 2692 MiB, saved problem; the whole command 2827-2925 -> 2877 MiB,
-#: within its run-to-run spread)
-MMAP_MIN_PIXELS = 1_500_000
-#: ... and for a static camera's frames under :data:`MMAP_MIN_PIXELS` (poses held at the identity):
-#: glibc's own ceiling. The 1280x960 quilt (20 frames, one numba thread): system CPU 8.4 s at 8 MB
-#: (its CG and AMG vectors of 1.13 M float64, 9 MB, each mapped and faulted in anew), 7.1 s at
-#: 16 MB, 6.0 s at 32 MB; process peak 3.03, 3.07, 3.05 GB.
-STATIC_MMAP_THRESHOLD = 32 << 20
-#: ... and there no block mapped at all (``M_MMAP_MAX`` 0) and the heap's top kept
-#: (``M_TRIM_THRESHOLD`` at :data:`KEPT_TRIM_THRESHOLD`), for the blocks over that ceiling too:
-#: the frames x pixels arrays (272 MB a float32 (20, 1.13 M, 3)) that each sweep makes and frees
-#: were mapped anew each time, and each of their pages zeroed by the kernel at its first touch
-#: (the 1280x960 quilt, two numba threads, this mode off and on in alternation: system CPU 9.1,
-#: 9.5 -> 6.5, 7.0 s, refine 29.2, 30.5 -> 27.4, 27.8 s, process peak 3.03-3.09 -> 3.29 GB). The
-#: solve sets glibc's defaults back when it ends (:func:`solve`). At D415 size (moving camera)
-#: the same halved the system CPU (2.1-2.8 -> 1.2 s) but not the refine's wall time, for 30-50 MB
-#: more: not done there (docs/performance.md, "A static camera's arrays kept in the heap")
-STATIC_HEAP_ONLY = True
-KEPT_TRIM_THRESHOLD = (1 << 31) - 1  # mallopt's int: 2 GB
-#: glibc's M_MMAP_MAX default, set back by :func:`return_freed_arrays` after a heap-only solve
-DEFAULT_MMAP_MAX = 65536
-#: whether :func:`return_freed_arrays` has made every block come from the heap (a static
-#: camera's solve), so that the next call maps large blocks again
-_heap_only = [False]
-
-
-def _user_malloc_settings() -> set:
-    """glibc's malloc parameters that this process's environment set when it started ("mmap_threshold",
-    "mmap_max", "trim_threshold": ``MALLOC_MMAP_THRESHOLD_``, ... or their ``glibc.malloc``
-    tunables): the user's, which :func:`return_freed_arrays` keeps. Read from /proc/self/environ,
-    the environment glibc read: a variable set later (Dask's nanny sets ``MALLOC_TRIM_THRESHOLD_``
-    in its own process for the workers it spawns) did not reach this process's malloc."""
-    import os
-
-    try:
-        with open("/proc/self/environ", "rb") as f:
-            entries = [entry.decode(errors="replace") for entry in f.read().split(b"\0") if entry]
-        environ = dict(entry.split("=", 1) for entry in entries if "=" in entry)
-    except OSError:
-        environ = dict(os.environ)
-    tunables = environ.get("GLIBC_TUNABLES", "")
-    return {name for name in ("mmap_threshold", "mmap_max", "trim_threshold")
-            if f"MALLOC_{name.upper()}_" in environ or f"glibc.malloc.{name}=" in tunables}
-
-
-def return_freed_arrays(pixels: int | None = None, static: bool = False) -> bool:
-    """Have glibc's malloc give every block of at least 8 MB (:data:`MOVING_MMAP_THRESHOLD`,
-    a moving camera's frames of any size ``pixels``; for a static camera's, ``static``: 1 MB,
-    :data:`MMAP_THRESHOLD`, from :data:`MMAP_MIN_PIXELS` colour pixels on or with no size given,
-    32 MB, :data:`STATIC_MMAP_THRESHOLD`, under that size) its own mapping, returned to the
-    system when freed (``mallopt(M_MMAP_THRESHOLD)``, process-wide). A static camera's frames
-    under that size take every block from the heap instead and keep the heap's top
-    (:data:`STATIC_HEAP_ONLY`: its freed blocks are reused, not faulted in anew); the next call
-    that is not such a static camera's maps large blocks again.
-
-    By default glibc raises that threshold up to 32 MB as large blocks are freed, and the
-    solver's per-level arrays of 1-32 MB then stay in the heap when freed, resident and
-    fragmented: 24 MB of the D415 process's peak, 50-190 MB of the stage peaks at 2 MP. Each
-    mapped array costs page faults when it is allocated: at D415 size the 1 MB threshold cost
-    2.7 s of system CPU, 8 MB 0.4 s, for the same peak. A block that fits free space already
-    in the heap is still carved from it, so call this before the large work. A no-op returning
-    False where the C library is not glibc, or where the user set glibc's mmap threshold when the
-    process started (:func:`_user_malloc_settings`; the heap-only mode, likewise, where they set
-    its mmap count or trim threshold)."""
-    import ctypes
-    import sys
-
-    if not sys.platform.startswith("linux"):
-        return False
-    users = _user_malloc_settings()
-    if "mmap_threshold" in users:
-        return False
-    try:
-        mallopt = ctypes.CDLL("libc.so.6").mallopt
-    except (OSError, AttributeError):
-        return False
-    M_TRIM_THRESHOLD, M_MMAP_THRESHOLD, M_MMAP_MAX = -1, -3, -4
-    small = pixels is not None and pixels < MMAP_MIN_PIXELS
-    if static:
-        threshold = STATIC_MMAP_THRESHOLD if small else MMAP_THRESHOLD
-    else:
-        threshold = MOVING_MMAP_THRESHOLD
-    done = bool(mallopt(M_MMAP_THRESHOLD, threshold))
-    if static and small and STATIC_HEAP_ONLY and not users & {"mmap_max", "trim_threshold"}:
-        _heap_only[0] = True
-        return done and bool(mallopt(M_MMAP_MAX, 0)) and bool(mallopt(M_TRIM_THRESHOLD, KEPT_TRIM_THRESHOLD))
-    if _heap_only[0]:  # glibc's defaults again: the trim threshold its dynamic rule pairs with this one
-        _heap_only[0] = False
-        done = done and bool(mallopt(M_MMAP_MAX, DEFAULT_MMAP_MAX)) and bool(mallopt(M_TRIM_THRESHOLD, 2 * threshold))
-    return done
-
-
-def trim_heap() -> bool:
-    """Give the freed pages inside glibc's heap back to the system (``malloc_trim(0)``), where
-    the blocks below the mmap threshold (:func:`return_freed_arrays`) that a stage freed lie
-    between blocks still in use, so that they stop counting in the resident set. A no-op
-    returning False where the C library is not glibc. Called as each pyramid level starts,
-    when the previous level's arrays are gone, once the last level is solved, and by
-    :func:`o3d_mvps.solving.refine` once the solver's input is gone; the values computed do not
-    change."""
-    import ctypes
-    import sys
-
-    if not sys.platform.startswith("linux"):
-        return False
-    try:
-        malloc_trim = ctypes.CDLL("libc.so.6").malloc_trim
-    except (OSError, AttributeError):
-        return False
-    return bool(malloc_trim(0))
 
 
 def normalised_tau(tau_tilde: float, n_frames: int, mean_intensity: float, n_hr: int, mean_z0: float, n_lr: int,
@@ -799,10 +678,11 @@ def solve(problem_input: SolverInput, options: RefineOptions | None = None, devi
     ``info["pose_updates"]`` says how far each frame's pose moved and how many of its updates
     were rejected (:mod:`.pose_trust`); ``info["pose_steps"]`` how each level updated them
     ([level, object pixels, "joint", "alternating", "held" or "none"], coarsest first). On Linux
-    with glibc the process's malloc is set to return freed arrays of 1 MB and more (8 MB for
-    frames under 1.5 megapixels) to the system; a static camera's frames under that size take
-    every block from its heap through the solve, glibc's mapping of large blocks set back after
-    it (:func:`return_freed_arrays`).
+    with glibc the process's malloc is set (:func:`.allocator.return_freed_arrays`): freed arrays
+    of 8 MB and more go back to the system (a static camera's: 1 MB, 32 MB under 1.5 megapixels),
+    except that a static camera's frames under 1.5 megapixels and a moving camera's from that size
+    on take every block from the heap through the solve, glibc's mapping of large blocks set back
+    after it.
     """
     options = problem_input.options if options is None else options
     device = array_device(device)
@@ -818,8 +698,7 @@ def solve(problem_input: SolverInput, options: RefineOptions | None = None, devi
         with threadpool_limits(1, user_api="blas"):
             return _solve(problem_input, options, device)
     finally:
-        if static:  # large blocks mapped again (a static camera's solve took them all from the heap)
-            return_freed_arrays(pixels)
+        map_large_blocks()  # where the solve took every block from the heap
 
 
 def frames_mean_depths(problem_input: SolverInput, mode: FramesDepth) -> np.ndarray:
