@@ -163,7 +163,7 @@ def test_refine_a_static_capture(monkeypatch):
     from o3d_mvps.solver.allocator import heap_only
 
     monkeypatch.setattr("o3d_mvps.odometry.register_frames", lambda *a, **k: pytest.fail("registered"))
-    calls, real, real_end = [], driver.return_freed_arrays, driver.map_large_blocks
+    calls, real, real_end = [], allocator.return_freed_arrays, allocator.map_large_blocks
     monkeypatch.setattr(driver, "return_freed_arrays",
                         lambda pixels=None, static=False: calls.append((static, heap_only(pixels, static)))
                         or real(pixels, static))

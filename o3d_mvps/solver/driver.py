@@ -38,7 +38,7 @@ from ..model.robust import robust_scale
 from .depth import envelope_arrays, update_depth
 from .device import CPU, ArrayDevice, array_device, compile_notice, kernels_for, on_gpu, to_host
 from .acceleration import ANDERSON_FRACTIONS, Anderson, level_accelerator, partway
-from .allocator import map_large_blocks, return_freed_arrays, trim_heap
+from .allocator import map_large_blocks, return_freed_arrays, trim_heap, trim_kept_heap
 from .frames_depth import RETARGET_SWEEP, frames_depth_target
 from .joint import update_pose_depth
 from .kernels import MAX_EXTRAPOLATION_FACTORS, extrapolation_blocks
@@ -314,6 +314,7 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
     level.prior.hold_products(static and settled)
     drop = None  # the last sweep's relative energy drop (_stalled)
     for iteration in bar:
+        trim_kept_heap()  # the last sweep's freed blocks that stay in the heap (2 MP, a small static camera)
         refitted = False  # the albedo refitted by this sweep's depth step (below)
         if retarget is not None and iteration == RETARGET_SWEEP:  # before the sweep's first energy
             t = time.perf_counter()

@@ -306,7 +306,7 @@ def joint_system(problem: LevelProblem, est: Estimate, ev: Evaluation, *, parall
     # (BLAS, which releases the GIL) beside the main thread's half: that Gram was serial
     threads = current_kernel_threads()
     # the blocks' temporaries in one buffer for the whole pass (:func:`_block_shapes`): fresh
-    # per block, each of more than glibc's mmap threshold (driver.return_freed_arrays) was mapped,
+    # per block, each of more than glibc's mmap threshold (allocator.return_freed_arrays) was mapped,
     # faulted in page by page and unmapped again, 7000 page faults a 2 MP block
     led = isinstance(problem.light_model(est), LEDLight)
     scratch = np.empty(_size(_block_shapes(problem.n_frames, m, min(N, block_pixels), project_albedo, led)))
