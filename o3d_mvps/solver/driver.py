@@ -314,7 +314,6 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
     level.prior.hold_products(static and settled)
     drop = None  # the last sweep's relative energy drop (_stalled)
     for iteration in bar:
-        trim_kept_heap()  # the last sweep's freed blocks that stay in the heap (2 MP, a small static camera)
         refitted = False  # the albedo refitted by this sweep's depth step (below)
         if retarget is not None and iteration == RETARGET_SWEEP:  # before the sweep's first energy
             t = time.perf_counter()
@@ -326,6 +325,10 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
         if 1 < iteration <= EVIDENCE_SWEEPS and not settled:
             _weigh_smoothness(problem, est, ev, options, timings, stats)
         previous, previous_data = ev.energy, ev.data
+        # where every block comes from the heap (2 MP, a small static camera): the freed blocks that
+        # stay in it, the smoothness weights' included (at the loop's top, before them: their
+        # arrays faulted in anew, +4 s of system CPU at 2 MP, and no lower peak)
+        trim_kept_heap()
         start = _snapshot(est)
         lamp_history.append(start.led_offset)
         if joint:
