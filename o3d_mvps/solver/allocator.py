@@ -139,15 +139,6 @@ def map_large_blocks() -> bool:
     return bool(mallopt(M_MMAP_MAX, DEFAULT_MMAP_MAX)) and bool(mallopt(M_TRIM_THRESHOLD, 2 * threshold))
 
 
-def trim_kept_heap() -> bool:
-    """:func:`trim_heap` where :func:`return_freed_arrays`' heap-only mode is on (else a no-op
-    returning False); called as each sweep starts. Over a level's sweeps the heap's free blocks
-    that no later array fits pile up, resident: 2 MP x 20 frames (``mp2s2``), two pairs, process
-    peak 2.61, 2.65 GB without it, 2.36, 2.40 GB with it (glibc's mapped blocks: 2.26-2.39 GB),
-    refine 61.1, 61.8 -> 57.8, 63.4 s; the static 1280x960 quilt 3.30, 3.32 -> 3.25, 3.27 GB."""
-    return _heap_only[0] is not None and trim_heap()
-
-
 def trim_heap() -> bool:
     """Give the freed pages inside glibc's heap back to the system (``malloc_trim(0)``), where
     the blocks below the mmap threshold (:func:`return_freed_arrays`) that a stage freed lie

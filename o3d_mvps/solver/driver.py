@@ -38,7 +38,7 @@ from ..model.robust import robust_scale
 from .depth import envelope_arrays, update_depth
 from .device import CPU, ArrayDevice, array_device, compile_notice, kernels_for, on_gpu, to_host
 from .acceleration import ANDERSON_FRACTIONS, Anderson, level_accelerator, partway
-from .allocator import map_large_blocks, return_freed_arrays, trim_heap, trim_kept_heap
+from .allocator import map_large_blocks, return_freed_arrays, trim_heap
 from .frames_depth import RETARGET_SWEEP, frames_depth_target
 from .joint import update_pose_depth
 from .kernels import MAX_EXTRAPOLATION_FACTORS, extrapolation_blocks
@@ -325,10 +325,6 @@ def _sweeps(problem: LevelProblem, est: Estimate, options: RefineOptions, timing
         if 1 < iteration <= EVIDENCE_SWEEPS and not settled:
             _weigh_smoothness(problem, est, ev, options, timings, stats)
         previous, previous_data = ev.energy, ev.data
-        # where every block comes from the heap (2 MP, a small static camera): the freed blocks that
-        # stay in it, the smoothness weights' included (at the loop's top, before them: their
-        # arrays faulted in anew, +4 s of system CPU at 2 MP, and no lower peak)
-        trim_kept_heap()
         start = _snapshot(est)
         lamp_history.append(start.led_offset)
         if joint:
