@@ -268,26 +268,28 @@ def run_memory_curve(args) -> list[dict]:
 
 def memory_curve_plot(rows: list[dict], path: Path) -> None:
     """Peak MB against frames, one line per colour size and revision (rows' ``"revision"``, where
-    given: the tree's commit; the newest solid, older ones dashed) (matplotlib, PNG)."""
+    given: the tree's commit; the rows' first solid, older ones dashed, dotted, dash-dotted in
+    turn), the legend beside the axes (matplotlib, PNG)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6, 4))
+    fig, ax = plt.subplots(figsize=(9, 4.5))
     revisions = list(dict.fromkeys(r.get("revision") for r in rows))
+    styles = ("-", "--", ":", "-.")
     for j, color in enumerate(dict.fromkeys(r["color"] for r in rows)):
         for k, revision in enumerate(revisions):
             mine = sorted((r["frames"], r["peak_mb"]) for r in rows if r["color"] == color
                           and r.get("revision") == revision)
-            if mine:  # one colour per size, the older revisions dashed
-                ax.plot(*zip(*mine), marker="o", color=f"C{j}", linestyle="-" if k == 0 else "--",
+            if mine:  # one colour per size, a line style per revision
+                ax.plot(*zip(*mine), marker="o", color=f"C{j}", linestyle=styles[k % len(styles)],
                         alpha=1.0 if k == 0 else 0.6,
                         label=f"{color} colour" + ("" if revision is None else f" ({revision})"))
     ax.set_xlabel("frames")
-    ax.set_ylabel("peak resident memory (MB)")
+    ax.set_ylabel("peak resident memory (MiB)")
     ax.set_title("odometry + refine, one sweep per level")
-    ax.legend()
+    ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize="small")
     ax.grid(alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=100)

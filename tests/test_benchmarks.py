@@ -251,7 +251,7 @@ def test_pose_check_benchmark_counts_frames_named_and_true_poses_refused(tmp_pat
 
 def test_memory_curve_plot_marks_older_revisions(tmp_path, monkeypatch):
     """speed.memory_curve_plot draws a line per colour size and revision, the rows' first
-    revision solid and older ones dashed, each labelled with its commit."""
+    revision solid and older ones dashed, then dotted, each labelled with its commit."""
     import matplotlib.axes
 
     from benchmarks.speed import memory_curve_plot
@@ -266,7 +266,9 @@ def test_memory_curve_plot_marks_older_revisions(tmp_path, monkeypatch):
     monkeypatch.setattr(matplotlib.axes.Axes, "plot", recorded)
     rows = [{"color": "640x480", "frames": f, "peak_mb": 400.0 + f, "revision": "new1234"} for f in (5, 10)]
     rows += [{"color": "1708x1136", "frames": f, "peak_mb": 2000.0 + f, "revision": "old5678"} for f in (10, 5)]
+    rows += [{"color": "1708x1136", "frames": 30, "peak_mb": 2600.0, "revision": "older90"}]
     memory_curve_plot(rows, tmp_path / "curve.png")
     assert drawn == [("640x480 colour (new1234)", "-", [405.0, 410.0]),
-                     ("1708x1136 colour (old5678)", "--", [2005.0, 2010.0])]
+                     ("1708x1136 colour (old5678)", "--", [2005.0, 2010.0]),
+                     ("1708x1136 colour (older90)", ":", [2600.0])]
     assert (tmp_path / "curve.png").stat().st_size > 1000

@@ -1,7 +1,7 @@
 """glibc's malloc settings for the solver's large arrays (Linux): which freed blocks go back to
 the system at once, which stay in the heap to be reused, and the heap's free pages given back
-between stages. Process-wide; every function is a no-op returning False elsewhere, and settings
-the user's process started with are kept."""
+between stages. Process-wide; the functions that set it are no-ops returning False elsewhere,
+and settings the user's process started with are kept."""
 
 from __future__ import annotations
 
@@ -39,8 +39,10 @@ STATIC_MMAP_THRESHOLD = 32 << 20
 STATIC_HEAP_ONLY = True
 #: ... and the same for a moving camera's frames of :data:`MMAP_MIN_PIXELS` colour pixels and more,
 #: registration included: the 2 MP render ``mp2s2`` (1708x1136, 20 frames, two numba threads)
-#: spent 17 of its 93-99 CPU s in the kernel, its 100-250 MB frames x pixels arrays mapped and
-#: zeroed anew each sweep (docs/performance.md, "Every block from the heap at 2 MP")
+#: spent 16-18 of its 97-108 CPU s in the kernel, its frames x pixels arrays (77 MB a float32
+#: (20, 958 000), 230 MB with 3 channels) mapped and zeroed anew each sweep. Three alternating
+#: pairs: refine 77.5, 66.4, 69.0 -> 64.9, 55.7, 58.2 s, system CPU 5.2-5.4 s, the same results,
+#: process peak +160-265 MiB (2.42-2.61 GiB; docs/performance.md, "Every block from the heap at 2 MP")
 MOVING_HEAP_ONLY = True
 KEPT_TRIM_THRESHOLD = (1 << 31) - 1  # mallopt's int: 2 GB
 #: glibc's M_MMAP_MAX default, set back by :func:`map_large_blocks`
