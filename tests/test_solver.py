@@ -474,10 +474,10 @@ def _resident_mb() -> float:
         return next(int(line.split()[1]) / 1024 for line in rollup if line.startswith("Rss:"))
 
 
-@pytest.mark.parametrize("static, pixels, megabytes", [(True, "MMAP_MIN_PIXELS", 4), (False, "MMAP_MIN_PIXELS - 1", 9)])
+@pytest.mark.parametrize("static, pixels, megabytes", [(True, "None", 4), (False, "MMAP_MIN_PIXELS - 1", 9)])
 def test_return_freed_arrays_gives_freed_megabyte_arrays_back_to_the_system(static, pixels, megabytes):
     """After return_freed_arrays (glibc), arrays over its threshold (1 MB for a static camera's
-    large frames, 8 MB for a moving camera's under 1.5 MP) freed between live ones leave the resident size
+    frames of no size given, 8 MB for a moving camera's under 1.5 MP) freed between live ones leave the resident size
     (with glibc's default, once a 16 MB block has been freed, they stay in the heap, resident);
     24 of them freed must lower it by at least 75 % of their size (a margin for the
     interpreter's own allocations; alone it measures 100 %).
@@ -506,11 +506,12 @@ print(before - _resident_mb())
 
 @pytest.mark.parametrize("frames, ends, at_start", [
     ("MMAP_MIN_PIXELS - 1, static=True", "return_freed_arrays(MMAP_MIN_PIXELS - 1)", False),
+    ("MMAP_MIN_PIXELS, static=True", "map_large_blocks()", False),
     ("MMAP_MIN_PIXELS", "map_large_blocks()", False),
     ("MMAP_MIN_PIXELS - 1, static=True", "map_large_blocks()", True),
 ])
 def test_heap_only_frames_keep_freed_arrays_in_the_heap_until_the_mode_ends(frames, ends, at_start):
-    """For a static camera's frames under MMAP_MIN_PIXELS and a moving camera's from that size on,
+    """For a static camera's frames of any size and a moving camera's from MMAP_MIN_PIXELS on,
     return_freed_arrays takes every block from glibc's heap and keeps its top (allocator.heap_only):
     a freed 64 MB array (over glibc's 32 MB mmap ceiling) stays resident, to be reused without its
     pages faulted and zeroed anew; map_large_blocks (the solve's end), or a call for frames that

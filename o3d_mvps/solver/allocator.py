@@ -27,7 +27,8 @@ MMAP_MIN_PIXELS = 1_500_000
 #: (its CG and AMG vectors of 1.13 M float64, 9 MB, each mapped and faulted in anew), 7.1 s at
 #: 16 MB, 6.0 s at 32 MB; process peak 3.03, 3.07, 3.05 GB.
 STATIC_MMAP_THRESHOLD = 32 << 20
-#: ... and there no block mapped at all (``M_MMAP_MAX`` 0) and the heap's top kept
+#: ... and for a static camera's frames of any size no block mapped at all (``M_MMAP_MAX`` 0)
+#: and the heap's top kept
 #: (``M_TRIM_THRESHOLD`` at :data:`KEPT_TRIM_THRESHOLD`), for the blocks over that ceiling too:
 #: the frames x pixels arrays (272 MB a float32 (20, 1.13 M, 3)) that each sweep makes and frees
 #: were mapped anew each time, and each of their pages zeroed by the kernel at its first touch
@@ -35,7 +36,10 @@ STATIC_MMAP_THRESHOLD = 32 << 20
 #: 9.5 -> 6.5, 7.0 s, refine 29.2, 30.5 -> 27.4, 27.8 s, process peak 3.03-3.09 -> 3.29 GB). The
 #: solve sets glibc's defaults back when it ends (:func:`map_large_blocks`). At D415 size (moving camera)
 #: the same halved the system CPU (2.1-2.8 -> 1.2 s) but not the refine's wall time, for 30-50 MB
-#: more: not done there (docs/performance.md, "A static camera's arrays kept in the heap")
+#: more: not done there (docs/performance.md, "A static camera's arrays kept in the heap"). A
+#: static camera's larger frames take it too: a 1600x1200 static quilt (20 frames), two pairs,
+#: refine 60.7, 59.6 -> 47.6, 50.1 s, system CPU 24.4, 23.9 -> 11.1, 11.9 s, the same results,
+#: process peak 4.27 -> 4.71-4.74 GiB (docs/performance.md, "Every block from the heap at 2 MP")
 STATIC_HEAP_ONLY = True
 #: ... and the same for a moving camera's frames of :data:`MMAP_MIN_PIXELS` colour pixels and more,
 #: registration included: the 2 MP render ``mp2s2`` (1708x1136, 20 frames, two numba threads)
@@ -82,12 +86,13 @@ def _libc_function(name: str):
 
 def heap_only(pixels: int | None, static: bool) -> bool:
     """Whether :func:`return_freed_arrays` takes every block from the heap for frames of
-    ``pixels`` colour pixels: a static camera's under :data:`MMAP_MIN_PIXELS`
-    (:data:`STATIC_HEAP_ONLY`), a moving camera's from that size on (:data:`MOVING_HEAP_ONLY`)."""
+    ``pixels`` colour pixels (None: no size given, never): a static camera's of any size
+    (:data:`STATIC_HEAP_ONLY`), a moving camera's from :data:`MMAP_MIN_PIXELS` on
+    (:data:`MOVING_HEAP_ONLY`)."""
     if pixels is None:
         return False
     if static:
-        return STATIC_HEAP_ONLY and pixels < MMAP_MIN_PIXELS
+        return STATIC_HEAP_ONLY
     return MOVING_HEAP_ONLY and pixels >= MMAP_MIN_PIXELS
 
 
@@ -97,7 +102,7 @@ def return_freed_arrays(pixels: int | None = None, static: bool = False) -> bool
     from :data:`MMAP_MIN_PIXELS` colour pixels on or with no size ``pixels`` given, 32 MB,
     :data:`STATIC_MMAP_THRESHOLD`, under that size) its own mapping, returned to the system when
     freed (``mallopt(M_MMAP_THRESHOLD)``, process-wide). Where :func:`heap_only` says so (a static
-    camera's frames under that size, a moving camera's from it on) take every block from the heap
+    camera's frames of any size, a moving camera's from 1.5 megapixels on) take every block from the heap
     instead and keep the heap's top: freed blocks are reused, not faulted in and zeroed anew, until
     :func:`map_large_blocks` (the solve's end; a call that does not choose it ends it too).
 

@@ -679,10 +679,9 @@ def solve(problem_input: SolverInput, options: RefineOptions | None = None, devi
     were rejected (:mod:`.pose_trust`); ``info["pose_steps"]`` how each level updated them
     ([level, object pixels, "joint", "alternating", "held" or "none"], coarsest first). On Linux
     with glibc the process's malloc is set (:func:`.allocator.return_freed_arrays`): freed arrays
-    of 8 MB and more go back to the system (a static camera's: 1 MB, 32 MB under 1.5 megapixels),
-    except that a static camera's frames under 1.5 megapixels and a moving camera's from that size
-    on take every block from the heap through the solve, glibc's mapping of large blocks set back
-    after it.
+    of 8 MB and more go back to the system, except that a static camera's frames of any size and a
+    moving camera's from 1.5 megapixels on take every block from the heap through the solve,
+    glibc's mapping of large blocks set back after it.
     """
     options = problem_input.options if options is None else options
     device = array_device(device)
