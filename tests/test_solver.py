@@ -534,9 +534,9 @@ def freed_mb(megabytes):
 
 os.environ["MALLOC_TRIM_THRESHOLD_"] = "65536"
 assert return_freed_arrays({frames})
-kept = freed_mb(64)
+small = freed_mb(64)  # MB it gave back
 assert {ends}
-print(kept, freed_mb(128))
+print(small, freed_mb(128))
 """
     env = {key: value for key, value in os.environ.items()
            if not key.startswith("MALLOC_") and key != "GLIBC_TUNABLES"}
@@ -544,12 +544,12 @@ print(kept, freed_mb(128))
         env["MALLOC_TRIM_THRESHOLD_"] = "65536"
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=60)
     assert done.returncode == 0, done.stderr
-    kept, returned = map(float, done.stdout.split())
+    small, large = map(float, done.stdout.split())  # MB each freed array gave back
     if at_start:
-        assert kept >= 0.75 * 64, kept
-    else:
-        assert kept < 16.0, kept
-    assert returned >= 0.75 * 128, returned
+        assert small >= 0.75 * 64, small
+    else:  # kept in the heap
+        assert small < 16.0, small
+    assert large >= 0.75 * 128, large
 
 
 def test_a_large_moving_captures_heap_only_mode_ends_with_a_failed_refine(capture, monkeypatch):
