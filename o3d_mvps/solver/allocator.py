@@ -27,19 +27,20 @@ MMAP_MIN_PIXELS = 1_500_000
 #: (its CG and AMG vectors of 1.13 M float64, 9 MB, each mapped and faulted in anew), 7.1 s at
 #: 16 MB, 6.0 s at 32 MB; process peak 3.03, 3.07, 3.05 GB.
 STATIC_MMAP_THRESHOLD = 32 << 20
-#: ... and for a static camera's frames of any size no block mapped at all (``M_MMAP_MAX`` 0)
-#: and the heap's top kept
-#: (``M_TRIM_THRESHOLD`` at :data:`KEPT_TRIM_THRESHOLD`), for the blocks over that ceiling too:
-#: the frames x pixels arrays (272 MB a float32 (20, 1.13 M, 3)) that each sweep makes and frees
-#: were mapped anew each time, and each of their pages zeroed by the kernel at its first touch
-#: (the 1280x960 quilt, two numba threads, this mode off and on in alternation: system CPU 9.1,
-#: 9.5 -> 6.5, 7.0 s, refine 29.2, 30.5 -> 27.4, 27.8 s, process peak 3.03-3.09 -> 3.29 GB). The
-#: solve sets glibc's defaults back when it ends (:func:`map_large_blocks`). At D415 size (moving camera)
-#: the same halved the system CPU (2.1-2.8 -> 1.2 s) but not the refine's wall time, for 30-50 MB
-#: more: not done there (docs/performance.md, "A static camera's arrays kept in the heap"). A
-#: static camera's larger frames take it too: a 1600x1200 static quilt (20 frames), two pairs,
-#: refine 60.7, 59.6 -> 47.6, 50.1 s, system CPU 24.4, 23.9 -> 11.1, 11.9 s, the same results,
-#: process peak 4.27 -> 4.71-4.74 GiB (docs/performance.md, "Every block from the heap at 2 MP")
+#: These thresholds hold where the heap-only mode is not taken (:func:`heap_only`; the user's
+#: settings). For a static camera's frames of any size that mode maps no block at all
+#: (``M_MMAP_MAX`` 0) and keeps the heap's top (``M_TRIM_THRESHOLD`` at
+#: :data:`KEPT_TRIM_THRESHOLD`). Before it, the frames x pixels arrays (272 MB a float32 (20, 1.13
+#: M, 3)) that each sweep makes and frees were mapped anew each time, and each of their pages
+#: zeroed by the kernel at its first touch (the 1280x960 quilt, two numba threads, this mode off
+#: and on in alternation: system CPU 9.1, 9.5 -> 6.5, 7.0 s, refine 29.2, 30.5 -> 27.4, 27.8 s,
+#: process peak 3.03-3.09 -> 3.29 GB). The solve sets glibc's defaults back when it ends
+#: (:func:`map_large_blocks`). At D415 size (moving camera) the same halved the system CPU (2.1-2.8
+#: -> 1.2 s) but not the refine's wall time, for 30-50 MB more: not done there
+#: (docs/performance.md, "A static camera's arrays kept in the heap"). A static camera's larger
+#: frames take it too: a 1600x1200 static quilt (20 frames), two pairs, refine 60.7, 59.6 -> 47.6,
+#: 50.1 s, system CPU 24.4, 23.9 -> 11.1, 11.9 s, the same results, process peak 4.27 -> 4.71-4.74
+#: GiB (docs/performance.md, "Every block from the heap at 2 MP")
 STATIC_HEAP_ONLY = True
 #: ... and the same for a moving camera's frames of :data:`MMAP_MIN_PIXELS` colour pixels and more,
 #: registration included: the 2 MP render ``mp2s2`` (1708x1136, 20 frames, two numba threads)
