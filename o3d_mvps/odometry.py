@@ -3,19 +3,19 @@
 Each depth frame (h, w) in metres is lightly denoised (normalised Gaussian convolution over
 valid pixels, ``SMOOTH_PX``), its silhouette is eroded by one pixel (unless that leaves fewer than
 ``4 * MIN_POINTS`` points), and it is back-projected with the depth intrinsics into a point cloud
-with normals (radius ``NORMAL_RADIUS``) and the colour area-averaged onto the depth grid. When
-the frames have object masks (given, or automatic), a cloud keeps the object only
-(:func:`registration_region`): in a room the table and wall outnumber the object's points and
-ICP slid along the table, where a rotation about its normal costs nothing. On a rendered room
-scene (320 x 240, 20 frames 18 deg apart, automatic masks) frame 2 was 51 mm off and frames 4-19
-stayed where the chain started them (18-174 deg off); on the object alone frames 1-3 and 17-19
-are 0.9-4.5 deg off (a margin of table around the object, 8 % of its size, gave 2-17 deg).
+with normals (from the depth grid, :func:`grid_normals`, or the nearest points) and the colour
+area-averaged onto the depth grid. When the frames have object masks (given, or automatic), a
+cloud keeps the object only (:func:`registration_region`): in a room the table and wall outnumber
+the object's points and ICP slid along the table, where a rotation about its normal costs
+nothing. On a rendered room scene (320 x 240, 20 frames 18 deg apart, automatic masks) frame 2
+was 51 mm off and frames 4-19 stayed where the chain started them (18-174 deg off); on the object
+alone frames 1-3 and 17-19 are 0.9-4.5 deg off (a margin of table around the object, 8 % of its
+size, gave 2-17 deg).
 
 Each ICP runs coarse to fine on a pyramid of voxel-downsampled clouds (:func:`cloud_pyramid`,
-``ICP_VOXELS``: 6 mm, 3 mm, 1 mm), built once per frame, with normals estimated once on the finest
-cloud of each frame that is an ICP target (every frame but the reference, only ever a source):
-the cost is bounded by the object's area rather than the pixel count (a rendered 2-megapixel
-capture's 20 frames register in 2.7 s of CPU, 2.7x less than full-resolution ICP
+``ICP_VOXELS``: 6 mm, 3 mm, 1 mm), built once per frame, its normals averaged per voxel from the
+finest cloud's: the cost is bounded by the object's area rather than the pixel count (a rendered
+2-megapixel capture's 20 frames register in 2.7 s of CPU, 2.7x less than full-resolution ICP
 at aacda76 in the same run, with the same pose errors; ``benchmarks/results/registration.json``).
 Open3D's ICP releases the GIL but already runs on every core (OpenMP), so frames are registered
 one after the other.
@@ -63,13 +63,26 @@ from scipy import ndimage
 
 from .errors import OdometryError
 from .model.camera import backproject
+from .model.normals import perspective_normals
 from .model.se3 import rotation_angle_deg
 
 METHODS = ("point_to_plane",)
 
 #: Std (LR pixels) of the normalised Gaussian smoothing of the depth before back-projection.
 SMOOTH_PX = 0.7
-#: Radius (m) and neighbour cap of the normal estimation.
+#: A cloud of at least this many points (before the voxel's thinning) takes the normals of its
+#: depth grid (:func:`grid_normals`), with the depth smoothed by a Gaussian of this std (LR pixels)
+#: before them; a smaller one Open3D's plane fit of its nearest points (:func:`estimate_normals`),
+#: cheap there. The k-d tree's fit was half the registration's CPU on D415 frames (11 000-21 000
+#: points) and 2 MP ones (58 000), where the grid's gave poses as close to the truth for half the
+#: registration's time; on smaller clouds it did worse: 640x480 renders (SF 2, 5 100 points) 0.153
+#: -> 0.166 deg mean, and on the 80x60 room scene of tests/test_scenes.py (260 points, no masks)
+#: the chain drifted, its last frames 14-24 deg off against 1.4-3.5 (docs/performance.md,
+#: "Registration normals from the depth grid")
+GRID_NORMALS_MIN_POINTS = 8000
+NORMAL_SMOOTH_PX = 1.0
+#: Radius (m) and neighbour cap of Open3D's normal estimation (the global registration's radius:
+#: two of its voxels).
 NORMAL_RADIUS = 0.02
 NORMAL_MAX_NN = 40
 #: Maximum correspondence distances (m) of the coarse-to-fine ICP levels ...
@@ -165,14 +178,15 @@ def depth_cloud(depth: np.ndarray, K: np.ndarray, max_depth: float = 3.0,
     region : (h, w) bool array, optional
         Pixels to keep (e.g. :func:`registration_region`); None keeps every valid one.
     voxel : float, optional
-        Downsample the points to this voxel (m), then to every k-th point where more than
-        ``MAX_CLOUD_POINTS`` remain, before estimating the normals (None: every point).
+        Downsample the points (their normals and colours averaged) to this voxel (m), then to
+        every k-th point where more than ``MAX_CLOUD_POINTS`` remain (None: every point).
     pixel_stride : int, optional
         Keep every k-th pixel of every k-th row only (after the smoothing): a cloud that the
         voxel and ``MAX_CLOUD_POINTS`` thin anyway, made for less (1: every pixel).
     normals : bool, optional
-        Estimate the normals (:func:`estimate_normals`); False leaves them out (a cloud that is
-        only ever an ICP source needs none).
+        Give the points normals: of the depth grid (:func:`grid_normals`, of every pixel before
+        the voxel's averaging) where at least ``GRID_NORMALS_MIN_POINTS`` pixels are kept, else
+        of the nearest points (:func:`estimate_normals`, after the thinning); False: none.
 
     Returns
     -------
@@ -183,10 +197,7 @@ def depth_cloud(depth: np.ndarray, K: np.ndarray, max_depth: float = 3.0,
     valid = (z > 0) & (z < max_depth) & np.isfinite(z)
     if region is not None:
         valid &= region
-    v = valid.astype(np.float64)
-    num = ndimage.gaussian_filter(np.where(valid, z, 0.0), SMOOTH_PX, mode="constant")
-    den = ndimage.gaussian_filter(v, SMOOTH_PX, mode="constant")
-    z = np.where(valid, num / np.maximum(den, 1e-12), 0.0)
+    raw, z = z, _smoothed(z, valid, SMOOTH_PX)
     keep = ndimage.binary_erosion(valid)  # silhouette pixels are the least reliable ...
     if keep.sum() < 4 * MIN_POINTS:  # ... but a small object (e.g. at SF 8) cannot spare them
         keep = valid
@@ -194,7 +205,11 @@ def depth_cloud(depth: np.ndarray, K: np.ndarray, max_depth: float = 3.0,
         grid = np.zeros_like(keep)
         grid[::pixel_stride, ::pixel_stride] = True
         keep = keep & grid
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(backproject(z, np.asarray(K, dtype=np.float64))[keep]))
+    K = np.asarray(K, dtype=np.float64)
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(backproject(z, K)[keep]))
+    from_grid = normals and np.count_nonzero(keep) >= GRID_NORMALS_MIN_POINTS
+    if from_grid:  # averaged per voxel below
+        cloud.normals = o3d.utility.Vector3dVector(grid_normals(raw, valid, K)[keep])
     if color is not None:
         low = cv2.resize(np.asarray(color, dtype=np.float32), (z.shape[1], z.shape[0]), interpolation=cv2.INTER_AREA)
         cloud.colors = o3d.utility.Vector3dVector(low[keep].astype(np.float64))
@@ -202,9 +217,9 @@ def depth_cloud(depth: np.ndarray, K: np.ndarray, max_depth: float = 3.0,
         cloud = cloud.voxel_down_sample(voxel)
         if len(cloud.points) > MAX_CLOUD_POINTS:  # every k-th point (row-major pixels, so spread evenly)
             cloud = cloud.uniform_down_sample(int(np.ceil(len(cloud.points) / MAX_CLOUD_POINTS)))
-    if normals:
-        estimate_normals(cloud)
-    return cloud
+    if from_grid:
+        return cloud.normalize_normals()
+    return estimate_normals(cloud) if normals else cloud
 
 
 def estimate_normals(cloud: o3d.geometry.PointCloud) -> o3d.geometry.PointCloud:
@@ -214,6 +229,23 @@ def estimate_normals(cloud: o3d.geometry.PointCloud) -> o3d.geometry.PointCloud:
         cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=NORMAL_RADIUS, max_nn=NORMAL_MAX_NN))
         cloud.orient_normals_towards_camera_location(np.zeros(3))
     return cloud
+
+
+def _smoothed(z: np.ndarray, valid: np.ndarray, sigma: float) -> np.ndarray:
+    """(h, w): depth ``z`` smoothed by a Gaussian of ``sigma`` pixels over the ``valid`` pixels
+    only (normalised convolution), 0 elsewhere."""
+    num = ndimage.gaussian_filter(np.where(valid, z, 0.0), sigma, mode="constant")
+    den = ndimage.gaussian_filter(valid.astype(np.float64), sigma, mode="constant")
+    return np.where(valid, num / np.maximum(den, 1e-12), 0.0)
+
+
+def grid_normals(depth: np.ndarray, valid: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """(h, w, 3) unit normals facing the camera of a depth frame (m) on its own pixel grid, 0
+    off ``valid`` (h, w): the perspective normals (:func:`o3d_mvps.model.normals.perspective_normals`)
+    of the depth smoothed over ``valid`` by a Gaussian of ``NORMAL_SMOOTH_PX``. The grid's
+    neighbours stand in for a nearest-neighbour search: a k-d tree's plane fit of 40 neighbours
+    (Open3D's ``estimate_normals``) took 30-65 ms a frame, half the registration's CPU."""
+    return perspective_normals(_smoothed(depth, valid, NORMAL_SMOOTH_PX), K, valid)[0]
 
 
 def _judge(step: str, T: np.ndarray, fitness: float, start: np.ndarray) -> Attempt:
@@ -376,10 +408,10 @@ def register_frames(capture, *, strict: bool = False, max_depth: float = 3.0,
     """
     n = capture.n_frames
     K = np.asarray(capture.depth_K(), dtype=np.float64)
-    clouds = _FramePyramids([depth_cloud(capture.depth_array(i), K, max_depth, capture.color_array(i),
-                                         frame_region(capture, i), ICP_VOXELS[-1], normals=False) for i in range(n)])
-    if len(clouds.finest[0].points) < MIN_POINTS:
-        raise OdometryError(f"the reference frame 0 has only {len(clouds.finest[0].points)} valid depth points below "
+    clouds = [cloud_pyramid(depth_cloud(capture.depth_array(i), K, max_depth, capture.color_array(i),
+                                        frame_region(capture, i), ICP_VOXELS[-1])) for i in range(n)]
+    if len(clouds[0][-1].points) < MIN_POINTS:
+        raise OdometryError(f"the reference frame 0 has only {len(clouds[0][-1].points)} valid depth points below "
                             f"{max_depth} m (at least {MIN_POINTS} are needed): {FIXES['points']}, so that another "
                             "frame becomes the reference")
     result = FrameRegistration(frames=[0], poses=np.eye(4)[None], steps={0: "reference"})
@@ -412,42 +444,19 @@ def frame_region(capture, i: int) -> np.ndarray | None:
     return None if mask is None or not mask.any() else registration_region(mask, capture.depth_size)
 
 
-class _FramePyramids:
-    """Each frame's :func:`cloud_pyramid`, built once from its finest cloud (``finest``, made without
-    normals), with the normals estimated only for a frame that becomes an ICP target (point-to-plane
-    and coloured ICP use the target's normals only): the reference, only ever a source, gets none
-    (the normals of 19 clouds instead of 20 on a 20-frame capture; the same poses to 1e-15)."""
-
-    def __init__(self, finest: list):
-        self.finest = finest
-        self._pyramids: dict = {}
-
-    def source(self, i: int) -> tuple:
-        """Frame i's pyramid, with or without normals."""
-        if i not in self._pyramids:
-            self._pyramids[i] = cloud_pyramid(self.finest[i])
-        return self._pyramids[i]
-
-    def target(self, i: int) -> tuple:
-        """Frame i's pyramid with normals (the coarse levels average the finest level's)."""
-        if not self.finest[i].has_normals() and len(self.finest[i].points) >= 3:
-            estimate_normals(self.finest[i])
-            self._pyramids.pop(i, None)
-        return self.source(i)
-
-
-def _register_frame(clouds: _FramePyramids, i: int, result: FrameRegistration) -> list[Attempt]:
-    """The chain for frame i (see the module docstring); the last attempt is the accepted one if any."""
+def _register_frame(clouds: list, i: int, result: FrameRegistration) -> list[Attempt]:
+    """The chain for frame i (see the module docstring), on every frame's :func:`cloud_pyramid`
+    ``clouds``; the last attempt is the accepted one if any."""
     previous, T_previous = result.frames[-1], result.poses[-1]
-    attempts = [register(clouds.source(0), clouds.target(i), T_previous, "ICP to the reference frame 0")]
+    attempts = [register(clouds[0], clouds[i], T_previous, "ICP to the reference frame 0")]
     if previous != 0 and attempts[-1].failure is not None:
-        chained = register(clouds.source(previous), clouds.target(i), np.eye(4), f"ICP to frame {previous}")
+        chained = register(clouds[previous], clouds[i], np.eye(4), f"ICP to frame {previous}")
         chained.T = chained.T @ T_previous
         attempts.append(chained)
     if attempts[-1].failure is not None:
         # ICP results refused only for their step size are candidates the global step verifies
         candidates = [a.T for a in attempts if a.kind == "step"]
-        found = register_globally(clouds.source(0), clouds.target(i), candidates,
+        found = register_globally(clouds[0], clouds[i], candidates,
                                   "global registration (FPFH + RANSAC, coloured ICP) to frame 0")
         attempts.append(found)
     return attempts
