@@ -15,8 +15,10 @@ size, gave 2-17 deg).
 Each ICP runs coarse to fine on a pyramid of voxel-downsampled clouds (:func:`cloud_pyramid`,
 ``ICP_VOXELS``: 6 mm, 3 mm, 1 mm), built once per frame, its normals averaged per voxel from the
 finest cloud's: the cost is bounded by the object's area rather than the pixel count (a rendered
-2-megapixel capture's 20 frames register in 2.7 s of CPU, 2.7x less than full-resolution ICP
-at aacda76 in the same run, with the same pose errors; ``benchmarks/results/registration.json``).
+2-megapixel capture's 20 frames registered in 2.7 s of CPU, 2.7x less than full-resolution ICP
+at aacda76 in the same run, with the same pose errors, ``benchmarks/results/registration.json``;
+with the depth grid's normals 1.8-2.3 s against 3.8-4.2 s with Open3D's in the same run,
+``benchmarks/results/registration_normals_2026-11-28.jsonl``).
 Open3D's ICP releases the GIL but already runs on every core (OpenMP), so frames are registered
 one after the other.
 
@@ -71,15 +73,16 @@ METHODS = ("point_to_plane",)
 #: Std (LR pixels) of the normalised Gaussian smoothing of the depth before back-projection.
 SMOOTH_PX = 0.7
 #: A cloud of at least this many points (before the voxel's thinning) takes the normals of its
-#: depth grid (:func:`grid_normals`), with the depth smoothed by a Gaussian of this std (LR pixels)
-#: before them; a smaller one Open3D's plane fit of its nearest points (:func:`estimate_normals`),
-#: cheap there. The k-d tree's fit was half the registration's CPU on D415 frames (11 000-21 000
-#: points) and 2 MP ones (58 000), where the grid's gave poses as close to the truth for half the
-#: registration's time; on smaller clouds it did worse: 640x480 renders (SF 2, 5 100 points) 0.153
-#: -> 0.166 deg mean, and on the 80x60 room scene of tests/test_scenes.py (260 points, no masks)
-#: the chain drifted, its last frames 14-24 deg off against 1.4-3.5 (docs/performance.md,
-#: "Registration normals from the depth grid")
+#: depth grid (:func:`grid_normals`); a smaller one Open3D's plane fit of its nearest points
+#: (:func:`estimate_normals`), cheap there. The k-d tree's fit was half the registration's CPU on
+#: D415 frames (11 000-21 000 points) and 2 MP ones (58 000); the grid's halved the registration's
+#: CPU and gave poses as close to the truth at D415 size (0.009 deg further on average at 2 MP).
+#: On smaller clouds it did worse: 640x480 renders (SF 2, 5 100 points) 0.153 -> 0.166 deg mean,
+#: and on the 80x60 room scene of tests/test_scenes.py (260 points, 8 mm a pixel) the chain
+#: drifted, frames 16-19 17-24 deg off against 1.4-7.0 (docs/performance.md, "Registration
+#: normals from the depth grid")
 GRID_NORMALS_MIN_POINTS = 8000
+#: Std (LR pixels) of the normalised Gaussian smoothing of the depth before the grid's normals.
 NORMAL_SMOOTH_PX = 1.0
 #: Radius (m) and neighbour cap of Open3D's normal estimation (the global registration's radius:
 #: two of its voxels).
