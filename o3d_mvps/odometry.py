@@ -66,6 +66,7 @@ from scipy import ndimage
 from .errors import OdometryError
 from .model.camera import backproject
 from .model.normals import perspective_normals
+from .model.resampling import masked_gaussian
 from .model.se3 import rotation_angle_deg
 
 METHODS = ("point_to_plane",)
@@ -234,14 +235,6 @@ def estimate_normals(cloud: o3d.geometry.PointCloud) -> o3d.geometry.PointCloud:
     return cloud
 
 
-def _smoothed(z: np.ndarray, valid: np.ndarray, sigma: float) -> np.ndarray:
-    """(h, w): depth ``z`` smoothed by a Gaussian of ``sigma`` pixels over the ``valid`` pixels
-    only (normalised convolution), 0 elsewhere."""
-    num = ndimage.gaussian_filter(np.where(valid, z, 0.0), sigma, mode="constant")
-    den = ndimage.gaussian_filter(valid.astype(np.float64), sigma, mode="constant")
-    return np.where(valid, num / np.maximum(den, 1e-12), 0.0)
-
-
 def grid_normals(depth: np.ndarray, valid: np.ndarray, K: np.ndarray) -> np.ndarray:
     """(h, w, 3) unit normals facing the camera of a depth frame (m) on its own pixel grid, 0
     off ``valid`` (h, w): the perspective normals (:func:`o3d_mvps.model.normals.perspective_normals`)
@@ -249,6 +242,12 @@ def grid_normals(depth: np.ndarray, valid: np.ndarray, K: np.ndarray) -> np.ndar
     neighbours stand in for a nearest-neighbour search: a k-d tree's plane fit of 40 neighbours
     (Open3D's ``estimate_normals``) took 30-65 ms a frame, half the registration's CPU."""
     return perspective_normals(_smoothed(depth, valid, NORMAL_SMOOTH_PX), K, valid)[0]
+
+
+def _smoothed(z: np.ndarray, valid: np.ndarray, sigma: float) -> np.ndarray:
+    """(h, w): depth ``z`` smoothed over the ``valid`` pixels by a Gaussian of ``sigma`` pixels
+    (:func:`o3d_mvps.model.resampling.masked_gaussian`), 0 elsewhere."""
+    return np.where(valid, masked_gaussian(z, valid, sigma)[0], 0.0)
 
 
 def _judge(step: str, T: np.ndarray, fitness: float, start: np.ndarray) -> Attempt:
