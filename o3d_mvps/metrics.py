@@ -197,10 +197,11 @@ LOWPASS_SIGMA_PX = 20.0
 
 def _masked_lowpass(values: np.ndarray, mask: np.ndarray, sigma_px: float) -> np.ndarray:
     """``values`` (H, W) low-passed over ``mask`` (H, W) bool with a Gaussian of ``sigma_px``
-    pixels (normalised convolution: only masked pixels count); (K,) at the masked pixels."""
-    weight = ndimage.gaussian_filter(mask.astype(np.float64), sigma_px, mode="constant")
-    smooth = ndimage.gaussian_filter(np.where(mask, values, 0.0), sigma_px, mode="constant")
-    return smooth[mask] / np.maximum(weight[mask], 1e-12)
+    pixels (:func:`o3d_mvps.model.resampling.masked_gaussian`: only masked pixels count); (K,) at
+    the masked pixels."""
+    from .model.resampling import masked_gaussian
+
+    return masked_gaussian(values, mask, sigma_px)[0][mask]
 
 
 def lowpass_difference_permille(depth: np.ndarray, reference: np.ndarray, mask: np.ndarray,
