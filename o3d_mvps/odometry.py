@@ -239,8 +239,9 @@ def grid_normals(depth: np.ndarray, valid: np.ndarray, K: np.ndarray) -> np.ndar
     """(h, w, 3) unit normals facing the camera of a depth frame (m) on its own pixel grid, 0
     off ``valid`` (h, w): the perspective normals (:func:`o3d_mvps.model.normals.perspective_normals`)
     of the depth smoothed over ``valid`` by a Gaussian of ``NORMAL_SMOOTH_PX``. The grid's
-    neighbours stand in for a nearest-neighbour search: a k-d tree's plane fit of 40 neighbours
-    (Open3D's ``estimate_normals``) took 30-65 ms a frame, half the registration's CPU."""
+    neighbours stand in for a nearest-neighbour search on clouds of ``GRID_NORMALS_MIN_POINTS``
+    and more: there a k-d tree's plane fit of 40 neighbours (Open3D's ``estimate_normals``) took
+    28-64 ms a frame, half the registration's CPU."""
     return perspective_normals(_smoothed(depth, valid, NORMAL_SMOOTH_PX), K, valid)[0]
 
 
