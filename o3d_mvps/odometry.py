@@ -237,8 +237,9 @@ def estimate_normals(cloud: o3d.geometry.PointCloud) -> o3d.geometry.PointCloud:
 
 def grid_normals(depth: np.ndarray, valid: np.ndarray, K: np.ndarray) -> np.ndarray:
     """(h, w, 3) unit normals facing the camera of a depth frame (m) on its own pixel grid, 0
-    off ``valid`` (h, w): the perspective normals (:func:`o3d_mvps.model.normals.perspective_normals`)
-    of the depth smoothed over ``valid`` by a Gaussian of ``NORMAL_SMOOTH_PX``. The grid's
+    off ``valid`` (h, w): the perspective normals
+    (:func:`o3d_mvps.model.normals.perspective_normals`) of the depth smoothed over ``valid`` by a
+    Gaussian of ``NORMAL_SMOOTH_PX``. The grid's
     neighbours stand in for a nearest-neighbour search on clouds of ``GRID_NORMALS_MIN_POINTS``
     and more: there a k-d tree's plane fit of 40 neighbours (Open3D's ``estimate_normals``) took
     28-64 ms a frame, half the registration's CPU."""

@@ -103,9 +103,10 @@ def return_freed_arrays(pixels: int | None = None, static: bool = False) -> bool
     from :data:`MMAP_MIN_PIXELS` colour pixels on or with no size ``pixels`` given, 32 MB,
     :data:`STATIC_MMAP_THRESHOLD`, under that size) its own mapping, returned to the system when
     freed (``mallopt(M_MMAP_THRESHOLD)``, process-wide). Where :func:`heap_only` says so (a static
-    camera's frames of any size, a moving camera's from 1.5 megapixels on) take every block from the heap
-    instead and keep the heap's top: freed blocks are reused, not faulted in and zeroed anew, until
-    :func:`map_large_blocks` (the solve's end; a call that does not choose it ends it too).
+    camera's frames of any size, a moving camera's from 1.5 megapixels on) take every block from
+    the heap instead and keep the heap's top: freed blocks are reused, not faulted in and zeroed
+    anew, until :func:`map_large_blocks` (the solve's end; a call that does not choose it ends it
+    too).
 
     By default glibc raises that threshold up to 32 MB as large blocks are freed, and the
     solver's per-level arrays of 1-32 MB then stay in the heap when freed, resident and
