@@ -14,8 +14,10 @@ p95 in per mille of depth; issue 32's target <= 2; against the frames' mean dept
 camera's sensor surface that refine ties the coarse shape to, and against frame 0's alone) and the albedo error
 (:func:`o3d_mvps.metrics.albedo_error`: median relative, after a global scale; and
 :func:`o3d_mvps.metrics.albedo_shading_error`: its low-passed part, the shading left in the
-albedo), also of ours on the same scene rendered without noise, and the images' noise floor
-(:func:`albedo_noise_floor`: the albedo of the noisy frames under the true shading).
+albedo), each with one global scale and with one per channel (the colour of the frames' mean
+white balance, which refine leaves in a static camera's albedo, taken out), also of ours on the
+same scene rendered without noise, and the images' noise floor (:func:`albedo_noise_floor`: the
+albedo of the noisy frames under the true shading).
 Near the image border (issue 32's jagged blocks on a real quilt): the normal MAE and albedo error
 within 2 px of the image's edge and 16 px or more inside it (:func:`o3d_mvps.metrics.border_bands`),
 and how much of the object (its silhouette's 2 px left out), and of the object within 2 px of the edge,
@@ -116,8 +118,7 @@ def _scores(result, capture, cubic, cubic_mean=None) -> dict:
     scores["border_coverage"] = (float((result.mask_array() & seen & band).sum() / (seen & band).sum())
                                  if (seen & band).any() else None)  # None: the object does not reach the edge
     if result.albedo is not None:
-        scores["albedo_error"] = albedo_error(result.albedo_array(), gt.albedo, mask)
-        scores["albedo_shading_error"] = albedo_shading_error(result.albedo_array(), gt.albedo, mask)
+        scores.update(_albedo_scores(result.albedo_array(), gt.albedo, mask))
         if (mask & band).any():
             scores["border_albedo_error"] = albedo_error(result.albedo_array(), gt.albedo, mask & band)
         scores["interior_albedo_error"] = albedo_error(result.albedo_array(), gt.albedo, mask & interior)
@@ -125,6 +126,16 @@ def _scores(result, capture, cubic, cubic_mean=None) -> dict:
         found, truth = np.asarray(result.info["light_model"]["positions_m"]), np.asarray(gt.light["positions"])
         scores["lamps_off_mm"] = float(1000 * np.linalg.norm(found - truth, axis=1).mean())
     return scores
+
+
+def _albedo_scores(albedo, albedo_true, mask) -> dict:
+    """:func:`albedo_error` and :func:`albedo_shading_error` of ``albedo`` (H, W, 3) over ``mask``
+    (H, W), with one global scale and with one per channel (keys ending ``_per_channel``: the
+    colour of the frames' mean white balance, which refine leaves in a static camera's albedo,
+    taken out)."""
+    return {f"{name}{suffix}": metric(albedo, albedo_true, mask, per_channel=per_channel)
+            for name, metric in (("albedo_error", albedo_error), ("albedo_shading_error", albedo_shading_error))
+            for suffix, per_channel in (("", False), ("_per_channel", True))}
 
 
 def albedo_noise_floor(capture, clean, mask) -> dict:
@@ -141,7 +152,7 @@ def albedo_noise_floor(capture, clean, mask) -> dict:
         image = capture.color_array(i) / (drawn["gain"] * np.asarray(drawn["white_balance"]))
         num, den = num + image * s, den + s * s
     floor = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
-    return {"albedo_error": albedo_error(floor, rho, mask), "albedo_shading_error": albedo_shading_error(floor, rho, mask)}
+    return _albedo_scores(floor, rho, mask)
 
 
 def _refine(capture, options: RefineOptions) -> tuple:
@@ -221,7 +232,8 @@ def markdown_case(result: dict) -> str:
              + ", ".join(f"{k} {v:.1f}" for k, v in result.get("stages_s", {}).items() if v >= 0.05) + ".", "",
              "| method | normal MAE (deg) | MAE, darkest quarter (deg) | depth RMSE (mm) | low-pass p95 (per mille): "
              "frames' mean / frame 0 "
-             "| albedo error (%) | albedo shading (%) | refine (s) | refine CPU (s) |",
+             "| albedo error (%): one scale / per channel | albedo shading (%): one scale / per channel "
+             "| refine (s) | refine CPU (s) |",
              "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for name, r in result["methods"].items():
         label = f"{name} ({r['light_model']})" if name == "ours" else name
@@ -229,8 +241,9 @@ def markdown_case(result: dict) -> str:
                    if "lowpass_mean_p95_permille" in r else f" / {r.get('lowpass_p95_permille', 0):.2f}")
         geometry = (f"{r['mae_deg']:.2f} | {r['mae_dark_deg']:.2f} | {r['rmse_mm']:.2f} | {lowpass}"
                     if "mae_deg" in r else " | | | ")
-        lines.append(f"| {label} | {geometry} | {_number(r, 'albedo_error', 100)} | "
-                     f"{_number(r, 'albedo_shading_error', 100)} | {_number(r, 'seconds', digits=1)} | "
+        albedo = " | ".join(f"{_number(r, key, 100)} / {_number(r, key + '_per_channel', 100)}"
+                            if key in r else "" for key in ("albedo_error", "albedo_shading_error"))
+        lines.append(f"| {label} | {geometry} | {albedo} | {_number(r, 'seconds', digits=1)} | "
                      f"{_number(r, 'cpu_seconds', digits=1)} |")
     lines += ["", "Image border (within 2 px of the image's edge) against the interior (16 px or more inside):", "",
               "| method | normal MAE border / interior (deg) | albedo error border / interior (%) "

@@ -222,24 +222,34 @@ def lowpass_difference_permille(depth: np.ndarray, reference: np.ndarray, mask: 
     return float(np.percentile(np.abs(low) / reference[mask], percentile) * 1000.0)
 
 
-def _relative_albedo_error(albedo: np.ndarray, albedo_true: np.ndarray, mask: np.ndarray, what: str) -> tuple:
+def _relative_albedo_error(albedo: np.ndarray, albedo_true: np.ndarray, mask: np.ndarray, what: str,
+                           per_channel: bool = False) -> tuple:
     """(relative error ``(s rho - rho*) / rho*`` (H, W, 3), zero where not used; used (H, W, 3)
-    bool), s the median ratio ``rho* / rho`` over the masked pixels where both are positive."""
+    bool), s the median ratio ``rho* / rho`` over the masked pixels where both are positive (one
+    per channel where ``per_channel``)."""
     albedo, albedo_true = np.asarray(albedo, dtype=np.float64), np.asarray(albedo_true, dtype=np.float64)
     mask = _check_mask(mask, albedo.shape[:2], what)
     use = mask[..., None] & (albedo > 0) & (albedo_true > 0)
     _nonempty(use.any(axis=2), what)
-    scale = float(np.median(albedo_true[use] / albedo[use]))
+    if per_channel:
+        scale = np.array([np.median(albedo_true[..., c][use[..., c]] / albedo[..., c][use[..., c]])
+                          if use[..., c].any() else 1.0 for c in range(3)])
+    else:
+        scale = float(np.median(albedo_true[use] / albedo[use]))
     return np.where(use, (scale * albedo - albedo_true) / np.where(use, albedo_true, 1.0), 0.0), use
 
 
-def albedo_error(albedo: np.ndarray, albedo_true: np.ndarray, mask: np.ndarray) -> float:
+def albedo_error(albedo: np.ndarray, albedo_true: np.ndarray, mask: np.ndarray, per_channel: bool = False) -> float:
     """Median relative albedo error after one global scale: ``median |s rho - rho*| / rho*`` over
     the masked pixels (H, W) bool and the channels of albedos (H, W, 3), s the median ratio
     ``rho* / rho`` (an albedo is known up to the light's scale). Shading left in the albedo (a
     bright centre, a side that darkens) shows here, and so does the images' own noise (each
-    pixel's albedo is its own: :func:`albedo_shading_error` leaves that out); 0 is perfect."""
-    error, use = _relative_albedo_error(albedo, albedo_true, mask, "albedo_error")
+    pixel's albedo is its own: :func:`albedo_shading_error` leaves that out); 0 is perfect.
+    per_channel: one scale per channel, the albedo known up to the light's colour. Frames whose
+    white balance drifts, each divided by its balance relative to the frames' mean (refine does
+    so for a static camera: :func:`o3d_mvps.capture.frame_white_balance`), leave the mean
+    balance's colour in the albedo, which no image tells apart from the object's."""
+    error, use = _relative_albedo_error(albedo, albedo_true, mask, "albedo_error", per_channel)
     return float(np.median(np.abs(error[use])))
 
 
@@ -264,21 +274,24 @@ ALBEDO_SHADING_SIGMA_PX = 8.0
 
 
 def albedo_shading_error(albedo: np.ndarray, albedo_true: np.ndarray, mask: np.ndarray,
-                         sigma_px: float = ALBEDO_SHADING_SIGMA_PX) -> float:
+                         sigma_px: float = ALBEDO_SHADING_SIGMA_PX, per_channel: bool = False) -> float:
     """The shading left in an albedo: the log ratio ``log(rho / rho*)`` per channel, low-passed
     over the mask with a Gaussian of ``sigma_px`` pixels (normalised convolution), after one
     global scale (its median over the masked pixels and channels), as a relative error: the
     median of ``|exp(.) - 1|``. A pixel's own noise (the images' photon noise, 0.5 % on the
     D415-like bunny) averages out before the scale is taken (by about 28 times at 8 px); a bright
-    centre, a side that darkens do not. albedo, albedo_true (H, W, 3), mask (H, W) bool; 0 is perfect."""
+    centre, a side that darkens do not. albedo, albedo_true (H, W, 3), mask (H, W) bool; 0 is perfect.
+    per_channel: one scale per channel, each channel's own median (as :func:`albedo_error`'s)."""
     albedo, albedo_true = np.asarray(albedo, dtype=np.float64), np.asarray(albedo_true, dtype=np.float64)
     mask = _check_mask(mask, albedo.shape[:2], "albedo_shading_error")
     use = mask[..., None] & (albedo > 0) & (albedo_true > 0)
     _nonempty(use.any(axis=2), "albedo_shading_error")
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio = np.where(use, np.log(albedo / albedo_true), 0.0)
-    low = np.concatenate([_masked_lowpass(ratio[..., c], use[..., c], sigma_px) for c in range(3) if use[..., c].any()])
-    return float(np.median(np.abs(np.expm1(low - np.median(low)))))
+    low = [_masked_lowpass(ratio[..., c], use[..., c], sigma_px) for c in range(3) if use[..., c].any()]
+    centred = (np.concatenate([channel - np.median(channel) for channel in low]) if per_channel else
+               np.concatenate(low) - np.median(np.concatenate(low)))
+    return float(np.median(np.abs(np.expm1(centred))))
 
 
 def albedo_relief(depth: np.ndarray, K: np.ndarray, normals_true: np.ndarray, albedo: np.ndarray, mask: np.ndarray,
