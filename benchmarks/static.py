@@ -53,7 +53,7 @@ from o3d_mvps.capture import image_from_array
 from o3d_mvps.capture.static import reference_depth_mean, reference_depth_outliers
 from o3d_mvps.fileio import json_text
 from o3d_mvps.metrics import (SILHOUETTE_MARGIN_PX, albedo_error, albedo_shading_error, border_bands, evaluate,
-                              evaluation_mask, lowpass_difference_permille)
+                              evaluation_mask, lowpass_difference_permille, stray_pixels)
 from o3d_mvps.synthetic import QUILT_DISTANCE, QUILT_SIZE, quilt_mesh, render_static_capture
 from o3d_mvps.synthetic.sensor import make_sensor
 
@@ -115,6 +115,8 @@ def _scores(result, capture, cubic, cubic_mean=None) -> dict:
     # the object's pixels there, its silhouette's 2 px left out (as evaluate does): holes cut into the output
     seen = ndimage.binary_erosion(gt.depth > 0, np.ones((3, 3), bool), SILHOUETTE_MARGIN_PX, border_value=1)
     scores["coverage"] = float((result.mask_array() & seen).sum() / max(seen.sum(), 1))
+    # fragments the mask above never sees: output pixels off the object or 10 mm off its surface
+    scores["stray_pixels"] = stray_pixels(result.depth_array(), result.mask_array(), gt.depth)
     scores["border_coverage"] = (float((result.mask_array() & seen & band).sum() / (seen & band).sum())
                                  if (seen & band).any() else None)  # None: the object does not reach the edge
     if result.albedo is not None:
@@ -247,7 +249,8 @@ def markdown_case(result: dict) -> str:
                      f"{_number(r, 'cpu_seconds', digits=1)} |")
     lines += ["", "Image border (within 2 px of the image's edge) against the interior (16 px or more inside):", "",
               "| method | normal MAE border / interior (deg) | albedo error border / interior (%) "
-              "| object covered: all / within 2 px of the edge | lamps off (mm) |", "|---|---:|---:|---:|---:|"]
+              "| object covered: all / within 2 px of the edge | stray pixels (over 10 mm off the surface) "
+              "| lamps off (mm) |", "|---|---:|---:|---:|---:|---:|"]
     for name, r in result["methods"].items():
         if "interior_mae_deg" not in r:
             continue
@@ -255,7 +258,7 @@ def markdown_case(result: dict) -> str:
                   if "interior_albedo_error" in r else "")
         lines.append(f"| {name} | {_number(r, 'border_mae_deg')} / {_number(r, 'interior_mae_deg')} | {albedo} | "
                      f"{_number(r, 'coverage', 100, 1)} / {_number(r, 'border_coverage', 100, 1)} % | "
-                     f"{_number(r, 'lamps_off_mm', digits=0)} |")
+                     f"{r.get('stray_pixels', '')} | {_number(r, 'lamps_off_mm', digits=0)} |")
     return "\n".join(lines) + "\n"
 
 

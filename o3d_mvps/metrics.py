@@ -269,6 +269,28 @@ def border_bands(shape: tuple[int, int], band_px: int = BORDER_BAND_PX,
     return distance < band_px, distance >= interior_px
 
 
+#: metres: an output pixel farther than this from the true surface is stray (:func:`stray_pixels`)
+STRAY_TOLERANCE_M = 0.01
+
+
+def stray_pixels(depth: np.ndarray, mask: np.ndarray, depth_true: np.ndarray,
+                 tolerance: float = STRAY_TOLERANCE_M) -> int:
+    """How many output pixels (``mask`` (H, W) bool, ``depth`` (H, W) metres) lie more than
+    ``tolerance`` metres from the true surface (``depth_true`` (H, W) metres, 0 off the object;
+    off it, from the true depth of the nearest pixel on it): fragments hanging off the surface (a
+    sensor's flying pixels kept), which :func:`evaluate`'s mask (the truth's, its silhouette
+    eroded) never sees, but a mesh export shows. A pixel just past the silhouette at the surface's
+    depth (a depth pixel that straddles it) is not stray."""
+    mask = _check_mask(mask, np.shape(depth), "mask")
+    depth_true = np.asarray(depth_true, dtype=np.float64)
+    on = depth_true > 0
+    if not on.any():
+        return int(mask.sum())
+    nearest = ndimage.distance_transform_edt(~on, return_distances=False, return_indices=True)
+    surface = depth_true[nearest[0], nearest[1]]
+    return int((mask & (np.abs(np.asarray(depth, dtype=np.float64) - surface) > tolerance)).sum())
+
+
 #: Gaussian (pixels) of :func:`albedo_shading_error`
 ALBEDO_SHADING_SIGMA_PX = 8.0
 

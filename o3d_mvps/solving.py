@@ -15,7 +15,7 @@ from dataclasses import replace
 import numpy as np
 
 from .capture import Capture, CameraSetting, camera_setting, frame_white_balance, to_host
-from .capture.static import MIN_FRAMES_FOR_MEDIAN, reference_depth_mean, reference_depth_outliers
+from .capture.static import MIN_FRAMES_FOR_MEDIAN, reference_depth_mean, reference_depth_outliers, unsteady_depth
 from .capture.checks import check_inputs
 from .capture.layout import COLOR_DIR
 from .capture.poses import GivenPoses
@@ -31,6 +31,7 @@ from .solver.driver import solve
 from .solver.options import AUTO, ConvergenceCriteria, ModelOptions, RefineOptions
 from .solver.pose_trust import DEFAULT_POSE_TRUST
 from .solver.problem_input import SolverInput, write_problem
+from .solver.solution import SolverOutput
 from .solver.smoothness import sensor_noise_smoothness
 from .covisibility import (MIN_OTHER_FRAMES, OUTLIER_MIN_FRAMES, WEAK_COVERAGE_NOTE, ViewSelection,
                            frames_seeing_reference)
@@ -100,6 +101,8 @@ def refine(capture: Capture, options: RefineOptions | None = None, device="auto"
             if save_problem is not None:
                 write_problem(problem_input, save_problem, overwrite=overwrite)
             output = solve(problem_input, problem_input.options, device)
+            if camera.static and all(mask is None for mask in problem_input.masks):
+                output = _unsteady_left_out(output, problem_input)
             memory["solve"] = peak_memory_mb()
     finally:
         map_large_blocks()
@@ -116,6 +119,25 @@ def refine(capture: Capture, options: RefineOptions | None = None, device="auto"
         method="ours", energy=output.energy, info=info,
         timings={"odometry": odometry, **output.timings, "total": time.perf_counter() - t0},
     )
+
+
+def _unsteady_left_out(output: SolverOutput, problem_input: SolverInput) -> SolverOutput:
+    """``output`` without the colour pixels of the depth pixels that a static camera's frames other
+    than the reference disagree on (:func:`~o3d_mvps.capture.static.unsteady_depth`: flying in most
+    of them), for a capture without masks, whose output is where the reference has depth; their
+    count in the report's ``reference_depth_outliers``. Only the output: the solve keeps them."""
+    depths = problem_input.depths
+    if len(depths) <= MIN_FRAMES_FOR_MEDIAN:
+        return output
+    unsteady = unsteady_depth(np.asarray(depths[1:]))
+    (H, W), (h, w) = output.mask.shape, unsteady.shape
+    sf = problem_input.scale_factor
+    cut = output.mask & unsteady[np.minimum(np.arange(H) // sf, h - 1)][:, np.minimum(np.arange(W) // sf, w - 1)]
+    problem_input.report.setdefault("reference_depth_outliers", {})["left_out_of_output"] = int(cut.sum())
+    if not cut.any():
+        return output
+    return replace(output, mask=output.mask & ~cut, depth=np.where(cut, 0.0, output.depth),
+                   albedo=np.where(cut[..., None], 0.0, output.albedo))
 
 
 def _host_poses(initial_poses) -> np.ndarray | None:

@@ -154,3 +154,27 @@ def test_a_per_channel_scale_takes_a_colour_cast_out_and_nothing_else():
         assert metric(cast, truth, mask) > metric(shaded, truth, mask) + 0.001, metric.__name__
         plain, free = metric(shaded, truth, mask, per_channel=True), metric(cast, truth, mask, per_channel=True)
         assert abs(free - plain) < 1e-12 and free > 0.001, (metric.__name__, plain, free)
+
+
+def test_stray_pixels_count_fragments_off_the_surface_and_nothing_else():
+    """Output pixels more than 10 mm from the true surface count as stray (a kept flying pixel
+    hanging behind an edge); off the object the surface is its nearest pixel's. A surface within
+    that tolerance, however noisy, pixels just past the silhouette at its depth, and the object's
+    pixels the output leaves out count none."""
+    from o3d_mvps.metrics import stray_pixels
+
+    truth = tilted_plane()
+    truth[:, :20] = 0.0  # off the object: the background
+    rng = np.random.default_rng(3)
+    depth = np.where(truth > 0, truth + rng.uniform(-0.009, 0.009, truth.shape), 0.0)
+    depth[:, 18:20] = truth[:, 20:21] + 0.005  # two columns past the silhouette at the edge's depth
+    mask = depth > 0
+    mask[50:60, 60:70] = False  # a hole in the output: nothing stray
+    assert stray_pixels(depth, mask, truth) == 0
+    depth[10:12, 16:22] = truth[10:12, 20:21] + 0.05  # a 2x6 fragment 50 mm behind, across the edge
+    mask[10:12, 16:22] = True
+    depth[30, 40] = truth[30, 40] + 0.011  # one pixel just past the tolerance
+    assert stray_pixels(depth, mask, truth) == 13
+    assert stray_pixels(depth, mask, truth, tolerance=0.02) == 12
+    with pytest.raises(ValueError, match="mask has shape"):
+        stray_pixels(depth, mask[:-1], truth)

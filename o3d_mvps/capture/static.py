@@ -42,8 +42,8 @@ MIN_COARSE_PIXELS = 50
 #: STATIC_MIN_MOTION_PX of their depth-pixel footprints (z / fx): both scale-free. Measured on
 #: D415-like renders (SF 2): static bunny and quilt at 320x240 and 640x480, 0.25-0.6 m, 4 x 19 frames:
 #: at most 3.1 x the noise (and 1.65 px); slow orbits at 320x240: 0.5 deg a frame at 0.25 m
-#: 15 x / 2.5 px at frame 4, 0.75 deg a frame at 0.6 m 5.2 x / 1.34 px at frame 4; /tmp/caps/mp2's
-#: first 6 frames (0.79 deg a frame, 0.25 m, 427x284 depth) 10.7 x / 11.8 px at frame 5.
+#: 15 x / 2.5 px at frame 4, 0.75 deg a frame at 0.6 m 5.2 x / 1.34 px at frame 4; the first 6 frames
+#: of a 2 MP bunny render (0.79 deg a frame, 0.25 m, 427x284 depth) 10.7 x / 11.8 px at frame 5.
 CONFIRM_FRAMES = 4
 STATIC_NOISE_MULTIPLE = 4.0
 STATIC_MIN_MOTION_PX = 1.0
@@ -329,6 +329,11 @@ def frame_white_balance(colors, masks=None) -> np.ndarray:
 #: A reference depth pixel is a flying pixel when it is farther than max(STATIC_TOLERANCE_M,
 #: STATIC_TOLERANCE_REL z) from the median of the frames' depths there, measured by at least this many frames.
 MIN_FRAMES_FOR_MEDIAN = 3
+#: A depth pixel is unsteady (:func:`unsteady_depth`) where fewer than this fraction of the frames
+#: that measure it lie within that tolerance of their median. A surface measures alike in every
+#: frame (D415-like at 0.55 m: about 1 mm); a depth pixel that straddles a silhouette is a mixture
+#: of the near and far depth drawn anew in every frame (within 6 mm of the median: about one in five)
+MIN_AGREEING_FRACTION = 0.5
 
 
 def _frames_median(depths: np.ndarray) -> tuple:
@@ -339,6 +344,15 @@ def _frames_median(depths: np.ndarray) -> tuple:
     counts = valid.sum(axis=0)
     median = np.where(counts > 0, nan_median(np.where(valid, depths, np.nan)), 0.0)
     return valid, counts, median
+
+
+def _frames_agreement(depths: np.ndarray) -> tuple:
+    """(counts (h, w) int, median (h, w) m, agree (n, h, w) bool) of the frames' depths (n, h, w)
+    metres, 0 = none: :func:`_frames_median`'s counts and median, and which frames measure within
+    ``max(STATIC_TOLERANCE_M, STATIC_TOLERANCE_REL * median)`` of it."""
+    valid, counts, median = _frames_median(depths)
+    tolerance = np.maximum(STATIC_TOLERANCE_M, STATIC_TOLERANCE_REL * median)
+    return counts, median, valid & (np.abs(np.asarray(depths, np.float64) - median) <= tolerance)
 
 
 def reference_depth_outliers(depths: np.ndarray) -> np.ndarray:
@@ -354,9 +368,25 @@ def reference_depth_outliers(depths: np.ndarray) -> np.ndarray:
 
     depths (n, h, w) metres, 0 = none.
     """
-    valid, counts, median = _frames_median(depths)
-    tolerance = np.maximum(STATIC_TOLERANCE_M, STATIC_TOLERANCE_REL * median)
-    return valid[0] & (counts >= MIN_FRAMES_FOR_MEDIAN) & (np.abs(np.asarray(depths[0], np.float64) - median) > tolerance)
+    counts, _, agree = _frames_agreement(depths)
+    return (np.asarray(depths[0]) > 0) & (counts >= MIN_FRAMES_FOR_MEDIAN) & ~agree[0]
+
+
+def unsteady_depth(depths: np.ndarray) -> np.ndarray:
+    """(h, w) bool: depth pixels that at least :data:`MIN_FRAMES_FOR_MEDIAN` frames of a static
+    camera measure but fewer than :data:`MIN_AGREEING_FRACTION` of them alike (within
+    ``max(STATIC_TOLERANCE_M, STATIC_TOLERANCE_REL * z)`` of their median): where a pixel flies in
+    most frames, their median flies too, and :func:`reference_depth_outliers` keeps frame 0's
+    flying depth. Without masks ``refine`` leaves their colour pixels out of its output: on the
+    640x480 D415-like quilt 129 output pixels lay over 10 mm off the sheet (2x2 islands and a
+    fringe 1-2 px past its edge, 52-90 mm behind it), 7 without them. Left in the solve:
+    dropping them there moved the quilt's point lights from 9 to 30 mm off their truth at 320x240
+    (docs/static-camera.md, "Flying pixels that fly in most frames").
+
+    depths (n, h, w) metres, 0 = none.
+    """
+    counts, _, agree = _frames_agreement(depths)
+    return (counts >= MIN_FRAMES_FOR_MEDIAN) & (agree.sum(axis=0) < MIN_AGREEING_FRACTION * counts)
 
 
 #: a pixel is averaged (:func:`reference_depth_mean`) where at least this fraction of the frames
@@ -388,11 +418,10 @@ def reference_depth_mean(depths: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     depths (n, h, w) metres, 0 = none; frame 0's flying pixels
     (:func:`reference_depth_outliers`) best set to 0 first.
     """
-    valid, counts, median = _frames_median(depths)
-    n = valid.shape[0]
+    counts, median, agree = _frames_agreement(depths)
+    n = agree.shape[0]
     depths = np.asarray(depths, np.float64)
-    agree = valid & (np.abs(depths - median) <= np.maximum(STATIC_TOLERANCE_M, STATIC_TOLERANCE_REL * median))
     k = agree.sum(axis=0)
     use = k >= max(MIN_FRAMES_FOR_MEDIAN, FILL_MIN_FRACTION * n)
     mean = np.where(use, (depths * agree).sum(axis=0) / np.maximum(k, 1), 0.0)
-    return blend_into_mean(depths[0], mean, use, FILL_OFFSET_SIGMA_PX), use & ~valid[0]
+    return blend_into_mean(depths[0], mean, use, FILL_OFFSET_SIGMA_PX), use & ~(depths[0] > 0)
