@@ -115,7 +115,7 @@ def _scores(result, capture, cubic, cubic_mean=None) -> dict:
     # the object's pixels there, its silhouette's 2 px left out (as evaluate does): holes cut into the output
     seen = ndimage.binary_erosion(gt.depth > 0, np.ones((3, 3), bool), SILHOUETTE_MARGIN_PX, border_value=1)
     scores["coverage"] = float((result.mask_array() & seen).sum() / max(seen.sum(), 1))
-    # fragments the mask above never sees: output pixels off the object or 10 mm off its surface
+    # fragments the mask above never sees: output pixels over 10 mm off the true surface
     scores["stray_pixels"] = stray_pixels(result.depth_array(), result.mask_array(), gt.depth)
     scores["border_coverage"] = (float((result.mask_array() & seen & band).sum() / (seen & band).sum())
                                  if (seen & band).any() else None)  # None: the object does not reach the edge
