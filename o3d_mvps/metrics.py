@@ -281,8 +281,11 @@ def stray_pixels(depth: np.ndarray, mask: np.ndarray, depth_true: np.ndarray,
     sensor's flying pixels kept), which :func:`evaluate`'s mask (the truth's, its silhouette
     eroded) never sees, but a mesh export shows. A pixel just past the silhouette at the surface's
     depth (a depth pixel that straddles it) is not stray."""
-    mask = _check_mask(mask, np.shape(depth), "mask")
+    mask = _check_mask(mask, np.shape(depth), "stray_pixels")
     depth_true = np.asarray(depth_true, dtype=np.float64)
+    if depth_true.shape != np.shape(depth):
+        raise ValueError(f"stray_pixels: the true depth is {depth_true.shape} but the depth is {np.shape(depth)}; "
+                         "pass both at the colour resolution (H, W)")
     on = depth_true > 0
     if not on.any():
         return int(mask.sum())

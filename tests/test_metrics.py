@@ -178,3 +178,5 @@ def test_stray_pixels_count_fragments_off_the_surface_and_nothing_else():
     assert stray_pixels(depth, mask, truth, tolerance=0.02) == 12
     with pytest.raises(ValueError, match="mask has shape"):
         stray_pixels(depth, mask[:-1], truth)
+    with pytest.raises(ValueError, match="the true depth is"):
+        stray_pixels(depth, mask, truth[::2, ::2])
